@@ -1,0 +1,161 @@
+"""What a robot is, for stride_jax: model source, joints, feet, control, and how to explore with it.
+
+A :class:`Robot` is a frozen description; :func:`stride_jax.sim.model.load` turns it into an
+MJX-ready ``mujoco.MjModel`` by applying the robot's ``edit_spec`` to the parsed ``mujoco.MjSpec``.
+Exploration (how the data-collecting controller moves the robot) is part of the robot because it
+is specific to its morphology: a gait library for the quadruped, balance and stepping for the
+humanoid, random torques for the pendulum.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pathlib
+from typing import Any, Callable, NamedTuple, Protocol
+
+import jax
+import mujoco
+
+ASSETS = pathlib.Path(__file__).parent / "assets"
+
+
+class RobotError(ValueError):
+    """An unknown robot, or a robot whose model files cannot be found."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Foot:
+    """One contact end-effector: the collision geoms that touch the floor, and a site at its sole."""
+
+    name: str
+    geoms: tuple[str, ...]
+    site: str
+
+
+@dataclasses.dataclass(frozen=True)
+class Randomization:
+    """Hidden per-episode randomisation ranges (uniform). Models never see the sampled values.
+
+    Attributes:
+      friction: scale of the sliding friction of every contact, (lo, hi).
+      softness: scale of the contact solref time constant (> 1 is softer), (lo, hi).
+      payload_kg: mass added to the base body (kg), (lo, hi).
+      push_n: magnitude of one horizontal push on the base (N), (lo, hi); 0 disables pushes.
+      push_s: duration of the push (s), (lo, hi).
+      damping: scale of every joint's viscous damping, (lo, hi).
+      frictionloss: scale of every joint's dry friction, (lo, hi).
+      spring_nm: stiffness of a hidden joint spring (N m/rad) whose rest angle is ``spring_ref``
+        plus or minus ``spring_offset`` with equal odds: a bimodal residual (pendulum only).
+    """
+
+    friction: tuple[float, float] = (1.0, 1.0)
+    softness: tuple[float, float] = (1.0, 1.0)
+    payload_kg: tuple[float, float] = (0.0, 0.0)
+    push_n: tuple[float, float] = (0.0, 0.0)
+    push_s: tuple[float, float] = (0.1, 0.2)
+    damping: tuple[float, float] = (1.0, 1.0)
+    frictionloss: tuple[float, float] = (1.0, 1.0)
+    spring_nm: tuple[float, float] = (0.0, 0.0)
+    spring_ref: float = 0.0
+    spring_offset: float = 0.0
+
+
+class ModelInfo(NamedTuple):
+    """Static facts an explorer needs about the compiled model (numpy / Python values only)."""
+
+    nq: int
+    nv: int
+    nu: int
+    qpos0: Any  # [nq] nominal qpos (the robot's home pose)
+    ctrl_lo: Any  # [nu]
+    ctrl_hi: Any  # [nu]
+    ctrl_dt: float
+    base_body: int  # body id of the floating base (or the moving body for fixed-base robots)
+
+
+class Explorer(Protocol):
+    """The data-collecting controller: pure JAX, written for one world, vmapped by the caller.
+
+    Everything random is drawn from the episode parameters (``sample``) and ``fold_in(key, step)``,
+    so that MJX and the CPU backend issue identical controls from identical states.
+    """
+
+    def sample(self, key: jax.Array, info: ModelInfo) -> Any:
+        """Episode parameters (a pytree of arrays), including the episode key."""
+
+    def reset(self, params: Any, info: ModelInfo) -> tuple[jax.Array, jax.Array]:
+        """Initial ``(qpos [nq], qvel [nv])`` of the episode."""
+
+    def act(self, params: Any, info: ModelInfo, step: jax.Array, qpos: jax.Array,
+            qvel: jax.Array) -> jax.Array:
+        """Control ``[nu]`` at control step ``step`` from the current state."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Robot:
+    """A robot definition.
+
+    Attributes:
+      name: registry name (``pendulum``, ``pendulum_bouncing``, ``go1``, ``g1``).
+      source: where the model comes from, for humans and dataset metadata.
+      load_spec: returns the parsed, unedited ``mujoco.MjSpec``.
+      edit_spec: makes the spec MJX-ready in place (cone, contact set, solver, timestep).
+      joints: actuated joint names, in actuator order.
+      feet: contact end-effectors (empty for the pendulum).
+      base_body: name of the floating base body (the moving body for fixed-base robots).
+      floating_base: whether the first joint is a free joint.
+      ctrl_dt: control period (s); an integer multiple of the simulation timestep.
+      home_key: keyframe holding the nominal pose, or None for qpos0.
+      kp, kd: PD gains of the position servos (N m/rad, N m s/rad), or None for torque control.
+      explorer: the data-collecting controller.
+      randomization: hidden per-episode randomisation.
+      episode_s: default episode length (s).
+      min_base_height: below this base height (m) an episode counts as fallen (floating base).
+      max_tilt: above this base tilt from upright (rad) an episode counts as fallen.
+    """
+
+    name: str
+    source: str
+    load_spec: Callable[[], mujoco.MjSpec]
+    edit_spec: Callable[[mujoco.MjSpec], None]
+    joints: tuple[str, ...]
+    feet: tuple[Foot, ...]
+    base_body: str
+    floating_base: bool
+    ctrl_dt: float
+    home_key: str | None
+    kp: tuple[float, ...] | None
+    kd: tuple[float, ...] | None
+    explorer: Explorer
+    randomization: Randomization
+    episode_s: float
+    min_base_height: float = 0.0
+    max_tilt: float = 3.2
+
+
+def menagerie_spec(robot: str, entry: str, our_name: str) -> mujoco.MjSpec:
+    """Parses a MuJoCo Menagerie entry point, with an error that says how to fix a missing model."""
+    import mujoco_menagerie
+
+    root = os.environ.get("MENAGERIE_ROOT")
+    hint = (f"robot {our_name!r} needs MuJoCo Menagerie's {robot!r} ({entry!r}). Set MENAGERIE_ROOT "
+            "to a folder holding it (offline: MENAGERIE_ROOT=../shared/menagerie), or unset it to "
+            "let the mujoco-menagerie package download it.")
+    try:
+        path = mujoco_menagerie.get(robot).xml(entry)
+    except mujoco_menagerie.MenagerieError as e:
+        raise RobotError(f"{hint} Cause: {e}") from e
+    except OSError as e:  # no network, unwritable cache
+        raise RobotError(f"{hint} Cause: {e}") from e
+    if not path.is_file():
+        raise RobotError(f"{hint} Missing file: {path} (MENAGERIE_ROOT={root}).")
+    return mujoco.MjSpec.from_file(str(path))
+
+
+def asset_spec(filename: str) -> mujoco.MjSpec:
+    """Parses one of stride_jax's own MJCF files."""
+    path = ASSETS / filename
+    if not path.is_file():
+        raise RobotError(f"stride_jax model file missing: {path} (broken installation?)")
+    return mujoco.MjSpec.from_file(str(path))

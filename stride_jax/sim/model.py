@@ -1,0 +1,91 @@
+"""Compile a robot definition into an MJX-ready ``mujoco.MjModel`` plus the indices rollouts need."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import mujoco
+import numpy as np
+
+from stride_jax import robots as robots_lib
+from stride_jax.robots import ModelInfo, Robot, RobotError
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SimModel:
+    """A compiled robot.
+
+    Attributes:
+      robot: the definition it was compiled from.
+      mj: the MJX-ready ``mujoco.MjModel`` (nominal: no randomisation applied).
+      info: static facts for the explorer (home pose, control range, control period).
+      n_substeps: simulation steps per control step.
+      foot_geoms: ``[nfeet, G]`` geom ids of each foot, padded with -1.
+      foot_sites: ``[nfeet]`` site ids at the soles.
+      base_body: body id of the base.
+      act_dof: ``[nu]`` dof index that each actuator drives.
+    """
+
+    robot: Robot
+    mj: mujoco.MjModel
+    info: ModelInfo
+    n_substeps: int
+    foot_geoms: np.ndarray
+    foot_sites: np.ndarray
+    base_body: int
+    act_dof: np.ndarray
+
+    @property
+    def nfeet(self) -> int:
+        return len(self.robot.feet)
+
+
+def _id(m: mujoco.MjModel, obj: mujoco.mjtObj, name: str, robot: str) -> int:
+    if not name:  # mj_name2id segfaults on None; an empty name is never what we mean
+        raise RobotError(f"robot {robot!r}: empty {obj.name} name in its definition")
+    i = mujoco.mj_name2id(m, obj, name)
+    if i < 0:
+        raise RobotError(f"robot {robot!r}: no {obj.name.removeprefix('mjOBJ_').lower()} named "
+                         f"{name!r} in the compiled model")
+    return i
+
+
+def compile_robot(robot: Robot) -> SimModel:
+    """Parses, edits and compiles ``robot``; checks that its names match the model."""
+    spec = robot.load_spec()
+    robot.edit_spec(spec)
+    m = spec.compile()
+    n_sub = robot.ctrl_dt / m.opt.timestep
+    if abs(n_sub - round(n_sub)) > 1e-6 or round(n_sub) < 1:
+        raise RobotError(f"robot {robot.name!r}: ctrl_dt {robot.ctrl_dt} is not a multiple of the "
+                         f"timestep {m.opt.timestep}")
+    act_joints = [m.joint(m.actuator_trnid[i, 0]).name for i in range(m.nu)]
+    if tuple(act_joints) != robot.joints:
+        raise RobotError(f"robot {robot.name!r}: actuators drive {act_joints}, the definition "
+                         f"lists {list(robot.joints)}")
+    qpos0 = m.qpos0.copy()
+    if robot.home_key is not None:
+        qpos0 = m.key(_id(m, mujoco.mjtObj.mjOBJ_KEY, robot.home_key, robot.name)).qpos.copy()
+    width = max((len(f.geoms) for f in robot.feet), default=0)
+    foot_geoms = np.full((len(robot.feet), width), -1, dtype=np.int32)
+    for i, foot in enumerate(robot.feet):
+        for j, g in enumerate(foot.geoms):
+            foot_geoms[i, j] = _id(m, mujoco.mjtObj.mjOBJ_GEOM, g, robot.name)
+    foot_sites = np.array([_id(m, mujoco.mjtObj.mjOBJ_SITE, f.site, robot.name) for f in robot.feet],
+                          dtype=np.int32)
+    base = _id(m, mujoco.mjtObj.mjOBJ_BODY, robot.base_body, robot.name)
+    info = ModelInfo(
+        nq=m.nq, nv=m.nv, nu=m.nu, qpos0=qpos0.astype(np.float32),
+        ctrl_lo=m.actuator_ctrlrange[:, 0].astype(np.float32),
+        ctrl_hi=m.actuator_ctrlrange[:, 1].astype(np.float32),
+        ctrl_dt=robot.ctrl_dt, base_body=base)
+    return SimModel(robot=robot, mj=m, info=info, n_substeps=int(round(n_sub)),
+                    foot_geoms=foot_geoms, foot_sites=foot_sites, base_body=base,
+                    act_dof=m.jnt_dofadr[m.actuator_trnid[:, 0]].astype(np.int32))
+
+
+@functools.lru_cache(maxsize=None)
+def load(name: str) -> SimModel:
+    """The compiled robot called ``name`` (cached). Raises RobotError for unknown/missing robots."""
+    return compile_robot(robots_lib.get(name))

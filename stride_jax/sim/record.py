@@ -1,0 +1,118 @@
+"""What each recorded step holds, extracted the same way from MJX data and from MuJoCo's MjData.
+
+All generalised forces are MuJoCo's own split of the equation of motion
+
+    M(q) qdd = tau + qfrc_passive + qfrc_constraint + qfrc_external - qfrc_bias,
+
+with ``tau = qfrc_actuator`` (the applied actuator force), ``qfrc_bias = C(q, qd) qd + g(q)``, and
+``qfrc_external`` the generalised force of applied pushes (``xfrc_applied`` mapped through J^T).
+Quantities are those of MuJoCo's forward pass at the recorded state, i.e. the ones the next
+simulation step integrates.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from stride_jax.sim.model import SimModel
+
+
+class Record(NamedTuple):
+    """One recorded step of one world. Shapes for one world; datasets stack ``[E, T, ...]``."""
+
+    time: np.ndarray  # [] (s)
+    q: np.ndarray  # [nq] generalised positions (free joint: position, then quaternion w x y z)
+    qd: np.ndarray  # [nv] generalised velocities (free joint: world linear, body angular)
+    qdd: np.ndarray  # [nv] MuJoCo's qacc
+    ctrl: np.ndarray  # [nu] actuator commands (position targets for servos, torques for motors)
+    tau: np.ndarray  # [nv] qfrc_actuator (N, N m)
+    qfrc_passive: np.ndarray  # [nv] springs, damping
+    qfrc_constraint: np.ndarray  # [nv] contacts, joint limits, dry friction
+    qfrc_bias: np.ndarray  # [nv] Coriolis, centrifugal and gravity
+    qfrc_external: np.ndarray  # [nv] applied pushes
+    foot_force: np.ndarray  # [nfeet] contact normal force per foot (N)
+    foot_contact: np.ndarray  # [nfeet] bool: the foot carries a positive normal force
+    base_pos: np.ndarray  # [3] world position of the base body (m)
+    base_quat: np.ndarray  # [4] its orientation (w x y z)
+    base_linvel: np.ndarray  # [3] world-frame linear velocity (m/s); zeros for fixed bases
+    base_angvel: np.ndarray  # [3] body-frame angular velocity (rad/s); zeros for fixed bases
+
+
+FIELDS = Record._fields
+
+
+def _foot_slots(sm: SimModel, contact_geom: np.ndarray) -> np.ndarray:
+    """``[ncon]`` index of the foot each contact slot belongs to, or -1."""
+    owner = np.full(len(contact_geom), -1, dtype=np.int32)
+    for f, geoms in enumerate(sm.foot_geoms):
+        mine = np.isin(contact_geom, geoms[geoms >= 0]).any(axis=1)
+        owner[mine] = f
+    return owner
+
+
+class ContactLayout(NamedTuple):
+    """MJX's static contact slots: which foot owns each slot and where its constraint rows are."""
+
+    owner: np.ndarray  # [ncon] foot index or -1
+    efc_address: np.ndarray  # [ncon] first constraint row, -1 if the slot is disabled
+    n_rows: np.ndarray  # [ncon] rows per slot (pyramidal: 2 (condim - 1); condim 1: 1)
+
+
+def mjx_contact_layout(sm: SimModel, mx) -> ContactLayout:
+    """Reads the static contact layout of an ``mjx.Model`` (outside any trace)."""
+    from mujoco import mjx
+
+    con = mjx.forward(mx, mjx.make_data(mx))._impl.contact
+    dim = np.asarray(con.dim)
+    return ContactLayout(owner=_foot_slots(sm, np.asarray(con.geom)),
+                         efc_address=np.asarray(con.efc_address),
+                         n_rows=np.where(dim == 1, 1, 2 * (dim - 1)))
+
+
+def from_mjx(sm: SimModel, d, layout: ContactLayout) -> Record:
+    """Extracts a record from MJX data after ``mjx.forward``."""
+    efc_force = d._impl.efc_force
+    foot_force = [jnp.zeros(())] * sm.nfeet
+    for f, adr, n in zip(layout.owner, layout.efc_address, layout.n_rows):
+        if f >= 0 and adr >= 0:  # pyramidal cone: the normal force is the sum of the edge forces
+            foot_force[f] = foot_force[f] + efc_force[adr:adr + n].sum()
+    foot_force = jnp.stack(foot_force) if sm.nfeet else jnp.zeros((0,))
+    b = sm.base_body
+    floating = sm.robot.floating_base
+    qfrc_external = d.qfrc_smooth - d.qfrc_actuator - d.qfrc_passive + d.qfrc_bias
+    return Record(
+        time=d.time, q=d.qpos, qd=d.qvel, qdd=d.qacc, ctrl=d.ctrl, tau=d.qfrc_actuator,
+        qfrc_passive=d.qfrc_passive, qfrc_constraint=d.qfrc_constraint, qfrc_bias=d.qfrc_bias,
+        qfrc_external=qfrc_external,
+        foot_force=foot_force, foot_contact=foot_force > 0,
+        base_pos=d.xpos[b], base_quat=d.xquat[b],
+        base_linvel=d.qvel[0:3] if floating else jnp.zeros(3),
+        base_angvel=d.qvel[3:6] if floating else jnp.zeros(3),
+    )
+
+
+def from_mujoco(sm: SimModel, m: mujoco.MjModel, d: mujoco.MjData) -> Record:
+    """Extracts a record from MuJoCo data after ``mj_forward``; per-foot forces via mj_contactForce."""
+    foot_force = np.zeros(sm.nfeet)
+    if sm.nfeet and d.ncon:
+        owner = _foot_slots(sm, np.asarray(d.contact.geom))
+        wrench = np.zeros(6)
+        for c in np.flatnonzero(owner >= 0):
+            mujoco.mj_contactForce(m, d, int(c), wrench)
+            foot_force[owner[c]] += wrench[0]  # contact frame: x is the normal
+    b = sm.base_body
+    floating = sm.robot.floating_base
+    qfrc_external = d.qfrc_smooth - d.qfrc_actuator - d.qfrc_passive + d.qfrc_bias
+    return Record(
+        time=np.array(d.time), q=d.qpos.copy(), qd=d.qvel.copy(), qdd=d.qacc.copy(),
+        ctrl=d.ctrl.copy(), tau=d.qfrc_actuator.copy(), qfrc_passive=d.qfrc_passive.copy(),
+        qfrc_constraint=d.qfrc_constraint.copy(), qfrc_bias=d.qfrc_bias.copy(),
+        qfrc_external=qfrc_external, foot_force=foot_force, foot_contact=foot_force > 0,
+        base_pos=d.xpos[b].copy(), base_quat=d.xquat[b].copy(),
+        base_linvel=d.qvel[0:3].copy() if floating else np.zeros(3),
+        base_angvel=d.qvel[3:6].copy() if floating else np.zeros(3),
+    )

@@ -1,0 +1,157 @@
+"""Batched MJX rollouts: one world is written once, vmapped over worlds, sharded over devices.
+
+A world's episode is a ``lax.scan`` over control steps. Each control step runs ``n_substeps``
+simulation steps with the control held; the first is split into ``mjx.forward`` (whose quantities
+are recorded) and the integrator, so recording costs no extra forward pass.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from jax.sharding import NamedSharding, PartitionSpec
+from mujoco import mjx
+
+from stride_jax.sim import randomize, record
+from stride_jax.sim.model import SimModel
+
+
+class Episode(NamedTuple):
+    """One world's rollout: per-step records plus episode-level values (for analysis only)."""
+
+    records: record.Record  # each field [T, ...]
+    valid: jax.Array  # [T] bool: not fallen and finite up to and including this step
+    rand: randomize.RandValues
+    explore: Any  # the explorer's episode parameters
+
+
+def _integrate(mx: mjx.Model, d: mjx.Data) -> mjx.Data:
+    if mx.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER:
+        return mjx.euler(mx, d)
+    if mx.opt.integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST:
+        return mjx.implicit(mx, d)
+    raise NotImplementedError(f"integrator {mx.opt.integrator} is not supported by stride_jax")
+
+
+def fallen(sm: SimModel, qpos: jax.Array) -> jax.Array:
+    """Whether a floating-base robot is down: base too low or tilted too far from upright."""
+    if not sm.robot.floating_base:
+        return jnp.zeros((), bool)
+    w, x, y, z = qpos[3], qpos[4], qpos[5], qpos[6]
+    cos_tilt = 1.0 - 2.0 * (x * x + y * y)  # z-axis of the base against world z
+    return (qpos[2] < sm.robot.min_base_height) | (cos_tilt < jnp.cos(sm.robot.max_tilt))
+
+
+def control_step(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, d: mjx.Data,
+                 ctrl: jax.Array, push: jax.Array) -> tuple[mjx.Data, record.Record]:
+    """Holds ``ctrl`` (and a world-frame base ``push`` [3], N) for one control period."""
+    xfrc = d.xfrc_applied.at[sm.base_body, :3].set(push)
+    d = d.replace(ctrl=ctrl, xfrc_applied=xfrc)
+    d = mjx.forward(mx, d)
+    rec = record.from_mjx(sm, d, layout)
+    d = _integrate(mx, d)
+    d = jax.lax.fori_loop(1, sm.n_substeps, lambda _, dd: mjx.step(mx, dd), d)
+    return d, rec
+
+
+def run_episode(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, qpos: jax.Array, qvel: jax.Array, n_steps: int,
+                policy: Callable, push: Callable) -> tuple[record.Record, jax.Array]:
+    """Rolls one world out for ``n_steps`` control steps under ``policy(step, qpos, qvel)``.
+
+    Returns the records ``[T, ...]`` and the validity mask ``[T]``.
+    """
+    d = mjx.make_data(mx).replace(qpos=qpos, qvel=qvel)
+
+    def body(carry, step):
+        d, alive = carry
+        alive = alive & ~fallen(sm, d.qpos) & jnp.all(jnp.isfinite(d.qpos)) & jnp.all(
+            jnp.isfinite(d.qvel))
+        ctrl = policy(step, d.qpos, d.qvel)
+        d, rec = control_step(sm, layout, mx, d, ctrl, push(d.time))
+        return (d, alive), (rec, alive)
+
+    _, (recs, valid) = jax.lax.scan(body, (d, jnp.ones((), bool)), jnp.arange(n_steps))
+    return recs, valid
+
+
+def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True) -> Callable:
+    """A pure ``episode(key) -> Episode`` for one world, exploring with the robot's explorer."""
+    mx0 = mjx.put_model(sm.mj)
+    layout = record.mjx_contact_layout(sm, mx0)
+    fields = randomize.nominal_fields(sm.mj)
+    explorer, info, robot = sm.robot.explorer, sm.info, sm.robot
+    episode_s = n_steps * robot.ctrl_dt
+    no_push = lambda t: jnp.zeros(3)
+
+    def episode(key: jax.Array) -> Episode:
+        key_rand, key_explore = jax.random.split(key)
+        rand = randomize.sample(key_rand, robot.randomization, episode_s)
+        mx = randomize.apply_mjx(mx0, fields, rand, sm.base_body) if randomized else mx0
+        params = explorer.sample(key_explore, info)
+        qpos, qvel = explorer.reset(params, info)
+        policy = lambda step, q, qd: explorer.act(params, info, step, q, qd)
+        push = functools.partial(randomize.push_force, rand) if randomized else no_push
+        recs, valid = run_episode(sm, layout, mx, qpos, qvel, n_steps, policy, push)
+        return Episode(recs, valid, rand, params)
+
+    return episode
+
+
+def _keys_to_data(tree):
+    """Typed PRNG keys cannot leave JAX; store their raw data instead."""
+    is_key = lambda x: jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+    return jax.tree.map(lambda x: jax.random.key_data(x) if is_key(x) else x, tree)
+
+
+def world_sharding(n_worlds: int) -> NamedSharding | None:
+    """Shards a leading world axis over all local devices (None on a single device)."""
+    devices = jax.local_devices()
+    if len(devices) == 1:
+        return None
+    if n_worlds % len(devices):
+        raise ValueError(f"{n_worlds} worlds do not split evenly over {len(devices)} devices; "
+                         f"use a multiple of {len(devices)}")
+    mesh = jax.sharding.Mesh(np.array(devices), ("worlds",))
+    return NamedSharding(mesh, PartitionSpec("worlds"))
+
+
+def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, batch: int | None = None,
+            randomized: bool = True, progress: Callable[[int], None] | None = None) -> Episode:
+    """Collects ``n_episodes`` episodes of ``n_steps`` control steps, ``batch`` worlds at a time.
+
+    Each batch is one jitted, vmapped call, sharded over the local devices. Returns numpy arrays
+    with a leading episode axis. ``progress(n)`` is called after each batch with its size.
+    """
+    batch = min(batch or n_episodes, n_episodes)
+    fn = jax.jit(jax.vmap(make_collect_fn(sm, n_steps, randomized)))
+    keys = jax.random.split(key, n_episodes)
+    sharding = world_sharding(batch)
+    out = []
+    for start in range(0, n_episodes, batch):
+        k = keys[start:start + batch]
+        n = k.shape[0]
+        if n < batch:  # pad the last batch to the compiled shape
+            k = jnp.concatenate([k, jnp.repeat(k[-1:], batch - n, axis=0)])
+        if sharding is not None:
+            k = jax.device_put(k, sharding)
+        ep = jax.device_get(_keys_to_data(fn(k)))
+        out.append(jax.tree.map(lambda a: np.asarray(a)[:n], ep))
+        if progress:
+            progress(n)
+    return jax.tree.map(lambda *a: np.concatenate(a), *out)
+
+
+def simulate(sm: SimModel, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray) -> record.Record:
+    """Open-loop rollout of the nominal model from one state under ``ctrl`` ``[T, nu]``."""
+    mx = mjx.put_model(sm.mj)
+    layout = record.mjx_contact_layout(sm, mx)
+    ctrl = jnp.asarray(ctrl)
+    policy = lambda step, q, qd: ctrl[step]
+    fn = jax.jit(lambda q, qd: run_episode(sm, layout, mx, q, qd, ctrl.shape[0], policy,
+                                           lambda t: jnp.zeros(3))[0])
+    return jax.device_get(fn(jnp.asarray(qpos), jnp.asarray(qvel)))
