@@ -68,7 +68,8 @@ class GaitExplorer:
         )
 
     def reset(self, params: GaitParams, info: base.ModelInfo):
-        qpos = jnp.asarray(info.qpos0).at[7:].add(params.joint_noise0)
+        # The home keyframe leaves the feet 18 mm inside the floor: start 2 mm above it instead.
+        qpos = jnp.asarray(info.qpos0).at[2].add(0.02).at[7:].add(params.joint_noise0)
         return qpos, jnp.zeros(info.nv)
 
     def act(self, params: GaitParams, info: base.ModelInfo, step, qpos, qvel):

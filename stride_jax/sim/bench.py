@@ -1,0 +1,121 @@
+"""Simulation throughput benchmark (``make bench-sim``): simulation steps per second.
+
+Two MJX measurements per robot and batch size: ``physics`` is a jitted, vmapped ``lax.scan`` of
+``mjx.step`` (the number MuJoCo Playground quotes), ``collect`` is the full data pipeline
+(randomised worlds, explorer, recording). ``cpu`` is the ``mujoco.rollout`` backend's collect.
+Each is timed after a compile-and-warm-up call, as the median of ``repeats`` calls.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import pathlib
+import platform
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+from mujoco import mjx
+
+from stride_jax.sim import model, rollout_cpu, rollout_mjx
+
+
+@dataclasses.dataclass(frozen=True)
+class BenchConfig:
+    """Attributes:
+      robots: comma-separated robot names.
+      backends: comma-separated, of mjx and cpu.
+      batches: comma-separated batch sizes (worlds).
+      steps: control steps per call (each is the robot's n_substeps simulation steps).
+      repeats: timed calls per measurement (median reported).
+      out: results folder (``bench_sim.json`` and ``bench_sim.md``).
+    """
+
+    robots: str = "go1,g1"
+    backends: str = "mjx,cpu"
+    batches: str = "16,64"
+    steps: int = 20
+    repeats: int = 3
+    out: str = "results"
+
+
+PRESETS = {
+    "tiny": dict(robots="pendulum", batches="16", steps=5, repeats=1),
+    "default": {},
+    "gpu": dict(backends="mjx", batches="1024,4096,8192", steps=20, repeats=3),
+}
+
+
+def _median_time(fn, repeats: int) -> float:
+    fn()  # compile and warm up
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def _physics_fn(sm: model.SimModel, batch: int, n_steps: int):
+    mx = mjx.put_model(sm.mj)
+    qpos = jnp.asarray(sm.info.qpos0)
+
+    def one(key):
+        d = mjx.make_data(mx).replace(qpos=qpos.at[7:].add(0.01 * jax.random.normal(key, (sm.mj.nq - 7,)))
+                                      if sm.robot.floating_base else qpos)
+        d = jax.lax.fori_loop(0, n_steps * sm.n_substeps, lambda _, dd: mjx.step(mx, dd), d)
+        return d.qpos
+
+    fn = jax.jit(jax.vmap(one))
+    keys = jax.random.split(jax.random.key(0), batch)
+    sharding = rollout_mjx.world_sharding(batch)
+    if sharding is not None:
+        keys = jax.device_put(keys, sharding)
+    return lambda: jax.block_until_ready(fn(keys))
+
+
+def run(cfg: BenchConfig) -> list[dict]:
+    rows = []
+    for name in cfg.robots.split(","):
+        sm = model.load(name)
+        for backend in cfg.backends.split(","):
+            for batch in (int(b) for b in cfg.batches.split(",")):
+                sim_steps = batch * cfg.steps * sm.n_substeps
+                if backend == "mjx":
+                    t_phys = _median_time(_physics_fn(sm, batch, cfg.steps), cfg.repeats)
+                    collect = jax.jit(jax.vmap(rollout_mjx.make_collect_fn(sm, cfg.steps)))
+                    keys = jax.random.split(jax.random.key(1), batch)
+                    t_coll = _median_time(lambda: jax.block_until_ready(collect(keys)), cfg.repeats)
+                    modes = [("physics", t_phys), ("collect", t_coll)]
+                else:
+                    key = jax.random.key(1)
+                    modes = [("collect", _median_time(
+                        lambda: rollout_cpu.collect(sm, key, batch, cfg.steps), cfg.repeats))]
+                for mode, t in modes:
+                    row = dict(robot=name, backend=backend, mode=mode, batch=batch,
+                               sim_steps=sim_steps, seconds=t, steps_per_s=sim_steps / t)
+                    rows.append(row)
+                    print(f"{name:18s} {backend:4s} {mode:8s} batch {batch:6d}: "
+                          f"{row['steps_per_s']:12,.0f} steps/s", flush=True)
+    return rows
+
+
+def write(rows: list[dict], cfg: BenchConfig, command: str) -> pathlib.Path:
+    out = pathlib.Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    devices = [f"{d.platform}:{d.device_kind}" for d in jax.local_devices()]
+    env = dict(command=command, devices=devices, cpu_count=os.cpu_count(),
+               machine=platform.machine(), jax=jax.__version__, config=dataclasses.asdict(cfg))
+    tag = "gpu" if jax.default_backend() != "cpu" else "cpu"
+    (out / f"bench_sim_{tag}.json").write_text(json.dumps(dict(env=env, rows=rows), indent=1))
+    lines = [f"# Simulation throughput ({tag})", "", f"Command: `{command}`", "",
+             f"Devices: {', '.join(devices)}; {os.cpu_count()} CPU cores; jax {jax.__version__}",
+             "", "| robot | backend | mode | worlds | sim steps/s |", "|---|---|---|---:|---:|"]
+    lines += [f"| {r['robot']} | {r['backend']} | {r['mode']} | {r['batch']} | "
+              f"{r['steps_per_s']:,.0f} |" for r in rows]
+    path = out / f"bench_sim_{tag}.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
