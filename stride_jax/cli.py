@@ -56,8 +56,9 @@ def _run_data(cfg) -> None:
 
 def _run_bench(cfg) -> None:
     from stride_jax.sim import bench
-    rows = bench.run(cfg)
-    print(f"wrote {bench.write(rows, cfg, 'stride ' + shlex.join(sys.argv[1:]))}")
+    command = "stride " + shlex.join(sys.argv[1:])
+    rows = bench.run(cfg, on_row=lambda rows: bench.write(rows, cfg, command))
+    print(f"wrote {bench.write(rows, cfg, command)}")
 
 
 def main(argv: list[str] | None = None) -> None:

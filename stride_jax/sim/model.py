@@ -25,6 +25,7 @@ class SimModel:
       foot_sites: ``[nfeet]`` site ids at the soles.
       base_body: body id of the base.
       act_dof: ``[nu]`` dof index that each actuator drives.
+      geom_foot: ``[ngeom]`` the foot each geom belongs to, or -1.
     """
 
     robot: Robot
@@ -35,6 +36,7 @@ class SimModel:
     foot_sites: np.ndarray
     base_body: int
     act_dof: np.ndarray
+    geom_foot: np.ndarray
 
     @property
     def nfeet(self) -> int:
@@ -74,6 +76,9 @@ def compile_robot(robot: Robot) -> SimModel:
             foot_geoms[i, j] = _id(m, mujoco.mjtObj.mjOBJ_GEOM, g, robot.name)
     foot_sites = np.array([_id(m, mujoco.mjtObj.mjOBJ_SITE, f.site, robot.name) for f in robot.feet],
                           dtype=np.int32)
+    geom_foot = np.full(m.ngeom, -1, dtype=np.int32)
+    for i, geoms in enumerate(foot_geoms):
+        geom_foot[geoms[geoms >= 0]] = i
     base = _id(m, mujoco.mjtObj.mjOBJ_BODY, robot.base_body, robot.name)
     info = ModelInfo(
         nq=m.nq, nv=m.nv, nu=m.nu, qpos0=qpos0.astype(np.float32),
@@ -82,7 +87,8 @@ def compile_robot(robot: Robot) -> SimModel:
         ctrl_dt=robot.ctrl_dt, base_body=base)
     return SimModel(robot=robot, mj=m, info=info, n_substeps=int(round(n_sub)),
                     foot_geoms=foot_geoms, foot_sites=foot_sites, base_body=base,
-                    act_dof=m.jnt_dofadr[m.actuator_trnid[:, 0]].astype(np.int32))
+                    act_dof=m.jnt_dofadr[m.actuator_trnid[:, 0]].astype(np.int32),
+                    geom_foot=geom_foot)
 
 
 @functools.lru_cache(maxsize=None)

@@ -47,11 +47,8 @@ FIELDS = Record._fields
 
 def _foot_slots(sm: SimModel, contact_geom: np.ndarray) -> np.ndarray:
     """``[ncon]`` index of the foot each contact slot belongs to, or -1."""
-    owner = np.full(len(contact_geom), -1, dtype=np.int32)
-    for f, geoms in enumerate(sm.foot_geoms):
-        mine = np.isin(contact_geom, geoms[geoms >= 0]).any(axis=1)
-        owner[mine] = f
-    return owner
+    return sm.geom_foot[np.asarray(contact_geom)].max(axis=1) if len(contact_geom) else (
+        np.zeros(0, np.int32))
 
 
 class ContactLayout(NamedTuple):

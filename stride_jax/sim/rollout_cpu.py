@@ -10,6 +10,7 @@ recorded constraint forces exactly as MJX's split forward/integrate does.
 
 from __future__ import annotations
 
+import functools
 import os
 from typing import Callable
 
@@ -131,6 +132,23 @@ def run(sm: SimModel, models: list[mujoco.MjModel], qpos: np.ndarray, qvel: np.n
     return _stack(recs), np.stack(valid, axis=1)
 
 
+@functools.lru_cache(maxsize=None)
+def _jitted(sm: SimModel):
+    """The per-episode draws, the vmapped explorer and the pushes, jitted once per robot."""
+    robot, info, explorer = sm.robot, sm.info, sm.robot.explorer
+
+    def draw(k, episode_s):
+        key_rand, key_explore = jax.random.split(k)
+        rand = randomize.sample(key_rand, robot.randomization, episode_s)
+        params = explorer.sample(key_explore, info)
+        qpos, qvel = explorer.reset(params, info)
+        return rand, params, qpos, qvel
+
+    act = jax.vmap(lambda p, s, q, qd: explorer.act(p, info, s, q, qd), in_axes=(0, None, 0, 0))
+    return (jax.jit(jax.vmap(draw, in_axes=(0, None))), jax.jit(act),
+            jax.jit(jax.vmap(randomize.push_force)))
+
+
 def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, randomized: bool = True,
             nthread: int | None = None, progress: Callable[[int], None] | None = None) -> Episode:
     """Collects episodes exactly as :func:`stride_jax.sim.rollout_mjx.collect` describes them.
@@ -138,27 +156,16 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, randomi
     Per-episode draws (randomisation, explorer parameters, initial state) use the same keys and
     code as the MJX backend, so both backends simulate the same worlds from the same seed.
     """
-    robot, info, explorer = sm.robot, sm.info, sm.robot.explorer
-    episode_s = n_steps * robot.ctrl_dt
-
-    def draw(k):
-        key_rand, key_explore = jax.random.split(k)
-        rand = randomize.sample(key_rand, robot.randomization, episode_s)
-        params = explorer.sample(key_explore, info)
-        qpos, qvel = explorer.reset(params, info)
-        return rand, params, qpos, qvel
-
-    rand, params, qpos, qvel = jax.jit(jax.vmap(draw))(jax.random.split(key, n_episodes))
+    draw, act, push_fn = _jitted(sm)
+    episode_s = n_steps * sm.robot.ctrl_dt
+    rand, params, qpos, qvel = draw(jax.random.split(key, n_episodes), episode_s)
     fields = randomize.nominal_fields(sm.mj)
     rand_np = jax.tree.map(np.asarray, rand)
     models = [randomize.apply_mujoco(sm.mj, fields, jax.tree.map(lambda a: a[i], rand_np),
                                      sm.base_body) if randomized else sm.mj
               for i in range(n_episodes)]
-    act = jax.jit(jax.vmap(lambda p, s, q, qd: explorer.act(p, info, s, q, qd),
-                           in_axes=(0, None, 0, 0)))
     policy = lambda step, q, qd: act(params, step, jnp.asarray(q, jnp.float32),
                                      jnp.asarray(qd, jnp.float32))
-    push_fn = jax.jit(jax.vmap(randomize.push_force))
     push = ((lambda t: push_fn(rand, jnp.asarray(t, jnp.float32))) if randomized
             else (lambda t: np.zeros((n_episodes, 3))))
     recs, valid = run(sm, models, np.asarray(qpos, np.float64), np.asarray(qvel, np.float64),
