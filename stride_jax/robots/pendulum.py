@@ -107,8 +107,9 @@ def _robot(name: str, filename: str, source: str, explorer: PendulumExplorer) ->
 
 PENDULUM = _robot("pendulum", "pendulum.xml", "stride_jax/robots/assets/pendulum.xml",
                   PendulumExplorer())
-# The wall occupies sin(q) > 0.45 (q in [0.47, 2.67] rad): free-swing starts lie below it.
+# The wall occupies sin(q) < -0.45 (q in [-2.67, -0.47] rad; positive q swings the bob to -x):
+# free-swing starts lie on the other side of it.
 PENDULUM_BOUNCING = _robot(
     "pendulum_bouncing", "pendulum_bouncing.xml",
     "stride_jax/robots/assets/pendulum_bouncing.xml (wall at x = 0.5 m)",
-    PendulumExplorer(q_range=(-math.pi, 0.4)))
+    PendulumExplorer(q_range=(-0.4, math.pi)))

@@ -95,3 +95,20 @@ def compile_robot(robot: Robot) -> SimModel:
 def load(name: str) -> SimModel:
     """The compiled robot called ``name`` (cached). Raises RobotError for unknown/missing robots."""
     return compile_robot(robots_lib.get(name))
+
+
+def check_open_loop(sm: SimModel, qpos, qvel, ctrl) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validates an open-loop rollout request: ``qpos [nq]``, ``qvel [nv]``, ``ctrl [T, nu]``."""
+    m, name = sm.mj, sm.robot.name
+    qpos, qvel, ctrl = (np.asarray(x, dtype=np.float64) for x in (qpos, qvel, ctrl))
+    if qpos.shape != (m.nq,):
+        raise ValueError(f"{name}: qpos has shape {list(qpos.shape)}, expected [{m.nq}]")
+    if qvel.shape != (m.nv,):
+        raise ValueError(f"{name}: qvel has shape {list(qvel.shape)}, expected [{m.nv}]")
+    if ctrl.ndim != 2 or ctrl.shape[0] < 1 or ctrl.shape[1] != m.nu:
+        raise ValueError(f"{name}: ctrl has shape {list(ctrl.shape)}, expected [T >= 1, {m.nu}]")
+    for label, x in (("qpos", qpos), ("qvel", qvel), ("ctrl", ctrl)):
+        if not np.isfinite(x).all():
+            bad = np.argwhere(~np.isfinite(x))[0].tolist()
+            raise ValueError(f"{name}: {label} contains NaN or inf (first at index {bad})")
+    return qpos, qvel, ctrl

@@ -21,7 +21,7 @@ import mujoco.rollout
 import numpy as np
 
 from stride_jax.sim import randomize, record
-from stride_jax.sim.model import SimModel
+from stride_jax.sim.model import SimModel, check_open_loop
 from stride_jax.sim.rollout_mjx import Episode, _keys_to_data
 
 _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
@@ -175,6 +175,7 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, randomi
 
 def simulate(sm: SimModel, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray) -> record.Record:
     """Open-loop rollout of the nominal model from one state under ``ctrl`` ``[T, nu]``."""
-    recs, _ = run(sm, [sm.mj], np.asarray(qpos)[None], np.asarray(qvel)[None], len(ctrl),
+    qpos, qvel, ctrl = check_open_loop(sm, qpos, qvel, ctrl)
+    recs, _ = run(sm, [sm.mj], qpos[None], qvel[None], len(ctrl),
                   lambda step, q, qd: ctrl[step][None], lambda t: np.zeros((1, 3)), nthread=1)
     return jax.tree.map(lambda a: a[0], recs)

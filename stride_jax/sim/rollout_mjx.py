@@ -18,7 +18,7 @@ from jax.sharding import NamedSharding, PartitionSpec
 from mujoco import mjx
 
 from stride_jax.sim import randomize, record
-from stride_jax.sim.model import SimModel
+from stride_jax.sim.model import SimModel, check_open_loop
 
 
 class Episode(NamedTuple):
@@ -148,9 +148,10 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, batch: 
 
 def simulate(sm: SimModel, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray) -> record.Record:
     """Open-loop rollout of the nominal model from one state under ``ctrl`` ``[T, nu]``."""
+    qpos, qvel, ctrl = check_open_loop(sm, qpos, qvel, ctrl)
     mx = mjx.put_model(sm.mj)
     layout = record.mjx_contact_layout(sm, mx)
-    ctrl = jnp.asarray(ctrl)
+    ctrl = jnp.asarray(ctrl, jnp.float32)
     policy = lambda step, q, qd: ctrl[step]
     fn = jax.jit(lambda q, qd: run_episode(sm, layout, mx, q, qd, ctrl.shape[0], policy,
                                            lambda t: jnp.zeros(3))[0])

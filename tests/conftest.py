@@ -1,0 +1,24 @@
+"""Shared fixtures. MJX compiles are the slow part of the suite: share them per session."""
+
+import os
+import pathlib
+
+import stride_jax  # noqa: F401  (XLA flags before JAX initialises)
+
+import pytest
+
+SHARED = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "menagerie"
+if "MENAGERIE_ROOT" not in os.environ and SHARED.is_dir():
+    os.environ["MENAGERIE_ROOT"] = str(SHARED)
+
+
+@pytest.fixture(scope="session")
+def go1():
+    from stride_jax.sim import model
+    return model.load("go1")
+
+
+@pytest.fixture(scope="session")
+def g1():
+    from stride_jax.sim import model
+    return model.load("g1")
