@@ -13,7 +13,9 @@ walking data. We raise the leg gains (hip 150, knee 200, ankle 250 N m/rad; damp
 keeping every torque limit as shipped; with them the robot stands, shifts its weight and takes
 small steps. Walking proper comes from the PPO policy of the control package.
 
-Exploration modes, drawn per episode: standing still with target noise, lateral weight shifting
+Balance: the ankles' targets lean against the pelvis's roll and pitch (proportional and rate
+feedback; gains picked on a grid for the fraction of upright steps: standing and weight shifting
+stay up over 5 s, stepping in place for ~80% of the steps). Exploration modes, drawn per episode: standing still with target noise, lateral weight shifting
 (hip/ankle roll sway), and stepping in place (the unloaded leg lifts while the weight is on the
 other), each with random arm swinging and random crouch depth.
 """
@@ -51,7 +53,10 @@ def _gains(joint: str) -> tuple[float, float]:
     return 40.0, 2.0  # arms: as light as shipped for the wrists, a bit stiffer at the shoulders
 
 
-BALANCE_GAIN = 1.0  # rad of ankle target per rad of pelvis tilt
+ROLL_GAIN = 1.0  # rad of ankle/hip roll target per rad of pelvis roll
+ROLL_RATE_GAIN = 0.05  # per rad/s of pelvis roll rate
+PITCH_GAIN = 1.0  # rad of ankle pitch target per rad of pelvis pitch
+PITCH_RATE_GAIN = 0.1  # rad of ankle pitch target per rad/s of pelvis pitch rate
 
 
 def _roll_pitch(quat: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -112,12 +117,15 @@ class BalanceExplorer:
             target = target.at[leg["hip_pitch"]].add(-lift)
             target = target.at[leg["knee"]].add(2.0 * lift)
             target = target.at[leg["ankle_pitch"]].add(-lift)
-        # Balance: tilt the ankles (and counter-roll the hips) against the pelvis's roll and pitch.
+        # Balance: tilt the ankles (and counter-roll the hips) against the pelvis's roll and pitch
+        # (free-joint angular velocity qvel[3:6] is in the pelvis frame).
         roll, pitch = _roll_pitch(qpos[3:7])
         for leg in (_L, _R):
-            target = target.at[leg["ankle_roll"]].add(BALANCE_GAIN * roll)
-            target = target.at[leg["hip_roll"]].add(-BALANCE_GAIN * roll)
-            target = target.at[leg["ankle_pitch"]].add(BALANCE_GAIN * pitch)
+            roll_fb = ROLL_GAIN * roll + ROLL_RATE_GAIN * qvel[3]
+            target = target.at[leg["ankle_roll"]].add(roll_fb)
+            target = target.at[leg["hip_roll"]].add(-roll_fb)
+            target = target.at[leg["ankle_pitch"]].add(PITCH_GAIN * pitch
+                                                       + PITCH_RATE_GAIN * qvel[4])
         arms = params.arm_amp * jnp.sin(2 * jnp.pi * params.arm_freq * t)
         target = target.at[jnp.array(_ARMS)].add(arms)
         noise = params.noise * jax.random.normal(jax.random.fold_in(params.key, step), target.shape)

@@ -1,0 +1,89 @@
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from stride_jax import cli
+from stride_jax.sim import dataset, model, rollout_cpu
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    sm = model.load("pendulum")
+    ep = rollout_cpu.collect(sm, jax.random.key(0), 6, 30)
+    path = tmp_path_factory.mktemp("ds") / "pendulum"
+    return dataset.save(path, ep, dict(robot="pendulum", seed=7, ctrl_dt=0.01)), ep
+
+
+def test_round_trip(saved):
+    ds, ep = saved
+    loaded = dataset.load(ds.path, robot="pendulum")
+    np.testing.assert_array_equal(loaded.arrays["q"], ep.records.q.astype(np.float32))
+    np.testing.assert_array_equal(loaded.arrays["valid"], ep.valid)
+    np.testing.assert_allclose(loaded.arrays["rand/damping"], ep.rand.damping, rtol=1e-6)
+    assert loaded.meta["seed"] == 7 and loaded.meta["versions"]["mujoco"]
+
+
+def test_splits_partition_episodes_and_stats_come_from_train(saved):
+    ds, _ = saved
+    s = ds.meta["splits"]
+    assert sorted(s["train"] + s["val"] + s["test"]) == list(range(6))
+    train = ds.split("train")
+    np.testing.assert_allclose(ds.stats["qd"]["mean"], train["qd"][train["valid"]].mean(0),
+                               rtol=1e-4, atol=1e-6)
+
+
+def test_missing_file_is_a_clear_error(tmp_path):
+    with pytest.raises(dataset.DatasetError, match="missing meta.json"):
+        dataset.load(tmp_path)
+
+
+def _copy(ds, tmp_path):
+    dst = tmp_path / "copy"
+    dst.mkdir()
+    for f in ("arrays.npz", "meta.json"):
+        (dst / f).write_bytes((ds.path / f).read_bytes())
+    return dst
+
+
+def test_truncated_file_is_a_clear_error(saved, tmp_path):
+    dst = _copy(saved[0], tmp_path)
+    data = (dst / "arrays.npz").read_bytes()
+    (dst / "arrays.npz").write_bytes(data[: len(data) // 2])
+    with pytest.raises(dataset.DatasetError, match="truncated"):
+        dataset.load(dst)
+
+
+def test_corrupt_file_is_a_clear_error(saved, tmp_path):
+    dst = _copy(saved[0], tmp_path)
+    data = bytearray((dst / "arrays.npz").read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    (dst / "arrays.npz").write_bytes(bytes(data))
+    with pytest.raises(dataset.DatasetError, match="SHA-256"):
+        dataset.load(dst)
+
+
+def test_mismatched_robot_and_version_are_clear_errors(saved, tmp_path):
+    with pytest.raises(dataset.DatasetError, match="holds robot 'pendulum', not 'go1'"):
+        dataset.load(saved[0].path, robot="go1")
+    dst = _copy(saved[0], tmp_path)
+    meta = json.loads((dst / "meta.json").read_text())
+    meta["format_version"] = 99
+    (dst / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(dataset.DatasetError, match="format version 99"):
+        dataset.load(dst)
+
+
+def test_cli_writes_a_dataset(tmp_path, capsys):
+    out = tmp_path / "bouncing"
+    cli.main(["data", "--robot", "pendulum_bouncing", "--preset", "tiny", "--backend", "cpu",
+              "--out", str(out)])
+    ds = dataset.load(out, robot="pendulum_bouncing")
+    assert ds.meta["n_episodes"] == 8 and ds.meta["n_steps"] == 100
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_cli_rejects_unknown_robot():
+    with pytest.raises(SystemExit, match="unknown robot 'spot'"):
+        cli.main(["data", "--robot", "spot"])

@@ -1,0 +1,81 @@
+"""The explorers yield the data the paper needs: gaits, a standing humanoid, the upright saddle."""
+
+import jax
+import numpy as np
+import pytest
+
+from stride_jax.robots import go1 as go1_lib
+from stride_jax.sim import model, randomize, rollout_cpu
+
+
+def _forced(sm, key, n, T, **overrides):
+    """CPU episodes with some explorer parameters overridden (no randomisation)."""
+    draw, act, _ = rollout_cpu._jitted(sm)
+    _, params, qpos, qvel = draw(jax.random.split(key, n), T * sm.robot.ctrl_dt)
+    params = params._replace(**{k: jax.numpy.full_like(getattr(params, k), v)
+                                for k, v in overrides.items()})
+    policy = lambda step, q, qd: act(params, step, jax.numpy.asarray(q, "float32"),
+                                     jax.numpy.asarray(qd, "float32"))
+    return rollout_cpu.run(sm, [sm.mj] * n, np.asarray(qpos, float), np.asarray(qvel, float), T,
+                           policy, lambda t: np.zeros((n, 3)))
+
+
+# Contact agreement between legs (fraction of steps where both are in the same phase) that
+# identifies each gait. Legs: 0 FR, 1 FL, 2 RR, 3 RL. Open-loop pronking pitches the trunk, so its
+# front and rear pairs agree less than a perfect pronk's would; they still agree far more than a
+# trot's (~0.1).
+GAIT_CHECKS = {
+    "trot": [((0, 3), ">", 0.8), ((1, 2), ">", 0.8), ((0, 1), "<", 0.4)],
+    "pronk": [((0, 1), ">", 0.8), ((2, 3), ">", 0.8), ((0, 2), ">", 0.35)],
+    "bound": [((0, 1), ">", 0.8), ((2, 3), ">", 0.8), ((0, 2), "<", 0.6)],
+    "pace": [((0, 2), ">", 0.7), ((0, 3), "<", 0.4)],
+}
+
+
+@pytest.mark.parametrize("gait", go1_lib.GAITS)
+def test_go1_gaits_have_their_footfall_pattern(go1, gait):
+    g = go1_lib.GAITS.index(gait)
+    recs, valid = _forced(go1, jax.random.key(g), 4, 150, gait=g, noise=0.0, freq=2.0, duty=0.5,
+                          lift=0.5, stride=0.15, turn=0.0, lateral=0.0)
+    contact = recs.foot_contact[valid]
+    assert len(contact) > 200
+    for (a, b), op, threshold in GAIT_CHECKS[gait]:
+        agree = np.mean(contact[:, a] == contact[:, b])
+        assert agree > threshold if op == ">" else agree < threshold, (gait, a, b, agree)
+
+
+def test_g1_stands_and_shifts_weight(g1):
+    recs, valid = _forced(g1, jax.random.key(0), 4, 150, mode=1, sway=0.03, lift=0.0)
+    assert valid[:, -1].all(), "the humanoid fell while shifting its weight"
+    left, right = recs.foot_force[..., 0], recs.foot_force[..., 1]
+    share = left / np.maximum(left + right, 1e-6)
+    assert share.max() - share.min() > 0.2  # the load moves from foot to foot
+
+
+def test_pendulum_data_covers_the_upright():
+    sm = model.load("pendulum")
+    ep = rollout_cpu.collect(sm, jax.random.key(0), 24, 200)
+    q = np.mod(ep.records.q[..., 0], 2 * np.pi)
+    assert np.mean(np.abs(q - np.pi) < 0.3) > 0.05
+    assert np.mean(q < 0.3) + np.mean(q > 2 * np.pi - 0.3) > 0.05  # and the bottom
+    assert (ep.rand.spring_ref > np.pi).any() and (ep.rand.spring_ref < np.pi).any()  # bimodal
+
+
+def test_randomisation_is_the_same_in_both_backends(go1):
+    from mujoco import mjx
+    fields = randomize.nominal_fields(go1.mj)
+    v = randomize.sample(jax.random.key(1), go1.robot.randomization, 5.0)
+    v = v._replace(payload_kg=np.float32(1.5), friction=np.float32(0.5))
+    mx = randomize.apply_mjx(mjx.put_model(go1.mj), fields, v, go1.base_body)
+    m = randomize.apply_mujoco(go1.mj, fields, v, go1.base_body)
+    for k in randomize.FIELDS:
+        np.testing.assert_allclose(np.asarray(getattr(mx, k)), getattr(m, k), rtol=1e-6)
+    assert m.body_mass[go1.base_body] == pytest.approx(go1.mj.body_mass[go1.base_body] + 1.5)
+    foot = go1.foot_geoms[0, 0]
+    assert m.geom_friction[foot, 0] == pytest.approx(0.5 * go1.mj.geom_friction[foot, 0])
+
+
+def test_pushes_reach_the_records(go1):
+    ep = rollout_cpu.collect(go1, jax.random.key(2), 4, 100)
+    pushed = np.abs(ep.records.qfrc_external[..., :2]).max(-1) > 1.0
+    assert pushed.any() and not pushed.all()
