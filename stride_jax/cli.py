@@ -46,12 +46,13 @@ def _commands():
 
 
 def _run_data(cfg) -> None:
-    from stride_jax.sim import collect
+    from stride_jax.sim import collect, plots
     ds = collect.generate(cfg)
+    png = plots.dataset_summary(ds)
     m = ds.meta
     print(f"wrote {ds.path}: {m['n_episodes']} episodes x {m['n_steps']} steps of {m['robot']} "
           f"({m['backend']}, {m['generation_seconds']:.1f} s), valid fraction "
-          f"{m['valid_fraction']:.2f}")
+          f"{m['valid_fraction']:.2f}; summary plot {png}")
 
 
 def _run_bench(cfg) -> None:

@@ -45,8 +45,9 @@ class Randomization:
       push_s: duration of the push (s), (lo, hi).
       damping: scale of every joint's viscous damping, (lo, hi).
       frictionloss: scale of every joint's dry friction, (lo, hi).
-      spring_nm: stiffness of a hidden joint spring (N m/rad) whose rest angle is ``spring_ref``
-        plus or minus ``spring_offset`` with equal odds: a bimodal residual (pendulum only).
+      bump_nm: magnitude of a hidden torque on the first joint of a fixed-base robot, acting only
+        near ``bump_at`` (a Gaussian bump of width ``bump_width`` in the wrapped angle), with a
+        random sign per episode: a bimodal residual there (the pendulum's upright).
     """
 
     friction: tuple[float, float] = (1.0, 1.0)
@@ -56,9 +57,9 @@ class Randomization:
     push_s: tuple[float, float] = (0.1, 0.2)
     damping: tuple[float, float] = (1.0, 1.0)
     frictionloss: tuple[float, float] = (1.0, 1.0)
-    spring_nm: tuple[float, float] = (0.0, 0.0)
-    spring_ref: float = 0.0
-    spring_offset: float = 0.0
+    bump_nm: tuple[float, float] = (0.0, 0.0)
+    bump_at: float = 0.0
+    bump_width: float = 0.25
 
 
 class ModelInfo(NamedTuple):

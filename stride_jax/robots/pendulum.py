@@ -5,9 +5,11 @@ maximal gravity torque (~10 N m), so the data covers swinging, pumping and braki
 holding. A third of the episodes start near the upright so that the saddle is densely sampled.
 
 Hidden stochastic residual (for the phase portrait of the paper's Sec. IV): every episode draws a
-joint spring whose rest angle is pi + s * 0.3 rad with s = +-1 at equal odds; near the upright its
-torque points one way or the other, so given (q, qd, tau) the residual is bimodal. Joint damping
-and dry friction are randomised too.
+torque s * A * exp(-d^2 / (2 * 0.25^2)) with d the angle from the upright, A in [1, 2] N m and
+s = +-1 at equal odds (applied as ``qfrc_applied``, recorded in ``qfrc_external``). Away from the
+upright it vanishes; near it, given (q, qd, tau), the residual is one of two opposite pushes: the
+bimodal "which way does it fall" uncertainty of the saddle. Joint damping and dry friction are
+randomised too.
 """
 
 from __future__ import annotations
@@ -79,9 +81,9 @@ def _no_edit(spec: mujoco.MjSpec) -> None:
 _RANDOMIZATION = base.Randomization(
     damping=(0.5, 2.0),
     frictionloss=(0.5, 2.0),
-    spring_nm=(0.5, 1.5),
-    spring_ref=math.pi,
-    spring_offset=0.3,
+    bump_nm=(1.0, 2.0),
+    bump_at=math.pi,
+    bump_width=0.25,
 )
 
 

@@ -19,7 +19,7 @@ import numpy as np
 from stride_jax.robots import Randomization
 
 FIELDS = ("geom_friction", "pair_friction", "geom_solref", "pair_solref", "body_mass",
-          "dof_damping", "dof_frictionloss", "jnt_stiffness", "qpos_spring")
+          "dof_damping", "dof_frictionloss")
 
 
 class RandValues(NamedTuple):
@@ -30,8 +30,7 @@ class RandValues(NamedTuple):
     payload_kg: jax.Array  # mass added to the base body
     damping: jax.Array  # scale of joint damping
     frictionloss: jax.Array  # scale of joint dry friction
-    spring_nm: jax.Array  # hidden joint-spring stiffness (N m/rad)
-    spring_ref: jax.Array  # its rest angle (rad)
+    bump_nm: jax.Array  # signed amplitude of the hidden joint torque bump (N m)
     push_t: jax.Array  # push start (s)
     push_s: jax.Array  # push duration (s)
     push_force: jax.Array  # [3] world-frame push force on the base (N)
@@ -39,7 +38,7 @@ class RandValues(NamedTuple):
 
 def sample(key: jax.Array, r: Randomization, episode_s: float) -> RandValues:
     """Draws one episode's values, uniformly in the ranges of ``r``."""
-    ks = jax.random.split(key, 10)
+    ks = jax.random.split(key, 11)
     u = lambda k, rng: jax.random.uniform(k, minval=rng[0], maxval=rng[1])
     sign = jnp.where(jax.random.bernoulli(ks[6]), 1.0, -1.0)
     heading = jax.random.uniform(ks[9], minval=-jnp.pi, maxval=jnp.pi)
@@ -50,10 +49,9 @@ def sample(key: jax.Array, r: Randomization, episode_s: float) -> RandValues:
         payload_kg=u(ks[2], r.payload_kg),
         damping=u(ks[3], r.damping),
         frictionloss=u(ks[4], r.frictionloss),
-        spring_nm=u(ks[5], r.spring_nm),
-        spring_ref=jnp.asarray(r.spring_ref) + sign * r.spring_offset,
+        bump_nm=sign * u(ks[5], r.bump_nm),
         push_t=u(ks[7], (0.2 * episode_s, 0.8 * episode_s)),
-        push_s=u(ks[7], r.push_s),
+        push_s=u(ks[10], r.push_s),
         push_force=push * jnp.array([jnp.cos(heading), jnp.sin(heading), 0.0]),
     )
 
@@ -71,26 +69,12 @@ def apply_fields(fields: dict, v: RandValues, base_body: int, xp=jnp) -> dict:
                                                            == base_body)
     f["dof_damping"] = fields["dof_damping"] * v.damping
     f["dof_frictionloss"] = fields["dof_frictionloss"] * v.frictionloss
-    # The hidden spring acts on hinge joints only (the free joint's stiffness is left alone).
-    has_spring = v.spring_nm > 0
-    f["jnt_stiffness"] = fields["jnt_stiffness"] + v.spring_nm * fields["_hinge"]
-    f["qpos_spring"] = xp.where(has_spring & (fields["_hinge_qpos"] > 0), v.spring_ref,
-                                fields["qpos_spring"])
-    return {k: f[k] for k in FIELDS}
-
-
-def _hinge_masks(m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
-    hinge = (m.jnt_type == mujoco.mjtJoint.mjJNT_HINGE).astype(np.float64)
-    hinge_qpos = np.zeros(m.nq)
-    hinge_qpos[m.jnt_qposadr[hinge > 0]] = 1.0
-    return hinge, hinge_qpos
+    return f
 
 
 def nominal_fields(m: mujoco.MjModel) -> dict:
-    """The arrays of :data:`FIELDS` of a MuJoCo model, plus the masks ``apply_fields`` needs."""
-    fields = {k: np.array(getattr(m, k)) for k in FIELDS}
-    fields["_hinge"], fields["_hinge_qpos"] = _hinge_masks(m)
-    return fields
+    """The arrays of :data:`FIELDS` of a MuJoCo model."""
+    return {k: np.array(getattr(m, k)) for k in FIELDS}
 
 
 def apply_mjx(mx, fields: dict, v: RandValues, base_body: int):
@@ -109,7 +93,22 @@ def apply_mujoco(m: mujoco.MjModel, fields: dict, v: RandValues, base_body: int)
     return out
 
 
-def push_force(v: RandValues, t: jax.Array) -> jax.Array:
-    """World-frame force ``[3]`` on the base at time ``t`` (s): one rectangular push per episode."""
+class Disturbance(NamedTuple):
+    """Hidden external forces at one instant."""
+
+    push: jax.Array  # [3] world-frame force on the base body (N)
+    qfrc: jax.Array  # [nv] generalised force (qfrc_applied)
+
+
+def disturbance(v: RandValues, r: Randomization, t: jax.Array, qpos: jax.Array,
+                nv: int) -> Disturbance:
+    """The episode's hidden external forces at time ``t`` (s) and configuration ``qpos``.
+
+    A push is one rectangular force pulse on the base. The bump is a torque on the first dof of
+    a fixed-base robot, a Gaussian in the wrapped angle from ``r.bump_at`` (zero if unused).
+    """
     on = (t >= v.push_t) & (t < v.push_t + v.push_s)
-    return jnp.where(on, v.push_force, 0.0)
+    push = jnp.where(on, v.push_force, 0.0)
+    angle = jnp.mod(qpos[0] - r.bump_at + jnp.pi, 2 * jnp.pi) - jnp.pi
+    bump = v.bump_nm * jnp.exp(-0.5 * (angle / r.bump_width) ** 2)
+    return Disturbance(push, jnp.zeros(nv).at[0].set(bump))

@@ -5,7 +5,8 @@ All generalised forces are MuJoCo's own split of the equation of motion
     M(q) qdd = tau + qfrc_passive + qfrc_constraint + qfrc_external - qfrc_bias,
 
 with ``tau = qfrc_actuator`` (the applied actuator force), ``qfrc_bias = C(q, qd) qd + g(q)``, and
-``qfrc_external`` the generalised force of applied pushes (``xfrc_applied`` mapped through J^T).
+``qfrc_external`` the hidden disturbances: ``qfrc_applied`` plus pushes (``xfrc_applied`` mapped
+through J^T).
 Quantities are those of MuJoCo's forward pass at the recorded state, i.e. the ones the next
 simulation step integrates.
 """
@@ -33,7 +34,7 @@ class Record(NamedTuple):
     qfrc_passive: np.ndarray  # [nv] springs, damping
     qfrc_constraint: np.ndarray  # [nv] contacts, joint limits, dry friction
     qfrc_bias: np.ndarray  # [nv] Coriolis, centrifugal and gravity
-    qfrc_external: np.ndarray  # [nv] applied pushes
+    qfrc_external: np.ndarray  # [nv] hidden disturbances (pushes, the pendulum's upright bump)
     foot_force: np.ndarray  # [nfeet] contact normal force per foot (N)
     foot_contact: np.ndarray  # [nfeet] bool: the foot carries a positive normal force
     base_pos: np.ndarray  # [3] world position of the base body (m)

@@ -25,7 +25,9 @@ from stride_jax.sim.model import SimModel, check_open_loop
 from stride_jax.sim.rollout_mjx import Episode, _keys_to_data
 
 _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
-_CONTROL = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_XFRC_APPLIED
+# Control vector layout (MuJoCo's state order): ctrl, qfrc_applied, xfrc_applied.
+_CONTROL = (mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_QFRC_APPLIED
+            | mujoco.mjtState.mjSTATE_XFRC_APPLIED)
 
 
 def _fallen(sm: SimModel, qpos: np.ndarray) -> np.ndarray:
@@ -67,20 +69,21 @@ class _Worlds:
     def time(self) -> np.ndarray:
         return self.state[:, 0]
 
-    def step(self, ctrl: np.ndarray, push: np.ndarray) -> list[record.Record]:
-        """Records the current state under ``ctrl`` [n, nu] and ``push`` [n, 3], then steps."""
+    def step(self, ctrl: np.ndarray, push: np.ndarray, qfrc: np.ndarray) -> list[record.Record]:
+        """Records the current state under ``ctrl`` [n, nu], base ``push`` [n, 3] (N) and
+        generalised force ``qfrc`` [n, nv], then steps one control period."""
         sm, d = self.sm, self.scratch
         xfrc = np.zeros((len(ctrl), sm.mj.nbody, 6))
         xfrc[:, sm.base_body, :3] = push
         recs = []
         for i, m in enumerate(self.models):
             mujoco.mj_setState(m, d, self.state[i], _STATE)
-            d.ctrl[:], d.xfrc_applied[:] = ctrl[i], xfrc[i]
+            d.ctrl[:], d.qfrc_applied[:], d.xfrc_applied[:] = ctrl[i], qfrc[i], xfrc[i]
             d.qacc_warmstart[:] = self.warmstart[i]
             mujoco.mj_forward(m, d)
             recs.append(record.from_mujoco(sm, m, d))
             self.warmstart[i] = d.qacc
-        control = np.concatenate([ctrl, xfrc.reshape(len(ctrl), -1)], axis=1)
+        control = np.concatenate([ctrl, qfrc, xfrc.reshape(len(ctrl), -1)], axis=1)
         states, _ = self.pool.rollout(
             self.models, self.datas, self.state, control[:, None, :].repeat(sm.n_substeps, 1),
             control_spec=_CONTROL, initial_warmstart=self.warmstart)
@@ -107,11 +110,13 @@ def _stack(recs: list[list[record.Record]]) -> record.Record:
 
 
 def run(sm: SimModel, models: list[mujoco.MjModel], qpos: np.ndarray, qvel: np.ndarray,
-        n_steps: int, policy: Callable, push: Callable, nthread: int | None = None,
-        progress: Callable[[int], None] | None = None) -> tuple[record.Record, np.ndarray]:
+        n_steps: int, policy: Callable, disturb: Callable | None = None,
+        nthread: int | None = None, progress: Callable[[int], None] | None = None
+        ) -> tuple[record.Record, np.ndarray]:
     """Rolls ``len(models)`` worlds for ``n_steps`` control steps.
 
-    ``policy(step, qpos [n, nq], qvel [n, nv]) -> ctrl [n, nu]`` and ``push(time [n]) -> [n, 3]``.
+    ``policy(step, qpos [n, nq], qvel [n, nv]) -> ctrl [n, nu]``; ``disturb(time [n], qpos)``
+    returns the hidden (push [n, 3], qfrc [n, nv]), none if ``disturb`` is None.
     Returns records ``[n, T, ...]`` and the validity mask ``[n, T]``.
     """
     nthread = nthread if nthread is not None else min(len(models), os.cpu_count() or 1)
@@ -124,7 +129,11 @@ def run(sm: SimModel, models: list[mujoco.MjModel], qpos: np.ndarray, qvel: np.n
             alive &= ~_fallen(sm, q) & np.isfinite(q).all(1) & np.isfinite(qd).all(1)
             valid.append(alive.copy())
             ctrl = np.asarray(policy(step, q, qd), dtype=np.float64)
-            recs.append(worlds.step(ctrl, np.asarray(push(worlds.time), dtype=np.float64)))
+            if disturb is None:
+                push, qfrc = np.zeros((len(q), 3)), np.zeros_like(qd)
+            else:
+                push, qfrc = (np.asarray(x, dtype=np.float64) for x in disturb(worlds.time, q))
+            recs.append(worlds.step(ctrl, push, qfrc))
             if progress:
                 progress(1)
     finally:
@@ -145,8 +154,9 @@ def _jitted(sm: SimModel):
         return rand, params, qpos, qvel
 
     act = jax.vmap(lambda p, s, q, qd: explorer.act(p, info, s, q, qd), in_axes=(0, None, 0, 0))
-    return (jax.jit(jax.vmap(draw, in_axes=(0, None))), jax.jit(act),
-            jax.jit(jax.vmap(randomize.push_force)))
+    disturb = jax.vmap(lambda v, t, q: randomize.disturbance(v, robot.randomization, t, q,
+                                                             sm.mj.nv))
+    return jax.jit(jax.vmap(draw, in_axes=(0, None))), jax.jit(act), jax.jit(disturb)
 
 
 def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, randomized: bool = True,
@@ -156,7 +166,7 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, randomi
     Per-episode draws (randomisation, explorer parameters, initial state) use the same keys and
     code as the MJX backend, so both backends simulate the same worlds from the same seed.
     """
-    draw, act, push_fn = _jitted(sm)
+    draw, act, disturb_fn = _jitted(sm)
     episode_s = n_steps * sm.robot.ctrl_dt
     rand, params, qpos, qvel = draw(jax.random.split(key, n_episodes), episode_s)
     fields = randomize.nominal_fields(sm.mj)
@@ -166,10 +176,10 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, randomi
               for i in range(n_episodes)]
     policy = lambda step, q, qd: act(params, step, jnp.asarray(q, jnp.float32),
                                      jnp.asarray(qd, jnp.float32))
-    push = ((lambda t: push_fn(rand, jnp.asarray(t, jnp.float32))) if randomized
-            else (lambda t: np.zeros((n_episodes, 3))))
+    disturb = (lambda t, q: disturb_fn(rand, jnp.asarray(t, jnp.float32),
+                                       jnp.asarray(q, jnp.float32))) if randomized else None
     recs, valid = run(sm, models, np.asarray(qpos, np.float64), np.asarray(qvel, np.float64),
-                      n_steps, policy, push, nthread, progress)
+                      n_steps, policy, disturb, nthread, progress)
     return Episode(recs, valid, rand_np, jax.device_get(_keys_to_data(params)))
 
 
@@ -177,5 +187,5 @@ def simulate(sm: SimModel, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray)
     """Open-loop rollout of the nominal model from one state under ``ctrl`` ``[T, nu]``."""
     qpos, qvel, ctrl = check_open_loop(sm, qpos, qvel, ctrl)
     recs, _ = run(sm, [sm.mj], qpos[None], qvel[None], len(ctrl),
-                  lambda step, q, qd: ctrl[step][None], lambda t: np.zeros((1, 3)), nthread=1)
+                  lambda step, q, qd: ctrl[step][None], nthread=1)
     return jax.tree.map(lambda a: a[0], recs)

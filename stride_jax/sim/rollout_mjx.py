@@ -48,10 +48,10 @@ def fallen(sm: SimModel, qpos: jax.Array) -> jax.Array:
 
 
 def control_step(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, d: mjx.Data,
-                 ctrl: jax.Array, push: jax.Array) -> tuple[mjx.Data, record.Record]:
-    """Holds ``ctrl`` (and a world-frame base ``push`` [3], N) for one control period."""
-    xfrc = d.xfrc_applied.at[sm.base_body, :3].set(push)
-    d = d.replace(ctrl=ctrl, xfrc_applied=xfrc)
+                 ctrl: jax.Array, dist: randomize.Disturbance) -> tuple[mjx.Data, record.Record]:
+    """Holds ``ctrl`` and the disturbance (base push, generalised force) for one control period."""
+    xfrc = d.xfrc_applied.at[sm.base_body, :3].set(dist.push)
+    d = d.replace(ctrl=ctrl, xfrc_applied=xfrc, qfrc_applied=dist.qfrc)
     d = mjx.forward(mx, d)
     rec = record.from_mjx(sm, d, layout)
     d = _integrate(mx, d)
@@ -60,8 +60,10 @@ def control_step(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, d: m
 
 
 def run_episode(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, qpos: jax.Array, qvel: jax.Array, n_steps: int,
-                policy: Callable, push: Callable) -> tuple[record.Record, jax.Array]:
+                policy: Callable, disturb: Callable) -> tuple[record.Record, jax.Array]:
     """Rolls one world out for ``n_steps`` control steps under ``policy(step, qpos, qvel)``.
+
+    ``disturb(time, qpos)`` returns the hidden :class:`~stride_jax.sim.randomize.Disturbance`.
 
     Returns the records ``[T, ...]`` and the validity mask ``[T]``.
     """
@@ -72,7 +74,7 @@ def run_episode(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, qpos:
         alive = alive & ~fallen(sm, d.qpos) & jnp.all(jnp.isfinite(d.qpos)) & jnp.all(
             jnp.isfinite(d.qvel))
         ctrl = policy(step, d.qpos, d.qvel)
-        d, rec = control_step(sm, layout, mx, d, ctrl, push(d.time))
+        d, rec = control_step(sm, layout, mx, d, ctrl, disturb(d.time, d.qpos))
         return (d, alive), (rec, alive)
 
     _, (recs, valid) = jax.lax.scan(body, (d, jnp.ones((), bool)), jnp.arange(n_steps))
@@ -86,7 +88,6 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True) -> Call
     fields = randomize.nominal_fields(sm.mj)
     explorer, info, robot = sm.robot.explorer, sm.info, sm.robot
     episode_s = n_steps * robot.ctrl_dt
-    no_push = lambda t: jnp.zeros(3)
 
     def episode(key: jax.Array) -> Episode:
         key_rand, key_explore = jax.random.split(key)
@@ -95,11 +96,18 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True) -> Call
         params = explorer.sample(key_explore, info)
         qpos, qvel = explorer.reset(params, info)
         policy = lambda step, q, qd: explorer.act(params, info, step, q, qd)
-        push = functools.partial(randomize.push_force, rand) if randomized else no_push
-        recs, valid = run_episode(sm, layout, mx, qpos, qvel, n_steps, policy, push)
+        disturb = functools.partial(_disturbance, sm, rand if randomized else None)
+        recs, valid = run_episode(sm, layout, mx, qpos, qvel, n_steps, policy, disturb)
         return Episode(recs, valid, rand, params)
 
     return episode
+
+
+def _disturbance(sm: SimModel, rand: randomize.RandValues | None, t: jax.Array,
+                 qpos: jax.Array) -> randomize.Disturbance:
+    if rand is None:
+        return randomize.Disturbance(jnp.zeros(3), jnp.zeros(sm.mj.nv))
+    return randomize.disturbance(rand, sm.robot.randomization, t, qpos, sm.mj.nv)
 
 
 def _keys_to_data(tree):
@@ -154,5 +162,5 @@ def simulate(sm: SimModel, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray)
     ctrl = jnp.asarray(ctrl, jnp.float32)
     policy = lambda step, q, qd: ctrl[step]
     fn = jax.jit(lambda q, qd: run_episode(sm, layout, mx, q, qd, ctrl.shape[0], policy,
-                                           lambda t: jnp.zeros(3))[0])
+                                           functools.partial(_disturbance, sm, None))[0])
     return jax.device_get(fn(jnp.asarray(qpos), jnp.asarray(qvel)))
