@@ -1,0 +1,43 @@
+# stride_jax: `make demo` (the main job, CPU-sized) and `make test`; see README.md.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+ROBOT ?= go1
+PRESET ?= default
+
+# Offline machines keep MuJoCo Menagerie beside the checkout; elsewhere the package downloads it.
+ifneq ($(wildcard ../shared/menagerie),)
+export MENAGERIE_ROOT ?= $(abspath ../shared/menagerie)
+endif
+
+.PHONY: setup demo data test bench-sim clean
+
+$(BIN)/stride: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[test]'
+	touch $@
+
+setup: $(BIN)/stride
+
+## demo: datasets of the pendulum, its bouncing variant and the Go1, with summary plots (CPU, minutes)
+demo: setup
+	$(BIN)/stride data --robot pendulum
+	$(BIN)/stride data --robot pendulum_bouncing
+	$(BIN)/stride data --robot go1 --episodes 32 --seconds 5
+
+## data: one dataset, e.g. make data ROBOT=g1 PRESET=tiny
+data: setup
+	$(BIN)/stride data --robot $(ROBOT) --preset $(PRESET)
+
+## test: the whole suite (about 4 minutes on 2 cores)
+test: setup
+	$(BIN)/python -m pytest -q
+
+## bench-sim: simulation steps/s per robot, backend and batch size -> results/bench_sim_<cpu|gpu>.md
+bench-sim: setup
+	$(BIN)/stride bench-sim --preset $(PRESET)
+
+clean:
+	rm -rf data/ .pytest_cache
