@@ -38,9 +38,9 @@ class BenchConfig:
     """
 
     robots: str = "go1,g1"
-    backends: str = "mjx,cpu"
+    backends: str = "cpu"
     batches: str = "16,64"
-    steps: int = 20
+    steps: int = 100
     repeats: int = 3
     iterations: int = 0
     ls_iterations: int = 0

@@ -39,10 +39,10 @@ def dataset_summary(ds: Dataset, path: str | pathlib.Path | None = None) -> path
         ax[0, 1].set(title=f"foot normal forces, episode {ep}", xlabel="t (s)", ylabel="N")
         ax[0, 1].legend(fontsize=8)
     else:
-        f = (a["qfrc_passive"] + a["qfrc_constraint"])[..., 0][valid]
+        f = (a["qfrc_passive"] + a["qfrc_constraint"] + a["qfrc_external"])[..., 0][valid]
         ax[0, 1].scatter(q, f, s=1, alpha=0.3)
-        ax[0, 1].set(title="passive + constraint torque (the residual)", xlabel="q (rad)",
-                     ylabel="N m")
+        ax[0, 1].set(title="non-conservative torque: passive + constraint + hidden",
+                     xlabel="q (rad)", ylabel="N m", yscale="symlog")
 
     # (c) fraction of episodes still valid (upright) over time.
     ax[1, 0].plot(t, valid.mean(0))

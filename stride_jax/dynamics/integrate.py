@@ -1,0 +1,55 @@
+"""Configuration updates from velocities, floating-base aware (MuJoCo's coordinate conventions).
+
+Fixed-base robots: q and v are hinge angles and rates, ``q' = q + dt * v``.
+Floating-base robots (first joint free): ``q = [p (3, world), quat (4, w x y z), joints]`` and
+``v = [p_dot (3, world), omega (3, body frame), joint rates]``; the rotation integrates in the body
+frame, ``quat' = quat * exp(dt * omega / 2)``, exactly as ``mj_integratePos`` does.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def quat_mul(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Hamilton product of two quaternions (w x y z)."""
+    aw, av = a[0], a[1:]
+    bw, bv = b[0], b[1:]
+    return jnp.concatenate([jnp.array([aw * bw - av @ bv]), aw * bv + bw * av + jnp.cross(av, bv)])
+
+
+def quat_exp(rotvec: jax.Array) -> jax.Array:
+    """Unit quaternion of a rotation vector (rad), smooth at zero (safe under autodiff)."""
+    angle2 = rotvec @ rotvec
+    small = angle2 < 1e-12
+    angle = jnp.sqrt(jnp.where(small, 1.0, angle2))
+    half = 0.5 * jnp.where(small, 0.0, angle)
+    # sin(a/2)/a -> 1/2 - a^2/48 near zero
+    scale = jnp.where(small, 0.5 - angle2 / 48.0, jnp.sin(half) / angle)
+    return jnp.concatenate([jnp.array([jnp.cos(half)]), scale * rotvec])
+
+
+def quat_to_mat(quat: jax.Array) -> jax.Array:
+    """Rotation matrix ``[3, 3]`` of a unit quaternion (body to world)."""
+    w, x, y, z = quat
+    return jnp.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def retract(q: jax.Array, dv: jax.Array, floating_base: bool) -> jax.Array:
+    """Moves configuration ``q`` [nq] along tangent vector ``dv`` [nv] (a velocity times time)."""
+    if not floating_base:
+        return q + dv
+    quat = quat_mul(q[3:7], quat_exp(dv[3:6]))
+    return jnp.concatenate([q[:3] + dv[:3], quat / jnp.linalg.norm(quat), q[7:] + dv[6:]])
+
+
+def semi_implicit_euler(q: jax.Array, v: jax.Array, qdd: jax.Array, dt: float,
+                        floating_base: bool) -> tuple[jax.Array, jax.Array]:
+    """One step: ``v' = v + dt * qdd``, then ``q' = retract(q, dt * v')`` (MuJoCo's Euler)."""
+    v_next = v + dt * qdd
+    return retract(q, dt * v_next, floating_base), v_next
