@@ -21,12 +21,15 @@ MuJoCo's own bias force with MuJoCo's mass matrix and potential plugged in.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable
 
 import jax
 import jax.numpy as jnp
 
-from stride_jax.dynamics.integrate import retract
+from stride_jax.dynamics import mlp
+from stride_jax.dynamics.integrate import quat_to_mat, retract
+from stride_jax.types import ModelSpec
 
 MassFn = Callable[[jax.Array], jax.Array]  # q [nq] -> M [nv, nv]
 PotentialFn = Callable[[jax.Array], jax.Array]  # q [nq] -> V []
@@ -55,3 +58,77 @@ def forward_dynamics(mass_fn: MassFn, potential_fn: PotentialFn, q: jax.Array, v
     """``qdd = M(q)^-1 (tau - C(q, v) v - g(q))`` (the paper's f_LNN), by a Cholesky solve."""
     M, b = bias_force(mass_fn, potential_fn, q, v, floating_base)
     return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(M), tau - b)
+
+
+# --- The learned prior: Cholesky mass network and scalar potential (the paper's Sec. III-B) ---
+
+
+@dataclasses.dataclass(frozen=True)
+class LNNConfig:
+    """Sizes of the two networks and ``diag_floor``: M's eigenvalues stay above it."""
+
+    net: mlp.MLPConfig = mlp.MLPConfig()
+    diag_floor: float = 1e-3
+
+
+def q_features(spec: ModelSpec, q: jax.Array) -> jax.Array:
+    """Network input from a configuration: invariant where the physics is.
+
+    Floating base: base height, rotation matrix (9; no quaternion sign ambiguity) and joint
+    angles -- not the horizontal position, on which neither M nor V depends. Periodic hinges enter
+    as (sin, cos).
+    """
+    if spec.floating_base:
+        joints = q[7:]
+        head = [q[2:3], quat_to_mat(q[3:7]).reshape(9)]
+    else:
+        joints, head = q, []
+    if spec.periodic:
+        periodic = jnp.asarray(spec.periodic)
+        joints = jnp.concatenate([jnp.where(periodic, jnp.sin(joints), joints),
+                                  jnp.cos(joints)[periodic]])
+    return jnp.concatenate(head + [joints])
+
+
+def _n_features(spec: ModelSpec) -> int:
+    n_hinge = spec.nq - (7 if spec.floating_base else 0)
+    return (10 if spec.floating_base else 0) + n_hinge + sum(spec.periodic)
+
+
+def lnn_init(key: jax.Array, spec: ModelSpec, cfg: LNNConfig = LNNConfig()) -> dict:
+    """Parameters of the Cholesky-factor network (nv (nv + 1) / 2 outputs) and of V(q)."""
+    key_m, key_v = jax.random.split(key)
+    n_tril = spec.nv * (spec.nv + 1) // 2
+    init_m, _ = mlp.mlp(cfg.net, n_tril)
+    init_v, _ = mlp.mlp(cfg.net, 1)
+    return {"mass": init_m(key_m, _n_features(spec)), "potential": init_v(key_v, _n_features(spec))}
+
+
+def mass_matrix(params: dict, spec: ModelSpec, q: jax.Array,
+                cfg: LNNConfig = LNNConfig()) -> jax.Array:
+    """``M(q) = L L^T + floor I`` ``[nv, nv]``: L lower triangular with a softplus diagonal.
+
+    The softplus diagonal makes ``L L^T`` positive definite (paper, Sec. III-B); the ``floor I``
+    bounds its smallest eigenvalue away from zero, which a positive diagonal alone does not (large
+    off-diagonal entries can make ``L L^T`` numerically singular).
+    """
+    _, apply = mlp.mlp(cfg.net, spec.nv * (spec.nv + 1) // 2)
+    raw = apply(params["mass"], q_features(spec, q))
+    rows, cols = jnp.tril_indices(spec.nv)
+    L = jnp.zeros((spec.nv, spec.nv), raw.dtype).at[rows, cols].set(raw)
+    L = L.at[jnp.diag_indices(spec.nv)].set(jax.nn.softplus(jnp.diag(L)))
+    return L @ L.T + cfg.diag_floor * jnp.eye(spec.nv, dtype=L.dtype)
+
+
+def potential_energy(params: dict, spec: ModelSpec, q: jax.Array,
+                     cfg: LNNConfig = LNNConfig()) -> jax.Array:
+    """Scalar ``V(q)`` (J)."""
+    _, apply = mlp.mlp(cfg.net, 1)
+    return apply(params["potential"], q_features(spec, q))[0]
+
+
+def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
+              cfg: LNNConfig = LNNConfig()) -> tuple[jax.Array, jax.Array]:
+    """``(M(q), C(q, v) v + g(q))`` of the learned Lagrangian."""
+    return bias_force(lambda x: mass_matrix(params, spec, x, cfg),
+                      lambda x: potential_energy(params, spec, x, cfg), q, v, spec.floating_base)
