@@ -26,6 +26,7 @@ from typing import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from stride_jax.dynamics import mlp
 from stride_jax.dynamics.integrate import quat_to_mat, retract
@@ -84,7 +85,7 @@ def q_features(spec: ModelSpec, q: jax.Array) -> jax.Array:
     else:
         joints, head = q, []
     if spec.periodic:
-        periodic = jnp.asarray(spec.periodic)
+        periodic = np.asarray(spec.periodic)  # static mask
         joints = jnp.concatenate([jnp.where(periodic, jnp.sin(joints), joints),
                                   jnp.cos(joints)[periodic]])
     return jnp.concatenate(head + [joints])
