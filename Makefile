@@ -4,6 +4,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 ROBOT ?= go1
+MODEL ?= stride
 PRESET ?= default
 
 # Offline machines keep MuJoCo Menagerie beside the checkout; elsewhere the package downloads it.
@@ -11,7 +12,7 @@ ifneq ($(wildcard ../shared/menagerie),)
 export MENAGERIE_ROOT ?= $(abspath ../shared/menagerie)
 endif
 
-.PHONY: setup demo data test bench-sim clean
+.PHONY: setup demo data train test bench-sim clean
 
 $(BIN)/stride: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -31,6 +32,10 @@ demo: setup
 data: setup
 	$(BIN)/stride data --robot $(ROBOT) --preset $(PRESET)
 
+## train: one model, e.g. make train ROBOT=pendulum MODEL=delan PRESET=tiny (generates data if absent)
+train: setup
+	$(BIN)/stride train --robot $(ROBOT) --model $(MODEL) --preset $(PRESET)
+
 ## test: the whole suite (about 4 minutes on 2 cores)
 test: setup
 	$(BIN)/python -m pytest -q
@@ -40,4 +45,4 @@ bench-sim: setup
 	$(BIN)/stride bench-sim --preset $(PRESET)
 
 clean:
-	rm -rf data/ .pytest_cache
+	rm -rf data/ runs/ .pytest_cache

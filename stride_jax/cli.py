@@ -1,6 +1,7 @@
 """The ``stride`` command. Each subcommand's flags are derived from its config dataclass.
 
     stride data --robot go1 [--preset tiny|default|paper] [--episodes 64 ...]
+    stride train --robot pendulum --model stride [--preset tiny|default|paper] [--steps ...]
     stride bench-sim [--preset tiny|default|gpu] [--robots go1,g1 ...]
 """
 
@@ -39,8 +40,10 @@ def _config(cls, presets: dict, args: argparse.Namespace):
 
 def _commands():
     from stride_jax.sim import bench, collect
+    from stride_jax.train import job
     return {
         "data": (collect.DataConfig, collect.PRESETS, "generate a dataset", _run_data),
+        "train": (job.TrainConfig, job.PRESETS, "train a dynamics model", _run_train),
         "bench-sim": (bench.BenchConfig, bench.PRESETS, "simulation throughput", _run_bench),
     }
 
@@ -53,6 +56,11 @@ def _run_data(cfg) -> None:
     print(f"wrote {ds.path}: {m['n_episodes']} episodes x {m['n_steps']} steps of {m['robot']} "
           f"({m['backend']}, {m['generation_seconds']:.1f} s), valid fraction "
           f"{m['valid_fraction']:.2f}; summary plot {png}")
+
+
+def _run_train(cfg) -> None:
+    from stride_jax.train import job
+    job.run(cfg)
 
 
 def _run_bench(cfg) -> None:
@@ -75,9 +83,10 @@ def main(argv: list[str] | None = None) -> None:
     cls, presets, _, run = commands[args.command]
     from stride_jax.robots import RobotError
     from stride_jax.sim.dataset import DatasetError
+    from stride_jax.train.loop import TrainingError
     try:
         run(_config(cls, presets, args))
-    except (RobotError, DatasetError, ValueError) as e:
+    except (RobotError, DatasetError, TrainingError, ValueError) as e:
         raise SystemExit(f"stride {args.command}: error: {e}") from None
 
 

@@ -7,6 +7,7 @@ import pathlib
 import time
 
 import jax
+import mujoco
 from tqdm import tqdm
 
 from stride_jax.sim import dataset, model, rollout_cpu, rollout_mjx
@@ -81,6 +82,9 @@ def generate(cfg: DataConfig) -> dataset.Dataset:
         kp=list(sm.robot.kp) if sm.robot.kp else None,
         kd=list(sm.robot.kd) if sm.robot.kd else None,
         actuator_force_range=sm.mj.actuator_forcerange.tolist(),
+        act_dof=sm.act_dof.tolist(),
+        periodic=[bool(sm.mj.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE and not sm.mj.jnt_limited[j])
+                  for j in range(sm.mj.njnt) if sm.mj.jnt_type[j] != mujoco.mjtJoint.mjJNT_FREE],
         ctrl_range=sm.mj.actuator_ctrlrange.tolist(),
         exploration=type(sm.robot.explorer).__name__,
         randomization=dataclasses.asdict(sm.robot.randomization) if cfg.randomized else None,

@@ -1,0 +1,96 @@
+"""``stride train`` / ``make train``: dataset -> model -> trained, checkpointed params."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+
+import numpy as np
+
+from stride_jax.dynamics import mlp, models, stride
+from stride_jax.sim import collect, dataset
+from stride_jax.train import loop
+from stride_jax.types import ModelSpec
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """What ``stride train`` trains.
+
+    Attributes:
+      robot: pendulum, pendulum_bouncing, go1 or g1.
+      model: stride or delan (onn, diffusion and lnn_diffusion are still to come).
+      data: dataset folder; empty means ``data/<robot>`` (generated with ``data_preset`` if absent).
+      data_preset: the ``stride data`` preset used when the dataset has to be generated.
+      hidden, depth: width and depth of every network of the model.
+      nfe: flow evaluations per residual sample (STRIDE).
+      steps, batch, lr, eval_every, ckpt_every, seed: the optimisation.
+      out: run folder; empty means ``runs/<robot>/<model>``.
+    """
+
+    robot: str = "pendulum"
+    model: str = "stride"
+    data: str = ""
+    data_preset: str = "default"
+    hidden: int = 128
+    depth: int = 3
+    nfe: int = 2
+    steps: int = 2000
+    batch: int = 256
+    lr: float = 1e-3
+    eval_every: int = 100
+    ckpt_every: int = 500
+    seed: int = 0
+    out: str = ""
+
+
+PRESETS = {
+    "tiny": dict(hidden=32, depth=2, steps=100, batch=64, eval_every=50, ckpt_every=50,
+                 data_preset="tiny"),
+    "default": {},
+    "paper": dict(hidden=256, depth=3, steps=50_000, batch=1024, lr=1e-3, eval_every=1000,
+                  ckpt_every=2000, data_preset="paper"),
+}
+
+
+def spec_from_meta(meta: dict) -> ModelSpec:
+    nv = len(meta["stats"]["qd"]["mean"])
+    return ModelSpec(nq=len(meta["stats"]["q"]["mean"]), nv=nv,
+                     floating_base=meta["floating_base"], periodic=tuple(meta["periodic"]))
+
+
+def scales(ds: dataset.Dataset) -> dict:
+    """Normalisers: per-dof std of qdd, and of the non-conservative force (floored)."""
+    train = ds.split("train")
+    v = train["valid"]
+    force = (train["qfrc_passive"] + train["qfrc_constraint"] + train["qfrc_external"])[v]
+    force_std = np.maximum(force.std(0), 1e-2 * max(float(force.std(0).max()), 1e-3))
+    return {"qdd_scale": np.asarray(ds.stats["qdd"]["std"], np.float32),
+            "force_scale": force_std.astype(np.float32)}
+
+
+def run(cfg: TrainConfig, log=print) -> pathlib.Path:
+    data_dir = pathlib.Path(cfg.data or f"data/{cfg.robot}")
+    if not (data_dir / "meta.json").exists():
+        log(f"no dataset at {data_dir}: generating one (preset {cfg.data_preset})")
+        preset = dict(collect.PRESETS[cfg.data_preset], robot=cfg.robot, out=str(data_dir))
+        collect.generate(collect.DataConfig(**preset))
+    ds = dataset.load(data_dir, robot=cfg.robot)
+    if "act_dof" not in ds.meta:
+        raise dataset.DatasetError(f"{data_dir} predates actuator metadata; regenerate it")
+    spec = spec_from_meta(ds.meta)
+    model_cfg = stride.StructuredConfig(net=mlp.MLPConfig(cfg.hidden, cfg.depth), nfe=cfg.nfe)
+    model = models.make(cfg.model, spec, models.Actuation.from_meta(ds.meta), model_cfg,
+                        **scales(ds))
+    out = pathlib.Path(cfg.out or f"runs/{cfg.robot}/{cfg.model}")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(
+        {"train": dataclasses.asdict(cfg), "dataset": str(data_dir),
+         "dataset_sha256": ds.meta["arrays_sha256"]}, indent=1))
+    loop_cfg = loop.LoopConfig(steps=cfg.steps, batch=cfg.batch, lr=cfg.lr,
+                               eval_every=cfg.eval_every, ckpt_every=cfg.ckpt_every, seed=cfg.seed)
+    loop.train(model.loss, model.init, ds.split("train"), ds.split("val"), loop_cfg, out, log)
+    log(f"trained {cfg.model} on {cfg.robot}: best params in {out / 'best'}, "
+        f"log in {out / 'metrics.csv'}")
+    return out

@@ -1,0 +1,151 @@
+"""The training loop: jitted optax steps on minibatches sharded over devices, validation,
+best-checkpoint selection, resumable orbax checkpoints, a NaN guard, progress and a CSV log.
+
+Minibatch ``i`` is drawn with ``fold_in(key, i)``, so a run that was killed and resumed from its
+last checkpoint takes exactly the steps an uninterrupted run takes.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import pathlib
+import time
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import orbax.checkpoint as ocp
+from tqdm import tqdm
+
+from stride_jax.sim import rollout_mjx
+
+
+class TrainingError(RuntimeError):
+    """Training cannot go on (a non-finite loss, an unusable checkpoint)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopConfig:
+    steps: int = 2000
+    batch: int = 256
+    lr: float = 1e-3
+    eval_every: int = 200
+    ckpt_every: int = 500
+    seed: int = 0
+
+
+class State(dict):
+    """Checkpointed training state: params, opt_state, step, best_val (a plain pytree)."""
+
+
+def _examples(split: dict) -> dict:
+    """Valid steps of a split as flat training examples ``{q, qd, tau, qdd}`` [N, ...]."""
+    v = split["valid"]
+    return {k: np.asarray(split[k][v], np.float32) for k in ("q", "qd", "tau", "qdd")}
+
+
+def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: dict,
+          cfg: LoopConfig, out: pathlib.Path, log: Callable[[str], None] = print) -> dict:
+    """Trains ``init_fn(key)`` params on ``loss_fn(params, example, key)``; returns the best params.
+
+    Writes ``out/ckpt`` (latest, resumable), ``out/best`` (lowest validation loss) and
+    ``out/metrics.csv``; resumes from ``out/ckpt`` when it exists.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    data, val = _examples(train_split), _examples(val_split)
+    n_train = len(data["q"])
+    if n_train == 0 or len(val["q"]) == 0:
+        raise TrainingError("no valid training or validation steps in the dataset")
+    key = jax.random.key(cfg.seed)
+    key_init, key_loop = jax.random.split(key)
+    schedule = optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05)
+    opt = optax.chain(optax.clip_by_global_norm(10.0), optax.adam(schedule))
+    params = init_fn(key_init)
+    state = {"params": params, "opt": opt.init(params), "step": jnp.zeros((), jnp.int32),
+             "best_val": jnp.array(jnp.inf, jnp.float32)}
+
+    # A killed run can leave a half-written step behind: orbax discards such temporaries.
+    options = ocp.CheckpointManagerOptions(max_to_keep=2, create=True,
+                                           cleanup_tmp_directories=True)
+    ckpt = ocp.CheckpointManager((out / "ckpt").absolute(), options=options)
+    best = ocp.CheckpointManager((out / "best").absolute(),
+                                 options=ocp.CheckpointManagerOptions(max_to_keep=1, create=True))
+    if ckpt.latest_step() is not None:
+        try:
+            state = ckpt.restore(ckpt.latest_step(), args=ocp.args.StandardRestore(state))
+        except Exception as e:  # noqa: BLE001 -- any unreadable checkpoint is the same problem
+            raise TrainingError(f"cannot resume from {out / 'ckpt'}: {e}") from e
+        log(f"resumed from step {int(state['step'])} ({out / 'ckpt'})")
+
+    batch = min(cfg.batch, n_train)
+    sharding = rollout_mjx.world_sharding(batch) if batch % max(1, jax.local_device_count()) == 0 \
+        else None
+
+    def mean_loss(params, ex, key):
+        keys = jax.random.split(key, len(ex["q"]))
+        total, parts = jax.vmap(loss_fn, in_axes=(None, 0, 0))(params, ex, keys)
+        return jnp.mean(total), jax.tree.map(jnp.mean, parts)
+
+    @jax.jit
+    def train_step(state, ex, key):
+        (loss, parts), grads = jax.value_and_grad(mean_loss, has_aux=True)(state["params"], ex, key)
+        updates, opt_state = opt.update(grads, state["opt"], state["params"])
+        new = dict(state, params=optax.apply_updates(state["params"], updates), opt=opt_state,
+                   step=state["step"] + 1)
+        return new, loss, parts
+
+    eval_fn = jax.jit(mean_loss)
+    val_ex = jax.tree.map(lambda a: a[: min(len(a), 4096)], val)
+    metrics_path = out / "metrics.csv"
+    new_file = not metrics_path.exists()
+    start = int(state["step"])
+    with open(metrics_path, "a", newline="") as f, tqdm(total=cfg.steps, initial=start,
+                                                        desc="train", unit="step") as bar:
+        writer = None
+        for i in range(start, cfg.steps):
+            k_batch, k_loss = jax.random.split(jax.random.fold_in(key_loop, i))
+            idx = np.asarray(jax.random.randint(k_batch, (batch,), 0, n_train))
+            ex = {k: v[idx] for k, v in data.items()}
+            if sharding is not None:
+                ex = jax.device_put(ex, sharding)
+            state, loss, parts = train_step(state, ex, k_loss)
+            step = i + 1
+            last = step == cfg.steps
+            if step % cfg.eval_every == 0 or last:
+                loss = float(loss)
+                if not np.isfinite(loss):
+                    raise TrainingError(
+                        f"the training loss became {loss} by step {step}; the last good "
+                        f"checkpoint is in {out / 'ckpt'} (step {ckpt.latest_step()}). Lower "
+                        f"the learning rate ({cfg.lr}) or check the dataset for outliers.")
+                val_loss, val_parts = eval_fn(state["params"], val_ex, jax.random.key(0))
+                row = {"step": step, "time": time.time(), "train_loss": loss,
+                       "val_loss": float(val_loss),
+                       **{f"train_{k}": float(v) for k, v in parts.items()},
+                       **{f"val_{k}": float(v) for k, v in val_parts.items()}}
+                if writer is None:
+                    writer = csv.DictWriter(f, fieldnames=list(row))
+                    if new_file:
+                        writer.writeheader()
+                writer.writerow(row)
+                f.flush()
+                if float(val_loss) < float(state["best_val"]):
+                    state = dict(state, best_val=jnp.asarray(val_loss, jnp.float32))
+                    best.save(step, args=ocp.args.StandardSave(state["params"]), force=True)
+                bar.set_postfix(loss=f"{loss:.4g}", val=f"{float(val_loss):.4g}")
+            if step % cfg.ckpt_every == 0 or last:
+                ckpt.save(step, args=ocp.args.StandardSave(state), force=True)
+            bar.update(1)
+    ckpt.wait_until_finished()
+    best.wait_until_finished()
+    if best.latest_step() is None:
+        raise TrainingError("no validation ever ran (steps < eval_every?)")
+    params = best.restore(best.latest_step(), args=ocp.args.StandardRestore(state["params"]))
+    (out / "summary.json").write_text(json.dumps(
+        {"best_val": float(state["best_val"]), "best_step": best.latest_step(),
+         "steps": cfg.steps}, indent=1))
+    return params
