@@ -16,7 +16,7 @@ The training loop, the evaluation, the MPPI planner and a user's controller all 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -77,7 +77,7 @@ class Model(NamedTuple):
 
 
 def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig,
-               qdd_scale: Any = 1.0, force_scale: Any = 1.0) -> Model:
+               scales: stride.Scales = stride.Scales()) -> Model:
     """STRIDE (``name='stride'``, flow residual) or DeLaN (``'delan'``, MLP residual)."""
     stochastic = name == "stride"
 
@@ -86,10 +86,10 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
 
     def loss(params, ex, key):
         return stride.loss(params, spec, cfg, stochastic, ex["q"], ex["qd"], ex["tau"], ex["qdd"],
-                           key, qdd_scale, force_scale)
+                           key, scales)
 
     def acceleration(params, q, qd, tau, key, nfe=None):
-        return stride.acceleration(params, spec, cfg, stochastic, q, qd, tau, key, nfe)[0]
+        return stride.acceleration(params, spec, cfg, stochastic, q, qd, tau, key, nfe, scales)[0]
 
     def step(params, q, qd, ctrl, key, nfe=None):
         def substep(carry, k):
@@ -116,8 +116,8 @@ MODELS = ("stride", "delan")
 
 
 def make(name: str, spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig,
-         **scales) -> Model:
+         scales: stride.Scales = stride.Scales()) -> Model:
     """The model called ``name``; a clear error for unknown names."""
     if name not in MODELS:
         raise ValueError(f"unknown model {name!r}; available: {', '.join(MODELS)}")
-    return structured(name, spec, act, cfg, **scales)
+    return structured(name, spec, act, cfg, scales)

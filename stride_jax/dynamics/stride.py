@@ -32,6 +32,7 @@ prior still learns end to end with the flow's samples in the loop.
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -60,9 +61,23 @@ class StructuredConfig:
         return flow.FlowConfig(net=self.net, nfe=self.nfe, integrator=self.integrator)
 
 
-def context(spec: ModelSpec, q: jax.Array, qd: jax.Array, tau: jax.Array) -> jax.Array:
-    """The residual's conditioning ``c = (features(q), qd, tau)``."""
-    return jnp.concatenate([lagrangian.q_features(spec, q), qd, tau])
+class Scales(NamedTuple):
+    """Per-dof normalisers ``[nv]`` (dataset standard deviations); ones leave units as they are.
+
+    Networks see ``qd / qd`` and ``tau / tau``; the residual networks output forces in units of
+    ``force``; the acceleration loss weighs errors by ``1 / qdd``.
+    """
+
+    qd: jax.Array | float = 1.0
+    tau: jax.Array | float = 1.0
+    force: jax.Array | float = 1.0
+    qdd: jax.Array | float = 1.0
+
+
+def context(spec: ModelSpec, q: jax.Array, qd: jax.Array, tau: jax.Array,
+            scales: Scales = Scales()) -> jax.Array:
+    """The residual's conditioning ``c = (features(q), qd, tau)``, normalised."""
+    return jnp.concatenate([lagrangian.q_features(spec, q), qd / scales.qd, tau / scales.tau])
 
 
 def _context_dim(spec: ModelSpec) -> int:
@@ -82,43 +97,41 @@ def init(key: jax.Array, spec: ModelSpec, cfg: StructuredConfig, stochastic: boo
 
 
 def residual_force(params: dict, spec: ModelSpec, cfg: StructuredConfig, stochastic: bool,
-                   q, qd, tau, key, nfe: int | None = None) -> jax.Array:
+                   q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales()
+                   ) -> jax.Array:
     """``eps`` [nv]: a flow sample (STRIDE) or the MLP's prediction (DeLaN; ``key`` unused)."""
-    c = context(spec, q, qd, tau)
+    c = context(spec, q, qd, tau, scales)
     if stochastic:
-        return flow.sample(params["residual"], c, key, spec.nv, cfg.flow, nfe)
-    return mlp.mlp(cfg.net, spec.nv, zero_last=True)[1](params["residual"], c)
+        return scales.force * flow.sample(params["residual"], c, key, spec.nv, cfg.flow, nfe)
+    return scales.force * mlp.mlp(cfg.net, spec.nv, zero_last=True)[1](params["residual"], c)
 
 
 def acceleration(params: dict, spec: ModelSpec, cfg: StructuredConfig, stochastic: bool,
-                 q, qd, tau, key, nfe: int | None = None) -> tuple[jax.Array, jax.Array]:
+                 q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales()
+                 ) -> tuple[jax.Array, jax.Array]:
     """``(qdd [nv], eps [nv])``: predicted acceleration and the generalised residual used."""
     M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn)
-    eps = residual_force(params, spec, cfg, stochastic, q, qd, tau, key, nfe)
+    eps = residual_force(params, spec, cfg, stochastic, q, qd, tau, key, nfe, scales)
     cho = jax.scipy.linalg.cho_factor(M)
     return jax.scipy.linalg.cho_solve(cho, tau - b + eps), eps
 
 
 def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, stochastic: bool,
-         q, qd, tau, qdd, key, qdd_scale: jax.Array | float = 1.0,
-         force_scale: jax.Array | float = 1.0) -> tuple[jax.Array, dict]:
-    """One example's training loss and its parts (see the module docstring).
-
-    ``qdd_scale`` and ``force_scale`` ``[nv]`` normalise accelerations and generalised forces.
-    """
+         q, qd, tau, qdd, key, scales: Scales = Scales()) -> tuple[jax.Array, dict]:
+    """One example's training loss and its parts (see the module docstring)."""
     key_sample, key_fm = jax.random.split(key)
     M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn)
     cho = jax.scipy.linalg.cho_factor(M)
-    c = context(spec, q, qd, tau)
+    c = context(spec, q, qd, tau, scales)
     if stochastic:
         flow_params = jax.lax.stop_gradient(params["residual"])
-        eps = flow.sample(flow_params, c, key_sample, spec.nv, cfg.flow)
+        eps = scales.force * flow.sample(flow_params, c, key_sample, spec.nv, cfg.flow)
     else:
-        eps = mlp.mlp(cfg.net, spec.nv, zero_last=True)[1](params["residual"], c)
+        eps = scales.force * mlp.mlp(cfg.net, spec.nv, zero_last=True)[1](params["residual"], c)
     qdd_pred = jax.scipy.linalg.cho_solve(cho, tau - b + eps)
-    l_acc = jnp.sum(((qdd - qdd_pred) / qdd_scale) ** 2)
-    implied = M @ qdd - (tau - b)  # r*, the residual the prior leaves
-    l_res = jnp.sum((implied / force_scale) ** 2)
+    l_acc = jnp.sum(((qdd - qdd_pred) / scales.qdd) ** 2)
+    implied = (M @ qdd - (tau - b)) / scales.force  # r*, the residual the prior leaves
+    l_res = jnp.sum(implied ** 2)
     parts = {"acc": l_acc, "res": l_res}
     total = l_acc + cfg.residual_weight * l_res
     if stochastic:

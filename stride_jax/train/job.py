@@ -60,14 +60,18 @@ def spec_from_meta(meta: dict) -> ModelSpec:
                      floating_base=meta["floating_base"], periodic=tuple(meta["periodic"]))
 
 
-def scales(ds: dataset.Dataset) -> dict:
-    """Normalisers: per-dof std of qdd, and of the non-conservative force (floored)."""
+def scales(ds: dataset.Dataset) -> stride.Scales:
+    """Per-dof normalisers from the training split (stds floored at 1% of the largest)."""
     train = ds.split("train")
     v = train["valid"]
     force = (train["qfrc_passive"] + train["qfrc_constraint"] + train["qfrc_external"])[v]
-    force_std = np.maximum(force.std(0), 1e-2 * max(float(force.std(0).max()), 1e-3))
-    return {"qdd_scale": np.asarray(ds.stats["qdd"]["std"], np.float32),
-            "force_scale": force_std.astype(np.float32)}
+
+    def std(x):
+        s = x.std(0)
+        return np.maximum(s, 1e-2 * max(float(s.max()), 1e-3)).astype(np.float32)
+
+    return stride.Scales(qd=std(train["qd"][v]), tau=std(train["tau"][v]), force=std(force),
+                         qdd=std(train["qdd"][v]))
 
 
 def run(cfg: TrainConfig, log=print) -> pathlib.Path:
@@ -82,7 +86,7 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
     spec = spec_from_meta(ds.meta)
     model_cfg = stride.StructuredConfig(net=mlp.MLPConfig(cfg.hidden, cfg.depth), nfe=cfg.nfe)
     model = models.make(cfg.model, spec, models.Actuation.from_meta(ds.meta), model_cfg,
-                        **scales(ds))
+                        scales(ds))
     out = pathlib.Path(cfg.out or f"runs/{cfg.robot}/{cfg.model}")
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(
