@@ -5,6 +5,10 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 ROBOT ?= go1
 MODEL ?= stride
+# Plain `make train` trains on the pendulum (minutes on a CPU); `make train ROBOT=g1` overrides.
+ifeq ($(origin ROBOT),file)
+TRAIN_ROBOT := pendulum
+endif
 PRESET ?= default
 
 # Offline machines keep MuJoCo Menagerie beside the checkout; elsewhere the package downloads it.
@@ -22,19 +26,20 @@ $(BIN)/stride: pyproject.toml
 
 setup: $(BIN)/stride
 
-## demo: datasets of the pendulum, its bouncing variant and the Go1, with summary plots (CPU, minutes)
+## demo: datasets (pendulum, bouncing pendulum, Go1) with summary plots, then STRIDE on the pendulum
 demo: setup
 	$(BIN)/stride data --robot pendulum
 	$(BIN)/stride data --robot pendulum_bouncing
 	$(BIN)/stride data --robot go1 --episodes 32 --seconds 5
+	$(BIN)/stride train --robot pendulum --model stride
 
 ## data: one dataset, e.g. make data ROBOT=g1 PRESET=tiny
 data: setup
 	$(BIN)/stride data --robot $(ROBOT) --preset $(PRESET)
 
-## train: one model, e.g. make train ROBOT=pendulum MODEL=delan PRESET=tiny (generates data if absent)
+## train: one model, e.g. make train ROBOT=go1 MODEL=delan PRESET=tiny (generates data if absent)
 train: setup
-	$(BIN)/stride train --robot $(ROBOT) --model $(MODEL) --preset $(PRESET)
+	$(BIN)/stride train --robot $(or $(TRAIN_ROBOT),$(ROBOT)) --model $(MODEL) --preset $(PRESET)
 
 ## test: the whole suite (about 4 minutes on 2 cores)
 test: setup

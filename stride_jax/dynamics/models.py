@@ -16,13 +16,15 @@ The training loop, the evaluation, the MPPI planner and a user's controller all 
 from __future__ import annotations
 
 import dataclasses
+import json
+import pathlib
 from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.dynamics import integrate, stride
+from stride_jax.dynamics import integrate, mlp, stride
 from stride_jax.types import ModelSpec
 
 
@@ -121,3 +123,39 @@ def make(name: str, spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfi
     if name not in MODELS:
         raise ValueError(f"unknown model {name!r}; available: {', '.join(MODELS)}")
     return structured(name, spec, act, cfg, scales)
+
+
+def save_definition(run: pathlib.Path, name: str, spec: ModelSpec, act: Actuation,
+                    cfg: stride.StructuredConfig, scales: stride.Scales) -> None:
+    """Writes ``run/model.json``: everything :func:`load` needs besides the parameters."""
+    as_list = lambda x: np.asarray(x, np.float64).reshape(-1).tolist()
+    (pathlib.Path(run) / "model.json").write_text(json.dumps({
+        "name": name, "spec": dataclasses.asdict(spec), "actuation": dataclasses.asdict(act),
+        "config": dataclasses.asdict(cfg),
+        "scales": {k: as_list(v) for k, v in scales._asdict().items()}}, indent=1))
+
+
+def load(run: str | pathlib.Path) -> tuple[Model, dict]:
+    """``(model, params)``: the best (lowest validation loss) parameters of a training run."""
+    import orbax.checkpoint as ocp
+
+    run = pathlib.Path(run)
+    if not (run / "model.json").is_file():
+        raise FileNotFoundError(f"{run} is not a training run (no model.json); train one with "
+                                "`stride train`")
+    d = json.loads((run / "model.json").read_text())
+    spec = ModelSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in d["spec"].items()})
+    a = d["actuation"]
+    act = Actuation(dof=tuple(a["dof"]), kp=_tuple(a["kp"]), kd=_tuple(a["kd"]),
+                    force_range=tuple(tuple(r) for r in a["force_range"]), dt=a["dt"],
+                    n_substeps=a["n_substeps"])
+    c = d["config"]
+    cfg = stride.StructuredConfig(**dict(c, net=mlp.MLPConfig(**c["net"])))
+    sc = stride.Scales(**{k: jnp.asarray(v, jnp.float32) for k, v in d["scales"].items()})
+    model = make(d["name"], spec, act, cfg, sc)
+    mngr = ocp.CheckpointManager((run / "best").absolute())
+    step = mngr.latest_step()
+    if step is None:
+        raise FileNotFoundError(f"{run / 'best'} holds no checkpoint")
+    target = model.init(jax.random.key(0))
+    return model, mngr.restore(step, args=ocp.args.StandardRestore(target))

@@ -85,10 +85,12 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
         raise dataset.DatasetError(f"{data_dir} predates actuator metadata; regenerate it")
     spec = spec_from_meta(ds.meta)
     model_cfg = stride.StructuredConfig(net=mlp.MLPConfig(cfg.hidden, cfg.depth), nfe=cfg.nfe)
-    model = models.make(cfg.model, spec, models.Actuation.from_meta(ds.meta), model_cfg,
-                        scales(ds))
+    act = models.Actuation.from_meta(ds.meta)
+    sc = scales(ds)
+    model = models.make(cfg.model, spec, act, model_cfg, sc)
     out = pathlib.Path(cfg.out or f"runs/{cfg.robot}/{cfg.model}")
     out.mkdir(parents=True, exist_ok=True)
+    models.save_definition(out, cfg.model, spec, act, model_cfg, sc)
     (out / "config.json").write_text(json.dumps(
         {"train": dataclasses.asdict(cfg), "dataset": str(data_dir),
          "dataset_sha256": ds.meta["arrays_sha256"]}, indent=1))
