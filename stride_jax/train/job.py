@@ -15,8 +15,9 @@ from stride_jax.types import ModelSpec
 
 
 @dataclasses.dataclass(frozen=True)
-class TrainConfig:
-    """What ``stride train`` trains.
+class TrainConfig(loop.LoopConfig):
+    """What ``stride train`` trains: the loop's settings (steps, batch, lr, eval_every,
+    ckpt_every, seed; see :class:`~stride_jax.train.loop.LoopConfig`) and
 
     Attributes:
       robot: pendulum, pendulum_bouncing, go1 or g1.
@@ -25,7 +26,6 @@ class TrainConfig:
       data_preset: the ``stride data`` preset used when the dataset has to be generated.
       hidden, depth: width and depth of every network of the model.
       nfe: flow evaluations per residual sample (STRIDE).
-      steps, batch, lr, eval_every, ckpt_every, seed: the optimisation.
       out: run folder; empty means ``runs/<robot>/<model>``.
     """
 
@@ -36,12 +36,6 @@ class TrainConfig:
     hidden: int = 128
     depth: int = 3
     nfe: int = 2
-    steps: int = 2000
-    batch: int = 256
-    lr: float = 1e-3
-    eval_every: int = 100
-    ckpt_every: int = 500
-    seed: int = 0
     out: str = ""
 
 
@@ -94,9 +88,7 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
     (out / "config.json").write_text(json.dumps(
         {"train": dataclasses.asdict(cfg), "dataset": str(data_dir),
          "dataset_sha256": ds.meta["arrays_sha256"]}, indent=1))
-    loop_cfg = loop.LoopConfig(steps=cfg.steps, batch=cfg.batch, lr=cfg.lr,
-                               eval_every=cfg.eval_every, ckpt_every=cfg.ckpt_every, seed=cfg.seed)
-    loop.train(model.loss, model.init, ds.split("train"), ds.split("val"), loop_cfg, out, log)
+    loop.train(model.loss, model.init, ds.split("train"), ds.split("val"), cfg, out, log)
     log(f"trained {cfg.model} on {cfg.robot}: best params in {out / 'best'}, "
         f"log in {out / 'metrics.csv'}")
     return out

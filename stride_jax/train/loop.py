@@ -30,16 +30,15 @@ class TrainingError(RuntimeError):
 
 @dataclasses.dataclass(frozen=True)
 class LoopConfig:
+    """Optimisation: Adam with cosine decay from ``lr`` over ``steps`` minibatches of ``batch``
+    examples; validation every ``eval_every`` steps, a checkpoint every ``ckpt_every``."""
+
     steps: int = 2000
     batch: int = 256
     lr: float = 1e-3
-    eval_every: int = 200
+    eval_every: int = 100
     ckpt_every: int = 500
     seed: int = 0
-
-
-class State(dict):
-    """Checkpointed training state: params, opt_state, step, best_val (a plain pytree)."""
 
 
 def _examples(split: dict) -> dict:
