@@ -1,7 +1,5 @@
 """A tiny STRIDE against a tiny DeLaN on a pendulum whose residual is bimodal at the upright."""
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np

@@ -22,20 +22,12 @@ import numpy as np
 
 from stride_jax.sim import randomize, record
 from stride_jax.sim.model import SimModel, check_open_loop
-from stride_jax.sim.rollout_mjx import Episode, _keys_to_data
+from stride_jax.sim.rollout_mjx import Episode, _keys_to_data, fallen
 
 _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
 # Control vector layout (MuJoCo's state order): ctrl, qfrc_applied, xfrc_applied.
 _CONTROL = (mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_QFRC_APPLIED
             | mujoco.mjtState.mjSTATE_XFRC_APPLIED)
-
-
-def _fallen(sm: SimModel, qpos: np.ndarray) -> np.ndarray:
-    if not sm.robot.floating_base:
-        return np.zeros(len(qpos), bool)
-    x, y = qpos[:, 4], qpos[:, 5]
-    cos_tilt = 1.0 - 2.0 * (x * x + y * y)
-    return (qpos[:, 2] < sm.robot.min_base_height) | (cos_tilt < np.cos(sm.robot.max_tilt))
 
 
 class _Worlds:
@@ -126,7 +118,7 @@ def run(sm: SimModel, models: list[mujoco.MjModel], qpos: np.ndarray, qvel: np.n
     try:
         for step in range(n_steps):
             q, qd = worlds.qpos, worlds.qvel
-            alive &= ~_fallen(sm, q) & np.isfinite(q).all(1) & np.isfinite(qd).all(1)
+            alive &= ~fallen(sm, q, np) & np.isfinite(q).all(1) & np.isfinite(qd).all(1)
             valid.append(alive.copy())
             ctrl = np.asarray(policy(step, q, qd), dtype=np.float64)
             if disturb is None:

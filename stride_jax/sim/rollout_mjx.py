@@ -38,13 +38,16 @@ def _integrate(mx: mjx.Model, d: mjx.Data) -> mjx.Data:
     raise NotImplementedError(f"integrator {mx.opt.integrator} is not supported by stride_jax")
 
 
-def fallen(sm: SimModel, qpos: jax.Array) -> jax.Array:
-    """Whether a floating-base robot is down: base too low or tilted too far from upright."""
+def fallen(sm: SimModel, qpos, xp=jnp):
+    """Whether a floating-base robot is down: base too low or tilted too far from upright.
+
+    ``qpos`` is ``[..., nq]``; ``xp`` is ``jax.numpy`` or ``numpy``.
+    """
     if not sm.robot.floating_base:
-        return jnp.zeros((), bool)
-    w, x, y, z = qpos[3], qpos[4], qpos[5], qpos[6]
+        return xp.zeros(qpos.shape[:-1], bool)
+    x, y = qpos[..., 4], qpos[..., 5]
     cos_tilt = 1.0 - 2.0 * (x * x + y * y)  # z-axis of the base against world z
-    return (qpos[2] < sm.robot.min_base_height) | (cos_tilt < jnp.cos(sm.robot.max_tilt))
+    return (qpos[..., 2] < sm.robot.min_base_height) | (cos_tilt < np.cos(sm.robot.max_tilt))
 
 
 def control_step(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, d: mjx.Data,
