@@ -40,6 +40,27 @@ def quat_to_mat(quat: jax.Array) -> jax.Array:
     ])
 
 
+def quat_log(quat: jax.Array) -> jax.Array:
+    """Rotation vector (rad) of a unit quaternion; the shorter way round (w >= 0)."""
+    quat = jnp.where(quat[0] < 0, -quat, quat)
+    s = jnp.linalg.norm(quat[1:])
+    angle = 2.0 * jnp.arctan2(s, quat[0])
+    small = s < 1e-9
+    return jnp.where(small, 2.0 * quat[1:], angle / jnp.where(small, 1.0, s) * quat[1:])
+
+
+def quat_conj(quat: jax.Array) -> jax.Array:
+    return quat * jnp.array([1.0, -1.0, -1.0, -1.0])
+
+
+def difference(q1: jax.Array, q0: jax.Array, floating_base: bool) -> jax.Array:
+    """Tangent vector ``[nv]`` from ``q0`` to ``q1``: ``retract(q0, difference(q1, q0)) == q1``."""
+    if not floating_base:
+        return q1 - q0
+    rot = quat_log(quat_mul(quat_conj(q0[3:7]), q1[3:7]))
+    return jnp.concatenate([q1[:3] - q0[:3], rot, q1[7:] - q0[7:]])
+
+
 def retract(q: jax.Array, dv: jax.Array, floating_base: bool) -> jax.Array:
     """Moves configuration ``q`` [nq] along tangent vector ``dv`` [nv] (a velocity times time)."""
     if not floating_base:

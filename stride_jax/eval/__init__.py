@@ -1,0 +1,1 @@
+"""Evaluation of dynamics models on held-out data."""

@@ -1,0 +1,70 @@
+"""Open-loop H-step rollout error in observation space (the paper's Table I "state RMSE").
+
+From the start of each window of ``H + 1`` valid steps of held-out episodes, a model rolls out the
+logged commands for ``H`` control steps. At horizon ``h`` the error is the RMSE over all
+observation dimensions of
+
+    [ difference(q_pred, q_true) / sigma_dq ,  (qd_pred - qd_true) / sigma_qd ]
+
+where ``difference`` is the tangent-space difference (world position, body-frame rotation vector,
+joint angles), ``sigma_qd`` the per-dof standard deviation of the velocities and ``sigma_dq`` that
+of the one-step configuration change times ``H`` -- so that both halves are O(1) across the
+horizon. The cumulative error is the sum over ``h = 1..H`` of the per-horizon RMSE, averaged over
+windows; stochastic models report its mean and spread over samples.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stride_jax.dynamics import integrate
+from stride_jax.types import ModelSpec
+
+
+def windows(valid: np.ndarray, horizon: int, max_windows: int, seed: int = 0) -> np.ndarray:
+    """``[N, 2]`` (episode, start) pairs whose ``horizon + 1`` steps are all valid."""
+    starts = np.zeros((0, 2), np.int64)
+    if valid.shape[1] > horizon:
+        ok = np.lib.stride_tricks.sliding_window_view(valid, horizon + 1, axis=1).all(-1)
+        starts = np.argwhere(ok)
+    if len(starts) == 0:
+        raise ValueError(f"no window of {horizon + 1} valid steps in the evaluation data")
+    rng = np.random.default_rng(seed)
+    return starts[rng.permutation(len(starts))[:max_windows]]
+
+
+def observation_scales(split: dict, spec: ModelSpec, horizon: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(sigma_dq [nv], sigma_qd [nv])`` from a split (see the module docstring)."""
+    v = split["valid"][:, :-1] & split["valid"][:, 1:]
+    q0, q1 = split["q"][:, :-1][v], split["q"][:, 1:][v]
+    dq = np.asarray(jax.vmap(lambda a, b: integrate.difference(a, b, spec.floating_base))(q1, q0))
+    floor = lambda s: np.maximum(s, 1e-3 * max(float(s.max()), 1e-6))
+    return floor(dq.std(0) * horizon), floor(split["qd"][split["valid"]].std(0))
+
+
+def rollout_errors(rollout_fn, params, split: dict, spec: ModelSpec, horizon: int,
+                   starts: np.ndarray, scales: tuple[np.ndarray, np.ndarray],
+                   key: jax.Array) -> np.ndarray:
+    """Per-window, per-horizon RMSE ``[N, H]`` of ``rollout_fn(params, q, qd, ctrls, key)``."""
+    ep, t0 = starts[:, 0], starts[:, 1]
+    idx = t0[:, None] + np.arange(horizon + 1)[None]
+    q = jnp.asarray(split["q"][ep[:, None], idx])  # [N, H+1, nq]
+    qd = jnp.asarray(split["qd"][ep[:, None], idx])
+    ctrl = jnp.asarray(split["ctrl"][ep[:, None], idx[:, :-1]])
+    sig_dq, sig_qd = (jnp.asarray(s) for s in scales)
+
+    def one(q, qd, ctrl, k):
+        q_pred, qd_pred = rollout_fn(params, q[0], qd[0], ctrl, k)
+        dq = jax.vmap(lambda a, b: integrate.difference(a, b, spec.floating_base))(q_pred, q[1:])
+        err = jnp.concatenate([dq / sig_dq, (qd_pred - qd[1:]) / sig_qd], axis=-1)
+        return jnp.sqrt(jnp.mean(err ** 2, axis=-1))
+
+    keys = jax.random.split(key, len(starts))
+    return np.asarray(jax.jit(jax.vmap(one))(q, qd, ctrl, keys))
+
+
+def cumulative_rmse(errors: np.ndarray) -> float:
+    """Sum over the horizon of the per-horizon RMSE, averaged over windows."""
+    return float(errors.sum(-1).mean())
