@@ -32,10 +32,17 @@ def test_windows_are_fully_valid():
         rollout.windows(valid, 8, 10)
 
 
-def test_training_lowers_the_rollout_error(tmp_path):
-    data, run = tmp_path / "d", tmp_path / "run"
-    cli.main(["data", "--robot", "pendulum", "--preset", "tiny", "--out", str(data)])
-    cli.main(["train", "--robot", "pendulum", "--model", "delan", "--preset", "tiny",
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    path = tmp_path_factory.mktemp("eval") / "d"
+    cli.main(["data", "--robot", "pendulum", "--preset", "tiny", "--out", str(path)])
+    return path
+
+
+@pytest.mark.parametrize("name", ["delan", "onn"])
+def test_training_lowers_the_rollout_error(name, data, tmp_path):
+    run = tmp_path / "run"
+    cli.main(["train", "--robot", "pendulum", "--model", name, "--preset", "tiny",
               "--steps", "150", "--lr", "3e-3", "--data", str(data), "--out", str(run)])
     ds = dataset.load(data)
     model, params = models.load(run)

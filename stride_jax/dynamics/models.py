@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.dynamics import integrate, mlp, stride
+from stride_jax.dynamics import integrate, mlp, onn, stride
 from stride_jax.types import ModelSpec
 
 
@@ -114,7 +114,28 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
     return Model(name, stochastic, init, loss, acceleration, step, rollout)
 
 
-MODELS = ("stride", "delan")
+def next_observation(spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig,
+                     scales: stride.Scales = stride.Scales()) -> Model:
+    """ONN: an MLP from (observation, command) to the next observation, same size as the rest."""
+    nu = len(act.dof)
+
+    def step(params, q, qd, ctrl, key=None, nfe=None):
+        return onn.step(params, spec, cfg.net, scales, q, qd, ctrl)
+
+    def rollout(params, q, qd, ctrls, key=None, nfe=None):
+        def body(carry, ctrl):
+            nxt = step(params, *carry, ctrl)
+            return nxt, nxt
+
+        _, (qs, qds) = jax.lax.scan(body, (q, qd), ctrls)
+        return qs, qds
+
+    return Model("onn", False, lambda key: onn.init(key, spec, cfg.net, nu, scales),
+                 lambda params, ex, key: onn.loss(params, spec, cfg.net, scales, ex),
+                 None, step, rollout)
+
+
+MODELS = ("stride", "delan", "onn")
 
 
 def make(name: str, spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig,
@@ -122,6 +143,8 @@ def make(name: str, spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfi
     """The model called ``name``; a clear error for unknown names."""
     if name not in MODELS:
         raise ValueError(f"unknown model {name!r}; available: {', '.join(MODELS)}")
+    if name == "onn":
+        return next_observation(spec, act, cfg, scales)
     return structured(name, spec, act, cfg, scales)
 
 

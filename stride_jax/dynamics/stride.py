@@ -72,6 +72,10 @@ class Scales(NamedTuple):
     tau: jax.Array | float = 1.0
     force: jax.Array | float = 1.0
     qdd: jax.Array | float = 1.0
+    # Next-observation models (ONN): one-step configuration and velocity changes, commands.
+    dq: jax.Array | float = 1.0
+    dqd: jax.Array | float = 1.0
+    ctrl: jax.Array | float = 1.0
 
 
 def context(spec: ModelSpec, q: jax.Array, qd: jax.Array, tau: jax.Array,

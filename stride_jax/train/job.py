@@ -6,9 +6,10 @@ import dataclasses
 import json
 import pathlib
 
+import jax
 import numpy as np
 
-from stride_jax.dynamics import mlp, models, stride
+from stride_jax.dynamics import integrate, mlp, models, stride
 from stride_jax.sim import collect, dataset
 from stride_jax.train import loop
 from stride_jax.types import ModelSpec
@@ -21,7 +22,7 @@ class TrainConfig(loop.LoopConfig):
 
     Attributes:
       robot: pendulum, pendulum_bouncing, go1 or g1.
-      model: stride or delan (onn, diffusion and lnn_diffusion are still to come).
+      model: stride, delan or onn (diffusion and lnn_diffusion are still to come).
       data: dataset folder; empty means ``data/<robot>`` (generated with ``data_preset`` if absent).
       data_preset: the ``stride data`` preset used when the dataset has to be generated.
       hidden, depth: width and depth of every network of the model.
@@ -64,8 +65,14 @@ def scales(ds: dataset.Dataset) -> stride.Scales:
         s = x.std(0)
         return np.maximum(s, 1e-2 * max(float(s.max()), 1e-3)).astype(np.float32)
 
+    pair = v[:, :-1] & v[:, 1:]
+    q0, q1 = train["q"][:, :-1][pair], train["q"][:, 1:][pair]
+    floating = ds.meta["floating_base"]
+    dq = np.asarray(jax.vmap(lambda a, b: integrate.difference(a, b, floating))(q1, q0))
+    dqd = train["qd"][:, 1:][pair] - train["qd"][:, :-1][pair]
     return stride.Scales(qd=std(train["qd"][v]), tau=std(train["tau"][v]), force=std(force),
-                         qdd=std(train["qdd"][v]))
+                         qdd=std(train["qdd"][v]), dq=std(dq), dqd=std(dqd),
+                         ctrl=std(train["ctrl"][v]))
 
 
 def run(cfg: TrainConfig, log=print) -> pathlib.Path:

@@ -11,6 +11,7 @@ import csv
 import dataclasses
 import json
 import pathlib
+import shutil
 import time
 from typing import Callable
 
@@ -42,9 +43,33 @@ class LoopConfig:
 
 
 def _examples(split: dict) -> dict:
-    """Valid steps of a split as flat training examples ``{q, qd, tau, qdd}`` [N, ...]."""
-    v = split["valid"]
-    return {k: np.asarray(split[k][v], np.float32) for k in ("q", "qd", "tau", "qdd")}
+    """Transitions between consecutive valid steps as flat examples [N, ...]: the step's
+    ``q, qd, tau, qdd, ctrl`` and the next step's ``q_next, qd_next``."""
+    v = split["valid"][:, :-1] & split["valid"][:, 1:]
+    ex = {k: split[k][:, :-1][v] for k in ("q", "qd", "tau", "qdd", "ctrl")}
+    ex.update(q_next=split["q"][:, 1:][v], qd_next=split["qd"][:, 1:][v])
+    return {k: np.asarray(a, np.float32) for k, a in ex.items()}
+
+
+def _manager(path: pathlib.Path, max_to_keep: int) -> ocp.CheckpointManager:
+    """A checkpoint manager with the unfinished steps of a killed run removed.
+
+    A process killed while saving can leave a step folder that orbax does not count as a
+    checkpoint (no commit marker) but that blocks saving that step again after resuming.
+    """
+    path = path.absolute()
+    options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True,
+                                           cleanup_tmp_directories=True)
+    mngr = ocp.CheckpointManager(path, options=options)
+    mngr.reload()
+    finished = set(mngr.all_steps())
+    stale = [p for p in path.iterdir() if p.name.isdigit() and int(p.name) not in finished]
+    if not stale:
+        return mngr
+    mngr.close()
+    for p in stale:
+        shutil.rmtree(p)
+    return ocp.CheckpointManager(path, options=options)
 
 
 def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: dict,
@@ -67,18 +92,17 @@ def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: di
     state = {"params": params, "opt": opt.init(params), "step": jnp.zeros((), jnp.int32),
              "best_val": jnp.array(jnp.inf, jnp.float32)}
 
-    # A killed run can leave a half-written step behind: orbax discards such temporaries.
-    options = ocp.CheckpointManagerOptions(max_to_keep=2, create=True,
-                                           cleanup_tmp_directories=True)
-    ckpt = ocp.CheckpointManager((out / "ckpt").absolute(), options=options)
-    best = ocp.CheckpointManager((out / "best").absolute(),
-                                 options=ocp.CheckpointManagerOptions(max_to_keep=1, create=True))
+    ckpt, best = _manager(out / "ckpt", 2), _manager(out / "best", 1)
     if ckpt.latest_step() is not None:
         try:
             state = ckpt.restore(ckpt.latest_step(), args=ocp.args.StandardRestore(state))
         except Exception as e:  # noqa: BLE001 -- any unreadable checkpoint is the same problem
             raise TrainingError(f"cannot resume from {out / 'ckpt'}: {e}") from e
         log(f"resumed from step {int(state['step'])} ({out / 'ckpt'})")
+    # Best checkpoints saved after the resumed step belong to the lost part of a killed run.
+    for step in best.all_steps():
+        if step > int(state["step"]):
+            best.delete(step)
 
     batch = min(cfg.batch, n_train)
     sharding = rollout_mjx.world_sharding(batch) if batch % max(1, jax.local_device_count()) == 0 \
