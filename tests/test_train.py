@@ -64,7 +64,7 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(data_dir, tmp_path):
 
 
 def test_nan_loss_stops_with_a_clear_message(tmp_path):
-    split = {k: np.ones((2, 5, 1), np.float32) for k in ("q", "qd", "tau", "qdd")}
+    split = {k: np.ones((2, 5, 1), np.float32) for k in ("q", "qd", "tau", "qdd", "ctrl")}
     split["valid"] = np.ones((2, 5), bool)
     init = lambda key: {"w": jnp.ones(3)}
     loss = lambda p, ex, key: (jnp.sum(p["w"]) * jnp.log(-ex["q"][0]), {})
