@@ -59,10 +59,10 @@ def sample(key: jax.Array, r: Randomization, episode_s: float) -> RandValues:
 def apply_fields(fields: dict, v: RandValues, base_body: int, xp=jnp) -> dict:
     """Returns the model arrays of :data:`FIELDS` with the episode's values applied."""
     f = dict(fields)
-    f["geom_friction"] = fields["geom_friction"] * xp.asarray([1.0, 0.0, 0.0]) * v.friction + (
-        fields["geom_friction"] * xp.asarray([0.0, 1.0, 1.0]))
-    f["pair_friction"] = fields["pair_friction"] * xp.asarray([1.0, 1.0, 0.0, 0.0, 0.0]) * v.friction + (
-        fields["pair_friction"] * xp.asarray([0.0, 0.0, 1.0, 1.0, 1.0]))
+    one = xp.ones_like(v.friction)
+    # Sliding friction only: geoms hold (slide, spin, roll), pairs (slide1, slide2, spin, roll1, roll2).
+    f["geom_friction"] = fields["geom_friction"] * xp.stack([v.friction, one, one])
+    f["pair_friction"] = fields["pair_friction"] * xp.stack([v.friction, v.friction, one, one, one])
     f["geom_solref"] = fields["geom_solref"] * xp.asarray([v.softness, 1.0])
     f["pair_solref"] = fields["pair_solref"] * xp.asarray([v.softness, 1.0])
     f["body_mass"] = fields["body_mass"] + v.payload_kg * (xp.arange(fields["body_mass"].shape[0])

@@ -6,10 +6,10 @@ import dataclasses
 import json
 import pathlib
 
-import jax
 import numpy as np
 
-from stride_jax.dynamics import integrate, mlp, models, stride
+from stride_jax.dynamics import mlp, models, stride
+from stride_jax.eval import rollout
 from stride_jax.sim import collect, dataset
 from stride_jax.train import loop
 from stride_jax.types import ModelSpec
@@ -65,11 +65,7 @@ def scales(ds: dataset.Dataset) -> stride.Scales:
         s = x.std(0)
         return np.maximum(s, 1e-2 * max(float(s.max()), 1e-3)).astype(np.float32)
 
-    pair = v[:, :-1] & v[:, 1:]
-    q0, q1 = train["q"][:, :-1][pair], train["q"][:, 1:][pair]
-    floating = ds.meta["floating_base"]
-    dq = np.asarray(jax.vmap(lambda a, b: integrate.difference(a, b, floating))(q1, q0))
-    dqd = train["qd"][:, 1:][pair] - train["qd"][:, :-1][pair]
+    dq, dqd = rollout.one_step_changes(train, ds.meta["floating_base"])
     return stride.Scales(qd=std(train["qd"][v]), tau=std(train["tau"][v]), force=std(force),
                          qdd=std(train["qdd"][v]), dq=std(dq), dqd=std(dqd),
                          ctrl=std(train["ctrl"][v]))
