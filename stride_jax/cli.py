@@ -2,6 +2,7 @@
 
     stride data --robot go1 [--preset tiny|default|paper] [--episodes 64 ...]
     stride train --robot pendulum --model stride [--preset tiny|default|paper] [--steps ...]
+    stride eval --runs 'runs/go1/*' [--preset tiny|default] [--horizon 30 ...]
     stride bench-sim [--preset tiny|default|gpu] [--robots go1,g1 ...]
 """
 
@@ -39,16 +40,18 @@ def _config(cls, presets: dict, args: argparse.Namespace):
 
 
 def _commands():
+    from stride_jax.eval import table
     from stride_jax.sim import bench, collect
     from stride_jax.train import job
     return {
         "data": (collect.DataConfig, collect.PRESETS, "generate a dataset", _run_data),
         "train": (job.TrainConfig, job.PRESETS, "train a dynamics model", _run_train),
+        "eval": (table.EvalConfig, table.PRESETS, "Table I metrics of trained runs", _run_eval),
         "bench-sim": (bench.BenchConfig, bench.PRESETS, "simulation throughput", _run_bench),
     }
 
 
-def _run_data(cfg) -> None:
+def _run_data(cfg, command: str) -> None:
     from stride_jax.sim import collect, plots
     ds = collect.generate(cfg)
     png = plots.dataset_summary(ds)
@@ -58,14 +61,18 @@ def _run_data(cfg) -> None:
           f"{m['valid_fraction']:.2f}; summary plot {png}")
 
 
-def _run_train(cfg) -> None:
+def _run_train(cfg, command: str) -> None:
     from stride_jax.train import job
     job.run(cfg)
 
 
-def _run_bench(cfg) -> None:
+def _run_eval(cfg, command: str) -> None:
+    from stride_jax.eval import table
+    table.run(cfg, command=command)
+
+
+def _run_bench(cfg, command: str) -> None:
     from stride_jax.sim import bench
-    command = "stride " + shlex.join(sys.argv[1:])
     rows = bench.run(cfg, on_row=lambda rows: bench.write(rows, cfg, command))
     print(f"wrote {bench.write(rows, cfg, command)}")
 
@@ -85,8 +92,9 @@ def main(argv: list[str] | None = None) -> None:
     from stride_jax.sim.dataset import DatasetError
     from stride_jax.train.loop import TrainingError
     try:
-        run(_config(cls, presets, args))
-    except (RobotError, DatasetError, TrainingError, ValueError) as e:
+        run(_config(cls, presets, args), "stride " + shlex.join(
+            sys.argv[1:] if argv is None else argv))
+    except (RobotError, DatasetError, TrainingError, ValueError, FileNotFoundError) as e:
         raise SystemExit(f"stride {args.command}: error: {e}") from None
 
 

@@ -1,4 +1,7 @@
-"""Open-loop rollout error: the tangent-space difference, windows, and that training lowers it."""
+"""Evaluation: the rollout error (tangent differences, windows, training lowers it), contact forces
+through Jacobians, and the table that ``stride eval`` writes."""
+
+import json
 
 import jax
 import jax.numpy as jnp
@@ -7,8 +10,9 @@ import pytest
 
 from stride_jax import cli
 from stride_jax.dynamics import integrate, models
-from stride_jax.eval import rollout
+from stride_jax.eval import forces, rollout
 from stride_jax.sim import dataset
+from stride_jax.sim import model as sim_model
 from stride_jax.train import job
 
 
@@ -39,9 +43,14 @@ def data(tmp_path_factory):
     return path
 
 
-@pytest.mark.parametrize("name", ["delan", "onn"])
-def test_training_lowers_the_rollout_error(name, data, tmp_path):
-    run = tmp_path / "run"
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    return tmp_path_factory.mktemp("runs")
+
+
+@pytest.mark.parametrize("name", ["delan", "onn", "stride"])
+def test_training_lowers_the_rollout_error(name, data, runs):
+    run = runs / name
     cli.main(["train", "--robot", "pendulum", "--model", name, "--preset", "tiny",
               "--steps", "150", "--lr", "3e-3", "--data", str(data), "--out", str(run)])
     ds = dataset.load(data)
@@ -57,3 +66,46 @@ def test_training_lowers_the_rollout_error(name, data, tmp_path):
     assert np.isfinite(trained).all()
     assert rollout.cumulative_rmse(trained) < 0.5 * rollout.cumulative_rmse(untrained)
     assert trained[:, -1].mean() > trained[:, 0].mean()  # error grows with the horizon
+
+
+def test_eval_writes_the_table(runs, tmp_path):
+    if len(list(runs.iterdir())) < 3:
+        pytest.skip("needs the runs trained above")
+    out = tmp_path / "res"
+    cli.main(["eval", "--runs", f"{runs}/*", "--preset", "tiny", "--out", str(out)])
+    d = json.loads((out / "table.json").read_text())
+    assert list(d["table"]) == ["stride", "delan", "onn"]  # registry order
+    assert d["command"].startswith("stride eval")
+    assert d["table"]["onn"]["share_free"] is None  # no residual to share
+    share = d["table"]["stride"]["share_free"]["mean"]
+    assert 0.0 <= share <= 1.0
+    assert all(r["state"]["diverged"] == 0.0 for r in d["runs"])
+    md = (out / "table.md").read_text()
+    assert "| stride |" in md and "STRIDE/DeLaN state RMSE" in md
+
+
+def test_eval_without_runs_is_a_clear_error(tmp_path):
+    with pytest.raises(SystemExit, match="no training runs"):
+        cli.main(["eval", "--runs", str(tmp_path / "nothing*")])
+
+
+@pytest.mark.parametrize("robot", ["go1", "g1"])
+def test_true_residual_maps_to_the_measured_foot_forces(robot, tmp_path):
+    """The Jacobian map, fed MuJoCo's own residual, recovers the logged normal forces."""
+    path = tmp_path / robot
+    cli.main(["data", "--robot", robot, "--preset", "tiny", "--out", str(path)])
+    ds = dataset.load(path)
+    s = ds.split("train")
+    idx = np.argwhere(s["valid"] & s["foot_contact"].any(-1))[:200]
+    pick = lambda k: s[k][idx[:, 0], idx[:, 1]]
+    sm = sim_model.load(robot)
+    jac = forces.foot_jacobians(sm, pick("q"))
+    eps = pick("qfrc_passive") + pick("qfrc_constraint") + pick("qfrc_external")
+    stance = pick("foot_contact")
+    err = forces.normal_force_errors(jac, stance, eps, pick("foot_force"))
+    mean_force = pick("foot_force")[stance].mean()
+    assert mean_force > 10.0
+    assert np.nanmean(err) < 0.15 * mean_force
+    # A residual without its contact part does not give the forces.
+    wrong = forces.normal_force_errors(jac, stance, pick("qfrc_passive"), pick("foot_force"))
+    assert np.nanmean(wrong) > 0.5 * mean_force

@@ -6,7 +6,7 @@ import numpy as np
 import optax
 import pytest
 
-from stride_jax.dynamics import flow, lagrangian, mlp
+from stride_jax.dynamics import diffusion, flow, generative, lagrangian, mlp
 from stride_jax.types import ModelSpec
 
 GO1_SPEC = ModelSpec(nq=19, nv=18, floating_base=True)
@@ -46,9 +46,10 @@ def _bimodal(key, n):
     return c, c + s
 
 
-def test_flow_matching_keeps_both_modes_where_mse_returns_the_mean():
-    cfg = flow.FlowConfig(net=mlp.MLPConfig(hidden=64, depth=2), nfe=8)
-    params = flow.flow_init(jax.random.key(0), 1, 1, cfg)
+@pytest.mark.parametrize("kind,nfe", [("flow", 8), ("diffusion", 20)])
+def test_generators_keep_both_modes_where_mse_returns_the_mean(kind, nfe):
+    gen = generative.make(kind, mlp.MLPConfig(hidden=64, depth=2), nfe)
+    params = gen.init(jax.random.key(0), 1, 1)
     reg_init, reg_apply = mlp.mlp(mlp.MLPConfig(hidden=64, depth=2), 1)
     reg = reg_init(jax.random.key(1), 1)
     opt = optax.adam(3e-3)
@@ -59,9 +60,9 @@ def test_flow_matching_keeps_both_modes_where_mse_returns_the_mean():
         key_d, key_f = jax.random.split(key)
         c, x = _bimodal(key_d, 256)
         keys = jax.random.split(key_f, 256)
-        l_fm = jnp.mean(jax.vmap(lambda x1, ci, k: flow.fm_loss(params, x1, ci, k, cfg))(x, c, keys))
+        l_gen = jnp.mean(jax.vmap(lambda x1, ci, k: gen.loss(params, x1, ci, k))(x, c, keys))
         l_mse = jnp.mean((jax.vmap(lambda ci: reg_apply(reg, ci))(c) - x) ** 2)
-        return l_fm + l_mse
+        return l_gen + l_mse
 
     @jax.jit
     def step(p, state, key):
@@ -74,7 +75,7 @@ def test_flow_matching_keeps_both_modes_where_mse_returns_the_mean():
         p, state = step(p, state, jax.random.key(100 + i))
     params, reg = p
     c = jnp.full((2000, 1), 0.25)
-    x = jax.vmap(lambda ci, k: flow.sample(params, ci, k, 1, cfg))(c, jax.random.split(jax.random.key(7), 2000))
+    x = jax.vmap(lambda ci, k: gen.sample(params, ci, k, 1))(c, jax.random.split(jax.random.key(7), 2000))
     dev = np.asarray(x - c)[:, 0]
     assert np.mean(dev > 0.5) > 0.3 and np.mean(dev < -0.5) > 0.3  # both modes
     assert np.mean(np.abs(dev) < 0.3) < 0.1  # little mass at the mean
@@ -85,6 +86,19 @@ def test_flow_matching_keeps_both_modes_where_mse_returns_the_mean():
 def test_bad_flow_configs_are_clear_errors(bad):
     with pytest.raises(ValueError, match="integrator|nfe"):
         flow.FlowConfig(**bad)
+
+
+@pytest.mark.parametrize("bad", [dict(nfe=0), dict(nfe=101), dict(eta=2.0)])
+def test_bad_diffusion_configs_are_clear_errors(bad):
+    with pytest.raises(ValueError, match="nfe|eta"):
+        diffusion.DiffusionConfig(**bad)
+
+
+def test_diffusion_sampler_refuses_more_evaluations_than_levels():
+    cfg = diffusion.DiffusionConfig(net=mlp.MLPConfig(hidden=8, depth=1))
+    params = diffusion.init(jax.random.key(0), 2, 1, cfg)
+    with pytest.raises(ValueError, match="nfe"):
+        diffusion.sample(params, jnp.zeros(1), jax.random.key(0), 2, cfg, nfe=500)
 
 
 def test_untrained_flow_is_the_identity_transport():

@@ -29,8 +29,8 @@ def _batch(key, n):
     return q, qd, tau, _true_qdd(q, qd, tau, s)
 
 
-def _train(stochastic, steps=2000):
-    params = stride.init(jax.random.key(0), SPEC, CFG, stochastic)
+def _train(residual, steps=2000):
+    params = stride.init(jax.random.key(0), SPEC, CFG, residual)
     opt = optax.adam(3e-3)
     state = opt.init(params)
 
@@ -38,7 +38,7 @@ def _train(stochastic, steps=2000):
         key_data, key_loss = jax.random.split(key)
         q, qd, tau, qdd = _batch(key_data, 256)
         keys = jax.random.split(key_loss, 256)
-        total, _ = jax.vmap(lambda *a: stride.loss(p, SPEC, CFG, stochastic, *a))(q, qd, tau, qdd, keys)
+        total, _ = jax.vmap(lambda *a: stride.loss(p, SPEC, CFG, residual, *a))(q, qd, tau, qdd, keys)
         return jnp.mean(total)
 
     @jax.jit
@@ -52,8 +52,8 @@ def _train(stochastic, steps=2000):
     return params
 
 
-def _samples(params, stochastic, q, n=1000):
-    fn = jax.vmap(lambda k: stride.acceleration(params, SPEC, CFG, stochastic, jnp.array([q]),
+def _samples(params, residual, q, n=1000):
+    fn = jax.vmap(lambda k: stride.acceleration(params, SPEC, CFG, residual, jnp.array([q]),
                                                  jnp.zeros(1), jnp.zeros(1), k)[0][0])
     return np.asarray(fn(jax.random.split(jax.random.key(5), n)))
 
@@ -65,21 +65,21 @@ def _w1(a, b):
 
 @pytest.fixture(scope="module")
 def trained():
-    return {"stride": _train(True), "delan": _train(False)}
+    return {"stride": _train("flow"), "delan": _train("mlp")}
 
 
 def test_stride_keeps_both_modes_where_delan_averages(trained):
     n = 1000
     truth = np.asarray(_true_qdd(jnp.full(n, jnp.pi), 0.0, 0.0, np.repeat([-1.0, 1.0], n // 2)))
-    w_stride = _w1(_samples(trained["stride"], True, np.pi, n), truth)
-    w_delan = _w1(_samples(trained["delan"], False, np.pi, n), truth)
+    w_stride = _w1(_samples(trained["stride"], "flow", np.pi, n), truth)
+    w_delan = _w1(_samples(trained["delan"], "mlp", np.pi, n), truth)
     assert w_delan > 1.5  # the mean of +-2 N m is ~2 away from either mode
     assert w_stride < 0.5 * w_delan
 
 
 def test_both_are_accurate_where_the_residual_is_unimodal(trained):
     truth = float(_true_qdd(jnp.array(0.7), 0.0, 0.0, 1.0))
-    for name, stochastic in (("stride", True), ("delan", False)):
-        pred = _samples(trained[name], stochastic, 0.7, 200)
+    for name, residual in (("stride", "flow"), ("delan", "mlp")):
+        pred = _samples(trained[name], residual, 0.7, 200)
         assert abs(pred.mean() - truth) < 0.3, name
         assert pred.std() < 0.3, name

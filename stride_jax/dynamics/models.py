@@ -6,6 +6,9 @@ batch with ``vmap``):
 * ``init(key) -> params``
 * ``loss(params, example, key) -> (scalar, parts)``: ``example`` holds ``q, qd, tau, qdd``
 * ``acceleration(params, q, qd, tau, key) -> qdd``: structured models only
+* ``terms(params, q, qd, tau, key) -> {'prior', 'residual', 'eps'}``: structured models only,
+  the split of the acceleration into the Lagrangian prior and the residual
+* every sampling function takes an optional ``nfe`` (residual or generator evaluations)
 * ``step(params, q, qd, ctrl, key) -> (q', qd')``: one control period from a command, with the
   robot's servo model turning commands into joint torques at every substep, as the simulator does
 * ``rollout(params, q, qd, ctrls [H, nu], key) -> (qs [H, nq], qds [H, nv])``
@@ -24,8 +27,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.dynamics import integrate, mlp, onn, stride
+from stride_jax.dynamics import integrate, mlp, next_obs, stride
 from stride_jax.types import ModelSpec
+from stride_jax.io import atomic_write_text
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,9 +49,17 @@ class Actuation:
 
     @classmethod
     def from_meta(cls, meta: dict) -> "Actuation":
-        return cls(dof=tuple(meta["act_dof"]), kp=_tuple(meta["kp"]), kd=_tuple(meta["kd"]),
-                   force_range=tuple(tuple(r) for r in meta["actuator_force_range"]),
-                   dt=meta["sim_dt"], n_substeps=meta["n_substeps"])
+        """From a dataset's ``meta.json``."""
+        return cls.from_dict(dict(dof=meta["act_dof"], kp=meta["kp"], kd=meta["kd"],
+                                  force_range=meta["actuator_force_range"], dt=meta["sim_dt"],
+                                  n_substeps=meta["n_substeps"]))
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Actuation":
+        """From :func:`dataclasses.asdict` output after a JSON round trip (lists for tuples)."""
+        return cls(dof=tuple(d["dof"]), kp=_tuple(d["kp"]), kd=_tuple(d["kd"]),
+                   force_range=tuple(tuple(r) for r in d["force_range"]), dt=d["dt"],
+                   n_substeps=d["n_substeps"])
 
     def torque(self, q: jax.Array, qd: jax.Array, ctrl: jax.Array, spec: ModelSpec) -> jax.Array:
         """Generalised actuator force ``[nv]`` for command ``ctrl`` ``[nu]`` at state (q, qd)."""
@@ -76,66 +88,121 @@ class Model(NamedTuple):
     acceleration: Callable | None
     step: Callable
     rollout: Callable
+    terms: Callable | None = None  # structured models: (params, q, qd, tau, key, nfe) -> dict
+
+
+# name -> (family, kind): structured models pair the Lagrangian prior with a residual of ``kind``;
+# next-observation models predict the change of observation with an MLP (None) or a generator.
+MODELS = {
+    "stride": ("structured", "flow"),
+    "delan": ("structured", "mlp"),
+    "lnn_diffusion": ("structured", "diffusion"),
+    "onn": ("next_obs", None),
+    "diffusion": ("next_obs", "diffusion"),
+}
+# Residual samples per call when the caller does not choose (``nfe`` of the model config is the
+# flow's; diffusion needs more evaluations for comparable samples).
+DEFAULT_NFE = {"flow": 2, "diffusion": 10}
+
+
+class InputError(ValueError):
+    """A model was called with inputs of the wrong shape or with non-finite values."""
+
+
+def _check_inputs(name: str, spec: ModelSpec, nu: int, **arrays) -> None:
+    """Shape checks (always, at trace time) and finiteness checks (on concrete values only: under
+    ``jit`` values are unknown; wrap with ``jax.experimental.checkify`` to check them there)."""
+    expected = {"q": (spec.nq,), "qd": (spec.nv,), "tau": (spec.nv,), "ctrl": (nu,)}
+    for k, x in arrays.items():
+        shape = jnp.shape(x)
+        if k == "ctrls":
+            ok, want = len(shape) == 2 and shape[1] == nu, f"[H, {nu}]"
+        else:
+            ok, want = shape == expected[k], expected[k]
+        if not ok:
+            raise InputError(f"{name}: {k} must have shape {want} (one example; vmap for "
+                             f"batches), got {shape}")
+        if not isinstance(x, jax.core.Tracer) and not np.isfinite(np.asarray(x)).all():
+            raise InputError(f"{name}: {k} holds NaN or inf values")
 
 
 def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig,
-               scales: stride.Scales = stride.Scales()) -> Model:
-    """STRIDE (``name='stride'``, flow residual) or DeLaN (``'delan'``, MLP residual)."""
-    stochastic = name == "stride"
+               scales: stride.Scales = stride.Scales(), residual: str | None = None) -> Model:
+    """The Lagrangian prior with a residual: STRIDE (flow), DeLaN (mlp), LNN + Diffusion."""
+    residual = residual or MODELS[name][1]
+    nu = len(act.dof)
 
     def init(key):
-        return stride.init(key, spec, cfg, stochastic)
+        return stride.init(key, spec, cfg, residual)
 
     def loss(params, ex, key):
-        return stride.loss(params, spec, cfg, stochastic, ex["q"], ex["qd"], ex["tau"], ex["qdd"],
+        return stride.loss(params, spec, cfg, residual, ex["q"], ex["qd"], ex["tau"], ex["qdd"],
                            key, scales)
 
     def acceleration(params, q, qd, tau, key, nfe=None):
-        return stride.acceleration(params, spec, cfg, stochastic, q, qd, tau, key, nfe, scales)[0]
+        _check_inputs(name, spec, nu, q=q, qd=qd, tau=tau)
+        return stride.acceleration(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)[0]
 
-    def step(params, q, qd, ctrl, key, nfe=None):
+    def _step(params, q, qd, ctrl, key, nfe):
         def substep(carry, k):
             q, qd = carry
-            qdd = acceleration(params, q, qd, act.torque(q, qd, ctrl, spec), k, nfe)
+            tau = act.torque(q, qd, ctrl, spec)
+            qdd = stride.acceleration(params, spec, cfg, residual, q, qd, tau, k, nfe, scales)[0]
             return integrate.semi_implicit_euler(q, qd, qdd, act.dt, spec.floating_base), None
 
         (q, qd), _ = jax.lax.scan(substep, (q, qd), jax.random.split(key, act.n_substeps))
         return q, qd
 
+    def step(params, q, qd, ctrl, key, nfe=None):
+        _check_inputs(name, spec, nu, q=q, qd=qd, ctrl=ctrl)
+        return _step(params, q, qd, ctrl, key, nfe)
+
     def rollout(params, q, qd, ctrls, key, nfe=None):
+        _check_inputs(name, spec, nu, q=q, qd=qd, ctrls=ctrls)
+
         def body(carry, inp):
             ctrl, k = inp
-            nxt = step(params, *carry, ctrl, k, nfe)
+            nxt = _step(params, *carry, ctrl, k, nfe)
             return nxt, nxt
 
         _, (qs, qds) = jax.lax.scan(body, (q, qd), (ctrls, jax.random.split(key, len(ctrls))))
         return qs, qds
 
-    return Model(name, stochastic, init, loss, acceleration, step, rollout)
+    def terms(params, q, qd, tau, key, nfe=None):
+        _check_inputs(name, spec, nu, q=q, qd=qd, tau=tau)
+        return stride.terms(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
+
+    return Model(name, residual != "mlp", init, loss, acceleration, step, rollout, terms)
 
 
-def next_observation(spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig,
-                     scales: stride.Scales = stride.Scales()) -> Model:
-    """ONN: an MLP from (observation, command) to the next observation, same size as the rest."""
+def next_observation(name: str, spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig,
+                     scales: stride.Scales = stride.Scales(), kind: str | None = None) -> Model:
+    """ONN (``kind=None``: an MLP) or Pure Diffusion (a generator) of the next observation."""
+    kind = kind if kind is not None else MODELS[name][1]
     nu = len(act.dof)
 
+    def _step(params, q, qd, ctrl, key, nfe):
+        return next_obs.step(params, spec, cfg, scales, q, qd, ctrl, key, nfe, kind)
+
     def step(params, q, qd, ctrl, key=None, nfe=None):
-        return onn.step(params, spec, cfg.net, scales, q, qd, ctrl)
+        _check_inputs(name, spec, nu, q=q, qd=qd, ctrl=ctrl)
+        return _step(params, q, qd, ctrl, key, nfe)
 
     def rollout(params, q, qd, ctrls, key=None, nfe=None):
-        def body(carry, ctrl):
-            nxt = step(params, *carry, ctrl)
+        _check_inputs(name, spec, nu, q=q, qd=qd, ctrls=ctrls)
+        keys = jax.random.split(key if key is not None else jax.random.key(0), len(ctrls))
+
+        def body(carry, inp):
+            nxt = _step(params, *carry, *inp, nfe)
             return nxt, nxt
 
-        _, (qs, qds) = jax.lax.scan(body, (q, qd), ctrls)
+        _, (qs, qds) = jax.lax.scan(body, (q, qd), (ctrls, keys))
         return qs, qds
 
-    return Model("onn", False, lambda key: onn.init(key, spec, cfg.net, nu, scales),
-                 lambda params, ex, key: onn.loss(params, spec, cfg.net, scales, ex),
+    return Model(name, kind is not None,
+                 lambda key: next_obs.init(key, spec, cfg, nu, scales, kind),
+                 lambda params, ex, key: next_obs.loss(params, spec, cfg, scales, ex, key, kind),
                  None, step, rollout)
-
-
-MODELS = ("stride", "delan", "onn")
 
 
 def make(name: str, spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig,
@@ -143,8 +210,8 @@ def make(name: str, spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfi
     """The model called ``name``; a clear error for unknown names."""
     if name not in MODELS:
         raise ValueError(f"unknown model {name!r}; available: {', '.join(MODELS)}")
-    if name == "onn":
-        return next_observation(spec, act, cfg, scales)
+    if MODELS[name][0] == "next_obs":
+        return next_observation(name, spec, act, cfg, scales)
     return structured(name, spec, act, cfg, scales)
 
 
@@ -152,7 +219,7 @@ def save_definition(run: pathlib.Path, name: str, spec: ModelSpec, act: Actuatio
                     cfg: stride.StructuredConfig, scales: stride.Scales) -> None:
     """Writes ``run/model.json``: everything :func:`load` needs besides the parameters."""
     as_list = lambda x: np.asarray(x, np.float64).reshape(-1).tolist()
-    (pathlib.Path(run) / "model.json").write_text(json.dumps({
+    atomic_write_text(pathlib.Path(run) / "model.json", json.dumps({
         "name": name, "spec": dataclasses.asdict(spec), "actuation": dataclasses.asdict(act),
         "config": dataclasses.asdict(cfg),
         "scales": {k: as_list(v) for k, v in scales._asdict().items()}}, indent=1))
@@ -168,10 +235,7 @@ def load(run: str | pathlib.Path) -> tuple[Model, dict]:
                                 "`stride train`")
     d = json.loads((run / "model.json").read_text())
     spec = ModelSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in d["spec"].items()})
-    a = d["actuation"]
-    act = Actuation(dof=tuple(a["dof"]), kp=_tuple(a["kp"]), kd=_tuple(a["kd"]),
-                    force_range=tuple(tuple(r) for r in a["force_range"]), dt=a["dt"],
-                    n_substeps=a["n_substeps"])
+    act = Actuation.from_dict(d["actuation"])
     c = d["config"]
     cfg = stride.StructuredConfig(**dict(c, net=mlp.MLPConfig(**c["net"])))
     sc = stride.Scales(**{k: jnp.asarray(v, jnp.float32) for k, v in d["scales"].items()})

@@ -1,19 +1,27 @@
-"""STRIDE and DeLaN: a learned Lagrangian prior plus a residual generalised force.
+"""STRIDE, DeLaN and LNN + Diffusion: a learned Lagrangian prior plus a residual generalised force.
 
     qdd = M(q)^-1 [tau - C(q, qd) qd - g(q)] + M(q)^-1 eps                  (paper, Eq. 5)
 
-STRIDE samples ``eps`` from a conditional flow (``eps ~ p(eps | q, qd, tau)``, Sec. III-C);
-DeLaN (Lutter et al., 2019, with the deterministic residual the paper compares against) predicts
-``eps = r(q, qd, tau)`` with an MLP of the same size. Both are pure functions of a params dict,
-written for one example.
+The ``residual`` kind picks how ``eps`` comes about:
 
-How STRIDE's two losses combine (Sec. III-D, Algorithm 1). Per example, with
+* ``"flow"`` (STRIDE): sampled from a conditional flow, ``eps ~ p(eps | q, qd, tau)`` (Sec. III-C);
+* ``"diffusion"`` (LNN + Diffusion): sampled from a DDPM of the same size, trained the same way;
+* ``"mlp"`` (DeLaN, Lutter et al., 2019, with the deterministic residual the paper compares
+  against): predicted, ``eps = r(q, qd, tau)``, by an MLP of the same size.
+
+All are pure functions of a params dict, written for one example. The diffusion baseline models
+the residual *force* like STRIDE (the paper words it as a residual acceleration): with everything
+else equal, the comparison isolates flow matching against diffusion.
+
+How STRIDE's losses combine (Sec. III-D, Algorithm 1; LNN + Diffusion likewise, with the
+denoising loss in place of flow matching). Per example, with
 ``r* = M(q) qdd - (tau - C qd - g)`` the generalised residual implied by the current prior:
 
 * ``L_acc = |W (qdd - f_LNN - M^-1 eps)|^2`` with ``eps`` integrated by the sampler from a fresh
   ``z0`` (``nfe`` evaluations), back-propagated into the prior (M, V) but not into the flow;
-* ``L_fm``: the conditional flow-matching loss of the flow on the target ``stop_gradient(r*)``;
-* ``L_res = |r*|^2``, the size of the residual the prior leaves (both STRIDE and DeLaN);
+* ``L_fm``: the conditional flow-matching loss of the flow on the target ``stop_gradient(r*)``
+  (the denoising loss for the diffusion residual);
+* ``L_res = |r*|^2``, the size of the residual the prior leaves (every residual kind);
 * ``L = L_acc + fm_weight * L_fm + residual_weight * L_res``.
 
 Why ``L_res``: a residual that sees ``tau`` can cancel any rescaling of the prior (``M -> k M``
@@ -37,18 +45,25 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from stride_jax.dynamics import flow, lagrangian, mlp
+from stride_jax.dynamics import generative, lagrangian, mlp
 from stride_jax.types import ModelSpec
+
+
+RESIDUALS = ("mlp",) + generative.KINDS
 
 
 @dataclasses.dataclass(frozen=True)
 class StructuredConfig:
-    """Sizes and loss settings shared by STRIDE and DeLaN (one ``net`` size for every network)."""
+    """Sizes and loss settings shared by the structured models (one ``net`` size for every
+    network). ``nfe``: evaluations per residual sample; ``integrator``: the flow's ODE solver;
+    ``diffusion_steps``, ``eta``: the DDPM schedule and sampler (see ``diffusion.py``)."""
 
     net: mlp.MLPConfig = mlp.MLPConfig()
     diag_floor: float = 1e-3
     nfe: int = 2
     integrator: str = "euler"
+    diffusion_steps: int = 100
+    eta: float = 1.0
     fm_weight: float = 1.0
     residual_weight: float = 0.1
 
@@ -56,9 +71,9 @@ class StructuredConfig:
     def lnn(self) -> lagrangian.LNNConfig:
         return lagrangian.LNNConfig(net=self.net, diag_floor=self.diag_floor)
 
-    @property
-    def flow(self) -> flow.FlowConfig:
-        return flow.FlowConfig(net=self.net, nfe=self.nfe, integrator=self.integrator)
+    def generator(self, kind: str) -> generative.Generator:
+        return generative.make(kind, self.net, self.nfe, self.integrator, self.diffusion_steps,
+                               self.eta)
 
 
 class Scales(NamedTuple):
@@ -72,7 +87,8 @@ class Scales(NamedTuple):
     tau: jax.Array | float = 1.0
     force: jax.Array | float = 1.0
     qdd: jax.Array | float = 1.0
-    # Next-observation models (ONN): one-step configuration and velocity changes, commands.
+    # Next-observation models (ONN, pure diffusion): one-step configuration and velocity
+    # changes, commands.
     dq: jax.Array | float = 1.0
     dqd: jax.Array | float = 1.0
     ctrl: jax.Array | float = 1.0
@@ -89,58 +105,80 @@ def _context_dim(spec: ModelSpec) -> int:
                    else jnp.zeros(spec.nq), jnp.zeros(spec.nv), jnp.zeros(spec.nv)).shape[0]
 
 
-def init(key: jax.Array, spec: ModelSpec, cfg: StructuredConfig, stochastic: bool) -> dict:
-    """Parameters of STRIDE (``stochastic``) or DeLaN: ``{'lnn': ..., 'residual': ...}``."""
+def _check(residual: str) -> None:
+    if residual not in RESIDUALS:
+        raise ValueError(f"unknown residual {residual!r}; available: {', '.join(RESIDUALS)}")
+
+
+def init(key: jax.Array, spec: ModelSpec, cfg: StructuredConfig, residual: str) -> dict:
+    """Parameters ``{'lnn': ..., 'residual': ...}`` with a residual of the given kind."""
+    _check(residual)
     key_lnn, key_res = jax.random.split(key)
     c_dim = _context_dim(spec)
-    if stochastic:
-        residual = flow.flow_init(key_res, spec.nv, c_dim, cfg.flow)
+    if residual == "mlp":
+        res = mlp.mlp(cfg.net, spec.nv, zero_last=True)[0](key_res, c_dim)
     else:
-        residual = mlp.mlp(cfg.net, spec.nv, zero_last=True)[0](key_res, c_dim)
-    return {"lnn": lagrangian.lnn_init(key_lnn, spec, cfg.lnn), "residual": residual}
+        res = cfg.generator(residual).init(key_res, spec.nv, c_dim)
+    return {"lnn": lagrangian.lnn_init(key_lnn, spec, cfg.lnn), "residual": res}
 
 
-def residual_force(params: dict, spec: ModelSpec, cfg: StructuredConfig, stochastic: bool,
+def _residual(res_params, spec, cfg, residual, c, key, nfe=None):
+    """Normalised residual: a sample (generative kinds) or the MLP's prediction."""
+    if residual == "mlp":
+        return mlp.mlp(cfg.net, spec.nv, zero_last=True)[1](res_params, c)
+    return cfg.generator(residual).sample(res_params, c, key, spec.nv, nfe)
+
+
+def residual_force(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
                    q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales()
                    ) -> jax.Array:
-    """``eps`` [nv]: a flow sample (STRIDE) or the MLP's prediction (DeLaN; ``key`` unused)."""
+    """``eps`` [nv]: a sample of the generative residual, or the MLP's (``key`` unused)."""
+    _check(residual)
     c = context(spec, q, qd, tau, scales)
-    if stochastic:
-        return scales.force * flow.sample(params["residual"], c, key, spec.nv, cfg.flow, nfe)
-    return scales.force * mlp.mlp(cfg.net, spec.nv, zero_last=True)[1](params["residual"], c)
+    return scales.force * _residual(params["residual"], spec, cfg, residual, c, key, nfe)
 
 
-def acceleration(params: dict, spec: ModelSpec, cfg: StructuredConfig, stochastic: bool,
+def acceleration(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
                  q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales()
                  ) -> tuple[jax.Array, jax.Array]:
     """``(qdd [nv], eps [nv])``: predicted acceleration and the generalised residual used."""
     M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn)
-    eps = residual_force(params, spec, cfg, stochastic, q, qd, tau, key, nfe, scales)
+    eps = residual_force(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
     cho = jax.scipy.linalg.cho_factor(M)
     return jax.scipy.linalg.cho_solve(cho, tau - b + eps), eps
 
 
-def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, stochastic: bool,
+def terms(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
+          q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales()) -> dict:
+    """The split ``qdd = prior + residual``: ``{'prior': f_LNN, 'residual': M^-1 eps, 'eps': eps}``
+    (each ``[nv]``), for evaluation and analysis."""
+    M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn)
+    eps = residual_force(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
+    cho = jax.scipy.linalg.cho_factor(M)
+    return {"prior": jax.scipy.linalg.cho_solve(cho, tau - b),
+            "residual": jax.scipy.linalg.cho_solve(cho, eps), "eps": eps}
+
+
+def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
          q, qd, tau, qdd, key, scales: Scales = Scales()) -> tuple[jax.Array, dict]:
     """One example's training loss and its parts (see the module docstring)."""
-    key_sample, key_fm = jax.random.split(key)
+    _check(residual)
+    key_sample, key_gen = jax.random.split(key)
     M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn)
     cho = jax.scipy.linalg.cho_factor(M)
     c = context(spec, q, qd, tau, scales)
-    if stochastic:
-        flow_params = jax.lax.stop_gradient(params["residual"])
-        eps = scales.force * flow.sample(flow_params, c, key_sample, spec.nv, cfg.flow)
-    else:
-        eps = scales.force * mlp.mlp(cfg.net, spec.nv, zero_last=True)[1](params["residual"], c)
+    generative_kind = residual != "mlp"
+    res_params = jax.lax.stop_gradient(params["residual"]) if generative_kind else params["residual"]
+    eps = scales.force * _residual(res_params, spec, cfg, residual, c, key_sample)
     qdd_pred = jax.scipy.linalg.cho_solve(cho, tau - b + eps)
     l_acc = jnp.sum(((qdd - qdd_pred) / scales.qdd) ** 2)
     implied = (M @ qdd - (tau - b)) / scales.force  # r*, the residual the prior leaves
     l_res = jnp.sum(implied ** 2)
     parts = {"acc": l_acc, "res": l_res}
     total = l_acc + cfg.residual_weight * l_res
-    if stochastic:
+    if generative_kind:
         target = jax.lax.stop_gradient(implied)
-        l_fm = flow.fm_loss(params["residual"], target, c, key_fm, cfg.flow)
-        parts["fm"] = l_fm
-        total = total + cfg.fm_weight * l_fm
+        l_gen = cfg.generator(residual).loss(params["residual"], target, c, key_gen)
+        parts["fm" if residual == "flow" else "ddpm"] = l_gen
+        total = total + cfg.fm_weight * l_gen
     return total, parts

@@ -87,14 +87,15 @@ _RANDOMIZATION = base.Randomization(
 )
 
 
-def _robot(name: str, filename: str, source: str, explorer: PendulumExplorer) -> base.Robot:
+def _robot(name: str, filename: str, source: str, explorer: PendulumExplorer,
+           feet: tuple[base.Foot, ...] = ()) -> base.Robot:
     return base.Robot(
         name=name,
         source=source,
         load_spec=lambda: base.asset_spec(filename),
         edit_spec=_no_edit,
         joints=("hinge",),
-        feet=(),
+        feet=feet,
         base_body="pole",
         floating_base=False,
         ctrl_dt=0.01,
@@ -114,4 +115,5 @@ PENDULUM = _robot("pendulum", "pendulum.xml", "stride_jax/robots/assets/pendulum
 PENDULUM_BOUNCING = _robot(
     "pendulum_bouncing", "pendulum_bouncing.xml",
     "stride_jax/robots/assets/pendulum_bouncing.xml (wall at x = 0.5 m)",
-    PendulumExplorer(q_range=(-0.4, math.pi)))
+    PendulumExplorer(q_range=(-0.4, math.pi)),
+    feet=(base.Foot("bob", ("bob",), "tip"),))  # the bob's wall contacts are recorded as a foot's

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 from mujoco import mjx
 
 from stride_jax.sim import model, rollout_cpu, rollout_mjx
+from stride_jax.io import atomic_write_text
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,7 +129,7 @@ def write(rows: list[dict], cfg: BenchConfig, command: str) -> pathlib.Path:
     env = dict(command=command, devices=devices, cpu_count=os.cpu_count(),
                machine=platform.machine(), jax=jax.__version__, config=dataclasses.asdict(cfg))
     tag = "gpu" if jax.default_backend() != "cpu" else "cpu"
-    (out / f"bench_sim_{tag}.json").write_text(json.dumps(dict(env=env, rows=rows), indent=1))
+    atomic_write_text(out / f"bench_sim_{tag}.json", json.dumps(dict(env=env, rows=rows), indent=1))
     lines = [f"# Simulation throughput ({tag})", "", f"Command: `{command}`", "",
              f"Devices: {', '.join(devices)}; {os.cpu_count()} CPU cores; jax {jax.__version__}",
              "", "| robot | backend | mode | solver iters (ls) | worlds | sim steps/s |",
@@ -136,5 +137,5 @@ def write(rows: list[dict], cfg: BenchConfig, command: str) -> pathlib.Path:
     lines += [f"| {r['robot']} | {r['backend']} | {r['mode']} | {r['iterations']} "
               f"({r['ls_iterations']}) | {r['batch']} | {r['steps_per_s']:,.0f} |" for r in rows]
     path = out / f"bench_sim_{tag}.md"
-    path.write_text("\n".join(lines) + "\n")
+    atomic_write_text(path, "\n".join(lines) + "\n")
     return path

@@ -16,13 +16,13 @@ import hashlib
 import json
 import os
 import pathlib
-import tempfile
 import zipfile
 from importlib import metadata
 from typing import Any
 
 import numpy as np
 
+from stride_jax import io
 from stride_jax.sim import record
 from stride_jax.sim.rollout_mjx import Episode
 
@@ -113,23 +113,6 @@ def _sha256(path: pathlib.Path) -> str:
     return h.hexdigest()
 
 
-def _atomic_write(path: pathlib.Path, write) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual file mode
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def save(path: str | os.PathLike, ep: Episode, meta: dict[str, Any]) -> Dataset:
     """Writes a dataset folder atomically; ``meta`` must name at least ``robot``, ``dt``, ``seed``.
 
@@ -149,10 +132,10 @@ def save(path: str | os.PathLike, ep: Episode, meta: dict[str, Any]) -> Dataset:
     meta["stats"] = statistics(arrays, meta["splits"]["train"])
     meta["fields"] = {k: [list(v.shape), str(v.dtype)] for k, v in arrays.items()}
     arrays_path = path / "arrays.npz"
-    _atomic_write(arrays_path, lambda f: np.savez(f, **arrays))
+    io.atomic_write(arrays_path, lambda f: np.savez(f, **arrays))
     meta["arrays_bytes"] = arrays_path.stat().st_size
     meta["arrays_sha256"] = _sha256(arrays_path)
-    _atomic_write(path / "meta.json", lambda f: f.write(json.dumps(meta, indent=1).encode()))
+    io.atomic_write(path / "meta.json", lambda f: f.write(json.dumps(meta, indent=1).encode()))
     return Dataset(path, arrays, meta)
 
 

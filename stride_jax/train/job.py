@@ -13,6 +13,7 @@ from stride_jax.eval import rollout
 from stride_jax.sim import collect, dataset
 from stride_jax.train import loop
 from stride_jax.types import ModelSpec
+from stride_jax.io import atomic_write_text
 
 
 @dataclasses.dataclass(frozen=True)
@@ -22,11 +23,12 @@ class TrainConfig(loop.LoopConfig):
 
     Attributes:
       robot: pendulum, pendulum_bouncing, go1 or g1.
-      model: stride, delan or onn (diffusion and lnn_diffusion are still to come).
+      model: stride, delan, lnn_diffusion, onn or diffusion (see ``models.MODELS``).
       data: dataset folder; empty means ``data/<robot>`` (generated with ``data_preset`` if absent).
       data_preset: the ``stride data`` preset used when the dataset has to be generated.
       hidden, depth: width and depth of every network of the model.
-      nfe: flow evaluations per residual sample (STRIDE).
+      nfe: network evaluations per sample of a generative model; 0 means the model's default
+        (``models.DEFAULT_NFE``: 2 for the flow, 10 for diffusion).
       out: run folder; empty means ``runs/<robot>/<model>``.
     """
 
@@ -36,7 +38,7 @@ class TrainConfig(loop.LoopConfig):
     data_preset: str = "default"
     hidden: int = 128
     depth: int = 3
-    nfe: int = 2
+    nfe: int = 0
     out: str = ""
 
 
@@ -81,14 +83,18 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
     if "act_dof" not in ds.meta:
         raise dataset.DatasetError(f"{data_dir} predates actuator metadata; regenerate it")
     spec = spec_from_meta(ds.meta)
-    model_cfg = stride.StructuredConfig(net=mlp.MLPConfig(cfg.hidden, cfg.depth), nfe=cfg.nfe)
+    if cfg.model not in models.MODELS:
+        raise ValueError(f"unknown model {cfg.model!r}; available: {', '.join(models.MODELS)}")
+    kind = models.MODELS[cfg.model][1]
+    nfe = cfg.nfe or models.DEFAULT_NFE.get(kind, 2)
+    model_cfg = stride.StructuredConfig(net=mlp.MLPConfig(cfg.hidden, cfg.depth), nfe=nfe)
     act = models.Actuation.from_meta(ds.meta)
     sc = scales(ds)
     model = models.make(cfg.model, spec, act, model_cfg, sc)
     out = pathlib.Path(cfg.out or f"runs/{cfg.robot}/{cfg.model}")
     out.mkdir(parents=True, exist_ok=True)
     models.save_definition(out, cfg.model, spec, act, model_cfg, sc)
-    (out / "config.json").write_text(json.dumps(
+    atomic_write_text(out / "config.json", json.dumps(
         {"train": dataclasses.asdict(cfg), "dataset": str(data_dir),
          "dataset_sha256": ds.meta["arrays_sha256"]}, indent=1))
     loop.train(model.loss, model.init, ds.split("train"), ds.split("val"), cfg, out, log)

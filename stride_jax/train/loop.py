@@ -23,6 +23,7 @@ import orbax.checkpoint as ocp
 from tqdm import tqdm
 
 from stride_jax.sim import rollout_mjx
+from stride_jax.io import atomic_write_text
 
 
 class TrainingError(RuntimeError):
@@ -107,6 +108,8 @@ def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: di
     batch = min(cfg.batch, n_train)
     sharding = rollout_mjx.world_sharding(batch) if batch % max(1, jax.local_device_count()) == 0 \
         else None
+    # The training set lives on the device(s) once; minibatches are gathered there.
+    data = jax.device_put(data)
 
     def mean_loss(params, ex, key):
         keys = jax.random.split(key, len(ex["q"]))
@@ -114,8 +117,14 @@ def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: di
         return jnp.mean(total), jax.tree.map(jnp.mean, parts)
 
     @jax.jit
-    def train_step(state, ex, key):
-        (loss, parts), grads = jax.value_and_grad(mean_loss, has_aux=True)(state["params"], ex, key)
+    def train_step(state, data, i):
+        k_batch, k_loss = jax.random.split(jax.random.fold_in(key_loop, i))
+        idx = jax.random.randint(k_batch, (batch,), 0, n_train)
+        ex = {k: v[idx] for k, v in data.items()}
+        if sharding is not None:  # split the minibatch over devices; XLA all-reduces the grads
+            ex = jax.lax.with_sharding_constraint(ex, sharding)
+        (loss, parts), grads = jax.value_and_grad(mean_loss, has_aux=True)(state["params"], ex,
+                                                                           k_loss)
         updates, opt_state = opt.update(grads, state["opt"], state["params"])
         new = dict(state, params=optax.apply_updates(state["params"], updates), opt=opt_state,
                    step=state["step"] + 1)
@@ -130,12 +139,7 @@ def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: di
                                                         desc="train", unit="step") as bar:
         writer = None
         for i in range(start, cfg.steps):
-            k_batch, k_loss = jax.random.split(jax.random.fold_in(key_loop, i))
-            idx = np.asarray(jax.random.randint(k_batch, (batch,), 0, n_train))
-            ex = {k: v[idx] for k, v in data.items()}
-            if sharding is not None:
-                ex = jax.device_put(ex, sharding)
-            state, loss, parts = train_step(state, ex, k_loss)
+            state, loss, parts = train_step(state, data, i)
             step = i + 1
             last = step == cfg.steps
             if step % cfg.eval_every == 0 or last:
@@ -168,7 +172,7 @@ def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: di
     if best.latest_step() is None:
         raise TrainingError("no validation ever ran (steps < eval_every?)")
     params = best.restore(best.latest_step(), args=ocp.args.StandardRestore(state["params"]))
-    (out / "summary.json").write_text(json.dumps(
+    atomic_write_text(out / "summary.json", json.dumps(
         {"best_val": float(state["best_val"]), "best_step": best.latest_step(),
          "steps": cfg.steps}, indent=1))
     return params

@@ -1,0 +1,36 @@
+"""Conditional samplers ``x ~ p(x | c)`` behind one shape, so the models swap them freely.
+
+``flow`` is conditional flow matching (STRIDE's residual), ``diffusion`` is DDPM (the diffusion
+baselines). Both take ``nfe`` network evaluations per sample; the evaluation and the inference
+benchmark vary it at sampling time.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+from stride_jax.dynamics import diffusion, flow, mlp
+
+KINDS = ("flow", "diffusion")
+
+
+class Generator(NamedTuple):
+    init: Callable  # (key, dim, context_dim) -> params
+    loss: Callable  # (params, x [dim], context, key) -> scalar training loss of one example
+    sample: Callable  # (params, context, key, dim, nfe=None) -> x [dim]
+
+
+def make(kind: str, net: mlp.MLPConfig, nfe: int, integrator: str = "euler",
+         diffusion_steps: int = 100, eta: float = 1.0) -> Generator:
+    if kind == "flow":
+        cfg = flow.FlowConfig(net=net, nfe=nfe, integrator=integrator)
+        return Generator(lambda key, dim, cdim: flow.flow_init(key, dim, cdim, cfg),
+                         lambda p, x, c, key: flow.fm_loss(p, x, c, key, cfg),
+                         lambda p, c, key, dim, nfe=None: flow.sample(p, c, key, dim, cfg, nfe))
+    if kind == "diffusion":
+        cfg = diffusion.DiffusionConfig(net=net, nfe=nfe, steps=diffusion_steps, eta=eta)
+        return Generator(lambda key, dim, cdim: diffusion.init(key, dim, cdim, cfg),
+                         lambda p, x, c, key: diffusion.loss(p, x, c, key, cfg),
+                         lambda p, c, key, dim, nfe=None: diffusion.sample(p, c, key, dim, cfg,
+                                                                           nfe))
+    raise ValueError(f"unknown generator {kind!r}; available: {', '.join(KINDS)}")

@@ -1,0 +1,252 @@
+"""``stride eval``: the paper's Table I for trained runs -> ``results/<robot>/table.{md,json}``.
+
+For each run (a folder written by ``stride train``), on the test split of the dataset it was
+trained on:
+
+* **state**: cumulative normalised ``horizon``-step open-loop RMSE (``eval/rollout.py`` states the
+  normalisation), also per horizon for the error-vs-horizon figure;
+* **force** (structured models, robots with feet): mean absolute error (N) of each stance foot's
+  vertical force recovered from the predicted residual through the contact Jacobians
+  (``eval/forces.py``), per foot and overall, with the oracle floor of that map;
+* **share**: the residual's share of the predicted acceleration in free motion and in contact
+  (any foot -- for the bouncing pendulum its bob -- carrying a contact force).
+
+Stochastic models are evaluated ``samples`` times with independent latents; a run reports the mean
+over samples and their spread (std). Runs of one model with different seeds are then aggregated
+into a mean and a std over seeds, which is what the table shows.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import glob
+import json
+import pathlib
+import time
+
+import jax
+import numpy as np
+from tqdm import tqdm
+
+from stride_jax.dynamics import models
+from stride_jax.eval import forces, rollout
+from stride_jax.sim import dataset, model as sim_model
+from stride_jax.train import job
+from stride_jax.io import atomic_write_text
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """What ``stride eval`` evaluates.
+
+    Attributes:
+      runs: comma-separated run folders or globs (e.g. ``runs/go1/*``).
+      horizon: open-loop rollout length (control steps).
+      windows: rollout windows drawn from the test split.
+      samples: latent samples per stochastic model.
+      force_steps: test steps used for the force error and the residual share.
+      nfe: evaluations per residual sample; 0 means each model's trained default.
+      out: output folder; empty means ``results/<robot>``.
+      seed: windows, steps and latents.
+    """
+
+    runs: str = "runs/pendulum/*"
+    horizon: int = 30
+    windows: int = 256
+    samples: int = 8
+    force_steps: int = 1024
+    nfe: int = 0
+    out: str = ""
+    seed: int = 0
+
+
+PRESETS = {"tiny": dict(horizon=10, windows=32, samples=2, force_steps=128), "default": {}}
+
+
+def find_runs(pattern: str) -> list[pathlib.Path]:
+    runs = sorted({pathlib.Path(p) for part in pattern.split(",") if part
+                   for p in glob.glob(part.strip()) if (pathlib.Path(p) / "model.json").is_file()})
+    if not runs:
+        raise FileNotFoundError(f"no training runs (folders with model.json) match {pattern!r}")
+    return runs
+
+
+
+
+def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
+    """One run's metrics (see the module docstring)."""
+    model, params = models.load(run)
+    run_cfg = json.loads((run / "config.json").read_text())
+    trained_nfe = json.loads((run / "model.json").read_text())["config"]["nfe"]
+    ds = dataset.load(run_cfg["dataset"])
+    spec = job.spec_from_meta(ds.meta)
+    test, train = ds.split("test"), ds.split("train")
+    nfe = cfg.nfe or None
+    key = jax.random.key(cfg.seed)
+    n_samples = cfg.samples if model.stochastic else 1
+    out = {"run": str(run), "model": model.name, "seed": run_cfg["train"]["seed"],
+           "robot": ds.meta["robot"], "params": int(sum(x.size for x in jax.tree.leaves(params))),
+           "stochastic": model.stochastic, "nfe": (nfe or trained_nfe) if model.stochastic else None}
+
+    # State: cumulative open-loop RMSE, per sample.
+    starts = rollout.windows(test["valid"], cfg.horizon, cfg.windows, cfg.seed)
+    obs_scales = rollout.observation_scales(train, spec, cfg.horizon)
+    rollout_fn = lambda p, q, qd, u, k: model.rollout(p, q, qd, u, k, nfe)
+    errs = np.stack([rollout.rollout_errors(rollout_fn, params, test, spec, cfg.horizon, starts,
+                                            obs_scales, jax.random.fold_in(key, s))
+                     for s in range(n_samples)])  # [S, N, H]
+    # A rollout that leaves the floating-point range has diverged: it is counted, not averaged.
+    finite = np.isfinite(errs).all(-1)  # [S, N]
+    cum = np.array([errs[s][finite[s]].sum(-1).mean() if finite[s].any() else np.nan
+                    for s in range(n_samples)])
+    per_h = np.where(finite[..., None], errs, np.nan)
+    out["state"] = {"mean": float(cum.mean()), "spread": float(cum.std()),
+                    "per_horizon": np.nanmean(per_h, (0, 1)).tolist(), "windows": len(starts),
+                    "diverged": float(1.0 - finite.mean())}
+    if model.terms is None:
+        return out
+
+    # Residual: force error through the contact Jacobians, and the residual's share.
+    valid = np.argwhere(test["valid"])
+    rng = np.random.default_rng(cfg.seed)
+    idx = valid[rng.permutation(len(valid))[:cfg.force_steps]]
+    pick = lambda k: np.asarray(test[k][idx[:, 0], idx[:, 1]], np.float32)
+    q, qd, tau = pick("q"), pick("qd"), pick("tau")
+    terms_fn = jax.jit(jax.vmap(lambda q, qd, tau, k: model.terms(params, q, qd, tau, k, nfe)))
+    terms = [terms_fn(q, qd, tau, jax.random.split(jax.random.fold_in(key, 1000 + s), len(q)))
+             for s in range(n_samples)]
+    qdd_scale = np.asarray(train["qdd"][train["valid"]].std(0)) + 1e-6
+    contact = pick("foot_contact").any(-1)  # robots without feet are always in free motion
+    shares = np.stack([forces.residual_share(np.asarray(t["prior"]), np.asarray(t["residual"]),
+                                             qdd_scale) for t in terms])  # [S, N]
+    out["share"] = {
+        region: {"mean": float(shares[:, mask].mean()) if mask.any() else None,
+                 "spread": float(shares[:, mask].mean(1).std()) if mask.any() else None,
+                 "steps": int(mask.sum())}
+        for region, mask in (("free", ~contact), ("contact", contact))}
+
+    sm = sim_model.load(ds.meta["robot"])
+    if sm.nfeet == 0 or not spec.floating_base:  # ground reaction forces: legged robots
+        return out
+    jac = forces.foot_jacobians(sm, q)
+    stance = pick("foot_contact") > 0.5
+    true_normal = pick("foot_force")
+    true_eps = pick("qfrc_passive") + pick("qfrc_constraint") + pick("qfrc_external")
+    per_sample = np.stack([forces.normal_force_errors(jac, stance, np.asarray(t["eps"]),
+                                                      true_normal) for t in terms])  # [S, N, F]
+    oracle = forces.normal_force_errors(jac, stance, true_eps, true_normal)
+    sample_means = np.nanmean(per_sample, axis=(1, 2))
+    out["force"] = {
+        "mean": float(sample_means.mean()), "spread": float(sample_means.std()),
+        "per_foot": dict(zip((f.name for f in sm.robot.feet),
+                             np.nanmean(per_sample, axis=(0, 1)).tolist())),
+        "oracle": float(np.nanmean(oracle)), "stance_feet": int(stance.sum()),
+        "mean_true_normal": float(true_normal[stance].mean())}
+    return out
+
+
+def _agg(values: list) -> dict | None:
+    values = [v for v in values if v is not None]
+    if not values:
+        return None
+    return {"mean": float(np.mean(values)), "std": float(np.std(values)), "n": len(values)}
+
+
+def aggregate(results: list[dict]) -> dict[str, dict]:
+    """Per model: mean and std over seeds of each headline metric."""
+    by_model: dict[str, list[dict]] = {}
+    for r in results:
+        by_model.setdefault(r["model"], []).append(r)
+    get = lambda r, *path: _dig(r, path)
+    table = {}
+    for name in [m for m in models.MODELS if m in by_model] + sorted(set(by_model) - set(
+            models.MODELS)):
+        rs = by_model[name]
+        table[name] = {
+            "seeds": sorted(r["seed"] for r in rs), "params": rs[0]["params"],
+            "state": _agg([get(r, "state", "mean") for r in rs]),
+            "state_sample_spread": _agg([get(r, "state", "spread") for r in rs]),
+            "diverged": _agg([get(r, "state", "diverged") for r in rs]),
+            "force": _agg([get(r, "force", "mean") for r in rs]),
+            "force_oracle": _agg([get(r, "force", "oracle") for r in rs]),
+            "share_free": _agg([get(r, "share", "free", "mean") for r in rs]),
+            "share_contact": _agg([get(r, "share", "contact", "mean") for r in rs]),
+        }
+    return table
+
+
+def _dig(d, path):
+    for k in path:
+        if not isinstance(d, dict) or d.get(k) is None:
+            return None
+        d = d[k]
+    return d
+
+
+def _fmt(a: dict | None, digits: int = 3, pct: bool = False) -> str:
+    if a is None:
+        return "n/a"
+    f = 100.0 if pct else 1.0
+    s = f"{f * a['mean']:.{digits}f}"
+    return s + (f" ± {f * a['std']:.{digits}f}" if a["n"] > 1 else "")
+
+
+def markdown(table: dict, robot: str, command: str, cfg: EvalConfig) -> str:
+    lines = [f"# {robot}: open-loop accuracy (the paper's Table I on our data)", "",
+             f"Command: `{command}`", "",
+             f"State: cumulative normalised {cfg.horizon}-step RMSE on the test split "
+             f"({cfg.windows} windows max). Force: mean |error| of stance feet's vertical force (N) "
+             "from the residual through the contact Jacobians; oracle = the same map applied to "
+             "the true residual. Share: residual's share of the predicted acceleration (%). "
+             "Diverged: rollouts that left the floating-point range (%), excluded from the RMSE. "
+             "Values: mean ± std over seeds.", "",
+             "| model | params | seeds | state RMSE | diverged (%) | force error (N) | "
+             "force oracle (N) | share free (%) | share contact (%) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for name, row in table.items():
+        lines.append(
+            f"| {name} | {row['params']:,} | {len(row['seeds'])} | {_fmt(row['state'])} | "
+            f"{_fmt(row['diverged'], 1, True)} | {_fmt(row['force'], 1)} | {_fmt(row['force_oracle'], 1)} | "
+            f"{_fmt(row['share_free'], 1, True)} | {_fmt(row['share_contact'], 1, True)} |")
+    ratios = _ratios(table)
+    if ratios:
+        lines += ["", "Ratios (ours; the paper's Go1 / G1 in brackets):", ""]
+        lines += [f"- {k}: {v:.2f}" for k, v in ratios.items()]
+    return "\n".join(lines) + "\n"
+
+
+def _ratios(table: dict) -> dict[str, float]:
+    m = lambda name, key: _dig(table, (name, key, "mean"))
+    out = {}
+    pairs = [("STRIDE/DeLaN state RMSE [0.70 / 0.28]", "delan", "state"),
+             ("STRIDE/DeLaN force error [0.71 / 0.71]", "delan", "force"),
+             ("STRIDE/(LNN+Diffusion) state RMSE [0.81 / 0.31]", "lnn_diffusion", "state"),
+             ("STRIDE/ONN state RMSE [0.17 / 0.47]", "onn", "state")]
+    for label, other, key in pairs:
+        a, b = m("stride", key), m(other, key)
+        if a is not None and b:
+            out[label] = a / b
+    return out
+
+
+def run(cfg: EvalConfig, command: str = "stride eval", log=print) -> pathlib.Path:
+    runs = find_runs(cfg.runs)
+    results = []
+    t0 = time.time()
+    for r in tqdm(runs, desc="eval", unit="run"):
+        results.append(evaluate_run(r, cfg))
+    robots = {r["robot"] for r in results}
+    if len(robots) != 1:
+        raise ValueError(f"runs mix robots {sorted(robots)}; evaluate one robot at a time")
+    robot = robots.pop()
+    out = pathlib.Path(cfg.out or f"results/{robot}")
+    out.mkdir(parents=True, exist_ok=True)
+    table = aggregate(results)
+    atomic_write_text(out / "table.json", json.dumps(
+        {"command": command, "config": dataclasses.asdict(cfg), "table": table,
+         "ratios": _ratios(table), "runs": results,
+         "run_configs": {str(r): json.loads((r / "config.json").read_text()) for r in runs},
+         "backend": jax.default_backend(), "seconds": time.time() - t0}, indent=1))
+    atomic_write_text(out / "table.md", markdown(table, robot, command, cfg))
+    log(f"wrote {out / 'table.md'} and table.json ({len(runs)} runs)")
+    return out

@@ -1,0 +1,67 @@
+"""The one interface: every model inits, steps, rolls out under jit and vmap, and refuses bad input."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from stride_jax.dynamics import mlp, models, stride
+from stride_jax.types import ModelSpec
+
+SPEC = ModelSpec(nq=8, nv=7, floating_base=True)  # a floating base with one joint
+ACT = models.Actuation(dof=(6,), kp=(20.0,), kd=(0.5,), force_range=((-5.0, 5.0),), dt=0.005,
+                       n_substeps=2)
+CFG = stride.StructuredConfig(net=mlp.MLPConfig(hidden=16, depth=1), nfe=2)
+Q0 = jnp.zeros(8).at[2].set(0.3).at[3].set(1.0)
+
+
+@pytest.mark.parametrize("name", list(models.MODELS))
+def test_every_model_jits_vmaps_and_rolls_out(name):
+    model = models.make(name, SPEC, ACT, CFG)
+    params = model.init(jax.random.key(0))
+    # Perturb the zero-initialised last layers so that outputs depend on inputs and keys.
+    params = jax.tree.map(lambda w: w + 0.05 * jax.random.normal(jax.random.key(1), w.shape),
+                          params)
+    ctrls = 0.1 * jnp.ones((5, 1))
+    keys = jax.random.split(jax.random.key(2), 3)
+    roll = jax.jit(jax.vmap(model.rollout, in_axes=(None, None, None, None, 0)))
+    qs, qds = roll(params, Q0, jnp.zeros(7), ctrls, keys)
+    assert qs.shape == (3, 5, 8) and qds.shape == (3, 5, 7)
+    assert np.isfinite(np.asarray(qs)).all()
+    np.testing.assert_allclose(np.linalg.norm(qs[..., 3:7], axis=-1), 1.0, atol=1e-5)
+    spread = float(jnp.std(qds[:, -1], axis=0).max())
+    assert (spread > 1e-5) == model.stochastic  # latents change the outcome only when stochastic
+    # A rollout is a scan of steps.
+    q1, qd1 = jax.jit(model.step)(params, Q0, jnp.zeros(7), ctrls[0], keys[0])
+    assert q1.shape == (8,) and qd1.shape == (7,)
+    # The training loss differentiates.
+    ex = dict(q=Q0, qd=jnp.zeros(7), tau=jnp.zeros(7), qdd=jnp.ones(7), ctrl=ctrls[0],
+              q_next=q1, qd_next=qd1)
+    grads = jax.grad(lambda p: model.loss(p, ex, keys[0])[0])(params)
+    assert all(np.isfinite(np.asarray(g)).all() for g in jax.tree.leaves(grads))
+    if model.acceleration is not None:
+        terms = model.terms(params, Q0, jnp.zeros(7), jnp.ones(7), keys[0])
+        qdd = model.acceleration(params, Q0, jnp.zeros(7), jnp.ones(7), keys[0])
+        np.testing.assert_allclose(terms["prior"] + terms["residual"], qdd, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("name", ["stride", "onn"])
+def test_bad_inputs_are_clear_errors(name):
+    model = models.make(name, SPEC, ACT, CFG)
+    params = model.init(jax.random.key(0))
+    key = jax.random.key(0)
+    with pytest.raises(models.InputError, match=r"q must have shape \(8,\)"):
+        model.step(params, jnp.zeros(7), jnp.zeros(7), jnp.zeros(1), key)
+    with pytest.raises(models.InputError, match=r"ctrl must have shape \(1,\)"):
+        model.step(params, Q0, jnp.zeros(7), jnp.zeros(3), key)
+    with pytest.raises(models.InputError, match=r"ctrls must have shape \[H, 1\]"):
+        model.rollout(params, Q0, jnp.zeros(7), jnp.zeros(5), key)
+    with pytest.raises(models.InputError, match="qd holds NaN"):
+        model.step(params, Q0, jnp.full(7, jnp.nan), jnp.zeros(1), key)
+    with pytest.raises(models.InputError, match="batches"):  # a batch without vmap
+        jax.jit(model.step)(params, jnp.tile(Q0, (4, 1)), jnp.zeros((4, 7)), jnp.zeros((4, 1)), key)
+
+
+def test_unknown_model_is_a_clear_error():
+    with pytest.raises(ValueError, match="unknown model 'lstm'; available: stride, delan"):
+        models.make("lstm", SPEC, ACT, CFG)
