@@ -48,6 +48,7 @@ class EvalConfig:
       nfe: evaluations per residual sample; 0 means each model's trained default.
       out: output folder; empty means ``results/<robot>``.
       seed: windows, steps and latents.
+      label: the command to record as having made the table (default: this ``stride eval``).
     """
 
     runs: str = "runs/pendulum/*"
@@ -58,6 +59,7 @@ class EvalConfig:
     nfe: int = 0
     out: str = ""
     seed: int = 0
+    label: str = ""
 
 
 PRESETS = {"tiny": dict(horizon=10, windows=32, samples=2, force_steps=128), "default": {}}
@@ -86,7 +88,8 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     n_samples = cfg.samples if model.stochastic else 1
     out = {"run": str(run), "model": model.name, "seed": run_cfg["train"]["seed"],
            "robot": ds.meta["robot"], "params": int(sum(x.size for x in jax.tree.leaves(params))),
-           "stochastic": model.stochastic, "nfe": (nfe or trained_nfe) if model.stochastic else None}
+           "stochastic": model.stochastic, "nfe": (nfe or trained_nfe) if model.stochastic else None,
+           "steps_done": json.loads((run / "summary.json").read_text()).get("steps_done")}
 
     # State: cumulative open-loop RMSE, per sample.
     starts = rollout.windows(test["valid"], cfg.horizon, cfg.windows, cfg.seed)
@@ -145,6 +148,21 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     return out
 
 
+def _cached(run: pathlib.Path, cfg: EvalConfig) -> dict:
+    """``evaluate_run``, reusing ``run/eval.json`` when it was made with the same settings from
+    the same best checkpoint (so runs can be evaluated in parallel, then tabulated)."""
+    key = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("runs", "out", "label")}
+    key["best_step"] = json.loads((run / "summary.json").read_text()).get("best_step")
+    cache = run / "eval.json"
+    if cache.is_file():
+        saved = json.loads(cache.read_text())
+        if saved.get("key") == key:
+            return saved["result"]
+    result = evaluate_run(run, cfg)
+    atomic_write_text(cache, json.dumps({"key": key, "result": result}, indent=1))
+    return result
+
+
 def _agg(values: list) -> dict | None:
     values = [v for v in values if v is not None]
     if not values:
@@ -164,6 +182,7 @@ def aggregate(results: list[dict]) -> dict[str, dict]:
         rs = by_model[name]
         table[name] = {
             "seeds": sorted(r["seed"] for r in rs), "params": rs[0]["params"],
+            "steps_done": sorted({r.get("steps_done") for r in rs}, key=str),
             "state": _agg([get(r, "state", "mean") for r in rs]),
             "state_sample_spread": _agg([get(r, "state", "spread") for r in rs]),
             "diverged": _agg([get(r, "state", "diverged") for r in rs]),
@@ -200,12 +219,13 @@ def markdown(table: dict, robot: str, command: str, cfg: EvalConfig) -> str:
              "the true residual. Share: residual's share of the predicted acceleration (%). "
              "Diverged: rollouts that left the floating-point range (%), excluded from the RMSE. "
              "Values: mean ± std over seeds.", "",
-             "| model | params | seeds | state RMSE | diverged (%) | force error (N) | "
+             "| model | params | seeds | steps | state RMSE | diverged (%) | force error (N) | "
              "force oracle (N) | share free (%) | share contact (%) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, row in table.items():
         lines.append(
-            f"| {name} | {row['params']:,} | {len(row['seeds'])} | {_fmt(row['state'])} | "
+            f"| {name} | {row['params']:,} | {len(row['seeds'])} | "
+            f"{'/'.join(str(x) for x in row['steps_done'])} | {_fmt(row['state'])} | "
             f"{_fmt(row['diverged'], 1, True)} | {_fmt(row['force'], 1)} | {_fmt(row['force_oracle'], 1)} | "
             f"{_fmt(row['share_free'], 1, True)} | {_fmt(row['share_contact'], 1, True)} |")
     ratios = _ratios(table)
@@ -234,7 +254,7 @@ def run(cfg: EvalConfig, command: str = "stride eval", log=print) -> pathlib.Pat
     results = []
     t0 = time.time()
     for r in tqdm(runs, desc="eval", unit="run"):
-        results.append(evaluate_run(r, cfg))
+        results.append(_cached(r, cfg))
     robots = {r["robot"] for r in results}
     if len(robots) != 1:
         raise ValueError(f"runs mix robots {sorted(robots)}; evaluate one robot at a time")
@@ -242,6 +262,7 @@ def run(cfg: EvalConfig, command: str = "stride eval", log=print) -> pathlib.Pat
     out = pathlib.Path(cfg.out or f"results/{robot}")
     out.mkdir(parents=True, exist_ok=True)
     table = aggregate(results)
+    command = cfg.label or command
     atomic_write_text(out / "table.json", json.dumps(
         {"command": command, "config": dataclasses.asdict(cfg), "table": table,
          "ratios": _ratios(table), "runs": results,

@@ -33,7 +33,9 @@ class TrainingError(RuntimeError):
 @dataclasses.dataclass(frozen=True)
 class LoopConfig:
     """Optimisation: Adam with cosine decay from ``lr`` over ``steps`` minibatches of ``batch``
-    examples; validation every ``eval_every`` steps, a checkpoint every ``ckpt_every``."""
+    examples; validation every ``eval_every`` steps, a checkpoint every ``ckpt_every``.
+    ``deadline`` (Unix time, 0 for none): stop cleanly at the first validation after it, with a
+    checkpoint to resume from (for machines lent by the hour)."""
 
     steps: int = 2000
     batch: int = 256
@@ -41,6 +43,7 @@ class LoopConfig:
     eval_every: int = 100
     ckpt_every: int = 500
     seed: int = 0
+    deadline: float = 0.0
 
 
 def _examples(split: dict) -> dict:
@@ -164,9 +167,15 @@ def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: di
                     state = dict(state, best_val=jnp.asarray(val_loss, jnp.float32))
                     best.save(step, args=ocp.args.StandardSave(state["params"]), force=True)
                 bar.set_postfix(loss=f"{loss:.4g}", val=f"{float(val_loss):.4g}")
-            if step % cfg.ckpt_every == 0 or last:
+            out_of_time = bool(cfg.deadline) and step % cfg.eval_every == 0 and \
+                time.time() > cfg.deadline
+            if step % cfg.ckpt_every == 0 or last or out_of_time:
                 ckpt.save(step, args=ocp.args.StandardSave(state), force=True)
             bar.update(1)
+            if out_of_time and not last:
+                log(f"deadline reached: stopped at step {step} of {cfg.steps}; run again to "
+                    "resume")
+                break
     ckpt.wait_until_finished()
     best.wait_until_finished()
     if best.latest_step() is None:
@@ -174,5 +183,6 @@ def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: di
     params = best.restore(best.latest_step(), args=ocp.args.StandardRestore(state["params"]))
     atomic_write_text(out / "summary.json", json.dumps(
         {"best_val": float(state["best_val"]), "best_step": best.latest_step(),
-         "steps": cfg.steps}, indent=1))
+         "steps": cfg.steps, "steps_done": int(state["step"]),
+         "finished": int(state["step"]) >= cfg.steps}, indent=1))
     return params
