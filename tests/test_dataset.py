@@ -25,6 +25,18 @@ def test_round_trip(saved):
     assert loaded.meta["seed"] == 7 and loaded.meta["versions"]["mujoco"]
 
 
+def test_non_finite_records_end_validity(saved, tmp_path):
+    _, ep = saved
+    qdd = np.array(ep.records.qdd)
+    qdd[2, 10] = np.nan  # a solver blow-up in the acceleration while the state is still finite
+    bad = ep._replace(records=ep.records._replace(qdd=qdd))
+    ds = dataset.save(tmp_path / "bad", bad, dict(robot="pendulum", seed=7, ctrl_dt=0.01))
+    valid = ds.arrays["valid"]
+    assert valid[2, :10].all() and not valid[2, 10:].any()
+    assert np.isfinite(np.array(ds.meta["stats"]["qdd"]["std"])).all()
+    np.testing.assert_array_equal(np.delete(valid, 2, 0), np.delete(ep.valid, 2, 0))
+
+
 def test_splits_partition_episodes_and_stats_come_from_train(saved):
     ds, _ = saved
     s = ds.meta["splits"]

@@ -93,7 +93,15 @@ def statistics(arrays: dict[str, np.ndarray], episodes: list[int]) -> dict[str, 
 def episode_arrays(ep: Episode) -> dict[str, np.ndarray]:
     """Flattens an :class:`Episode` into the named arrays stored in ``arrays.npz``."""
     arrays = {f: np.asarray(getattr(ep.records, f)) for f in record.FIELDS}
-    arrays["valid"] = np.asarray(ep.valid, bool)
+    # A step is valid only if everything recorded at it is finite, and stays invalid from the
+    # first bad step on (the backends check the state; an unconverged solve can still return a
+    # non-finite acceleration or force while the state is finite -- seen on GPU with MJX).
+    finite = np.ones(np.shape(ep.valid), bool)
+    for f in record.FIELDS:
+        x = arrays[f]
+        if x.dtype.kind == "f":
+            finite &= np.isfinite(x).reshape(*finite.shape, -1).all(-1)
+    arrays["valid"] = np.asarray(ep.valid, bool) & np.logical_and.accumulate(finite, axis=1)
     for name, v in ep.rand._asdict().items():
         arrays[f"rand/{name}"] = np.asarray(v)
     explore = ep.explore._asdict() if hasattr(ep.explore, "_asdict") else {}

@@ -52,7 +52,12 @@ def _examples(split: dict) -> dict:
     v = split["valid"][:, :-1] & split["valid"][:, 1:]
     ex = {k: split[k][:, :-1][v] for k in ("q", "qd", "tau", "qdd", "ctrl")}
     ex.update(q_next=split["q"][:, 1:][v], qd_next=split["qd"][:, 1:][v])
-    return {k: np.asarray(a, np.float32) for k, a in ex.items()}
+    ex = {k: np.asarray(a, np.float32) for k, a in ex.items()}
+    bad = {k: int((~np.isfinite(a)).any(-1).sum()) for k, a in ex.items()}
+    if any(bad.values()):
+        raise TrainingError(f"non-finite values in valid dataset steps ({bad}); regenerate the "
+                            "dataset with this version, which marks such steps invalid")
+    return ex
 
 
 def _manager(path: pathlib.Path, max_to_keep: int) -> ocp.CheckpointManager:
