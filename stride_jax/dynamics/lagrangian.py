@@ -66,22 +66,27 @@ def forward_dynamics(mass_fn: MassFn, potential_fn: PotentialFn, q: jax.Array, v
 
 @dataclasses.dataclass(frozen=True)
 class LNNConfig:
-    """Sizes of the two networks and ``diag_floor``: M's eigenvalues stay above it."""
+    """Sizes of the two networks and ``diag_floor``: M's eigenvalues stay above it.
+    Floating bases: ``gravity`` (m/s^2, along world -z) and ``mass_init``, the starting value of
+    the learned total mass (kg; a spec-sheet number: Adam moves a log-mass only ~lr per step, so
+    a start at 1 kg does not reach a 13 kg robot within a training run)."""
 
     net: mlp.MLPConfig = mlp.MLPConfig()
     diag_floor: float = 1e-3
+    gravity: float = 9.81
+    mass_init: float = 1.0
 
 
-def q_features(spec: ModelSpec, q: jax.Array) -> jax.Array:
+def q_features(spec: ModelSpec, q: jax.Array, height: bool = True) -> jax.Array:
     """Network input from a configuration: invariant where the physics is.
 
-    Floating base: base height, rotation matrix (9; no quaternion sign ambiguity) and joint
-    angles -- not the horizontal position, on which neither M nor V depends. Periodic hinges enter
-    as (sin, cos).
+    Floating base: base height (unless ``height=False``), rotation matrix (9; no quaternion sign
+    ambiguity) and joint angles -- never the horizontal position. Periodic hinges enter as
+    (sin, cos).
     """
     if spec.floating_base:
         joints = q[7:]
-        head = [q[2:3], quat_to_mat(q[3:7]).reshape(9)]
+        head = ([q[2:3]] if height else []) + [quat_to_mat(q[3:7]).reshape(9)]
     else:
         joints, head = q, []
     if spec.periodic:
@@ -92,17 +97,26 @@ def q_features(spec: ModelSpec, q: jax.Array) -> jax.Array:
 
 
 def _n_features(spec: ModelSpec) -> int:
-    n_hinge = spec.nq - (7 if spec.floating_base else 0)
-    return (10 if spec.floating_base else 0) + n_hinge + sum(spec.periodic)
+    q0 = jnp.zeros(spec.nq).at[3].set(1.0) if spec.floating_base else jnp.zeros(spec.nq)
+    return q_features(spec, q0, height=False).shape[0]
+
+
+def _n_mass_outputs(spec: ModelSpec) -> int:
+    n = spec.nv * (spec.nv + 1) // 2
+    return n - 6 if spec.floating_base else n  # the translational block is m I (see below)
 
 
 def lnn_init(key: jax.Array, spec: ModelSpec, cfg: LNNConfig = LNNConfig()) -> dict:
-    """Parameters of the Cholesky-factor network (nv (nv + 1) / 2 outputs) and of V(q)."""
+    """Parameters of the Cholesky-factor network, of V(q) and, for a floating base, the log of
+    the total mass."""
     key_m, key_v = jax.random.split(key)
-    n_tril = spec.nv * (spec.nv + 1) // 2
-    init_m, _ = mlp.mlp(cfg.net, n_tril)
+    init_m, _ = mlp.mlp(cfg.net, _n_mass_outputs(spec))
     init_v, _ = mlp.mlp(cfg.net, 1)
-    return {"mass": init_m(key_m, _n_features(spec)), "potential": init_v(key_v, _n_features(spec))}
+    params = {"mass": init_m(key_m, _n_features(spec)),
+              "potential": init_v(key_v, _n_features(spec))}
+    if spec.floating_base:
+        params["log_mass"] = jnp.log(jnp.asarray(cfg.mass_init, jnp.float32))
+    return params
 
 
 def mass_matrix(params: dict, spec: ModelSpec, q: jax.Array,
@@ -112,20 +126,40 @@ def mass_matrix(params: dict, spec: ModelSpec, q: jax.Array,
     The softplus diagonal makes ``L L^T`` positive definite (paper, Sec. III-B); the ``floor I``
     bounds its smallest eigenvalue away from zero, which a positive diagonal alone does not (large
     off-diagonal entries can make ``L L^T`` numerically singular).
+
+    Floating base: M does not depend on where the robot is (no base position among the inputs),
+    and its translational block is exactly ``m I`` as for any rigid multibody with world-frame
+    linear velocity: the first three rows of L are ``sqrt(m) I``, the rest is learned.
     """
-    _, apply = mlp.mlp(cfg.net, spec.nv * (spec.nv + 1) // 2)
-    raw = apply(params["mass"], q_features(spec, q))
-    rows, cols = jnp.tril_indices(spec.nv)
-    L = jnp.zeros((spec.nv, spec.nv), raw.dtype).at[rows, cols].set(raw)
-    L = L.at[jnp.diag_indices(spec.nv)].set(jax.nn.softplus(jnp.diag(L)))
-    return L @ L.T + cfg.diag_floor * jnp.eye(spec.nv, dtype=L.dtype)
+    _, apply = mlp.mlp(cfg.net, _n_mass_outputs(spec))
+    raw = apply(params["mass"], q_features(spec, q, height=False))
+    nv = spec.nv
+    rows, cols = np.tril_indices(nv)
+    if spec.floating_base:
+        keep = rows >= 3  # rows 0-2 of L are fixed
+        L = jnp.zeros((nv, nv), raw.dtype).at[rows[keep], cols[keep]].set(raw)
+        L = L.at[jnp.diag_indices(nv)].set(jax.nn.softplus(jnp.diag(L)))
+        L = L.at[:3, :3].set(jnp.sqrt(jnp.exp(params["log_mass"])) * jnp.eye(3, dtype=L.dtype))
+    else:
+        L = jnp.zeros((nv, nv), raw.dtype).at[rows, cols].set(raw)
+        L = L.at[jnp.diag_indices(nv)].set(jax.nn.softplus(jnp.diag(L)))
+    return L @ L.T + cfg.diag_floor * jnp.eye(nv, dtype=L.dtype)
 
 
 def potential_energy(params: dict, spec: ModelSpec, q: jax.Array,
                      cfg: LNNConfig = LNNConfig()) -> jax.Array:
-    """Scalar ``V(q)`` (J)."""
+    """Scalar ``V(q)`` (J).
+
+    Floating base: ``V = m g z_base + V_net(orientation, joints)``, the exact form of uniform
+    gravity on a multibody (``g sum_i m_i z_i``, the network holding the centre of mass offset),
+    with the same ``m`` as M's translational block. Without this tie the prior can fold the mean
+    contact force of standing into a weaker "gravity" and leave the feet unloaded.
+    """
     _, apply = mlp.mlp(cfg.net, 1)
-    return apply(params["potential"], q_features(spec, q))[0]
+    v = apply(params["potential"], q_features(spec, q, height=False))[0]
+    if spec.floating_base:
+        v = v + jnp.exp(params["log_mass"]) * cfg.gravity * q[2]
+    return v
 
 
 def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,

@@ -4,7 +4,8 @@ A :class:`Model` is a bundle of pure functions over a params pytree (written for
 batch with ``vmap``):
 
 * ``init(key) -> params``
-* ``loss(params, example, key) -> (scalar, parts)``: ``example`` holds ``q, qd, tau, qdd``
+* ``loss(params, example, key) -> (scalar, parts)``: ``example`` holds ``q, qd, tau, qdd, ctrl``,
+  the next ``q_next, qd_next`` and a training-time ``contact`` flag
 * ``acceleration(params, q, qd, tau, key) -> qdd``: structured models only
 * ``terms(params, q, qd, tau, key) -> {'prior', 'residual', 'eps'}``: structured models only,
   the split of the acceleration into the Lagrangian prior and the residual
@@ -137,7 +138,7 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
 
     def loss(params, ex, key):
         return stride.loss(params, spec, cfg, residual, ex["q"], ex["qd"], ex["tau"], ex["qdd"],
-                           key, scales)
+                           key, scales, ex.get("contact", False))
 
     def acceleration(params, q, qd, tau, key, nfe=None):
         _check_inputs(name, spec, nu, q=q, qd=qd, tau=tau)

@@ -11,6 +11,7 @@ import numpy as np
 from stride_jax.dynamics import mlp, models, stride
 from stride_jax.eval import rollout
 from stride_jax.sim import collect, dataset
+from stride_jax.sim import model as sim_model
 from stride_jax.train import loop
 from stride_jax.types import ModelSpec
 from stride_jax.io import atomic_write_text
@@ -87,7 +88,10 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
         raise ValueError(f"unknown model {cfg.model!r}; available: {', '.join(models.MODELS)}")
     kind = models.MODELS[cfg.model][1]
     nfe = cfg.nfe or models.DEFAULT_NFE.get(kind, 2)
-    model_cfg = stride.StructuredConfig(net=mlp.MLPConfig(cfg.hidden, cfg.depth), nfe=nfe)
+    # Floating bases start the learned total mass at the nominal model's (a spec-sheet number).
+    mass = float(sim_model.load(cfg.robot).mj.body_mass.sum()) if spec.floating_base else 1.0
+    model_cfg = stride.StructuredConfig(net=mlp.MLPConfig(cfg.hidden, cfg.depth), nfe=nfe,
+                                        mass_init=mass)
     act = models.Actuation.from_meta(ds.meta)
     sc = scales(ds)
     model = models.make(cfg.model, spec, act, model_cfg, sc)

@@ -48,12 +48,14 @@ class LoopConfig:
 
 def _examples(split: dict) -> dict:
     """Transitions between consecutive valid steps as flat examples [N, ...]: the step's
-    ``q, qd, tau, qdd, ctrl`` and the next step's ``q_next, qd_next``."""
+    ``q, qd, tau, qdd, ctrl``, whether a foot is in ``contact`` (1.0/0.0; training-time
+    supervision only), and the next step's ``q_next, qd_next``."""
     v = split["valid"][:, :-1] & split["valid"][:, 1:]
     ex = {k: split[k][:, :-1][v] for k in ("q", "qd", "tau", "qdd", "ctrl")}
-    ex.update(q_next=split["q"][:, 1:][v], qd_next=split["qd"][:, 1:][v])
+    ex.update(q_next=split["q"][:, 1:][v], qd_next=split["qd"][:, 1:][v],
+              contact=split["foot_contact"][:, :-1][v].any(-1))
     ex = {k: np.asarray(a, np.float32) for k, a in ex.items()}
-    bad = {k: int((~np.isfinite(a)).any(-1).sum()) for k, a in ex.items()}
+    bad = {k: int((~np.isfinite(a.reshape(len(a), -1))).any(-1).sum()) for k, a in ex.items()}
     if any(bad.values()):
         raise TrainingError(f"non-finite values in valid dataset steps ({bad}); regenerate the "
                             "dataset with this version, which marks such steps invalid")
