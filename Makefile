@@ -16,7 +16,7 @@ ifneq ($(wildcard ../shared/menagerie),)
 export MENAGERIE_ROOT ?= $(abspath ../shared/menagerie)
 endif
 
-.PHONY: setup demo data train test bench-sim clean
+.PHONY: setup demo data train eval table1 test bench-sim bench-mppi clean
 
 $(BIN)/stride: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -41,6 +41,14 @@ data: setup
 train: setup
 	$(BIN)/stride train --robot $(or $(TRAIN_ROBOT),$(ROBOT)) --model $(MODEL) --preset $(PRESET)
 
+## eval: Table I metrics of trained runs, e.g. make eval ROBOT=go1 -> results/go1/table.md
+eval: setup
+	$(BIN)/stride eval --runs 'runs/$(ROBOT)*/*'
+
+## table1: the paper's Table I on one robot (5 models x 3 seeds; PRESET=paper wants a GPU)
+table1: setup
+	$(BIN)/python experiments/table1.py --robot $(ROBOT) --preset $(if $(filter default,$(PRESET)),tiny,$(PRESET))
+
 ## test: the whole suite (about 4 minutes on 2 cores)
 test: setup
 	$(BIN)/python -m pytest -q
@@ -48,6 +56,10 @@ test: setup
 ## bench-sim: simulation steps/s per robot, backend and batch size -> results/bench_sim_<cpu|gpu>.md
 bench-sim: setup
 	$(BIN)/stride bench-sim --preset $(PRESET)
+
+## bench-mppi: jitted MPPI step latency per robot, model, K, H -> results/bench_mppi_<cpu|gpu>.md
+bench-mppi: setup
+	$(BIN)/stride bench-mppi --preset $(PRESET)
 
 clean:
 	rm -rf data/ runs/ .pytest_cache

@@ -1,13 +1,15 @@
-"""The paper's Table I on one robot: data, every model x seeds, evaluation -> results/<robot>/.
+"""The paper's Table I: data, every model x seeds, evaluation -> results/<robot>/table.{md,json}.
 
-    python experiments/table1.py --robot go1                       # full size (use a GPU)
+    python experiments/table1.py --robot go1,g1                    # full size (use a GPU)
     python experiments/table1.py --robot go1 --preset tiny          # minutes on a CPU
     python experiments/table1.py --robot go1 --minutes 7            # stop cleanly, resume later
 
 Runs train side by side (``--parallel`` processes share the device: the models are small, so one
-process leaves a GPU idle between kernel launches). Every run is resumable: run the same command
-again and finished runs are skipped, stopped ones resume from their last checkpoint, and
-evaluations are reused. Each run's log is ``<runs>/<model>-s<seed>/train.log``.
+process leaves a GPU idle between kernel launches). Seeds of one model compile to the same
+programs, so the seed-0 run of each (robot, model) goes first and the others start once it has
+filled JAX's persistent compilation cache (its first validation). Every run is resumable: run
+the same command again and finished runs are skipped, stopped ones resume from their last
+checkpoint, and evaluations are reused. Logs: ``<runs>/<model>-s<seed>/{train,eval}.log``.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import time
 PRESETS = {
     # data episodes, training preset and steps, eval preset
     "tiny": dict(episodes=8, train="tiny", steps=100, eval="tiny"),
-    "paper": dict(episodes=1024, train="paper", steps=20_000, eval="default"),
+    "paper": dict(episodes=1024, train="paper", steps=6000, eval="default"),
 }
 MODELS = ("stride", "delan", "lnn_diffusion", "onn", "diffusion")
 
@@ -35,12 +37,12 @@ def _stride(*args: str) -> list[str]:
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--robot", default="go1")
+    p.add_argument("--robot", default="go1", help="comma-separated robots")
     p.add_argument("--preset", default="paper", choices=list(PRESETS))
     p.add_argument("--seeds", default="0,1,2")
     p.add_argument("--models", default=",".join(MODELS))
     p.add_argument("--steps", type=int, default=0, help="training steps (0: the preset's)")
-    p.add_argument("--parallel", type=int, default=5, help="training processes at once")
+    p.add_argument("--parallel", type=int, default=5, help="processes at once")
     p.add_argument("--minutes", type=float, default=0.0,
                    help="wall-clock budget for training (0: none); runs stop cleanly at it")
     p.add_argument("--root", default="", help="data and runs folder (default: data/, runs/)")
@@ -49,62 +51,89 @@ def main(argv: list[str] | None = None) -> None:
     preset = PRESETS[args.preset]
     steps = args.steps or preset["steps"]
     root = pathlib.Path(args.root or ".")
-    data = root / "data" / f"{args.robot}-{args.preset}"
-    runs = root / "runs" / f"{args.robot}-{args.preset}"
+    robots = [r for r in args.robot.split(",") if r]
     command = "python experiments/table1.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     t0 = time.time()
     deadline = t0 + 60 * args.minutes if args.minutes else 0.0
+    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false",
+               JAX_COMPILATION_CACHE_DIR=str((root / ".jax_cache").absolute()),
+               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+               JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
+    data = {r: root / "data" / f"{r}-{args.preset}" for r in robots}
+    runs = {r: root / "runs" / f"{r}-{args.preset}" for r in robots}
 
-    if not (data / "meta.json").exists():
-        subprocess.run(_stride("data", "--robot", args.robot, "--preset", "paper",
-                               "--episodes", str(preset["episodes"]), "--out", str(data)),
-                       check=True)
-    print(f"[{time.time() - t0:.0f} s] data ready: {data}", flush=True)
-
-    jobs = [(m, int(s)) for s in args.seeds.split(",") for m in args.models.split(",")]
-    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false")
-    train = {f"{m}-s{s}": _stride("train", "--robot", args.robot, "--model", m, "--preset",
-                                  preset["train"], "--steps", str(steps), "--seed", str(s),
-                                  "--data", str(data), "--out", str(runs / f"{m}-s{s}"),
-                                  "--deadline", str(deadline)) for m, s in jobs}
-    failed = _pool(train, runs, "train.log", args.parallel, env, t0)
-    ok = [str(runs / name) for name in train if name not in failed]
-    # Evaluate runs side by side (each caches its eval.json), then tabulate from those.
-    evals = {name: _stride("eval", "--preset", preset["eval"], "--runs", str(runs / name),
-                           "--out", str(runs / name / "eval_out"))
-             for name in train if name not in failed}
-    failed += _pool(evals, runs, "eval.log", args.parallel, env, t0)
-    out = args.out or f"results/{args.robot}"
-    subprocess.run(_stride("eval", "--preset", preset["eval"], "--runs", ",".join(ok),
-                           "--out", out, "--label", command), check=True, env=env)
-    print(f"[{time.time() - t0:.0f} s] wrote {out}/table.md", flush=True)
+    gen = {f"data-{r}": _stride("data", "--robot", r, "--preset", "paper", "--episodes",
+                                str(preset["episodes"]), "--out", str(data[r]))
+           for r in robots if not (data[r] / "meta.json").exists()}
+    failed = _pool(gen, {}, root / "logs", args.parallel, env, t0)
     if failed:
-        raise SystemExit(f"failed: {failed} (see their logs under {runs})")
+        raise SystemExit(f"data generation failed: {failed} (see {root / 'logs'})")
+
+    jobs = [(r, m, int(s)) for s in args.seeds.split(",") for r in robots
+            for m in args.models.split(",")]
+    name = lambda r, m, s: f"{r}/{m}-s{s}"
+    run_dir = lambda r, m, s: runs[r] / f"{m}-s{s}"
+    leader = {name(r, m, s): run_dir(r, m, int(args.seeds.split(",")[0])) for r, m, s in jobs}
+    train = {name(r, m, s): _stride("train", "--robot", r, "--model", m, "--preset",
+                                    preset["train"], "--steps", str(steps), "--seed", str(s),
+                                    "--data", str(data[r]), "--out", str(run_dir(r, m, s)),
+                                    "--deadline", str(deadline)) for r, m, s in jobs}
+    folders = {name(r, m, s): run_dir(r, m, s) for r, m, s in jobs}
+    follows = lambda n, marker: (lambda: leader[n] == folders[n] or (leader[n] / marker).exists())
+    ready = {n: follows(n, "metrics.csv") for n in train}
+    failed = _pool(train, ready, folders, args.parallel, env, t0, "train.log")
+    ok = [n for n in train if n not in failed]
+    # Evaluate runs side by side (each caches its eval.json), then tabulate per robot.
+    evals = {n: _stride("eval", "--preset", preset["eval"], "--runs", str(folders[n]),
+                        "--out", str(folders[n] / "eval_out")) for n in ok}
+    ready = {n: follows(n, "eval.json") for n in evals}
+    failed += _pool(evals, ready, folders, args.parallel, env, t0, "eval.log")
+    for r in robots:
+        mine = [str(folders[n]) for n in ok if n.startswith(f"{r}/") and n not in failed]
+        if not mine:
+            continue
+        out = args.out or f"results/{r}"
+        subprocess.run(_stride("eval", "--preset", preset["eval"], "--runs", ",".join(mine),
+                               "--out", out, "--label", command), check=True, env=env)
+        print(f"[{time.time() - t0:.0f} s] wrote {out}/table.md", flush=True)
+    if failed:
+        raise SystemExit(f"failed: {failed} (see their logs)")
 
 
-def _pool(cmds: dict[str, list[str]], runs: pathlib.Path, log_name: str, parallel: int,
-          env: dict, t0: float) -> list[str]:
-    """Runs the commands, ``parallel`` at a time, each logging to ``runs/<name>/<log_name>``;
-    returns the names that failed."""
+def _pool(cmds: dict[str, list[str]], ready: dict, folders, parallel: int, env: dict,
+          t0: float, log_name: str = "") -> list[str]:
+    """Runs the commands, ``parallel`` at a time, each once ``ready[name]()`` holds (or once no
+    other command can run); logs to ``folders[name]/log_name`` (or ``folders/<name>.log``).
+    Returns the names that failed."""
     pending, running, failed = list(cmds), [], []
     while pending or running:
-        while pending and len(running) < parallel:
-            name = pending.pop(0)
-            (runs / name).mkdir(parents=True, exist_ok=True)
-            log = open(runs / name / log_name, "a")
-            running.append((name, subprocess.Popen(cmds[name], stdout=log, stderr=log, env=env),
-                            log))
+        while len(running) < parallel:
+            eligible = [n for n in pending if ready.get(n, lambda: True)()]
+            if not eligible and not running and pending:
+                eligible = pending[:1]  # a leader that failed must not block its followers
+            if not eligible:
+                break
+            n = eligible[0]
+            pending.remove(n)
+            if isinstance(folders, dict):
+                folders[n].mkdir(parents=True, exist_ok=True)
+                log_path = folders[n] / log_name
+            else:
+                folders.mkdir(parents=True, exist_ok=True)
+                log_path = folders / f"{n.replace('/', '_')}.log"
+            log = open(log_path, "a")
+            running.append((n, subprocess.Popen(cmds[n], stdout=log, stderr=log, env=env), log))
         time.sleep(1)
         for job in list(running):
-            name, proc, log = job
+            n, proc, log = job
             if proc.poll() is None:
                 continue
             running.remove(job)
             log.close()
             if proc.returncode:
-                failed.append(name)
+                failed.append(n)
             status = "ok" if proc.returncode == 0 else f"FAILED ({proc.returncode})"
-            print(f"[{time.time() - t0:.0f} s] {log_name.split('.')[0]} {name}: {status}",
+            print(f"[{time.time() - t0:.0f} s] {log_name.split('.')[0] or 'job'} {n}: {status}",
                   flush=True)
     return failed
 

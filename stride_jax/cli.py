@@ -4,6 +4,7 @@
     stride train --robot pendulum --model stride [--preset tiny|default|paper] [--steps ...]
     stride eval --runs 'runs/go1/*' [--preset tiny|default] [--horizon 30 ...]
     stride bench-sim [--preset tiny|default|gpu] [--robots go1,g1 ...]
+    stride bench-mppi [--preset tiny|target|default] [--samples 64,256 --horizons 10,20 ...]
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ def _config(cls, presets: dict, args: argparse.Namespace):
 
 
 def _commands():
+    from stride_jax.control import bench as mppi_bench
     from stride_jax.eval import table
     from stride_jax.sim import bench, collect
     from stride_jax.train import job
@@ -48,6 +50,8 @@ def _commands():
         "train": (job.TrainConfig, job.PRESETS, "train a dynamics model", _run_train),
         "eval": (table.EvalConfig, table.PRESETS, "Table I metrics of trained runs", _run_eval),
         "bench-sim": (bench.BenchConfig, bench.PRESETS, "simulation throughput", _run_bench),
+        "bench-mppi": (mppi_bench.BenchConfig, mppi_bench.PRESETS, "MPPI step latency",
+                       _run_bench_mppi),
     }
 
 
@@ -75,6 +79,12 @@ def _run_bench(cfg, command: str) -> None:
     from stride_jax.sim import bench
     rows = bench.run(cfg, on_row=lambda rows: bench.write(rows, cfg, command))
     print(f"wrote {bench.write(rows, cfg, command)}")
+
+
+def _run_bench_mppi(cfg, command: str) -> None:
+    from stride_jax.control import bench
+    rows = bench.run(cfg, command)
+    print(f"wrote {cfg.out}/bench_mppi_*.md ({len(rows)} rows)")
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -75,19 +75,29 @@ def generate(cfg: DataConfig) -> dataset.Dataset:
     seconds_taken = time.perf_counter() - t0
     out = pathlib.Path(cfg.out or f"data/{cfg.robot}")
     meta = dict(
-        robot=cfg.robot, source=sm.robot.source, backend=backend, seed=cfg.seed,
-        sim_dt=float(sm.mj.opt.timestep), ctrl_dt=sm.robot.ctrl_dt, n_substeps=sm.n_substeps,
-        joints=list(sm.robot.joints), feet=[f.name for f in sm.robot.feet],
-        floating_base=sm.robot.floating_base,
-        kp=list(sm.robot.kp) if sm.robot.kp else None,
-        kd=list(sm.robot.kd) if sm.robot.kd else None,
-        actuator_force_range=sm.mj.actuator_forcerange.tolist(),
-        act_dof=sm.act_dof.tolist(),
-        periodic=[bool(sm.mj.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE and not sm.mj.jnt_limited[j])
-                  for j in range(sm.mj.njnt) if sm.mj.jnt_type[j] != mujoco.mjtJoint.mjJNT_FREE],
-        ctrl_range=sm.mj.actuator_ctrlrange.tolist(),
+        robot_meta(sm), backend=backend, seed=cfg.seed,
         exploration=type(sm.robot.explorer).__name__,
         randomization=dataclasses.asdict(sm.robot.randomization) if cfg.randomized else None,
         config=dataclasses.asdict(cfg), generation_seconds=seconds_taken,
     )
     return dataset.save(out, ep, meta)
+
+
+def robot_meta(sm: model.SimModel) -> dict:
+    """What a dynamics model needs to know about a robot (coordinates, servos, timing): the part
+    of a dataset's ``meta.json`` that describes the robot rather than the data."""
+    m = sm.mj
+    return dict(
+        robot=sm.robot.name, source=sm.robot.source, nq=m.nq, nv=m.nv,
+        sim_dt=float(m.opt.timestep), ctrl_dt=sm.robot.ctrl_dt, n_substeps=sm.n_substeps,
+        joints=list(sm.robot.joints), feet=[f.name for f in sm.robot.feet],
+        floating_base=sm.robot.floating_base,
+        kp=list(sm.robot.kp) if sm.robot.kp else None,
+        kd=list(sm.robot.kd) if sm.robot.kd else None,
+        actuator_force_range=m.actuator_forcerange.tolist(),
+        act_dof=sm.act_dof.tolist(),
+        periodic=[bool(m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE and not m.jnt_limited[j])
+                  for j in range(m.njnt) if m.jnt_type[j] != mujoco.mjtJoint.mjJNT_FREE],
+        ctrl_range=m.actuator_ctrlrange.tolist(),
+        total_mass=float(m.body_mass.sum()),
+    )

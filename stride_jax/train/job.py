@@ -53,9 +53,23 @@ PRESETS = {
 
 
 def spec_from_meta(meta: dict) -> ModelSpec:
-    nv = len(meta["stats"]["qd"]["mean"])
-    return ModelSpec(nq=len(meta["stats"]["q"]["mean"]), nv=nv,
-                     floating_base=meta["floating_base"], periodic=tuple(meta["periodic"]))
+    """The model spec from a dataset's ``meta.json`` (or ``collect.robot_meta``)."""
+    nq = meta.get("nq") or len(meta["stats"]["q"]["mean"])
+    nv = meta.get("nv") or len(meta["stats"]["qd"]["mean"])
+    return ModelSpec(nq=nq, nv=nv, floating_base=meta["floating_base"],
+                     periodic=tuple(meta["periodic"]))
+
+
+def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0
+                 ) -> stride.StructuredConfig:
+    """Sizes for ``model``; ``nfe=0`` takes its default. Floating bases start the learned total
+    mass at the nominal model's (a spec-sheet number)."""
+    if model not in models.MODELS:
+        raise ValueError(f"unknown model {model!r}; available: {', '.join(models.MODELS)}")
+    nfe = nfe or models.DEFAULT_NFE.get(models.MODELS[model][1], 2)
+    mass = meta.get("total_mass") or float(sim_model.load(meta["robot"]).mj.body_mass.sum())
+    return stride.StructuredConfig(net=mlp.MLPConfig(hidden, depth), nfe=nfe,
+                                   mass_init=mass if meta["floating_base"] else 1.0)
 
 
 def scales(ds: dataset.Dataset) -> stride.Scales:
@@ -84,14 +98,7 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
     if "act_dof" not in ds.meta:
         raise dataset.DatasetError(f"{data_dir} predates actuator metadata; regenerate it")
     spec = spec_from_meta(ds.meta)
-    if cfg.model not in models.MODELS:
-        raise ValueError(f"unknown model {cfg.model!r}; available: {', '.join(models.MODELS)}")
-    kind = models.MODELS[cfg.model][1]
-    nfe = cfg.nfe or models.DEFAULT_NFE.get(kind, 2)
-    # Floating bases start the learned total mass at the nominal model's (a spec-sheet number).
-    mass = float(sim_model.load(cfg.robot).mj.body_mass.sum()) if spec.floating_base else 1.0
-    model_cfg = stride.StructuredConfig(net=mlp.MLPConfig(cfg.hidden, cfg.depth), nfe=nfe,
-                                        mass_init=mass)
+    model_cfg = model_config(cfg.model, ds.meta, cfg.hidden, cfg.depth, cfg.nfe)
     act = models.Actuation.from_meta(ds.meta)
     sc = scales(ds)
     model = models.make(cfg.model, spec, act, model_cfg, sc)

@@ -126,8 +126,10 @@ def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: di
         total, parts = jax.vmap(loss_fn, in_axes=(None, 0, 0))(params, ex, keys)
         return jnp.mean(total), jax.tree.map(jnp.mean, parts)
 
+    # The key is an argument, not a constant of the program: runs that differ only in their seed
+    # compile to the same program and share JAX's persistent compilation cache.
     @jax.jit
-    def train_step(state, data, i):
+    def train_step(state, data, key_loop, i):
         k_batch, k_loss = jax.random.split(jax.random.fold_in(key_loop, i))
         idx = jax.random.randint(k_batch, (batch,), 0, n_train)
         ex = {k: v[idx] for k, v in data.items()}
@@ -149,7 +151,7 @@ def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: di
                                                         desc="train", unit="step") as bar:
         writer = None
         for i in range(start, cfg.steps):
-            state, loss, parts = train_step(state, data, i)
+            state, loss, parts = train_step(state, data, key_loop, i)
             step = i + 1
             last = step == cfg.steps
             if step % cfg.eval_every == 0 or last:

@@ -1,0 +1,1 @@
+"""Control with learned models: the MPPI planner (and, to come, its PPO warm start)."""

@@ -1,0 +1,170 @@
+"""MPPI latency benchmark (``make bench-mppi``): one jitted planning step per robot, model, K, H.
+
+Each measurement builds a model of the given size for the robot (parameters at initialisation:
+latency does not depend on training), an MPPI planner with a velocity-tracking cost, jits its
+step once, and reports the median wall time of ``repeats`` steps (after a warm-up call) with
+``block_until_ready``. The FLOP floor is XLA's own count of the compiled step's floating-point
+operations divided by the machine's measured peak (a large float32 matmul); the ratio says how
+far from compute-bound the step runs (small models and scans are latency-bound, so expect large
+ratios).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import pathlib
+import platform
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stride_jax.control import mppi
+from stride_jax.dynamics import models, stride
+from stride_jax.io import atomic_write_text
+from stride_jax.sim import collect, model as sim_model
+from stride_jax.train import job
+
+
+@dataclasses.dataclass(frozen=True)
+class BenchConfig:
+    """Attributes:
+      robots: comma-separated robot names.
+      models: comma-separated model names.
+      samples: comma-separated K values.
+      horizons: comma-separated H values.
+      hidden, depth: network size (the paper's: 256 x 3).
+      nfe: residual evaluations for generative models (0: each model's default).
+      repeats: timed planning steps per measurement (median reported).
+      out: results folder (``bench_mppi_<cpu|gpu>.json`` and ``.md``).
+    """
+
+    robots: str = "go1,g1"
+    models: str = "stride,delan,onn"
+    samples: str = "64,256,1024"
+    horizons: str = "10,20,30"
+    hidden: int = 256
+    depth: int = 3
+    nfe: int = 0
+    repeats: int = 5
+    out: str = "results"
+
+
+PRESETS = {
+    "tiny": dict(robots="go1", models="delan", samples="8", horizons="4", hidden=32, depth=1,
+                 repeats=1),
+    "target": dict(robots="go1", models="stride,delan,onn", samples="128", horizons="16"),
+    "default": {},
+}
+
+
+def peak_flops(n: int = 2048, repeats: int = 5) -> float:
+    """Measured float32 matmul throughput of the default device (FLOP/s)."""
+    a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32)
+    f = jax.jit(lambda x: x @ x)
+    f(a).block_until_ready()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        f(a).block_until_ready()
+        times.append(time.perf_counter() - t0)
+    return 2 * n ** 3 / min(times)
+
+
+def tracking_cost(spec, target_speed: float = 1.0):
+    """Base forward-velocity tracking, upright posture, small actions (cheap next to the model)."""
+    def cost(q, qd, u, t):
+        if not spec.floating_base:
+            return jnp.sum(qd ** 2) + 1e-3 * jnp.sum(u ** 2)
+        return ((qd[0] - target_speed) ** 2 + qd[1] ** 2 + 0.1 * jnp.sum(qd[3:6] ** 2)
+                + jnp.sum(q[4:6] ** 2) + 1e-3 * jnp.sum(u ** 2))
+    return cost
+
+
+@functools.lru_cache(maxsize=None)
+def _robot(name: str):
+    sm = sim_model.load(name)
+    meta = collect.robot_meta(sm)
+    return sm, meta, job.spec_from_meta(meta), models.Actuation.from_meta(meta)
+
+
+def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
+            peak: float) -> dict:
+    sm, meta, spec, act = _robot(robot)
+    model_cfg = job.model_config(model_name, meta, cfg.hidden, cfg.depth, cfg.nfe)
+    model = models.make(model_name, spec, act, model_cfg, stride.Scales())
+    params = model.init(jax.random.key(0))
+    lo, hi = np.asarray(meta["ctrl_range"], np.float32).T
+    planner = mppi.make(mppi.MPPIConfig(samples=K, horizon=H), functools.partial(
+        model.step, params), tracking_cost(spec), lo, hi)
+    step = jax.jit(planner.step)
+    q0 = jnp.asarray(sm.info.qpos0)
+    qd0 = jnp.zeros(spec.nv)
+    state = planner.init(jax.random.key(1), jnp.broadcast_to(jnp.asarray(sm.info.qpos0)[
+        np.asarray(act.dof) + (1 if spec.floating_base else 0)], (H, len(lo))))
+    t0 = time.perf_counter()
+    compiled = step.lower(state, q0, qd0).compile()
+    compile_s = time.perf_counter() - t0
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
+    u, state, _ = step(state, q0, qd0)
+    jax.block_until_ready(u)
+    times = []
+    for _ in range(cfg.repeats):
+        t0 = time.perf_counter()
+        u, state, _ = step(state, q0, qd0)
+        jax.block_until_ready(u)
+        times.append(time.perf_counter() - t0)
+    ms = 1e3 * statistics.median(times)
+    floor_ms = 1e3 * flops / peak
+    return dict(robot=robot, model=model_name, K=K, H=H, nfe=model_cfg.nfe if model.stochastic
+                else None, ms=ms, hz=1e3 / ms, gflop=flops / 1e9, floor_ms=floor_ms,
+                ratio=ms / floor_ms if floor_ms > 0 else float("nan"), compile_s=compile_s)
+
+
+def run(cfg: BenchConfig, command: str, on_row=None) -> list[dict]:
+    peak = peak_flops()
+    rows = []
+    split = lambda s: [x for x in s.split(",") if x]
+    for robot in split(cfg.robots):
+        for name in split(cfg.models):
+            for K in map(int, split(cfg.samples)):
+                for H in map(int, split(cfg.horizons)):
+                    rows.append(measure(robot, name, K, H, cfg, peak))
+                    r = rows[-1]
+                    print(f"{robot} {name} K={K} H={H}: {r['ms']:.2f} ms ({r['hz']:.0f} Hz), "
+                          f"{r['gflop']:.2f} GFLOP, {r['ratio']:.0f}x the FLOP floor", flush=True)
+                    write(rows, cfg, command, peak)
+    return rows
+
+
+def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> pathlib.Path:
+    tag = "cpu" if jax.default_backend() == "cpu" else "gpu"
+    out = pathlib.Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    device = jax.devices()[0]
+    env = dict(command=command, backend=jax.default_backend(), device=device.device_kind,
+               n_devices=jax.device_count(), cpu=platform.processor() or platform.machine(),
+               peak_gflops=peak / 1e9, jax=jax.__version__, config=dataclasses.asdict(cfg))
+    atomic_write_text(out / f"bench_mppi_{tag}.json", json.dumps(dict(env=env, rows=rows),
+                                                                 indent=1))
+    lines = [f"# MPPI step latency ({tag})", "", f"Command: `{command}`", "",
+             f"Device: {env['device']} ({env['backend']}), measured float32 matmul peak "
+             f"{env['peak_gflops']:.0f} GFLOP/s; jax {env['jax']}. Networks {cfg.hidden} x "
+             f"{cfg.depth} at initialisation; one jitted planning step (K rollouts of H control "
+             "steps, each the robot's simulation substeps) with block_until_ready; median of "
+             f"{cfg.repeats}. FLOP floor = XLA's FLOP count / peak.", "",
+             "| robot | model | NFE | K | H | median ms | Hz | GFLOP | FLOP floor ms | ratio |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['robot']} | {r['model']} | {r['nfe'] or '-'} | {r['K']} | {r['H']} | "
+                     f"{r['ms']:.2f} | {r['hz']:.0f} | {r['gflop']:.2f} | {r['floor_ms']:.3f} | "
+                     f"{r['ratio']:.0f} |")
+    path = out / f"bench_mppi_{tag}.md"
+    atomic_write_text(path, "\n".join(lines) + "\n")
+    return path

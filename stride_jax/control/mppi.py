@@ -1,0 +1,190 @@
+"""Model predictive path integral control (MPPI) over any dynamics model, in pure JAX.
+
+One planning step (Williams et al., 2017; with the TD-MPC / Dreamer-MPC additions of the paper's
+Sec. IV-B):
+
+1. warm start: the previous plan shifted by one step (the last action repeated);
+2. ``samples`` action sequences = plan + time-correlated Gaussian noise (``smoothing`` is the AR(1)
+   coefficient of the noise along the horizon), clipped to the action bounds; the first
+   ``policy_samples`` are instead rolled out by a policy (``policy(q, qd) -> action``) inside
+   the model, so a trained policy proposes candidates;
+3. every sequence is rolled out through ``dynamics(q, qd, action, key) -> (q', qd')`` with its own
+   key (a stochastic model draws its residual latents per rollout);
+4. cost = sum of ``running_cost(q, qd, action, t)`` - ``terminal_value(q_H, qd_H)``;
+5. the new plan is the softmax(-cost / temperature)-weighted mean of the sequences (the
+   temperature is relative to the cost spread of the batch when ``normalize`` is set, which makes
+   one temperature work across tasks); the first action is applied.
+
+``make`` returns ``init`` and ``step``, pure functions of an immutable :class:`MPPIState`; jit
+``step`` once per (samples, horizon, model) and call it every control period.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class MPPIConfig:
+    """Planner settings.
+
+    Attributes:
+      samples: action sequences per step (K).
+      horizon: steps per sequence (H).
+      temperature: softmax temperature (lambda); relative to the batch's cost spread when
+        ``normalize``.
+      noise_std: exploration standard deviation, in action units (scalar or per action).
+      smoothing: AR(1) correlation of the noise between consecutive steps, in [0, 1).
+      policy_samples: sequences proposed by the policy instead of noise (0 without a policy).
+      iterations: refinement iterations per control step (each re-samples around the new plan).
+      normalize: divide costs by their standard deviation before the softmax.
+    """
+
+    samples: int = 128
+    horizon: int = 16
+    temperature: float = 0.1
+    noise_std: float | tuple[float, ...] = 0.3
+    smoothing: float = 0.5
+    policy_samples: int = 0
+    iterations: int = 1
+    normalize: bool = True
+
+    def __post_init__(self):
+        problems = []
+        if self.samples < 1:
+            problems.append(f"samples={self.samples} must be >= 1")
+        if self.horizon < 1:
+            problems.append(f"horizon={self.horizon} must be >= 1")
+        if not self.temperature > 0:
+            problems.append(f"temperature={self.temperature} must be > 0")
+        if np.any(np.asarray(self.noise_std) < 0):
+            problems.append(f"noise_std={self.noise_std} must be >= 0")
+        if not 0 <= self.smoothing < 1:
+            problems.append(f"smoothing={self.smoothing} must be in [0, 1)")
+        if not 0 <= self.policy_samples <= self.samples:
+            problems.append(f"policy_samples={self.policy_samples} must be in [0, samples]")
+        if self.iterations < 1:
+            problems.append(f"iterations={self.iterations} must be >= 1")
+        if problems:
+            raise ValueError("bad MPPI config: " + "; ".join(problems))
+
+
+class MPPIState(NamedTuple):
+    plan: jax.Array  # [H, nu] the current mean action sequence
+    key: jax.Array
+
+
+class Info(NamedTuple):
+    costs: jax.Array  # [K] of the last iteration
+    weights: jax.Array  # [K]
+    best_cost: jax.Array  # []
+    plan: jax.Array  # [H, nu] after the update
+
+
+class Planner(NamedTuple):
+    init: Callable  # (key, plan=None) -> MPPIState
+    step: Callable  # (state, q, qd) -> (action [nu], state, Info)
+
+
+Dynamics = Callable[[jax.Array, jax.Array, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
+
+
+def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo, action_hi,
+         terminal_value: Callable | None = None, policy: Callable | None = None) -> Planner:
+    """An MPPI planner for ``dynamics(q, qd, action, key) -> (q', qd')``.
+
+    ``running_cost(q, qd, action, t) -> []`` is the cost of taking ``action`` at ``(q, qd)`` at
+    horizon step ``t``; ``terminal_value(q, qd) -> []`` is subtracted at the end of the horizon;
+    ``policy(q, qd) -> action`` proposes ``cfg.policy_samples`` sequences. Model parameters are
+    closed over: ``dynamics = partial(model.step, params)``.
+    """
+    lo, hi = jnp.asarray(action_lo, jnp.float32), jnp.asarray(action_hi, jnp.float32)
+    if lo.ndim != 1 or lo.shape != hi.shape:
+        raise ValueError(f"action bounds must be two [nu] vectors, got {lo.shape} and {hi.shape}")
+    if not bool(jnp.all(hi > lo)):
+        raise ValueError("action bounds: every upper bound must exceed its lower bound")
+    if cfg.policy_samples and policy is None:
+        raise ValueError(f"policy_samples={cfg.policy_samples} needs a policy")
+    nu, H, K = lo.shape[0], cfg.horizon, cfg.samples
+    std = jnp.broadcast_to(jnp.asarray(cfg.noise_std, jnp.float32), (nu,))
+    value = terminal_value or (lambda q, qd: jnp.zeros(()))
+
+    def init(key: jax.Array, plan: jax.Array | None = None) -> MPPIState:
+        if plan is None:
+            plan = jnp.broadcast_to(0.5 * (lo + hi), (H, nu))
+        if plan.shape != (H, nu):
+            raise ValueError(f"plan must have shape ({H}, {nu}), got {plan.shape}")
+        return MPPIState(jnp.asarray(plan, jnp.float32), key)
+
+    def rollout(q, qd, actions, key):
+        """Cost of an open-loop action sequence."""
+        def body(carry, inp):
+            q, qd, cost = carry
+            u, t, k = inp
+            q2, qd2 = dynamics(q, qd, u, k)
+            return (q2, qd2, cost + running_cost(q, qd, u, t)), None
+
+        (q, qd, cost), _ = jax.lax.scan(body, (q, qd, jnp.zeros(())),
+                                        (actions, jnp.arange(H), jax.random.split(key, H)))
+        return cost - value(q, qd), actions
+
+    def policy_rollout(q, qd, key):
+        """Cost and actions of the policy acting inside the model."""
+        def body(carry, inp):
+            q, qd, cost = carry
+            t, k = inp
+            u = jnp.clip(policy(q, qd), lo, hi)
+            q2, qd2 = dynamics(q, qd, u, k)
+            return (q2, qd2, cost + running_cost(q, qd, u, t)), u
+
+        (q, qd, cost), actions = jax.lax.scan(body, (q, qd, jnp.zeros(())),
+                                              (jnp.arange(H), jax.random.split(key, H)))
+        return cost - value(q, qd), actions
+
+    def noise(key):
+        white = jax.random.normal(key, (K, H, nu))
+        rho = cfg.smoothing
+
+        def ar1(prev, w):
+            e = rho * prev + np.sqrt(1.0 - rho ** 2) * w
+            return e, e
+
+        _, colored = jax.lax.scan(ar1, white[:, 0], jnp.swapaxes(white, 0, 1))
+        return jnp.swapaxes(colored, 0, 1) * std
+
+    def iterate(plan, q, qd, key):
+        key_noise, key_roll, key_pol = jax.random.split(key, 3)
+        candidates = jnp.clip(plan[None] + noise(key_noise), lo, hi)
+        n_noise = K - cfg.policy_samples
+        costs, actions = jax.vmap(rollout, in_axes=(None, None, 0, 0))(
+            q, qd, candidates[:n_noise], jax.random.split(key_roll, n_noise))
+        if cfg.policy_samples:
+            p_costs, p_actions = jax.vmap(policy_rollout, in_axes=(None, None, 0))(
+                q, qd, jax.random.split(key_pol, cfg.policy_samples))
+            costs = jnp.concatenate([costs, p_costs])
+            actions = jnp.concatenate([actions, p_actions])
+        costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)  # a diverged rollout gets no weight
+        finite = jnp.isfinite(costs)
+        shifted = costs - jnp.min(costs)
+        if cfg.normalize:
+            spread = jnp.sqrt(jnp.sum(jnp.where(finite, shifted, 0.0) ** 2)
+                              / jnp.maximum(finite.sum(), 1))
+            shifted = shifted / jnp.maximum(spread, 1e-6)
+        weights = jax.nn.softmax(-shifted / cfg.temperature)
+        new_plan = jnp.einsum("k,khu->hu", weights, actions)
+        return new_plan, Info(costs, weights, jnp.min(costs), new_plan)
+
+    def step(state: MPPIState, q: jax.Array, qd: jax.Array):
+        key, key_step = jax.random.split(state.key)
+        plan = jnp.concatenate([state.plan[1:], state.plan[-1:]])  # warm start: shift
+        info = None
+        for i in range(cfg.iterations):
+            plan, info = iterate(plan, q, qd, jax.random.fold_in(key_step, i))
+        return plan[0], MPPIState(plan, key), info
+
+    return Planner(init, step)
