@@ -5,8 +5,9 @@ latency does not depend on training), an MPPI planner with a velocity-tracking c
 step once, and reports the median wall time of ``repeats`` steps (after a warm-up call) with
 ``block_until_ready``. The FLOP floor is XLA's own count of the compiled step's floating-point
 operations divided by the machine's measured peak (a large float32 matmul); the ratio says how
-far from compute-bound the step runs (small models and scans are latency-bound, so expect large
-ratios).
+far from compute-bound the step runs. Caveat, measured: XLA's cost analysis counts the body of a
+loop once, not once per trip, so for these scans (horizon, substeps, flow steps) the count is far
+below the executed FLOPs and the ratio is an upper bound; an analytic count is still to do.
 """
 
 from __future__ import annotations
@@ -158,7 +159,8 @@ def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> path
              f"{env['peak_gflops']:.0f} GFLOP/s; jax {env['jax']}. Networks {cfg.hidden} x "
              f"{cfg.depth} at initialisation; one jitted planning step (K rollouts of H control "
              "steps, each the robot's simulation substeps) with block_until_ready; median of "
-             f"{cfg.repeats}. FLOP floor = XLA's FLOP count / peak.", "",
+             f"{cfg.repeats}. FLOP floor = XLA's FLOP count / peak; XLA counts a loop body once, "
+             "so the floor is too low and the ratio an upper bound.", "",
              "| robot | model | NFE | K | H | median ms | Hz | GFLOP | FLOP floor ms | ratio |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:

@@ -220,7 +220,8 @@ def markdown(table: dict, robot: str, command: str, cfg: EvalConfig) -> str:
              f"State: cumulative normalised {cfg.horizon}-step RMSE on the test split "
              f"({cfg.windows} windows max). Force: mean |error| of stance feet's vertical force (N) "
              "from the residual through the contact Jacobians; oracle = the same map applied to "
-             "the true residual; 'of sample mean': the force read from the mean residual over samples. Share: residual's share of the predicted acceleration (%). "
+             "the true residual; 'of sample mean': the force read from the mean residual over "
+             "samples. Share: residual's share of the predicted acceleration (%). "
              "Diverged: rollouts that left the floating-point range (%), excluded from the RMSE. "
              "Values: mean ± std over seeds.", "",
              "| model | params | seeds | steps | state RMSE | diverged (%) | force error (N) | "
