@@ -49,7 +49,7 @@ eval: setup
 table1: setup
 	$(BIN)/python experiments/table1.py --robot $(ROBOT) --preset $(if $(filter default,$(PRESET)),tiny,$(PRESET))
 
-## test: the whole suite (about 4 minutes on 2 cores)
+## test: the whole suite (about 9 minutes on 2 cores)
 test: setup
 	$(BIN)/python -m pytest -q
 

@@ -52,8 +52,10 @@ def _examples(split: dict) -> dict:
     supervision only), and the next step's ``q_next, qd_next``."""
     v = split["valid"][:, :-1] & split["valid"][:, 1:]
     ex = {k: split[k][:, :-1][v] for k in ("q", "qd", "tau", "qdd", "ctrl")}
+    contact = (split["foot_contact"].any(-1) if "foot_contact" in split
+               else np.zeros(split["valid"].shape, bool))
     ex.update(q_next=split["q"][:, 1:][v], qd_next=split["qd"][:, 1:][v],
-              contact=split["foot_contact"][:, :-1][v].any(-1))
+              contact=contact[:, :-1][v])
     ex = {k: np.asarray(a, np.float32) for k, a in ex.items()}
     bad = {k: int((~np.isfinite(a.reshape(len(a), -1))).any(-1).sum()) for k, a in ex.items()}
     if any(bad.values()):
