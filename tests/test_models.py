@@ -65,3 +65,19 @@ def test_bad_inputs_are_clear_errors(name):
 def test_unknown_model_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown model 'lstm'; available: stride, delan"):
         models.make("lstm", SPEC, ACT, CFG)
+
+
+def test_implicit_servo_is_the_pd_law_at_the_next_state():
+    act = models.Actuation(dof=(6,), kp=(250.0,), kd=(5.0,), force_range=((-100.0, 100.0),),
+                           dt=0.004, n_substeps=1)
+    q, qd, ctrl = Q0.at[7].set(0.2), jnp.zeros(7).at[6].set(-1.0), jnp.array([0.3])
+    tau0, extra = act.implicit(q, qd, ctrl, SPEC)
+    m = 1e-3  # a light link: the explicit servo is past Euler's stability limit here
+    qdd = tau0[6] / (m + extra[6])
+    qd_next = qd[6] + act.dt * qdd
+    q_next = q[7] + act.dt * qd_next
+    np.testing.assert_allclose(m * qdd, 250.0 * (0.3 - q_next) - 5.0 * qd_next, rtol=1e-4)
+    assert act.dt * 5.0 / m > 2  # explicit damping alone would diverge
+    # A saturated servo stays explicit.
+    tau0, extra = act.implicit(q, qd, jnp.array([10.0]), SPEC)
+    assert float(extra[6]) == 0.0 and float(tau0[6]) == 100.0

@@ -76,6 +76,29 @@ class Actuation:
         force = jnp.where(limited, jnp.clip(force, lo, hi), force)
         return jnp.zeros(spec.nv, force.dtype).at[dof].set(force)
 
+    def implicit(self, q: jax.Array, qd: jax.Array, ctrl: jax.Array, spec: ModelSpec
+                 ) -> tuple[jax.Array, jax.Array]:
+        """The servo evaluated at the *next* state of a semi-implicit Euler step of ``dt``:
+        ``tau = tau0 - extra * qdd`` with ``tau0 = kp (ctrl - q - dt qd) - kd qd`` and
+        ``extra = kp dt^2 + kd dt`` (per dof), so that ``(M + diag(extra)) qdd = tau0 - ...``.
+        Stable for any stiffness, where the explicit servo needs ``dt^2 kp / m`` and
+        ``dt kd / m`` below Euler's limits -- which a learned inertia lighter than the real one
+        (with its armature) breaks. Saturated servos and motors stay explicit (extra = 0)."""
+        explicit = self.torque(q, qd, ctrl, spec)
+        if self.kp is None:
+            return explicit, jnp.zeros_like(explicit)
+        dof = np.asarray(self.dof)
+        qpos_idx = dof + (1 if spec.floating_base else 0)
+        kp, kd, dt = jnp.asarray(self.kp), jnp.asarray(self.kd), self.dt
+        raw = kp * (ctrl - q[qpos_idx]) - kd * qd[dof]
+        lo, hi = np.asarray(self.force_range).T
+        free = (hi <= lo) | ((raw >= lo) & (raw <= hi))  # not saturated
+        tau0 = jnp.where(free, kp * (ctrl - q[qpos_idx] - dt * qd[dof]) - kd * qd[dof],
+                         explicit[dof])
+        extra = jnp.where(free, kp * dt ** 2 + kd * dt, 0.0)
+        zeros = jnp.zeros(spec.nv, explicit.dtype)
+        return zeros.at[dof].set(tau0), zeros.at[dof].set(extra)
+
 
 def _tuple(x):
     return None if x is None else tuple(x)
@@ -148,7 +171,9 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         def substep(carry, k):
             q, qd = carry
             tau = act.torque(q, qd, ctrl, spec)
-            qdd = stride.acceleration(params, spec, cfg, residual, q, qd, tau, k, nfe, scales)[0]
+            servo = act.implicit(q, qd, ctrl, spec) if cfg.implicit_servo else None
+            qdd = stride.acceleration(params, spec, cfg, residual, q, qd, tau, k, nfe, scales,
+                                      servo)[0]
             return integrate.semi_implicit_euler(q, qd, qdd, act.dt, spec.floating_base), None
 
         (q, qd), _ = jax.lax.scan(substep, (q, qd), jax.random.split(key, act.n_substeps))

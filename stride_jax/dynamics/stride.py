@@ -82,6 +82,7 @@ class StructuredConfig:
     diffusion_steps: int = 100
     eta: float = 1.0
     mass_init: float = 1.0  # floating bases: initial total mass (kg), see LNNConfig
+    implicit_servo: bool = True  # rollouts: servo PD at the next state (Actuation.implicit)
     fm_weight: float = 1.0
     residual_weight: float = 0.1
 
@@ -158,11 +159,19 @@ def residual_force(params: dict, spec: ModelSpec, cfg: StructuredConfig, residua
 
 
 def acceleration(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
-                 q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales()
+                 q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales(),
+                 servo: tuple[jax.Array, jax.Array] | None = None
                  ) -> tuple[jax.Array, jax.Array]:
-    """``(qdd [nv], eps [nv])``: predicted acceleration and the generalised residual used."""
+    """``(qdd [nv], eps [nv])``: predicted acceleration and the generalised residual used.
+
+    ``servo = (tau0, extra)`` integrates the actuators implicitly (``Actuation.implicit``):
+    ``(M + diag(extra)) qdd = tau0 - b + eps``; the residual still sees ``tau``.
+    """
     M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn)
     eps = residual_force(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
+    if servo is not None:
+        tau, extra = servo
+        M = M + jnp.diag(extra)
     cho = jax.scipy.linalg.cho_factor(M)
     return jax.scipy.linalg.cho_solve(cho, tau - b + eps), eps
 
