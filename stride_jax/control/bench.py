@@ -40,6 +40,8 @@ class BenchConfig:
       horizons: comma-separated H values.
       hidden, depth: network size (the paper's: 256 x 3).
       nfe: residual evaluations for generative models (0: each model's default).
+      substeps: model evaluations per control step in the planner's rollouts (0: the robot's
+        simulation substeps; 1 integrates at the control period, with the implicit servo).
       repeats: timed planning steps per measurement (median reported).
       out: results folder (``bench_mppi_<cpu|gpu>.json`` and ``.md``).
     """
@@ -51,6 +53,7 @@ class BenchConfig:
     hidden: int = 256
     depth: int = 3
     nfe: int = 0
+    substeps: int = 0
     repeats: int = 5
     out: str = "results"
 
@@ -59,6 +62,8 @@ PRESETS = {
     "tiny": dict(robots="go1", models="delan", samples="8", horizons="4", hidden=32, depth=1,
                  repeats=1),
     "target": dict(robots="go1", models="stride,delan,onn", samples="128", horizons="16"),
+    "target-coarse": dict(robots="go1", models="stride,delan", samples="128", horizons="16",
+                          substeps=1),
     "default": {},
 }
 
@@ -96,6 +101,9 @@ def _robot(name: str):
 def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
             peak: float) -> dict:
     sm, meta, spec, act = _robot(robot)
+    if cfg.substeps:
+        act = dataclasses.replace(act, dt=act.dt * act.n_substeps / cfg.substeps,
+                                  n_substeps=cfg.substeps)
     model_cfg = job.model_config(model_name, meta, cfg.hidden, cfg.depth, cfg.nfe)
     model = models.make(model_name, spec, act, model_cfg, stride.Scales())
     params = model.init(jax.random.key(0))
@@ -123,7 +131,7 @@ def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
         times.append(time.perf_counter() - t0)
     ms = 1e3 * statistics.median(times)
     floor_ms = 1e3 * flops / peak
-    return dict(robot=robot, model=model_name, K=K, H=H, nfe=model_cfg.nfe if model.stochastic
+    return dict(robot=robot, model=model_name, K=K, H=H, substeps=act.n_substeps, nfe=model_cfg.nfe if model.stochastic
                 else None, ms=ms, hz=1e3 / ms, gflop=flops / 1e9, floor_ms=floor_ms,
                 ratio=ms / floor_ms if floor_ms > 0 else float("nan"), compile_s=compile_s)
 
@@ -161,10 +169,12 @@ def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> path
              "steps, each the robot's simulation substeps) with block_until_ready; median of "
              f"{cfg.repeats}. FLOP floor = XLA's FLOP count / peak; XLA counts a loop body once, "
              "so the floor is too low and the ratio an upper bound.", "",
-             "| robot | model | NFE | K | H | median ms | Hz | GFLOP | FLOP floor ms | ratio |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| robot | model | NFE | substeps | K | H | median ms | Hz | GFLOP | FLOP floor ms | "
+             "ratio |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['robot']} | {r['model']} | {r['nfe'] or '-'} | {r['K']} | {r['H']} | "
+        lines.append(f"| {r['robot']} | {r['model']} | {r['nfe'] or '-'} | "
+                     f"{r.get('substeps', '-')} | {r['K']} | {r['H']} | "
                      f"{r['ms']:.2f} | {r['hz']:.0f} | {r['gflop']:.2f} | {r['floor_ms']:.3f} | "
                      f"{r['ratio']:.0f} |")
     path = out / f"bench_mppi_{tag}.md"

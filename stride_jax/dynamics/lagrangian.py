@@ -41,10 +41,10 @@ def bias_force(mass_fn: MassFn, potential_fn: PotentialFn, q: jax.Array, v: jax.
     """Returns ``(M(q) [nv, nv], b(q, v) [nv])`` with ``b = C(q, v) v + g(q)``."""
     nv = v.shape[0]
     move = lambda dv: retract(q, dv, floating_base)
-    M = mass_fn(q)
+    # M and its rate of change along the motion in one forward-mode pass.
+    M, mdot = jax.jvp(lambda eps: mass_fn(move(eps * v)), (jnp.zeros(()),), (jnp.ones(()),))
     p = M @ v
-    # (dM/dt) v: rate of change of M along the motion, applied to v.
-    _, mdot_v = jax.jvp(lambda eps: mass_fn(move(eps * v)) @ v, (jnp.zeros(()),), (jnp.ones(()),))
+    mdot_v = mdot @ v
     # dL/d(delta) at delta = 0, with L = T - V and v held fixed.
     lagrangian = lambda delta: 0.5 * v @ mass_fn(move(delta)) @ v - potential_fn(move(delta))
     dl_dq = jax.grad(lagrangian)(jnp.zeros(nv, v.dtype))
