@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import json
 import pathlib
 import platform
-import statistics
 import time
 
 import jax
@@ -27,7 +27,7 @@ import numpy as np
 from stride_jax.control import mppi
 from stride_jax.dynamics import models, stride
 from stride_jax.io import atomic_write_text
-from stride_jax.sim import collect, model as sim_model
+from stride_jax.sim import bench as sim_bench, collect, model as sim_model
 from stride_jax.train import job
 
 
@@ -110,45 +110,36 @@ def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
     lo, hi = np.asarray(meta["ctrl_range"], np.float32).T
     planner = mppi.make(mppi.MPPIConfig(samples=K, horizon=H), functools.partial(
         model.step, params), tracking_cost(spec), lo, hi)
-    step = jax.jit(planner.step)
     q0 = jnp.asarray(sm.info.qpos0)
     qd0 = jnp.zeros(spec.nv)
-    state = planner.init(jax.random.key(1), jnp.broadcast_to(jnp.asarray(sm.info.qpos0)[
+    state = planner.init(jax.random.key(1), jnp.broadcast_to(q0[
         np.asarray(act.dof) + (1 if spec.floating_base else 0)], (H, len(lo))))
     t0 = time.perf_counter()
-    compiled = step.lower(state, q0, qd0).compile()
+    compiled = jax.jit(planner.step).lower(state, q0, qd0).compile()
     compile_s = time.perf_counter() - t0
     cost = compiled.cost_analysis()
     cost = cost[0] if isinstance(cost, (list, tuple)) else cost
     flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
-    u, state, _ = step(state, q0, qd0)
-    jax.block_until_ready(u)
-    times = []
-    for _ in range(cfg.repeats):
-        t0 = time.perf_counter()
-        u, state, _ = step(state, q0, qd0)
-        jax.block_until_ready(u)
-        times.append(time.perf_counter() - t0)
-    ms = 1e3 * statistics.median(times)
+    ms = 1e3 * sim_bench.median_time(lambda: jax.block_until_ready(compiled(state, q0, qd0)),
+                                      cfg.repeats)
     floor_ms = 1e3 * flops / peak
-    return dict(robot=robot, model=model_name, K=K, H=H, substeps=act.n_substeps, nfe=model_cfg.nfe if model.stochastic
-                else None, ms=ms, hz=1e3 / ms, gflop=flops / 1e9, floor_ms=floor_ms,
-                ratio=ms / floor_ms if floor_ms > 0 else float("nan"), compile_s=compile_s)
+    return dict(robot=robot, model=model_name, K=K, H=H, substeps=act.n_substeps,
+                nfe=model_cfg.nfe if model.stochastic else None, ms=ms, hz=1e3 / ms,
+                gflop=flops / 1e9, floor_ms=floor_ms, ratio=ms / floor_ms if floor_ms > 0 else float("nan"), compile_s=compile_s)
 
 
-def run(cfg: BenchConfig, command: str, on_row=None) -> list[dict]:
+def run(cfg: BenchConfig, command: str) -> list[dict]:
     peak = peak_flops()
     rows = []
     split = lambda s: [x for x in s.split(",") if x]
-    for robot in split(cfg.robots):
-        for name in split(cfg.models):
-            for K in map(int, split(cfg.samples)):
-                for H in map(int, split(cfg.horizons)):
-                    rows.append(measure(robot, name, K, H, cfg, peak))
-                    r = rows[-1]
-                    print(f"{robot} {name} K={K} H={H}: {r['ms']:.2f} ms ({r['hz']:.0f} Hz), "
-                          f"{r['gflop']:.2f} GFLOP, {r['ratio']:.0f}x the FLOP floor", flush=True)
-                    write(rows, cfg, command, peak)
+    for robot, name, K, H in itertools.product(split(cfg.robots), split(cfg.models),
+                                               map(int, split(cfg.samples)),
+                                               map(int, split(cfg.horizons))):
+        r = measure(robot, name, K, H, cfg, peak)
+        rows.append(r)
+        print(f"{robot} {name} K={K} H={H}: {r['ms']:.2f} ms ({r['hz']:.0f} Hz), "
+              f"{r['gflop']:.2f} GFLOP, {r['ratio']:.0f}x the FLOP floor", flush=True)
+        write(rows, cfg, command, peak)
     return rows
 
 

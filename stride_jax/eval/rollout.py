@@ -53,7 +53,11 @@ def observation_scales(split: dict, spec: ModelSpec, horizon: int) -> tuple[np.n
 def rollout_errors(rollout_fn, params, split: dict, spec: ModelSpec, horizon: int,
                    starts: np.ndarray, scales: tuple[np.ndarray, np.ndarray],
                    key: jax.Array) -> np.ndarray:
-    """Per-window, per-horizon RMSE ``[N, H]`` of ``rollout_fn(params, q, qd, ctrls, key)``."""
+    """Per-window, per-horizon RMSE ``[N, H]`` of ``rollout_fn(params, q, qd, ctrls, key)``.
+
+    ``key`` may also be ``S`` keys (stochastic models): then ``[S, N, H]``, one independent
+    sample per key, all in one compiled call.
+    """
     ep, t0 = starts[:, 0], starts[:, 1]
     idx = t0[:, None] + np.arange(horizon + 1)[None]
     q = jnp.asarray(split["q"][ep[:, None], idx])  # [N, H+1, nq]
@@ -67,8 +71,10 @@ def rollout_errors(rollout_fn, params, split: dict, spec: ModelSpec, horizon: in
         err = jnp.concatenate([dq / sig_dq, (qd_pred - qd[1:]) / sig_qd], axis=-1)
         return jnp.sqrt(jnp.mean(err ** 2, axis=-1))
 
-    keys = jax.random.split(key, len(starts))
-    return np.asarray(jax.jit(jax.vmap(one))(q, qd, ctrl, keys))
+    per_key = jax.vmap(lambda k: jax.vmap(one)(q, qd, ctrl, jax.random.split(k, len(starts))))
+    keys = key[None] if key.ndim == 0 else key
+    errs = np.asarray(jax.jit(per_key)(keys))
+    return errs[0] if key.ndim == 0 else errs
 
 
 def cumulative_rmse(errors: np.ndarray) -> float:

@@ -25,6 +25,7 @@ import pathlib
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
@@ -73,8 +74,6 @@ def find_runs(pattern: str) -> list[pathlib.Path]:
     return runs
 
 
-
-
 def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     """One run's metrics (see the module docstring)."""
     model, params = models.load(run)
@@ -95,9 +94,9 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     starts = rollout.windows(test["valid"], cfg.horizon, cfg.windows, cfg.seed)
     obs_scales = rollout.observation_scales(train, spec, cfg.horizon)
     rollout_fn = lambda p, q, qd, u, k: model.rollout(p, q, qd, u, k, nfe)
-    errs = np.stack([rollout.rollout_errors(rollout_fn, params, test, spec, cfg.horizon, starts,
-                                            obs_scales, jax.random.fold_in(key, s))
-                     for s in range(n_samples)])  # [S, N, H]
+    sample_keys = jax.vmap(lambda s: jax.random.fold_in(key, s))(jnp.arange(n_samples))
+    errs = rollout.rollout_errors(rollout_fn, params, test, spec, cfg.horizon, starts,
+                                  obs_scales, sample_keys)  # [S, N, H]
     # A rollout that leaves the floating-point range has diverged: it is counted, not averaged.
     finite = np.isfinite(errs).all(-1)  # [S, N]
     cum = np.array([errs[s][finite[s]].sum(-1).mean() if finite[s].any() else np.nan

@@ -55,7 +55,8 @@ PRESETS = {
 }
 
 
-def _median_time(fn, repeats: int) -> float:
+def median_time(fn, repeats: int) -> float:
+    """Median wall time (s) of ``repeats`` calls of ``fn`` after one warm-up call."""
     fn()  # compile and warm up
     times = []
     for _ in range(repeats):
@@ -100,14 +101,14 @@ def run(cfg: BenchConfig, on_row=None) -> list[dict]:
             for batch in (int(b) for b in cfg.batches.split(",")):
                 sim_steps = batch * cfg.steps * sm.n_substeps
                 if backend == "mjx":
-                    t_phys = _median_time(_physics_fn(sm, batch, cfg.steps), cfg.repeats)
+                    t_phys = median_time(_physics_fn(sm, batch, cfg.steps), cfg.repeats)
                     collect = jax.jit(jax.vmap(rollout_mjx.make_collect_fn(sm, cfg.steps)))
                     keys = jax.random.split(jax.random.key(1), batch)
-                    t_coll = _median_time(lambda: jax.block_until_ready(collect(keys)), cfg.repeats)
+                    t_coll = median_time(lambda: jax.block_until_ready(collect(keys)), cfg.repeats)
                     modes = [("physics", t_phys), ("collect", t_coll)]
                 else:
                     key = jax.random.key(1)
-                    modes = [("collect", _median_time(
+                    modes = [("collect", median_time(
                         lambda: rollout_cpu.collect(sm, key, batch, cfg.steps), cfg.repeats))]
                 for mode, t in modes:
                     row = dict(robot=name, backend=backend, mode=mode, batch=batch,
