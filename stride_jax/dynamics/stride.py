@@ -27,8 +27,11 @@ denoising loss in place of flow matching). Per example, with
   uses the plain squared error, trained into both parts;
 * ``L_fm``: the conditional flow-matching loss of the flow on the target ``stop_gradient(r*)``
   (the denoising loss for the diffusion residual);
-* ``L_res = |r*|^2``, the size of the residual the prior leaves, on steps in **free motion**
-  only (no foot in contact; every step for robots without feet);
+* ``L_res = sum_j (1 - reach_j) r*_j^2``, the size of the residual the prior leaves on the dofs
+  **no foot in contact can act on** (``reach``: the dofs of the chains from the stance feet to
+  the world, ``SimModel.foot_dofs``): every dof in free motion and for robots without feet; in
+  stance, a swing leg's joints (and a humanoid's arms and waist), where the true residual holds
+  only what the prior cannot express (damping, friction);
   (tried and measured worse: also withholding contact steps' acceleration gradients from the
   prior. With Go1 in free flight 9% of the time, the mass then drifted from 12.7 to 26 kg and
   DeLaN's foot-force error grew from 23 N to 60 N);
@@ -40,12 +43,15 @@ between prior and residual is not identifiable and drifts (measured: a tiny pend
 learned M = 29 for a unit pendulum and pushed the rest into the flow, blurring its modes). The
 penalty asks the prior to explain what it can, the paper's "division of labour" (Sec. III-F).
 
-Why free motion only: penalised everywhere, the residual is shrunk where it matters most. A
-quadruped stands on its feet ~90% of the time, and a prior that lowers gravity by the mean
-contact force makes ``r*`` smallest -- so it learned exactly that, and the residual's contact
-forces were off by their mean (Go1: 60 N error for a 62 N mean normal force, measured). Contact
-flags are used at training time only (simulators and most legged robots' foot sensors or contact
-estimators give them); the models never take them as inputs.
+Why not on the dofs contacts reach: penalised everywhere, the residual is shrunk where it
+matters most. A quadruped stands on its feet ~90% of the time, and a prior that lowers gravity by
+the mean contact force makes ``r*`` smallest -- so it learned exactly that, and the residual's
+contact forces were off by their mean (Go1: 60 N error for a 62 N mean normal force, measured).
+Why not free motion only (the first version): a walking humanoid is almost never airborne, so the
+penalty hardly ever applied and the prior/residual split drifted freely (G1: STRIDE's foot forces
+off by 207 N where DeLaN's were off by 37 N). Contact flags are used at training time only
+(simulators and most legged robots' foot sensors or contact estimators give them); the models
+never take them as inputs.
 
 Why the stop-gradients: the paper's single objective, taken literally, would regress a *sampled*
 residual onto the observed acceleration with a squared error, whose minimiser is the conditional
@@ -188,10 +194,11 @@ def terms(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
 
 
 def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
-         q, qd, tau, qdd, key, scales: Scales = Scales(), contact=False
+         q, qd, tau, qdd, key, scales: Scales = Scales(), contact_dofs=False
          ) -> tuple[jax.Array, dict]:
-    """One example's training loss and its parts (see the module docstring); ``contact``: the
-    step has a foot in contact (no residual penalty there)."""
+    """One example's training loss and its parts (see the module docstring); ``contact_dofs``
+    ``[nv]`` (or a scalar for all dofs): 1.0 where a foot in contact can act on the dof (no
+    residual penalty there)."""
     _check(residual)
     key_sample, key_gen = jax.random.split(key)
     M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn)
@@ -214,7 +221,8 @@ def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
     implied = (M @ qdd - (tau - b)) / scales.force  # r*, the residual the prior leaves
     l_res = jnp.sum(implied ** 2)
     parts = {"acc": l_acc, "res": l_res}
-    total = l_acc + cfg.residual_weight * jnp.where(contact, 0.0, l_res)
+    free = 1.0 - jnp.broadcast_to(jnp.asarray(contact_dofs, implied.dtype), implied.shape)
+    total = l_acc + cfg.residual_weight * jnp.sum(free * implied ** 2)
     if generative_kind:
         target = jax.lax.stop_gradient(implied)
         l_gen = cfg.generator(residual).loss(params["residual"], target, c, key_gen)

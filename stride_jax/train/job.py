@@ -108,7 +108,11 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
     atomic_write_text(out / "config.json", json.dumps(
         {"train": dataclasses.asdict(cfg), "dataset": str(data_dir),
          "dataset_sha256": ds.meta["arrays_sha256"]}, indent=1))
-    loop.train(model.loss, model.init, ds.split("train"), ds.split("val"), cfg, out, log)
+    foot_dofs = ds.meta.get("foot_dofs")
+    if foot_dofs is None and ds.meta["feet"]:
+        foot_dofs = sim_model.load(cfg.robot).foot_dofs()
+    loop.train(model.loss, model.init, ds.split("train"), ds.split("val"), cfg, out, log,
+               foot_dofs=foot_dofs)
     log(f"trained {cfg.model} on {cfg.robot}: best params in {out / 'best'}, "
         f"log in {out / 'metrics.csv'}")
     return out
