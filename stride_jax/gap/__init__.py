@@ -1,0 +1,1 @@
+"""Sim-to-real gap diagnosis: logs, effects, replay, diagnosis, report and a blind benchmark."""

@@ -1,0 +1,491 @@
+"""The diagnosis: where the sim-to-real gap lies, which effect causes it, how far it shrinks.
+
+* **Where** (:func:`where`): every logged state is replayed one control period in the nominal
+  simulator under the logged commands; the residual (logged minus predicted velocity change, per
+  second) is decomposed per dof, per contact phase of each foot (swing, stance, touchdown,
+  liftoff, estimated from foot heights since logs carry no forces), per base-speed and per
+  joint-velocity bin, and over time; open-loop rollouts show how each dof diverges with horizon.
+* **Which** (:func:`which`): each library effect is fitted on a training split of whole
+  trajectories (:mod:`stride_jax.gap.fit`), pairs of the best few are fitted jointly, and all are
+  scored on the held-out split: gap explained = 1 - held-out loss / nominal held-out loss, with a
+  complexity penalty per parameter and bootstrap intervals over held-out trajectories. A fit with
+  the wrong effect lowers the *training* loss too; only the held-out comparison chooses. Each
+  candidate is checked to reproduce the nominal model at its nominal value.
+* **Residual structure** (the library's limit): a ridge regression of the residual on state,
+  command and contact features (a linear probe, fitted on train, scored held-out) measures how
+  much systematic gap is left after the best hypothesis. If much is left, the verdict is
+  "unexplained by the library". TODO: fit the STRIDE residual (``stride_jax.dynamics``) on top
+  of the best hypothesis instead of the linear probe, and show where it concentrates.
+* **How far** (:func:`how_far`): one-step acceleration RMSE and ``horizon``-step rollout RMSE on
+  held-out trajectories, nominal against the identified effect, with its parameter interval.
+
+The noise floor of the one-step residual is estimated from its lag-1 autocovariance (white
+velocity noise, differenced, gives a correlation of -1/2); the explained fraction is also given
+relative to the gap above that floor.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import time
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from stride_jax.gap import effects, fit, logs, sim
+from stride_jax.sim.model import SimModel
+
+PHASES = ("swing", "stance", "touchdown", "liftoff")
+
+
+@dataclasses.dataclass(frozen=True)
+class DiagnoseConfig:
+    """Settings of a diagnosis (presets: :data:`PRESETS`).
+
+    Attributes:
+      holdout: fraction of trajectories held out for scoring (at least one).
+      steps: control periods per replay in the fits and scores (multiple shooting; the "where"
+        and the reported one-step RMSE always use one period).
+      seed: of the split and the bootstraps.
+      preprocess: cleaning of the logs before replay.
+      fit: optimiser settings.
+      pairs_of: fit pairs among this many best single effects (0: no pairs).
+      penalty: complexity penalty per fitted parameter, in explained fraction.
+      attribute_min: explained fraction (above the noise floor) needed to name an effect.
+      significant: lower bootstrap bound of the explained fraction that counts as a real gap.
+      structure_max: systematic residual left after the best hypothesis (linear probe, fraction of
+        the nominal gap above the floor) beyond which the gap is "unexplained by the library".
+      confident_p: bootstrap probability that the best beats the runner-up, for a confident call.
+      horizon: open-loop rollout length (control steps).
+      windows: rollout windows per trajectory.
+      bins: bins of the velocity and time decompositions.
+      exact_nominal: numerical precision below which (scaled RMS) the logs show no gap at all.
+    """
+
+    holdout: float = 0.34
+    steps: int = 5
+    seed: int = 0
+    preprocess: logs.Preprocess = logs.Preprocess()
+    fit: fit.FitConfig = fit.FitConfig()
+    pairs_of: int = 3
+    penalty: float = 0.005
+    attribute_min: float = 0.5
+    significant: float = 0.03
+    structure_max: float = 0.15
+    confident_p: float = 0.95
+    horizon: int = 30
+    windows: int = 3
+    bins: int = 8
+    exact_nominal: float = 1e-5
+
+
+PRESETS = {
+    "tiny": DiagnoseConfig(fit=fit.FitConfig(grid=7, profile=9, bootstrap=100, refits=0, max_nfev=8),
+                           pairs_of=2, horizon=15, windows=2),
+    "default": DiagnoseConfig(),
+}
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def split(n: int, holdout: float, seed: int) -> tuple[list[int], list[int]]:
+    """Whole trajectories into (train, held-out); needs at least 2."""
+    if n < 2:
+        raise ValueError(f"need at least 2 trajectories (train and held-out), got {n}")
+    perm = np.random.default_rng(seed).permutation(n)
+    k = min(max(1, int(round(holdout * n))), n - 1)
+    return sorted(perm[k:].tolist()), sorted(perm[:k].tolist())
+
+
+def dof_names(sm: SimModel) -> list[str]:
+    m = sm.mj
+    out = []
+    for j in range(m.njnt):
+        if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+            out += ["base_vx", "base_vy", "base_vz", "base_wx", "base_wy", "base_wz"]
+        else:
+            out.append(m.joint(j).name)
+    return out
+
+
+def scale_of(sm: SimModel, data: fit.Data) -> np.ndarray:
+    """``[nv]`` spread of the logged velocity changes per second (floored)."""
+    idx = fit.samples_before_next(data)
+    dv = (data.target - data.qd[idx]) / (data.k * sm.robot.ctrl_dt)
+    s = dv.std(0)
+    return np.maximum(s, 1e-3 * max(float(s.max()), 1e-9))
+
+
+def noise_floor(r: np.ndarray, data: fit.Data) -> float:
+    """Mean squared residual (summed over dofs) attributable to white velocity noise:
+    ``-2 x`` the lag-``k`` autocovariance within trajectories, clipped at zero per dof (the noise
+    of the logged velocity at ``t + k`` enters residual ``t`` with a minus sign and residual
+    ``t + k`` through its initial state)."""
+    k = data.k
+    same = data.traj[k:] == data.traj[:-k]
+    if not same.any():
+        return 0.0
+    rc = r - r.mean(0)
+    acov = (rc[k:][same] * rc[:-k][same]).mean(0)
+    return float(np.maximum(-2 * acov, 0).sum())
+
+
+def foot_phases(sm: SimModel, q: np.ndarray, bounds: np.ndarray, margin: float = 0.015
+                ) -> np.ndarray:
+    """``[N, nfeet]`` phase index (:data:`PHASES`) of each foot from kinematics alone: stance while
+    the foot site is within ``margin`` m of its lowest height (5th percentile) in the log."""
+    if sm.nfeet == 0:
+        return np.zeros((len(q), 0), int)
+    m = sm.mj
+    d = mujoco.MjData(m)
+    h = np.empty((len(q), sm.nfeet))
+    for i, qi in enumerate(q):
+        d.qpos[:] = qi
+        mujoco.mj_kinematics(m, d)
+        h[i] = d.site_xpos[sm.foot_sites, 2]
+    stance = h < np.percentile(h, 5, axis=0) + margin
+    prev = stance.copy()
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        prev[a + 1:b] = stance[a:b - 1]
+    phase = np.where(stance, 1, 0)
+    phase = np.where(stance & ~prev, 2, phase)
+    return np.where(~stance & prev, 3, phase)
+
+
+def _rms(x, axis=None):
+    return float(np.sqrt(np.mean(x ** 2))) if axis is None else np.sqrt(np.mean(x ** 2, axis=axis))
+
+
+def _boot_weights(n: int, B: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.multinomial(n, np.full(n, 1 / n), size=B).astype(float)  # [B, n]
+
+
+# ----------------------------------------------------------------------------- where
+
+
+def where(sm: SimModel, data: fit.Data, r: np.ndarray, scale: np.ndarray, cfg: DiagnoseConfig
+          ) -> dict[str, Any]:
+    """Decomposes the nominal one-step residual ``r [M, nv]`` (scaled) of ``data``."""
+    names = dof_names(sm)
+    idx = fit.samples_before_next(data)
+    raw = r * scale  # rad/s^2 or m/s^2
+    out: dict[str, Any] = {"dof_names": names,
+                           "per_dof_rms": dict(zip(names, _rms(raw, 0).tolist())),
+                           "per_dof_rms_scaled": dict(zip(names, _rms(r, 0).tolist())),
+                           "scale": dict(zip(names, scale.tolist()))}
+    total = _rms(r) + 1e-300
+    # contact phases per foot
+    phases = foot_phases(sm, data.q, data.bounds)[idx]
+    per_foot = {}
+    for f, foot in enumerate(sm.robot.feet):
+        leg = [i for i, n in enumerate(names) if n.startswith(foot.name + "_")] or list(range(len(names)))
+        rows = {}
+        for p, label in enumerate(PHASES):
+            sel = phases[:, f] == p
+            rows[label] = {"count": int(sel.sum()),
+                           "rms_all": _rms(r[sel]) if sel.any() else None,
+                           "rms_leg": _rms(r[sel][:, leg]) if sel.any() else None}
+        per_foot[foot.name] = rows
+    out["per_foot_phase"] = per_foot
+    out["stance_fraction"] = {foot.name: float((phases[:, f] >= 1).mean())
+                              for f, foot in enumerate(sm.robot.feet)}
+    # base speed bins
+    if sm.robot.floating_base:
+        speed = np.linalg.norm(data.qd[idx, :2], axis=1)
+        edges = np.unique(np.quantile(speed, np.linspace(0, 1, cfg.bins + 1)))
+        k = np.clip(np.searchsorted(edges, speed, side="right") - 1, 0, len(edges) - 2)
+        out["base_speed_bins"] = [{"lo": float(edges[i]), "hi": float(edges[i + 1]),
+                                   "count": int((k == i).sum()), "rms": _rms(r[k == i])}
+                                  for i in range(len(edges) - 1) if (k == i).any()]
+    # joint velocity bins: signed mean and RMS of each actuated joint's own residual
+    jv = {}
+    for a, dof in enumerate(sm.act_dof):
+        v = data.qd[idx, dof]
+        lim = np.quantile(np.abs(v), 0.98) + 1e-9
+        edges = np.linspace(-lim, lim, cfg.bins + 1)
+        k = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, cfg.bins - 1)
+        jv[names[dof]] = [{"centre": float((edges[i] + edges[i + 1]) / 2), "count": int((k == i).sum()),
+                           "mean": float(raw[k == i, dof].mean()) if (k == i).any() else None,
+                           "rms": _rms(raw[k == i, dof]) if (k == i).any() else None}
+                          for i in range(cfg.bins)]
+    out["joint_velocity_bins"] = jv
+    # over time (since the trajectory start)
+    tloc = idx - data.bounds[data.traj]
+    edges = np.linspace(0, tloc.max() + 1, cfg.bins + 1)
+    k = np.clip(np.searchsorted(edges, tloc, side="right") - 1, 0, cfg.bins - 1)
+    out["over_time"] = [{"t0_s": float(edges[i] * sm.robot.ctrl_dt), "t1_s": float(edges[i + 1] * sm.robot.ctrl_dt),
+                         "rms": _rms(r[k == i]) if (k == i).any() else None} for i in range(cfg.bins)]
+    out["rms_scaled"] = total
+    return out
+
+
+def divergence(sm: SimModel, plan: effects.Plan, data: fit.Data, cfg: DiagnoseConfig
+               ) -> dict[str, Any]:
+    """Open-loop rollout error per dof against horizon: ``rmse [H, ndof]`` (joints in rad, base
+    position in m, base orientation angle in rad) over ``cfg.windows`` windows per trajectory."""
+    H = cfg.horizon
+    errs = []
+    for i in range(data.n):
+        a, b = data.bounds[i], data.bounds[i + 1]
+        T = b - a
+        if T <= H:
+            continue
+        starts = np.linspace(0, T - H - 1, cfg.windows).astype(int)
+        q, _ = sim.rollout(sm, plan, data.q[a + starts], data.qd[a + starts], data.cmd[a:b], starts, H)
+        ref = np.stack([data.q[a + s + 1:a + s + 1 + H] for s in starts])
+        errs.append(_q_error(sm, q, ref))
+    names = _q_names(sm)
+    if not errs:
+        return {"names": names, "rmse": None, "horizon": H}
+    e = np.concatenate(errs)  # [W, H, nd]
+    e = np.where(np.isfinite(e), e, 10.0)
+    return {"names": names, "horizon": H, "rmse": np.sqrt((e ** 2).mean(0)).tolist(),
+            "final_rmse": dict(zip(names, np.sqrt((e[:, -1] ** 2).mean(0)).tolist())),
+            "windows": int(e.shape[0])}
+
+
+def _q_names(sm: SimModel) -> list[str]:
+    lay = logs.layout(sm)
+    base = ["base_x", "base_y", "base_z", "base_angle"] if sm.robot.floating_base else []
+    return base + list(lay.joints)
+
+
+def _q_error(sm: SimModel, q: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    lay = logs.layout(sm)
+    parts = []
+    if sm.robot.floating_base:
+        parts.append(q[..., :3] - ref[..., :3])
+        dot = np.abs((q[..., 3:7] * ref[..., 3:7]).sum(-1)).clip(0, 1)
+        parts.append(2 * np.arccos(dot)[..., None])
+    parts.append(q[..., lay.qadr] - ref[..., lay.qadr])
+    return np.concatenate(parts, -1)
+
+
+# ----------------------------------------------------------------------------- residual probe
+
+
+def _features(sm: SimModel, data: fit.Data) -> np.ndarray:
+    """``[M, F]`` state, command and contact features of each replayed sample."""
+    idx = fit.samples_before_next(data)
+    q, qd, u = data.q[idx], data.qd[idx], data.cmd[idx]
+    qa = q[:, sm.mj.jnt_qposadr[sm.mj.actuator_trnid[:, 0]]]
+    va = qd[:, sm.act_dof]
+    prev = data.cmd[np.maximum(idx - 1, data.first)]
+    f = [np.ones((len(idx), 1)), qa, np.sin(qa), np.cos(qa), va, np.tanh(va / 0.1), va * np.abs(va),
+         u - (qa if sm.robot.kp is not None else 0.0), u - prev]
+    if sm.robot.floating_base:
+        f += [q[:, 2:7], qd[:, :6]]
+    if sm.nfeet:
+        ph = foot_phases(sm, data.q, data.bounds)[idx]
+        f += [(ph == k).astype(float) for k in range(4)]
+    return np.concatenate(f, 1)
+
+
+def probe(sm: SimModel, train: fit.Data, r_train: np.ndarray, test: fit.Data, r_test: np.ndarray,
+          ridge: float = 1e-3) -> np.ndarray:
+    """Held-out residual ``[M_test, nv]`` after a ridge regression on :func:`_features` fitted on
+    the training residual (features standardised on train)."""
+    Xtr, Xte = _features(sm, train), _features(sm, test)
+    mu, sd = Xtr.mean(0), Xtr.std(0)
+    sd[sd < 1e-9] = 1.0
+    mu[0], sd[0] = 0.0, 1.0  # intercept
+    Xtr, Xte = (Xtr - mu) / sd, (Xte - mu) / sd
+    A = Xtr.T @ Xtr + ridge * len(Xtr) * np.eye(Xtr.shape[1])
+    W = np.linalg.solve(A, Xtr.T @ r_train)
+    return r_test - Xte @ W
+
+
+# ----------------------------------------------------------------------------- which / how far
+
+
+def check_nominal(sm: SimModel, data: fit.Data, scale: np.ndarray, r_nom: np.ndarray
+                  ) -> dict[str, float]:
+    """Max |residual change| of each candidate at its nominal value against the nominal model."""
+    out = {}
+    for e in effects.candidates(sm):
+        r = fit.residual(sm, effects.build(sm, {e.name: np.asarray(e.nominal)}), data, scale)
+        out[e.name] = float(np.abs(r - r_nom).max())
+    return out
+
+
+def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: DiagnoseConfig,
+          log=print) -> dict[str, Any]:
+    """Fits every candidate (and pairs of the best) on ``train`` and scores them on ``test``."""
+    nom = effects.build(sm)
+    r_nom_tr = fit.residual(sm, nom, train, scale)
+    r_nom_te = fit.residual(sm, nom, test, scale)
+    L_nom = fit.per_traj(r_nom_te, test)
+    W = _boot_weights(test.n, cfg.fit.bootstrap or 200, cfg.seed + 1)
+    boot_nom = W @ L_nom
+    fits: list[fit.Fit] = []
+    for e in effects.candidates(sm):
+        t0 = time.time()
+        f = fit.fit(sm, train, scale, (e.name,), cfg.fit)
+        fits.append(f)
+        log(f"  fit {e.name:17s} {_fmt(f.params)}  train loss {f.train_loss:.4g}  ({f.evals} evals, "
+            f"{time.time() - t0:.1f} s)")
+    singles = sorted(fits, key=lambda f: f.train_loss)
+    losses = {}
+    for f in fits:
+        losses[f.names] = fit.per_traj(fit.residual(sm, effects.build(sm, f.params), test, scale), test)
+    ranked = sorted(fits, key=lambda f: losses[f.names].sum())
+    for a, b in itertools.combinations([f.names[0] for f in ranked[:cfg.pairs_of]], 2):
+        start = {k: v for f in singles if f.names[0] in (a, b) for k, v in f.params.items()}
+        t0 = time.time()
+        f = fit.fit(sm, train, scale, (a, b), cfg.fit, start)
+        fits.append(f)
+        losses[f.names] = fit.per_traj(fit.residual(sm, effects.build(sm, f.params), test, scale), test)
+        log(f"  fit {a}+{b}: {_fmt(f.params)}  ({f.evals} evals, {time.time() - t0:.1f} s)")
+    rows = []
+    for f in fits:
+        L = losses[f.names]
+        k = sum(effects.ALL[n].size for n in f.names)
+        expl = 1 - L.sum() / max(L_nom.sum(), 1e-300)
+        boot = 1 - (W @ L) / np.maximum(boot_nom, 1e-300)
+        rows.append({"effects": list(f.names), "params": _jsonable(f.params), "param_lo": _jsonable(f.lo),
+                     "param_hi": _jsonable(f.hi), "n_params": k, "train_loss": f.train_loss,
+                     "heldout_loss": float(L.sum()), "explained": float(expl),
+                     "explained_ci": np.percentile(boot, [5, 95]).tolist(),
+                     "score": float(expl - cfg.penalty * k), "_L": L})
+    rows.sort(key=lambda r: -r["score"])
+    # bootstrap probability that the best beats the runner-up (by penalised score)
+    for i, row in enumerate(rows):
+        other = rows[1] if i == 0 else rows[0]
+        if len(rows) > 1:
+            s_self = 1 - (W @ row["_L"]) / boot_nom - cfg.penalty * row["n_params"]
+            s_other = 1 - (W @ other["_L"]) / boot_nom - cfg.penalty * other["n_params"]
+            row["p_beats_next"] = float((s_self > s_other).mean())
+        else:
+            row["p_beats_next"] = 1.0
+    # residual structure left: linear probe on the nominal and on the best hypothesis
+    best = rows[0]
+    plan_best = effects.build(sm, {k: np.asarray(v) for k, v in best["params"].items()})
+    r_best_tr = fit.residual(sm, plan_best, train, scale)
+    r_best_te = fit.residual(sm, plan_best, test, scale)
+    floor = noise_floor(r_best_te, test)
+    g_nom = float((r_nom_te ** 2).sum(1).mean())
+    g_best = float((r_best_te ** 2).sum(1).mean())
+    above = max(g_nom - floor, 1e-300)
+    pr_nom = probe(sm, train, r_nom_tr, test, r_nom_te)
+    pr_best = probe(sm, train, r_best_tr, test, r_best_te)
+    probe_nom = 1 - float((pr_nom ** 2).sum(1).mean()) / max(g_nom, 1e-300)
+    left = max(g_best - float((pr_best ** 2).sum(1).mean()), 0.0) / above
+    for row in rows:
+        row["explained_above_floor"] = float(min(1.0, (g_nom - row["heldout_loss"] / len(r_nom_te)) / above))
+        del row["_L"]
+    return {"ranking": rows, "nominal_heldout_loss": float(L_nom.sum()), "noise_floor": floor,
+            "gap_ms": g_nom, "probe_explained_nominal": probe_nom, "structure_left": left,
+            "residual_after_best": {"per_dof_rms_scaled": _rms(r_best_te, 0).tolist()},
+            "r_nom_test": r_nom_te, "r_best_test": r_best_te, "plan_best": plan_best}
+
+
+def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
+    """The answer to "which": ``no significant gap``, ``explained`` (by the best hypothesis, with
+    ``confident`` True/False) or ``unexplained by the library``."""
+    best = w["ranking"][0]
+    significant = best["explained_ci"][0] > cfg.significant or w["probe_explained_nominal"] > cfg.significant
+    if not significant:
+        return {"verdict": "no significant gap", "effects": [], "confident": False,
+                "reason": f"best candidate explains {best['explained']:.1%} (90% CI low "
+                          f"{best['explained_ci'][0]:.1%}), linear probe {w['probe_explained_nominal']:.1%}"}
+    explained = best["explained_above_floor"] >= cfg.attribute_min
+    if explained and w["structure_left"] <= cfg.structure_max:
+        confident = (best["explained_ci"][0] >= cfg.attribute_min * (1 - w["noise_floor"] / max(w["gap_ms"], 1e-300))
+                     and best["p_beats_next"] >= cfg.confident_p)
+        return {"verdict": "explained", "effects": best["effects"], "confident": bool(confident),
+                "reason": f"{'+'.join(best['effects'])} explains {best['explained']:.1%} of the held-out gap "
+                          f"({best['explained_above_floor']:.1%} above the noise floor), beats the runner-up "
+                          f"in {best['p_beats_next']:.0%} of resamples; structure left {w['structure_left']:.1%}"}
+    return {"verdict": "unexplained by the library", "effects": best["effects"], "confident": False,
+            "reason": f"best ({'+'.join(best['effects'])}) explains {best['explained_above_floor']:.1%} above the "
+                      f"noise floor; systematic residual left (linear probe) {w['structure_left']:.1%} of the gap"}
+
+
+def how_far(sm: SimModel, test: fit.Data, scale: np.ndarray, w: dict[str, Any], cfg: DiagnoseConfig
+            ) -> dict[str, Any]:
+    """Held-out gap before and after the best hypothesis: one-step acceleration RMSE per dof and
+    overall (``test`` holds one-step replays), the fit's ``k``-step gap, ``horizon``-step rollout
+    RMSE per dof."""
+    names = dof_names(sm)
+    nom = effects.build(sm)
+    r0 = fit.residual(sm, nom, test, scale)
+    r1 = fit.residual(sm, w["plan_best"], test, scale)
+    div0 = divergence(sm, nom, test, cfg)
+    div1 = divergence(sm, w["plan_best"], test, cfg)
+    g0, g1 = float((r0 ** 2).sum(1).mean()), float((r1 ** 2).sum(1).mean())
+    k0, k1 = float((w["r_nom_test"] ** 2).sum(1).mean()), float((w["r_best_test"] ** 2).sum(1).mean())
+    return {"one_step_acc_rmse_before": dict(zip(names, _rms(r0 * scale, 0).tolist())),
+            "one_step_acc_rmse_after": dict(zip(names, _rms(r1 * scale, 0).tolist())),
+            "gap_before": g0, "gap_after": g1, "shrink": 1 - g1 / max(g0, 1e-300),
+            "kstep_gap_before": k0, "kstep_gap_after": k1, "kstep_shrink": 1 - k1 / max(k0, 1e-300),
+            "rollout_before": div0, "rollout_after": div1,
+            "rollout_final_rmse_mean_before": _mean_final(div0),
+            "rollout_final_rmse_mean_after": _mean_final(div1)}
+
+
+def _mean_final(div):
+    return None if div["rmse"] is None else float(np.mean(list(div["final_rmse"].values())))
+
+
+def _jsonable(d: dict) -> dict:
+    return {k: np.asarray(v, float).round(6).tolist() for k, v in d.items()}
+
+
+def _fmt(params: dict) -> str:
+    return ", ".join(f"{k}={np.array2string(np.asarray(v), precision=4)}" for k, v in params.items())
+
+
+# ----------------------------------------------------------------------------- top level
+
+
+def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = DiagnoseConfig(),
+             log=print) -> dict[str, Any]:
+    """Runs where / which / how far on logged trajectories. Returns a JSON-able dict (plus a few
+    arrays under keys starting with ``_`` for the plots)."""
+    t_start = time.time()
+    dt = sm.robot.ctrl_dt
+    prep = [logs.preprocess(tr, dt, cfg.preprocess) for tr in trajs]
+    trajs = [p[0] for p in prep]
+    tr_idx, te_idx = split(len(trajs), cfg.holdout, cfg.seed)
+    data = fit.make_data(trajs)
+    train, test = fit.subset(data, tr_idx), fit.subset(data, te_idx)
+    scale = scale_of(sm, train)
+    train_k, test_k = (fit.make_data([trajs[i] for i in ix], cfg.steps) for ix in (tr_idx, te_idx))
+    nom = effects.build(sm)
+    r_all = fit.residual(sm, nom, data, scale)
+    log(f"{sm.robot.name}: {len(trajs)} trajectories ({len(tr_idx)} train, {len(te_idx)} held out), "
+        f"{len(r_all)} one-step replays; nominal scaled RMS residual {_rms(r_all):.4g}")
+    out: dict[str, Any] = {
+        "robot": sm.robot.name, "n_trajectories": len(trajs), "train": [data.names[i] for i in tr_idx],
+        "heldout": [data.names[i] for i in te_idx], "n_samples": int(len(r_all)),
+        "config": dataclasses.asdict(cfg),
+        "preprocess": {"outliers_replaced": int(sum(p[1]["outliers_replaced"] for p in prep)),
+                       "smoothing_bandwidth_hz": cfg.preprocess.bandwidth_hz(dt)},
+        "residual_definition": "(logged next velocity - nominal one-step prediction) / control period; "
+                               "'scaled' divides each dof by the spread of its logged velocity changes",
+    }
+    out["where"] = where(sm, data, r_all, scale, cfg)
+    if _rms(r_all) < cfg.exact_nominal:
+        out["nominal_check"] = {}
+        out["verdict"] = {"verdict": "no significant gap", "effects": [], "confident": True,
+                          "reason": f"the nominal model replays the logs to numerical precision "
+                                    f"(scaled RMS {_rms(r_all):.2g})"}
+        out["which"], out["how_far"] = None, None
+        out["seconds"] = time.time() - t_start
+        return out
+    out["nominal_check"] = check_nominal(sm, test_k, scale, fit.residual(sm, nom, test_k, scale))
+    bad = {k: v for k, v in out["nominal_check"].items() if v > 1e-9}
+    if bad:
+        raise RuntimeError(f"effects do not reproduce the nominal model at their nominal value: {bad}")
+    w = which(sm, train_k, test_k, scale, cfg, log)
+    out["verdict"] = verdict(w, cfg)
+    out["how_far"] = how_far(sm, test, scale, w, cfg)
+    out["which"] = {k: v for k, v in w.items() if k not in ("r_nom_test", "r_best_test", "plan_best")}
+    out["where"]["divergence"] = out["how_far"]["rollout_before"]
+    out["seconds"] = time.time() - t_start
+    log(f"verdict: {out['verdict']['verdict']} {out['verdict']['effects']} — {out['verdict']['reason']}")
+    return out
