@@ -392,14 +392,21 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
         return {"verdict": "no significant gap", "effects": [], "confident": False,
                 "reason": f"best candidate explains {best['explained']:.1%} (90% CI low "
                           f"{best['explained_ci'][0]:.1%}), linear probe {w['probe_explained_nominal']:.1%}"}
+    # hypotheses the held-out data cannot tell apart from the best (other effects, same score)
+    tol = 0.01 * max(abs(best["explained"]), 1e-12)
+    ties = ["+".join(r["effects"]) for r in w["ranking"][1:]
+            if abs(r["explained"] - best["explained"]) <= tol and set(r["effects"]) - set(best["effects"])
+            and not set(best["effects"]) < set(r["effects"])]
     explained = best["explained_above_floor"] >= cfg.attribute_min
     if explained and w["structure_left"] <= cfg.structure_max:
         confident = (best["explained_ci"][0] >= cfg.attribute_min * (1 - w["noise_floor"] / max(w["gap_ms"], 1e-300))
-                     and best["p_beats_next"] >= cfg.confident_p)
+                     and best["p_beats_next"] >= cfg.confident_p and not ties)
         return {"verdict": "explained", "effects": best["effects"], "confident": bool(confident),
+                "indistinguishable_from": ties,
                 "reason": f"{'+'.join(best['effects'])} explains {best['explained']:.1%} of the held-out gap "
                           f"({best['explained_above_floor']:.1%} above the noise floor), beats the runner-up "
-                          f"in {best['p_beats_next']:.0%} of resamples; structure left {w['structure_left']:.1%}"}
+                          f"in {best['p_beats_next']:.0%} of resamples; structure left {w['structure_left']:.1%}"
+                          + (f"; indistinguishable on these logs from {', '.join(ties)}" if ties else "")}
     return {"verdict": "unexplained by the library", "effects": best["effects"], "confident": False,
             "reason": f"best ({'+'.join(best['effects'])}) explains {best['explained_above_floor']:.1%} above the "
                       f"noise floor; systematic residual left (linear probe) {w['structure_left']:.1%} of the gap"}

@@ -25,7 +25,9 @@ deadzone          servo ignores position errors below delta (torque         rad 
                   commands below delta for motors), at the control rate
 ================  ========================================================  ============  =======
 
-Servo damping (``kd``) is not a separate effect: without measured torques ``-kd qd`` and joint
+``torque_scale`` scales the force limit too; ``kp_scale`` does not: for servos without damping
+(the Go1's) they differ only while the servos saturate, and the diagnosis reports such near-ties
+as indistinguishable. Servo damping (``kd``) is not a separate effect: without measured torques ``-kd qd`` and joint
 damping are the same dynamics. ``delay`` is counted in simulation steps, so that delays shorter
 than one control period can be represented; it is fitted on a grid, never by a local optimiser.
 
@@ -120,8 +122,10 @@ def _const_bounds(lo, hi):
 
 
 def _torque_scale(sm, plan, p):
+    # A motor-constant error scales the whole force, its limit included (the driver limits current).
     plan.mj.actuator_gainprm[:, 0] *= p[0]
     plan.mj.actuator_biasprm[:, 1:3] *= p[0]
+    plan.mj.actuator_forcerange[:] *= p[0]
     return plan
 
 
@@ -199,6 +203,8 @@ def _deadzone_bounds(sm):
 
 
 def _stiffness(sm, plan, p):
+    if p[0] == 0.0:  # nominal: leave the spring reference as it is
+        return plan
     jnt = sm.mj.actuator_trnid[:, 0]
     plan.mj.jnt_stiffness[jnt] += p[0]
     qadr = sm.mj.jnt_qposadr[jnt]

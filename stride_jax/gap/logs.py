@@ -151,10 +151,10 @@ def header_for(sm: SimModel, has_torque: bool, has_imu: bool, notes: str = "") -
 def write(out_dir: str | os.PathLike, sm: SimModel, trajs: list[Trajectory], notes: str = "",
           ) -> pathlib.Path:
     """Writes ``trajs`` as a log folder (``header.json`` + ``traj_<name>.csv``), atomically per file."""
-    out = pathlib.Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     if not trajs:
         raise LogError("no trajectories to write")
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     has_tau = all(tr.tau is not None for tr in trajs)
     has_imu = all(tr.imu is not None for tr in trajs)
     h = header_for(sm, has_tau, has_imu, notes)
@@ -371,19 +371,37 @@ def noise_std(x: np.ndarray) -> np.ndarray:
     return 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0)
 
 
+def spikes(x: np.ndarray, k: float = 8.0) -> tuple[np.ndarray, np.ndarray]:
+    """Isolated one-sample spikes along axis 0 of ``x [T, C]``, replaced by the mean of their
+    neighbours: the sample leaves the neighbours' mean by more than ``k`` robust standard deviations
+    of the channel's second difference while the two neighbours agree (within half that jump).
+    Steps (impacts: the level changes and stays) are kept, unlike a plain Hampel filter's
+    treatment of fast legitimate transients. Returns ``(cleaned, mask)``."""
+    x = np.asarray(x, np.float64).copy()
+    mask = np.zeros(x.shape, bool)
+    if len(x) < 3:
+        return x, mask
+    mid = 0.5 * (x[:-2] + x[2:])
+    dev = x[1:-1] - mid
+    sig = 1.4826 * np.median(np.abs(np.diff(x, 2, axis=0)), axis=0) + 1e-12
+    hit = (np.abs(dev) > k * sig) & (np.abs(x[2:] - x[:-2]) < 0.5 * np.abs(dev))
+    mask[1:-1] = hit
+    x[1:-1] = np.where(hit, mid, x[1:-1])
+    return x, mask
+
+
 @dataclasses.dataclass(frozen=True)
 class Preprocess:
     """How logged states are cleaned before replay.
 
     Attributes:
-      outliers: apply :func:`hampel` (``half_window``, ``k``) to positions and velocities.
+      outliers: replace isolated spikes in the joint/base velocities (:func:`spikes` with ``k``).
       smooth_window: Savitzky-Golay window (samples, odd) for q and qd; 0 disables smoothing.
       smooth_order: its polynomial order.
     """
 
     outliers: bool = True
-    half_window: int = 3
-    k: float = 6.0
+    k: float = 8.0
     smooth_window: int = 0
     smooth_order: int = 3
 
@@ -397,8 +415,8 @@ def preprocess(tr: Trajectory, dt: float, cfg: Preprocess) -> tuple[Trajectory, 
     tr = resample(tr, dt)
     q, qd = tr.q.copy(), tr.qd.copy()
     n_out = 0
-    if cfg.outliers and len(q) > 2 * cfg.half_window + 1:
-        qd, m1 = hampel(qd, cfg.half_window, cfg.k)
+    if cfg.outliers:
+        qd, m1 = spikes(qd, cfg.k)
         n_out = int(m1.sum())
     if cfg.smooth_window and len(q) >= cfg.smooth_window:
         fb = q.shape[1] == qd.shape[1] + 1

@@ -1,0 +1,124 @@
+"""The gap tool's log format: round trip, validation errors, estimation helpers."""
+
+import json
+
+import numpy as np
+import pytest
+
+from stride_jax.gap import logs, real
+from stride_jax.sim import model
+
+
+@pytest.fixture(scope="module")
+def pend():
+    return model.load("pendulum")
+
+
+@pytest.fixture(scope="module")
+def go1_logs(go1, tmp_path_factory):
+    clean, _ = real.generate(go1, None, 2, 25, seed=0, min_steps=3)
+    path = tmp_path_factory.mktemp("go1logs")
+    logs.write(path, go1, clean)
+    return path, clean
+
+
+def test_round_trip_go1(go1, go1_logs):
+    path, clean = go1_logs
+    h, trajs = logs.read(path, go1)
+    assert h.robot == "go1" and h.has_torque and h.has_imu and h.command_kind == "position"
+    assert len(trajs) == len(clean)
+    for a, b in zip(trajs, clean):
+        np.testing.assert_allclose(a.q, b.q, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(a.qd, b.qd, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(a.cmd, b.cmd, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(a.tau, b.tau, rtol=1e-9, atol=1e-9)
+        # on average over a trajectory the accelerometer sees gravity, body z up: about 9.8 m/s^2
+        assert 7 < a.imu[:, 2].mean() < 13
+
+
+def _rewrite(path, fn, out):
+    """Copies a log folder to ``out`` with ``fn(lines)`` applied to the first CSV's lines."""
+    out.mkdir()
+    (out / "header.json").write_text((path / "header.json").read_text())
+    csvs = sorted(path.glob("*.csv"))
+    lines = csvs[0].read_text().splitlines()
+    (out / csvs[0].name).write_text("\n".join(fn(lines)) + "\n")
+    return out
+
+
+def test_bad_logs_are_rejected_clearly(go1, go1_logs, tmp_path):
+    path, _ = go1_logs
+    name = sorted(path.glob("*.csv"))[0].name
+
+    def drop_col(lines):
+        cols = lines[0].split(",")
+        k = cols.index("qd_FL_calf_joint")
+        return [",".join(c for i, c in enumerate(ln.split(",")) if i != k) for ln in lines]
+
+    with pytest.raises(logs.LogError, match=rf"{name}.*missing column.*qd_FL_calf_joint"):
+        logs.read(_rewrite(path, drop_col, tmp_path / "a"), go1)
+
+    def nan(lines):
+        row = lines[5].split(",")
+        row[3] = "nan"
+        return lines[:5] + [",".join(row)] + lines[6:]
+
+    col3 = (path / name).read_text().splitlines()[0].split(",")[3]
+    with pytest.raises(logs.LogError, match=rf"column '{col3}', row 5 .*NaN"):
+        logs.read(_rewrite(path, nan, tmp_path / "b"), go1)
+
+    def swap_time(lines):
+        return [lines[0], lines[1], lines[3], lines[2]] + lines[4:]
+
+    with pytest.raises(logs.LogError, match=r"column 'time', row 3 .*increase"):
+        logs.read(_rewrite(path, swap_time, tmp_path / "c"), go1)
+
+    def text(lines):
+        row = lines[2].split(",")
+        row[-1] = "abc"
+        return lines[:2] + [",".join(row)] + lines[3:]
+
+    with pytest.raises(logs.LogError, match=r"not a number"):
+        logs.read(_rewrite(path, text, tmp_path / "d"), go1)
+
+    bad = tmp_path / "e"
+    _rewrite(path, lambda ln: ln, bad)
+    h = json.loads((bad / "header.json").read_text())
+    h["joint_names"][0] = "FR_hip"
+    (bad / "header.json").write_text(json.dumps(h))
+    with pytest.raises(logs.LogError, match=r"joint-name mismatch.*FR_hip.*FR_hip_joint"):
+        logs.read(bad, go1)
+    with pytest.raises(logs.LogError, match="log is for robot 'go1'"):
+        logs.read(path, model.load("pendulum"))
+    with pytest.raises(logs.LogError, match="header.json: missing"):
+        logs.read(tmp_path, go1)
+
+
+def test_resample_holds_commands_and_interpolates_states(pend):
+    t = np.array([0.0, 0.013, 0.021, 0.034, 0.04])
+    q = t[:, None] * 2.0
+    tr = logs.Trajectory("x", t, q, q.copy(), np.arange(5.0)[:, None], None, None)
+    out = logs.resample(tr, 0.01)
+    np.testing.assert_allclose(out.t, [0, 0.01, 0.02, 0.03, 0.04])
+    np.testing.assert_allclose(out.q[:, 0], 2 * out.t, atol=1e-12)  # linear signal: exact
+    np.testing.assert_array_equal(out.cmd[:, 0], [0, 0, 1, 2, 4])  # zero-order hold
+
+
+def test_estimation_helpers():
+    rng = np.random.default_rng(0)
+    dt = 0.01
+    t = np.arange(400) * dt
+    x = np.sin(2 * np.pi * 1.0 * t)[:, None]
+    noisy = x + 0.01 * rng.standard_normal(x.shape)
+    assert abs(logs.noise_std(noisy)[0] - 0.01) < 0.003
+    d = logs.savgol(noisy, dt, 21, 3, deriv=1)
+    assert np.abs(d[20:-20, 0] - 2 * np.pi * np.cos(2 * np.pi * t[20:-20])).max() < 0.3
+    assert logs.savgol_bandwidth(dt, 21) < logs.savgol_bandwidth(dt, 7) < 0.5 / dt
+    spiky = x.copy()
+    spiky[100] += 5.0
+    clean, mask = logs.hampel(spiky)
+    assert mask[100, 0] and mask.sum() == 1 and abs(clean[100, 0] - x[100, 0]) < 0.05
+    clean, mask = logs.spikes(spiky)
+    assert mask[100, 0] and mask.sum() == 1 and abs(clean[100, 0] - x[100, 0]) < 0.05
+    step = np.concatenate([np.zeros(50), np.ones(50)])[:, None]  # an impact: kept
+    assert not logs.spikes(step)[1].any()
