@@ -1,5 +1,4 @@
 import mujoco
-import numpy as np
 import pytest
 
 from stride_jax import robots
@@ -38,30 +37,3 @@ def test_missing_menagerie_names_the_variable_and_robot(name, tmp_path, monkeypa
     with pytest.raises(robots.RobotError, match=f"robot '{name}' needs .*MENAGERIE_ROOT"):
         model.compile_robot(robots.get(name))
 
-
-def test_foot_dofs_are_the_chains_from_feet_to_world(go1, g1):
-    legs = go1.foot_dofs()
-    assert legs.shape == (4, go1.mj.nv)
-    assert legs[:, :6].all()  # every foot pushes on the floating base
-    assert (legs[:, 6:].sum(0) == 1).all()  # each joint belongs to exactly one leg
-    assert (legs.sum(1) == 6 + 3).all()
-    feet = g1.foot_dofs()
-    arms = [g1.mj.joint(f"{s}_shoulder_pitch_joint").dofadr[0] for s in ("left", "right")]
-    assert not feet[:, arms].any()  # the feet never act on the arms
-    assert (feet[0] & feet[1]).sum() == 6  # the two legs share only the base
-
-
-def test_training_examples_mark_only_dofs_a_stance_foot_reaches(go1):
-    from stride_jax.train import loop
-
-    nv = go1.mj.nv
-    contact = np.zeros((1, 3, 4), bool)
-    contact[0, 0, 0] = True  # step 0: one foot down; step 1: airborne
-    split = {k: np.zeros((1, 3, n), np.float32) for k, n in
-             (("q", go1.mj.nq), ("qd", nv), ("tau", nv), ("qdd", nv), ("ctrl", go1.mj.nu))}
-    split.update(valid=np.ones((1, 3), bool), foot_contact=contact)
-    ex = loop._examples(split, go1.foot_dofs())
-    assert (ex["contact_dofs"][0] == go1.foot_dofs()[0]).all()
-    assert not ex["contact_dofs"][1].any()
-    with pytest.raises(loop.TrainingError, match="foot_dofs has shape"):
-        loop._examples(split, go1.foot_dofs()[:2])

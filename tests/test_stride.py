@@ -83,3 +83,37 @@ def test_both_are_accurate_where_the_residual_is_unimodal(trained):
         pred = _samples(trained[name], residual, 0.7, 200)
         assert abs(pred.mean() - truth) < 0.3, name
         assert pred.std() < 0.3, name
+
+
+@pytest.mark.parametrize("robot", ["go1", "g1"])
+def test_residual_penalty_spares_exactly_what_stance_feet_can_produce(robot, request):
+    """The prior's residual penalty (``stride.non_contact_part``) is blind to any force the
+    stance feet produce through their Jacobians, and sees a pure force on the base or a load on a
+    swing leg, which no contact can produce."""
+    from stride_jax.eval import forces
+    from stride_jax.train import loop
+
+    sm = request.getfixturevalue(robot)
+    nv, nfeet = sm.mj.nv, sm.nfeet
+    rng = np.random.default_rng(0)
+    q = np.tile(sm.info.qpos0, (3, 1))
+    contact = np.zeros((1, 3, nfeet), bool)
+    contact[0, 0, 0] = True  # step 0: one foot down; step 1: airborne
+    split = {k: np.zeros((1, 3, n), np.float32) for k, n in
+             (("qd", nv), ("tau", nv), ("qdd", nv), ("ctrl", sm.mj.nu))}
+    split.update(q=q[None].astype(np.float32), valid=np.ones((1, 3), bool), foot_contact=contact)
+    ex = loop._examples(split, lambda q: forces.foot_jacobians(sm, q))
+    jac = ex["contact_jac"]  # [2, nfeet * k, nv]
+    k = jac.shape[1] // nfeet
+    assert np.abs(jac[0, :k]).sum() > 0 and np.abs(jac[0, k:]).sum() == 0 and not jac[1].any()
+    contact_force = jac[0].T @ rng.normal(size=jac.shape[1]).astype(np.float32)
+    assert np.abs(stride.non_contact_part(contact_force, jac[0])).max() < (
+        1e-3 * np.abs(contact_force).max())
+    other_leg = np.zeros(nv, np.float32)
+    other_leg[sm.act_dof[-1]] = 10.0  # a joint of another limb
+    base_push = np.zeros(nv, np.float32)
+    base_push[2] = 100.0  # a pure vertical force on the base
+    for f in (other_leg, base_push):
+        left = stride.non_contact_part(f, jac[0])
+        assert np.linalg.norm(left) > 0.1 * np.linalg.norm(f)
+        np.testing.assert_allclose(stride.non_contact_part(f, jac[1]), f)  # free: all of it

@@ -5,7 +5,8 @@ batch with ``vmap``):
 
 * ``init(key) -> params``
 * ``loss(params, example, key) -> (scalar, parts)``: ``example`` holds ``q, qd, tau, qdd, ctrl``,
-  the next ``q_next, qd_next`` and a training-time ``contact_dofs`` mask ``[nv]``
+  the next ``q_next, qd_next`` and the training-time ``contact_jac``
+  ``[R, nv]`` (Jacobians of the feet in stance)
 * ``acceleration(params, q, qd, tau, key) -> qdd``: structured models only
 * ``terms(params, q, qd, tau, key) -> {'prior', 'residual', 'eps'}``: structured models only,
   the split of the acceleration into the Lagrangian prior and the residual
@@ -161,7 +162,7 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
 
     def loss(params, ex, key):
         return stride.loss(params, spec, cfg, residual, ex["q"], ex["qd"], ex["tau"], ex["qdd"],
-                           key, scales, ex.get("contact_dofs", False))
+                           key, scales, ex.get("contact_jac"))
 
     def acceleration(params, q, qd, tau, key, nfe=None):
         _check_inputs(name, spec, nu, q=q, qd=qd, tau=tau)

@@ -27,14 +27,12 @@ denoising loss in place of flow matching). Per example, with
   uses the plain squared error, trained into both parts;
 * ``L_fm``: the conditional flow-matching loss of the flow on the target ``stop_gradient(r*)``
   (the denoising loss for the diffusion residual);
-* ``L_res = sum_j (1 - reach_j) r*_j^2``, the size of the residual the prior leaves on the dofs
-  **no foot in contact can act on** (``reach``: the dofs of the chains from the stance feet to
-  the world, ``SimModel.foot_dofs``): every dof in free motion and for robots without feet; in
-  stance, a swing leg's joints (and a humanoid's arms and waist), where the true residual holds
-  only what the prior cannot express (damping, friction);
-  (tried and measured worse: also withholding contact steps' acceleration gradients from the
-  prior. With Go1 in free flight 9% of the time, the mass then drifted from 12.7 to 26 kg and
-  DeLaN's foot-force error grew from 23 N to 60 N);
+* ``L_res = |(I - P_c) r*|^2``, the size of the residual the prior leaves **outside what the
+  stance feet can produce**: ``P_c`` projects onto the range of ``J_c^T``, the transposed sole
+  Jacobians of the feet in contact (no rows in free motion and for robots without feet, where
+  all of ``r*`` is penalised). Contact forces act only through ``J_c^T f``; what is left (a swing
+  leg's joints, a humanoid's arms, a pure torque on the base) holds only what the prior cannot
+  express (damping, friction), so the prior is asked to explain the rest;
 * ``L = L_acc + fm_weight * L_fm + residual_weight * L_res``.
 
 Why ``L_res``: a residual that sees ``tau`` can cancel any rescaling of the prior (``M -> k M``
@@ -43,15 +41,19 @@ between prior and residual is not identifiable and drifts (measured: a tiny pend
 learned M = 29 for a unit pendulum and pushed the rest into the flow, blurring its modes). The
 penalty asks the prior to explain what it can, the paper's "division of labour" (Sec. III-F).
 
-Why not on the dofs contacts reach: penalised everywhere, the residual is shrunk where it
+Why not on the part contacts can produce: penalised everywhere, the residual is shrunk where it
 matters most. A quadruped stands on its feet ~90% of the time, and a prior that lowers gravity by
 the mean contact force makes ``r*`` smallest -- so it learned exactly that, and the residual's
 contact forces were off by their mean (Go1: 60 N error for a 62 N mean normal force, measured).
-Why not free motion only (the first version): a walking humanoid is almost never airborne, so the
-penalty hardly ever applied and the prior/residual split drifted freely (G1: STRIDE's foot forces
-off by 207 N where DeLaN's were off by 37 N). Contact flags are used at training time only
-(simulators and most legged robots' foot sensors or contact estimators give them); the models
-never take them as inputs.
+Why not in free motion only (the first version): a standing or walking humanoid is almost never
+airborne, so the penalty hardly ever applied and the prior/residual split drifted (G1, measured:
+STRIDE's prior grew a ~140 N m torque on the base that its residual cancelled, and the foot
+forces read from the residual were off by 207 N where DeLaN's were off by 37 N). A pure base
+force or torque is never in the range of ``J_c^T`` (a foot's force also loads the leg's joints),
+so the projection pins the mass and gravity of the prior without biasing the contact part.
+Contact flags and Jacobians are used at training time only (simulators, and legged robots' foot
+sensors or contact estimators with the robot's kinematic model, give them); the models never take
+them as inputs.
 
 Why the stop-gradients: the paper's single objective, taken literally, would regress a *sampled*
 residual onto the observed acceleration with a squared error, whose minimiser is the conditional
@@ -193,12 +195,24 @@ def terms(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
             "residual": jax.scipy.linalg.cho_solve(cho, eps), "eps": eps}
 
 
+def non_contact_part(force: jax.Array, jac: jax.Array | None) -> jax.Array:
+    """``(I - P) force`` [nv]: what of a generalised force ``[nv]`` no forces at the contacts
+    can produce, with ``P`` the projection onto the range of ``jac^T`` (``jac [R, nv]``; rows of
+    zeros are ignored; ``None`` or no rows: the whole force)."""
+    if jac is None or jac.shape[0] == 0:
+        return force
+    gram = jac @ jac.T
+    ridge = 1e-6 * jnp.trace(gram) / gram.shape[0] + 1e-9
+    coef = jnp.linalg.solve(gram + ridge * jnp.eye(gram.shape[0], dtype=gram.dtype), jac @ force)
+    return force - jac.T @ coef
+
+
 def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
-         q, qd, tau, qdd, key, scales: Scales = Scales(), contact_dofs=False
-         ) -> tuple[jax.Array, dict]:
-    """One example's training loss and its parts (see the module docstring); ``contact_dofs``
-    ``[nv]`` (or a scalar for all dofs): 1.0 where a foot in contact can act on the dof (no
-    residual penalty there)."""
+         q, qd, tau, qdd, key, scales: Scales = Scales(),
+         contact_jac: jax.Array | None = None) -> tuple[jax.Array, dict]:
+    """One example's training loss and its parts (see the module docstring). ``contact_jac``
+    ``[R, nv]``: the sole Jacobians of the feet in contact (rows of zeros for feet in swing;
+    ``None`` or no rows: free motion)."""
     _check(residual)
     key_sample, key_gen = jax.random.split(key)
     M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn)
@@ -218,11 +232,11 @@ def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
         eps = scales.force * _residual(params["residual"], spec, cfg, residual, c, key_sample)
         qdd_pred = jax.scipy.linalg.cho_solve(cho, tau - b + eps)
         l_acc = jnp.sum(((qdd - qdd_pred) / scales.qdd) ** 2)
-    implied = (M @ qdd - (tau - b)) / scales.force  # r*, the residual the prior leaves
-    l_res = jnp.sum(implied ** 2)
-    parts = {"acc": l_acc, "res": l_res}
-    free = 1.0 - jnp.broadcast_to(jnp.asarray(contact_dofs, implied.dtype), implied.shape)
-    total = l_acc + cfg.residual_weight * jnp.sum(free * implied ** 2)
+    r_star = M @ qdd - (tau - b)  # the residual the prior leaves (N, N m)
+    implied = r_star / scales.force
+    off_contact = non_contact_part(r_star, contact_jac) / scales.force
+    parts = {"acc": l_acc, "res": jnp.sum(implied ** 2), "res_free": jnp.sum(off_contact ** 2)}
+    total = l_acc + cfg.residual_weight * parts["res_free"]
     if generative_kind:
         target = jax.lax.stop_gradient(implied)
         l_gen = cfg.generator(residual).loss(params["residual"], target, c, key_gen)

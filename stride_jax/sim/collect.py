@@ -100,5 +100,4 @@ def robot_meta(sm: model.SimModel) -> dict:
                   for j in range(m.njnt) if m.jnt_type[j] != mujoco.mjtJoint.mjJNT_FREE],
         ctrl_range=m.actuator_ctrlrange.tolist(),
         total_mass=float(m.body_mass.sum()),
-        foot_dofs=sm.foot_dofs().astype(int).tolist(),
     )

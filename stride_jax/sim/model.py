@@ -42,21 +42,6 @@ class SimModel:
     def nfeet(self) -> int:
         return len(self.robot.feet)
 
-    def foot_dofs(self) -> np.ndarray:
-        """``[nfeet, nv]`` bool: the dofs a force at each foot can act on (those of the bodies
-        on the chain from the foot's site to the world; for a floating base, the base's six and
-        the leg's joints). Where no foot in contact reaches a dof, its generalised force has no
-        contact part."""
-        m = self.mj
-        out = np.zeros((self.nfeet, m.nv), bool)
-        for i, site in enumerate(self.foot_sites):
-            body = int(m.site_bodyid[site])
-            while body > 0:
-                adr, num = int(m.body_dofadr[body]), int(m.body_dofnum[body])
-                out[i, adr:adr + num] = True
-                body = int(m.body_parentid[body])
-        return out
-
 
 def _id(m: mujoco.MjModel, obj: mujoco.mjtObj, name: str, robot: str) -> int:
     if not name:  # mj_name2id segfaults on None; an empty name is never what we mean

@@ -9,7 +9,7 @@ import pathlib
 import numpy as np
 
 from stride_jax.dynamics import mlp, models, stride
-from stride_jax.eval import rollout
+from stride_jax.eval import forces, rollout
 from stride_jax.sim import collect, dataset
 from stride_jax.sim import model as sim_model
 from stride_jax.train import loop
@@ -108,11 +108,12 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
     atomic_write_text(out / "config.json", json.dumps(
         {"train": dataclasses.asdict(cfg), "dataset": str(data_dir),
          "dataset_sha256": ds.meta["arrays_sha256"]}, indent=1))
-    foot_dofs = ds.meta.get("foot_dofs")
-    if foot_dofs is None and ds.meta["feet"]:
-        foot_dofs = sim_model.load(cfg.robot).foot_dofs()
+    jacobians = None
+    if ds.meta["feet"]:
+        sm = sim_model.load(ds.meta["robot"])
+        jacobians = lambda q: forces.foot_jacobians(sm, q)  # noqa: E731
     loop.train(model.loss, model.init, ds.split("train"), ds.split("val"), cfg, out, log,
-               foot_dofs=foot_dofs)
+               jacobians=jacobians)
     log(f"trained {cfg.model} on {cfg.robot}: best params in {out / 'best'}, "
         f"log in {out / 'metrics.csv'}")
     return out

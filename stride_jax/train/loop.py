@@ -46,31 +46,31 @@ class LoopConfig:
     deadline: float = 0.0
 
 
-def _examples(split: dict, foot_dofs: np.ndarray | None = None) -> dict:
+def _examples(split: dict, jacobians: Callable | None = None) -> dict:
     """Transitions between consecutive valid steps as flat examples [N, ...]: the step's
-    ``q, qd, tau, qdd, ctrl``, the next step's ``q_next, qd_next``, and ``contact_dofs``
-    ``[N, nv]`` (1.0 where a foot in contact can act on the dof; training-time supervision only).
+    ``q, qd, tau, qdd, ctrl``, the next step's ``q_next, qd_next``, and ``contact_jac``
+    ``[N, nfeet * k, nv]``, the sole Jacobians of the feet in contact (zero rows for feet in
+    swing; training-time supervision only, see ``stride.loss``).
 
-    ``foot_dofs`` ``[nfeet, nv]`` (``SimModel.foot_dofs``) says which dofs each foot reaches;
-    without it a contact anywhere counts for every dof.
+    ``jacobians(q [N, nq]) -> [N, nfeet, k, nv]`` (``eval.forces.foot_jacobians``); without it
+    (robots without feet) ``contact_jac`` has no rows.
     """
     v = split["valid"][:, :-1] & split["valid"][:, 1:]
     ex = {k: split[k][:, :-1][v] for k in ("q", "qd", "tau", "qdd", "ctrl")}
-    nv = split["qd"].shape[-1]
+    n, nv = len(ex["q"]), split["qd"].shape[-1]
     feet = split.get("foot_contact")
-    if feet is None or feet.shape[-1] == 0:
-        reach = np.zeros(split["valid"].shape + (nv,), bool)
-    elif foot_dofs is None:
-        reach = np.broadcast_to(feet.any(-1)[..., None], feet.shape[:-1] + (nv,))
+    if jacobians is None or feet is None or feet.shape[-1] == 0:
+        jac = np.zeros((n, 0, nv), np.float32)
     else:
-        foot_dofs = np.asarray(foot_dofs, bool)
-        if foot_dofs.shape != (feet.shape[-1], nv):
-            raise TrainingError(f"foot_dofs has shape {list(foot_dofs.shape)}, expected "
-                                f"[{feet.shape[-1]} feet, {nv} dofs]")
-        reach = (feet[..., None] > 0.5) & foot_dofs  # [E, T, nfeet, nv]
-        reach = reach.any(-2)
-    ex.update(q_next=split["q"][:, 1:][v], qd_next=split["qd"][:, 1:][v],
-              contact_dofs=reach[:, :-1][v])
+        stance = feet[:, :-1][v] > 0.5  # [N, nfeet]
+        jac = np.zeros((n, feet.shape[-1], 0, nv), np.float32)
+        if stance.any():
+            some = stance.any(-1)
+            j = np.asarray(jacobians(ex["q"][some]), np.float32)
+            jac = np.zeros((n,) + j.shape[1:], np.float32)
+            jac[some] = j * stance[some][:, :, None, None]
+        jac = jac.reshape(n, -1, nv)
+    ex.update(q_next=split["q"][:, 1:][v], qd_next=split["qd"][:, 1:][v], contact_jac=jac)
     ex = {k: np.asarray(a, np.float32) for k, a in ex.items()}
     bad = {k: int((~np.isfinite(a.reshape(len(a), -1))).any(-1).sum()) for k, a in ex.items()}
     if any(bad.values()):
@@ -102,15 +102,15 @@ def _manager(path: pathlib.Path, max_to_keep: int) -> ocp.CheckpointManager:
 
 def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: dict,
           cfg: LoopConfig, out: pathlib.Path, log: Callable[[str], None] = print,
-          foot_dofs: np.ndarray | None = None) -> dict:
+          jacobians: Callable | None = None) -> dict:
     """Trains ``init_fn(key)`` params on ``loss_fn(params, example, key)``; returns the best params.
 
     Writes ``out/ckpt`` (latest, resumable), ``out/best`` (lowest validation loss) and
-    ``out/metrics.csv``; resumes from ``out/ckpt`` when it exists. ``foot_dofs``: see
+    ``out/metrics.csv``; resumes from ``out/ckpt`` when it exists. ``jacobians``: see
     ``_examples``.
     """
     out.mkdir(parents=True, exist_ok=True)
-    data, val = _examples(train_split, foot_dofs), _examples(val_split, foot_dofs)
+    data, val = _examples(train_split, jacobians), _examples(val_split, jacobians)
     n_train = len(data["q"])
     if n_train == 0 or len(val["q"]) == 0:
         raise TrainingError("no valid training or validation steps in the dataset")
