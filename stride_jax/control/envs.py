@@ -1,0 +1,435 @@
+"""Velocity-command locomotion environments in MJX, with the Brax ``Env`` API that PPO trains on.
+
+The robots are our own definitions (``stride_jax.sim.model.load``): feet-only contacts, pyramidal
+cones, the robots' PD position servos. An action ``a`` in ``[-1, 1]^nu`` is a joint-target offset
+around the home pose: ``ctrl = clip(home + action_scale * a, ctrl range)``, held for one control
+period (``n_substeps`` simulation steps).
+
+A command is ``(vx, vy, yaw rate)`` in the base frame (m/s, m/s, rad/s), drawn per episode and
+re-drawn every ``resample_s`` seconds. The reward is a dict of named terms with scales, as MuJoCo
+Playground writes it (Rudin et al. 2022 for the terms):
+
+    r = max(0, dt * sum_i scale_i * term_i)
+
+(the clip keeps rewards non-negative, so ending an episode early only loses reward). Every term's
+scaled contribution is reported in ``state.metrics['reward/<name>']``.
+
+The observation is a function of the state and the command alone (:func:`observe`):
+``[v_base (3), w_base (3), gravity_base (3), q_joints - home (nu), qd_joints (nu), command (3)]``
+plus, for robots with a gait clock (the G1), ``[cos 2 pi c, sin 2 pi c]`` -- so that a planner
+that holds ``(q, qd, command)`` can query the policy (:func:`observation_fn`).
+
+Written for one world; :func:`wrap_for_training` vmaps it, counts episodes, and resets finished
+worlds to a freshly drawn state and command (Brax's own auto-reset returns every world to its first
+state, which would fix each world's command and start for the whole run).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from brax.envs import base as brax_base
+from brax.envs.wrappers import training as brax_wrappers
+from mujoco import mjx
+
+from stride_jax.control import gait as gait_lib
+from stride_jax.sim import rollout_mjx
+from stride_jax.sim import model as sim_model
+
+
+@dataclasses.dataclass(frozen=True)
+class Commands:
+    """Command distribution: uniform ranges (base frame), a share of stand-still commands."""
+
+    forward: tuple[float, float] = (0.0, 2.0)  # m/s
+    lateral: tuple[float, float] = (-0.5, 0.5)  # m/s
+    yaw: tuple[float, float] = (-1.0, 1.0)  # rad/s
+    zero_prob: float = 0.1
+    resample_s: float = 5.0
+
+
+@dataclasses.dataclass(frozen=True)
+class RewardScales:
+    """Scale of each reward term (0 disables it). Terms (all per control step, before ``* dt``):
+
+    tracking_lin_vel: exp(-|cmd_xy - v_xy|^2 / sigma), base-frame velocity.
+    tracking_ang_vel: exp(-(cmd_yaw - w_z)^2 / sigma).
+    lin_vel_z: v_z^2.  ang_vel_xy: |w_xy|^2.  orientation: |g_xy|^2 (gravity in the base frame).
+    base_height: (z - base_height_target)^2.
+    torques: |tau|^2 (N m)^2.  action_rate: |a - a_prev|^2.  pose: |q_j - home|^2.
+    stand_still: |q_j - home|_1 while the command is (near) zero.
+    feet_air_time: sum over touch-downs of (air time - air_time_target), moving commands only.
+    feet_phase: exp(-|z_feet - z_scheduled|^2 / 0.01) against the gait clock's swing heights.
+    termination: 1 on a fall.
+    """
+
+    tracking_lin_vel: float = 1.0
+    tracking_ang_vel: float = 0.5
+    lin_vel_z: float = -0.5
+    ang_vel_xy: float = -0.05
+    orientation: float = -5.0
+    base_height: float = 0.0
+    torques: float = -2e-4
+    action_rate: float = -0.01
+    pose: float = -0.1
+    stand_still: float = -0.5
+    feet_air_time: float = 0.2
+    feet_phase: float = 0.0
+    termination: float = -1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    """A velocity-command task.
+
+    Attributes:
+      robot: robot name (``go1``, ``g1``).
+      action_scale: joint-target offset per unit action (rad).
+      commands: the command distribution.
+      rewards: reward scales.
+      tracking_sigma: width of the tracking kernels ((m/s)^2, (rad/s)^2).
+      air_time_target: swing duration the air-time term rewards beyond (s).
+      base_height_target: base height the base_height term aims at (m).
+      gait_hz: gait clock frequency (Hz); 0: no clock in the observation (Go1).
+      gait_duty: stance fraction of the clock's schedule.
+      swing_height: scheduled swing height of the feet (m).
+      init_joint_noise: std of the initial joint offsets (rad).
+      init_height: added to the home pose's base height at reset (m).
+    """
+
+    robot: str = "go1"
+    action_scale: float = 0.5
+    commands: Commands = Commands()
+    rewards: RewardScales = RewardScales()
+    tracking_sigma: float = 0.25
+    air_time_target: float = 0.1
+    base_height_target: float = 0.3
+    gait_hz: float = 0.0
+    gait_duty: float = 0.5
+    swing_height: float = 0.08
+    init_joint_noise: float = 0.1
+    init_height: float = 0.02
+
+    def __post_init__(self):
+        if self.action_scale <= 0:
+            raise ValueError(f"action_scale={self.action_scale} must be > 0")
+        if self.tracking_sigma <= 0:
+            raise ValueError(f"tracking_sigma={self.tracking_sigma} must be > 0")
+        c = self.commands
+        for name in ("forward", "lateral", "yaw"):
+            lo, hi = getattr(c, name)
+            if hi < lo:
+                raise ValueError(f"commands.{name}: upper bound {hi} below lower bound {lo}")
+        if not 0 <= c.zero_prob <= 1 or c.resample_s <= 0:
+            raise ValueError("commands: zero_prob must be in [0, 1] and resample_s > 0")
+
+
+PRESETS = {
+    "go1": EnvConfig(),
+    "g1": EnvConfig(
+        robot="g1", action_scale=0.3,
+        commands=Commands(forward=(0.0, 1.0), lateral=(-0.3, 0.3), yaw=(-0.5, 0.5)),
+        rewards=RewardScales(tracking_lin_vel=1.0, tracking_ang_vel=0.75, lin_vel_z=-0.5,
+                             ang_vel_xy=-0.15, orientation=-2.0, base_height=-10.0, torques=-1e-5,
+                             action_rate=-0.01, pose=-0.5, stand_still=-0.5, feet_air_time=0.0,
+                             feet_phase=1.0, termination=-1.0),
+        base_height_target=0.75, gait_hz=1.25, gait_duty=0.5, swing_height=0.08,
+        init_joint_noise=0.05, init_height=0.0),
+}
+
+
+def config(robot: str, **overrides) -> EnvConfig:
+    """The preset task of ``robot`` with fields replaced by ``overrides``."""
+    if robot not in PRESETS:
+        raise ValueError(f"no environment for robot {robot!r}; available: {', '.join(PRESETS)}")
+    return dataclasses.replace(PRESETS[robot], **overrides)
+
+
+# ---------------------------------------------------------------------------------------------
+# Pure functions of one state.
+
+
+def rotate_inv(quat: jax.Array, v: jax.Array) -> jax.Array:
+    """``R(quat)^T v``: a world vector in the frame of unit quaternion ``quat`` (w x y z)."""
+    quat = quat / jnp.maximum(jnp.linalg.norm(quat), 1e-9)
+    w, u = quat[0], -quat[1:]
+    t = 2.0 * jnp.cross(u, v)
+    return v + w * t + jnp.cross(u, t)
+
+
+def base_signals(q: jax.Array, qd: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Base-frame linear velocity ``[3]`` (m/s), angular velocity ``[3]`` (rad/s), and gravity
+    direction ``[3]`` (unit) of a floating-base state (MJX: world linear, body angular)."""
+    quat = q[3:7]
+    return rotate_inv(quat, qd[0:3]), qd[3:6], rotate_inv(quat, jnp.array([0.0, 0.0, -1.0]))
+
+
+def observe(cfg: EnvConfig, home: jax.Array, q: jax.Array, qd: jax.Array, command: jax.Array,
+            clock: jax.Array | None = None) -> jax.Array:
+    """The policy's observation ``[obs_size]`` of state ``(q [nq], qd [nv])`` under ``command``
+    ``[3]``; ``clock`` (cycles) is required when ``cfg.gait_hz > 0``. ``home`` ``[nu]``."""
+    v, w, g = base_signals(q, qd)
+    parts = [v, w, g, q[7:] - home, qd[6:], command]
+    if cfg.gait_hz > 0:
+        if clock is None:
+            raise ValueError(f"the {cfg.robot} task observes a gait clock: pass clock")
+        parts.append(jnp.stack([jnp.cos(2 * jnp.pi * clock), jnp.sin(2 * jnp.pi * clock)]))
+    obs = jnp.concatenate(parts)
+    return jnp.where(jnp.isfinite(obs), obs, 0.0)  # a diverged world must not poison statistics
+
+
+def obs_size(cfg: EnvConfig, nu: int) -> int:
+    return 12 + 2 * nu + (2 if cfg.gait_hz > 0 else 0)
+
+
+def state_terms(cfg: EnvConfig, home: jax.Array, q: jax.Array, qd: jax.Array,
+                command: jax.Array, torque: jax.Array, fallen: jax.Array) -> dict[str, jax.Array]:
+    """The reward terms that depend on the state, command and joint torques ``[nu]`` (N m) only
+    (unscaled). A planner scores its rollouts with the same functions as the environment."""
+    v, w, g = base_signals(q, qd)
+    sig = cfg.tracking_sigma
+    moving = jnp.linalg.norm(command) > 0.1
+    return {
+        "tracking_lin_vel": jnp.exp(-jnp.sum((command[:2] - v[:2]) ** 2) / sig),
+        "tracking_ang_vel": jnp.exp(-(command[2] - w[2]) ** 2 / sig),
+        "lin_vel_z": v[2] ** 2,
+        "ang_vel_xy": jnp.sum(w[:2] ** 2),
+        "orientation": jnp.sum(g[:2] ** 2),
+        "base_height": (q[2] - cfg.base_height_target) ** 2,
+        "torques": jnp.sum(torque ** 2),
+        "pose": jnp.sum((q[7:] - home) ** 2),
+        "stand_still": jnp.where(moving, 0.0, jnp.sum(jnp.abs(q[7:] - home))),
+        "termination": fallen.astype(jnp.float32),
+    }
+
+
+def total_reward(cfg: EnvConfig, terms: dict[str, jax.Array], dt: float) -> tuple[jax.Array, dict]:
+    """``max(0, dt * sum scale_i term_i)`` and each term's scaled contribution."""
+    scales = dataclasses.asdict(cfg.rewards)
+    unknown = set(terms) - set(scales)
+    if unknown:
+        raise ValueError(f"reward terms without a scale: {sorted(unknown)}")
+    parts = {k: dt * scales[k] * v for k, v in terms.items() if scales[k] != 0}
+    total = sum(parts.values()) if parts else jnp.zeros(())
+    return jnp.maximum(total, 0.0), parts
+
+
+def sample_command(c: Commands, key: jax.Array) -> jax.Array:
+    """One command ``[3]`` (vx, vy in m/s, yaw rate in rad/s)."""
+    k_cmd, k_zero = jax.random.split(key)
+    lo = jnp.array([c.forward[0], c.lateral[0], c.yaw[0]])
+    hi = jnp.array([c.forward[1], c.lateral[1], c.yaw[1]])
+    cmd = jax.random.uniform(k_cmd, (3,), minval=lo, maxval=hi)
+    return jnp.where(jax.random.bernoulli(k_zero, c.zero_prob), 0.0, cmd)
+
+
+# ---------------------------------------------------------------------------------------------
+# The environment.
+
+
+class VelocityEnv(brax_base.Env):
+    """A velocity-command MJX environment for one world (Brax ``Env``).
+
+    ``mj_model`` replaces the robot's nominal ``MjModel`` (a slope, other ground) while keeping its
+    definition; the contact layout is read from the model used.
+    """
+
+    def __init__(self, cfg: EnvConfig, mj_model: mujoco.MjModel | None = None):
+        self.cfg = cfg
+        self.sm = sim_model.load(cfg.robot)
+        if not self.sm.robot.floating_base or self.sm.robot.kp is None:
+            raise ValueError(f"robot {cfg.robot!r}: velocity tasks need a floating base and "
+                             "position servos")
+        self.mj = mj_model if mj_model is not None else self.sm.mj
+        self.mx = mjx.put_model(self.mj)
+        self.slots = contact_slots(self.mx)
+        info = self.sm.info
+        self.home = jnp.asarray(info.qpos0[7:])
+        self.qpos0 = jnp.asarray(info.qpos0).at[2].add(cfg.init_height)
+        self.lo, self.hi = jnp.asarray(info.ctrl_lo), jnp.asarray(info.ctrl_hi)
+        self.dt = float(info.ctrl_dt)
+        self.nu = int(info.nu)
+        self.resample_steps = max(1, int(round(cfg.commands.resample_s / self.dt)))
+        d = mujoco.MjData(self.sm.mj)
+        d.qpos[:] = info.qpos0
+        mujoco.mj_kinematics(self.sm.mj, d)
+        self.foot_z0 = jnp.asarray(d.site_xpos[self.sm.foot_sites, 2], jnp.float32)
+
+    # -- Brax Env API -------------------------------------------------------------------------
+    @property
+    def observation_size(self) -> int:
+        return obs_size(self.cfg, self.nu)
+
+    @property
+    def action_size(self) -> int:
+        return self.nu
+
+    @property
+    def backend(self) -> str:
+        return "mjx"
+
+    def reset(self, rng: jax.Array) -> brax_base.State:
+        """A fresh world: home pose with joint noise, a random heading, a drawn command."""
+        rng, k_joint, k_yaw, k_cmd, k_clock = jax.random.split(rng, 5)
+        yaw = jax.random.uniform(k_yaw, minval=-jnp.pi, maxval=jnp.pi)
+        qpos = self.qpos0.at[3:7].set(jnp.array([jnp.cos(yaw / 2), 0, 0, jnp.sin(yaw / 2)]))
+        qpos = qpos.at[7:].add(self.cfg.init_joint_noise * jax.random.normal(k_joint, (self.nu,)))
+        # No forward pass: the next mjx.step starts with one, and the observation needs q, qd only.
+        d = mjx.make_data(self.mx).replace(qpos=qpos, ctrl=jnp.clip(qpos[7:], self.lo, self.hi))
+        command = sample_command(self.cfg.commands, k_cmd)
+        clock = jax.random.uniform(k_clock) if self.cfg.gait_hz > 0 else jnp.zeros(())
+        nf = self.sm.nfeet
+        info = {"rng": rng, "command": command, "last_action": jnp.zeros(self.nu),
+                "air_time": jnp.zeros(nf), "last_contact": jnp.ones(nf, bool),
+                "clock": clock, "t": jnp.zeros((), jnp.int32)}
+        obs = observe(self.cfg, self.home, d.qpos, d.qvel, command, clock)
+        _, parts = total_reward(self.cfg, self._terms_zero(), self.dt)
+        metrics = {f"reward/{k}": jnp.zeros(()) for k in parts}
+        metrics["fallen"] = jnp.zeros(())
+        return brax_base.State(d, obs, jnp.zeros(()), jnp.zeros(()), metrics, info)
+
+    def step(self, state: brax_base.State, action: jax.Array) -> brax_base.State:
+        """One control period under ``action`` ``[nu]`` in [-1, 1]."""
+        cfg, info = self.cfg, dict(state.info)
+        action = jnp.clip(action, -1.0, 1.0)
+        ctrl = jnp.clip(self.home + cfg.action_scale * action, self.lo, self.hi)
+        d = physics_step(self.mx, self.sm.n_substeps, state.pipeline_state, ctrl)
+        q, qd = d.qpos, d.qvel
+        finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd))
+        fallen = rollout_mjx.fallen(self.sm, q) | ~finite
+
+        contact = foot_contact(self.sm, self.slots, d)
+        first = contact & ~info["last_contact"]
+        air = info["air_time"] + self.dt
+        clock = jnp.mod(info["clock"] + cfg.gait_hz * self.dt, 1.0)
+        command = info["command"]
+        terms = state_terms(cfg, self.home, q, qd, command, d.actuator_force, fallen)
+        moving = jnp.linalg.norm(command) > 0.1
+        terms["action_rate"] = jnp.sum((action - info["last_action"]) ** 2)
+        terms["feet_air_time"] = jnp.where(
+            moving, jnp.sum((air - cfg.air_time_target) * first), 0.0)
+        phases = gait_lib.leg_phases(clock, jnp.arange(self.sm.nfeet) / self.sm.nfeet)
+        z_ref = self.foot_z0 + gait_lib.swing_height(phases, cfg.gait_duty, cfg.swing_height)
+        z = d.site_xpos[self.sm.foot_sites, 2]
+        terms["feet_phase"] = jnp.where(moving, jnp.exp(-jnp.sum((z - z_ref) ** 2) / 0.01), 0.0)
+        reward, parts = total_reward(cfg, terms, self.dt)
+        reward = jnp.where(finite, reward, 0.0)
+
+        t = info["t"] + 1
+        rng, k_cmd = jax.random.split(info["rng"])
+        resample = (t % self.resample_steps) == 0
+        command = jnp.where(resample, sample_command(cfg.commands, k_cmd), command)
+        info.update(rng=rng, command=command, last_action=action,
+                    air_time=jnp.where(contact, 0.0, air), last_contact=contact, clock=clock, t=t)
+        obs = observe(cfg, self.home, q, qd, command, clock)
+        metrics = {f"reward/{k}": jnp.where(finite, v, 0.0) for k, v in parts.items()}
+        metrics["fallen"] = fallen.astype(jnp.float32)
+        return state.replace(pipeline_state=d, obs=obs, reward=reward,
+                             done=fallen.astype(jnp.float32), metrics=metrics, info=info)
+
+    def _terms_zero(self) -> dict:
+        names = ("tracking_lin_vel", "tracking_ang_vel", "lin_vel_z", "ang_vel_xy", "orientation",
+                 "base_height", "torques", "pose", "stand_still", "termination", "action_rate",
+                 "feet_air_time", "feet_phase")
+        return {k: jnp.zeros(()) for k in names}
+
+    # -- helpers for planners and policies ----------------------------------------------------
+    def observation_fn(self):
+        """``obs(q, qd, command, clock=None) -> [obs_size]``, the environment's own."""
+        return functools.partial(observe, self.cfg, self.home)
+
+    def ctrl_from_action(self, action: jax.Array) -> jax.Array:
+        """Joint targets ``[nu]`` (rad) of a normalised action ``[nu]``."""
+        return jnp.clip(self.home + self.cfg.action_scale * jnp.clip(action, -1, 1),
+                        self.lo, self.hi)
+
+
+def physics_step(mx: mjx.Model, n_substeps: int, d: mjx.Data, ctrl: jax.Array) -> mjx.Data:
+    """Holds ``ctrl`` for ``n_substeps`` MJX steps."""
+    d = d.replace(ctrl=ctrl)
+    return jax.lax.fori_loop(0, n_substeps, lambda _, dd: mjx.step(mx, dd), d)
+
+
+def contact_slots(mx: mjx.Model) -> tuple[np.ndarray, np.ndarray]:
+    """Static ``(efc_address [ncon], rows [ncon])`` of MJX's contact slots (pyramidal cones:
+    ``2 (condim - 1)`` rows each), read without a forward pass."""
+    con = mjx.make_data(mx)._impl.contact
+    dim = np.asarray(con.dim)
+    return np.asarray(con.efc_address), np.where(dim == 1, 1, 2 * (dim - 1))
+
+
+def foot_contact(sm: sim_model.SimModel, slots: tuple[np.ndarray, np.ndarray],
+                 d: mjx.Data) -> jax.Array:
+    """Whether each foot carries a positive normal force; bool ``[nfeet]``. A slot's normal force
+    is the sum of its pyramid-edge forces (as :func:`stride_jax.sim.record.from_mjx` sums them);
+    the foot owning a slot is read from the slot's geoms at run time, so any floor works."""
+    adr, rows = slots
+    if len(adr) == 0:
+        return jnp.zeros(sm.nfeet, bool)
+    efc = d._impl.efc_force
+    slot_force = jnp.stack([efc[a:a + n].sum() for a, n in zip(adr, rows)])
+    owner = jnp.max(jnp.asarray(sm.geom_foot)[d._impl.contact.geom], axis=-1)  # [ncon]
+    force = jax.ops.segment_sum(jnp.where(owner >= 0, slot_force, 0.0), jnp.maximum(owner, 0),
+                                num_segments=sm.nfeet)
+    return force > 1e-3
+
+
+# ---------------------------------------------------------------------------------------------
+# Training wrappers.
+
+
+# Info keys of Brax's episode bookkeeping, which survive a reset (the rest is the env's own).
+BOOKKEEPING = ("steps", "truncation", "episode_done", "episode_metrics", "reset_rng")
+
+
+class FreshResetWrapper(brax_base.Wrapper):
+    """Resets finished worlds to a new draw of ``reset`` (new start, new command), keeping the
+    episode bookkeeping of :class:`brax.envs.wrappers.training.EpisodeWrapper` as Brax's own
+    ``AutoResetWrapper`` does. Wraps a batched environment."""
+
+    def reset(self, rng: jax.Array) -> brax_base.State:
+        state = self.env.reset(rng)
+        state.info["reset_rng"] = jax.vmap(lambda k: jax.random.fold_in(k, 1))(rng)
+        return state
+
+    def step(self, state: brax_base.State, action: jax.Array) -> brax_base.State:
+        if "steps" in state.info:
+            state.info["steps"] = jnp.where(state.done, 0.0, state.info["steps"])
+        state = state.replace(done=jnp.zeros_like(state.done))
+        state = self.env.step(state, action)
+        keys = jax.vmap(jax.random.split)(state.info["reset_rng"])
+        fresh = self.env.reset(keys[:, 1])
+        done = state.done
+
+        def pick(new, old):
+            return jnp.where(done.reshape(done.shape + (1,) * (old.ndim - 1)), new, old)
+
+        info = dict(state.info)
+        for k in fresh.info:
+            if k not in BOOKKEEPING:
+                info[k] = jax.tree.map(pick, fresh.info[k], state.info[k])
+        info["reset_rng"] = keys[:, 0]
+        return state.replace(pipeline_state=jax.tree.map(pick, fresh.pipeline_state,
+                                                         state.pipeline_state),
+                             obs=pick(fresh.obs, state.obs), info=info)
+
+
+def wrap_for_training(env: brax_base.Env, episode_length: int = 1000, action_repeat: int = 1,
+                      randomization_fn: Any = None) -> brax_base.Wrapper:
+    """Vmap, episode counting and fresh resets; the ``wrap_env_fn`` of ``ppo.train``."""
+    if randomization_fn is not None:
+        raise NotImplementedError("domain randomisation is not wired into these environments")
+    env = brax_wrappers.VmapWrapper(env)
+    env = brax_wrappers.EpisodeWrapper(env, episode_length, action_repeat)
+    return FreshResetWrapper(env)
+
+
+def make(robot: str, **overrides) -> VelocityEnv:
+    """The velocity-command environment of ``robot`` (``go1`` or ``g1``)."""
+    return VelocityEnv(config(robot, **overrides))

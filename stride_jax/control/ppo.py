@@ -1,0 +1,481 @@
+"""PPO warm-start policies on our MJX environments, in resumable chunks.
+
+The algorithm is Brax's PPO (``brax.training.agents.ppo``: its networks, loss, GAE, observation
+normaliser and unroll), driven by a small jitted loop of our own instead of
+``brax.training.agents.ppo.train``: that function (brax 0.14.2) calls ``jax.device_put_replicated``,
+which jax 0.10 removed, and with a shim its ``pmap`` path took 4 minutes on 2 CPU cores for 80 env
+steps (a recompilation per epoch). Owning the loop also makes resuming exact: the whole
+:class:`TrainState` -- parameters, Adam moments, normaliser, key -- is checkpointed.
+
+A run folder holds
+
+* ``config.json`` -- the :class:`PPOConfig` and the environment config it was started with;
+* ``checkpoint.msgpack`` -- the :class:`TrainState` (normaliser, policy, value, optimiser state,
+  key), total env steps and chunk count, in one file written atomically (a killed chunk leaves the
+  previous checkpoint intact);
+* ``progress.jsonl`` -- one line per checkpoint (episode reward terms, losses, steps/s).
+
+A chunk starts from the checkpoint, resets every world with a key derived from (seed, chunk), and
+runs ``checkpoints`` jitted epochs of PPO updates, saving after each. It ends after
+``chunk_steps`` env steps or, with ``minutes``, at the last checkpoint that leaves room for one
+more before the deadline (compilation included), so a chunk fits a time-boxed job. Resuming from
+disk continues exactly as the in-memory run would (tested).
+
+``policy(obs, key) -> action`` of a run is :func:`load_policy`; a planner that holds
+``(q, qd, command)`` builds the observation with the environment's ``observation_fn``.
+
+Command line (resumes when ``--out`` holds a checkpoint):
+
+    python -m stride_jax.control.ppo --robot go1 --preset gpu --out runs/ppo_go1 --minutes 8
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import json
+import pathlib
+import shlex
+import sys
+import time
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import serialization
+
+from stride_jax.control import envs
+from stride_jax.io import atomic_write, atomic_write_text
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    """A PPO run (Brax ``ppo.train`` hyper-parameters plus chunking).
+
+    Attributes:
+      robot: ``go1`` or ``g1`` (the environment preset of :mod:`stride_jax.control.envs`).
+      out: run folder.
+      chunk_steps: env steps per chunk (an upper bound when ``minutes`` is set).
+      minutes: wall-clock budget of a chunk, compilation included (0: none).
+      checkpoints: checkpoints per chunk (Brax "evals"; each is a sync point).
+      total_steps: the run is complete at this many env steps; a further chunk does nothing.
+      num_envs, episode_length, unroll_length, batch_size, num_minibatches, num_updates_per_batch,
+      learning_rate, entropy_cost, discounting, gae_lambda, clipping_epsilon, max_grad_norm,
+      reward_scaling: as in ``brax.training.agents.ppo.train``.
+      policy_width, policy_depth, value_width, value_depth: MLP sizes (swish).
+      seed: base seed (chunk ``i`` trains with ``seed + i``).
+    """
+
+    robot: str = "go1"
+    out: str = "runs/ppo_go1"
+    chunk_steps: int = 100_000_000
+    minutes: float = 0.0
+    checkpoints: int = 40
+    total_steps: int = 200_000_000
+    num_envs: int = 8192
+    episode_length: int = 1000
+    unroll_length: int = 20
+    batch_size: int = 256
+    num_minibatches: int = 32
+    num_updates_per_batch: int = 4
+    learning_rate: float = 3e-4
+    entropy_cost: float = 1e-2
+    discounting: float = 0.97
+    gae_lambda: float = 0.95
+    clipping_epsilon: float = 0.3
+    max_grad_norm: float = 1.0
+    reward_scaling: float = 1.0
+    policy_width: int = 128
+    policy_depth: int = 4
+    value_width: int = 256
+    value_depth: int = 5
+    seed: int = 0
+
+    @property
+    def steps_per_update(self) -> int:
+        """Env steps per PPO update (one batch of unrolls)."""
+        return self.batch_size * self.unroll_length * self.num_minibatches
+
+    def __post_init__(self):
+        problems = []
+        if self.batch_size * self.num_minibatches % self.num_envs:
+            problems.append(f"batch_size * num_minibatches = "
+                            f"{self.batch_size * self.num_minibatches} must be a multiple of "
+                            f"num_envs = {self.num_envs}")
+        if self.chunk_steps < self.checkpoints * self.steps_per_update:
+            problems.append(f"chunk_steps={self.chunk_steps} is below one update "
+                            f"({self.steps_per_update} env steps) per checkpoint "
+                            f"({self.checkpoints})")
+        for name in ("checkpoints", "num_envs", "episode_length", "unroll_length",
+                     "policy_depth", "value_depth"):
+            if getattr(self, name) < 1:
+                problems.append(f"{name} must be >= 1")
+        if self.minutes < 0:
+            problems.append("minutes must be >= 0")
+        if problems:
+            raise ValueError("bad PPO config: " + "; ".join(problems))
+
+
+PRESETS = {
+    # Seconds on a CPU (plus compilation): the machinery, not a walking policy.
+    "tiny": dict(num_envs=4, episode_length=20, unroll_length=5, batch_size=4, num_minibatches=2,
+                 num_updates_per_batch=1, chunk_steps=80, checkpoints=2, total_steps=160,
+                 policy_width=16, policy_depth=2, value_width=16, value_depth=2),
+    # A CPU sanity run (minutes): the policy starts to track the forward command.
+    "cpu": dict(num_envs=32, episode_length=200, unroll_length=10, batch_size=32,
+                num_minibatches=4, num_updates_per_batch=2, chunk_steps=200_000, checkpoints=10,
+                total_steps=1_000_000, policy_width=64, policy_depth=3, value_width=64,
+                value_depth=3),
+    # One H100/H200: MuJoCo Playground's Go1 joystick settings.
+    "gpu": {},
+    "default": {},
+}
+
+
+def preset(name: str, **overrides) -> PPOConfig:
+    if name not in PRESETS:
+        raise ValueError(f"unknown PPO preset {name!r}; choose from {', '.join(PRESETS)}")
+    return PPOConfig(**{**PRESETS[name], **overrides})
+
+
+# ---------------------------------------------------------------------------------------------
+# Networks, training state, one jitted epoch.
+
+
+def network_factory(cfg: PPOConfig) -> Callable:
+    from brax.training.agents.ppo import networks as ppo_networks
+    return functools.partial(ppo_networks.make_ppo_networks,
+                             policy_hidden_layer_sizes=(cfg.policy_width,) * cfg.policy_depth,
+                             value_hidden_layer_sizes=(cfg.value_width,) * cfg.value_depth)
+
+
+def _networks(cfg: PPOConfig, obs_size: int, action_size: int):
+    from brax.training.acme import running_statistics
+    return network_factory(cfg)((obs_size,), action_size,
+                                preprocess_observations_fn=running_statistics.normalize)
+
+
+def _optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
+    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm),
+                       optax.adam(cfg.learning_rate))
+
+
+class TrainState(NamedTuple):
+    """Everything a chunk needs to continue exactly (a pytree)."""
+
+    normalizer: Any  # brax running_statistics.RunningStatisticsState over observations
+    policy: Any  # policy network parameters
+    value: Any  # value network parameters
+    opt_state: Any  # optax state over (policy, value)
+    key: jax.Array  # raw uint32 key data [2]
+
+    @property
+    def params(self) -> tuple:
+        """``(normaliser, policy, value)``, Brax's inference layout."""
+        return (self.normalizer, self.policy, self.value)
+
+
+def init_state(cfg: PPOConfig, obs_size: int, action_size: int, key: jax.Array) -> TrainState:
+    """A fresh training state (also the structure checkpoints restore into)."""
+    from brax.training.acme import specs
+    from brax.training.acme import running_statistics
+    from brax.training.agents.ppo import losses as ppo_losses
+    nets = _networks(cfg, obs_size, action_size)
+    key_policy, key_value, key_train = jax.random.split(key, 3)
+    policy = nets.policy_network.init(key_policy)
+    value = nets.value_network.init(key_value)
+    norm = running_statistics.init_state(specs.Array((obs_size,), jnp.dtype("float32")))
+    opt_state = _optimizer(cfg).init(ppo_losses.PPONetworkParams(policy, value))
+    return _strong(TrainState(norm, policy, value, opt_state, jax.random.key_data(key_train)))
+
+
+def _strong(tree):
+    """Arrays without weak types (Python scalars in Brax's normaliser state would otherwise make
+    the first epoch compile twice: once for the weak inputs, once for the epoch's outputs)."""
+    def leaf(x):
+        x = jnp.asarray(x)
+        return x.astype(x.dtype)
+    return jax.tree.map(leaf, tree)
+
+
+class Trainer(NamedTuple):
+    init: Callable  # key -> TrainState
+    reset: Callable  # key -> batched, wrapped env state (jitted)
+    epoch: Callable  # (TrainState, env_state) -> (TrainState, env_state, metrics) (jitted)
+    updates_per_epoch: int
+
+
+def make_trainer(cfg: PPOConfig, env: Any) -> Trainer:
+    """PPO (Brax's loss, networks, normaliser and unroll) for an unwrapped Brax env; one epoch is
+    ``updates_per_epoch`` updates of ``cfg.steps_per_update`` env steps, in one jitted scan."""
+    from brax.training import acting
+    from brax.training.acme import running_statistics
+    from brax.training.agents.ppo import losses as ppo_losses
+    from brax.training.agents.ppo import networks as ppo_networks
+
+    env_w = envs.wrap_for_training(env, cfg.episode_length)
+    n_obs, nu = env.observation_size, env.action_size
+    nets = _networks(cfg, n_obs, nu)
+    make_inference = ppo_networks.make_inference_fn(nets)
+    optimizer = _optimizer(cfg)
+    loss_fn = functools.partial(
+        ppo_losses.compute_ppo_loss, ppo_network=nets, entropy_cost=cfg.entropy_cost,
+        discounting=cfg.discounting, reward_scaling=cfg.reward_scaling,
+        gae_lambda=cfg.gae_lambda, clipping_epsilon=cfg.clipping_epsilon,
+        normalize_advantage=True)
+    n_unrolls = cfg.batch_size * cfg.num_minibatches // cfg.num_envs
+    extra = ("truncation", "episode_metrics", "episode_done")
+    updates = max(1, cfg.chunk_steps // (cfg.checkpoints * cfg.steps_per_update))
+
+    def update(carry, _):
+        ts, env_state = carry
+        key, k_unroll, k_sgd = jax.random.split(jax.random.wrap_key_data(ts.key), 3)
+        policy = make_inference(ts.params)
+
+        def unroll(c, _):
+            st, k = c
+            k, k_now = jax.random.split(k)
+            st, data = acting.generate_unroll(env_w, st, policy, k_now, cfg.unroll_length, extra)
+            return (st, k), data
+
+        (env_state, _), data = jax.lax.scan(unroll, (env_state, k_unroll), length=n_unrolls)
+        # [n_unrolls, T, envs, ...] -> [n_unrolls * envs, T, ...]
+        data = jax.tree.map(lambda x: jnp.swapaxes(x, 1, 2).reshape((-1,) + x.shape[1:2]
+                                                                    + x.shape[3:]), data)
+        normalizer = running_statistics.update(ts.normalizer, data.observation)
+
+        def sgd(c, _):
+            opt_state, params, k = c
+            k, k_perm, k_grad = jax.random.split(k, 3)
+            shuffled = jax.tree.map(lambda x: jax.random.permutation(k_perm, x).reshape(
+                (cfg.num_minibatches, -1) + x.shape[1:]), data)
+
+            def minibatch(c2, batch):
+                opt_state, params, k = c2
+                k, k_loss = jax.random.split(k)
+                (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+                    params, normalizer, batch, k_loss)
+                upd, opt_state = optimizer.update(grads, opt_state, params)
+                return (opt_state, optax.apply_updates(params, upd), k), metrics
+
+            (opt_state, params, _), metrics = jax.lax.scan(minibatch, (opt_state, params,
+                                                                       k_grad), shuffled)
+            return (opt_state, params, k), metrics
+
+        params = ppo_losses.PPONetworkParams(ts.policy, ts.value)
+        (opt_state, params, _), metrics = jax.lax.scan(
+            sgd, (ts.opt_state, params, k_sgd), length=cfg.num_updates_per_batch)
+        done = data.extras["state_extras"]["episode_done"]
+        episodes = data.extras["state_extras"]["episode_metrics"]
+        sums = {k: jnp.sum(v * done) for k, v in episodes.items()}
+        ts = TrainState(normalizer, params.policy, params.value, opt_state,
+                        jax.random.key_data(key))
+        return (ts, env_state), (jax.tree.map(jnp.mean, metrics), sums, jnp.sum(done))
+
+    def epoch(ts, env_state):
+        (ts, env_state), (losses, sums, n) = jax.lax.scan(update, (ts, env_state),
+                                                           length=updates)
+        count = jnp.sum(n)
+        metrics = {f"train/{k}": jnp.mean(v) for k, v in losses.items()}
+        metrics.update({f"episode/{k}": jnp.sum(v) / jnp.maximum(count, 1)
+                        for k, v in sums.items()})
+        metrics["episode/count"] = count
+        return ts, env_state, metrics
+
+    def reset(key):  # Brax's wrappers expect raw uint32 keys [num_envs, 2]
+        return env_w.reset(jax.random.key_data(jax.random.split(key, cfg.num_envs)))
+
+    return Trainer(functools.partial(init_state, cfg, n_obs, nu), jax.jit(reset),
+                   jax.jit(epoch, donate_argnums=(0, 1)), updates)
+
+
+# ---------------------------------------------------------------------------------------------
+# Checkpoints and chunks.
+
+
+@dataclasses.dataclass(frozen=True)
+class RunState:
+    """What a run folder's checkpoint holds."""
+
+    train: TrainState
+    env_steps: int
+    chunks: int
+
+
+def save(out: pathlib.Path, state: RunState) -> None:
+    blob = serialization.msgpack_serialize({
+        "train": serialization.to_state_dict(jax.device_get(state.train)),
+        "env_steps": state.env_steps, "chunks": state.chunks})
+    atomic_write(pathlib.Path(out) / "checkpoint.msgpack", lambda f: f.write(blob))
+
+
+def load(out: pathlib.Path, cfg: PPOConfig, obs_size: int, action_size: int) -> RunState | None:
+    """The run's checkpoint, or None if it has none."""
+    path = pathlib.Path(out) / "checkpoint.msgpack"
+    if not path.is_file():
+        return None
+    raw = serialization.msgpack_restore(path.read_bytes())
+    target = init_state(cfg, obs_size, action_size, jax.random.key(0))
+    try:
+        train = serialization.from_state_dict(target, raw["train"])
+    except (KeyError, ValueError) as e:
+        raise ValueError(f"{path} does not match the networks of {out}/config.json: {e}") from e
+    shapes = lambda t: jax.tree.map(jnp.shape, t)
+    if shapes(train) != shapes(target):
+        raise ValueError(f"{path}: parameter shapes differ from the configured networks")
+    train = jax.tree.map(lambda a, t: jnp.asarray(a, t.dtype), train, target)
+    return RunState(train, int(raw["env_steps"]), int(raw["chunks"]))
+
+
+def _write_config(out: pathlib.Path, cfg: PPOConfig, env_cfg: envs.EnvConfig) -> None:
+    """Writes ``config.json`` on the first chunk; later chunks must match its networks."""
+    path = out / "config.json"
+    mine = {"ppo": dataclasses.asdict(cfg), "env": dataclasses.asdict(env_cfg)}
+    if not path.is_file():
+        atomic_write_text(path, json.dumps(mine, indent=1))
+        return
+    old = json.loads(path.read_text())
+    fixed = ("robot", "policy_width", "policy_depth", "value_width", "value_depth")
+    diff = [k for k in fixed if old["ppo"][k] != mine["ppo"][k]]
+    if diff or old["env"] != json.loads(json.dumps(mine["env"])):
+        raise ValueError(f"{out} was started with another robot, network or environment "
+                         f"({', '.join(diff) or 'env'}); use a new --out")
+
+
+def train_chunk(cfg: PPOConfig, env: Any, restore: RunState | None = None,
+                on_checkpoint: Callable[[RunState, dict], None] | None = None,
+                deadline: float | None = None, trainer: Trainer | None = None) -> RunState:
+    """One chunk of PPO on ``env`` (an unwrapped Brax env), from ``restore`` if given.
+
+    ``on_checkpoint(state, metrics)`` is called after every epoch; with ``deadline`` (a
+    ``time.monotonic()`` value) the chunk ends at the last epoch that leaves time for one more.
+    Returns the state at the end of the chunk (``restore`` itself when the run is complete).
+    """
+    trainer = trainer or make_trainer(cfg, env)
+    if restore is None:
+        restore = RunState(trainer.init(jax.random.key(cfg.seed)), 0, 0)
+    per_epoch = trainer.updates_per_epoch * cfg.steps_per_update
+    budget = min(cfg.chunk_steps, cfg.total_steps - restore.env_steps)
+    n_epochs = -(-budget // per_epoch) if budget > 0 else 0
+    if n_epochs == 0:
+        return restore
+    ts, steps, chunk = restore.train, restore.env_steps, restore.chunks + 1
+    env_state = trainer.reset(jax.random.fold_in(jax.random.key(cfg.seed), chunk))
+    state = restore
+    for _ in range(n_epochs):
+        t = time.monotonic()
+        ts, env_state, metrics = trainer.epoch(ts, env_state)
+        metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
+        steps += per_epoch
+        epoch_s = time.monotonic() - t
+        metrics.update(sps=per_epoch / epoch_s, epoch_s=epoch_s)
+        state = RunState(ts, steps, chunk)
+        if on_checkpoint:
+            on_checkpoint(state, metrics)
+        if deadline is not None and time.monotonic() + 1.2 * epoch_s > deadline:
+            break
+    return state
+
+
+def run(cfg: PPOConfig, env_cfg: envs.EnvConfig | None = None, log=print) -> RunState:
+    """One chunk into ``cfg.out``: resumes from its checkpoint, saves at every checkpoint."""
+    t0 = time.monotonic()
+    deadline = t0 + 60 * cfg.minutes if cfg.minutes else None
+    env_cfg = env_cfg or envs.config(cfg.robot)
+    if env_cfg.robot != cfg.robot:
+        raise ValueError(f"environment robot {env_cfg.robot!r} != PPO robot {cfg.robot!r}")
+    out = pathlib.Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    _write_config(out, cfg, env_cfg)
+    env = envs.VelocityEnv(env_cfg)
+    restore = load(out, cfg, env.observation_size, env.action_size)
+    if restore and restore.env_steps >= cfg.total_steps:
+        log(f"{out}: complete ({restore.env_steps} >= total_steps {cfg.total_steps} env steps)")
+        return restore
+    log(f"{out}: chunk {restore.chunks + 1 if restore else 1}, from "
+        f"{restore.env_steps if restore else 0} env steps, {jax.default_backend()}")
+
+    def checkpoint(state, metrics):
+        save(out, state)
+        line = json.dumps({"env_steps": state.env_steps, "chunk": state.chunks,
+                           "wall_s": time.monotonic() - t0, **metrics})
+        with open(out / "progress.jsonl", "a") as f:
+            f.write(line + "\n")
+        log(f"  {state.env_steps} env steps ({time.monotonic() - t0:.0f} s, "
+            f"{metrics['sps']:.0f} steps/s): episode reward "
+            f"{metrics.get('episode/sum_reward', float('nan')):.3f} over "
+            f"{metrics.get('episode/count', 0):.0f} episodes, length "
+            f"{metrics.get('episode/length', float('nan')):.0f}; checkpoint saved")
+
+    state = train_chunk(cfg, env, restore, checkpoint, deadline)
+    log(f"{out}: {state.env_steps} env steps after {state.chunks} chunks "
+        f"({time.monotonic() - t0:.0f} s this chunk)")
+    return state
+
+
+# ---------------------------------------------------------------------------------------------
+# Using a trained policy.
+
+
+def read_config(out: str | pathlib.Path) -> tuple[PPOConfig, envs.EnvConfig]:
+    path = pathlib.Path(out) / "config.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{out} is not a PPO run (no config.json); train one with "
+                                "`python -m stride_jax.control.ppo --out ...`")
+    d = json.loads(path.read_text())
+    e = d["env"]
+    env_cfg = envs.EnvConfig(**{**e, "commands": envs.Commands(**{
+        k: tuple(v) if isinstance(v, list) else v for k, v in e["commands"].items()}),
+        "rewards": envs.RewardScales(**e["rewards"])})
+    return PPOConfig(**d["ppo"]), env_cfg
+
+
+def load_policy(out: str | pathlib.Path, deterministic: bool = True
+                ) -> tuple[Callable[[jax.Array, jax.Array], jax.Array], Callable, envs.EnvConfig]:
+    """``(policy(obs, key) -> action [nu] in [-1, 1], value(obs) -> [], env_config)`` of a run:
+    plain jittable functions over closed-over parameters (the PPO critic is the value)."""
+    cfg, env_cfg = read_config(out)
+    from stride_jax.sim import model as sim_model
+    nu = sim_model.load(env_cfg.robot).info.nu
+    n_obs = envs.obs_size(env_cfg, nu)
+    state = load(pathlib.Path(out), cfg, n_obs, nu)
+    if state is None:
+        raise FileNotFoundError(f"{out} holds no checkpoint yet")
+    return make_policy(cfg, state.train.params, n_obs, nu, deterministic) + (env_cfg,)
+
+
+def make_policy(cfg: PPOConfig, params: tuple, obs_size: int, action_size: int,
+                deterministic: bool = True) -> tuple[Callable, Callable]:
+    """``policy(obs, key) -> action`` and ``value(obs) -> []`` of Brax PPO parameters."""
+    from brax.training.agents.ppo import networks as ppo_networks
+    nets = _networks(cfg, obs_size, action_size)
+    inference = ppo_networks.make_inference_fn(nets)(params, deterministic=deterministic)
+
+    def policy(obs, key):
+        if obs.shape[-1] != obs_size:
+            raise ValueError(f"policy observation must have {obs_size} entries, got {obs.shape}")
+        return inference(obs, key)[0]
+
+    def value(obs):
+        return nets.value_network.apply(params[0], params[2], obs)
+
+    return policy, value
+
+
+def main(argv: list[str] | None = None) -> None:
+    from stride_jax import cli
+    argv = sys.argv[1:] if argv is None else argv
+    parser = argparse.ArgumentParser(prog="python -m stride_jax.control.ppo",
+                                     description=__doc__.split("\n")[0])
+    parser.add_argument("--preset", default="default", help=f"one of {', '.join(PRESETS)}")
+    cli._add_config_args(parser, PPOConfig)
+    args = parser.parse_args(argv)
+    cfg = cli._config(PPOConfig, PRESETS, args)
+    print("command:", shlex.join(["python", "-m", "stride_jax.control.ppo", *argv]), flush=True)
+    run(cfg, log=lambda s: print(s, flush=True))
+
+
+if __name__ == "__main__":
+    main()
