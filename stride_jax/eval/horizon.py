@@ -1,0 +1,146 @@
+"""Open-loop rollout error against the horizon (the paper's Fig. "long-horizon rollout error").
+
+The error at horizon ``h`` is the one of :mod:`stride_jax.eval.rollout` (normalised observation
+RMSE, tangent-space differences): from the start of each test window a model rolls out the
+logged commands, and the RMSE of ``[difference(q) / sigma_dq, (qd - qd_true) / sigma_qd]`` is
+taken at every step. Here the parameters are an *argument* of the compiled program, so runs of
+one model and robot that differ in their seed compile once (JAX's persistent cache).
+
+Per run: the per-horizon error averaged over finite windows and samples, its spread over samples,
+the cumulative error (sum over ``h = 1..H``, the Table I number) and the fraction of diverged
+(non-finite) rollouts. Over seeds: mean and std of each.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stride_jax.dynamics import integrate
+from stride_jax.eval import rollout
+from stride_jax.eval.runs import LoadedRun, cache_key, cached
+
+
+@dataclasses.dataclass(frozen=True)
+class HorizonConfig:
+    """Attributes:
+      horizon: rollout length (control steps).
+      windows: test windows (at most).
+      samples: latent samples per stochastic model.
+      seed: windows and latents.
+    """
+
+    horizon: int = 30
+    windows: int = 256
+    samples: int = 8
+    seed: int = 0
+
+
+def window_arrays(split: dict, starts: np.ndarray, horizon: int):
+    """``(q [N, H+1, nq], qd [N, H+1, nv], ctrl [N, H, nu])`` of the windows ``starts [N, 2]``."""
+    ep, t0 = starts[:, 0], starts[:, 1]
+    idx = t0[:, None] + np.arange(horizon + 1)[None]
+    return (np.asarray(split["q"][ep[:, None], idx], np.float32),
+            np.asarray(split["qd"][ep[:, None], idx], np.float32),
+            np.asarray(split["ctrl"][ep[:, None], idx[:, :-1]], np.float32))
+
+
+def errors(run: LoadedRun, cfg: HorizonConfig, nfe: int | None = None) -> np.ndarray:
+    """Per-sample, per-window, per-horizon RMSE ``[S, N, H]`` on the test split (``S = 1`` for
+    deterministic models); ``nfe`` overrides the residual's evaluations per sample."""
+    test, train = run.ds.split("test"), run.ds.split("train")
+    starts = rollout.windows(test["valid"], cfg.horizon, cfg.windows, cfg.seed)
+    q, qd, ctrl = window_arrays(test, starts, cfg.horizon)
+    sig_dq, sig_qd = rollout.observation_scales(train, run.spec, cfg.horizon)
+    n_samples = cfg.samples if run.model.stochastic else 1
+    keys = jax.random.split(jax.random.key(cfg.seed), n_samples)
+    model, fb = run.model, run.spec.floating_base
+
+    @jax.jit
+    def per_sample(params, q, qd, ctrl, sig_dq, sig_qd, keys):
+        def one(q, qd, ctrl, k):
+            q_pred, qd_pred = model.rollout(params, q[0], qd[0], ctrl, k, nfe)
+            dq = jax.vmap(lambda a, b: integrate.difference(a, b, fb))(q_pred, q[1:])
+            err = jnp.concatenate([dq / sig_dq, (qd_pred - qd[1:]) / sig_qd], axis=-1)
+            return jnp.sqrt(jnp.mean(err ** 2, axis=-1))
+
+        return jax.vmap(lambda k: jax.vmap(one)(q, qd, ctrl, jax.random.split(k, len(q))))(keys)
+
+    return np.asarray(per_sample(run.params, q, qd, ctrl, sig_dq, sig_qd, keys))
+
+
+def summarise(errs: np.ndarray) -> dict:
+    """Numbers of one run from its errors ``[S, N, H]``: diverged windows are counted, not
+    averaged (a rollout that leaves the floating-point range has no meaningful RMSE)."""
+    finite = np.isfinite(errs).all(-1)  # [S, N]
+    per_sample_h = np.array([errs[s][finite[s]].mean(0) if finite[s].any()
+                             else np.full(errs.shape[-1], np.nan) for s in range(len(errs))])
+    cum = per_sample_h.sum(-1)  # [S]
+    return {"per_horizon": np.nanmean(per_sample_h, 0).tolist(),
+            "per_horizon_sample_std": np.nanstd(per_sample_h, 0).tolist(),
+            "cumulative": float(np.nanmean(cum)), "cumulative_sample_std": float(np.nanstd(cum)),
+            "diverged": float(1.0 - finite.mean()), "windows": int(errs.shape[1]),
+            "samples": int(errs.shape[0])}
+
+
+def evaluate(run: LoadedRun, cfg: HorizonConfig, cache_dir: pathlib.Path,
+             nfe: int | None = None) -> dict:
+    """:func:`summarise` of :func:`errors`, cached per run, settings and checkpoint."""
+    key = cache_key(run, **dataclasses.asdict(cfg), nfe=nfe)
+    name = f"{run.path.parent.name}_{run.path.name}_h{cfg.horizon}_nfe{nfe or 'default'}.json"
+    result = cached(pathlib.Path(cache_dir) / "horizon" / name, key,
+                    lambda: summarise(errors(run, cfg, nfe)))
+    return dict(result, model=run.model.name, seed=run.seed, robot=run.robot,
+                nfe=(nfe or run.nfe) if run.model.stochastic else None,
+                steps_done=run.steps_done)
+
+
+def over_seeds(results: list[dict]) -> dict:
+    """Mean and std over seeds of one model's per-run results."""
+    ph = np.array([r["per_horizon"] for r in results], np.float64)  # [seeds, H]
+    cum = np.array([r["cumulative"] for r in results], np.float64)
+    return {"seeds": [r["seed"] for r in results],
+            "per_horizon_mean": np.nanmean(ph, 0).tolist(),
+            "per_horizon_std": np.nanstd(ph, 0).tolist(),
+            "cumulative_mean": float(np.nanmean(cum)), "cumulative_std": float(np.nanstd(cum)),
+            "diverged_mean": float(np.mean([r["diverged"] for r in results])),
+            "steps_done": sorted({r["steps_done"] for r in results}, key=str)}
+
+
+def plot(table: dict[str, dict[str, dict]], path: pathlib.Path, title: str = "") -> pathlib.Path:
+    """One panel per robot: error vs horizon per model, mean over seeds with a +-1 std band.
+    ``table[robot][model]`` is :func:`over_seeds` output."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    robots = list(table)
+    fig, axes = plt.subplots(1, max(len(robots), 1), figsize=(5.5 * max(len(robots), 1), 4),
+                             squeeze=False)
+    for ax, robot in zip(axes[0], robots):
+        for name, row in table[robot].items():
+            m, s = np.asarray(row["per_horizon_mean"]), np.asarray(row["per_horizon_std"])
+            h = np.arange(1, len(m) + 1)
+            ax.plot(h, m, label=f"{LABELS.get(name, name)} ({len(row['seeds'])} seeds)",
+                    color=COLORS.get(name))
+            ax.fill_between(h, m - s, m + s, alpha=0.2, color=COLORS.get(name))
+        ax.set(title=robot, xlabel="horizon (control steps)",
+               ylabel="normalised observation RMSE", yscale="log")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+LABELS = {"stride": "STRIDE", "delan": "DeLaN", "lnn_diffusion": "LNN + Diffusion",
+          "onn": "ONN (MLP)", "diffusion": "Pure Diffusion"}
+COLORS = {"stride": "C3", "delan": "C0", "lnn_diffusion": "C2", "onn": "C7", "diffusion": "C4"}

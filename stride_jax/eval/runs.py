@@ -1,0 +1,142 @@
+"""Where the reproduction finds (or makes) its datasets and trained runs, and how it loads them.
+
+Layout under a root folder, the one ``experiments/table1.py`` writes:
+
+    <root>/data/<robot>-<tag>/                 a dataset (``stride data``)
+    <root>/runs/<robot>-<tag>/<model>-s<seed>/  a training run (``stride train``)
+
+``tag`` is the preset's name (``tiny``, ``paper``), so runs of different sizes never mix. A run
+that exists is reused: finished runs as they are, stopped ones resumed (when training is allowed)
+or evaluated from their best checkpoint so far.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import pathlib
+from typing import Any, Callable
+
+import numpy as np
+
+from stride_jax.dynamics import models
+from stride_jax.io import atomic_write_text
+from stride_jax.sim import collect, dataset
+from stride_jax.train import job
+from stride_jax.types import ModelSpec
+
+
+def data_dir(root: str | pathlib.Path, robot: str, tag: str) -> pathlib.Path:
+    return pathlib.Path(root) / "data" / f"{robot}-{tag}"
+
+
+def run_dir(root: str | pathlib.Path, robot: str, tag: str, model: str, seed: int
+            ) -> pathlib.Path:
+    return pathlib.Path(root) / "runs" / f"{robot}-{tag}" / f"{model}-s{seed}"
+
+
+def ensure_data(path: pathlib.Path, robot: str, episodes: int, seconds: float, seed: int = 0,
+                log: Callable[[str], None] = print) -> pathlib.Path:
+    """The dataset at ``path``, generated (``stride data``, backend ``auto``) if absent."""
+    if not (path / "meta.json").is_file():
+        log(f"generating {path} ({robot}, {episodes} episodes x {seconds} s)")
+        collect.generate(collect.DataConfig(robot=robot, episodes=episodes, seconds=seconds,
+                                            seed=seed, out=str(path)))
+    return path
+
+
+def is_trained(run: pathlib.Path) -> bool:
+    """A run with a definition and a best checkpoint (finished or not)."""
+    return (run / "model.json").is_file() and (run / "summary.json").is_file()
+
+
+def is_finished(run: pathlib.Path) -> bool:
+    return is_trained(run) and bool(json.loads((run / "summary.json").read_text()).get(
+        "finished"))
+
+
+def ensure_run(cfg: job.TrainConfig, train: bool, log: Callable[[str], None] = print
+               ) -> pathlib.Path | None:
+    """The run ``cfg.out``: reused when finished; trained (or resumed) when ``train``; reused
+    from its best checkpoint so far when not; None if absent and not to be trained."""
+    run = pathlib.Path(cfg.out)
+    if is_finished(run):
+        return run
+    if train:
+        log(f"training {cfg.model} on {cfg.robot} (seed {cfg.seed}, {cfg.steps} steps) -> {run}")
+        return job.run(cfg, log=log)
+    return run if is_trained(run) else None
+
+
+@functools.lru_cache(maxsize=4)
+def load_dataset(path: str) -> dataset.Dataset:
+    """A dataset, loaded (and checksummed) once per process: runs of one robot share it."""
+    return dataset.load(path)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LoadedRun:
+    """A trained run with what its evaluation needs.
+
+    Attributes:
+      path: the run folder.
+      model, params: the model and its best parameters (``models.load``).
+      ds: the dataset it was trained on.
+      spec: the model spec.
+      seed: training seed.
+      nfe: the residual's trained evaluations per sample (None for deterministic models).
+      best_step, steps_done, finished: from ``summary.json``.
+    """
+
+    path: pathlib.Path
+    model: models.Model
+    params: Any
+    ds: dataset.Dataset
+    spec: ModelSpec
+    seed: int
+    nfe: int | None
+    best_step: int
+    steps_done: int
+    finished: bool
+
+    @property
+    def robot(self) -> str:
+        return self.ds.meta["robot"]
+
+
+def load_run(run: str | pathlib.Path) -> LoadedRun:
+    run = pathlib.Path(run)
+    model, params = models.load(run)
+    cfg = json.loads((run / "config.json").read_text())
+    summary = json.loads((run / "summary.json").read_text())
+    ds = load_dataset(str(pathlib.Path(cfg["dataset"]).absolute()))
+    nfe = json.loads((run / "model.json").read_text())["config"]["nfe"] if model.stochastic \
+        else None
+    return LoadedRun(run, model, params, ds, job.spec_from_meta(ds.meta), cfg["train"]["seed"],
+                     nfe, summary.get("best_step"), summary.get("steps_done"),
+                     bool(summary.get("finished")))
+
+
+def cache_key(run: LoadedRun, **settings) -> dict:
+    """What an evaluation of ``run`` depends on: its checkpoint and the settings."""
+    return {"run": str(run.path.absolute()), "best_step": run.best_step, **settings}
+
+
+def cached(path: pathlib.Path, key: dict, compute: Callable[[], dict]) -> dict:
+    """``compute()``, stored at ``path`` with ``key`` and reused while the key matches."""
+    if path.is_file():
+        saved = json.loads(path.read_text())
+        if saved.get("key") == key:
+            return saved["result"]
+    result = compute()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps({"key": key, "result": result}, indent=1))
+    return result
+
+
+def valid_steps(split: dict, n: int, seed: int, mask: np.ndarray | None = None) -> np.ndarray:
+    """``[<=n, 2]`` random (episode, step) pairs of valid steps (and of ``mask [E, T]``)."""
+    ok = split["valid"] if mask is None else split["valid"] & mask
+    idx = np.argwhere(ok)
+    return idx[np.random.default_rng(seed).permutation(len(idx))[:n]]
