@@ -16,7 +16,7 @@ ifneq ($(wildcard ../shared/menagerie),)
 export MENAGERIE_ROOT ?= $(abspath ../shared/menagerie)
 endif
 
-.PHONY: setup demo data train eval table1 test bench-sim bench-mppi clean
+.PHONY: setup demo data train eval table1 test bench-sim bench-mppi gap-bench clean
 
 $(BIN)/stride: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -60,6 +60,12 @@ bench-sim: setup
 ## bench-mppi: jitted MPPI step latency per robot, model, K, H -> results/bench_mppi_<cpu|gpu>.md
 bench-mppi: setup
 	$(BIN)/stride bench-mppi --preset $(PRESET)
+
+## gap-bench: blind benchmark of the sim-to-real gap tool -> results/gap_bench.md
+## (GAP=tiny: the pendulum, ~8 min on 2 cores; GAP=default: Go1)
+GAP ?= tiny
+gap-bench: setup
+	$(BIN)/stride gap bench --preset $(GAP) --out results
 
 clean:
 	rm -rf data/ runs/ .pytest_cache

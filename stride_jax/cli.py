@@ -5,6 +5,7 @@
     stride eval --runs 'runs/go1/*' [--preset tiny|default] [--horizon 30 ...]
     stride bench-sim [--preset tiny|default|gpu] [--robots go1,g1 ...]
     stride bench-mppi [--preset tiny|target|default] [--samples 64,256 --horizons 10,20 ...]
+    stride gap diagnose --robot go1 --logs DIR --out DIR   (also: gap simulate, export, bench)
 """
 
 from __future__ import annotations
@@ -88,6 +89,10 @@ def _run_bench_mppi(cfg, command: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
+    args_in = sys.argv[1:] if argv is None else argv
+    if args_in and args_in[0] == "gap":  # the gap tool has its own subcommands (stride_jax.gap.cli)
+        from stride_jax.gap import cli as gap_cli
+        return gap_cli.main(list(args_in[1:]))
     parser = argparse.ArgumentParser(prog="stride", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
