@@ -104,7 +104,7 @@ class EnvConfig:
     """
 
     robot: str = "go1"
-    action_scale: float = 0.5
+    action_scale: float = 0.3
     commands: Commands = Commands()
     rewards: RewardScales = RewardScales()
     tracking_sigma: float = 0.25
@@ -385,17 +385,19 @@ def foot_contact(sm: sim_model.SimModel, slots: tuple[np.ndarray, np.ndarray],
 
 
 # Info keys of Brax's episode bookkeeping, which survive a reset (the rest is the env's own).
-BOOKKEEPING = ("steps", "truncation", "episode_done", "episode_metrics", "reset_rng")
+BOOKKEEPING = ("steps", "truncation", "episode_done", "episode_metrics", "reset_rng", "last_obs")
 
 
 class FreshResetWrapper(brax_base.Wrapper):
     """Resets finished worlds to a new draw of ``reset`` (new start, new command), keeping the
     episode bookkeeping of :class:`brax.envs.wrappers.training.EpisodeWrapper` as Brax's own
-    ``AutoResetWrapper`` does. Wraps a batched environment."""
+    ``AutoResetWrapper`` does. Wraps a batched environment. ``info['last_obs']`` keeps the
+    observation a step reached before a reset replaced it (for value targets)."""
 
     def reset(self, rng: jax.Array) -> brax_base.State:
         state = self.env.reset(rng)
         state.info["reset_rng"] = jax.vmap(lambda k: jax.random.fold_in(k, 1))(rng)
+        state.info["last_obs"] = state.obs
         return state
 
     def step(self, state: brax_base.State, action: jax.Array) -> brax_base.State:
@@ -415,6 +417,7 @@ class FreshResetWrapper(brax_base.Wrapper):
             if k not in BOOKKEEPING:
                 info[k] = jax.tree.map(pick, fresh.info[k], state.info[k])
         info["reset_rng"] = keys[:, 0]
+        info["last_obs"] = state.obs
         return state.replace(pipeline_state=jax.tree.map(pick, fresh.pipeline_state,
                                                          state.pipeline_state),
                              obs=pick(fresh.obs, state.obs), info=info)

@@ -176,3 +176,32 @@ def reference(cfg: GaitConfig, gait: Gait, clock: jax.Array, command: jax.Array,
     thigh = home[:, 1] - amp * sweep + 0.5 * lift
     calf = home[:, 2] - lift
     return jnp.stack([abduction, thigh, calf], axis=-1).reshape(12)
+
+
+def classify_contacts(contact) -> tuple[str, float]:
+    """The named gait whose pattern best explains measured (or scheduled) foot contacts
+    ``[T, 4]`` (bool; legs FR, FL, RR, RL), and its score.
+
+    For each named gait, legs with equal offsets should touch down together (correlated contact
+    sequences) and legs half a cycle apart alternately (anti-correlated): the score is the mean
+    Pearson correlation over its in-phase pairs minus that over its anti-phase pairs (a leg
+    that never changes contributes 0). Ties go to the first of trot, pronk, bound, pace.
+    """
+    c = np.asarray(contact, np.float64)
+    if c.ndim != 2 or c.shape[1] != len(LEGS):
+        raise ValueError(f"contacts must be [T, {len(LEGS)}], got {c.shape}")
+    c = c - c.mean(0)
+    norm = np.sqrt((c ** 2).sum(0))
+    corr = (c.T @ c) / np.maximum(np.outer(norm, norm), 1e-12)
+    corr[norm < 1e-9, :] = corr[:, norm < 1e-9] = 0.0
+    scores = {}
+    for name, g in NAMED.items():
+        o = np.asarray(g.offsets)
+        same, anti = [], []
+        for i in range(4):
+            for j in range(i + 1, 4):
+                d = abs((o[i] - o[j]) % 1.0)
+                (same if min(d, 1 - d) < 0.1 else anti).append(corr[i, j])
+        scores[name] = np.mean(same) - (np.mean(anti) if anti else 0.0)
+    best = max(scores, key=scores.get)
+    return best, float(scores[best])

@@ -1,0 +1,610 @@
+"""MPPI in closed loop on the MJX Go1: any dynamics model plans, the simulator acts.
+
+Each control period (20 ms) the planner (:mod:`stride_jax.control.mppi`) sees the simulator's
+state and the current command, plans through its model, and the first action is simulated in MJX
+with the scenario's ground. Planner models:
+
+* ``oracle``: the scenario's own MJX model (slope, friction, softness, terrain included);
+* ``nominal``: MJX with the nominal flat ground the robot was designed and trained on;
+* ``policy``: no planner -- the PPO policy acting alone (a baseline);
+* ``NAME=RUN``: a trained dynamics model of the one interface (``stride_jax.dynamics.models.load``;
+  STRIDE, DeLaN, ONN ...), e.g. ``stride=runs/go1/stride``.
+
+The planner's state is ``(q, command, clock)`` stacked into its ``q`` (the dynamics carry the command
+unchanged and advance the gait clock), so one jitted planner follows command changes. Its action is
+a joint-target offset from the home pose (rad); with ``gait`` it is a residual on a gait reference
+plus the gait parameters (:mod:`stride_jax.control.gait`), which MPPI optimises jointly.
+
+Cost: the environment's reward terms that a state determines (:func:`stride_jax.control.envs.
+state_terms`: tracking kernels, orientation, height, torques of the servo model ...), negated and
+unclipped, plus ``fall_cost`` per step fallen; or, with ``learned``, the learned reward and value
+(:mod:`stride_jax.control.learned`). A PPO run can add ``policy_samples`` candidates.
+
+Scenarios: velocity step 0 -> 2 m/s, sudden command changes, a 20 degree slope (gravity tilted by
+20 degrees about the y axis: on a plane this is the same physics as a tilted floor, walking +x is
+uphill), and ground unseen in training: low friction, soft contacts, rough terrain (a heightfield).
+Reported per (scenario, model): tracking RMSE of the base-frame velocity (xy) and yaw rate while
+upright, falls, and planning time per step.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import functools
+import json
+import pathlib
+import time
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from stride_jax.control import envs, gait as gait_lib, mppi
+from stride_jax.io import atomic_write_text
+from stride_jax.sim import model as sim_model, rollout_mjx
+
+
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    """A command schedule and the ground.
+
+    Attributes:
+      name: label.
+      commands: ``(t_start s, vx m/s, vy m/s, yaw rad/s)`` pieces, piecewise constant.
+      seconds: duration.
+      slope_deg: ground slope, uphill along +x (gravity tilted about y).
+      friction: scale of every geom's sliding friction.
+      softness: scale of the contact time constant (solref[0]); > 1 is softer.
+      rough_m: peak-to-peak height of a random heightfield replacing the floor (m); 0: flat.
+    """
+
+    name: str
+    commands: tuple[tuple[float, float, float, float], ...]
+    seconds: float = 6.0
+    slope_deg: float = 0.0
+    friction: float = 1.0
+    softness: float = 1.0
+    rough_m: float = 0.0
+
+
+WALK = ((0.0, 1.0, 0.0, 0.0),)
+SCENARIOS = {
+    "walk": Scenario("walk", WALK),
+    "step": Scenario("step", ((0.0, 0.0, 0.0, 0.0), (1.0, 2.0, 0.0, 0.0))),
+    "changes": Scenario("changes", ((0.0, 1.0, 0.0, 0.0), (1.5, 0.3, 0.4, 0.0),
+                                    (3.0, 1.5, 0.0, 0.8), (4.5, 0.0, 0.0, 0.0))),
+    "slope": Scenario("slope", WALK, slope_deg=20.0),
+    "low_friction": Scenario("low_friction", WALK, friction=0.3),
+    "soft": Scenario("soft", WALK, softness=4.0),
+    "rough": Scenario("rough", WALK, rough_m=0.04),
+}
+
+
+def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoco.MjModel:
+    """The robot's MjModel with the scenario's ground (a copy; the nominal model is untouched)."""
+    if sc.rough_m > 0:
+        spec = sm.robot.load_spec()
+        sm.robot.edit_spec(spec)
+        n, half = 64, 4.0  # 8 m x 8 m, 12.5 cm cells
+        h = np.random.default_rng(seed).uniform(0, 1, (n, n))
+        h[:, : n // 8 + 1] = 0.0  # a flat start area around the robot
+        spec.add_hfield(name="rough", size=[half, half, sc.rough_m, 0.1], nrow=n, ncol=n,
+                        userdata=h.reshape(-1).tolist())
+        floor = next(g for g in spec.geoms if g.name == "floor")
+        spec.worldbody.add_geom(name="rough", type=mujoco.mjtGeom.mjGEOM_HFIELD, hfieldname="rough",
+                                contype=floor.contype, conaffinity=floor.conaffinity,
+                                pos=[half - 1.0, 0, 0])
+        floor.contype = floor.conaffinity = 0
+        m = spec.compile()
+    else:
+        m = copy.copy(sm.mj)
+    if sc.slope_deg:
+        th = np.deg2rad(sc.slope_deg)
+        m.opt.gravity[:] = 9.81 * np.array([-np.sin(th), 0.0, -np.cos(th)])
+    m.geom_friction[:, 0] *= sc.friction
+    m.geom_solref[:, 0] *= sc.softness
+    m.pair_friction[:, :2] *= sc.friction
+    m.pair_solref[:, 0] *= sc.softness
+    return m
+
+
+def schedule(sc: Scenario, pieces: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """The scenario's commands as arrays ``(starts [pieces], values [pieces, 3])``, padded with
+    the last piece, so that scenarios share one compiled episode."""
+    if len(sc.commands) > pieces:
+        raise ValueError(f"scenario {sc.name!r} has more than {pieces} command pieces")
+    c = list(sc.commands) + [sc.commands[-1]] * (pieces - len(sc.commands))
+    return (np.array([x[0] for x in c], np.float32), np.array([x[1:] for x in c], np.float32))
+
+
+def command_at(starts: jax.Array, values: jax.Array, t: jax.Array) -> jax.Array:
+    """The command ``[3]`` at time ``t`` (s) of a :func:`schedule`."""
+    starts, values = jnp.asarray(starts), jnp.asarray(values)
+    i = jnp.clip(jnp.searchsorted(starts, t, side="right") - 1, 0, starts.shape[0] - 1)
+    return values[i]
+
+
+# ---------------------------------------------------------------------------------------------
+# The planner's view: augmented state, action to joint targets, cost.
+
+
+@dataclasses.dataclass(frozen=True)
+class ClosedLoopConfig:
+    """Closed-loop runs.
+
+    Attributes:
+      models: comma-separated planner models (``oracle``, ``nominal``, ``policy``, ``NAME=RUN``).
+      scenarios: comma-separated names of :data:`SCENARIOS`.
+      seconds: override every scenario's duration (0: keep).
+      samples, horizon, iterations, temperature, smoothing: MPPI settings.
+      noise_std: exploration std of the joint offsets (rad).
+      plan_range: bound of the planner's joint offsets around home (rad).
+      gait: plan gait parameters jointly with joint residuals (Go1 gait reference).
+      gait_noise: exploration std of the gait frequency (Hz); duty 0.15x, offsets 0.25x this.
+      policy: PPO run folder supplying candidates (and the ``policy`` model); "" for none.
+      policy_samples: MPPI candidates rolled out by the policy.
+      learned: learned reward/value file (``reward_value.msgpack``); "" for the analytic cost.
+      value_weight: weight of the learned terminal value.
+      fall_cost: planner cost per step spent fallen (reward units per step).
+      settle_s: tracking errors are counted from this long after each command change (s).
+      out: results folder (``closed_loop.json``/``.md`` and plots).
+      seed: planner key and terrain seed.
+    """
+
+    models: str = "oracle,nominal"
+    scenarios: str = "step,changes,slope,low_friction,soft,rough"
+    seconds: float = 0.0
+    samples: int = 256
+    horizon: int = 16
+    iterations: int = 1
+    temperature: float = 0.1
+    smoothing: float = 0.5
+    noise_std: float = 0.15
+    plan_range: float = 0.6
+    gait: bool = False
+    gait_noise: float = 0.2
+    policy: str = ""
+    policy_samples: int = 0
+    learned: str = ""
+    value_weight: float = 1.0
+    fall_cost: float = 1.0
+    settle_s: float = 0.5
+    out: str = "results/closed_loop"
+    seed: int = 0
+
+
+PRESETS = {
+    "tiny": dict(models="oracle", scenarios="step", seconds=0.2, samples=8, horizon=3,
+                 settle_s=0.0, out="results/closed_loop_tiny"),
+    "default": {},
+    "gpu": dict(samples=1024, horizon=20, out="results/closed_loop_gpu"),
+}
+
+
+class Planning(NamedTuple):
+    """The planner-side functions of one configuration (all pure, for one world)."""
+
+    dynamics: Callable  # (q_aug, qd, u, key) -> (q_aug', qd')
+    cost: Callable  # (q_aug, qd, u, t) -> []
+    value: Callable | None  # (q_aug, qd) -> []
+    policy: Callable | None  # (q_aug, qd) -> u
+    ctrl: Callable  # (q_aug, u) -> joint targets [nu]
+    lo: np.ndarray  # [nu_plan]
+    hi: np.ndarray
+    noise: tuple  # per action entry
+    nominal_u: np.ndarray  # [nu_plan] initial plan
+
+
+class Aug(NamedTuple):
+    """The planner's state beyond the robot's ``q`` (stacked into the planner's ``q``)."""
+
+    q: jax.Array  # [nq]
+    command: jax.Array  # [3] (vx m/s, vy m/s, yaw rad/s), carried unchanged by the dynamics
+    clock: jax.Array  # [] gait clock (cycles)
+    gait: jax.Array  # [6] gait parameters latched at a rollout's first step
+    latched: jax.Array  # [] 1 inside a rollout (after its first step), 0 in the real state
+
+
+N_AUG = 3 + 1 + gait_lib.N_GAIT + 1
+
+
+def augment(q: jax.Array, command: jax.Array, clock: jax.Array | float = 0.0,
+            gait: jax.Array | None = None, latched: jax.Array | float = 0.0) -> jax.Array:
+    """``[nq + 11]``: the robot state with the command, clock and latched gait."""
+    gait = jnp.zeros(gait_lib.N_GAIT) if gait is None else gait
+    return jnp.concatenate([q, command, jnp.reshape(clock, (1,)), gait,
+                            jnp.reshape(jnp.asarray(latched, q.dtype), (1,))])
+
+
+def split(q_aug: jax.Array, nq: int) -> Aug:
+    if q_aug.shape[-1] != nq + N_AUG:
+        raise ValueError(f"planner state must have {nq} + {N_AUG} entries, got {q_aug.shape}")
+    g0 = nq + 4
+    return Aug(q_aug[:nq], q_aug[nq:nq + 3], q_aug[nq + 3], q_aug[g0:g0 + gait_lib.N_GAIT],
+               q_aug[g0 + gait_lib.N_GAIT])
+
+
+def servo_torque(sm: sim_model.SimModel, q: jax.Array, qd: jax.Array, ctrl: jax.Array):
+    """Joint torques ``[nu]`` (N m) of the robot's position servos (as MuJoCo applies them)."""
+    kp, kd = jnp.asarray(sm.robot.kp), jnp.asarray(sm.robot.kd)
+    lo, hi = np.asarray(sm.mj.actuator_forcerange).T
+    tau = kp * (ctrl - q[7:]) - kd * qd[6:]
+    return jnp.where(hi > lo, jnp.clip(tau, lo, hi), tau)
+
+
+def make_planning(cfg: ClosedLoopConfig, env_cfg: envs.EnvConfig, sm: sim_model.SimModel,
+                  model_step: Callable, ppo_policy: Callable | None = None,
+                  learned_params: tuple | None = None,
+                  gait_cfg: gait_lib.GaitConfig = gait_lib.GaitConfig()) -> Planning:
+    """Planner functions around ``model_step(q, qd, ctrl, key) -> (q', qd')``."""
+    nq, nu = sm.mj.nq, sm.info.nu
+    home = jnp.asarray(sm.info.qpos0[7:])
+    c_lo, c_hi = jnp.asarray(sm.info.ctrl_lo), jnp.asarray(sm.info.ctrl_hi)
+    dt = sm.robot.ctrl_dt
+    obs_of = functools.partial(envs.observe, env_cfg, home)
+    if cfg.gait and sm.robot.name != "go1":
+        raise ValueError("the gait reference is the Go1's: --gait needs robot go1")
+
+    def gait_of(q_aug, u):
+        """Gait parameters in force: a rollout's first sample, held (per-rollout sampling)."""
+        a = split(q_aug, nq)
+        return jnp.where(a.latched > 0, a.gait, u[nu:nu + gait_lib.N_GAIT])
+
+    def ctrl(q_aug, u):
+        a = split(q_aug, nq)
+        if cfg.gait:
+            g = gait_lib.split_action(jnp.concatenate([u[:nu], gait_of(q_aug, u)]), nu)[1]
+            target = gait_lib.reference(gait_cfg, g, a.clock, a.command, home) + u[:nu]
+        else:
+            target = home + u
+        return jnp.clip(target, c_lo, c_hi)
+
+    def dynamics(q_aug, qd, u, key):
+        a = split(q_aug, nq)
+        q2, qd2 = model_step(a.q, qd, ctrl(q_aug, u), key)
+        if not cfg.gait:
+            return augment(q2, a.command), qd2
+        g = gait_of(q_aug, u)
+        return augment(q2, a.command, jnp.mod(a.clock + g[0] * dt, 1.0), g, 1.0), qd2
+
+    def analytic_cost(q_aug, qd, u, t):
+        q, command = split(q_aug, nq)[:2]
+        fallen = rollout_mjx.fallen(sm, q)
+        terms = envs.state_terms(env_cfg, home, q, qd, command,
+                                 servo_torque(sm, q, qd, ctrl(q_aug, u)), fallen)
+        _, parts = envs.total_reward(env_cfg, terms, dt)
+        return -sum(parts.values()) + cfg.fall_cost * fallen
+
+    value = None
+    cost = analytic_cost
+    if learned_params is not None:
+        from stride_jax.control import learned as learned_lib
+        obs_aug = lambda q_aug, qd: obs_of(split(q_aug, nq).q, qd, split(q_aug, nq).command)
+        r_cost, value = learned_lib.planner_terms(*learned_params, obs_aug, cfg.value_weight)
+
+        def cost(q_aug, qd, u, t):  # the learned reward scores the normalised policy action
+            q = split(q_aug, nq).q
+            a = (ctrl(q_aug, u) - home) / env_cfg.action_scale
+            return r_cost(q_aug, qd, a, t) + cfg.fall_cost * rollout_mjx.fallen(sm, q)
+
+    policy = None
+    if ppo_policy is not None and not cfg.gait:
+        key0 = jax.random.key(0)
+
+        def policy(q_aug, qd):
+            a = split(q_aug, nq)
+            return env_cfg.action_scale * ppo_policy(obs_of(a.q, qd, a.command, a.clock), key0)
+
+    r = cfg.plan_range
+    lo, hi = np.full(nu, -r, np.float32), np.full(nu, r, np.float32)
+    noise = (cfg.noise_std,) * nu
+    nominal = np.zeros(nu, np.float32)
+    if cfg.gait:
+        g_lo, g_hi = gait_cfg.bounds()
+        lo, hi = np.concatenate([lo, g_lo]), np.concatenate([hi, g_hi])
+        noise = noise + (cfg.gait_noise, 0.15 * cfg.gait_noise) + (0.25 * cfg.gait_noise,) * 4
+        trot = gait_lib.named("trot")
+        nominal = np.asarray(gait_lib.join_action(jnp.asarray(nominal), trot), np.float32)
+    return Planning(dynamics, cost, value, policy, ctrl, lo, hi, noise, nominal)
+
+
+# ---------------------------------------------------------------------------------------------
+# One closed-loop episode.
+
+
+class Trace(NamedTuple):
+    """Per control step of a closed-loop episode (``[T, ...]``)."""
+
+    t: jax.Array  # [T] s
+    command: jax.Array  # [T, 3]
+    v_base: jax.Array  # [T, 3] base-frame linear velocity (m/s)
+    w_base: jax.Array  # [T, 3] base-frame angular velocity (rad/s)
+    height: jax.Array  # [T] base height (m)
+    fallen: jax.Array  # [T] bool
+    contact: jax.Array  # [T, nfeet] bool, measured
+    action: jax.Array  # [T, nu_plan] the applied planner action
+
+
+def mppi_config(cfg: ClosedLoopConfig, planning: Planning) -> mppi.MPPIConfig:
+    return mppi.MPPIConfig(samples=cfg.samples, horizon=cfg.horizon, temperature=cfg.temperature,
+                           noise_std=planning.noise, smoothing=cfg.smoothing,
+                           policy_samples=cfg.policy_samples if planning.policy else 0,
+                           iterations=cfg.iterations)
+
+
+def make_planner(planning: Planning, mppi_cfg: mppi.MPPIConfig) -> mppi.Planner:
+    """MPPI over the planning functions (build outside jit: it checks its bounds)."""
+    return mppi.make(mppi_cfg, planning.dynamics, planning.cost, planning.lo, planning.hi,
+                     planning.value, planning.policy)
+
+
+def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Planning,
+                planner: mppi.Planner | None, n_steps: int, starts: jax.Array,
+                values: jax.Array, key: jax.Array) -> Trace:
+    """A closed-loop episode of ``n_steps`` control steps from the home pose (heading +x) under
+    the command :func:`schedule` ``(starts, values)``. ``planner=None`` lets ``planning.policy``
+    act alone. Pure; jit it."""
+    nu = sm.info.nu
+    gait = len(planning.lo) > nu
+    qpos0 = jnp.asarray(sm.info.qpos0).at[2].add(0.02)
+    d0 = mjx.make_data(mx_sim).replace(qpos=qpos0, ctrl=jnp.asarray(sm.info.qpos0[7:]))
+    dt = sm.robot.ctrl_dt
+    if planner is not None:
+        horizon = planner.init(key).plan.shape[0]
+        ps0 = planner.init(key, jnp.broadcast_to(jnp.asarray(planning.nominal_u),
+                                                 (horizon, len(planning.lo))))
+    else:
+        ps0 = ()
+    if planner is None and planning.policy is None:
+        raise ValueError("the policy-only model needs a PPO policy (--policy)")
+
+    def body(carry, step):
+        d, ps, clock, down = carry
+        t = step * dt
+        command = command_at(starts, values, t)
+        q_aug = augment(d.qpos, command, clock)
+        if planner is not None:
+            u, ps, _ = planner.step(ps, q_aug, d.qvel)
+            if gait:  # gait parameters are per rollout: hold the chosen ones over the plan
+                ps = ps._replace(plan=ps.plan.at[:, nu:].set(ps.plan[0, nu:]))
+        else:
+            u = planning.policy(q_aug, d.qvel)
+        u = jnp.where(down, jnp.asarray(planning.nominal_u), u)  # fallen: stop planning effort
+        d2 = envs.physics_step(mx_sim, sm.n_substeps, d, planning.ctrl(q_aug, u))
+        freq = u[nu] if gait else 0.0
+        clock = jnp.mod(clock + freq * dt, 1.0)
+        finite = jnp.all(jnp.isfinite(d2.qpos)) & jnp.all(jnp.isfinite(d2.qvel))
+        d2 = jax.tree.map(lambda a, b: jnp.where(finite, a, b), d2, d)  # freeze a diverged sim
+        down = down | rollout_mjx.fallen(sm, d2.qpos) | ~finite
+        v, w, _ = envs.base_signals(d2.qpos, d2.qvel)
+        rec = Trace(t + dt, command, v, w, d2.qpos[2], down, envs.foot_contact(sm, slots, d2), u)
+        return (d2, ps, clock, down), rec
+
+    init = (d0, ps0, jnp.zeros(()), jnp.zeros((), bool))
+    _, trace = jax.lax.scan(body, init, jnp.arange(n_steps))
+    return trace
+
+
+def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
+    """Tracking RMSE while upright (after ``settle_s`` from each command change), fall, speed."""
+    tr = jax.tree.map(np.asarray, trace)
+    up = ~tr.fallen
+    changed = np.r_[True, np.any(np.diff(tr.command, axis=0) != 0, axis=1)]
+    since = np.zeros(len(tr.t))
+    last = 0.0
+    for i, (t, c) in enumerate(zip(tr.t, changed)):
+        last = t if c else last
+        since[i] = t - last
+    use = up & (since >= settle_s)
+    v_err = np.linalg.norm(tr.v_base[:, :2] - tr.command[:, :2], axis=1)
+    w_err = np.abs(tr.w_base[:, 2] - tr.command[:, 2])
+    rmse = lambda e: float(np.sqrt(np.mean(e[use] ** 2))) if use.any() else float("nan")
+    fell = bool(tr.fallen.any())
+    out = dict(vel_rmse=rmse(v_err), yaw_rmse=rmse(w_err), fell=fell,
+               fall_s=float(tr.t[np.argmax(tr.fallen)]) if fell else None,
+               mean_vx=float(tr.v_base[up, 0].mean()) if up.any() else float("nan"),
+               upright_s=float(up.sum() * (tr.t[1] - tr.t[0]) if len(tr.t) > 1 else 0.0))
+    if up.sum() >= 10:  # the gait the feet showed, from the measured contacts
+        out["contact_gait"], out["contact_gait_score"] = gait_lib.classify_contacts(
+            tr.contact[up])
+    n_joint = tr.contact.shape[1] * 3
+    if tr.action.shape[1] > n_joint and up.any():  # the gait the planner chose
+        g = np.median(tr.action[up, n_joint:], axis=0)
+        out["plan_freq"], out["plan_duty"] = float(g[0]), float(g[1])
+        out["plan_gait"], out["plan_gait_dist"] = gait_lib.classify(g[2:])
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Models, the driver, the table and the plots.
+
+
+def mjx_step_fn(sm: sim_model.SimModel, mx: mjx.Model) -> Callable:
+    """``step(q, qd, ctrl, key) -> (q', qd')`` of an MJX model (the oracle's dynamics)."""
+    def step(q, qd, ctrl, key):
+        d = mjx.make_data(mx).replace(qpos=q, qvel=qd)
+        d = envs.physics_step(mx, sm.n_substeps, d, ctrl)
+        return d.qpos, d.qvel
+    return step
+
+
+def learned_step_fn(run: str, sm: sim_model.SimModel) -> Callable:
+    """``step(q, qd, ctrl, key)`` of a trained dynamics model (``stride train`` run folder)."""
+    from stride_jax.dynamics import models
+    model, params = models.load(run)
+    q0 = jnp.asarray(sm.info.qpos0)
+    try:  # shape check at the boundary: the run must model this robot
+        jax.eval_shape(lambda: model.step(params, q0, jnp.zeros(sm.mj.nv),
+                                          q0[7:], jax.random.key(0)))
+    except ValueError as e:
+        raise ValueError(f"{run} does not model robot {sm.robot.name}: {e}") from e
+    return lambda q, qd, ctrl, key: model.step(params, q, qd, ctrl, key)
+
+
+def _parse_models(spec: str) -> list[tuple[str, str]]:
+    out = []
+    for item in [s for s in spec.split(",") if s]:
+        name, _, run = item.partition("=")
+        if not run and name not in ("oracle", "nominal", "policy"):
+            raise ValueError(f"unknown model {item!r}: use oracle, nominal, policy or NAME=RUN")
+        out.append((name, run))
+    return out
+
+
+def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
+    """Every (scenario, model) pair of ``cfg``; writes ``closed_loop.json``/``.md``, traces and
+    plots to ``cfg.out`` after each pair, and skips pairs already there (resumable)."""
+    from stride_jax.control import learned as learned_lib, ppo
+
+    sm = sim_model.load("go1")
+    unknown = [s for s in cfg.scenarios.split(",") if s and s not in SCENARIOS]
+    if unknown:
+        raise ValueError(f"unknown scenarios {unknown}; known: {', '.join(SCENARIOS)}")
+    models = _parse_models(cfg.models)
+    ppo_policy, env_cfg = None, envs.config("go1")
+    if cfg.policy:
+        ppo_policy, _, env_cfg = ppo.load_policy(cfg.policy)
+    learned_params = learned_lib.load(cfg.learned) if cfg.learned else None
+    out = pathlib.Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "closed_loop.json"
+    rows = json.loads(path.read_text())["rows"] if path.is_file() else []
+    done = {(r["scenario"], r["model"]) for r in rows}
+    mx_nominal = mjx.put_model(sm.mj)
+    for sc_name in [s for s in cfg.scenarios.split(",") if s]:
+        sc = SCENARIOS[sc_name]
+        if cfg.seconds:
+            sc = dataclasses.replace(sc, seconds=cfg.seconds)
+        n_steps = max(1, int(round(sc.seconds / sm.robot.ctrl_dt)))
+        mj_sc = scenario_model(sm, sc, cfg.seed)
+        mx_sim = mjx.put_model(mj_sc)
+        slots = envs.contact_slots(mx_sim)
+        starts, values = schedule(sc)
+        for name, run_dir in models:
+            if (sc.name, name) in done:
+                continue
+            if name == "policy":
+                step_fn, m_cfg = mjx_step_fn(sm, mx_nominal), False  # unused by the policy
+                if ppo_policy is None:
+                    raise ValueError("model 'policy' needs --policy RUN")
+            elif name == "oracle":
+                step_fn, m_cfg = mjx_step_fn(sm, mx_sim), True
+            elif name == "nominal":
+                step_fn, m_cfg = mjx_step_fn(sm, mx_nominal), True
+            else:
+                step_fn, m_cfg = learned_step_fn(run_dir, sm), True
+            planning = make_planning(cfg, env_cfg, sm, step_fn, ppo_policy, learned_params)
+            planner = make_planner(planning, mppi_config(cfg, planning)) if m_cfg else None
+            episode = jax.jit(functools.partial(run_episode, sm, mx_sim, slots, planning, planner,
+                                                n_steps))
+            args = (jnp.asarray(starts), jnp.asarray(values), jax.random.key(cfg.seed))
+            t0 = time.perf_counter()
+            compiled = episode.lower(*args).compile()
+            compile_s = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            trace = jax.block_until_ready(compiled(*args))
+            run_s = time.perf_counter() - t0
+            row = dict(scenario=sc.name, model=name, run=run_dir or None,
+                       **metrics(trace, cfg.settle_s),
+                       ms_per_step=1e3 * run_s / n_steps, compile_s=compile_s, steps=n_steps,
+                       K=cfg.samples if m_cfg else None, H=cfg.horizon if m_cfg else None)
+            rows.append(row)
+            np.savez_compressed(out / f"trace_{sc.name}_{name}.npz",
+                                **{k: np.asarray(v) for k, v in trace._asdict().items()})
+            write(rows, cfg, command, out)
+            log(f"{sc.name:>12} {name:>8}: vel RMSE {row['vel_rmse']:.3f} m/s, yaw RMSE "
+                f"{row['yaw_rmse']:.3f} rad/s, fell {row['fell']}, {row['ms_per_step']:.1f} ms/step"
+                f" (compile {compile_s:.0f} s)")
+    plot(out, rows)
+    return rows
+
+
+def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Path) -> None:
+    env = dict(command=command, backend=jax.default_backend(), device=jax.devices()[0].device_kind,
+               jax=jax.__version__, config=dataclasses.asdict(cfg))
+    atomic_write_text(out / "closed_loop.json", json.dumps(dict(env=env, rows=rows), indent=1))
+    fmt = lambda x, f="{:.3f}": "-" if x is None or (isinstance(x, float) and np.isnan(x)) else (
+        f.format(x))
+    lines = ["# Closed-loop MPPI on the MJX Go1", "", f"Command: `{command}`", "",
+             f"Device: {env['device']} ({env['backend']}), jax {env['jax']}. MPPI K={cfg.samples}, "
+             f"H={cfg.horizon}, {cfg.iterations} iteration(s); cost: "
+             f"{'learned reward/value ' + cfg.learned if cfg.learned else 'analytic reward terms'}"
+             f"{', gait parameters planned' if cfg.gait else ''}"
+             f"{', PPO candidates from ' + cfg.policy if cfg.policy and cfg.policy_samples else ''}"
+             ". Tracking RMSE of the base-frame velocity (xy) and yaw rate while upright, "
+             f"{cfg.settle_s} s after each command change.", "",
+             "Gait: the named pattern the measured foot contacts fit best (score: in-phase minus "
+             "anti-phase contact correlation); with planned gaits, the median planned "
+             "parameters too.", "",
+             "| scenario | model | vel RMSE (m/s) | yaw RMSE (rad/s) | mean vx (m/s) | fell | "
+             "fall at (s) | contact gait (score) | planned gait | ms/step |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        planned = (f"{r['plan_gait']} ({r['plan_freq']:.1f} Hz, duty {r['plan_duty']:.2f})"
+                   if "plan_gait" in r else "-")
+        contact = (f"{r['contact_gait']} ({r['contact_gait_score']:.2f})"
+                   if "contact_gait" in r else "-")
+        lines.append(f"| {r['scenario']} | {r['model']} | {fmt(r['vel_rmse'])} | "
+                     f"{fmt(r['yaw_rmse'])} | {fmt(r['mean_vx'], '{:.2f}')} | "
+                     f"{'yes' if r['fell'] else 'no'} | {fmt(r['fall_s'], '{:.2f}')} | "
+                     f"{contact} | {planned} | {r['ms_per_step']:.1f} |")
+    atomic_write_text(out / "closed_loop.md", "\n".join(lines) + "\n")
+
+
+def plot(out: pathlib.Path, rows: list[dict]) -> list[pathlib.Path]:
+    """One figure per scenario: forward velocity and yaw rate against the command, per model."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    for sc in dict.fromkeys(r["scenario"] for r in rows):
+        fig, ax = plt.subplots(1, 3, figsize=(14, 3.6))
+        cmd_drawn = False
+        for r in [r for r in rows if r["scenario"] == sc]:
+            f = out / f"trace_{sc}_{r['model']}.npz"
+            if not f.is_file():
+                continue
+            tr = np.load(f)
+            if not cmd_drawn:
+                for i, label in enumerate(("vx", "vy", "yaw rate")):
+                    ax[i].plot(tr["t"], tr["command"][:, i], "k--", lw=1, label="command")
+                cmd_drawn = True
+            up = ~tr["fallen"]
+            for i, series in enumerate((tr["v_base"][:, 0], tr["v_base"][:, 1],
+                                        tr["w_base"][:, 2])):
+                ax[i].plot(tr["t"][up], series[up], lw=1, label=r["model"])
+        for i, label in enumerate(("vx (m/s)", "vy (m/s)", "yaw rate (rad/s)")):
+            ax[i].set(xlabel="t (s)", ylabel=label)
+        ax[0].legend(fontsize=7)
+        fig.suptitle(f"closed loop, scenario {sc} (lines stop at a fall)")
+        fig.tight_layout()
+        path = out / f"closed_loop_{sc}.png"
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+    import shlex
+    import sys
+    from stride_jax import cli
+    argv = sys.argv[1:] if argv is None else argv
+    parser = argparse.ArgumentParser(prog="python -m stride_jax.control.closed_loop",
+                                     description=__doc__.split("\n")[0])
+    parser.add_argument("--preset", default="default", help=f"one of {', '.join(PRESETS)}")
+    cli._add_config_args(parser, ClosedLoopConfig)
+    args = parser.parse_args(argv)
+    cfg = cli._config(ClosedLoopConfig, PRESETS, args)
+    run(cfg, shlex.join(["python", "-m", "stride_jax.control.closed_loop", *argv]),
+        log=lambda s: print(s, flush=True))
+
+
+if __name__ == "__main__":
+    main()

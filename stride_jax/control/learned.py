@@ -1,0 +1,351 @@
+"""Learned reward and value models for planning (Dreamer-MPC style, the paper's Sec. IV-B).
+
+Both are small Flax MLPs (:func:`stride_jax.dynamics.mlp.mlp`) as pure ``init``/``apply`` pairs
+over a params pytree that carries its own input and output normalisation:
+
+* reward ``r(obs, action) -> []``: regression on the environment's rewards;
+* value ``V(obs) -> []``: fitted value iteration on lambda-returns,
+
+      G_t = r_t + gamma c_t ((1 - lambda) V(s_{t+1}) + lambda G_{t+1}),   G_T = V(s_T),
+
+  with ``c_t = 0`` where the episode terminated (a fall) and the previous round's ``V`` in the
+  targets; each round regresses ``V`` on the new targets.
+
+Both are trained from rollouts of the environment (:func:`rollouts`; a PPO policy or any other),
+and turn into MPPI's running cost (``-r``) and terminal value (:func:`planner_terms`).
+
+Command line (a trained PPO run supplies the policy; writes ``reward_value.msgpack`` and
+``report.json`` to ``--out``):
+
+    python -m stride_jax.control.learned --policy runs/ppo_go1 --out runs/learned_go1 \\
+        --envs 1024 --steps 400
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import shlex
+import sys
+import time
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import serialization
+
+from stride_jax.dynamics import mlp as mlp_lib
+from stride_jax.io import atomic_write, atomic_write_text
+
+
+@dataclasses.dataclass(frozen=True)
+class LearnedConfig:
+    """Network size and training of the reward and value models.
+
+    Attributes:
+      width, depth: hidden width and layers of each MLP (SiLU).
+      steps: SGD steps for the reward model, and per round for the value model.
+      rounds: fitted-value-iteration rounds (targets recomputed with the last value model).
+      batch: examples per SGD step.
+      learning_rate: Adam step size.
+      discount: gamma of the value (per control step).
+      lam: lambda of the returns.
+    """
+
+    width: int = 256
+    depth: int = 2
+    steps: int = 2000
+    rounds: int = 5
+    batch: int = 1024
+    learning_rate: float = 1e-3
+    discount: float = 0.97
+    lam: float = 0.95
+
+    def __post_init__(self):
+        if not 0 <= self.discount < 1 or not 0 <= self.lam <= 1:
+            raise ValueError(f"discount must be in [0, 1) and lam in [0, 1], got "
+                             f"{self.discount}, {self.lam}")
+        if min(self.width, self.depth, self.steps, self.rounds, self.batch) < 1:
+            raise ValueError("width, depth, steps, rounds and batch must be >= 1")
+
+
+PRESETS = {
+    "tiny": dict(width=32, depth=2, steps=200, rounds=3, batch=256),
+    "default": {},
+}
+
+
+class Trajectories(NamedTuple):
+    """Rollouts, ``[N, T, ...]`` (N worlds, T steps)."""
+
+    obs: jax.Array  # [N, T, O] observation before the action
+    action: jax.Array  # [N, T, A]
+    reward: jax.Array  # [N, T]
+    next_obs: jax.Array  # [N, T, O]
+    terminal: jax.Array  # [N, T] 1 where the step ended the episode by failure (no bootstrap)
+    reset: jax.Array  # [N, T] 1 where the episode ended (failure or time limit): returns stop
+
+
+# ---------------------------------------------------------------------------------------------
+# Networks with their own normalisation.
+
+
+def _stats(x: jax.Array) -> tuple[jax.Array, jax.Array]:
+    x = x.reshape(-1, x.shape[-1])
+    return jnp.mean(x, 0), jnp.std(x, 0) + 1e-3
+
+
+def init(key: jax.Array, cfg: LearnedConfig, inputs: jax.Array, targets: jax.Array) -> dict:
+    """Parameters of a scalar model of ``inputs`` ``[..., D]``; the examples set the input and
+    output normalisation."""
+    net_init, _ = mlp_lib.mlp(mlp_lib.MLPConfig(cfg.width, cfg.depth), 1)
+    x_mean, x_std = _stats(inputs)
+    return {"net": net_init(key, inputs.shape[-1]), "x_mean": x_mean, "x_std": x_std,
+            "y_mean": jnp.mean(targets), "y_std": jnp.std(targets) + 1e-3}
+
+
+def apply(params: dict, x: jax.Array) -> jax.Array:
+    """The model's output ``[]`` for one input ``[D]`` (vmap for batches)."""
+    if x.ndim != 1 or x.shape[0] != params["x_mean"].shape[0]:
+        raise ValueError(f"model input must have shape [{params['x_mean'].shape[0]}] (one "
+                         f"example; vmap for batches), got {x.shape}")
+    width = params["net"]["params"]["Dense_0"]["kernel"].shape[1]
+    depth = len(params["net"]["params"]) - 1
+    _, net_apply = mlp_lib.mlp(mlp_lib.MLPConfig(width, depth), 1)
+    z = net_apply(params["net"], (x - params["x_mean"]) / params["x_std"])[0]
+    return z * params["y_std"] + params["y_mean"]
+
+
+def reward_input(obs: jax.Array, action: jax.Array) -> jax.Array:
+    return jnp.concatenate([obs, action], axis=-1)
+
+
+def _regress(key: jax.Array, cfg: LearnedConfig, params: dict, x: jax.Array, y: jax.Array
+             ) -> tuple[dict, jax.Array]:
+    """``cfg.steps`` Adam steps of mean squared error (normalised targets) on ``x [M, D]``,
+    ``y [M]``; returns the parameters and the loss per step."""
+    opt = optax.adam(cfg.learning_rate)
+    fixed = {k: v for k, v in params.items() if k != "net"}
+
+    def loss(net, xb, yb):
+        p = {**fixed, "net": net}
+        pred = jax.vmap(lambda xi: apply(p, xi))(xb)
+        return jnp.mean(((pred - yb) / params["y_std"]) ** 2)
+
+    def step(carry, k):
+        net, state = carry
+        idx = jax.random.randint(k, (cfg.batch,), 0, x.shape[0])
+        value, grads = jax.value_and_grad(loss)(net, x[idx], y[idx])
+        upd, state = opt.update(grads, state, net)
+        return (optax.apply_updates(net, upd), state), value
+
+    (net, _), losses = jax.lax.scan(step, (params["net"], opt.init(params["net"])),
+                                    jax.random.split(key, cfg.steps))
+    return {**params, "net": net}, losses
+
+
+def _flat(x: jax.Array) -> jax.Array:
+    return x.reshape((-1,) + x.shape[2:])
+
+
+def _check(data: Trajectories) -> None:
+    n, t = data.reward.shape[:2] if data.reward.ndim == 2 else (None, None)
+    if n is None:
+        raise ValueError(f"rewards must be [N, T], got {data.reward.shape}")
+    for name in ("obs", "next_obs", "action"):
+        a = getattr(data, name)
+        if a.ndim != 3 or a.shape[:2] != (n, t):
+            raise ValueError(f"{name} must be [N={n}, T={t}, dim], got {a.shape}")
+    for name in ("terminal", "reset"):
+        if getattr(data, name).shape != (n, t):
+            raise ValueError(f"{name} must be [N={n}, T={t}], got {getattr(data, name).shape}")
+
+
+def fit_reward(key: jax.Array, cfg: LearnedConfig, data: Trajectories) -> tuple[dict, jax.Array]:
+    """A reward model of ``data``; returns its parameters and training losses."""
+    _check(data)
+    x = _flat(reward_input(data.obs, data.action))
+    y = _flat(data.reward)
+    key_init, key_fit = jax.random.split(key)
+    return _regress(key_fit, cfg, init(key_init, cfg, x, y), x, y)
+
+
+def lambda_returns(reward: jax.Array, next_value: jax.Array, terminal: jax.Array,
+                   reset: jax.Array, discount: float, lam: float) -> jax.Array:
+    """Lambda-returns ``[T]`` of one trajectory: ``reward``, ``next_value`` (V of the next
+    observation), ``terminal`` (no bootstrap) and ``reset`` (the return stops) are ``[T]``."""
+    def body(g_next, inp):
+        r, v, term, done = inp
+        cont = 1.0 - term
+        g_next = jnp.where(done > 0, v, g_next)  # a new episode follows: bootstrap only
+        g = r + discount * cont * ((1 - lam) * v + lam * g_next)
+        return g, g
+
+    _, g = jax.lax.scan(body, next_value[-1], (reward, next_value, terminal, reset),
+                        reverse=True)
+    return g
+
+
+def fit_value(key: jax.Array, cfg: LearnedConfig, data: Trajectories
+              ) -> tuple[dict, jax.Array]:
+    """A value model of ``data`` by ``cfg.rounds`` rounds of fitted value iteration; returns its
+    parameters and the training losses ``[rounds, steps]``."""
+    _check(data)
+    x = _flat(data.obs)
+    scale = jnp.std(data.reward) / (1 - cfg.discount) + 1e-3
+    mean0 = jnp.mean(data.reward) / (1 - cfg.discount)
+    key_init, key_fit = jax.random.split(key)
+    params = init(key_init, cfg, x, jnp.zeros(1))
+    params = {**params, "y_mean": mean0, "y_std": scale}
+    returns = jax.vmap(lambda_returns, in_axes=(0, 0, 0, 0, None, None))
+
+    def round_(params, k):
+        v_next = jax.vmap(jax.vmap(lambda o: apply(params, o)))(data.next_obs)
+        targets = returns(data.reward, v_next, data.terminal, data.reset, cfg.discount, cfg.lam)
+        params, losses = _regress(k, cfg, params, x, _flat(targets))
+        return params, losses
+
+    return jax.lax.scan(round_, params, jax.random.split(key_fit, cfg.rounds))
+
+
+# ---------------------------------------------------------------------------------------------
+# Data and planning.
+
+
+def rollouts(env: Any, policy: Callable, key: jax.Array, n_envs: int, n_steps: int,
+             episode_length: int = 1000) -> Trajectories:
+    """``n_steps`` steps of ``n_envs`` worlds of a Brax env under ``policy(obs, key) -> action``
+    (worlds reset freshly when an episode ends). Jit the caller or pass through ``jax.jit``."""
+    from stride_jax.control import envs as envs_lib
+    wrapped = envs_lib.wrap_for_training(env, episode_length)
+    key_reset, key_run = jax.random.split(key)
+
+    def body(state, k):
+        a = jax.vmap(policy)(state.obs, jax.random.split(k, n_envs))
+        nxt = wrapped.step(state, a)
+        trunc = nxt.info["truncation"]
+        # The observation the step reached (an auto-reset swaps in the next episode's first).
+        reached = nxt.info["last_obs"]
+        return nxt, Trajectories(state.obs, a, nxt.reward, reached, nxt.done * (1 - trunc),
+                                 nxt.done)
+
+    state = wrapped.reset(jax.random.key_data(jax.random.split(key_reset, n_envs)))
+    _, data = jax.lax.scan(body, state, jax.random.split(key_run, n_steps))
+    return jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), data)
+
+
+def planner_terms(reward_params: dict, value_params: dict, obs_of: Callable,
+                  value_weight: float = 1.0) -> tuple[Callable, Callable]:
+    """MPPI's ``running_cost(q, qd, u, t) = -r(obs, u)`` and ``terminal_value(q, qd) = w V(obs)``
+    for an ``obs_of(q, qd) -> obs`` (the planner's state may carry the command)."""
+    def running_cost(q, qd, u, t):
+        return -apply(reward_params, reward_input(obs_of(q, qd), u))
+
+    def terminal_value(q, qd):
+        return value_weight * apply(value_params, obs_of(q, qd))
+
+    return running_cost, terminal_value
+
+
+def r2(pred: jax.Array, target: jax.Array) -> float:
+    """Coefficient of determination (1: perfect, 0: no better than the mean)."""
+    return float(1 - jnp.mean((pred - target) ** 2) / jnp.maximum(jnp.var(target), 1e-12))
+
+
+def save(path: pathlib.Path, reward_params: dict, value_params: dict) -> None:
+    blob = serialization.msgpack_serialize(jax.device_get(
+        {"reward": reward_params, "value": value_params}))
+    atomic_write(path, lambda f: f.write(blob))
+
+
+def load(path: str | pathlib.Path) -> tuple[dict, dict]:
+    """``(reward_params, value_params)`` written by :func:`save`."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no learned reward/value models at {path}")
+    d = serialization.msgpack_restore(path.read_bytes())
+    as_jnp = lambda t: jax.tree.map(jnp.asarray, t)
+    return as_jnp(d["reward"]), as_jnp(d["value"])
+
+
+# ---------------------------------------------------------------------------------------------
+# Command line.
+
+
+@dataclasses.dataclass(frozen=True)
+class FitConfig(LearnedConfig):
+    """Rollouts of a PPO run's policy, then both models. Attributes beyond
+    :class:`LearnedConfig`: policy (PPO run folder), out (folder), envs, rollout_steps,
+    holdout (fraction of worlds held out for the report), seed."""
+
+    policy: str = "runs/ppo_go1"
+    out: str = "runs/learned_go1"
+    envs: int = 1024
+    rollout_steps: int = 400
+    holdout: float = 0.1
+    seed: int = 0
+
+
+FIT_PRESETS = {"tiny": dict(PRESETS["tiny"], envs=8, rollout_steps=40, holdout=0.25),
+               "default": {}}
+
+
+def fit_from_policy(cfg: FitConfig, log=print) -> dict:
+    """Collects rollouts with the (stochastic) PPO policy, fits both models, writes them with a
+    held-out report."""
+    from stride_jax.control import envs as envs_lib, ppo
+
+    t0 = time.monotonic()
+    policy, _, env_cfg = ppo.load_policy(cfg.policy, deterministic=False)
+    env = envs_lib.VelocityEnv(env_cfg)
+    key_roll, key_r, key_v = jax.random.split(jax.random.key(cfg.seed), 3)
+    data = jax.jit(lambda k: rollouts(env, policy, k, cfg.envs, cfg.rollout_steps))(key_roll)
+    n_test = max(1, int(round(cfg.holdout * cfg.envs)))
+    train = jax.tree.map(lambda x: x[n_test:], data)
+    test = jax.tree.map(lambda x: x[:n_test], data)
+    log(f"{cfg.envs} x {cfg.rollout_steps} steps of {env_cfg.robot} ({time.monotonic() - t0:.0f}"
+        f" s); mean reward {float(data.reward.mean()):.4f}, falls {float(data.terminal.sum())}")
+    lc = LearnedConfig(**{f.name: getattr(cfg, f.name)
+                          for f in dataclasses.fields(LearnedConfig)})
+    r_params, r_loss = jax.jit(lambda k, d: fit_reward(k, lc, d))(key_r, train)
+    v_params, v_loss = jax.jit(lambda k, d: fit_value(k, lc, d))(key_v, train)
+    r_pred = jax.vmap(jax.vmap(lambda o, a: apply(r_params, reward_input(o, a))))(
+        test.obs, test.action)
+    v_obs = jax.vmap(jax.vmap(lambda o: apply(v_params, o)))
+    v_next = v_obs(test.next_obs)
+    g = jax.vmap(lambda_returns, in_axes=(0, 0, 0, 0, None, None))(
+        test.reward, v_next, test.terminal, test.reset, lc.discount, lc.lam)
+    report = {"command": cfg_command(cfg), "robot": env_cfg.robot, "envs": cfg.envs,
+              "rollout_steps": cfg.rollout_steps, "held_out_worlds": n_test,
+              "reward_r2_held_out": r2(r_pred, test.reward),
+              "value_r2_held_out": r2(v_obs(test.obs), g),
+              "reward_loss_last": float(r_loss[-1]), "value_loss_last": float(v_loss[-1, -1]),
+              "seconds": time.monotonic() - t0, "config": dataclasses.asdict(cfg)}
+    out = pathlib.Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    save(out / "reward_value.msgpack", r_params, v_params)
+    atomic_write_text(out / "report.json", json.dumps(report, indent=1))
+    log(f"reward R^2 (held out) {report['reward_r2_held_out']:.3f}, value R^2 against its "
+        f"lambda-returns {report['value_r2_held_out']:.3f}; wrote {out}")
+    return report
+
+
+def cfg_command(cfg: FitConfig) -> str:
+    return shlex.join(["python", "-m", "stride_jax.control.learned"] + sys.argv[1:])
+
+
+def main(argv: list[str] | None = None) -> None:
+    from stride_jax import cli
+    parser = argparse.ArgumentParser(prog="python -m stride_jax.control.learned",
+                                     description=__doc__.split("\n")[0])
+    parser.add_argument("--preset", default="default", help=f"one of {', '.join(FIT_PRESETS)}")
+    cli._add_config_args(parser, FitConfig)
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    fit_from_policy(cli._config(FitConfig, FIT_PRESETS, args), log=lambda s: print(s, flush=True))
+
+
+if __name__ == "__main__":
+    main()

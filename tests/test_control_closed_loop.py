@@ -1,0 +1,97 @@
+"""Closed-loop MPPI: a few jitted steps with the oracle (the true MJX dynamics) planning gait
+parameters; scenario grounds; the planner state; gait parameters held per rollout; learned costs."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from mujoco import mjx
+
+from stride_jax.control import closed_loop as cl, envs, gait, learned
+
+
+def test_oracle_closed_loop_runs_jitted_and_deterministically(go1):
+    cfg = dataclasses.replace(cl.ClosedLoopConfig(**cl.PRESETS["tiny"]), gait=True,
+                              noise_std=0.05)
+    sc = cl.SCENARIOS["walk"]
+    mx = mjx.put_model(cl.scenario_model(go1, sc))
+    planning = cl.make_planning(cfg, envs.config("go1"), go1, cl.mjx_step_fn(go1, mx))
+    planner = cl.make_planner(planning, cl.mppi_config(cfg, planning))
+    starts, values = cl.schedule(sc)
+    n = 6
+    episode = jax.jit(lambda key: cl.run_episode(go1, mx, envs.contact_slots(mx), planning,
+                                                 planner, n, starts, values, key))
+    trace = episode(jax.random.key(0))
+    again = episode(jax.random.key(0))
+    assert trace.v_base.shape == (n, 3) and trace.action.shape == (n, 12 + gait.N_GAIT)
+    assert trace.contact.shape == (n, 4)
+    np.testing.assert_allclose(trace.t, 0.02 * np.arange(1, n + 1), rtol=1e-6)
+    np.testing.assert_array_equal(trace.command, np.tile([1.0, 0.0, 0.0], (n, 1)))
+    assert np.isfinite(trace.v_base).all() and not trace.fallen.any()
+    for a, b in zip(jax.tree.leaves(trace), jax.tree.leaves(again)):
+        np.testing.assert_array_equal(a, b)
+    # The planner's gait parameters stay in their bounds and the duty is a fraction.
+    lo, hi = planning.lo, planning.hi
+    assert (np.asarray(trace.action) >= lo - 1e-6).all()
+    assert (np.asarray(trace.action) <= hi + 1e-6).all()
+    m = cl.metrics(trace, settle_s=0.0)
+    assert np.isfinite(m["vel_rmse"]) and m["fell"] is False and "plan_gait" in m
+
+
+def test_scenario_grounds(go1):
+    slope = cl.scenario_model(go1, cl.SCENARIOS["slope"])
+    g = np.asarray(slope.opt.gravity)
+    np.testing.assert_allclose(np.linalg.norm(g), 9.81, rtol=1e-6)
+    np.testing.assert_allclose(np.degrees(np.arctan2(-g[0], -g[2])), 20.0, rtol=1e-6)
+    ice = cl.scenario_model(go1, cl.SCENARIOS["low_friction"])
+    np.testing.assert_allclose(ice.geom_friction[:, 0], 0.3 * go1.mj.geom_friction[:, 0])
+    soft = cl.scenario_model(go1, cl.SCENARIOS["soft"])
+    assert (soft.geom_solref[:, 0] > go1.mj.geom_solref[:, 0]).all()
+    rough = cl.scenario_model(go1, cl.SCENARIOS["rough"])
+    assert rough.nhfield == 1 and np.ptp(rough.hfield_data) > 0.5
+    np.testing.assert_array_equal(go1.mj.opt.gravity, [0, 0, -9.81])  # nominal untouched
+    starts, values = cl.schedule(cl.SCENARIOS["step"])
+    np.testing.assert_allclose(cl.command_at(starts, values, 0.5), [0, 0, 0])
+    np.testing.assert_allclose(cl.command_at(starts, values, 1.5), [2, 0, 0])
+    with pytest.raises(ValueError, match="unknown model"):
+        cl._parse_models("oracle,bogus")
+
+
+def _fake_step(q, qd, ctrl, key):  # the robot stands still: planner plumbing only
+    return q, qd
+
+
+def test_gait_parameters_are_held_per_rollout(go1):
+    cfg = cl.ClosedLoopConfig(gait=True)
+    planning = cl.make_planning(cfg, envs.config("go1"), go1, _fake_step)
+    q0 = cl.augment(jnp.asarray(go1.info.qpos0), jnp.array([1.0, 0, 0]))
+    qd0 = jnp.zeros(go1.mj.nv)
+    trot, pace = gait.named("trot", freq=2.0), gait.named("pace", freq=3.5)
+    u1, u2 = gait.join_action(jnp.zeros(12), trot), gait.join_action(jnp.zeros(12), pace)
+    q1, _ = planning.dynamics(q0, qd0, u1, jax.random.key(0))
+    q2, _ = planning.dynamics(q1, qd0, u2, jax.random.key(1))
+    a1, a2 = cl.split(q1, go1.mj.nq), cl.split(q2, go1.mj.nq)
+    np.testing.assert_allclose(a1.clock, 2.0 * 0.02, rtol=1e-6)
+    np.testing.assert_allclose(a2.clock, 2 * 2.0 * 0.02, rtol=1e-6)  # still trot's frequency
+    np.testing.assert_array_equal(a2.gait[2:], trot.offsets)
+    np.testing.assert_array_equal(planning.ctrl(q1, u2), planning.ctrl(q1, u1))
+    with pytest.raises(ValueError, match="planner state"):
+        cl.split(jnp.zeros(5), go1.mj.nq)
+
+
+def test_learned_reward_and_value_drive_the_planner(go1):
+    env_cfg = envs.config("go1")
+    obs_n = envs.obs_size(env_cfg, 12)
+    lc = learned.LearnedConfig(width=8, depth=1)
+    r_params = learned.init(jax.random.key(0), lc, jnp.ones((4, obs_n + 12)), jnp.ones(4))
+    v_params = learned.init(jax.random.key(1), lc, jnp.ones((4, obs_n)), jnp.ones(4))
+    cfg = cl.ClosedLoopConfig(samples=8, horizon=3)
+    planning = cl.make_planning(cfg, env_cfg, go1, _fake_step, learned_params=(r_params,
+                                                                              v_params))
+    planner = cl.make_planner(planning, cl.mppi_config(cfg, planning))
+    q0 = cl.augment(jnp.asarray(go1.info.qpos0), jnp.array([1.0, 0, 0]))
+    u, _, info = jax.jit(planner.step)(planner.init(jax.random.key(0)), q0, jnp.zeros(18))
+    assert u.shape == (12,) and np.isfinite(info.costs).all()
+    assert np.ptp(np.asarray(info.costs)) > 0  # the learned reward tells samples apart
