@@ -10,7 +10,7 @@ import pathlib
 import numpy as np
 import pytest
 
-from stride_jax.eval import figures, phase, runs
+from stride_jax.eval import figures, horizon, phase, runs
 from stride_jax.train import job
 
 
@@ -98,3 +98,29 @@ def test_phase_grid_is_centred_on_the_upright():
     q, qd = phase.grid(phase.PhaseConfig(grid=5, q_half=0.5, qd_max=1.0))
     assert q.shape == qd.shape == (5, 5)
     assert q[0, 2] == pytest.approx(math.pi) and qd[2, 0] == pytest.approx(0.0)
+
+
+def test_horizon_summary_counts_diverged_windows_and_keeps_a_robust_median():
+    errs = np.ones((2, 4, 3))  # [samples, windows, horizon]
+    errs[0, 0, 2] = np.nan  # one diverged rollout
+    errs[1, 1] = 1e9  # one exploding but finite rollout
+    s = horizon.summarise(errs)
+    assert s["diverged"] == pytest.approx(1 / 8)
+    assert s["cumulative_median"] == pytest.approx(3.0)
+    assert s["cumulative"] > 1e8  # the mean (Table I's number) is dominated by it
+    assert s["per_horizon_median"] == pytest.approx([1.0, 1.0, 1.0])
+
+
+def test_claims_compare_ratios_with_the_paper():
+    row = lambda cum, growth: {"cumulative_mean": cum, "growth_last_over_half": growth,
+                               "per_horizon_mean": [0.0] * 30}
+    summary = {"horizon": {"table": {"go1": {"stride": row(1.0, 2.0), "delan": row(2.0, 2.0),
+                                             "onn": row(0.5, 5.0)}}}}
+    c = {x["id"]: x for x in figures.claims(summary)}
+    assert c["state_go1_vs_delan"]["ours"] == pytest.approx(0.5)
+    assert c["state_go1_vs_delan"]["holds"] is True
+    assert c["state_go1_vs_delan"]["paper"]["table"] == pytest.approx(0.932 / 1.326)
+    assert c["state_go1_vs_onn"]["holds"] is False
+    assert c["abstract_20pct_state_go1"]["ours"] == pytest.approx(2.0)  # vs the best (ONN)
+    assert c["growth_go1"]["holds"] is True
+    assert c["allocation_split"]["holds"] is None  # not measured

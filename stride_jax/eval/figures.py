@@ -112,13 +112,13 @@ class ReproduceConfig:
 
 PRESETS = {
     # CPU, CI-sized: every part end to end on tiny data and models (numbers are not the paper's).
-    "tiny": dict(seeds="0,1", train_legged=True, legged_episodes=8, legged_seconds=2.0,
-                 legged_train_preset="tiny", legged_steps=100, pendulum_episodes=24,
-                 pendulum_seconds=4.0, pendulum_train_preset="tiny", pendulum_steps=600,
-                 pendulum_seeds="0", windows=16, samples=2, nfe_flow="1,4",
-                 nfe_diffusion="1,4,10", timing_repeats=10, force_steps=64, force_window=40,
-                 force_samples=2, phase_grid=11, phase_worlds=32, phase_samples=16,
-                 alloc_steps=256),
+    "tiny": dict(out="results/reproduce/tiny", seeds="0,1", train_legged=True,
+                 legged_episodes=8, legged_seconds=2.0, legged_train_preset="tiny",
+                 legged_steps=100, pendulum_episodes=24, pendulum_seconds=4.0,
+                 pendulum_train_preset="tiny", pendulum_steps=600, pendulum_seeds="0",
+                 windows=16, samples=2, nfe_flow="1,4", nfe_diffusion="1,4,10",
+                 timing_repeats=20, force_steps=64, force_window=40, force_samples=2,
+                 phase_grid=11, phase_worlds=32, phase_samples=16, alloc_steps=256),
     # GPU: legged runs from `experiments/table1.py --preset paper` under the same root.
     "paper": {},
 }
@@ -133,8 +133,8 @@ def _names(s: str) -> list[str]:
 
 
 def _device() -> str:
-    d = jax.devices()[0]
-    return f"{d.device_kind} ({jax.default_backend()}; {platform.processor() or platform.machine()})"
+    d, host = jax.devices()[0], platform.processor() or platform.machine()
+    return f"{d.device_kind} ({jax.default_backend()}; {host})"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -7,8 +7,9 @@ taken at every step. Here the parameters are an *argument* of the compiled progr
 one model and robot that differ in their seed compile once (JAX's persistent cache).
 
 Per run: the per-horizon error averaged over finite windows and samples, its spread over samples,
-the cumulative error (sum over ``h = 1..H``, the Table I number) and the fraction of diverged
-(non-finite) rollouts. Over seeds: mean and std of each.
+the cumulative error (sum over ``h = 1..H``, the Table I number), the fraction of diverged
+(non-finite) rollouts, and the median window's errors (a few finite but exploding rollouts
+dominate a mean; the median says what a typical window does). Over seeds: mean and std.
 """
 
 from __future__ import annotations
@@ -23,6 +24,9 @@ import numpy as np
 from stride_jax.dynamics import integrate
 from stride_jax.eval import rollout
 from stride_jax.eval.runs import LoadedRun, cache_key, cached
+
+
+_VERSION = 2  # of the cached numbers: bump when summarise() changes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,7 +84,11 @@ def summarise(errs: np.ndarray) -> dict:
     per_sample_h = np.array([errs[s][finite[s]].mean(0) if finite[s].any()
                              else np.full(errs.shape[-1], np.nan) for s in range(len(errs))])
     cum = per_sample_h.sum(-1)  # [S]
+    # Robust to a few finite but exploding windows (which dominate a mean): the median window.
+    med = np.where(finite[..., None], errs, np.nan)
     return {"per_horizon": np.nanmean(per_sample_h, 0).tolist(),
+            "per_horizon_median": np.nanmedian(med, (0, 1)).tolist(),
+            "cumulative_median": float(np.nanmedian(np.nanmean(med.sum(-1), 0))),
             "per_horizon_sample_std": np.nanstd(per_sample_h, 0).tolist(),
             "cumulative": float(np.nanmean(cum)), "cumulative_sample_std": float(np.nanstd(cum)),
             "diverged": float(1.0 - finite.mean()), "windows": int(errs.shape[1]),
@@ -90,7 +98,7 @@ def summarise(errs: np.ndarray) -> dict:
 def evaluate(run: LoadedRun, cfg: HorizonConfig, cache_dir: pathlib.Path,
              nfe: int | None = None) -> dict:
     """:func:`summarise` of :func:`errors`, cached per run, settings and checkpoint."""
-    key = cache_key(run, **dataclasses.asdict(cfg), nfe=nfe)
+    key = cache_key(run, **dataclasses.asdict(cfg), nfe=nfe, version=_VERSION)
     name = f"{run.path.parent.name}_{run.path.name}_h{cfg.horizon}_nfe{nfe or 'default'}.json"
     result = cached(pathlib.Path(cache_dir) / "horizon" / name, key,
                     lambda: summarise(errors(run, cfg, nfe)))
@@ -107,6 +115,8 @@ def over_seeds(results: list[dict]) -> dict:
             "per_horizon_mean": np.nanmean(ph, 0).tolist(),
             "per_horizon_std": np.nanstd(ph, 0).tolist(),
             "cumulative_mean": float(np.nanmean(cum)), "cumulative_std": float(np.nanstd(cum)),
+            "cumulative_median_mean": float(np.nanmean([r["cumulative_median"]
+                                                        for r in results])),
             "diverged_mean": float(np.mean([r["diverged"] for r in results])),
             "steps_done": sorted({r["steps_done"] for r in results}, key=str)}
 

@@ -275,7 +275,7 @@ def plot(arrays: dict, numbers: dict, path: pathlib.Path, title: str = "") -> pa
         t = arrays["probe_samples"]["truth"][:, i]
         lo, hi = np.percentile(t, [0.5, 99.5])
         pad = 0.3 * (hi - lo + 1e-3)
-        bins = np.linspace(lo - pad, hi + pad, 50)
+        bins = np.linspace(lo - pad, hi + pad, int(np.clip(len(t) // 4, 15, 50)))
         a.hist(t, bins=bins, density=True, color="k", alpha=0.35, label="truth")
         for name in names[1:]:
             smp = arrays["probe_samples"][name][:, i]
