@@ -117,3 +117,16 @@ def test_residual_penalty_spares_exactly_what_stance_feet_can_produce(robot, req
         left = stride.non_contact_part(f, jac[0])
         assert np.linalg.norm(left) > 0.1 * np.linalg.norm(f)
         np.testing.assert_allclose(stride.non_contact_part(f, jac[1]), f)  # free: all of it
+
+
+@pytest.mark.parametrize("residual", ["flow", "diffusion"])
+def test_acceleration_loss_is_deterministic_and_bounded_below(residual):
+    """The prior's acceleration loss uses the residual's central sample: the same for every key
+    and never negative (the two-sample product it replaced went to -1e7 under training)."""
+    params = stride.init(jax.random.key(1), SPEC, CFG, residual)
+    params = jax.tree.map(lambda x: 3.0 * x, params)  # a residual with a wide spread
+    q, qd, tau, qdd = jnp.array([0.3]), jnp.array([-1.0]), jnp.array([0.5]), jnp.array([2.0])
+    accs = [stride.loss(params, SPEC, CFG, residual, q, qd, tau, qdd, jax.random.key(k))[1]["acc"]
+            for k in range(3)]
+    assert all(float(a) >= 0.0 for a in accs)
+    np.testing.assert_allclose(accs, accs[0], rtol=1e-6)

@@ -77,8 +77,11 @@ def loss(params: dict, x0: jax.Array, context: jax.Array, key: jax.Array,
 
 
 def sample(params: dict, context: jax.Array, key: jax.Array, dim: int,
-           cfg: DiffusionConfig = DiffusionConfig(), nfe: int | None = None) -> jax.Array:
-    """One sample ``[dim]`` given ``context``, denoised in ``nfe`` evaluations."""
+           cfg: DiffusionConfig = DiffusionConfig(), nfe: int | None = None,
+           central: bool = False) -> jax.Array:
+    """One sample ``[dim]`` given ``context``, denoised in ``nfe`` evaluations. ``central``:
+    the deterministic DDIM map (``eta = 0``) of ``x = 0``, the diffusion's counterpart of
+    ``flow.central`` (``key`` unused)."""
     nfe = nfe or cfg.nfe
     if not 1 <= nfe <= cfg.steps:
         raise ValueError(f"nfe={nfe}: need 1 <= nfe <= steps={cfg.steps}")
@@ -91,12 +94,13 @@ def sample(params: dict, context: jax.Array, key: jax.Array, dim: int,
         e = noise_prediction(params, x, s, context, cfg)
         x0 = jnp.clip((x - jnp.sqrt(1.0 - ab) * e) / jnp.sqrt(ab), -cfg.clip, cfg.clip)
         e = (x - jnp.sqrt(ab) * x0) / jnp.sqrt(1.0 - ab)  # the noise consistent with the clip
-        sigma = cfg.eta * jnp.sqrt((1 - ab_next) / (1 - ab) * (1 - ab / ab_next))
+        sigma = (0.0 if central else cfg.eta) * jnp.sqrt((1 - ab_next) / (1 - ab) * (1 - ab / ab_next))
         direction = jnp.sqrt(jnp.clip(1.0 - ab_next - sigma ** 2, 0.0)) * e
         noise = sigma * jax.random.normal(k, x.shape, x.dtype)
         return jnp.sqrt(ab_next) * x0 + direction + noise, None
 
     pairs = (levels[:-1], levels[1:])
-    x, _ = jax.lax.scan(update, jax.random.normal(key_x, (dim,)),
+    x_init = jnp.zeros((dim,)) if central else jax.random.normal(key_x, (dim,))
+    x, _ = jax.lax.scan(update, x_init,
                         (pairs, jax.random.split(key_noise, nfe)))
     return x

@@ -86,3 +86,10 @@ def sample(params: dict, context: jax.Array, key: jax.Array, dim: int,
            cfg: FlowConfig = FlowConfig(), nfe: int | None = None) -> jax.Array:
     """One sample ``[dim]`` of the conditional distribution given ``context``."""
     return integrate(params, jax.random.normal(key, (dim,)), context, cfg, nfe)
+
+
+def central(params: dict, context: jax.Array, dim: int, cfg: FlowConfig = FlowConfig(),
+            nfe: int | None = None) -> jax.Array:
+    """The transport of ``z0 = 0``, the latent's centre ``[dim]``: a deterministic summary of
+    the distribution (its mean for a Gaussian, a point between the modes of a symmetric mixture)."""
+    return integrate(params, jnp.zeros((dim,)), context, cfg, nfe)

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from typing import Callable, NamedTuple
 
+import jax
+
 from stride_jax.dynamics import diffusion, flow, mlp
 
 KINDS = ("flow", "diffusion")
@@ -18,6 +20,7 @@ class Generator(NamedTuple):
     init: Callable  # (key, dim, context_dim) -> params
     loss: Callable  # (params, x [dim], context, key) -> scalar training loss of one example
     sample: Callable  # (params, context, key, dim, nfe=None) -> x [dim]
+    central: Callable  # (params, context, dim, nfe=None) -> x [dim]: the latent's centre mapped
 
 
 def make(kind: str, net: mlp.MLPConfig, nfe: int, integrator: str = "euler",
@@ -26,11 +29,14 @@ def make(kind: str, net: mlp.MLPConfig, nfe: int, integrator: str = "euler",
         cfg = flow.FlowConfig(net=net, nfe=nfe, integrator=integrator)
         return Generator(lambda key, dim, cdim: flow.flow_init(key, dim, cdim, cfg),
                          lambda p, x, c, key: flow.fm_loss(p, x, c, key, cfg),
-                         lambda p, c, key, dim, nfe=None: flow.sample(p, c, key, dim, cfg, nfe))
+                         lambda p, c, key, dim, nfe=None: flow.sample(p, c, key, dim, cfg, nfe),
+                         lambda p, c, dim, nfe=None: flow.central(p, c, dim, cfg, nfe))
     if kind == "diffusion":
         cfg = diffusion.DiffusionConfig(net=net, nfe=nfe, steps=diffusion_steps, eta=eta)
         return Generator(lambda key, dim, cdim: diffusion.init(key, dim, cdim, cfg),
                          lambda p, x, c, key: diffusion.loss(p, x, c, key, cfg),
                          lambda p, c, key, dim, nfe=None: diffusion.sample(p, c, key, dim, cfg,
-                                                                           nfe))
+                                                                           nfe),
+                         lambda p, c, dim, nfe=None: diffusion.sample(
+                             p, c, jax.random.key(0), dim, cfg, nfe, central=True))
     raise ValueError(f"unknown generator {kind!r}; available: {', '.join(KINDS)}")
