@@ -67,14 +67,22 @@ def forward_dynamics(mass_fn: MassFn, potential_fn: PotentialFn, q: jax.Array, v
 @dataclasses.dataclass(frozen=True)
 class LNNConfig:
     """Sizes of the two networks and ``diag_floor``: M's eigenvalues stay above it.
-    Floating bases: ``gravity`` (m/s^2, along world -z) and ``mass_init``, the starting value of
-    the learned total mass (kg; a spec-sheet number: Adam moves a log-mass only ~lr per step, so
-    a start at 1 kg does not reach a 13 kg robot within a training run)."""
+    Floating bases: ``gravity`` (m/s^2, along world -z) and ``mass_init``, the robot's total
+    mass (kg, a spec-sheet number), held fixed unless ``learn_mass`` (then it is the starting
+    value: Adam moves a log-mass only ~lr per step, so a start at 1 kg does not reach a 13 kg
+    robot within a training run).
+
+    Why fixed by default (measured, G1, 8000 steps): learned, the mass drifted to 38 kg (STRIDE)
+    and 27 kg (DeLaN) from the true 33 kg -- in stance, gravity and the feet's vertical forces
+    trade off along directions the data barely constrains -- and the stance forces read from the
+    residual carried the difference (~50 N). A team knows its robot's mass to a few percent.
+    """
 
     net: mlp.MLPConfig = mlp.MLPConfig()
     diag_floor: float = 1e-3
     gravity: float = 9.81
     mass_init: float = 1.0
+    learn_mass: bool = False
 
 
 def q_features(spec: ModelSpec, q: jax.Array, height: bool = True) -> jax.Array:
@@ -107,16 +115,21 @@ def _n_mass_outputs(spec: ModelSpec) -> int:
 
 
 def lnn_init(key: jax.Array, spec: ModelSpec, cfg: LNNConfig = LNNConfig()) -> dict:
-    """Parameters of the Cholesky-factor network, of V(q) and, for a floating base, the log of
-    the total mass."""
+    """Parameters of the Cholesky-factor network, of V(q) and, for a floating base with
+    ``learn_mass``, the log of the total mass."""
     key_m, key_v = jax.random.split(key)
     init_m, _ = mlp.mlp(cfg.net, _n_mass_outputs(spec))
     init_v, _ = mlp.mlp(cfg.net, 1)
     params = {"mass": init_m(key_m, _n_features(spec)),
               "potential": init_v(key_v, _n_features(spec))}
-    if spec.floating_base:
+    if spec.floating_base and cfg.learn_mass:
         params["log_mass"] = jnp.log(jnp.asarray(cfg.mass_init, jnp.float32))
     return params
+
+
+def total_mass(params: dict, cfg: LNNConfig) -> jax.Array | float:
+    """The floating base's total mass (kg): learned, or ``cfg.mass_init``."""
+    return jnp.exp(params["log_mass"]) if cfg.learn_mass else cfg.mass_init
 
 
 def mass_matrix(params: dict, spec: ModelSpec, q: jax.Array,
@@ -139,7 +152,7 @@ def mass_matrix(params: dict, spec: ModelSpec, q: jax.Array,
         keep = rows >= 3  # rows 0-2 of L are fixed
         L = jnp.zeros((nv, nv), raw.dtype).at[rows[keep], cols[keep]].set(raw)
         L = L.at[jnp.diag_indices(nv)].set(jax.nn.softplus(jnp.diag(L)))
-        L = L.at[:3, :3].set(jnp.sqrt(jnp.exp(params["log_mass"])) * jnp.eye(3, dtype=L.dtype))
+        L = L.at[:3, :3].set(jnp.sqrt(total_mass(params, cfg)) * jnp.eye(3, dtype=L.dtype))
     else:
         L = jnp.zeros((nv, nv), raw.dtype).at[rows, cols].set(raw)
         L = L.at[jnp.diag_indices(nv)].set(jax.nn.softplus(jnp.diag(L)))
@@ -158,7 +171,7 @@ def potential_energy(params: dict, spec: ModelSpec, q: jax.Array,
     _, apply = mlp.mlp(cfg.net, 1)
     v = apply(params["potential"], q_features(spec, q, height=False))[0]
     if spec.floating_base:
-        v = v + jnp.exp(params["log_mass"]) * cfg.gravity * q[2]
+        v = v + total_mass(params, cfg) * cfg.gravity * q[2]
     return v
 
 

@@ -93,7 +93,8 @@ class StructuredConfig:
     integrator: str = "euler"
     diffusion_steps: int = 100
     eta: float = 1.0
-    mass_init: float = 1.0  # floating bases: initial total mass (kg), see LNNConfig
+    mass_init: float = 1.0  # floating bases: total mass (kg), see LNNConfig
+    learn_mass: bool = False
     implicit_servo: bool = True  # rollouts: servo PD at the next state (Actuation.implicit)
     fm_weight: float = 1.0
     residual_weight: float = 0.1
@@ -101,7 +102,7 @@ class StructuredConfig:
     @property
     def lnn(self) -> lagrangian.LNNConfig:
         return lagrangian.LNNConfig(net=self.net, diag_floor=self.diag_floor,
-                                    mass_init=self.mass_init)
+                                    mass_init=self.mass_init, learn_mass=self.learn_mass)
 
     def generator(self, kind: str) -> generative.Generator:
         return generative.make(kind, self.net, self.nfe, self.integrator, self.diffusion_steps,
