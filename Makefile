@@ -16,7 +16,7 @@ ifneq ($(wildcard ../shared/menagerie),)
 export MENAGERIE_ROOT ?= $(abspath ../shared/menagerie)
 endif
 
-.PHONY: setup demo data train eval table1 test bench-sim bench-mppi gap-bench clean
+.PHONY: setup demo data train eval table1 reproduce test bench-sim bench-mppi gap-bench clean
 
 $(BIN)/stride: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -48,6 +48,11 @@ eval: setup
 ## table1: the paper's Table I on one robot (5 models x 3 seeds; PRESET=paper wants a GPU)
 table1: setup
 	$(BIN)/python experiments/table1.py --robot $(ROBOT) --preset $(if $(filter default,$(PRESET)),tiny,$(PRESET))
+
+## reproduce: the paper's figures and claims -> results/reproduce/tiny (CPU, ~8 min; PRESET=paper:
+## GPU, after `make table1 PRESET=paper`)
+reproduce: setup
+	$(BIN)/python experiments/reproduce.py --preset $(if $(filter default,$(PRESET)),tiny,$(PRESET))
 
 ## test: the whole suite (about 9 minutes on 2 cores)
 test: setup
