@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from stride_jax.control import mppi
+from stride_jax.dynamics import models
 
 DT, U_MAX = 0.05, 5.0  # torque limit below m g l = 9.81: the swing-up must pump energy
 
@@ -89,3 +90,21 @@ def test_bad_bounds_and_missing_policy_are_clear_errors():
         mppi.make(CFG, pendulum, cost, [1.0], [-1.0])
     with pytest.raises(ValueError, match="needs a policy"):
         mppi.make(mppi.MPPIConfig(policy_samples=4), pendulum, cost, [-1.0], [1.0])
+
+
+def test_bench_counts_every_model_evaluation(tmp_path):
+    """The FLOP floor counts each substep and residual evaluation (XLA alone counts a loop body
+    once): doubling the substeps or adding residual evaluations adds FLOPs."""
+    import dataclasses
+
+    from stride_jax.control import bench
+    from stride_jax.train import job
+
+    _, meta, spec, act = bench._robot("pendulum")
+    cfg = job.model_config("stride", meta, 16, 1, 2)
+    params = models.make("stride", spec, act, cfg).init(jax.random.key(0))
+    base = bench.control_step_flops("stride", spec, act, cfg, params)
+    twice = bench.control_step_flops("stride", spec, dataclasses.replace(
+        act, n_substeps=2 * act.n_substeps), cfg, params)
+    more = bench.control_step_flops("stride", spec, act, dataclasses.replace(cfg, nfe=4), params)
+    assert base > 0 and twice == pytest.approx(2 * base) and more > base
