@@ -1,0 +1,32 @@
+"""results/REPORT.md: the paper's claims, its numbers, ours and computed verdicts.
+
+    python experiments/report.py                      # reads results/, writes results/REPORT.md
+    python experiments/report.py --results R --out R/REPORT.md
+
+Reads only result files (Table I's results/<robot>/table.json, required; reproduce summaries,
+MPPI benchmarks, closed-loop runs and the gap benchmark when present); see
+``stride_jax.eval.report``.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from stride_jax.eval import report
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--results", default="results", help="results folder")
+    p.add_argument("--out", default="", help="report path (default: <results>/REPORT.md)")
+    args = p.parse_args(argv)
+    rep = report.write(args.results, args.out or None)
+    for i, r in enumerate(rep["rows"], 1):
+        print(f"{i:2d}. {r.verdict:>14}: {r.claim}")
+    print(f"wrote {rep['path']}")
+    return rep
+
+
+if __name__ == "__main__":
+    main()
