@@ -16,7 +16,7 @@ ifneq ($(wildcard ../shared/menagerie),)
 export MENAGERIE_ROOT ?= $(abspath ../shared/menagerie)
 endif
 
-.PHONY: setup demo data train eval table1 reproduce test bench-sim bench-mppi gap-bench clean
+.PHONY: setup demo data train eval table1 reproduce report test bench-sim bench-mppi gap-bench clean
 
 $(BIN)/stride: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -53,6 +53,10 @@ table1: setup
 ## GPU, after `make table1 PRESET=paper`)
 reproduce: setup
 	$(BIN)/python experiments/reproduce.py --preset $(if $(filter default,$(PRESET)),tiny,$(PRESET))
+
+## report: results/REPORT.md from the result files on disk (paper's claims, ours, computed verdicts)
+report: setup
+	$(BIN)/python experiments/report.py
 
 ## test: the whole suite (about 9 minutes on 2 cores)
 test: setup

@@ -29,3 +29,19 @@ def atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], None]) ->
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write(path, lambda f: f.write(text.encode()))
+
+
+def code_version() -> str:
+    """The code a result was made with: ``$STRIDE_COMMIT`` when set (a copy of the tree without
+    ``.git``, such as a lent GPU machine's), else ``git describe --always --dirty`` of the
+    checkout holding this package, else ``"unknown"``."""
+    if os.environ.get("STRIDE_COMMIT"):
+        return os.environ["STRIDE_COMMIT"]
+    import subprocess
+
+    try:
+        out = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True,
+                             text=True, timeout=10, cwd=pathlib.Path(__file__).parent)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"

@@ -33,7 +33,7 @@ from stride_jax.dynamics import models
 from stride_jax.eval import forces, rollout
 from stride_jax.sim import dataset, model as sim_model
 from stride_jax.train import job
-from stride_jax.io import atomic_write_text
+from stride_jax.io import atomic_write_text, code_version
 
 
 @dataclasses.dataclass(frozen=True)
@@ -272,7 +272,8 @@ def run(cfg: EvalConfig, command: str = "stride eval", log=print) -> pathlib.Pat
         {"command": command, "config": dataclasses.asdict(cfg), "table": table,
          "ratios": _ratios(table), "runs": results,
          "run_configs": {str(r): json.loads((r / "config.json").read_text()) for r in runs},
-         "backend": jax.default_backend(), "seconds": time.time() - t0}, indent=1))
+         "backend": jax.default_backend(), "code": code_version(),
+         "seconds": time.time() - t0}, indent=1))
     atomic_write_text(out / "table.md", markdown(table, robot, command, cfg))
     log(f"wrote {out / 'table.md'} and table.json ({len(runs)} runs)")
     return out

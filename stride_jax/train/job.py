@@ -14,7 +14,7 @@ from stride_jax.sim import collect, dataset
 from stride_jax.sim import model as sim_model
 from stride_jax.train import loop
 from stride_jax.types import ModelSpec
-from stride_jax.io import atomic_write_text
+from stride_jax.io import atomic_write_text, code_version
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,7 +106,7 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
     out.mkdir(parents=True, exist_ok=True)
     models.save_definition(out, cfg.model, spec, act, model_cfg, sc)
     atomic_write_text(out / "config.json", json.dumps(
-        {"train": dataclasses.asdict(cfg), "dataset": str(data_dir),
+        {"train": dataclasses.asdict(cfg), "dataset": str(data_dir), "code": code_version(),
          "dataset_sha256": ds.meta["arrays_sha256"]}, indent=1))
     jacobians = None
     if ds.meta["feet"]:
