@@ -23,8 +23,11 @@ def test_oracle_closed_loop_runs_jitted_and_deterministically(go1):
     n = 6
     episode = jax.jit(lambda key: cl.run_episode(go1, mx, envs.contact_slots(mx), planning,
                                                  planner, n, starts, values, key))
-    trace = episode(jax.random.key(0))
-    again = episode(jax.random.key(0))
+    key = jax.random.key(0)
+    # XLA's backend optimisations cost a third of the compile time and buy nothing in 6 steps.
+    episode = episode.lower(key).compile({"xla_backend_optimization_level": 0})
+    trace = episode(key)
+    again = episode(key)
     assert trace.v_base.shape == (n, 3) and trace.action.shape == (n, 12 + gait.N_GAIT)
     assert trace.contact.shape == (n, 4)
     np.testing.assert_allclose(trace.t, 0.02 * np.arange(1, n + 1), rtol=1e-6)

@@ -17,7 +17,7 @@ plus the gait parameters (:mod:`stride_jax.control.gait`), which MPPI optimises 
 
 Cost: the environment's reward terms that a state determines (:func:`stride_jax.control.envs.
 state_terms`: tracking kernels, orientation, height, torques of the servo model ...), negated and
-unclipped, plus ``fall_cost`` per step fallen; or, with ``learned``, the learned reward and value
+unclipped, plus a quadratic tracking cost (``track_weight``) and ``fall_cost`` per step fallen; or, with ``learned``, the learned reward and value
 (:mod:`stride_jax.control.learned`). A PPO run can add ``policy_samples`` candidates.
 
 Scenarios: velocity step 0 -> 2 m/s, sudden command changes, a 20 degree slope (gravity tilted by
@@ -99,6 +99,9 @@ def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoc
                                 contype=floor.contype, conaffinity=floor.conaffinity,
                                 pos=[half - 1.0, 0, 0])
         floor.contype = floor.conaffinity = 0
+        for g in spec.geoms:  # MJX's heightfield-sphere collision has no margin (Go1's: 1 mm)
+            if g.conaffinity or g.contype:
+                g.margin = 0.0
         m = spec.compile()
     else:
         m = copy.copy(sm.mj)
@@ -150,6 +153,9 @@ class ClosedLoopConfig:
       learned: learned reward/value file (``reward_value.msgpack``); "" for the analytic cost.
       value_weight: weight of the learned terminal value.
       fall_cost: planner cost per step spent fallen (reward units per step).
+      track_weight: weight of a quadratic velocity-tracking cost added to the reward terms (per
+        (m/s)^2, times dt): the reward's exp-kernels are flat far from the command (at 2 m/s
+        below it, exp(-16)), which leaves a planner starting from rest without a direction.
       settle_s: tracking errors are counted from this long after each command change (s).
       out: results folder (``closed_loop.json``/``.md`` and plots).
       seed: planner key and terrain seed.
@@ -172,6 +178,7 @@ class ClosedLoopConfig:
     learned: str = ""
     value_weight: float = 1.0
     fall_cost: float = 1.0
+    track_weight: float = 1.0
     settle_s: float = 0.5
     out: str = "results/closed_loop"
     seed: int = 0
@@ -277,7 +284,9 @@ def make_planning(cfg: ClosedLoopConfig, env_cfg: envs.EnvConfig, sm: sim_model.
         terms = envs.state_terms(env_cfg, home, q, qd, command,
                                  servo_torque(sm, q, qd, ctrl(q_aug, u)), fallen)
         _, parts = envs.total_reward(env_cfg, terms, dt)
-        return -sum(parts.values()) + cfg.fall_cost * fallen
+        v, w, _ = envs.base_signals(q, qd)
+        track = jnp.sum((command[:2] - v[:2]) ** 2) + 0.5 * (command[2] - w[2]) ** 2
+        return -sum(parts.values()) + cfg.track_weight * dt * track + cfg.fall_cost * fallen
 
     value = None
     cost = analytic_cost
@@ -475,43 +484,49 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     rows = json.loads(path.read_text())["rows"] if path.is_file() else []
     done = {(r["scenario"], r["model"]) for r in rows}
     mx_nominal = mjx.put_model(sm.mj)
+    learned_steps = {name: learned_step_fn(run_dir, sm) for name, run_dir in models if run_dir}
+    if any(name == "policy" for name, _ in models) and ppo_policy is None:
+        raise ValueError("model 'policy' needs --policy RUN")
+    compiled = {}  # one executable per (model, episode length, model structures)
+
+    def episode_fn(name, n_steps, slots):
+        def episode(mx_sim, mx_plan, starts, values, key):
+            step_fn = learned_steps.get(name) or mjx_step_fn(sm, mx_plan)
+            planning = make_planning(cfg, env_cfg, sm, step_fn, ppo_policy, learned_params)
+            planner = None
+            if name != "policy":
+                with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
+                    planner = make_planner(planning, mppi_config(cfg, planning))
+            return run_episode(sm, mx_sim, slots, planning, planner, n_steps, starts, values, key)
+        return jax.jit(episode)
+
     for sc_name in [s for s in cfg.scenarios.split(",") if s]:
         sc = SCENARIOS[sc_name]
         if cfg.seconds:
             sc = dataclasses.replace(sc, seconds=cfg.seconds)
         n_steps = max(1, int(round(sc.seconds / sm.robot.ctrl_dt)))
-        mj_sc = scenario_model(sm, sc, cfg.seed)
-        mx_sim = mjx.put_model(mj_sc)
+        mx_sim = mjx.put_model(scenario_model(sm, sc, cfg.seed))
         slots = envs.contact_slots(mx_sim)
         starts, values = schedule(sc)
         for name, run_dir in models:
             if (sc.name, name) in done:
                 continue
-            if name == "policy":
-                step_fn, m_cfg = mjx_step_fn(sm, mx_nominal), False  # unused by the policy
-                if ppo_policy is None:
-                    raise ValueError("model 'policy' needs --policy RUN")
-            elif name == "oracle":
-                step_fn, m_cfg = mjx_step_fn(sm, mx_sim), True
-            elif name == "nominal":
-                step_fn, m_cfg = mjx_step_fn(sm, mx_nominal), True
-            else:
-                step_fn, m_cfg = learned_step_fn(run_dir, sm), True
-            planning = make_planning(cfg, env_cfg, sm, step_fn, ppo_policy, learned_params)
-            planner = make_planner(planning, mppi_config(cfg, planning)) if m_cfg else None
-            episode = jax.jit(functools.partial(run_episode, sm, mx_sim, slots, planning, planner,
-                                                n_steps))
-            args = (jnp.asarray(starts), jnp.asarray(values), jax.random.key(cfg.seed))
+            mx_plan = mx_sim if name == "oracle" else mx_nominal
+            args = (mx_sim, mx_plan, jnp.asarray(starts), jnp.asarray(values),
+                    jax.random.key(cfg.seed))
+            sig = (name, n_steps, tuple(slots[0]), jax.tree.structure(args[:2]))
             t0 = time.perf_counter()
-            compiled = episode.lower(*args).compile()
+            if sig not in compiled:
+                compiled[sig] = episode_fn(name, n_steps, slots).lower(*args).compile()
             compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
-            trace = jax.block_until_ready(compiled(*args))
+            trace = jax.block_until_ready(compiled[sig](*args))
             run_s = time.perf_counter() - t0
+            planned = name != "policy"
             row = dict(scenario=sc.name, model=name, run=run_dir or None,
                        **metrics(trace, cfg.settle_s),
                        ms_per_step=1e3 * run_s / n_steps, compile_s=compile_s, steps=n_steps,
-                       K=cfg.samples if m_cfg else None, H=cfg.horizon if m_cfg else None)
+                       K=cfg.samples if planned else None, H=cfg.horizon if planned else None)
             rows.append(row)
             np.savez_compressed(out / f"trace_{sc.name}_{name}.npz",
                                 **{k: np.asarray(v) for k, v in trace._asdict().items()})
@@ -588,6 +603,117 @@ def plot(out: pathlib.Path, rows: list[dict]) -> list[pathlib.Path]:
         plt.close(fig)
         paths.append(path)
     return paths
+
+
+# ---------------------------------------------------------------------------------------------
+# Gait study: the named gaits as parameter settings, and what MPPI picks when free.
+
+
+@dataclasses.dataclass(frozen=True)
+class GaitStudyConfig:
+    """Attributes:
+      speeds: comma-separated forward commands (m/s).
+      starts: random initial gaits per speed for the planner.
+      seconds: episode length (s).
+      freq: frequency of the open-loop named gaits (Hz).
+      samples, horizon, noise_std, gait_noise: the planner (oracle dynamics, gait mode).
+      out: results folder (``closed_loop_gait.json``/``.md``).
+      seed: initial gaits and planner keys.
+    """
+
+    speeds: str = "0.5,1.0,2.0"
+    starts: int = 2
+    seconds: float = 4.0
+    freq: float = 2.0
+    samples: int = 256
+    horizon: int = 25
+    noise_std: float = 0.05
+    gait_noise: float = 0.2
+    out: str = "results/closed_loop_gait"
+    seed: int = 0
+
+
+GAIT_PRESETS = {
+    "tiny": dict(speeds="1.0", starts=1, seconds=0.3, samples=8, horizon=4,
+                 out="results/closed_loop_gait_tiny"),
+    "cpu": dict(speeds="0.5,1.5", starts=1, seconds=2.0, samples=32, horizon=15,
+                out="results/closed_loop_gait_cpu"),
+    "default": {},
+    "gpu": dict(samples=1024, horizon=30, starts=3, out="results/closed_loop_gait_gpu"),
+}
+
+
+def gait_study(cfg: GaitStudyConfig, command: str = "", log=print) -> dict:
+    """(a) Each named gait's reference alone (no planner) in MJX: which gait the feet show, and
+    whether it stays up. (b) MPPI with the oracle choosing gait parameters from random initial
+    gaits at each speed: the gait it settles on (median of the second half) and the feet's."""
+    sm = sim_model.load("go1")
+    mx = mjx.put_model(sm.mj)
+    slots = envs.contact_slots(mx)
+    n_steps = max(1, int(round(cfg.seconds / sm.robot.ctrl_dt)))
+    cl_cfg = ClosedLoopConfig(samples=cfg.samples, horizon=cfg.horizon, gait=True,
+                              noise_std=cfg.noise_std, gait_noise=cfg.gait_noise)
+    planning = make_planning(cl_cfg, envs.config("go1"), sm, mjx_step_fn(sm, mx))
+    planner = make_planner(planning, mppi_config(cl_cfg, planning))
+    nu = sm.info.nu
+
+    def open_loop(gait_u, starts, values):
+        pl = planning._replace(policy=lambda q, qd: gait_u)
+        return run_episode(sm, mx, slots, pl, None, n_steps, starts, values, jax.random.key(0))
+
+    def planned(init_u, starts, values, key):
+        pl = planning._replace(nominal_u=init_u)
+        return run_episode(sm, mx, slots, pl, planner, n_steps, starts, values, key)
+
+    open_loop, planned = jax.jit(open_loop), jax.jit(planned)
+    rows = []
+    rng = np.random.default_rng(cfg.seed)
+    for speed in [float(v) for v in cfg.speeds.split(",") if v]:
+        starts, values = schedule(Scenario("walk", ((0.0, speed, 0.0, 0.0),)))
+        for name in gait_lib.NAMED:
+            g = gait_lib.named(name, freq=cfg.freq)
+            u = gait_lib.join_action(jnp.zeros(nu), g)
+            m = metrics(open_loop(u, starts, values), 0.5)
+            rows.append(dict(speed=speed, mode="open loop", start=name, **m))
+            log(f"{speed} m/s open-loop {name}: feet show {m.get('contact_gait')}, fell "
+                f"{m['fell']}, mean vx {m['mean_vx']:.2f}")
+        for i in range(cfg.starts):
+            g0 = gait_lib.Gait(jnp.float32(cfg.freq), jnp.float32(0.5),
+                               jnp.asarray(rng.uniform(0, 1, 4), jnp.float32))
+            u0 = gait_lib.join_action(jnp.zeros(nu), g0)
+            trace = planned(u0, starts, values, jax.random.key(cfg.seed + i))
+            half = jax.tree.map(lambda x: x[n_steps // 2:], trace)
+            m = metrics(half, 0.0)
+            m["start_gait"], m["start_dist"] = gait_lib.classify(np.asarray(g0.offsets))
+            rows.append(dict(speed=speed, mode="MPPI (oracle)", start=f"random {i}", **m))
+            log(f"{speed} m/s MPPI from {m['start_gait']} ({m['start_dist']:.2f} away): plans "
+                f"{m.get('plan_gait')} ({m.get('plan_gait_dist', float('nan')):.2f}), feet show "
+                f"{m.get('contact_gait')}, fell {m['fell']}")
+    out = pathlib.Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    result = dict(command=command, backend=jax.default_backend(),
+                  device=jax.devices()[0].device_kind, config=dataclasses.asdict(cfg), rows=rows)
+    atomic_write_text(out / "closed_loop_gait.json", json.dumps(result, indent=1))
+    fmt = lambda x, f="{:.2f}": "-" if x is None or (isinstance(x, float) and np.isnan(x)) else (
+        f.format(x))
+    lines = ["# Gaits as parameter settings (Go1, MJX)", "", f"Command: `{command}`", "",
+             f"Device: {result['device']} ({result['backend']}). Open loop: the gait reference "
+             f"of each named gait at {cfg.freq} Hz, duty 0.5, no planner. MPPI: oracle dynamics, "
+             f"K={cfg.samples}, H={cfg.horizon}, gait parameters (frequency, duty, four offsets) "
+             "planned per rollout from a random initial gait; statistics of the second half. "
+             "'feet show': the named pattern the measured contacts fit best (score: in-phase "
+             "minus anti-phase contact correlation, 1 is a clean pattern).", "",
+             "| speed (m/s) | mode | start | planned gait (dist) | Hz | duty | feet show (score) | "
+             "fell | mean vx | vel RMSE |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(
+            f"| {r['speed']} | {r['mode']} | {r['start']} | "
+            f"{r['plan_gait'] + ' (' + fmt(r['plan_gait_dist']) + ')' if 'plan_gait' in r else '-'}"
+            f" | {fmt(r.get('plan_freq'))} | {fmt(r.get('plan_duty'))} | "
+            f"{r['contact_gait'] + ' (' + fmt(r['contact_gait_score']) + ')' if 'contact_gait' in r else '-'}"
+            f" | {'yes' if r['fell'] else 'no'} | {fmt(r['mean_vx'])} | {fmt(r['vel_rmse'])} |")
+    atomic_write_text(out / "closed_loop_gait.md", "\n".join(lines) + "\n")
+    return result
 
 
 def main(argv: list[str] | None = None) -> None:

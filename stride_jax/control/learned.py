@@ -293,7 +293,7 @@ FIT_PRESETS = {"tiny": dict(PRESETS["tiny"], envs=8, rollout_steps=40, holdout=0
                "default": {}}
 
 
-def fit_from_policy(cfg: FitConfig, log=print) -> dict:
+def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     """Collects rollouts with the (stochastic) PPO policy, fits both models, writes them with a
     held-out report."""
     from stride_jax.control import envs as envs_lib, ppo
@@ -318,7 +318,7 @@ def fit_from_policy(cfg: FitConfig, log=print) -> dict:
     v_next = v_obs(test.next_obs)
     g = jax.vmap(lambda_returns, in_axes=(0, 0, 0, 0, None, None))(
         test.reward, v_next, test.terminal, test.reset, lc.discount, lc.lam)
-    report = {"command": cfg_command(cfg), "robot": env_cfg.robot, "envs": cfg.envs,
+    report = {"command": command, "robot": env_cfg.robot, "envs": cfg.envs,
               "rollout_steps": cfg.rollout_steps, "held_out_worlds": n_test,
               "reward_r2_held_out": r2(r_pred, test.reward),
               "value_r2_held_out": r2(v_obs(test.obs), g),
@@ -333,18 +333,17 @@ def fit_from_policy(cfg: FitConfig, log=print) -> dict:
     return report
 
 
-def cfg_command(cfg: FitConfig) -> str:
-    return shlex.join(["python", "-m", "stride_jax.control.learned"] + sys.argv[1:])
-
-
 def main(argv: list[str] | None = None) -> None:
     from stride_jax import cli
     parser = argparse.ArgumentParser(prog="python -m stride_jax.control.learned",
                                      description=__doc__.split("\n")[0])
     parser.add_argument("--preset", default="default", help=f"one of {', '.join(FIT_PRESETS)}")
     cli._add_config_args(parser, FitConfig)
-    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
-    fit_from_policy(cli._config(FitConfig, FIT_PRESETS, args), log=lambda s: print(s, flush=True))
+    argv = sys.argv[1:] if argv is None else argv
+    args = parser.parse_args(argv)
+    fit_from_policy(cli._config(FitConfig, FIT_PRESETS, args),
+                    shlex.join(["python", "-m", "stride_jax.control.learned", *argv]),
+                    log=lambda s: print(s, flush=True))
 
 
 if __name__ == "__main__":
