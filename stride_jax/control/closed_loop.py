@@ -10,15 +10,17 @@ with the scenario's ground. Planner models:
 * ``NAME=RUN``: a trained dynamics model of the one interface (``stride_jax.dynamics.models.load``;
   STRIDE, DeLaN, ONN ...), e.g. ``stride=runs/go1/stride``.
 
-The planner's state is ``(q, command, clock)`` stacked into its ``q`` (the dynamics carry the command
-unchanged and advance the gait clock), so one jitted planner follows command changes. Its action is
+The planner's state is ``(q, command, gait clock, latched gait)`` stacked into its ``q`` (the
+dynamics carry the command unchanged and advance the clock), so one jitted planner follows
+command changes. Its action is
 a joint-target offset from the home pose (rad); with ``gait`` it is a residual on a gait reference
 plus the gait parameters (:mod:`stride_jax.control.gait`), which MPPI optimises jointly.
 
 Cost: the environment's reward terms that a state determines (:func:`stride_jax.control.envs.
 state_terms`: tracking kernels, orientation, height, torques of the servo model ...), negated and
-unclipped, plus a quadratic tracking cost (``track_weight``) and ``fall_cost`` per step fallen; or, with ``learned``, the learned reward and value
-(:mod:`stride_jax.control.learned`). A PPO run can add ``policy_samples`` candidates.
+unclipped, plus a quadratic tracking cost (``track_weight``) and ``fall_cost`` per step fallen;
+or, with ``learned``, the learned reward and value (:mod:`stride_jax.control.learned`). A PPO run
+can add ``policy_samples`` candidates.
 
 Scenarios: velocity step 0 -> 2 m/s, sudden command changes, a 20 degree slope (gravity tilted by
 20 degrees about the y axis: on a plane this is the same physics as a tilted floor, walking +x is
@@ -44,7 +46,7 @@ import numpy as np
 from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
-from stride_jax.io import atomic_write_text
+from stride_jax.io import atomic_write_text, code_version
 from stride_jax.sim import model as sim_model, rollout_mjx
 
 
@@ -540,7 +542,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
 
 def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Path) -> None:
     env = dict(command=command, backend=jax.default_backend(), device=jax.devices()[0].device_kind,
-               jax=jax.__version__, config=dataclasses.asdict(cfg))
+               jax=jax.__version__, code=code_version(), config=dataclasses.asdict(cfg))
     atomic_write_text(out / "closed_loop.json", json.dumps(dict(env=env, rows=rows), indent=1))
     fmt = lambda x, f="{:.3f}": "-" if x is None or (isinstance(x, float) and np.isnan(x)) else (
         f.format(x))
@@ -691,7 +693,7 @@ def gait_study(cfg: GaitStudyConfig, command: str = "", log=print) -> dict:
                 f"{m.get('contact_gait')}, fell {m['fell']}")
     out = pathlib.Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    result = dict(command=command, backend=jax.default_backend(),
+    result = dict(command=command, backend=jax.default_backend(), code=code_version(),
                   device=jax.devices()[0].device_kind, config=dataclasses.asdict(cfg), rows=rows)
     atomic_write_text(out / "closed_loop_gait.json", json.dumps(result, indent=1))
     fmt = lambda x, f="{:.2f}": "-" if x is None or (isinstance(x, float) and np.isnan(x)) else (
@@ -706,12 +708,13 @@ def gait_study(cfg: GaitStudyConfig, command: str = "", log=print) -> dict:
              "| speed (m/s) | mode | start | planned gait (dist) | Hz | duty | feet show (score) | "
              "fell | mean vx | vel RMSE |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(
-            f"| {r['speed']} | {r['mode']} | {r['start']} | "
-            f"{r['plan_gait'] + ' (' + fmt(r['plan_gait_dist']) + ')' if 'plan_gait' in r else '-'}"
-            f" | {fmt(r.get('plan_freq'))} | {fmt(r.get('plan_duty'))} | "
-            f"{r['contact_gait'] + ' (' + fmt(r['contact_gait_score']) + ')' if 'contact_gait' in r else '-'}"
-            f" | {'yes' if r['fell'] else 'no'} | {fmt(r['mean_vx'])} | {fmt(r['vel_rmse'])} |")
+        plan = (f"{r['plan_gait']} ({fmt(r['plan_gait_dist'])})" if "plan_gait" in r else "-")
+        feet = (f"{r['contact_gait']} ({fmt(r['contact_gait_score'])})" if "contact_gait" in r
+                else "-")
+        lines.append(f"| {r['speed']} | {r['mode']} | {r['start']} | {plan} | "
+                     f"{fmt(r.get('plan_freq'))} | {fmt(r.get('plan_duty'))} | {feet} | "
+                     f"{'yes' if r['fell'] else 'no'} | {fmt(r['mean_vx'])} | "
+                     f"{fmt(r['vel_rmse'])} |")
     atomic_write_text(out / "closed_loop_gait.md", "\n".join(lines) + "\n")
     return result
 

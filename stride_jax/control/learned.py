@@ -38,7 +38,7 @@ import optax
 from flax import serialization
 
 from stride_jax.dynamics import mlp as mlp_lib
-from stride_jax.io import atomic_write, atomic_write_text
+from stride_jax.io import atomic_write, atomic_write_text, code_version
 
 
 @dataclasses.dataclass(frozen=True)
@@ -318,7 +318,8 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     v_next = v_obs(test.next_obs)
     g = jax.vmap(lambda_returns, in_axes=(0, 0, 0, 0, None, None))(
         test.reward, v_next, test.terminal, test.reset, lc.discount, lc.lam)
-    report = {"command": command, "robot": env_cfg.robot, "envs": cfg.envs,
+    report = {"command": command, "code": code_version(), "robot": env_cfg.robot,
+              "envs": cfg.envs,
               "rollout_steps": cfg.rollout_steps, "held_out_worlds": n_test,
               "reward_r2_held_out": r2(r_pred, test.reward),
               "value_r2_held_out": r2(v_obs(test.obs), g),

@@ -47,7 +47,7 @@ import optax
 from flax import serialization
 
 from stride_jax.control import envs
-from stride_jax.io import atomic_write, atomic_write_text
+from stride_jax.io import atomic_write, atomic_write_text, code_version
 
 
 @dataclasses.dataclass(frozen=True)
@@ -397,10 +397,12 @@ def run(cfg: PPOConfig, env_cfg: envs.EnvConfig | None = None, log=print) -> Run
     log(f"{out}: chunk {restore.chunks + 1 if restore else 1}, from "
         f"{restore.env_steps if restore else 0} env steps, {jax.default_backend()}")
 
+    code = code_version()
+
     def checkpoint(state, metrics):
         save(out, state)
         line = json.dumps({"env_steps": state.env_steps, "chunk": state.chunks,
-                           "wall_s": time.monotonic() - t0, **metrics})
+                           "wall_s": time.monotonic() - t0, "code": code, **metrics})
         with open(out / "progress.jsonl", "a") as f:
             f.write(line + "\n")
         log(f"  {state.env_steps} env steps ({time.monotonic() - t0:.0f} s, "
