@@ -39,7 +39,7 @@ class BenchConfig:
     Attributes:
       robot: robot name.
       trajectories, steps: per case (control steps per trajectory).
-      magnitudes: effect -> (small, large) planted values.
+      magnitudes: effect -> planted values (small, large; or one).
       pairs: planted pairs.
       out_of_library: planted effects the library lacks.
       noise: the noise settings to run (False: noise-free, True: :class:`SensorNoise`).
@@ -80,14 +80,24 @@ PRESETS = {
         pairs=(({"damping": 1.0, "delay": 3}), ({"payload": 2.0, "torque_scale": 0.8})),
         out_of_library=({"joint_stiffness": 10.0}, {"quadratic_drag": 0.02}),
         diagnose="default", name="gap_bench_go1"),
+    # what fits in <= 15 min on a 2-core CPU: one magnitude of six effects (left out: armature,
+    # torque_limit, kp_scale, contact_softness, com_offset, deadzone, the second magnitudes and
+    # joint_stiffness), both pairs, one out-of-library effect, the control; 5 x 80-step trajectories
+    "go1_small": BenchConfig(
+        robot="go1", trajectories=5, steps=80,
+        magnitudes={"damping": (1.5,), "frictionloss": (0.8,), "delay": (5,), "torque_scale": (0.65,),
+                    "payload": (2.5,), "ground_friction": (0.3,)},
+        pairs=(({"damping": 1.0, "delay": 3}), ({"payload": 2.0, "torque_scale": 0.8})),
+        out_of_library=({"quadratic_drag": 0.02},),
+        diagnose="fast", name="gap_bench_go1"),
 }
 
 
 def cases(cfg: BenchConfig) -> list[dict[str, Any]]:
     """Every planted case: ``{"kind", "applied"}`` (kind: single, pair, out_of_library, control)."""
     out = [{"kind": "control", "applied": {}}]
-    for name, (a, b) in cfg.magnitudes.items():
-        out += [{"kind": "single", "applied": {name: v}} for v in (a, b)]
+    for name, mags in cfg.magnitudes.items():
+        out += [{"kind": "single", "applied": {name: v}} for v in mags]
     out += [{"kind": "pair", "applied": dict(p)} for p in cfg.pairs]
     out += [{"kind": "out_of_library", "applied": dict(p)} for p in cfg.out_of_library]
     return out
