@@ -16,7 +16,7 @@ ifneq ($(wildcard ../shared/menagerie),)
 export MENAGERIE_ROOT ?= $(abspath ../shared/menagerie)
 endif
 
-.PHONY: setup demo data train eval table1 reproduce report test bench-sim bench-mppi gap-bench clean
+.PHONY: setup demo data train eval table1 reproduce report ppo closed-loop test bench-sim bench-mppi gap-bench clean
 
 $(BIN)/stride: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -48,6 +48,14 @@ eval: setup
 ## table1: the paper's Table I on one robot (5 models x 3 seeds; PRESET=paper wants a GPU)
 table1: setup
 	$(BIN)/python experiments/table1.py --robot $(ROBOT) --preset $(if $(filter default,$(PRESET)),tiny,$(PRESET))
+
+## ppo: one PPO chunk of the warm-start policy, resumes: make ppo ROBOT=go1 PRESET=gpu MINUTES=8
+ppo: setup
+	$(BIN)/stride ppo --robot $(ROBOT) --preset $(PRESET) --out runs/ppo_$(ROBOT) --minutes $(or $(MINUTES),8)
+
+## closed-loop: MPPI in closed loop in MJX -> results/closed_loop*/ (PRESET=tiny on a CPU)
+closed-loop: setup
+	$(BIN)/python experiments/closed_loop.py --preset $(if $(filter default,$(PRESET)),tiny,$(PRESET))
 
 ## reproduce: the paper's figures and claims -> results/reproduce/tiny (CPU, ~8 min; PRESET=paper:
 ## GPU, after `make table1 PRESET=paper`)

@@ -5,6 +5,9 @@
     stride eval --runs 'runs/go1/*' [--preset tiny|default] [--horizon 30 ...]
     stride bench-sim [--preset tiny|default|gpu] [--robots go1,g1 ...]
     stride bench-mppi [--preset tiny|target|default] [--samples 64,256 --horizons 10,20 ...]
+    stride ppo --robot go1 --preset gpu --out runs/ppo_go1 --minutes 8   (one resumable chunk)
+    stride fit-reward-value --policy runs/ppo_go1 --out runs/learned_go1
+    stride closed-loop --preset tiny [--models oracle,nominal,stride=RUN ...]
     stride gap diagnose --robot go1 --logs DIR --out DIR   (also: gap simulate, export, bench)
 """
 
@@ -42,7 +45,7 @@ def _config(cls, presets: dict, args: argparse.Namespace):
 
 
 def _commands():
-    from stride_jax.control import bench as mppi_bench
+    from stride_jax.control import bench as mppi_bench, closed_loop, learned, ppo
     from stride_jax.eval import table
     from stride_jax.sim import bench, collect
     from stride_jax.train import job
@@ -53,6 +56,14 @@ def _commands():
         "bench-sim": (bench.BenchConfig, bench.PRESETS, "simulation throughput", _run_bench),
         "bench-mppi": (mppi_bench.BenchConfig, mppi_bench.PRESETS, "MPPI step latency",
                        _run_bench_mppi),
+        "ppo": (ppo.PPOConfig, ppo.PRESETS, "one PPO chunk of a warm-start policy (resumes)",
+                lambda cfg, command: ppo.run(cfg)),
+        "fit-reward-value": (learned.FitConfig, learned.FIT_PRESETS,
+                             "learned reward and value models from a PPO run",
+                             lambda cfg, command: learned.fit_from_policy(cfg, command)),
+        "closed-loop": (closed_loop.ClosedLoopConfig, closed_loop.PRESETS,
+                        "closed-loop MPPI in MJX per model and scenario",
+                        lambda cfg, command: closed_loop.run(cfg, command)),
     }
 
 

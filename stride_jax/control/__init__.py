@@ -1,1 +1,4 @@
-"""Control with learned models: the MPPI planner (and, to come, its PPO warm start)."""
+"""Control with learned models: the MPPI planner, its PPO warm start on MJX environments,
+learned reward and value models, gait parameters and closed-loop runs."""
+
+from stride_jax.control import closed_loop, envs, gait, learned, mppi, ppo  # noqa: F401

@@ -263,7 +263,8 @@ def load(run: str | pathlib.Path) -> tuple[Model, dict]:
     d = json.loads((run / "model.json").read_text())
     spec = ModelSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in d["spec"].items()})
     act = Actuation.from_dict(d["actuation"])
-    c = d["config"]
+    c = dict(d["config"])
+    c.setdefault("learn_mass", True)  # runs defined before the option learned their mass
     cfg = stride.StructuredConfig(**dict(c, net=mlp.MLPConfig(**c["net"])))
     sc = stride.Scales(**{k: jnp.asarray(v, jnp.float32) for k, v in d["scales"].items()})
     model = make(d["name"], spec, act, cfg, sc)
