@@ -59,3 +59,32 @@ def test_too_few_trajectories_is_a_clear_error():
         diagnose.split(1, 0.3, 0)
     with pytest.raises(logs.LogError):
         logs.write("/tmp/unused_gap_dir", model.load("pendulum"), [])
+
+
+def test_pair_is_named_when_one_effect_is_not_enough():
+    # damping masks the delay (the delay alone fits to zero): the conditional screen on top of the
+    # best single finds it, and the paired held-out test prefers the pair
+    sm = model.load("pendulum")
+    _, logged = real.generate(sm, {"damping": 0.3, "delay": 2}, 6, 120, seed=1)
+    out = diagnose.diagnose(sm, logged, diagnose.PRESETS["tiny"], log=lambda s: None)
+    w = out["which"]
+    assert set(out["verdict"]["effects"]) == {"damping", "delay"}, out["verdict"]
+    best = w["ranking"][0]
+    assert best["vs_best_single"]["preferred"] and best["vs_best_single"]["gain_lower"] > 0
+    single = next(r for r in w["ranking"] if r["effects"] == w["best_single"])
+    assert best["explained"] > single["explained"]
+    assert round(best["params"]["delay"][0]) == 2
+
+
+def test_small_effect_in_noise_detected_and_control_is_not():
+    sm = model.load("pendulum")
+    cfg = diagnose.PRESETS["tiny"]
+    verdicts = {}
+    for name, applied in (("control", {}), ("friction", {"frictionloss": 0.15})):
+        _, logged = real.generate(sm, applied, 8, 150, seed=1, noise=real.SensorNoise())
+        out = diagnose.diagnose(sm, logged, cfg, log=lambda s: None)
+        verdicts[name] = out["verdict"]
+        det = out["which"]["detection"]
+        assert 0 < det["p_value"] <= 1 and det["level"] < cfg.alpha
+    assert verdicts["control"]["verdict"] == "no significant gap", verdicts["control"]
+    assert verdicts["friction"]["effects"] == ["frictionloss"], verdicts["friction"]

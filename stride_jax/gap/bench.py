@@ -82,9 +82,9 @@ PRESETS = {
         diagnose="default", name="gap_bench_go1"),
     # what fits in <= 15 min on a 2-core CPU: one magnitude of six effects (left out: armature,
     # torque_limit, kp_scale, contact_softness, com_offset, deadzone, the second magnitudes and
-    # joint_stiffness), both pairs, one out-of-library effect, the control; 5 x 80-step trajectories
+    # joint_stiffness), both pairs, one out-of-library effect, the control; 5 x 60-step trajectories
     "go1_small": BenchConfig(
-        robot="go1", trajectories=5, steps=80,
+        robot="go1", trajectories=5, steps=60,
         magnitudes={"damping": (1.5,), "frictionloss": (0.8,), "delay": (5,), "torque_scale": (0.65,),
                     "payload": (2.5,), "ground_friction": (0.3,)},
         pairs=(({"damping": 1.0, "delay": 3}), ({"payload": 2.0, "torque_scale": 0.8})),

@@ -298,6 +298,38 @@ def _features(sm: SimModel, data: fit.Data) -> np.ndarray:
     return np.concatenate(f, 1)
 
 
+FEATURE_GROUPS = ("intercept", "joint position", "sin(position)", "cos(position)", "joint velocity",
+                  "sign(velocity)", "velocity|velocity|", "command - position", "command change",
+                  "base pose", "base velocity", "swing", "stance", "touchdown", "liftoff")
+
+
+def structure_hints(sm: SimModel, train: fit.Data, r_train: np.ndarray, test: fit.Data,
+                    r_test: np.ndarray, top: int = 3) -> list[dict[str, Any]]:
+    """Which feature group (:data:`FEATURE_GROUPS`) of the linear probe, alone, explains most of the
+    held-out residual left after the best hypothesis (e.g. ``velocity|velocity|`` for a quadratic
+    drag fitted with linear damping): ``[{"feature", "explained"}]``, best first."""
+    Xtr, Xte = _features(sm, train), _features(sm, test)
+    nu = len(sm.act_dof)
+    sizes = [1] + [nu] * 8 + ([5, 6] if sm.robot.floating_base else []) + ([sm.nfeet] * 4 if sm.nfeet else [])
+    names = list(FEATURE_GROUPS[:9]) + (list(FEATURE_GROUPS[9:11]) if sm.robot.floating_base else []) + (
+        list(FEATURE_GROUPS[11:]) if sm.nfeet else [])
+    g = float((r_test ** 2).sum())
+    out, i = [], 0
+    for name, k in zip(names, sizes):
+        cols = [0] + list(range(i, i + k)) if i else [0]
+        i += k
+        if name == "intercept":
+            continue
+        a, b = Xtr[:, cols], Xte[:, cols]
+        mu, sd = a.mean(0), a.std(0)
+        sd[sd < 1e-9] = 1.0
+        mu[0], sd[0] = 0.0, 1.0
+        a, b = (a - mu) / sd, (b - mu) / sd
+        W = np.linalg.solve(a.T @ a + 1e-3 * len(a) * np.eye(len(cols)), a.T @ r_train)
+        out.append({"feature": name, "explained": float(1 - ((r_test - b @ W) ** 2).sum() / max(g, 1e-300))})
+    return sorted(out, key=lambda d: -d["explained"])[:top]
+
+
 def probe(sm: SimModel, train: fit.Data, r_train: np.ndarray, test: fit.Data, r_test: np.ndarray,
           ridge: float = 1e-3) -> np.ndarray:
     """Held-out residual ``[M_test, nv]`` after a ridge regression on :func:`_features` fitted on
@@ -506,13 +538,14 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     pr_best = probe(sm, train, r_best_tr, test, r_best_te)
     probe_nom = 1 - float((pr_nom ** 2).sum(1).mean()) / max(g_nom, 1e-300)
     left = max(g_best - float((pr_best ** 2).sum(1).mean()), 0.0) / above
+    hints = structure_hints(sm, train, r_best_tr, test, r_best_te)
     for row in rows:
         row["explained_above_floor"] = float(min(1.0, (g_nom - row["heldout_loss"] / M) / above))
         del row["_boot"]
     return {"ranking": rows, "nominal_heldout_loss": L_nom, "noise_floor": floor,
             "gap_ms": g_nom, "probe_explained_nominal": probe_nom, "structure_left": left,
             "detection": detection,
-            "pair_tests": pair_tests, "best_single": S["effects"], "singles_fitted": n_single,
+            "structure_hints": hints, "pair_tests": pair_tests, "best_single": S["effects"], "singles_fitted": n_single,
             "residual_after_best": {"per_dof_rms_scaled": _rms(r_best_te, 0).tolist()},
             "r_nom_test": r_nom_te, "r_best_test": r_best_te, "plan_best": plan_best}
 
@@ -546,18 +579,24 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
         pair_note = (f"; the pair beats the best single ({'+'.join(t['single'])}) by {t['gain_explained']:.2%} of the "
                      f"gap (lower bound {t['gain_lower']:.2%}), {t['fraction_of_left']:.0%} of what the single leaves "
                      f"above the noise floor")
+    hint = ""
+    h = (w.get("structure_hints") or [None])[0]
+    if h and h["explained"] > 0.02 and best["explained"] < 0.999:
+        hint = (f"; the fit leaves structure: {h['feature']} alone explains {h['explained']:.1%} of the residual "
+                f"left after it (held-out linear probe)")
     if explained and w["structure_left"] <= cfg.structure_max:
         confident = (best["explained_ci"][0] >= cfg.attribute_min * (1 - w["noise_floor"] / max(w["gap_ms"], 1e-300))
-                     and best["p_beats_next"] >= cfg.confident_p and not ties)
+                     and best["p_beats_next"] >= cfg.confident_p and not ties and not hint)
         return {"verdict": "explained", "effects": best["effects"], "confident": bool(confident),
                 "indistinguishable_from": ties,
                 "reason": f"{'+'.join(best['effects'])} explains {best['explained']:.1%} of the held-out gap "
                           f"({best['explained_above_floor']:.1%} above the noise floor), beats the runner-up "
                           f"in {best['p_beats_next']:.0%} of resamples; structure left {w['structure_left']:.1%}"
-                          + pair_note + (f"; indistinguishable on these logs from {', '.join(ties)}" if ties else "")}
+                          + pair_note + hint
+                          + (f"; indistinguishable on these logs from {', '.join(ties)}" if ties else "")}
     return {"verdict": "unexplained by the library", "effects": best["effects"], "confident": False,
             "reason": f"best ({'+'.join(best['effects'])}) explains {best['explained_above_floor']:.1%} above the "
-                      f"noise floor; systematic residual left (linear probe) {w['structure_left']:.1%} of the gap"}
+                      f"noise floor; systematic residual left (linear probe) {w['structure_left']:.1%} of the gap" + hint}
 
 
 def how_far(sm: SimModel, test: fit.Data, scale: np.ndarray, w: dict[str, Any], cfg: DiagnoseConfig
