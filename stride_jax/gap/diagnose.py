@@ -581,9 +581,14 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
                      f"above the noise floor")
     hint = ""
     h = (w.get("structure_hints") or [None])[0]
-    if h and h["explained"] > 0.02 and best["explained"] < 0.999:
+    # structure as a fraction of the nominal gap above the noise floor (noise would hide it when
+    # measured against the whole residual left)
+    above = max(w["gap_ms"] - w["noise_floor"], 1e-300)
+    left_ms = w["gap_ms"] * (1 - best["explained"])
+    if h and best["explained"] < 0.999 and h["explained"] * left_ms / above > 0.01:
         hint = (f"; the fit leaves structure: {h['feature']} alone explains {h['explained']:.1%} of the residual "
-                f"left after it (held-out linear probe)")
+                f"left after it ({h['explained'] * left_ms / above:.1%} of the gap above the noise floor; "
+                f"held-out linear probe)")
     if explained and w["structure_left"] <= cfg.structure_max:
         confident = (best["explained_ci"][0] >= cfg.attribute_min * (1 - w["noise_floor"] / max(w["gap_ms"], 1e-300))
                      and best["p_beats_next"] >= cfg.confident_p and not ties and not hint)
