@@ -66,7 +66,7 @@ reproduce: setup
 report: setup
 	$(BIN)/python experiments/report.py
 
-## test: the whole suite (about 9 minutes on 2 cores)
+## test: the whole suite (about 12 minutes on 2 cores)
 test: setup
 	$(BIN)/python -m pytest -q
 
