@@ -22,16 +22,14 @@ unclipped, plus a quadratic tracking cost (``track_weight``) and ``fall_cost`` p
 or, with ``learned``, the learned reward and value (:mod:`stride_jax.control.learned`). A PPO run
 can add ``policy_samples`` candidates.
 
-Scenarios: velocity step 0 -> 2 m/s, sudden command changes, a 20 degree slope (gravity tilted by
-20 degrees about the y axis: on a plane this is the same physics as a tilted floor, walking +x is
-uphill), and ground unseen in training: low friction, soft contacts, rough terrain (a heightfield).
-Reported per (scenario, model): tracking RMSE of the base-frame velocity (xy) and yaw rate while
+Scenarios (:mod:`stride_jax.control.scenarios`): velocity step 0 -> 2 m/s, sudden command
+changes, a 20 degree slope, low friction, soft contacts, rough terrain. The gait study lives in
+:mod:`stride_jax.control.gait_study`. Reported per (scenario, model): tracking RMSE of the base-frame velocity (xy) and yaw rate while
 upright, falls, and planning time per step.
 """
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import functools
 import json
@@ -41,96 +39,14 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
+from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,  # noqa: F401
+                                          scenario_model, schedule)
 from stride_jax.io import atomic_write_text, code_version
 from stride_jax.sim import model as sim_model, rollout_mjx
-
-
-@dataclasses.dataclass(frozen=True)
-class Scenario:
-    """A command schedule and the ground.
-
-    Attributes:
-      name: label.
-      commands: ``(t_start s, vx m/s, vy m/s, yaw rad/s)`` pieces, piecewise constant.
-      seconds: duration.
-      slope_deg: ground slope, uphill along +x (gravity tilted about y).
-      friction: scale of every geom's sliding friction.
-      softness: scale of the contact time constant (solref[0]); > 1 is softer.
-      rough_m: peak-to-peak height of a random heightfield replacing the floor (m); 0: flat.
-    """
-
-    name: str
-    commands: tuple[tuple[float, float, float, float], ...]
-    seconds: float = 6.0
-    slope_deg: float = 0.0
-    friction: float = 1.0
-    softness: float = 1.0
-    rough_m: float = 0.0
-
-
-WALK = ((0.0, 1.0, 0.0, 0.0),)
-SCENARIOS = {
-    "walk": Scenario("walk", WALK),
-    "step": Scenario("step", ((0.0, 0.0, 0.0, 0.0), (1.0, 2.0, 0.0, 0.0))),
-    "changes": Scenario("changes", ((0.0, 1.0, 0.0, 0.0), (1.5, 0.3, 0.4, 0.0),
-                                    (3.0, 1.5, 0.0, 0.8), (4.5, 0.0, 0.0, 0.0))),
-    "slope": Scenario("slope", WALK, slope_deg=20.0),
-    "low_friction": Scenario("low_friction", WALK, friction=0.3),
-    "soft": Scenario("soft", WALK, softness=4.0),
-    "rough": Scenario("rough", WALK, rough_m=0.04),
-}
-
-
-def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoco.MjModel:
-    """The robot's MjModel with the scenario's ground (a copy; the nominal model is untouched)."""
-    if sc.rough_m > 0:
-        spec = sm.robot.load_spec()
-        sm.robot.edit_spec(spec)
-        n, half = 64, 4.0  # 8 m x 8 m, 12.5 cm cells
-        h = np.random.default_rng(seed).uniform(0, 1, (n, n))
-        h[:, : n // 8 + 1] = 0.0  # a flat start area around the robot
-        spec.add_hfield(name="rough", size=[half, half, sc.rough_m, 0.1], nrow=n, ncol=n,
-                        userdata=h.reshape(-1).tolist())
-        floor = next(g for g in spec.geoms if g.name == "floor")
-        spec.worldbody.add_geom(name="rough", type=mujoco.mjtGeom.mjGEOM_HFIELD, hfieldname="rough",
-                                contype=floor.contype, conaffinity=floor.conaffinity,
-                                pos=[half - 1.0, 0, 0])
-        floor.contype = floor.conaffinity = 0
-        for g in spec.geoms:  # MJX's heightfield-sphere collision has no margin (Go1's: 1 mm)
-            if g.conaffinity or g.contype:
-                g.margin = 0.0
-        m = spec.compile()
-    else:
-        m = copy.copy(sm.mj)
-    if sc.slope_deg:
-        th = np.deg2rad(sc.slope_deg)
-        m.opt.gravity[:] = 9.81 * np.array([-np.sin(th), 0.0, -np.cos(th)])
-    m.geom_friction[:, 0] *= sc.friction
-    m.geom_solref[:, 0] *= sc.softness
-    m.pair_friction[:, :2] *= sc.friction
-    m.pair_solref[:, 0] *= sc.softness
-    return m
-
-
-def schedule(sc: Scenario, pieces: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """The scenario's commands as arrays ``(starts [pieces], values [pieces, 3])``, padded with
-    the last piece, so that scenarios share one compiled episode."""
-    if len(sc.commands) > pieces:
-        raise ValueError(f"scenario {sc.name!r} has more than {pieces} command pieces")
-    c = list(sc.commands) + [sc.commands[-1]] * (pieces - len(sc.commands))
-    return (np.array([x[0] for x in c], np.float32), np.array([x[1:] for x in c], np.float32))
-
-
-def command_at(starts: jax.Array, values: jax.Array, t: jax.Array) -> jax.Array:
-    """The command ``[3]`` at time ``t`` (s) of a :func:`schedule`."""
-    starts, values = jnp.asarray(starts), jnp.asarray(values)
-    i = jnp.clip(jnp.searchsorted(starts, t, side="right") - 1, 0, starts.shape[0] - 1)
-    return values[i]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -605,118 +521,6 @@ def plot(out: pathlib.Path, rows: list[dict]) -> list[pathlib.Path]:
         plt.close(fig)
         paths.append(path)
     return paths
-
-
-# ---------------------------------------------------------------------------------------------
-# Gait study: the named gaits as parameter settings, and what MPPI picks when free.
-
-
-@dataclasses.dataclass(frozen=True)
-class GaitStudyConfig:
-    """Attributes:
-      speeds: comma-separated forward commands (m/s).
-      starts: random initial gaits per speed for the planner.
-      seconds: episode length (s).
-      freq: frequency of the open-loop named gaits (Hz).
-      samples, horizon, noise_std, gait_noise: the planner (oracle dynamics, gait mode).
-      out: results folder (``closed_loop_gait.json``/``.md``).
-      seed: initial gaits and planner keys.
-    """
-
-    speeds: str = "0.5,1.0,2.0"
-    starts: int = 2
-    seconds: float = 4.0
-    freq: float = 2.0
-    samples: int = 256
-    horizon: int = 25
-    noise_std: float = 0.05
-    gait_noise: float = 0.2
-    out: str = "results/closed_loop_gait"
-    seed: int = 0
-
-
-GAIT_PRESETS = {
-    "tiny": dict(speeds="1.0", starts=1, seconds=0.3, samples=8, horizon=4,
-                 out="results/closed_loop_gait_tiny"),
-    "cpu": dict(speeds="0.5,1.5", starts=1, seconds=2.0, samples=32, horizon=15,
-                out="results/closed_loop_gait_cpu"),
-    "default": {},
-    "gpu": dict(samples=1024, horizon=30, starts=3, out="results/closed_loop_gait_gpu"),
-}
-
-
-def gait_study(cfg: GaitStudyConfig, command: str = "", log=print) -> dict:
-    """(a) Each named gait's reference alone (no planner) in MJX: which gait the feet show, and
-    whether it stays up. (b) MPPI with the oracle choosing gait parameters from random initial
-    gaits at each speed: the gait it settles on (median of the second half) and the feet's."""
-    sm = sim_model.load("go1")
-    mx = mjx.put_model(sm.mj)
-    slots = envs.contact_slots(mx)
-    n_steps = max(1, int(round(cfg.seconds / sm.robot.ctrl_dt)))
-    cl_cfg = ClosedLoopConfig(samples=cfg.samples, horizon=cfg.horizon, gait=True,
-                              noise_std=cfg.noise_std, gait_noise=cfg.gait_noise)
-    planning = make_planning(cl_cfg, envs.config("go1"), sm, mjx_step_fn(sm, mx))
-    planner = make_planner(planning, mppi_config(cl_cfg, planning))
-    nu = sm.info.nu
-
-    def open_loop(gait_u, starts, values):
-        pl = planning._replace(policy=lambda q, qd: gait_u)
-        return run_episode(sm, mx, slots, pl, None, n_steps, starts, values, jax.random.key(0))
-
-    def planned(init_u, starts, values, key):
-        pl = planning._replace(nominal_u=init_u)
-        return run_episode(sm, mx, slots, pl, planner, n_steps, starts, values, key)
-
-    open_loop, planned = jax.jit(open_loop), jax.jit(planned)
-    rows = []
-    rng = np.random.default_rng(cfg.seed)
-    for speed in [float(v) for v in cfg.speeds.split(",") if v]:
-        starts, values = schedule(Scenario("walk", ((0.0, speed, 0.0, 0.0),)))
-        for name in gait_lib.NAMED:
-            g = gait_lib.named(name, freq=cfg.freq)
-            u = gait_lib.join_action(jnp.zeros(nu), g)
-            m = metrics(open_loop(u, starts, values), 0.5)
-            rows.append(dict(speed=speed, mode="open loop", start=name, **m))
-            log(f"{speed} m/s open-loop {name}: feet show {m.get('contact_gait')}, fell "
-                f"{m['fell']}, mean vx {m['mean_vx']:.2f}")
-        for i in range(cfg.starts):
-            g0 = gait_lib.Gait(jnp.float32(cfg.freq), jnp.float32(0.5),
-                               jnp.asarray(rng.uniform(0, 1, 4), jnp.float32))
-            u0 = gait_lib.join_action(jnp.zeros(nu), g0)
-            trace = planned(u0, starts, values, jax.random.key(cfg.seed + i))
-            half = jax.tree.map(lambda x: x[n_steps // 2:], trace)
-            m = metrics(half, 0.0)
-            m["start_gait"], m["start_dist"] = gait_lib.classify(np.asarray(g0.offsets))
-            rows.append(dict(speed=speed, mode="MPPI (oracle)", start=f"random {i}", **m))
-            log(f"{speed} m/s MPPI from {m['start_gait']} ({m['start_dist']:.2f} away): plans "
-                f"{m.get('plan_gait')} ({m.get('plan_gait_dist', float('nan')):.2f}), feet show "
-                f"{m.get('contact_gait')}, fell {m['fell']}")
-    out = pathlib.Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
-    result = dict(command=command, backend=jax.default_backend(), code=code_version(),
-                  device=jax.devices()[0].device_kind, config=dataclasses.asdict(cfg), rows=rows)
-    atomic_write_text(out / "closed_loop_gait.json", json.dumps(result, indent=1))
-    fmt = lambda x, f="{:.2f}": "-" if x is None or (isinstance(x, float) and np.isnan(x)) else (
-        f.format(x))
-    lines = ["# Gaits as parameter settings (Go1, MJX)", "", f"Command: `{command}`", "",
-             f"Device: {result['device']} ({result['backend']}). Open loop: the gait reference "
-             f"of each named gait at {cfg.freq} Hz, duty 0.5, no planner. MPPI: oracle dynamics, "
-             f"K={cfg.samples}, H={cfg.horizon}, gait parameters (frequency, duty, four offsets) "
-             "planned per rollout from a random initial gait; statistics of the second half. "
-             "'feet show': the named pattern the measured contacts fit best (score: in-phase "
-             "minus anti-phase contact correlation, 1 is a clean pattern).", "",
-             "| speed (m/s) | mode | start | planned gait (dist) | Hz | duty | feet show (score) | "
-             "fell | mean vx | vel RMSE |", "|---|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        plan = (f"{r['plan_gait']} ({fmt(r['plan_gait_dist'])})" if "plan_gait" in r else "-")
-        feet = (f"{r['contact_gait']} ({fmt(r['contact_gait_score'])})" if "contact_gait" in r
-                else "-")
-        lines.append(f"| {r['speed']} | {r['mode']} | {r['start']} | {plan} | "
-                     f"{fmt(r.get('plan_freq'))} | {fmt(r.get('plan_duty'))} | {feet} | "
-                     f"{'yes' if r['fell'] else 'no'} | {fmt(r['mean_vx'])} | "
-                     f"{fmt(r['vel_rmse'])} |")
-    atomic_write_text(out / "closed_loop_gait.md", "\n".join(lines) + "\n")
-    return result
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -1,0 +1,101 @@
+"""Closed-loop scenarios: a command schedule and the ground (slope, friction, softness, terrain).
+
+Scenarios: velocity step 0 -> 2 m/s, sudden command changes, a 20 degree slope (gravity tilted by
+20 degrees about the y axis: on a plane this is the same physics as a tilted floor, walking +x is
+uphill), and ground unseen in training: low friction, soft contacts, rough terrain (a heightfield).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from stride_jax.sim import model as sim_model
+
+
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    """A command schedule and the ground.
+
+    Attributes:
+      name: label.
+      commands: ``(t_start s, vx m/s, vy m/s, yaw rad/s)`` pieces, piecewise constant.
+      seconds: duration.
+      slope_deg: ground slope, uphill along +x (gravity tilted about y).
+      friction: scale of every geom's sliding friction.
+      softness: scale of the contact time constant (solref[0]); > 1 is softer.
+      rough_m: peak-to-peak height of a random heightfield replacing the floor (m); 0: flat.
+    """
+
+    name: str
+    commands: tuple[tuple[float, float, float, float], ...]
+    seconds: float = 6.0
+    slope_deg: float = 0.0
+    friction: float = 1.0
+    softness: float = 1.0
+    rough_m: float = 0.0
+
+
+WALK = ((0.0, 1.0, 0.0, 0.0),)
+SCENARIOS = {
+    "walk": Scenario("walk", WALK),
+    "step": Scenario("step", ((0.0, 0.0, 0.0, 0.0), (1.0, 2.0, 0.0, 0.0))),
+    "changes": Scenario("changes", ((0.0, 1.0, 0.0, 0.0), (1.5, 0.3, 0.4, 0.0),
+                                    (3.0, 1.5, 0.0, 0.8), (4.5, 0.0, 0.0, 0.0))),
+    "slope": Scenario("slope", WALK, slope_deg=20.0),
+    "low_friction": Scenario("low_friction", WALK, friction=0.3),
+    "soft": Scenario("soft", WALK, softness=4.0),
+    "rough": Scenario("rough", WALK, rough_m=0.04),
+}
+
+
+def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoco.MjModel:
+    """The robot's MjModel with the scenario's ground (a copy; the nominal model is untouched)."""
+    if sc.rough_m > 0:
+        spec = sm.robot.load_spec()
+        sm.robot.edit_spec(spec)
+        n, half = 64, 4.0  # 8 m x 8 m, 12.5 cm cells
+        h = np.random.default_rng(seed).uniform(0, 1, (n, n))
+        h[:, : n // 8 + 1] = 0.0  # a flat start area around the robot
+        spec.add_hfield(name="rough", size=[half, half, sc.rough_m, 0.1], nrow=n, ncol=n,
+                        userdata=h.reshape(-1).tolist())
+        floor = next(g for g in spec.geoms if g.name == "floor")
+        spec.worldbody.add_geom(name="rough", type=mujoco.mjtGeom.mjGEOM_HFIELD, hfieldname="rough",
+                                contype=floor.contype, conaffinity=floor.conaffinity,
+                                pos=[half - 1.0, 0, 0])
+        floor.contype = floor.conaffinity = 0
+        for g in spec.geoms:  # MJX's heightfield-sphere collision has no margin (Go1's: 1 mm)
+            if g.conaffinity or g.contype:
+                g.margin = 0.0
+        m = spec.compile()
+    else:
+        m = copy.copy(sm.mj)
+    if sc.slope_deg:
+        th = np.deg2rad(sc.slope_deg)
+        m.opt.gravity[:] = 9.81 * np.array([-np.sin(th), 0.0, -np.cos(th)])
+    m.geom_friction[:, 0] *= sc.friction
+    m.geom_solref[:, 0] *= sc.softness
+    m.pair_friction[:, :2] *= sc.friction
+    m.pair_solref[:, 0] *= sc.softness
+    return m
+
+
+def schedule(sc: Scenario, pieces: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """The scenario's commands as arrays ``(starts [pieces], values [pieces, 3])``, padded with
+    the last piece, so that scenarios share one compiled episode."""
+    if len(sc.commands) > pieces:
+        raise ValueError(f"scenario {sc.name!r} has more than {pieces} command pieces")
+    c = list(sc.commands) + [sc.commands[-1]] * (pieces - len(sc.commands))
+    return (np.array([x[0] for x in c], np.float32), np.array([x[1:] for x in c], np.float32))
+
+
+def command_at(starts: jax.Array, values: jax.Array, t: jax.Array) -> jax.Array:
+    """The command ``[3]`` at time ``t`` (s) of a :func:`schedule`."""
+    starts, values = jnp.asarray(starts), jnp.asarray(values)
+    i = jnp.clip(jnp.searchsorted(starts, t, side="right") - 1, 0, starts.shape[0] - 1)
+    return values[i]
