@@ -44,6 +44,18 @@ def _config(cls, presets: dict, args: argparse.Namespace):
     return cls(**values)
 
 
+def config_main(prog: str, cls, presets: dict, run, argv: list[str] | None = None,
+                description: str = "") -> None:
+    """A module's own command line (``python -m ...``, ``experiments/*.py``): ``--preset`` and
+    one flag per field of ``cls``, then ``run(cfg, command, log=print)``."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    parser.add_argument("--preset", default="default", help=f"one of {', '.join(presets)}")
+    _add_config_args(parser, cls)
+    cfg = _config(cls, presets, parser.parse_args(argv))
+    run(cfg, shlex.join([*prog.split(), *argv]), log=lambda line: print(line, flush=True))
+
+
 def _commands():
     from stride_jax.control import bench as mppi_bench, closed_loop, learned, ppo
     from stride_jax.eval import table

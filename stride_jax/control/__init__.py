@@ -1,5 +1,8 @@
-"""Control with learned models: the MPPI planner, its PPO warm start on MJX environments,
-learned reward and value models, gait parameters and closed-loop runs."""
+"""Control with learned models: ``mppi`` (the planner), ``envs`` (MJX velocity-command
+environments), ``ppo`` (warm-start policies in resumable chunks), ``learned`` (reward and value
+models), ``gait``, ``scenarios``, ``closed_loop`` and ``gait_study``.
 
-from stride_jax.control import (closed_loop, envs, gait, gait_study, learned, mppi,  # noqa: F401
-                                ppo, scenarios)
+Submodules are imported by name (``from stride_jax.control import mppi``), not here: the
+environments and PPO pull in Brax, which a planner alone does not need, and eager imports make
+``python -m stride_jax.control.ppo`` warn about a module imported twice.
+"""

@@ -524,20 +524,9 @@ def plot(out: pathlib.Path, rows: list[dict]) -> list[pathlib.Path]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    import argparse
-    import shlex
-    import sys
     from stride_jax import cli
-    argv = sys.argv[1:] if argv is None else argv
-    parser = argparse.ArgumentParser(prog="python -m stride_jax.control.closed_loop",
-                                     description=__doc__.split("\n")[0])
-    parser.add_argument("--preset", default="default", help=f"one of {', '.join(PRESETS)}")
-    cli._add_config_args(parser, ClosedLoopConfig)
-    args = parser.parse_args(argv)
-    cfg = cli._config(ClosedLoopConfig, PRESETS, args)
-    run(cfg, shlex.join(["python", "-m", "stride_jax.control.closed_loop", *argv]),
-        log=lambda s: print(s, flush=True))
-
+    cli.config_main("python -m stride_jax.control.closed_loop", ClosedLoopConfig, PRESETS, run,
+                    argv, __doc__.split("\n")[0])
 
 if __name__ == "__main__":
     main()

@@ -23,12 +23,9 @@ Command line (a trained PPO run supplies the policy; writes ``reward_value.msgpa
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import pathlib
-import shlex
-import sys
 import time
 from typing import Any, Callable, NamedTuple
 
@@ -336,16 +333,8 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     from stride_jax import cli
-    parser = argparse.ArgumentParser(prog="python -m stride_jax.control.learned",
-                                     description=__doc__.split("\n")[0])
-    parser.add_argument("--preset", default="default", help=f"one of {', '.join(FIT_PRESETS)}")
-    cli._add_config_args(parser, FitConfig)
-    argv = sys.argv[1:] if argv is None else argv
-    args = parser.parse_args(argv)
-    fit_from_policy(cli._config(FitConfig, FIT_PRESETS, args),
-                    shlex.join(["python", "-m", "stride_jax.control.learned", *argv]),
-                    log=lambda s: print(s, flush=True))
-
+    cli.config_main("python -m stride_jax.control.learned", FitConfig, FIT_PRESETS,
+                    fit_from_policy, argv, __doc__.split("\n")[0])
 
 if __name__ == "__main__":
     main()

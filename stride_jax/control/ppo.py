@@ -31,13 +31,10 @@ Command line (resumes when ``--out`` holds a checkpoint):
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import functools
 import json
 import pathlib
-import shlex
-import sys
 import time
 from typing import Any, Callable, NamedTuple
 
@@ -468,16 +465,13 @@ def make_policy(cfg: PPOConfig, params: tuple, obs_size: int, action_size: int,
 
 def main(argv: list[str] | None = None) -> None:
     from stride_jax import cli
-    argv = sys.argv[1:] if argv is None else argv
-    parser = argparse.ArgumentParser(prog="python -m stride_jax.control.ppo",
-                                     description=__doc__.split("\n")[0])
-    parser.add_argument("--preset", default="default", help=f"one of {', '.join(PRESETS)}")
-    cli._add_config_args(parser, PPOConfig)
-    args = parser.parse_args(argv)
-    cfg = cli._config(PPOConfig, PRESETS, args)
-    print("command:", shlex.join(["python", "-m", "stride_jax.control.ppo", *argv]), flush=True)
-    run(cfg, log=lambda s: print(s, flush=True))
 
+    def run_chunk(cfg, command, log):
+        log(f"command: {command}")
+        run(cfg, log=log)
+
+    cli.config_main("python -m stride_jax.control.ppo", PPOConfig, PRESETS, run_chunk, argv,
+                    __doc__.split("\n")[0])
 
 if __name__ == "__main__":
     main()

@@ -269,28 +269,20 @@ def _model_mean(t: dict, model: str, fn) -> dict | None:
 def table1_rows(tables: dict[str, dict], rel) -> tuple[list[Row], list[str]]:
     """Headline rows from Table I files, and the Table I section's lines."""
     rows: list[Row] = []
-    for robot in ROBOTS:
-        t, src, cmd = tables[robot], rel(tables[robot]["_path"]), tables[robot].get("command")
-        paper = PAPER_TABLE1[robot]
-        R = ROBOT_NAMES[robot]
-        st = seed_ratio(_per_seed(t, "stride", _state), _per_seed(t, "delan", _state))
-        p = paper["stride"][0] / paper["delan"][0]
-        rows.append(Row(f"{R}: STRIDE's 30-step state error >= 20% below DeLaN's "
-                        f"(STRIDE / DeLaN <= {ABSTRACT_STATE_MAX_RATIO:.2f})", WHERE_ABSTRACT,
-                        f"20% (Table I: {p:.2f})", _ratio_text(st, ABSTRACT_STATE_MAX_RATIO,
-                                                               "DeLaN"),
-                        _ratio_verdict(st, ABSTRACT_STATE_MAX_RATIO), src, cmd))
-    for robot in ROBOTS:
-        t, src, cmd = tables[robot], rel(tables[robot]["_path"]), tables[robot].get("command")
-        paper = PAPER_TABLE1[robot]
-        R = ROBOT_NAMES[robot]
-        fr = seed_ratio(_per_seed(t, "stride", _force), _per_seed(t, "delan", _force))
-        p = paper["stride"][1] / paper["delan"][1]
-        rows.append(Row(f"{R}: STRIDE's foot-force error ~30% below DeLaN's "
-                        f"(STRIDE / DeLaN <= {ABSTRACT_FORCE_MAX_RATIO:.2f})", WHERE_FORCE_30,
-                        f"30% (Table I: {p:.2f})", _ratio_text(fr, ABSTRACT_FORCE_MAX_RATIO,
-                                                               "DeLaN"),
-                        _ratio_verdict(fr, ABSTRACT_FORCE_MAX_RATIO), src, cmd))
+    # The abstract's two ratios against DeLaN: (metric, column of PAPER_TABLE1, claim, bound).
+    abstract = ((_state, 0, "30-step state error >= 20% below", "20%", ABSTRACT_STATE_MAX_RATIO,
+                 WHERE_ABSTRACT),
+                (_force, 1, "foot-force error ~30% below", "30%", ABSTRACT_FORCE_MAX_RATIO,
+                 WHERE_FORCE_30))
+    for metric, col, claim, paper_text, bound, where in abstract:
+        for robot in ROBOTS:
+            t = tables[robot]
+            ratio = seed_ratio(_per_seed(t, "stride", metric), _per_seed(t, "delan", metric))
+            p = PAPER_TABLE1[robot]["stride"][col] / PAPER_TABLE1[robot]["delan"][col]
+            rows.append(Row(f"{ROBOT_NAMES[robot]}: STRIDE's {claim} DeLaN's "
+                            f"(STRIDE / DeLaN <= {bound:.2f})", where,
+                            f"{paper_text} (Table I: {p:.2f})", _ratio_text(ratio, bound, "DeLaN"),
+                            _ratio_verdict(ratio, bound), rel(t["_path"]), t.get("command")))
     for robot in ROBOTS:
         t, src, cmd = tables[robot], rel(tables[robot]["_path"]), tables[robot].get("command")
         paper, R = PAPER_TABLE1[robot], ROBOT_NAMES[robot]
