@@ -18,10 +18,8 @@ import dataclasses
 import pathlib
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.dynamics import integrate
 from stride_jax.eval import rollout
 from stride_jax.eval.runs import LoadedRun, cache_key, cached
 
@@ -44,37 +42,16 @@ class HorizonConfig:
     seed: int = 0
 
 
-def window_arrays(split: dict, starts: np.ndarray, horizon: int):
-    """``(q [N, H+1, nq], qd [N, H+1, nv], ctrl [N, H, nu])`` of the windows ``starts [N, 2]``."""
-    ep, t0 = starts[:, 0], starts[:, 1]
-    idx = t0[:, None] + np.arange(horizon + 1)[None]
-    return (np.asarray(split["q"][ep[:, None], idx], np.float32),
-            np.asarray(split["qd"][ep[:, None], idx], np.float32),
-            np.asarray(split["ctrl"][ep[:, None], idx[:, :-1]], np.float32))
-
-
 def errors(run: LoadedRun, cfg: HorizonConfig, nfe: int | None = None) -> np.ndarray:
     """Per-sample, per-window, per-horizon RMSE ``[S, N, H]`` on the test split (``S = 1`` for
     deterministic models); ``nfe`` overrides the residual's evaluations per sample."""
     test, train = run.ds.split("test"), run.ds.split("train")
     starts = rollout.windows(test["valid"], cfg.horizon, cfg.windows, cfg.seed)
-    q, qd, ctrl = window_arrays(test, starts, cfg.horizon)
-    sig_dq, sig_qd = rollout.observation_scales(train, run.spec, cfg.horizon)
-    n_samples = cfg.samples if run.model.stochastic else 1
-    keys = jax.random.split(jax.random.key(cfg.seed), n_samples)
-    model, fb = run.model, run.spec.floating_base
-
-    @jax.jit
-    def per_sample(params, q, qd, ctrl, sig_dq, sig_qd, keys):
-        def one(q, qd, ctrl, k):
-            q_pred, qd_pred = model.rollout(params, q[0], qd[0], ctrl, k, nfe)
-            dq = jax.vmap(lambda a, b: integrate.difference(a, b, fb))(q_pred, q[1:])
-            err = jnp.concatenate([dq / sig_dq, (qd_pred - qd[1:]) / sig_qd], axis=-1)
-            return jnp.sqrt(jnp.mean(err ** 2, axis=-1))
-
-        return jax.vmap(lambda k: jax.vmap(one)(q, qd, ctrl, jax.random.split(k, len(q))))(keys)
-
-    return np.asarray(per_sample(run.params, q, qd, ctrl, sig_dq, sig_qd, keys))
+    scales = rollout.observation_scales(train, run.spec, cfg.horizon)
+    keys = jax.random.split(jax.random.key(cfg.seed), cfg.samples if run.model.stochastic else 1)
+    model = run.model
+    return rollout.rollout_errors(lambda p, q, qd, u, k: model.rollout(p, q, qd, u, k, nfe),
+                                  run.params, test, run.spec, cfg.horizon, starts, scales, keys)
 
 
 def summarise(errs: np.ndarray) -> dict:

@@ -56,24 +56,29 @@ def rollout_errors(rollout_fn, params, split: dict, spec: ModelSpec, horizon: in
     """Per-window, per-horizon RMSE ``[N, H]`` of ``rollout_fn(params, q, qd, ctrls, key)``.
 
     ``key`` may also be ``S`` keys (stochastic models): then ``[S, N, H]``, one independent
-    sample per key, all in one compiled call.
+    sample per key, all in one compiled call. The parameters and windows are arguments of the
+    compiled program, not constants in it, so runs of one model (seeds) share a compilation
+    (and JAX's persistent cache).
     """
     ep, t0 = starts[:, 0], starts[:, 1]
     idx = t0[:, None] + np.arange(horizon + 1)[None]
-    q = jnp.asarray(split["q"][ep[:, None], idx])  # [N, H+1, nq]
-    qd = jnp.asarray(split["qd"][ep[:, None], idx])
-    ctrl = jnp.asarray(split["ctrl"][ep[:, None], idx[:, :-1]])
+    q = jnp.asarray(split["q"][ep[:, None], idx], jnp.float32)  # [N, H+1, nq]
+    qd = jnp.asarray(split["qd"][ep[:, None], idx], jnp.float32)
+    ctrl = jnp.asarray(split["ctrl"][ep[:, None], idx[:, :-1]], jnp.float32)
     sig_dq, sig_qd = (jnp.asarray(s) for s in scales)
+    fb = spec.floating_base
 
-    def one(q, qd, ctrl, k):
-        q_pred, qd_pred = rollout_fn(params, q[0], qd[0], ctrl, k)
-        dq = jax.vmap(lambda a, b: integrate.difference(a, b, spec.floating_base))(q_pred, q[1:])
-        err = jnp.concatenate([dq / sig_dq, (qd_pred - qd[1:]) / sig_qd], axis=-1)
-        return jnp.sqrt(jnp.mean(err ** 2, axis=-1))
+    def per_key(params, q, qd, ctrl, sig_dq, sig_qd, keys):
+        def one(q, qd, ctrl, k):
+            q_pred, qd_pred = rollout_fn(params, q[0], qd[0], ctrl, k)
+            dq = jax.vmap(lambda a, b: integrate.difference(a, b, fb))(q_pred, q[1:])
+            err = jnp.concatenate([dq / sig_dq, (qd_pred - qd[1:]) / sig_qd], axis=-1)
+            return jnp.sqrt(jnp.mean(err ** 2, axis=-1))
 
-    per_key = jax.vmap(lambda k: jax.vmap(one)(q, qd, ctrl, jax.random.split(k, len(starts))))
+        return jax.vmap(lambda k: jax.vmap(one)(q, qd, ctrl, jax.random.split(k, len(q))))(keys)
+
     keys = key[None] if key.ndim == 0 else key
-    errs = np.asarray(jax.jit(per_key)(keys))
+    errs = np.asarray(jax.jit(per_key)(params, q, qd, ctrl, sig_dq, sig_qd, keys))
     return errs[0] if key.ndim == 0 else errs
 
 
