@@ -22,16 +22,14 @@ import subprocess
 import sys
 import time
 
+from stride_jax import pool
+
 PRESETS = {
     # data episodes, training preset and steps, eval preset
     "tiny": dict(episodes=8, train="tiny", steps=100, eval="tiny"),
     "paper": dict(episodes=1024, train="paper", steps=6000, eval="default"),
 }
 MODELS = ("stride", "delan", "lnn_diffusion", "onn", "diffusion")
-
-
-def _stride(*args: str) -> list[str]:
-    return [sys.executable, "-m", "stride_jax.cli", *args]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -62,10 +60,12 @@ def main(argv: list[str] | None = None) -> None:
     data = {r: root / "data" / f"{r}-{args.preset}" for r in robots}
     runs = {r: root / "runs" / f"{r}-{args.preset}" for r in robots}
 
-    gen = {f"data-{r}": _stride("data", "--robot", r, "--preset", "paper", "--episodes",
-                                str(preset["episodes"]), "--out", str(data[r]))
+    gen = {f"data-{r}": pool.stride_command("data", "--robot", r, "--preset", "paper",
+                                            "--episodes", str(preset["episodes"]),
+                                            "--out", str(data[r]))
            for r in robots if not (data[r] / "meta.json").exists()}
-    failed = _pool(gen, {}, root / "logs", args.parallel, env, t0)
+    failed = pool.run(gen, {n: root / "logs" / f"{n}.log" for n in gen}, args.parallel, env,
+                      t0=t0)
     if failed:
         raise SystemExit(f"data generation failed: {failed} (see {root / 'logs'})")
 
@@ -74,68 +74,34 @@ def main(argv: list[str] | None = None) -> None:
     name = lambda r, m, s: f"{r}/{m}-s{s}"
     run_dir = lambda r, m, s: runs[r] / f"{m}-s{s}"
     leader = {name(r, m, s): run_dir(r, m, int(args.seeds.split(",")[0])) for r, m, s in jobs}
-    train = {name(r, m, s): _stride("train", "--robot", r, "--model", m, "--preset",
-                                    preset["train"], "--steps", str(steps), "--seed", str(s),
-                                    "--data", str(data[r]), "--out", str(run_dir(r, m, s)),
-                                    "--deadline", str(deadline)) for r, m, s in jobs}
+    train = {name(r, m, s): pool.stride_command(
+        "train", "--robot", r, "--model", m, "--preset", preset["train"], "--steps", str(steps),
+        "--seed", str(s), "--data", str(data[r]), "--out", str(run_dir(r, m, s)),
+        "--deadline", str(deadline)) for r, m, s in jobs}
     folders = {name(r, m, s): run_dir(r, m, s) for r, m, s in jobs}
     follows = lambda n, marker: (lambda: leader[n] == folders[n] or (leader[n] / marker).exists())
     ready = {n: follows(n, "metrics.csv") for n in train}
-    failed = _pool(train, ready, folders, args.parallel, env, t0, "train.log")
+    failed = pool.run(train, {n: folders[n] / "train.log" for n in train}, args.parallel, env,
+                      ready, t0, "train")
     ok = [n for n in train if n not in failed]
     # Evaluate runs side by side (each caches its eval.json), then tabulate per robot.
-    evals = {n: _stride("eval", "--preset", preset["eval"], "--runs", str(folders[n]),
-                        "--out", str(folders[n] / "eval_out")) for n in ok}
+    evals = {n: pool.stride_command("eval", "--preset", preset["eval"], "--runs",
+                                    str(folders[n]), "--out", str(folders[n] / "eval_out"))
+             for n in ok}
     ready = {n: follows(n, "eval.json") for n in evals}
-    failed += _pool(evals, ready, folders, args.parallel, env, t0, "eval.log")
+    failed += pool.run(evals, {n: folders[n] / "eval.log" for n in evals}, args.parallel, env,
+                       ready, t0, "eval")
     for r in robots:
         mine = [str(folders[n]) for n in ok if n.startswith(f"{r}/") and n not in failed]
         if not mine:
             continue
         out = args.out or f"results/{r}"
-        subprocess.run(_stride("eval", "--preset", preset["eval"], "--runs", ",".join(mine),
-                               "--out", out, "--label", command), check=True, env=env)
+        subprocess.run(pool.stride_command("eval", "--preset", preset["eval"], "--runs",
+                                           ",".join(mine), "--out", out, "--label", command),
+                       check=True, env=env)
         print(f"[{time.time() - t0:.0f} s] wrote {out}/table.md", flush=True)
     if failed:
         raise SystemExit(f"failed: {failed} (see their logs)")
-
-
-def _pool(cmds: dict[str, list[str]], ready: dict, folders, parallel: int, env: dict,
-          t0: float, log_name: str = "") -> list[str]:
-    """Runs the commands, ``parallel`` at a time, each once ``ready[name]()`` holds (or once no
-    other command can run); logs to ``folders[name]/log_name`` (or ``folders/<name>.log``).
-    Returns the names that failed."""
-    pending, running, failed = list(cmds), [], []
-    while pending or running:
-        while len(running) < parallel:
-            eligible = [n for n in pending if ready.get(n, lambda: True)()]
-            if not eligible and not running and pending:
-                eligible = pending[:1]  # a leader that failed must not block its followers
-            if not eligible:
-                break
-            n = eligible[0]
-            pending.remove(n)
-            if isinstance(folders, dict):
-                folders[n].mkdir(parents=True, exist_ok=True)
-                log_path = folders[n] / log_name
-            else:
-                folders.mkdir(parents=True, exist_ok=True)
-                log_path = folders / f"{n.replace('/', '_')}.log"
-            log = open(log_path, "a")
-            running.append((n, subprocess.Popen(cmds[n], stdout=log, stderr=log, env=env), log))
-        time.sleep(1)
-        for job in list(running):
-            n, proc, log = job
-            if proc.poll() is None:
-                continue
-            running.remove(job)
-            log.close()
-            if proc.returncode:
-                failed.append(n)
-            status = "ok" if proc.returncode == 0 else f"FAILED ({proc.returncode})"
-            print(f"[{time.time() - t0:.0f} s] {log_name.split('.')[0] or 'job'} {n}: {status}",
-                  flush=True)
-    return failed
 
 
 if __name__ == "__main__":

@@ -63,6 +63,8 @@ class ReproduceConfig:
       legged_train_preset, legged_steps: ``stride train`` preset and steps of legged runs.
       pendulum_episodes, pendulum_seconds, pendulum_train_preset, pendulum_steps,
         pendulum_seeds: the same for the pendulum and bouncing-pendulum runs.
+      horizon_tables: Table I files (``results/<robot>/table.json``) to read the horizon part's
+        errors from instead of evaluating runs: the same numbers Table I shows, every seed.
       horizon, windows, samples: rollout evaluation (steps, test windows, latent samples).
       nfe_flow, nfe_diffusion: NFE grids of the trade-off.
       timing_repeats: timed calls per inference rate (median).
@@ -92,6 +94,7 @@ class ReproduceConfig:
     pendulum_train_preset: str = "paper"
     pendulum_steps: int = 10000
     pendulum_seeds: str = "0,1,2"
+    horizon_tables: str = ""
     horizon: int = 30
     windows: int = 256
     samples: int = 8
@@ -119,8 +122,9 @@ PRESETS = {
                  windows=16, samples=2, nfe_flow="1,4", nfe_diffusion="1,4,10",
                  timing_repeats=20, force_steps=64, force_window=40, force_samples=2,
                  phase_grid=11, phase_worlds=32, phase_samples=16, alloc_steps=256),
-    # GPU: legged runs from `experiments/table1.py --preset paper` under the same root.
-    "paper": {},
+    # GPU: legged runs from `experiments/table1.py --preset paper` under the same root; the
+    # horizon part reads Table I's own numbers (every seed) from the committed tables.
+    "paper": dict(out="results/reproduce/paper", horizon_tables="results/go1/table.json,results/g1/table.json"),
 }
 
 
@@ -165,22 +169,36 @@ def _json_default(x):
 
 # ---------------------------------------------------------------------------------------- runs
 
+def pendulum_configs(cfg: ReproduceConfig, tag: str, robot: str, names) -> dict[str, list]:
+    """The pendulum runs a part needs, ``{model: [TrainConfig per seed]}``."""
+    data = runs_lib.data_dir(cfg.root, robot, tag)
+    return {name: [job.TrainConfig(**dict(job.PRESETS[cfg.pendulum_train_preset], robot=robot,
+                                          model=name, seed=seed, steps=cfg.pendulum_steps,
+                                          data=str(data),
+                                          out=str(runs_lib.run_dir(cfg.root, robot, tag, name,
+                                                                   seed))))
+                   for seed in _ints(cfg.pendulum_seeds)]
+            for name in names}
+
+
+def pendulum_jobs(cfg: ReproduceConfig, tag: str) -> list[job.TrainConfig]:
+    """Every pendulum run the selected parts train (for training them side by side first)."""
+    wanted = {"phase": ("pendulum", tuple(_names(cfg.phase_models))),
+              "allocation": ("pendulum_bouncing", ("stride",))}
+    return [tc for part, (robot, names) in wanted.items() if part in _names(cfg.parts)
+            for tcs in pendulum_configs(cfg, tag, robot, names).values() for tc in tcs]
+
+
+def ensure_pendulum_data(cfg: ReproduceConfig, tag: str, robot: str, log=print) -> pathlib.Path:
+    return runs_lib.ensure_data(runs_lib.data_dir(cfg.root, robot, tag), robot,
+                                cfg.pendulum_episodes, cfg.pendulum_seconds, log=log)
+
+
 def _pendulum_runs(ctx: _Ctx, robot: str, names: tuple[str, ...]) -> dict[str, list]:
     """Pendulum runs (trained when absent), ``{model: [LoadedRun per seed]}``."""
-    c = ctx.cfg
-    data = runs_lib.ensure_data(runs_lib.data_dir(c.root, robot, ctx.tag), robot,
-                                c.pendulum_episodes, c.pendulum_seconds, log=ctx.log)
-    out = {}
-    for name in names:
-        out[name] = []
-        for seed in _ints(c.pendulum_seeds):
-            tc = job.TrainConfig(**dict(job.PRESETS[c.pendulum_train_preset], robot=robot,
-                                        model=name, seed=seed, steps=c.pendulum_steps,
-                                        data=str(data),
-                                        out=str(runs_lib.run_dir(c.root, robot, ctx.tag, name,
-                                                                 seed))))
-            out[name].append(runs_lib.load_run(runs_lib.ensure_run(tc, True, ctx.log)))
-    return out
+    ensure_pendulum_data(ctx.cfg, ctx.tag, robot, ctx.log)
+    return {name: [runs_lib.load_run(runs_lib.ensure_run(tc, True, ctx.log)) for tc in tcs]
+            for name, tcs in pendulum_configs(ctx.cfg, ctx.tag, robot, names).items()}
 
 
 def _legged_runs(ctx: _Ctx, robot: str, names: list[str]) -> tuple[dict[str, list], list[str]]:
@@ -292,15 +310,23 @@ def part_nfe(ctx: _Ctx) -> dict:
 def part_horizon(ctx: _Ctx) -> dict:
     c = ctx.cfg
     hcfg = _hcfg(c)
-    table, per_run, missing = {}, {}, []
+    table, per_run, missing, sources = {}, {}, [], {}
+    tables = dict(horizon.from_table(p) for p in _names(c.horizon_tables))
     for robot in _names(c.robots):
-        runs, miss = _legged_runs(ctx, robot, _names(c.models))
-        missing += miss
-        table[robot], per_run[robot] = {}, {}
-        for name, rs in runs.items():
-            ctx.log(f"rollout errors: {name} on {robot} ({len(rs)} seeds)")
-            results = [horizon.evaluate(r, hcfg, ctx.cache) for r in rs]
-            per_run[robot][name] = results
+        if robot in tables:
+            ctx.log(f"rollout errors on {robot}: read from its Table I file")
+            per_run[robot], sources[robot] = tables[robot], "table"
+        else:
+            runs, miss = _legged_runs(ctx, robot, _names(c.models))
+            missing += miss
+            per_run[robot], sources[robot] = {}, "evaluated"
+            for name, rs in runs.items():
+                ctx.log(f"rollout errors: {name} on {robot} ({len(rs)} seeds)")
+                per_run[robot][name] = [horizon.evaluate(r, hcfg, ctx.cache) for r in rs]
+        table[robot] = {}
+        for name, results in per_run[robot].items():
+            if name not in _names(c.models):
+                continue
             row = horizon.over_seeds(results)
             ph = np.asarray(row["per_horizon_mean"])
             row["growth_last_over_half"] = float(ph[-1] / ph[len(ph) // 2 - 1])
@@ -308,8 +334,11 @@ def part_horizon(ctx: _Ctx) -> dict:
     table = {r: t for r, t in table.items() if t}
     if table:
         horizon.plot(table, ctx.out / "rollout_horizon.png",
-                     ctx.title("Open-loop rollout error vs horizon (mean ± std over seeds)"))
-    result = {"table": table, "per_run": per_run, "missing_runs": missing,
+                     ctx.title("Open-loop rollout error vs horizon (mean ± std over seeds"
+                               + ("; from " + ", ".join(_names(c.horizon_tables))
+                                  if "table" in sources.values() else "") + ")"))
+    result = {"table": table, "per_run": per_run, "missing_runs": missing, "source": sources,
+              "tables": _names(c.horizon_tables),
               "config": dataclasses.asdict(hcfg), "definition": horizon.__doc__.strip(),
               "figure": "rollout_horizon.png" if table else None}
     ctx.write("horizon", result)
@@ -499,7 +528,13 @@ def run(cfg: ReproduceConfig, preset: str, command: str, log=print) -> dict:
     for name in parts:
         t0 = time.time()
         log(f"== {name}")
-        summary[name] = fns[name](ctx)
+        result = fns[name](ctx)
+        if "robots" in result and isinstance(summary.get(name), dict):
+            # A part re-run for some robots keeps the others' numbers (one device call each).
+            kept = {r: v for r, v in summary[name].get("robots", {}).items()
+                    if r not in result["robots"]}
+            result["robots"] = {**kept, **result["robots"]}
+        summary[name] = result
         summary["commands"][name] = command
         summary["seconds"][name] = round(time.time() - t0, 1)
         summary["claims"] = claims(summary)

@@ -15,6 +15,7 @@ dominate a mean; the median says what a typical window does). Over seeds: mean a
 from __future__ import annotations
 
 import dataclasses
+import json
 import pathlib
 
 import jax
@@ -84,6 +85,29 @@ def evaluate(run: LoadedRun, cfg: HorizonConfig, cache_dir: pathlib.Path,
                 steps_done=run.steps_done)
 
 
+def from_table(path: str | pathlib.Path) -> tuple[str, dict[str, list[dict]]]:
+    """Per-run results read from a Table I file (``stride eval``'s ``table.json``) instead of
+    evaluated here: ``(robot, {model: [result per seed]})``. Its state error is this module's
+    (both call :func:`~stride_jax.eval.rollout.rollout_errors`); it lacks the median window."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no Table I file at {path} (make it with experiments/table1.py)")
+    table = json.loads(path.read_text())
+    robots = {r["robot"] for r in table["runs"]}
+    if len(robots) != 1:
+        raise ValueError(f"{path}: expected the runs of one robot, found {sorted(robots)}")
+    out: dict[str, list[dict]] = {}
+    for r in table["runs"]:
+        st = r["state"]
+        out.setdefault(r["model"], []).append({
+            "per_horizon": st["per_horizon"], "cumulative": st["mean"],
+            "cumulative_sample_std": st["spread"], "cumulative_median": None,
+            "diverged": st["diverged"], "windows": st["windows"], "model": r["model"],
+            "seed": r["seed"], "robot": r["robot"], "nfe": r["nfe"],
+            "steps_done": r["steps_done"], "source": str(path)})
+    return robots.pop(), out
+
+
 def over_seeds(results: list[dict]) -> dict:
     """Mean and std over seeds of one model's per-run results."""
     ph = np.array([r["per_horizon"] for r in results], np.float64)  # [seeds, H]
@@ -92,8 +116,10 @@ def over_seeds(results: list[dict]) -> dict:
             "per_horizon_mean": np.nanmean(ph, 0).tolist(),
             "per_horizon_std": np.nanstd(ph, 0).tolist(),
             "cumulative_mean": float(np.nanmean(cum)), "cumulative_std": float(np.nanstd(cum)),
-            "cumulative_median_mean": float(np.nanmean([r["cumulative_median"]
-                                                        for r in results])),
+            "cumulative_median_mean": (None if any(r["cumulative_median"] is None
+                                                   for r in results)
+                                       else float(np.mean([r["cumulative_median"]
+                                                           for r in results]))),
             "diverged_mean": float(np.mean([r["diverged"] for r in results])),
             "steps_done": sorted({r["steps_done"] for r in results}, key=str)}
 

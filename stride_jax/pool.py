@@ -1,0 +1,72 @@
+"""Side-by-side ``stride`` processes for the experiment drivers (``experiments/*.py``).
+
+Small models leave a GPU idle between kernel launches, so the drivers train and evaluate several
+runs at once as separate processes that share the device. A process that depends on another
+(runs of one model whose seed-0 run fills JAX's persistent compilation cache first) waits until
+its ``ready`` predicate holds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+import subprocess
+import sys
+import time
+import typing
+from typing import Callable
+
+
+def stride_command(*args: str) -> list[str]:
+    """``python -m stride_jax.cli ARGS`` with this interpreter."""
+    return [sys.executable, "-m", "stride_jax.cli", *args]
+
+
+def config_flags(cfg) -> list[str]:
+    """Every field of a config dataclass as ``stride`` flags (with ``--preset default``, the
+    command rebuilds exactly ``cfg``)."""
+    hints = typing.get_type_hints(type(cfg))
+    flags = ["--preset", "default"]
+    for f in dataclasses.fields(cfg):
+        value, flag = getattr(cfg, f.name), "--" + f.name.replace("_", "-")
+        if hints[f.name] is bool:
+            flags.append(flag if value else "--no-" + flag[2:])
+        else:
+            flags += [flag, str(value)]
+    return flags
+
+
+def run(cmds: dict[str, list[str]], logs: dict[str, pathlib.Path], parallel: int,
+        env: dict | None = None, ready: dict[str, Callable[[], bool]] | None = None,
+        t0: float | None = None, what: str = "job") -> list[str]:
+    """Runs ``cmds`` (name -> argv), ``parallel`` at a time, each once ``ready[name]()`` holds
+    (or once nothing else can run: a leader that failed must not block its followers), with
+    output appended to ``logs[name]``. Prints one line per finished process; returns the names
+    that failed."""
+    ready, t0 = ready or {}, time.time() if t0 is None else t0
+    pending, running, failed = list(cmds), [], []
+    while pending or running:
+        while len(running) < max(parallel, 1):
+            eligible = [n for n in pending if ready.get(n, lambda: True)()]
+            if not eligible and not running and pending:
+                eligible = pending[:1]
+            if not eligible:
+                break
+            name = eligible[0]
+            pending.remove(name)
+            logs[name].parent.mkdir(parents=True, exist_ok=True)
+            log = open(logs[name], "a")
+            proc = subprocess.Popen(cmds[name], stdout=log, stderr=subprocess.STDOUT, env=env)
+            running.append((name, proc, log))
+        time.sleep(1)
+        for job in list(running):
+            name, proc, log = job
+            if proc.poll() is None:
+                continue
+            running.remove(job)
+            log.close()
+            if proc.returncode:
+                failed.append(name)
+            status = "ok" if proc.returncode == 0 else f"FAILED ({proc.returncode})"
+            print(f"[{time.time() - t0:.0f} s] {what} {name}: {status}", flush=True)
+    return failed
