@@ -2,8 +2,8 @@
 # The paper preset of experiments/reproduce.py on one GPU from the committed Table I checkpoints
 # (results/models/<robot>/<model>-s0), in one device call of under 10 minutes:
 #   1. the checkpoints go where experiments/table1.py writes its runs (runs/<robot>-paper/);
-#   2. the Table I datasets are regenerated in the background with table1.py's command and seed,
-#      and checked against the checkpoints' dataset_sha256;
+#   2. the Table I datasets are regenerated in the background with table1.py's command and seed
+#      (unless present with the checkpoints' dataset_sha256), and checked against it;
 #   3. meanwhile the pendulum runs train side by side (reproduce.py --parallel);
 #   4. the legged parts run on seed 0 (the horizon part reads Table I's own files, every seed).
 # Usage (repository root): bash experiments/reproduce_paper.sh [PARTS] [ROBOTS]
@@ -13,10 +13,15 @@ robots=${2:-go1,g1}
 export XLA_PYTHON_CLIENT_PREALLOCATE=false
 pick() { tr ',' '\n' <<<"$parts" | grep -xE "$1" | paste -sd, || true; }
 mkdir -p logs
+trained_on() { python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))[sys.argv[2]])' "$@"; }
 pids=()
 for r in ${robots//,/ }; do
-  mkdir -p "runs/$r-paper" && cp -rn "results/models/$r/." "runs/$r-paper/"
-  if [ ! -f "data/$r-paper/meta.json" ]; then
+  # Fresh copies: a device may keep ignored folders of an earlier call (even of older code).
+  rm -rf "runs/$r-paper" && mkdir -p "runs/$r-paper" && cp -r "results/models/$r/." "runs/$r-paper/"
+  want=$(trained_on "results/models/$r/stride-s0/config.json" dataset_sha256)
+  if [ ! -f "data/$r-paper/meta.json" ] ||
+     [ "$(trained_on "data/$r-paper/meta.json" arrays_sha256)" != "$want" ]; then
+    rm -rf "data/$r-paper"
     python3 -m stride_jax.cli data --robot "$r" --preset paper --episodes 1024 \
       --out "data/$r-paper" >"logs/data-$r.log" 2>&1 &
     pids+=($!)
