@@ -16,8 +16,13 @@ mkdir -p logs
 trained_on() { python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))[sys.argv[2]])' "$@"; }
 pids=()
 for r in ${robots//,/ }; do
-  # Fresh copies: a device may keep ignored folders of an earlier call (even of older code).
-  rm -rf "runs/$r-paper" && mkdir -p "runs/$r-paper" && cp -r "results/models/$r/." "runs/$r-paper/"
+  # Fresh copies of each run's files and its best checkpoint alone: a device's copy of the tree
+  # may keep files deleted here since an earlier call (checkpoints of older code, say).
+  rm -rf "runs/$r-paper"
+  for m in results/models/$r/*/; do
+    run="runs/$r-paper/$(basename "$m")" && step=$(trained_on "$m/summary.json" best_step)
+    mkdir -p "$run/best" && cp "$m"/*.json "$run/" && cp -r "$m/best/$step" "$run/best/"
+  done
   want=$(trained_on "results/models/$r/stride-s0/config.json" dataset_sha256)
   if [ ! -f "data/$r-paper/meta.json" ] ||
      [ "$(trained_on "data/$r-paper/meta.json" arrays_sha256)" != "$want" ]; then
