@@ -137,6 +137,9 @@ def plot(curves: dict[str, dict], reference: dict | None, path: pathlib.Path, de
     ax[0].set(xscale="log", xlabel="NFE (residual network evaluations per sample)",
               ylabel="cumulative open-loop error (mean ± std over seeds)",
               title="rollout error vs NFE")
+    errs = [e for c in curves.values() for e in c["error_mean"] if e is not None and e > 0]
+    if errs and max(errs) > 20 * min(errs):  # a diverging low-NFE sampler flattens the rest
+        ax[0].set_yscale("log")
     ax[1].set(xscale="log", yscale="log", xlabel="NFE",
               ylabel=f"calls/s, {batch} states per call", title=f"inference rate ({device})")
     for a in ax:
