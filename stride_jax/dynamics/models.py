@@ -270,6 +270,12 @@ def load(run: str | pathlib.Path) -> tuple[Model, dict]:
     model = make(d["name"], spec, act, cfg, sc)
     mngr = ocp.CheckpointManager((run / "best").absolute())
     step = mngr.latest_step()
+    # The step the run's summary names, where it has one: a copied run folder may carry stale
+    # checkpoints beside it (a later step of an older model, say).
+    summary = run / "summary.json"
+    named = json.loads(summary.read_text()).get("best_step") if summary.is_file() else None
+    if named in mngr.all_steps():
+        step = named
     if step is None:
         raise FileNotFoundError(f"{run / 'best'} holds no checkpoint")
     target = model.init(jax.random.key(0))
