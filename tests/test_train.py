@@ -39,6 +39,18 @@ def test_training_runs_and_improves(data_dir, tmp_path):
     rows = np.genfromtxt(run / "metrics.csv", delimiter=",", names=True)
     assert rows["val_loss"][-1] < rows["val_loss"][0]
     assert (run / "best").is_dir() and (run / "summary.json").exists()
+    # A copied run folder with a stale checkpoint beside its best (a later step of another
+    # model, here the optimiser-state checkpoint) still loads the best the summary names.
+    import shutil
+
+    from stride_jax.dynamics import models
+
+    copy = tmp_path / "copy"
+    shutil.copytree(run, copy)
+    stale = max(int(p.name) for p in (run / "ckpt").iterdir() if p.name.isdigit())
+    shutil.copytree(run / "ckpt" / str(stale), copy / "best" / "99999")
+    (_, want), (_, got) = models.load(run), models.load(copy)
+    jax.tree.map(np.testing.assert_array_equal, want, got)
 
 
 def test_a_killed_run_resumes_to_the_uninterrupted_result(data_dir, tmp_path):
