@@ -135,6 +135,11 @@ def score_case(sm, case: dict, result: dict, clean_heldout: list, cfg_d: diagnos
             row["clean_shrink"] = 1 - g({k: _vec(x) for k, x in best["params"].items()}) / g0
             if in_lib:
                 row["oracle_shrink"] = 1 - g({k: _vec(x) for k, x in case["applied"].items()}) / g0
+        res = result.get("residual")
+        if res:  # the STRIDE residual on top of the best: share of the held-out gap left it explains
+            row["residual_explained"] = res["explained"]
+            row["residual_explained_above_floor"] = res["explained_above_floor"]
+            row["residual_peak"] = res["concentration"]["summary"]
         if row["correct"] and case["kind"] == "single":
             (name,) = planted
             truth, est = _vec(case["applied"][name]), _vec(best["params"][name])
@@ -165,6 +170,7 @@ def summary(rows: list[dict]) -> dict[str, Any]:
             "confident_false_attributions": int(sum(r["confident_false"] for r in rs)),
             "confident_false_out_of_library": int(sum(r["confident_false"] for r in ool)),
             "out_of_library_verdicts": [r["verdict"] for r in ool],
+            "out_of_library_residual_explained": [r.get("residual_explained") for r in ool],
             "control_verdict": [r["verdict"] for r in ctrl],
             "cases": len(rs),
         }
@@ -183,18 +189,21 @@ def markdown(cfg: BenchConfig, rows: list[dict], summ: dict, command: str, secon
     keys = ["top1_single", "top1_pairs", "median_param_error_single", "median_clean_shrink_single",
             "min_clean_shrink_single", "median_oracle_shrink_single", "median_tool_shrink_single",
             "confident_false_attributions", "confident_false_out_of_library", "out_of_library_verdicts",
-            "control_verdict"]
+            "out_of_library_residual_explained", "control_verdict"]
     f = lambda x: "-" if x is None else (f"{x:.3g}" if isinstance(x, float) else str(x))
     for k in keys:
         L.append(f"| {k} | {f(summ.get('noise_free', {}).get(k))} | {f(summ.get('noisy', {}).get(k))} |")
-    L += ["", "| noise | kind | planted | verdict | named | confident | best fit | clean shrink | oracle | tool shrink | param err |",
-          "|---|---|---|---|---|---|---|---|---|---|---|"]
+    L += ["", "Residual: share of the held-out gap left by the best hypothesis that the STRIDE residual fitted on "
+          "top explains (fitted when the verdict is 'unexplained by the library').", "",
+          "| noise | kind | planted | verdict | named | confident | best fit | clean shrink | oracle | tool shrink | param err "
+          "| residual |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         b = r.get("best", {})
         L.append(f"| {'noisy' if r['noisy'] else 'clean'} | {r['kind']} | {r['planted']} | {r['verdict']} | "
                  f"{'+'.join(r['named']) or '-'} | {r['confident']} | {b.get('params', '-')} | "
                  f"{f(r.get('clean_shrink'))} | {f(r.get('oracle_shrink'))} | {f(r.get('tool_shrink'))} | "
-                 f"{f(r.get('param_error'))} |")
+                 f"{f(r.get('param_error'))} | {f(r.get('residual_explained'))} |")
     return "\n".join(L) + "\n"
 
 

@@ -11,7 +11,7 @@ import sys
 
 
 def _parser() -> argparse.ArgumentParser:
-    from stride_jax.gap import bench, diagnose
+    from stride_jax.gap import bench, diagnose, residual
 
     p = argparse.ArgumentParser(prog="stride gap", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -24,6 +24,9 @@ def _parser() -> argparse.ArgumentParser:
         if f.type in ("int", "float"):
             d.add_argument(f"--{f.name.replace('_', '-')}", type=int if f.type == "int" else float,
                            default=None)
+    d.add_argument("--residual", choices=residual.WHEN, default=None,
+                   help="when to fit the STRIDE residual on top of the best hypothesis")
+    d.add_argument("--residual-steps", type=int, default=None, help="its optimiser steps")
     s = sub.add_parser("simulate", help="'real' logs: the explorer with hidden effects")
     s.add_argument("--robot", required=True)
     s.add_argument("--out", required=True)
@@ -41,6 +44,19 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _diagnose_config(args: argparse.Namespace):
+    """The preset with the flags given on top (``ValueError`` for bad values)."""
+    from stride_jax.gap import diagnose
+
+    cfg = diagnose.PRESETS[args.preset]
+    over = {f.name: getattr(args, f.name) for f in dataclasses.fields(cfg)
+            if f.name != "residual" and getattr(args, f.name, None) is not None}
+    res = {k: v for k, v in (("when", args.residual), ("steps", args.residual_steps)) if v is not None}
+    if res:
+        over["residual"] = dataclasses.replace(cfg.residual, **res)
+    return dataclasses.replace(cfg, **over)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)
@@ -51,10 +67,11 @@ def main(argv: list[str] | None = None) -> int:
             from stride_jax.gap import diagnose, report
             from stride_jax.sim import model
 
-            cfg = diagnose.PRESETS[args.preset]
-            over = {f.name: getattr(args, f.name) for f in dataclasses.fields(cfg)
-                    if getattr(args, f.name, None) is not None}
-            cfg = dataclasses.replace(cfg, **over)
+            try:
+                cfg = _diagnose_config(args)
+            except ValueError as err:
+                print(f"error: {err}", file=sys.stderr)
+                return 2
             sm = model.load(args.robot)
             _, trajs = logs.read(args.logs, sm)
             d = diagnose.diagnose(sm, trajs, cfg)

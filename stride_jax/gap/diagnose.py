@@ -12,10 +12,14 @@
   the wrong effect lowers the *training* loss too; only the held-out comparison chooses. Each
   candidate is checked to reproduce the nominal model at its nominal value.
 * **Residual structure** (the library's limit): a ridge regression of the residual on state,
-  command and contact features (a linear probe, fitted on train, scored held-out) measures how
-  much systematic gap is left after the best hypothesis. If much is left, the verdict is
-  "unexplained by the library". TODO: fit the STRIDE residual (``stride_jax.dynamics``) on top
-  of the best hypothesis instead of the linear probe, and show where it concentrates.
+  command and contact features (:mod:`stride_jax.gap.linear_probe`, fitted on train, scored
+  held-out) measures cheaply how much systematic gap is left after the best hypothesis. If much
+  is left, the verdict is "unexplained by the library".
+* **What is left, and where** (:mod:`stride_jax.gap.residual`): then a STRIDE residual -- a
+  conditional flow-matching model of the generalised force the best hypothesis's simulator
+  misses, given ``(q, qd, tau)`` -- is fitted on the training split and scored held-out (the
+  one-step gap before and after adding its central sample), and its magnitude is decomposed per
+  dof, per contact phase of each foot and per base-speed / joint-velocity / joint-position bin.
 * **How far** (:func:`how_far`): one-step acceleration RMSE and ``horizon``-step rollout RMSE on
   held-out trajectories, nominal against the identified effect, with its parameter interval.
 
@@ -31,13 +35,14 @@ import itertools
 import time
 from typing import Any
 
-import mujoco
 import numpy as np
 
-from stride_jax.gap import effects, fit, logs, sim
+from stride_jax.gap import effects, fit, linear_probe, logs, regions, residual, sim
+from stride_jax.gap.residual import ResidualConfig
+from stride_jax.gap.regions import PHASES, dof_names, foot_phases, noise_floor  # noqa: F401 (re-exported)
 from stride_jax.sim.model import SimModel
 
-PHASES = ("swing", "stance", "touchdown", "liftoff")
+_rms = regions.rms
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,6 +73,8 @@ class DiagnoseConfig:
       alpha: family-wise level of the held-out tests (Bonferroni over the hypotheses compared).
       pair_min: a pair is preferred to the best single only if it removes at least this fraction
         of what the single leaves above the noise floor (and significantly more than nothing).
+      residual: the STRIDE residual fitted on top of the best hypothesis (by default only when
+        the verdict is "unexplained by the library"; :mod:`stride_jax.gap.residual`).
     """
 
     holdout: float = 0.34
@@ -89,6 +96,7 @@ class DiagnoseConfig:
     boot: int = 2000
     alpha: float = 0.05
     pair_min: float = 0.1
+    residual: ResidualConfig = ResidualConfig()
 
 
 PRESETS = {
@@ -113,63 +121,12 @@ def split(n: int, holdout: float, seed: int) -> tuple[list[int], list[int]]:
     return sorted(perm[k:].tolist()), sorted(perm[:k].tolist())
 
 
-def dof_names(sm: SimModel) -> list[str]:
-    m = sm.mj
-    out = []
-    for j in range(m.njnt):
-        if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
-            out += ["base_vx", "base_vy", "base_vz", "base_wx", "base_wy", "base_wz"]
-        else:
-            out.append(m.joint(j).name)
-    return out
-
-
 def scale_of(sm: SimModel, data: fit.Data) -> np.ndarray:
     """``[nv]`` spread of the logged velocity changes per second (floored)."""
     idx = fit.samples_before_next(data)
     dv = (data.target - data.qd[idx]) / (data.k * sm.robot.ctrl_dt)
     s = dv.std(0)
     return np.maximum(s, 1e-3 * max(float(s.max()), 1e-9))
-
-
-def noise_floor(r: np.ndarray, data: fit.Data) -> float:
-    """Mean squared residual (summed over dofs) attributable to white velocity noise:
-    ``-2 x`` the lag-``k`` autocovariance within trajectories, clipped at zero per dof (the noise
-    of the logged velocity at ``t + k`` enters residual ``t`` with a minus sign and residual
-    ``t + k`` through its initial state)."""
-    k = data.k
-    same = data.traj[k:] == data.traj[:-k]
-    if not same.any():
-        return 0.0
-    rc = r - r.mean(0)
-    acov = (rc[k:][same] * rc[:-k][same]).mean(0)
-    return float(np.maximum(-2 * acov, 0).sum())
-
-
-def foot_phases(sm: SimModel, q: np.ndarray, bounds: np.ndarray, margin: float = 0.015
-                ) -> np.ndarray:
-    """``[N, nfeet]`` phase index (:data:`PHASES`) of each foot from kinematics alone: stance while
-    the foot site is within ``margin`` m of its lowest height (5th percentile) in the log."""
-    if sm.nfeet == 0:
-        return np.zeros((len(q), 0), int)
-    m = sm.mj
-    d = mujoco.MjData(m)
-    h = np.empty((len(q), sm.nfeet))
-    for i, qi in enumerate(q):
-        d.qpos[:] = qi
-        mujoco.mj_kinematics(m, d)
-        h[i] = d.site_xpos[sm.foot_sites, 2]
-    stance = h < np.percentile(h, 5, axis=0) + margin
-    prev = stance.copy()
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        prev[a + 1:b] = stance[a:b - 1]
-    phase = np.where(stance, 1, 0)
-    phase = np.where(stance & ~prev, 2, phase)
-    return np.where(~stance & prev, 3, phase)
-
-
-def _rms(x, axis=None):
-    return float(np.sqrt(np.mean(x ** 2))) if axis is None else np.sqrt(np.mean(x ** 2, axis=axis))
 
 
 def _boot_weights(n: int, B: int, seed: int) -> np.ndarray:
@@ -192,10 +149,10 @@ def where(sm: SimModel, data: fit.Data, r: np.ndarray, scale: np.ndarray, cfg: D
                            "scale": dict(zip(names, scale.tolist()))}
     total = _rms(r) + 1e-300
     # contact phases per foot
-    phases = foot_phases(sm, data.q, data.bounds)[idx]
+    phases = regions.sample_phases(sm, data)
     per_foot = {}
     for f, foot in enumerate(sm.robot.feet):
-        leg = [i for i, n in enumerate(names) if n.startswith(foot.name + "_")] or list(range(len(names)))
+        leg = regions.leg_dofs(sm, foot.name)
         rows = {}
         for p, label in enumerate(PHASES):
             sel = phases[:, f] == p
@@ -208,20 +165,15 @@ def where(sm: SimModel, data: fit.Data, r: np.ndarray, scale: np.ndarray, cfg: D
                               for f, foot in enumerate(sm.robot.feet)}
     # base speed bins
     if sm.robot.floating_base:
-        speed = np.linalg.norm(data.qd[idx, :2], axis=1)
-        edges = np.unique(np.quantile(speed, np.linspace(0, 1, cfg.bins + 1)))
-        k = np.clip(np.searchsorted(edges, speed, side="right") - 1, 0, len(edges) - 2)
+        k, edges = regions.quantile_bins(regions.base_speed(data), cfg.bins)
         out["base_speed_bins"] = [{"lo": float(edges[i]), "hi": float(edges[i + 1]),
                                    "count": int((k == i).sum()), "rms": _rms(r[k == i])}
                                   for i in range(len(edges) - 1) if (k == i).any()]
     # joint velocity bins: signed mean and RMS of each actuated joint's own residual
     jv = {}
     for a, dof in enumerate(sm.act_dof):
-        v = data.qd[idx, dof]
-        lim = np.quantile(np.abs(v), 0.98) + 1e-9
-        edges = np.linspace(-lim, lim, cfg.bins + 1)
-        k = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, cfg.bins - 1)
-        jv[names[dof]] = [{"centre": float((edges[i] + edges[i + 1]) / 2), "count": int((k == i).sum()),
+        k, centres = regions.symmetric_bins(data.qd[idx, dof], cfg.bins)
+        jv[names[dof]] = [{"centre": float(centres[i]), "count": int((k == i).sum()),
                            "mean": float(raw[k == i, dof].mean()) if (k == i).any() else None,
                            "rms": _rms(raw[k == i, dof]) if (k == i).any() else None}
                           for i in range(cfg.bins)]
@@ -276,72 +228,6 @@ def _q_error(sm: SimModel, q: np.ndarray, ref: np.ndarray) -> np.ndarray:
         parts.append(2 * np.arccos(dot)[..., None])
     parts.append(q[..., lay.qadr] - ref[..., lay.qadr])
     return np.concatenate(parts, -1)
-
-
-# ----------------------------------------------------------------------------- residual probe
-
-
-def _features(sm: SimModel, data: fit.Data) -> np.ndarray:
-    """``[M, F]`` state, command and contact features of each replayed sample."""
-    idx = fit.samples_before_next(data)
-    q, qd, u = data.q[idx], data.qd[idx], data.cmd[idx]
-    qa = q[:, sm.mj.jnt_qposadr[sm.mj.actuator_trnid[:, 0]]]
-    va = qd[:, sm.act_dof]
-    prev = data.cmd[np.maximum(idx - 1, data.first)]
-    f = [np.ones((len(idx), 1)), qa, np.sin(qa), np.cos(qa), va, np.tanh(va / 0.1), va * np.abs(va),
-         u - (qa if sm.robot.kp is not None else 0.0), u - prev]
-    if sm.robot.floating_base:
-        f += [q[:, 2:7], qd[:, :6]]
-    if sm.nfeet:
-        ph = foot_phases(sm, data.q, data.bounds)[idx]
-        f += [(ph == k).astype(float) for k in range(4)]
-    return np.concatenate(f, 1)
-
-
-FEATURE_GROUPS = ("intercept", "joint position", "sin(position)", "cos(position)", "joint velocity",
-                  "sign(velocity)", "velocity|velocity|", "command - position", "command change",
-                  "base pose", "base velocity", "swing", "stance", "touchdown", "liftoff")
-
-
-def structure_hints(sm: SimModel, train: fit.Data, r_train: np.ndarray, test: fit.Data,
-                    r_test: np.ndarray, top: int = 3) -> list[dict[str, Any]]:
-    """Which feature group (:data:`FEATURE_GROUPS`) of the linear probe, alone, explains most of the
-    held-out residual left after the best hypothesis (e.g. ``velocity|velocity|`` for a quadratic
-    drag fitted with linear damping): ``[{"feature", "explained"}]``, best first."""
-    Xtr, Xte = _features(sm, train), _features(sm, test)
-    nu = len(sm.act_dof)
-    sizes = [1] + [nu] * 8 + ([5, 6] if sm.robot.floating_base else []) + ([sm.nfeet] * 4 if sm.nfeet else [])
-    names = list(FEATURE_GROUPS[:9]) + (list(FEATURE_GROUPS[9:11]) if sm.robot.floating_base else []) + (
-        list(FEATURE_GROUPS[11:]) if sm.nfeet else [])
-    g = float((r_test ** 2).sum())
-    out, i = [], 0
-    for name, k in zip(names, sizes):
-        cols = [0] + list(range(i, i + k)) if i else [0]
-        i += k
-        if name == "intercept":
-            continue
-        a, b = Xtr[:, cols], Xte[:, cols]
-        mu, sd = a.mean(0), a.std(0)
-        sd[sd < 1e-9] = 1.0
-        mu[0], sd[0] = 0.0, 1.0
-        a, b = (a - mu) / sd, (b - mu) / sd
-        W = np.linalg.solve(a.T @ a + 1e-3 * len(a) * np.eye(len(cols)), a.T @ r_train)
-        out.append({"feature": name, "explained": float(1 - ((r_test - b @ W) ** 2).sum() / max(g, 1e-300))})
-    return sorted(out, key=lambda d: -d["explained"])[:top]
-
-
-def probe(sm: SimModel, train: fit.Data, r_train: np.ndarray, test: fit.Data, r_test: np.ndarray,
-          ridge: float = 1e-3) -> np.ndarray:
-    """Held-out residual ``[M_test, nv]`` after a ridge regression on :func:`_features` fitted on
-    the training residual (features standardised on train)."""
-    Xtr, Xte = _features(sm, train), _features(sm, test)
-    mu, sd = Xtr.mean(0), Xtr.std(0)
-    sd[sd < 1e-9] = 1.0
-    mu[0], sd[0] = 0.0, 1.0  # intercept
-    Xtr, Xte = (Xtr - mu) / sd, (Xte - mu) / sd
-    A = Xtr.T @ Xtr + ridge * len(Xtr) * np.eye(Xtr.shape[1])
-    W = np.linalg.solve(A, Xtr.T @ r_train)
-    return r_test - Xte @ W
 
 
 # ----------------------------------------------------------------------------- which / how far
@@ -534,11 +420,11 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     g_nom = float((r_nom_te ** 2).sum(1).mean())
     g_best = float((r_best_te ** 2).sum(1).mean())
     above = max(g_nom - floor, 1e-300)
-    pr_nom = probe(sm, train, r_nom_tr, test, r_nom_te)
-    pr_best = probe(sm, train, r_best_tr, test, r_best_te)
+    pr_nom = linear_probe.probe(sm, train, r_nom_tr, test, r_nom_te)
+    pr_best = linear_probe.probe(sm, train, r_best_tr, test, r_best_te)
     probe_nom = 1 - float((pr_nom ** 2).sum(1).mean()) / max(g_nom, 1e-300)
     left = max(g_best - float((pr_best ** 2).sum(1).mean()), 0.0) / above
-    hints = structure_hints(sm, train, r_best_tr, test, r_best_te)
+    hints = linear_probe.structure_hints(sm, train, r_best_tr, test, r_best_te)
     for row in rows:
         row["explained_above_floor"] = float(min(1.0, (g_nom - row["heldout_loss"] / M) / above))
         del row["_boot"]
@@ -673,7 +559,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
         out["verdict"] = {"verdict": "no significant gap", "effects": [], "confident": True,
                           "reason": f"the nominal model replays the logs to numerical precision "
                                     f"(scaled RMS {_rms(r_all):.2g})"}
-        out["which"], out["how_far"] = None, None
+        out["which"], out["how_far"], out["residual"] = None, None, None
         out["seconds"] = time.time() - t_start
         return out
     out["nominal_check"] = check_nominal(sm, test_k, scale, fit.residual(sm, nom, test_k, scale))
@@ -683,6 +569,12 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     w = which(sm, train_k, test_k, scale, cfg, log)
     out["verdict"] = verdict(w, cfg)
     out["how_far"] = how_far(sm, test, scale, w, cfg)
+    out["residual"] = None
+    if cfg.residual.wanted(out["verdict"]["verdict"]):
+        out["residual"] = residual.fit_on_top(sm, w["plan_best"], train, test, scale, cfg.residual,
+                                              cfg.bins, log)
+        out["residual"]["on_top_of"] = out["verdict"]["effects"]
+        out["verdict"]["reason"] += residual.reason(out["residual"])
     out["which"] = {k: v for k, v in w.items() if k not in ("r_nom_test", "r_best_test", "plan_best")}
     out["where"]["divergence"] = out["how_far"]["rollout_before"]
     out["seconds"] = time.time() - t_start

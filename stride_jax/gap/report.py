@@ -90,7 +90,53 @@ def plots(d: dict[str, Any], out: pathlib.Path) -> dict[str, str]:
         ax.set_xlabel("held-out gap explained (90% bootstrap CI)")
         ax.set_title("Which: candidate effects")
         files["ranking"] = _save(fig, out / "ranking.png")
+    if d.get("residual"):
+        files["residual"] = _save(residual_figure(d["residual"]), out / "residual_concentration.png")
     return files
+
+
+def residual_figure(res: dict[str, Any]):
+    """Where the STRIDE residual on top of the best hypothesis concentrates: fitted against left
+    per dof, and the signed mean per bin of each joint's velocity and position (solid: fitted,
+    dashed: left), plus contact phases when the robot has feet."""
+    plt = _plt()
+    c = res["concentration"]
+    feet = c["per_foot_phase"]
+    fig, axs = plt.subplots(1, 4 if feet else 3, figsize=(15 if feet else 12, 3.4))
+    names = list(c["per_dof"])
+    x = np.arange(len(names))
+    axs[0].bar(x - 0.2, [c["per_dof"][n]["rms_scaled"] for n in names], 0.4, label="fitted")
+    axs[0].bar(x + 0.2, [c["per_dof"][n]["left_rms_scaled"] for n in names], 0.4, label="left")
+    axs[0].set_xticks(x, names, rotation=90, fontsize=7)
+    axs[0].set_ylabel("RMS (scaled)")
+    axs[0].set_title("Per dof")
+    axs[0].legend(fontsize=7)
+    for ax, key, label in ((axs[1], "joint_velocity_bins", "joint velocity (rad/s)"),
+                           (axs[2], "joint_position_bins", "joint position from home (rad)")):
+        for i, (j, bins) in enumerate(c[key].items()):
+            rows = [b for b in bins if b["count"]]
+            col = f"C{i % 10}"
+            ax.plot([b["centre"] for b in rows], [b["mean"] for b in rows], marker=".", lw=1, color=col, label=j)
+            ax.plot([b["centre"] for b in rows], [b["left_mean"] for b in rows], ls="--", lw=0.8, color=col)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xlabel(label)
+        ax.set_title("Mean per bin (solid fitted, dashed left)", fontsize=9)
+    axs[1].set_ylabel("acceleration (rad/s² or m/s²)")
+    if len(c["joint_velocity_bins"]) <= 12:
+        axs[1].legend(fontsize=6, ncol=2)
+    if feet:
+        phases = ("swing", "stance", "touchdown", "liftoff")
+        width = 0.8 / len(phases)
+        for k, ph in enumerate(phases):
+            axs[3].bar(np.arange(len(feet)) + (k - 1.5) * width,
+                       [rows[ph]["rms"] or 0.0 for rows in feet.values()], width, label=ph)
+        axs[3].set_xticks(range(len(feet)), list(feet))
+        axs[3].set_ylabel("fitted RMS (scaled)")
+        axs[3].set_title("Per foot and contact phase")
+        axs[3].legend(fontsize=7)
+    fig.suptitle(f"STRIDE residual on top of the best: explains {res['explained']:.1%} of the held-out gap left")
+    fig.tight_layout()
+    return fig
 
 
 def _fmt(v, p=4):
@@ -158,10 +204,57 @@ def markdown(d: dict[str, Any], files: dict[str, str], command: str | None = Non
         if "divergence" in files:
             L += ["", f"![divergence]({files['divergence']})"]
         L += ["", "Per-foot force error: not available (the logs carry no contact forces)."]
-    L += ["", "TODO: when the verdict is 'unexplained by the library', fit the STRIDE residual "
-          "(stride_jax.dynamics) on top of the best hypothesis and show where it concentrates; the "
-          "linear probe above only measures how much systematic structure is left.", ""]
+    L += residual_section(d, files)
     return "\n".join(L)
+
+
+def residual_section(d: dict[str, Any], files: dict[str, str]) -> list[str]:
+    """The STRIDE residual on top of the best hypothesis: how much of what the library leaves it
+    explains held-out, and where it concentrates (per dof, contact phase, state bins)."""
+    res = d.get("residual")
+    L = ["", "## What the library leaves (STRIDE residual on top)", ""]
+    if not res:
+        when = d["config"].get("residual", {}).get("when", "unexplained")
+        return L + [f"Not fitted (verdict: {d['verdict']['verdict']}; `residual.when = {when}`: fitted when the "
+                    "verdict is 'unexplained by the library', or always with `--residual always`).", ""]
+    cfg, c = res["config"], res["concentration"]
+    L += [f"A conditional flow-matching model of the generalised force that the best hypothesis's simulator "
+          f"({' + '.join(res['on_top_of']) or 'nominal'}) misses, given (q, qd, tau); trained on "
+          f"{res['n_train']} one-step replays ({cfg['steps']} steps, MLP {cfg['hidden']}x{cfg['depth']}, "
+          f"flow-matching loss {res['fm_loss_first']:.3g} → {res['fm_loss_last']:.3g}, {res['seconds']:.1f} s), "
+          f"scored with its central sample (NFE {cfg['nfe']}) on {res['n_heldout']} held-out replays.", "",
+          f"**Held-out one-step gap left by the best: {res['heldout_gap_left']:.4g} → {res['heldout_gap_after']:.4g} "
+          f"with the residual: {res['explained']:.1%} explained** ({res['explained_above_floor']:.1%} above the "
+          f"noise floor {res['noise_floor']:.3g}; on the training split {res['train_explained']:.1%}).", ""]
+    if "residual" in files:
+        L += [f"![residual]({files['residual']})", ""]
+    L += ["| dof | mean abs force (N or N m) | fitted RMS (scaled) | left RMS (scaled) | share | "
+          "acc RMSE left → after (rad/s² or m/s²) |", "|---|---|---|---|---|---|"]
+    for n, r in c["per_dof"].items():
+        L.append(f"| {n} | {r['force_mean_abs']:.4g} | {r['rms_scaled']:.3g} | {r['left_rms_scaled']:.3g} | "
+                 f"{r['share']:.1%} | {res['one_step_acc_rmse_left'][n]:.4g} → {res['one_step_acc_rmse_after'][n]:.4g} |")
+    if c["per_foot_phase"]:
+        L += ["", "Contact phase per foot (fitted / left scaled RMS; x: fitted RMS over its mean):", "",
+              "| foot | swing | stance | touchdown | liftoff |", "|---|---|---|---|---|"]
+        for foot, rows in c["per_foot_phase"].items():
+            cells = [f"{_fmt(rows[p]['rms'], 3)} / {_fmt(rows[p]['left_rms'], 3)} ({_fmt(rows[p]['ratio'], 2)}x, "
+                     f"n={rows[p]['count']})" for p in ("swing", "stance", "touchdown", "liftoff")]
+            L.append(f"| {foot} | " + " | ".join(cells) + " |")
+    if c.get("base_speed_bins"):
+        L += ["", "| base speed (m/s) | n | fitted RMS | left RMS | x mean |", "|---|---|---|---|---|"]
+        L += [f"| {b['lo']:.2f}-{b['hi']:.2f} | {b['count']} | {b['rms']:.3g} | {b['left_rms']:.3g} | {b['ratio']:.2f} |"
+              for b in c["base_speed_bins"]]
+    L += ["", "Largest bin of each joint's own fitted correction (at least 10 samples; x: its RMS over the "
+          "joint's mean):", "", "| joint | velocity bin (rad/s) | x | position bin from home (rad) | x |",
+          "|---|---|---|---|---|"]
+    for j in c["joint_velocity_bins"]:
+        cells = []
+        for key in ("joint_velocity_bins", "joint_position_bins"):
+            rows = [b for b in c[key][j] if b["count"] >= 10]
+            b = max(rows, key=lambda b: b["rms"], default=None)
+            cells += [f"{b['centre']:+.2f}", f"{b['ratio']:.2f}"] if b else ["-", "-"]
+        L.append(f"| {j} | " + " | ".join(cells) + " |")
+    return L + [""]
 
 
 def write(d: dict[str, Any], out_dir: str | os.PathLike, command: str | None = None) -> pathlib.Path:

@@ -1,0 +1,392 @@
+"""What the library leaves, and where: a STRIDE residual fitted on top of the best hypothesis.
+
+When no library effect explains enough of the gap, the diagnosis says "unexplained by the
+library" and fits what STRIDE would put on top of a simulator (``stride_jax.dynamics.stride``,
+paper Eq. 5): a generalised residual force ``eps`` with
+
+    qdd = qdd_sim(q, qd, u) + M(q)^-1 eps,        eps ~ p(eps | q, qd, tau)
+
+where ``qdd_sim`` is the one-step acceleration of the **best hypothesis's simulator** (the
+nominal model with the best fitted effects) and ``M(q)`` its mass matrix. Per replayed sample
+the target is the force that the simulator misses, ``eps* = M(q) (qd_log - qd_sim) / dt``. The
+distribution of ``eps`` given the context ``c = (features(q), qd, tau)`` (``stride.context``:
+sin/cos of wrapping hinges, base height and rotation; ``tau`` is the actuator force of the best
+hypothesis's model under the logged command) is learnt by conditional flow matching
+(``stride_jax.dynamics.flow``) on the training split, with optax.
+
+Scoring on the held-out split uses the flow's **central sample** (the deterministic transport of
+``z0 = 0``, ``flow.central``; STRIDE's choice in its acceleration loss): the held-out one-step
+gap -- mean squared scaled acceleration residual summed over dofs, the measure of "gap explained"
+in the ranking -- before and after adding ``M^-1 eps_central`` to the simulator's prediction.
+"Explained" is the fraction of what the best hypothesis leaves that the residual removes, also
+given above the noise floor (:func:`stride_jax.gap.regions.noise_floor`): white sensor noise
+cannot be explained by anything.
+
+Where it concentrates (:func:`concentration`): on the held-out states, the magnitude of the
+fitted correction per dof (force and scaled acceleration), per contact phase of each foot, per
+base-speed bin, and per bin of each actuated joint's own velocity and position (relative to its
+home angle) -- the phases and bins of :func:`stride_jax.gap.diagnose.where`. Each bin also gives
+the residual actually left there (``left``), so a bin where the fit is small but the residual is
+not shows what the flow missed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import optax
+
+from stride_jax.dynamics import flow, mlp, stride
+from stride_jax.gap import effects, fit, regions, sim
+from stride_jax.sim.collect import robot_meta
+from stride_jax.sim.model import SimModel
+from stride_jax.types import ModelSpec
+
+WHEN = ("unexplained", "always", "never")
+
+
+@dataclasses.dataclass(frozen=True)
+class ResidualConfig:
+    """The STRIDE residual on top of the best hypothesis (CPU-sized by default).
+
+    Attributes:
+      when: ``"unexplained"`` fits it only when the verdict is "unexplained by the library",
+        ``"always"`` after every diagnosis with a significant gap, ``"never"`` not at all.
+      hidden, depth: the vector field's MLP (SiLU).
+      steps: optimiser steps (Adam, cosine decay, gradient clipping at 10).
+      batch: examples per step (capped at the training set's size).
+      lr: peak learning rate.
+      nfe: vector-field evaluations of the central sample.
+      integrator: ``"euler"`` or ``"midpoint"`` (the flow's ODE solver).
+      seed: of the initialisation, the batches and the flow's noise.
+      raw_angles: also condition on the logged angle of every wrapping hinge (not only its sin
+        and cos): an effect outside the nominal model need not be periodic in it.
+      weight_decay: decoupled weight decay (AdamW) of the vector field.
+    """
+
+    when: str = "unexplained"
+    hidden: int = 64
+    depth: int = 2
+    steps: int = 2000
+    batch: int = 256
+    lr: float = 3e-3
+    nfe: int = 2
+    integrator: str = "euler"
+    seed: int = 0
+    raw_angles: bool = True
+    weight_decay: float = 0.0
+
+    def __post_init__(self):
+        if self.when not in WHEN:
+            raise ValueError(f"residual.when={self.when!r} is not one of {WHEN}")
+        for name in ("hidden", "depth", "steps", "batch"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"residual.{name}={v!r}: need a positive integer")
+        if not (isinstance(self.lr, (int, float)) and math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"residual.lr={self.lr!r}: need a positive finite number")
+        if not (isinstance(self.weight_decay, (int, float)) and 0 <= self.weight_decay < math.inf):
+            raise ValueError(f"residual.weight_decay={self.weight_decay!r}: need a finite number >= 0")
+        try:
+            self.flow
+        except ValueError as err:
+            raise ValueError(f"residual: {err}") from None
+
+    @property
+    def flow(self) -> flow.FlowConfig:
+        return flow.FlowConfig(net=mlp.MLPConfig(self.hidden, self.depth), nfe=self.nfe,
+                               integrator=self.integrator)
+
+    def wanted(self, verdict: str) -> bool:
+        """Whether to fit after a diagnosis with this verdict."""
+        if verdict == "no significant gap" or self.when == "never":
+            return False
+        return self.when == "always" or verdict == "unexplained by the library"
+
+
+# ----------------------------------------------------------------------------- physics of the samples
+
+
+def spec_of(sm: SimModel) -> ModelSpec:
+    """The robot's coordinates as the dynamics models see them (wrapping hinges -> sin/cos)."""
+    meta = robot_meta(sm)
+    return ModelSpec(nq=meta["nq"], nv=meta["nv"], floating_base=meta["floating_base"],
+                     periodic=tuple(meta["periodic"]))
+
+
+def mass_matrices(m: mujoco.MjModel, q: np.ndarray) -> np.ndarray:
+    """``[B, nv, nv]`` joint-space inertia of model ``m`` (armature included) at ``q [B, nq]``."""
+    d = mujoco.MjData(m)
+    out = np.empty((len(q), m.nv, m.nv))
+    for i, qi in enumerate(q):
+        d.qpos[:] = qi
+        mujoco.mj_fwdPosition(m, d)
+        mujoco.mj_fullM(m, d, out[i])
+    return out
+
+
+def generalised_torque(sm: SimModel, m: mujoco.MjModel, q: np.ndarray, qd: np.ndarray,
+                       cmd: np.ndarray) -> np.ndarray:
+    """``[B, nv]`` the actuators' generalised force under the logged commands, in model ``m``."""
+    f = sim.actuator_force(sm, m, cmd, q, qd) * m.actuator_gear[:, 0]
+    tau = np.zeros_like(qd)
+    np.add.at(tau, (slice(None), sm.act_dof), f)
+    return tau
+
+
+class Samples:
+    """The replayed samples of one split as the residual sees them: context inputs, mass
+    matrices and the generalised force the best hypothesis leaves."""
+
+    def __init__(self, sm: SimModel, plan: effects.Plan, data: fit.Data, scale: np.ndarray):
+        idx = fit.samples_before_next(data)
+        self.q, self.qd = data.q[idx], data.qd[idx]
+        self.tau = generalised_torque(sm, plan.mj, self.q, self.qd, data.cmd[idx])
+        self.mass = mass_matrices(plan.mj, self.q)
+        self.r = fit.residual(sm, plan, data, scale)  # [M, nv] scaled, simulated minus logged
+        self.acc = -self.r * scale  # logged minus simulated acceleration
+        self.force = np.einsum("bij,bj->bi", self.mass, self.acc)  # eps*
+
+
+def contexts(spec: ModelSpec, s: Samples, scales: stride.Scales, raw_angles: bool = True
+             ) -> np.ndarray:
+    """``[M, C]`` the STRIDE context of every sample, plus the logged angle of every wrapping
+    hinge (over pi): the nominal physics is periodic in it, an effect outside the model need
+    not be (a spring to a home angle, a cable that winds up)."""
+    f = jax.jit(jax.vmap(lambda q, qd, tau: stride.context(spec, q, qd, tau, scales)))
+    c = np.asarray(f(jnp.asarray(s.q, jnp.float32), jnp.asarray(s.qd, jnp.float32),
+                     jnp.asarray(s.tau, jnp.float32)))
+    hinges = s.q[:, 7:] if spec.floating_base else s.q
+    wraps = np.asarray(spec.periodic, bool) if spec.periodic and raw_angles else np.zeros(hinges.shape[1], bool)
+    return np.concatenate([c, hinges[:, wraps] / np.pi], 1).astype(np.float32)
+
+
+def _spread(x: np.ndarray) -> np.ndarray:
+    """Per-column standard deviation, floored (constant columns keep their units)."""
+    sd = x.std(0)
+    return np.where(sd > 1e-6 * max(float(sd.max()), 1e-12), sd, 1.0)
+
+
+# ----------------------------------------------------------------------------- the flow
+
+
+def train_flow(x1: np.ndarray, c: np.ndarray, cfg: ResidualConfig) -> tuple[dict, np.ndarray]:
+    """Conditional flow matching of ``x1 [N, D]`` given ``c [N, C]``; returns the vector field's
+    parameters and the loss per step. The whole loop is one ``jit``-ed ``lax.scan``."""
+    fcfg = cfg.flow
+    n, dim = x1.shape
+    b = min(cfg.batch, n)
+    k_init, k_loop = jax.random.split(jax.random.PRNGKey(cfg.seed))
+    params = flow.flow_init(k_init, dim, c.shape[1], fcfg)
+    opt = optax.chain(optax.clip_by_global_norm(10.0),
+                      optax.adamw(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05),
+                                  weight_decay=cfg.weight_decay))
+
+    def batch_loss(p, X, C, key):
+        k_idx, k_fm = jax.random.split(key)
+        i = jax.random.randint(k_idx, (b,), 0, n)
+        ex = jax.vmap(lambda x, cc, k: flow.fm_loss(p, x, cc, k, fcfg))
+        return jnp.mean(ex(X[i], C[i], jax.random.split(k_fm, b)))
+
+    @jax.jit
+    def run(params, X, C, keys):
+        def step(carry, key):
+            p, st = carry
+            loss, g = jax.value_and_grad(batch_loss)(p, X, C, key)
+            upd, st = opt.update(g, st, p)
+            return (optax.apply_updates(p, upd), st), loss
+
+        (p, _), losses = jax.lax.scan(step, (params, opt.init(params)), keys)
+        return p, losses
+
+    params, losses = run(params, jnp.asarray(x1, jnp.float32), jnp.asarray(c, jnp.float32),
+                         jax.random.split(k_loop, cfg.steps))
+    return params, np.asarray(losses)
+
+
+def central(params: dict, c: np.ndarray, dim: int, cfg: ResidualConfig) -> np.ndarray:
+    """``[N, dim]`` the flow's central sample (transport of ``z0 = 0``) at every context."""
+    f = jax.jit(jax.vmap(lambda cc: flow.central(params, cc, dim, cfg.flow)))
+    return np.asarray(f(jnp.asarray(c, jnp.float32)), np.float64)
+
+
+# ----------------------------------------------------------------------------- scoring
+
+
+def _gap(r: np.ndarray) -> float:
+    """Mean over samples of the squared scaled residual summed over dofs."""
+    return float((r ** 2).sum(1).mean()) if len(r) else 0.0
+
+
+def fit_on_top(sm: SimModel, plan: effects.Plan, train: fit.Data, test: fit.Data,
+               scale: np.ndarray, cfg: ResidualConfig, bins: int = 8, log=print) -> dict[str, Any]:
+    """Fits the residual force on the one-step replays of ``train`` under ``plan`` (the best
+    hypothesis) and scores its central sample on ``test``. Returns a JSON-able dict: held-out gap
+    left by the best hypothesis and after the residual, the fractions explained, per-dof RMSE,
+    training-loss summary and :func:`concentration`."""
+    t0 = time.time()
+    spec = spec_of(sm)
+    s_tr, s_te = Samples(sm, plan, train, scale), Samples(sm, plan, test, scale)
+    scales = stride.Scales(qd=_spread(s_tr.qd), tau=_spread(s_tr.tau))
+    c_tr, c_te = (contexts(spec, s, scales, cfg.raw_angles) for s in (s_tr, s_te))
+    f_scale = _spread(s_tr.force)  # the flow models eps* / f_scale
+    params, losses = train_flow(s_tr.force / f_scale, c_tr, cfg)
+
+    def after(s: Samples, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        force = central(params, c, spec.nv, cfg) * f_scale
+        acc = np.linalg.solve(s.mass, force[..., None])[..., 0]
+        return force, acc, s.r + acc / scale  # the simulator's prediction moves by acc
+
+    _, _, r_after_tr = after(s_tr, c_tr)
+    force_te, acc_te, r_after_te = after(s_te, c_te)
+    left, fitted = _gap(s_te.r), _gap(r_after_te)
+    floor = regions.noise_floor(s_te.r, test)
+    names = regions.dof_names(sm)
+    k = max(1, min(100, cfg.steps // 10))
+    out = {
+        "model": "conditional flow matching of the generalised residual force (STRIDE, Eq. 5) on top of "
+                 "the best hypothesis's simulator; context (features(q), qd, tau); central sample",
+        "config": dataclasses.asdict(cfg),
+        "context_dim": int(c_tr.shape[1]), "n_train": int(len(c_tr)), "n_heldout": int(len(c_te)),
+        "heldout_gap_left": left, "heldout_gap_after": fitted,
+        "explained": 1 - fitted / max(left, 1e-300),
+        "noise_floor": floor,
+        "explained_above_floor": min(1.0, (left - fitted) / max(left - floor, 1e-300)),
+        "train_gap_left": _gap(s_tr.r), "train_gap_after": _gap(r_after_tr),
+        "train_explained": 1 - _gap(r_after_tr) / max(_gap(s_tr.r), 1e-300),
+        "one_step_acc_rmse_left": dict(zip(names, regions.rms(s_te.r * scale, 0).tolist())),
+        "one_step_acc_rmse_after": dict(zip(names, regions.rms(r_after_te * scale, 0).tolist())),
+        "force_scale": dict(zip(names, f_scale.tolist())),
+        "fm_loss_first": float(losses[:k].mean()), "fm_loss_last": float(losses[-k:].mean()),
+        "concentration": concentration(sm, test, acc_te / scale, -s_te.r, force_te, scale, bins),
+    }
+    out["seconds"] = time.time() - t0
+    log(f"  STRIDE residual on top ({cfg.steps} steps, {out['seconds']:.1f} s): held-out gap left "
+        f"{left:.4g} -> {fitted:.4g} ({out['explained']:.1%} explained, "
+        f"{out['explained_above_floor']:.1%} above the noise floor)")
+    return out
+
+
+# ----------------------------------------------------------------------------- where it concentrates
+
+
+def _cell(fitted: np.ndarray, left: np.ndarray, sel: np.ndarray, overall: float) -> dict[str, Any]:
+    """RMS of the fitted correction and of the residual left over the samples ``sel``, and the
+    fitted RMS relative to its overall RMS (> 1: concentrated here)."""
+    if not sel.any():
+        return {"count": 0, "rms": None, "left_rms": None, "ratio": None}
+    rms = regions.rms(fitted[sel])
+    return {"count": int(sel.sum()), "rms": rms, "left_rms": regions.rms(left[sel]),
+            "ratio": rms / max(overall, 1e-300)}
+
+
+def _joint_bins(values: np.ndarray, fitted: np.ndarray, left: np.ndarray, bins: int
+                ) -> list[dict[str, Any]]:
+    """Bins of one joint's velocity or position: count, RMS and signed mean of the joint's own
+    fitted correction and of its residual left (rad/s^2 or m/s^2)."""
+    k, centres = regions.symmetric_bins(values, bins)
+    overall = regions.rms(fitted)
+    out = []
+    for i in range(bins):
+        sel = k == i
+        row = {"centre": float(centres[i])} | _cell(fitted, left, sel, overall)
+        row["mean"] = float(fitted[sel].mean()) if sel.any() else None
+        row["left_mean"] = float(left[sel].mean()) if sel.any() else None
+        out.append(row)
+    return out
+
+
+def concentration(sm: SimModel, data: fit.Data, fitted: np.ndarray, left: np.ndarray,
+                  force: np.ndarray, scale: np.ndarray, bins: int = 8) -> dict[str, Any]:
+    """Where the fitted residual lives on the samples of ``data``.
+
+    ``fitted [M, nv]``: the acceleration the residual adds to the simulator's (``M^-1 eps``,
+    scaled); ``left [M, nv]``: what the best hypothesis leaves (logged minus simulated
+    acceleration, scaled; a good fit matches it in sign and size); ``force [M, nv]``: the fitted
+    generalised force ``eps``.
+    Per dof: mean |force|, RMS of the correction (scaled) and its share of the total; per foot and
+    contact phase and per base-speed bin: scaled RMS over all dofs (and over the leg's dofs);
+    per bin of each actuated joint's velocity and position (from home): the joint's own
+    correction in rad/s^2 (m/s^2). ``summary`` names the dof, the phase and the bins where it
+    is largest."""
+    names = regions.dof_names(sm)
+    idx = fit.samples_before_next(data)
+    ms = (fitted ** 2).mean(0)
+    overall = regions.rms(fitted)
+    out: dict[str, Any] = {"per_dof": {n: {"force_mean_abs": float(np.abs(force[:, i]).mean()),
+                                           "rms_scaled": float(np.sqrt(ms[i])),
+                                           "left_rms_scaled": float(regions.rms(left[:, i])),
+                                           "share": float(ms[i] / max(ms.sum(), 1e-300))}
+                                       for i, n in enumerate(names)},
+                           "rms_scaled": overall, "left_rms_scaled": regions.rms(left)}
+    phases = regions.sample_phases(sm, data)
+    per_foot = {}
+    for f, foot in enumerate(sm.robot.feet):
+        leg = regions.leg_dofs(sm, foot.name)
+        per_foot[foot.name] = {label: _cell(fitted, left, phases[:, f] == p, overall)
+                               | {"rms_leg": regions.rms(fitted[phases[:, f] == p][:, leg])
+                                  if (phases[:, f] == p).any() else None}
+                               for p, label in enumerate(regions.PHASES)}
+    out["per_foot_phase"] = per_foot
+    if sm.robot.floating_base:
+        k, edges = regions.quantile_bins(regions.base_speed(data), bins)
+        out["base_speed_bins"] = [{"lo": float(edges[i]), "hi": float(edges[i + 1])}
+                                  | _cell(fitted, left, k == i, overall)
+                                  for i in range(len(edges) - 1) if (k == i).any()]
+    raw_fit, raw_left = fitted * scale, left * scale
+    q0 = np.asarray(sm.info.qpos0, np.float64)
+    qadr = sm.mj.jnt_qposadr[sm.mj.actuator_trnid[:, 0]]
+    out["joint_velocity_bins"] = {names[d]: _joint_bins(data.qd[idx, d], raw_fit[:, d], raw_left[:, d], bins)
+                                  for d in sm.act_dof}
+    out["joint_position_bins"] = {names[d]: _joint_bins(data.q[idx, a] - q0[a], raw_fit[:, d], raw_left[:, d], bins)
+                                  for d, a in zip(sm.act_dof, qadr)}
+    out["summary"] = _summary(out)
+    return out
+
+
+def _peak(rows: list[dict], min_count: int) -> dict | None:
+    rows = [r for r in rows if r["count"] >= min_count and r["rms"] is not None]
+    return max(rows, key=lambda r: r["rms"], default=None)
+
+
+def _summary(c: dict[str, Any], min_count: int = 10) -> dict[str, Any]:
+    """The dof with the largest share; the foot phase, base-speed bin and joint bins with the
+    largest RMS among those with at least ``min_count`` samples."""
+    dof = max(c["per_dof"], key=lambda n: c["per_dof"][n]["share"])
+    out: dict[str, Any] = {"dof": dof, "dof_share": c["per_dof"][dof]["share"]}
+    phases = [dict(r, foot=f, phase=p) for f, rows in c["per_foot_phase"].items() for p, r in rows.items()]
+    if (pk := _peak(phases, min_count)) is not None:
+        out["phase"] = {"foot": pk["foot"], "phase": pk["phase"], "ratio": pk["ratio"]}
+    if (pk := _peak(c.get("base_speed_bins", []), min_count)) is not None:
+        out["base_speed"] = {"lo": pk["lo"], "hi": pk["hi"], "ratio": pk["ratio"]}
+    for key in ("joint_velocity_bins", "joint_position_bins"):
+        peaks = [dict(pk, joint=j) for j, rows in c[key].items() if (pk := _peak(rows, min_count))]
+        if peaks:
+            pk = max(peaks, key=lambda r: r["rms"])
+            out[key.removesuffix("_bins")] = {"joint": pk["joint"], "centre": pk["centre"], "ratio": pk["ratio"]}
+    return out
+
+
+def reason(res: dict[str, Any], min_explained: float = 0.05) -> str:
+    """One clause for the verdict's reason (where it concentrates only if it explains at least
+    ``min_explained`` of the held-out gap left: otherwise its shape is noise)."""
+    head = (f"; a STRIDE residual on top explains {res['explained']:.1%} of the held-out gap left by the best "
+            f"({res['explained_above_floor']:.1%} above the noise floor)")
+    if res["explained"] < min_explained:
+        return head + ": nothing systematic it could learn from these logs"
+    s = res["concentration"]["summary"]
+    where = [f"{s['dof']} ({s['dof_share']:.0%} of it)"]
+    if "phase" in s:
+        where.append(f"{s['phase']['foot']} {s['phase']['phase']} ({s['phase']['ratio']:.1f}x its mean)")
+    for key, unit in (("joint_velocity", "rad/s"), ("joint_position", "rad from home")):
+        if key in s:
+            where.append(f"{s[key]['joint']} {key.split('_')[1]} ~ {s[key]['centre']:+.2f} {unit} "
+                         f"({s[key]['ratio']:.1f}x)")
+    return head + ", largest on " + ", ".join(where)
