@@ -515,6 +515,16 @@ def claims(summary: dict) -> list[dict]:
 
 # ---------------------------------------------------------------------------------------- main
 
+def _devices_text(devices: dict[str, str]) -> str:
+    """``"phase, nfe: <device>; horizon: <device>"`` (parts run on different machines)."""
+    by: dict[str, list[str]] = {}
+    for part, dev in devices.items():
+        by.setdefault(dev, []).append(part)
+    if len(by) == 1:
+        return next(iter(by))
+    return "; ".join(f"{', '.join(parts)}: {dev}" for dev, parts in by.items())
+
+
 def run(cfg: ReproduceConfig, preset: str, command: str, log=print) -> dict:
     """Runs the selected parts, writes their figures and JSON, and updates ``summary.json``."""
     parts = _names(cfg.parts)
@@ -548,6 +558,8 @@ def run(cfg: ReproduceConfig, preset: str, command: str, log=print) -> dict:
                     if r not in result["robots"]}
             result["robots"] = {**kept, **result["robots"]}
         summary[name] = result
+        summary.setdefault("devices", {})[name] = _device()
+        summary["device"] = _devices_text(summary["devices"])
         summary["commands"][name] = command
         summary["seconds"][name] = round(time.time() - t0, 1)
         summary["claims"] = claims(summary)
