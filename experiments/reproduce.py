@@ -71,10 +71,7 @@ def _pretrain(cfg, preset: str, parallel: int, t0: float) -> None:
             if not runs.is_finished(pathlib.Path(tc.out))]
     for robot in sorted({tc.robot for tc in jobs}):
         figures.ensure_pendulum_data(cfg, tag, robot)
-    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false",
-               JAX_COMPILATION_CACHE_DIR=str((pathlib.Path(cfg.root) / ".jax_cache").absolute()),
-               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
-               JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
+    env = pool.shared_env(cfg.root)
     cmds = {tc.out: pool.stride_command("train", *pool.config_flags(tc)) for tc in jobs}
     failed = pool.run(cmds, {n: pathlib.Path(n) / "train.log" for n in cmds}, parallel, env,
                       t0=t0, what="train")

@@ -15,7 +15,6 @@ checkpoint, and evaluations are reused. Logs: ``<runs>/<model>-s<seed>/{train,ev
 from __future__ import annotations
 
 import argparse
-import os
 import pathlib
 import shlex
 import subprocess
@@ -53,10 +52,7 @@ def main(argv: list[str] | None = None) -> None:
     command = "python experiments/table1.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     t0 = time.time()
     deadline = t0 + 60 * args.minutes if args.minutes else 0.0
-    env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false",
-               JAX_COMPILATION_CACHE_DIR=str((root / ".jax_cache").absolute()),
-               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
-               JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
+    env = pool.shared_env(root)
     data = {r: root / "data" / f"{r}-{args.preset}" for r in robots}
     runs = {r: root / "runs" / f"{r}-{args.preset}" for r in robots}
 

@@ -9,6 +9,7 @@ its ``ready`` predicate holds.
 from __future__ import annotations
 
 import dataclasses
+import os
 import pathlib
 import subprocess
 import sys
@@ -20,6 +21,15 @@ from typing import Callable
 def stride_command(*args: str) -> list[str]:
     """``python -m stride_jax.cli ARGS`` with this interpreter."""
     return [sys.executable, "-m", "stride_jax.cli", *args]
+
+
+def shared_env(root: str | pathlib.Path) -> dict[str, str]:
+    """This environment for processes sharing one device and ``<root>/.jax_cache``: no process
+    takes most of the GPU's memory up front, and every compilation is cached for the others."""
+    return dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false",
+                JAX_COMPILATION_CACHE_DIR=str((pathlib.Path(root) / ".jax_cache").absolute()),
+                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+                JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
 
 
 def config_flags(cfg) -> list[str]:

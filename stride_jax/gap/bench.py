@@ -129,7 +129,7 @@ def score_case(sm, case: dict, result: dict, clean_heldout: list, cfg_d: diagnos
         # shrink on the noise-free held-out trajectories: nominal vs identified vs oracle
         data = fit.make_data(clean_heldout)
         scale = diagnose.scale_of(sm, data)
-        g = lambda applied: float((fit.residual(sm, effects.build(sm, applied), data, scale) ** 2).sum(1).mean())
+        g = lambda applied: fit.gap(fit.residual(sm, effects.build(sm, applied), data, scale))
         g0 = g({})
         if g0 > 0:
             row["clean_shrink"] = 1 - g({k: _vec(x) for k, x in best["params"].items()}) / g0

@@ -417,13 +417,13 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     r_best_tr = fit.residual(sm, plan_best, train, scale)
     r_best_te = r_te[tuple(best["effects"])]
     floor = noise_floor(r_best_te, test)
-    g_nom = float((r_nom_te ** 2).sum(1).mean())
-    g_best = float((r_best_te ** 2).sum(1).mean())
+    g_nom = fit.gap(r_nom_te)
+    g_best = fit.gap(r_best_te)
     above = max(g_nom - floor, 1e-300)
     pr_nom = linear_probe.probe(sm, train, r_nom_tr, test, r_nom_te)
     pr_best = linear_probe.probe(sm, train, r_best_tr, test, r_best_te)
-    probe_nom = 1 - float((pr_nom ** 2).sum(1).mean()) / max(g_nom, 1e-300)
-    left = max(g_best - float((pr_best ** 2).sum(1).mean()), 0.0) / above
+    probe_nom = 1 - fit.gap(pr_nom) / max(g_nom, 1e-300)
+    left = max(g_best - fit.gap(pr_best), 0.0) / above
     hints = linear_probe.structure_hints(sm, train, r_best_tr, test, r_best_te)
     for row in rows:
         row["explained_above_floor"] = float(min(1.0, (g_nom - row["heldout_loss"] / M) / above))
@@ -501,8 +501,8 @@ def how_far(sm: SimModel, test: fit.Data, scale: np.ndarray, w: dict[str, Any], 
     r1 = fit.residual(sm, w["plan_best"], test, scale)
     div0 = divergence(sm, nom, test, cfg)
     div1 = divergence(sm, w["plan_best"], test, cfg)
-    g0, g1 = float((r0 ** 2).sum(1).mean()), float((r1 ** 2).sum(1).mean())
-    k0, k1 = float((w["r_nom_test"] ** 2).sum(1).mean()), float((w["r_best_test"] ** 2).sum(1).mean())
+    g0, g1 = fit.gap(r0), fit.gap(r1)
+    k0, k1 = fit.gap(w["r_nom_test"]), fit.gap(w["r_best_test"])
     return {"one_step_acc_rmse_before": dict(zip(names, _rms(r0 * scale, 0).tolist())),
             "one_step_acc_rmse_after": dict(zip(names, _rms(r1 * scale, 0).tolist())),
             "gap_before": g0, "gap_after": g1, "shrink": 1 - g1 / max(g0, 1e-300),

@@ -97,6 +97,12 @@ def residual(sm: SimModel, plan: effects.Plan, data: Data, scale: np.ndarray) ->
     return np.where(np.isfinite(r), np.clip(r, -1e3, 1e3), 1e3)
 
 
+def gap(r: np.ndarray) -> float:
+    """The gap of residuals ``r [M, nv]``: mean over samples of the squared scaled residual
+    summed over dofs (what "gap explained" is a fraction of)."""
+    return float((r ** 2).sum(1).mean()) if len(r) else 0.0
+
+
 def per_traj(r: np.ndarray, data: Data) -> np.ndarray:
     """``[n]`` sum of squared residuals of each trajectory."""
     return np.bincount(data.traj, weights=(r ** 2).sum(1), minlength=data.n)

@@ -46,6 +46,7 @@ import optax
 from stride_jax.dynamics import flow, mlp, stride
 from stride_jax.gap import effects, fit, regions, sim
 from stride_jax.sim.collect import robot_meta
+from stride_jax.train import job
 from stride_jax.sim.model import SimModel
 from stride_jax.types import ModelSpec
 
@@ -116,9 +117,7 @@ class ResidualConfig:
 
 def spec_of(sm: SimModel) -> ModelSpec:
     """The robot's coordinates as the dynamics models see them (wrapping hinges -> sin/cos)."""
-    meta = robot_meta(sm)
-    return ModelSpec(nq=meta["nq"], nv=meta["nv"], floating_base=meta["floating_base"],
-                     periodic=tuple(meta["periodic"]))
+    return job.spec_from_meta(robot_meta(sm))
 
 
 def mass_matrices(m: mujoco.MjModel, q: np.ndarray) -> np.ndarray:
@@ -220,11 +219,6 @@ def central(params: dict, c: np.ndarray, dim: int, cfg: ResidualConfig) -> np.nd
 # ----------------------------------------------------------------------------- scoring
 
 
-def _gap(r: np.ndarray) -> float:
-    """Mean over samples of the squared scaled residual summed over dofs."""
-    return float((r ** 2).sum(1).mean()) if len(r) else 0.0
-
-
 def fit_on_top(sm: SimModel, plan: effects.Plan, train: fit.Data, test: fit.Data,
                scale: np.ndarray, cfg: ResidualConfig, bins: int = 8, log=print) -> dict[str, Any]:
     """Fits the residual force on the one-step replays of ``train`` under ``plan`` (the best
@@ -246,7 +240,7 @@ def fit_on_top(sm: SimModel, plan: effects.Plan, train: fit.Data, test: fit.Data
 
     _, _, r_after_tr = after(s_tr, c_tr)
     force_te, acc_te, r_after_te = after(s_te, c_te)
-    left, fitted = _gap(s_te.r), _gap(r_after_te)
+    left, fitted = fit.gap(s_te.r), fit.gap(r_after_te)
     floor = regions.noise_floor(s_te.r, test)
     names = regions.dof_names(sm)
     k = max(1, min(100, cfg.steps // 10))
@@ -259,8 +253,8 @@ def fit_on_top(sm: SimModel, plan: effects.Plan, train: fit.Data, test: fit.Data
         "explained": 1 - fitted / max(left, 1e-300),
         "noise_floor": floor,
         "explained_above_floor": min(1.0, (left - fitted) / max(left - floor, 1e-300)),
-        "train_gap_left": _gap(s_tr.r), "train_gap_after": _gap(r_after_tr),
-        "train_explained": 1 - _gap(r_after_tr) / max(_gap(s_tr.r), 1e-300),
+        "train_gap_left": fit.gap(s_tr.r), "train_gap_after": fit.gap(r_after_tr),
+        "train_explained": 1 - fit.gap(r_after_tr) / max(fit.gap(s_tr.r), 1e-300),
         "one_step_acc_rmse_left": dict(zip(names, regions.rms(s_te.r * scale, 0).tolist())),
         "one_step_acc_rmse_after": dict(zip(names, regions.rms(r_after_te * scale, 0).tolist())),
         "force_scale": dict(zip(names, f_scale.tolist())),
