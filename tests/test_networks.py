@@ -107,3 +107,22 @@ def test_untrained_flow_is_the_identity_transport():
     z0 = jnp.ones(3)
     # The field starts at exactly zero, so the transport is the identity.
     np.testing.assert_allclose(flow.integrate(params, z0, jnp.zeros(2), cfg), z0)
+
+
+@pytest.mark.parametrize("spec", [GO1_SPEC, PENDULUM_SPEC], ids=["go1", "pendulum"])
+def test_feature_space_lagrangian_terms_equal_the_reference(spec):
+    """``lnn_terms`` (derivatives split at the networks' features) equals ``bias_force`` through
+    the retraction, for a floating base with a gravity term and for periodic hinge features."""
+    cfg = lagrangian.LNNConfig(net=mlp.MLPConfig(hidden=32, depth=2), mass_init=12.0)
+    with jax.enable_x64(True):
+        params = jax.tree.map(lambda w: 2.0 * jnp.asarray(w, jnp.float64),
+                              lagrangian.lnn_init(jax.random.key(0), spec, cfg))
+        qs = jax.random.normal(jax.random.key(1), (8, spec.nq), jnp.float64)
+        if spec.floating_base:
+            qs = qs.at[:, 3:7].set(qs[:, 3:7] / jnp.linalg.norm(qs[:, 3:7], axis=1, keepdims=True))
+        vs = 2.0 * jax.random.normal(jax.random.key(2), (8, spec.nv), jnp.float64)
+        fast = jax.vmap(lambda q, v: lagrangian.lnn_terms(params, spec, q, v, cfg))(qs, vs)
+        ref = jax.vmap(lambda q, v: lagrangian.lnn_terms_reference(params, spec, q, v, cfg))(qs, vs)
+    for a, b in zip(fast, ref):
+        assert np.abs(np.asarray(b)).max() > 1e-3  # not trivially zero
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9)

@@ -16,6 +16,7 @@ import dataclasses
 import functools
 import itertools
 import json
+import os
 import pathlib
 import platform
 import time
@@ -42,6 +43,8 @@ class BenchConfig:
       nfe: residual evaluations for generative models (0: each model's default).
       substeps: model evaluations per control step in the planner's rollouts (0: the robot's
         simulation substeps; 1 integrates at the control period, with the implicit servo).
+      unroll: horizon steps per loop iteration of the planner's rollouts (0: the whole horizon;
+        see ``MPPIConfig.unroll``).
       repeats: timed planning steps per measurement (median reported).
       out: results folder (``bench_mppi_<cpu|gpu>.json`` and ``.md``).
     """
@@ -54,6 +57,7 @@ class BenchConfig:
     depth: int = 3
     nfe: int = 0
     substeps: int = 0
+    unroll: int = 1
     repeats: int = 5
     out: str = "results"
 
@@ -139,7 +143,8 @@ def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
     model = models.make(model_name, spec, act, model_cfg, stride.Scales())
     params = model.init(jax.random.key(0))
     lo, hi = np.asarray(meta["ctrl_range"], np.float32).T
-    planner = mppi.make(mppi.MPPIConfig(samples=K, horizon=H), functools.partial(
+    unroll = cfg.unroll or True
+    planner = mppi.make(mppi.MPPIConfig(samples=K, horizon=H, unroll=unroll), functools.partial(
         model.step, params), tracking_cost(spec), lo, hi)
     q0 = jnp.asarray(sm.info.qpos0)
     qd0 = jnp.zeros(spec.nv)
@@ -154,6 +159,7 @@ def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
     flops = K * H * control_step_flops(model_name, spec, act, model_cfg, params)
     floor_ms = 1e3 * flops / peak
     return dict(robot=robot, model=model_name, K=K, H=H, substeps=act.n_substeps,
+                unroll=cfg.unroll,
                 nfe=model_cfg.nfe if model.stochastic else None, ms=ms, hz=1e3 / ms,
                 gflop=flops / 1e9, xla_gflop=xla_flops / 1e9, floor_ms=floor_ms,
                 ratio=ms / floor_ms if floor_ms > 0 else float("nan"), compile_s=compile_s)
@@ -181,23 +187,28 @@ def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> path
     device = jax.devices()[0]
     env = dict(command=command, backend=jax.default_backend(), device=device.device_kind,
                n_devices=jax.device_count(), cpu=platform.processor() or platform.machine(),
-               peak_gflops=peak / 1e9, jax=jax.__version__, config=dataclasses.asdict(cfg))
+               peak_gflops=peak / 1e9, jax=jax.__version__, config=dataclasses.asdict(cfg),
+               xla_flags=os.environ.get("XLA_FLAGS", ""))
     atomic_write_text(out / f"bench_mppi_{tag}.json", json.dumps(dict(env=env, rows=rows),
                                                                  indent=1))
     lines = [f"# MPPI step latency ({tag})", "", f"Command: `{command}`", "",
              f"Device: {env['device']} ({env['backend']}), measured float32 matmul peak "
-             f"{env['peak_gflops']:.0f} GFLOP/s; jax {env['jax']}. Networks {cfg.hidden} x "
+             f"{env['peak_gflops']:.0f} GFLOP/s; jax {env['jax']}; XLA_FLAGS "
+             f"`{env['xla_flags'] or '-'}`; rollouts unrolled "
+             f"{'fully' if not cfg.unroll else f'{cfg.unroll} step(s) per loop iteration'}. "
+             f"Networks {cfg.hidden} x "
              f"{cfg.depth} at initialisation; one jitted planning step (K rollouts of H control "
              "steps, each the robot's simulation substeps) with block_until_ready; median of "
              f"{cfg.repeats}. FLOP floor = K x H x the FLOPs of one model control step "
              "(`control_step_flops`: counted without loops) / peak; the planner's own work "
              "(noise, costs, weights) is left out, so the floor is a lower bound.", "",
-             "| robot | model | NFE | substeps | K | H | median ms | Hz | GFLOP | FLOP floor ms | "
-             "ratio |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| robot | model | NFE | substeps | unroll | K | H | median ms | Hz | GFLOP | "
+             "FLOP floor ms | ratio |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['robot']} | {r['model']} | {r['nfe'] or '-'} | "
-                     f"{r.get('substeps', '-')} | {r['K']} | {r['H']} | "
+                     f"{r.get('substeps', '-')} | {r.get('unroll', 1) or 'all'} | {r['K']} | "
+                     f"{r['H']} | "
                      f"{r['ms']:.2f} | {r['hz']:.0f} | {r['gflop']:.2f} | {r['floor_ms']:.3f} | "
                      f"{r['ratio']:.0f} |")
     path = out / f"bench_mppi_{tag}.md"

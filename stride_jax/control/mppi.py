@@ -43,6 +43,10 @@ class MPPIConfig:
       policy_samples: sequences proposed by the policy instead of noise (0 without a policy).
       iterations: refinement iterations per control step (each re-samples around the new plan).
       normalize: divide costs by their standard deviation before the softmax.
+      unroll: horizon steps per loop iteration of the rollouts (``True``: the whole horizon,
+        no loop). On a GPU each loop iteration costs a host round trip and a string of small
+        kernel launches that unrolling lets XLA schedule back to back; on a CPU it only
+        lengthens compilation.
     """
 
     samples: int = 128
@@ -53,6 +57,7 @@ class MPPIConfig:
     policy_samples: int = 0
     iterations: int = 1
     normalize: bool = True
+    unroll: int | bool = 1
 
     def __post_init__(self):
         problems = []
@@ -70,6 +75,8 @@ class MPPIConfig:
             problems.append(f"policy_samples={self.policy_samples} must be in [0, samples]")
         if self.iterations < 1:
             problems.append(f"iterations={self.iterations} must be >= 1")
+        if not isinstance(self.unroll, bool) and self.unroll < 1:
+            problems.append(f"unroll={self.unroll} must be >= 1 or True")
         if problems:
             raise ValueError("bad MPPI config: " + "; ".join(problems))
 
@@ -130,7 +137,8 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
             return (q2, qd2, cost + running_cost(q, qd, u, t)), None
 
         (q, qd, cost), _ = jax.lax.scan(body, (q, qd, jnp.zeros(())),
-                                        (actions, jnp.arange(H), jax.random.split(key, H)))
+                                        (actions, jnp.arange(H), jax.random.split(key, H)),
+                                        unroll=cfg.unroll)
         return cost - value(q, qd), actions
 
     def policy_rollout(q, qd, key):
@@ -143,19 +151,21 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
             return (q2, qd2, cost + running_cost(q, qd, u, t)), u
 
         (q, qd, cost), actions = jax.lax.scan(body, (q, qd, jnp.zeros(())),
-                                              (jnp.arange(H), jax.random.split(key, H)))
+                                              (jnp.arange(H), jax.random.split(key, H)),
+                                              unroll=cfg.unroll)
         return cost - value(q, qd), actions
+
+    # AR(1) noise along the horizon, e_0 = w_0, e_t = rho e_(t-1) + sqrt(1 - rho^2) w_t (unit
+    # variance at every step), as one matrix product e = A w with A[t, s] = rho^(t-s) c_s: no
+    # sequential loop (on a GPU, a loop of H tiny steps costs more than the product).
+    rho = cfg.smoothing
+    lag = np.arange(H)[:, None] - np.arange(H)[None, :]
+    gain = np.where(np.arange(H) == 0, 1.0, np.sqrt(1.0 - rho ** 2))[None, :]
+    ar1 = jnp.asarray(np.where(lag >= 0, rho ** np.maximum(lag, 0) * gain, 0.0), jnp.float32)
 
     def noise(key):
         white = jax.random.normal(key, (K, H, nu))
-        rho = cfg.smoothing
-
-        def ar1(prev, w):
-            e = rho * prev + np.sqrt(1.0 - rho ** 2) * w
-            return e, e
-
-        _, colored = jax.lax.scan(ar1, white[:, 0], jnp.swapaxes(white, 0, 1))
-        return jnp.swapaxes(colored, 0, 1) * std
+        return jnp.einsum("ts,ksu->ktu", ar1, white) * std
 
     def iterate(plan, q, qd, key):
         key_noise, key_roll, key_pol = jax.random.split(key, 3)

@@ -40,14 +40,20 @@ def bias_force(mass_fn: MassFn, potential_fn: PotentialFn, q: jax.Array, v: jax.
                floating_base: bool) -> tuple[jax.Array, jax.Array]:
     """Returns ``(M(q) [nv, nv], b(q, v) [nv])`` with ``b = C(q, v) v + g(q)``."""
     nv = v.shape[0]
-    move = lambda dv: retract(q, dv, floating_base)
-    # M and its rate of change along the motion in one forward-mode pass.
-    M, mdot = jax.jvp(lambda eps: mass_fn(move(eps * v)), (jnp.zeros(()),), (jnp.ones(()),))
+    zero = jnp.zeros(nv, v.dtype)
+    # M and V along a displacement delta of q, linearised once at delta = 0: one forward pass of
+    # each network, whose stored activations serve both derivatives below (a jvp for dM/dt and
+    # a grad for dL/dq would each run the mass network forward again: 6 network passes -> 5).
+    (M, _), d_terms = jax.linearize(
+        lambda delta: (mass_fn(retract(q, delta, floating_base)),
+                       potential_fn(retract(q, delta, floating_base))), zero)
     p = M @ v
-    mdot_v = mdot @ v
-    # dL/d(delta) at delta = 0, with L = T - V and v held fixed.
-    lagrangian = lambda delta: 0.5 * v @ mass_fn(move(delta)) @ v - potential_fn(move(delta))
-    dl_dq = jax.grad(lagrangian)(jnp.zeros(nv, v.dtype))
+    # dM/dt = dM along the motion (delta = dt v); the potential's tangent is dead code.
+    mdot_v = d_terms(v)[0] @ v
+    # dL/d(delta) at delta = 0 with L = 1/2 v^T M v - V and v held fixed: the transpose of the
+    # linear map, applied to the cotangent (1/2 v v^T, -1).
+    (dl_dq,) = jax.linear_transpose(d_terms, zero)((0.5 * jnp.outer(v, v),
+                                                     -jnp.ones((), v.dtype)))
     b = mdot_v - dl_dq
     if floating_base:
         b = b.at[3:6].add(jnp.cross(v[3:6], p[3:6]))
@@ -132,6 +138,22 @@ def total_mass(params: dict, cfg: LNNConfig) -> jax.Array | float:
     return jnp.exp(params["log_mass"]) if cfg.learn_mass else cfg.mass_init
 
 
+def _factor_layout(spec: ModelSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the mass network's outputs go in L (static): ``index [nv, nv]`` into the outputs
+    (``n_out`` for an entry held at zero), the diagonal mask (softplus), and the mask of the
+    floating base's fixed translational diagonal ``sqrt(m) I`` (rows 0-2 of L)."""
+    nv = spec.nv
+    rows, cols = np.tril_indices(nv)
+    learned = rows >= 3 if spec.floating_base else np.ones(rows.shape, bool)
+    n_out = int(learned.sum())
+    index = np.full((nv, nv), n_out)
+    index[rows[learned], cols[learned]] = np.arange(n_out)
+    fixed = np.zeros((nv, nv), bool)
+    if spec.floating_base:
+        fixed[np.arange(3), np.arange(3)] = True
+    return index, np.eye(nv, dtype=bool) & ~fixed, fixed
+
+
 def mass_matrix(params: dict, spec: ModelSpec, q: jax.Array,
                 cfg: LNNConfig = LNNConfig()) -> jax.Array:
     """``M(q) = L L^T + floor I`` ``[nv, nv]``: L lower triangular with a softplus diagonal.
@@ -144,19 +166,21 @@ def mass_matrix(params: dict, spec: ModelSpec, q: jax.Array,
     and its translational block is exactly ``m I`` as for any rigid multibody with world-frame
     linear velocity: the first three rows of L are ``sqrt(m) I``, the rest is learned.
     """
+    return _mass_from_features(params, spec, q_features(spec, q, height=False), cfg)
+
+
+def _mass_from_features(params: dict, spec: ModelSpec, x: jax.Array, cfg: LNNConfig
+                        ) -> jax.Array:
+    """:func:`mass_matrix` from the network's input features ``x``."""
     _, apply = mlp.mlp(cfg.net, _n_mass_outputs(spec))
-    raw = apply(params["mass"], q_features(spec, q, height=False))
-    nv = spec.nv
-    rows, cols = np.tril_indices(nv)
+    raw = apply(params["mass"], x)
+    index, diag, fixed = _factor_layout(spec)
+    # One gather and elementwise masks (no scatters): a few fused kernels, forward and backward.
+    L = jnp.concatenate([raw, jnp.zeros(1, raw.dtype)])[index]
+    L = jnp.where(diag, jax.nn.softplus(L), L)
     if spec.floating_base:
-        keep = rows >= 3  # rows 0-2 of L are fixed
-        L = jnp.zeros((nv, nv), raw.dtype).at[rows[keep], cols[keep]].set(raw)
-        L = L.at[jnp.diag_indices(nv)].set(jax.nn.softplus(jnp.diag(L)))
-        L = L.at[:3, :3].set(jnp.sqrt(total_mass(params, cfg)) * jnp.eye(3, dtype=L.dtype))
-    else:
-        L = jnp.zeros((nv, nv), raw.dtype).at[rows, cols].set(raw)
-        L = L.at[jnp.diag_indices(nv)].set(jax.nn.softplus(jnp.diag(L)))
-    return L @ L.T + cfg.diag_floor * jnp.eye(nv, dtype=L.dtype)
+        L = jnp.where(fixed, jnp.sqrt(total_mass(params, cfg)), L)
+    return L @ L.T + cfg.diag_floor * jnp.eye(spec.nv, dtype=L.dtype)
 
 
 def potential_energy(params: dict, spec: ModelSpec, q: jax.Array,
@@ -177,6 +201,42 @@ def potential_energy(params: dict, spec: ModelSpec, q: jax.Array,
 
 def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
               cfg: LNNConfig = LNNConfig()) -> tuple[jax.Array, jax.Array]:
-    """``(M(q), C(q, v) v + g(q))`` of the learned Lagrangian."""
+    """``(M(q), C(q, v) v + g(q))`` of the learned Lagrangian: :func:`bias_force` of
+    :func:`mass_matrix` and :func:`potential_energy`, computed in the networks' feature space.
+
+    Only first derivatives along ``q (+) delta`` at ``delta = 0`` enter, so the chain rule
+    splits them: ``T = dx/d(delta)`` ``[n_features, nv]``, the Jacobian of the features
+    (rotation matrix, joint angles) -- no networks in it -- and the networks' own derivatives
+    in ``x``. The networks then run one forward pass, one tangent pass (along ``T v``) and one
+    transposed pass, with none of the quaternion arithmetic of the retraction differentiated
+    through them: about a third fewer kernels per evaluation on a GPU. Equal to
+    :func:`bias_force` to rounding (tested).
+    """
+    fb = spec.floating_base
+    zero = jnp.zeros(spec.nv, v.dtype)
+    features = lambda delta: q_features(spec, retract(q, delta, fb), height=False)
+    x0, T = features(zero), jax.jacfwd(features)(zero)
+    _, potential_net = mlp.mlp(cfg.net, 1)
+    (M, _), d_terms = jax.linearize(
+        lambda x: (_mass_from_features(params, spec, x, cfg),
+                   potential_net(params["potential"], x)[0]), x0)
+    p = M @ v
+    mdot_v = d_terms(T @ v)[0] @ v
+    (dl_dx,) = jax.linear_transpose(d_terms, x0)((0.5 * jnp.outer(v, v), -jnp.ones((), v.dtype)))
+    dl_dq = T.T @ dl_dx
+    b = mdot_v - dl_dq
+    if fb:
+        # V's exact gravity term m g z (world z: the first three tangents translate the base)
+        up = np.zeros(spec.nv, v.dtype)
+        up[2] = 1.0
+        b = b + total_mass(params, cfg) * cfg.gravity * up
+        b = b.at[3:6].add(jnp.cross(v[3:6], p[3:6]))
+    return M, b
+
+
+def lnn_terms_reference(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
+                        cfg: LNNConfig = LNNConfig()) -> tuple[jax.Array, jax.Array]:
+    """:func:`lnn_terms` by :func:`bias_force` through the retraction (the reference the
+    feature-space version is tested against)."""
     return bias_force(lambda x: mass_matrix(params, spec, x, cfg),
                       lambda x: potential_energy(params, spec, x, cfg), q, v, spec.floating_base)

@@ -1,0 +1,73 @@
+"""Kernel-launching operations in one compiled MPPI planning step, by kind (GPU latency study).
+
+The planner's rollouts are unrolled (no loops), so the ENTRY computation of the optimised HLO
+lists everything one planning step launches: fusions, library calls (cuBLAS, cuSOLVER) and the
+command buffers (CUDA graphs) XLA grouped some of them into. Usage:
+
+    python experiments/mppi_hlo_ops.py --robot go1 --model stride --samples 1024 --horizon 30
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import functools
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stride_jax.control import bench, mppi
+from stride_jax.dynamics import models, stride
+from stride_jax.train import job
+
+
+def entry_ops(hlo: str) -> collections.Counter:
+    """Opcode counts of the ENTRY computation's instructions (custom calls by target)."""
+    entry = hlo[hlo.index("ENTRY"):]
+    body = entry[:entry.index("\n}")]
+    counts = collections.Counter()
+    for line in body.splitlines()[1:]:
+        m = re.search(r"= (?:\([^=]*?\)|\S+) ([a-z][a-z0-9\-]*)\(", line)
+        if not m:
+            continue
+        op = m.group(1)
+        if op == "custom-call":
+            target = re.search(r'custom_call_target="([^"]+)"', line)
+            op = f"custom-call:{target.group(1) if target else '?'}"
+        elif op == "call" and "command_buffer" in line:
+            op = "command-buffer"
+        counts[op] += 1
+    return counts
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--robot", default="go1")
+    p.add_argument("--model", default="stride")
+    p.add_argument("--samples", type=int, default=1024)
+    p.add_argument("--horizon", type=int, default=30)
+    a = p.parse_args()
+    sm, meta, spec, act = bench._robot(a.robot)
+    act = dataclasses.replace(act, dt=act.dt * act.n_substeps, n_substeps=1)
+    cfg = job.model_config(a.model, meta, 256, 3, 0)
+    model = models.make(a.model, spec, act, cfg, stride.Scales())
+    params = model.init(jax.random.key(0))
+    lo, hi = np.asarray(meta["ctrl_range"], np.float32).T
+    planner = mppi.make(mppi.MPPIConfig(samples=a.samples, horizon=a.horizon, unroll=True),
+                        functools.partial(model.step, params), bench.tracking_cost(spec), lo, hi)
+    q0 = jnp.asarray(sm.info.qpos0)
+    state = planner.init(jax.random.key(1))
+    compiled = jax.jit(planner.step).lower(state, q0, jnp.zeros(spec.nv)).compile()
+    counts = entry_ops(compiled.as_text())
+    print(f"{a.robot} {a.model} K={a.samples} H={a.horizon} on {jax.devices()[0].device_kind}: "
+          f"{sum(counts.values())} ENTRY instructions, "
+          f"{sum(counts.values()) / a.horizon:.1f} per horizon step")
+    for op, n in counts.most_common():
+        print(f"  {op:40s} {n:6d}  ({n / a.horizon:.1f} per step)")
+
+
+if __name__ == "__main__":
+    main()
