@@ -138,20 +138,23 @@ def total_mass(params: dict, cfg: LNNConfig) -> jax.Array | float:
     return jnp.exp(params["log_mass"]) if cfg.learn_mass else cfg.mass_init
 
 
-def _factor_layout(spec: ModelSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Where the mass network's outputs go in L (static): ``index [nv, nv]`` into the outputs
-    (``n_out`` for an entry held at zero), the diagonal mask (softplus), and the mask of the
-    floating base's fixed translational diagonal ``sqrt(m) I`` (rows 0-2 of L)."""
+def _factor_layout(spec: ModelSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Where L's entries come from (static): ``(index [nv, nv], diag [n_diag])``. ``index``
+    points into ``concat([raw, softplus(raw[diag]), [sqrt(m)], [0]])``: the mass network's
+    ``n_out`` outputs (learned entries), the softplus of its diagonal outputs, the floating base's
+    fixed translational diagonal (rows 0-2 of L are ``sqrt(m) I``) and zero (above the diagonal)."""
     nv = spec.nv
     rows, cols = np.tril_indices(nv)
     learned = rows >= 3 if spec.floating_base else np.ones(rows.shape, bool)
-    n_out = int(learned.sum())
-    index = np.full((nv, nv), n_out)
-    index[rows[learned], cols[learned]] = np.arange(n_out)
-    fixed = np.zeros((nv, nv), bool)
+    rows, cols = rows[learned], cols[learned]
+    n_out = len(rows)
+    diag = np.flatnonzero(rows == cols)
+    index = np.full((nv, nv), n_out + len(diag) + 1)  # zero
+    index[rows, cols] = np.arange(n_out)
+    index[rows[diag], cols[diag]] = n_out + np.arange(len(diag))
     if spec.floating_base:
-        fixed[np.arange(3), np.arange(3)] = True
-    return index, np.eye(nv, dtype=bool) & ~fixed, fixed
+        index[np.arange(3), np.arange(3)] = n_out + len(diag)
+    return index, diag
 
 
 def mass_matrix(params: dict, spec: ModelSpec, q: jax.Array,
@@ -169,17 +172,25 @@ def mass_matrix(params: dict, spec: ModelSpec, q: jax.Array,
     return _mass_from_features(params, spec, q_features(spec, q, height=False), cfg)
 
 
+def _factor_from_features(params: dict, spec: ModelSpec, x: jax.Array, cfg: LNNConfig
+                          ) -> jax.Array:
+    """The Cholesky factor ``L`` ``[nv, nv]`` of :func:`mass_matrix` (without the floor) from
+    the network's input features ``x``."""
+    _, apply = mlp.mlp(cfg.net, _n_mass_outputs(spec))
+    raw = apply(params["mass"], x)
+    index, diag = _factor_layout(spec)
+    # One gather from the outputs, the softplus of the diagonal ones, sqrt(m) and zero: no
+    # scatters, and transcendentals on the diagonal only (a softplus over all of L, masked,
+    # cost a CPU planner as much as the mass network itself).
+    fixed = jnp.sqrt(total_mass(params, cfg)) if spec.floating_base else 1.0
+    return jnp.concatenate([raw, jax.nn.softplus(raw[diag]),
+                            jnp.asarray([fixed, 0.0], raw.dtype)])[index]
+
+
 def _mass_from_features(params: dict, spec: ModelSpec, x: jax.Array, cfg: LNNConfig
                         ) -> jax.Array:
     """:func:`mass_matrix` from the network's input features ``x``."""
-    _, apply = mlp.mlp(cfg.net, _n_mass_outputs(spec))
-    raw = apply(params["mass"], x)
-    index, diag, fixed = _factor_layout(spec)
-    # One gather and elementwise masks (no scatters): a few fused kernels, forward and backward.
-    L = jnp.concatenate([raw, jnp.zeros(1, raw.dtype)])[index]
-    L = jnp.where(diag, jax.nn.softplus(L), L)
-    if spec.floating_base:
-        L = jnp.where(fixed, jnp.sqrt(total_mass(params, cfg)), L)
+    L = _factor_from_features(params, spec, x, cfg)
     return L @ L.T + cfg.diag_floor * jnp.eye(spec.nv, dtype=L.dtype)
 
 
@@ -217,14 +228,19 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
     features = lambda delta: q_features(spec, retract(q, delta, fb), height=False)
     x0, T = features(zero), jax.jacfwd(features)(zero)
     _, potential_net = mlp.mlp(cfg.net, 1)
-    (M, _), d_terms = jax.linearize(
-        lambda x: (_mass_from_features(params, spec, x, cfg),
+    (L, _), d_terms = jax.linearize(
+        lambda x: (_factor_from_features(params, spec, x, cfg),
                    potential_net(params["potential"], x)[0]), x0)
-    p = M @ v
-    mdot_v = d_terms(T @ v)[0] @ v
-    (dl_dx,) = jax.linear_transpose(d_terms, x0)((0.5 * jnp.outer(v, v), -jnp.ones((), v.dtype)))
-    dl_dq = T.T @ dl_dx
-    b = mdot_v - dl_dq
+    # With M = L L^T + floor I every derivative is a product with v (no derivative of M is
+    # formed: matrix-vector work, where differentiating L L^T costs batched matrix products).
+    u = L.T @ v
+    M = L @ L.T + cfg.diag_floor * jnp.eye(spec.nv, dtype=L.dtype)
+    p = L @ u + cfg.diag_floor * v
+    dL = d_terms(T @ v)[0]  # L's rate of change along the motion
+    mdot_v = dL @ u + L @ (dL.T @ v)
+    # dL/dx of 1/2 |L^T v|^2 - V: the transposed linear map at the cotangent (v u^T, -1).
+    (dl_dx,) = jax.linear_transpose(d_terms, x0)((jnp.outer(v, u), -jnp.ones((), v.dtype)))
+    b = mdot_v - T.T @ dl_dx
     if fb:
         # V's exact gravity term m g z (world z: the first three tangents translate the base)
         up = np.zeros(spec.nv, v.dtype)
