@@ -590,7 +590,7 @@ def summary_section(summary: dict, path: pathlib.Path, tag: str, claims: list[di
 def load_bench(results: pathlib.Path, kind: str) -> list[tuple[pathlib.Path, dict]]:
     out = []
     for p in [results / f"bench_mppi_{kind}.json", *sorted(results.glob(
-            f"*/bench_mppi_{kind}.json"))]:
+            f"*/**/bench_mppi_{kind}.json"))]:
         if p.is_file():
             out.append((p, _load_json(p)))
     return out
@@ -601,6 +601,11 @@ def _bench_match(rows: list[dict], target: dict) -> list[dict]:
             and r.get("model") == target["model"] and r.get("K") == target["K"]
             and r.get("H") == target["H"] and (r.get("nfe") or 0) <= target["max_nfe"]
             and _finite(r.get("ms"))]
+
+
+def _net(bench: dict) -> str:
+    """``hidden x depth`` of a bench file's networks."""
+    return f"{_dig(bench, 'env', 'config', 'hidden')} x {_dig(bench, 'env', 'config', 'depth')}"
 
 
 def mppi_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
@@ -624,19 +629,19 @@ def mppi_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
             p, d, best = min(found, key=lambda x: x[2]["ms"])
             ok = (1000.0 / best["ms"] >= target["min_hz"]) if kind == "cpu" else (
                 best["ms"] <= target["max_ms"])
-            others = [f"{r['ms']:.1f} ms ({r.get('substeps')} substeps, {rel(q)})"
-                      for q, _, r in found if r is not best]
+            others = [f"{r['ms']:.1f} ms ({_net(e)}, {r.get('substeps')} substeps, {rel(q)})"
+                      for q, e, r in found if r is not best]
             ours = (f"{best['ms']:.1f} ms = {1000 / best['ms']:.1f} Hz (fastest matching row: "
-                    f"{best.get('substeps')} substep(s) per control step, NFE {best.get('nfe')}, "
-                    f"{_dig(d, 'env', 'device')})" + (f"; also {', '.join(others)}"
-                                                      if others else ""))
+                    f"networks {_net(d)}, {best.get('substeps')} substep(s) per control step, "
+                    f"NFE {best.get('nfe')}, {_dig(d, 'env', 'device')})"
+                    + (f"; also {', '.join(others)}" if others else ""))
             rows.append(Row(claim, WHERE_MPPI, paper, ours, verdict(ok), rel(p),
                             _dig(d, "env", "command")))
         for p, d in files:
             env = d.get("env") or {}
             git = _git_note(p)
             lines += [f"`{rel(p)}`{' (' + git + ')' if git else ''}: `{env.get('command')}` on "
-                      f"{env.get('device')} (jax {env.get('jax')}); median of "
+                      f"{env.get('device')} (jax {env.get('jax')}), networks {_net(d)}; median of "
                       f"{_dig(env, 'config', 'repeats')} jitted planning steps; "
                       "floor = the FLOP floor at the machine's measured peak.", ""]
             lines += _table(["robot", "model", "K", "H", "substeps", "NFE", "ms", "Hz",
