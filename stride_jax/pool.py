@@ -1,4 +1,5 @@
-"""Side-by-side ``stride`` processes for the experiment drivers (``experiments/*.py``).
+"""Side-by-side ``stride`` processes for the experiment drivers (``experiments/*.py``), and the
+environment of CPU worker processes (the gap benchmark's process pool).
 
 Small models leave a GPU idle between kernel launches, so the drivers train and evaluate several
 runs at once as separate processes that share the device. A process that depends on another
@@ -15,7 +16,9 @@ import subprocess
 import sys
 import time
 import typing
-from typing import Callable
+from typing import Callable, Mapping
+
+from stride_jax import _env
 
 
 def stride_command(*args: str) -> list[str]:
@@ -30,6 +33,30 @@ def shared_env(root: str | pathlib.Path) -> dict[str, str]:
                 JAX_COMPILATION_CACHE_DIR=str((pathlib.Path(root) / ".jax_cache").absolute()),
                 JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
                 JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
+
+
+def worker_env(env: Mapping[str, str], threads: int = 1) -> dict[str, str]:
+    """``env`` for one of many CPU-bound worker processes on one machine: one thread each for XLA's
+    Eigen kernels and BLAS/OpenMP, ``threads`` for the gap tool's MuJoCo rollouts
+    (``STRIDE_GAP_THREADS``, the bulk of a diagnosis), so that N workers keep N x threads cores busy
+    instead of N x cores threads contending for them.
+
+    ``--xla_cpu_multi_thread_eigen`` is a flag of jaxlib 0.10 here and 0.11 on the lent machines
+    (an unknown flag in ``XLA_FLAGS`` aborts the process). ``intra_op_parallelism_threads=1``, often
+    quoted beside it, is TensorFlow's: XLA rejects it with dashes and silently ignores it without,
+    so it is left out."""
+    flags = env.get("XLA_FLAGS", _env.CPU_SAFE_XLA_FLAGS)
+    if "xla_cpu_multi_thread_eigen" not in flags:
+        flags = f"{flags} --xla_cpu_multi_thread_eigen=false".strip()
+    return dict(env, XLA_FLAGS=flags, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
+                STRIDE_GAP_THREADS=str(threads))
+
+
+def set_env(env: Mapping[str, str]) -> None:
+    """A process pool's ``initializer``: a spawned worker takes ``env`` before it first computes
+    with JAX (XLA reads ``XLA_FLAGS`` when its backend starts, not at ``import jax``) or imports
+    NumPy (BLAS reads its thread count when loaded)."""
+    os.environ.update(env)
 
 
 def config_flags(cfg) -> list[str]:

@@ -40,7 +40,14 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--out", required=True)
     b = sub.add_parser("bench", help="the blind benchmark")
     b.add_argument("--preset", default="tiny", choices=sorted(bench.PRESETS))
-    b.add_argument("--out", default="results")
+    b.add_argument("--out", default="results",
+                   help="result folder (<name>.md/json; finished rows in <name>_cases/, which a rerun resumes)")
+    b.add_argument("--workers", type=int, default=1,
+                   help="diagnoses side by side, one process each (rows do not depend on it)")
+    b.add_argument("--threads", type=int, default=1,
+                   help="MuJoCo rollout threads per worker (with --workers > 1; workers x threads <= cores)")
+    b.add_argument("--minutes", type=float, default=None,
+                   help="start no new case after this long, then exit 0 (rerun the same command to continue)")
     return p
 
 
@@ -91,7 +98,13 @@ def main(argv: list[str] | None = None) -> int:
         elif args.cmd == "bench":
             from stride_jax.gap import bench
 
-            bench.run(bench.PRESETS[args.preset], args.out, command="stride gap " + shlex.join(argv))
+            try:
+                bench.run(bench.PRESETS[args.preset], args.out, command="stride gap " + shlex.join(argv),
+                          log=lambda line: print(line, flush=True), workers=args.workers, threads=args.threads,
+                          minutes=args.minutes)
+            except bench.BenchError as err:  # rows on disk from another config, bad --workers/--threads
+                print(f"error: {err}", file=sys.stderr)
+                return 2
     except logs.LogError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -1,0 +1,61 @@
+"""The blind benchmark runs in a process pool with the same rows as serially, resumes from the rows on
+disk, and refuses rows written with another config."""
+
+import dataclasses
+import json
+
+import pytest
+
+from stride_jax.gap import bench, cli
+
+# 2 cases (control, damping) x clean/noisy = 4 rows of a few seconds each on the pendulum
+CFG = bench.BenchConfig(robot="pendulum", trajectories=4, steps=60, magnitudes={"damping": (0.5,)}, pairs=(),
+                        out_of_library=(), diagnose="tiny", name="t")
+TIMING = ("seconds", "row_seconds")
+
+
+def _rows(result: dict) -> list[dict]:
+    return [{k: v for k, v in r.items() if k not in TIMING} for r in result["cases"]]
+
+
+def test_pool_gives_the_serial_rows_and_a_rerun_skips_rows_on_disk(tmp_path):
+    serial = bench.run(CFG, tmp_path / "serial", log=lambda s: None)
+    pooled = bench.run(CFG, tmp_path / "pool", log=lambda s: None, workers=2)
+    assert serial["complete"] and pooled["complete"]
+    assert len(serial["cases"]) == 4 and [(r["case"], r["noisy"]) for r in serial["cases"]] == [
+        (0, False), (0, True), (1, False), (1, True)]
+    assert _rows(pooled) == _rows(serial)
+    assert serial["cases"][2]["named"] == ["damping"]
+    # an interrupted run: one row lost, one on disk (marked, to see that it is not recomputed)
+    folder = bench.rows_dir(CFG, tmp_path / "serial")
+    bench.row_path(folder, 1, True).unlink()
+    kept = bench.row_path(folder, 0, True)
+    rec = json.loads(kept.read_text())
+    rec["row"]["seconds"] = -1.0
+    kept.write_text(json.dumps(rec))
+    lines = []
+    again = bench.run(CFG, tmp_path / "serial", log=lines.append)
+    assert "3 of 4 rows already" in lines[0]
+    assert again["cases"][1]["seconds"] == -1.0  # skipped
+    assert _rows(again) == _rows(serial)  # the lost row recomputed as before
+    assert (tmp_path / "serial" / "t.md").is_file()
+
+
+def test_minutes_zero_starts_nothing_and_writes_no_summary(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(bench.PRESETS, "test", CFG)
+    assert cli.main(["bench", "--preset", "test", "--out", str(tmp_path), "--workers", "2", "--minutes", "0"]) == 0
+    out = capsys.readouterr().out
+    assert "0 of 4 rows done" in out and "rerun the same command to continue" in out
+    assert not (tmp_path / "t.md").exists() and not (tmp_path / "t.json").exists()
+
+
+def test_rows_from_another_config_are_refused(tmp_path, capsys, monkeypatch):
+    row = {"case": 0, "noisy": False, "kind": "control", "verdict": "no significant gap"}
+    bench.save_row(bench.rows_dir(CFG, tmp_path), CFG, row, "test")
+    assert set(bench.load_rows(bench.rows_dir(CFG, tmp_path), CFG)) == {(0, False)}
+    monkeypatch.setitem(bench.PRESETS, "test", dataclasses.replace(CFG, steps=80))
+    assert cli.main(["bench", "--preset", "test", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "another benchmark config (steps: 60 there, 80 now)" in err and "fresh --out folder" in err
+    with pytest.raises(bench.BenchError, match="workers and threads must be at least 1"):
+        bench.run(CFG, tmp_path, workers=0)
