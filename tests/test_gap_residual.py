@@ -78,6 +78,8 @@ def test_residual_is_not_fitted_when_not_asked():
     (dict(weight_decay=float("nan")), "residual.weight_decay=nan"),
     (dict(integrator="midpoint", nfe=3), "residual: nfe=3: need >= 1 \\(and even for midpoint\\)"),
     (dict(integrator="rk4"), "residual: integrator 'rk4' is not one of"),
+    (dict(validation=1.0), "residual.validation=1.0: need a share in"),
+    (dict(checks=0), "residual.checks=0: need a positive integer"),
 ])
 def test_bad_residual_config_is_a_clear_error(bad, match):
     with pytest.raises(ValueError, match=match):
@@ -90,3 +92,22 @@ def test_cli_rejects_bad_residual_flags(capsys):
     assert "residual.steps=0: need a positive integer" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # argparse: not one of the choices
         cli.main(["diagnose", "--robot", "pendulum", "--logs", "/x", "--out", "/y", "--residual", "maybe"])
+
+
+def test_early_stopping_keeps_the_best_scoring_checkpoint():
+    """train_flow with a score returns the parameters of its best-scoring check, and the step of
+    that check; without one, the last parameters after every step."""
+    rng = np.random.default_rng(0)
+    c = rng.standard_normal((200, 4)).astype(np.float32)
+    x1 = (c[:, :2] + 0.3 * rng.standard_normal((200, 2))).astype(np.float32)
+    cfg = residual.ResidualConfig(hidden=16, depth=1, steps=60, batch=32, checks=6)
+    c_val, x_val = c[:50] + 0.1, x1[:50]
+    err = lambda p: float(np.mean((residual.central(p, c_val, 2, cfg) - x_val) ** 2))
+    params, losses, chosen = residual.train_flow(x1, c, cfg, err)
+    assert len(losses) == 60 and chosen["checked_at"] == [10, 20, 30, 40, 50, 60]
+    best = int(np.argmin(chosen["validation_scores"]))
+    assert chosen["chosen_step"] == chosen["checked_at"][best]
+    assert err(params) == pytest.approx(min(chosen["validation_scores"]), rel=1e-6)
+    last, _, plain = residual.train_flow(x1, c, cfg)
+    assert plain["chosen_step"] == 60 and not plain["validation_scores"]
+    assert err(last) == pytest.approx(chosen["validation_scores"][-1], rel=1e-6)

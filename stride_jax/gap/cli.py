@@ -27,6 +27,9 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument("--residual", choices=residual.WHEN, default=None,
                    help="when to fit the STRIDE residual on top of the best hypothesis")
     d.add_argument("--residual-steps", type=int, default=None, help="its optimiser steps")
+    d.add_argument("--residual-validation", type=float, default=None,
+                   help="share of the training trajectories held back to stop its training early "
+                        "(0: off)")
     s = sub.add_parser("simulate", help="'real' logs: the explorer with hidden effects")
     s.add_argument("--robot", required=True)
     s.add_argument("--out", required=True)
@@ -58,7 +61,8 @@ def _diagnose_config(args: argparse.Namespace):
     cfg = diagnose.PRESETS[args.preset]
     over = {f.name: getattr(args, f.name) for f in dataclasses.fields(cfg)
             if f.name != "residual" and getattr(args, f.name, None) is not None}
-    res = {k: v for k, v in (("when", args.residual), ("steps", args.residual_steps)) if v is not None}
+    res = {k: v for k, v in (("when", args.residual), ("steps", args.residual_steps),
+                             ("validation", args.residual_validation)) if v is not None}
     if res:
         over["residual"] = dataclasses.replace(cfg.residual, **res)
     return dataclasses.replace(cfg, **over)

@@ -35,7 +35,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -70,6 +70,16 @@ class ResidualConfig:
       raw_angles: also condition on the logged angle of every wrapping hinge (not only its sin
         and cos): an effect outside the nominal model need not be periodic in it.
       weight_decay: decoupled weight decay (AdamW) of the vector field.
+      validation: share of the training trajectories (at least one, when there are two or
+        more) held back to choose the step: the fit is scored on them ``checks`` times and the
+        best parameters are kept (early stopping). 0 (default) trains on everything for
+        ``steps`` steps. Why offered: on short logs of a robot with many dofs the field
+        memorises the training samples (Go1 bench, measured: 98% of the training gap explained,
+        10% held out). Why off by default, measured on the pendulum with quadratic drag (8 logs
+        of 150 steps): the one trajectory held back scored every checkpoint worse than no
+        residual, early stopping kept step 100 of 2000 and the held-out split was 1.7%
+        explained, against 83.5% when trained on all six.
+      checks: validation scorings over the run (the step is chosen among them).
     """
 
     when: str = "unexplained"
@@ -83,11 +93,15 @@ class ResidualConfig:
     seed: int = 0
     raw_angles: bool = True
     weight_decay: float = 0.0
+    validation: float = 0.0
+    checks: int = 20
 
     def __post_init__(self):
         if self.when not in WHEN:
             raise ValueError(f"residual.when={self.when!r} is not one of {WHEN}")
-        for name in ("hidden", "depth", "steps", "batch"):
+        if not 0 <= self.validation < 1:
+            raise ValueError(f"residual.validation={self.validation!r}: need a share in [0, 1)")
+        for name in ("hidden", "depth", "steps", "batch", "checks"):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or v < 1:
                 raise ValueError(f"residual.{name}={v!r}: need a positive integer")
@@ -147,6 +161,7 @@ class Samples:
     def __init__(self, sm: SimModel, plan: effects.Plan, data: fit.Data, scale: np.ndarray):
         idx = fit.samples_before_next(data)
         self.q, self.qd = data.q[idx], data.qd[idx]
+        self.traj = data.traj
         self.tau = generalised_torque(sm, plan.mj, self.q, self.qd, data.cmd[idx])
         self.mass = mass_matrices(plan.mj, self.q)
         self.r = fit.residual(sm, plan, data, scale)  # [M, nv] scaled, simulated minus logged
@@ -176,9 +191,13 @@ def _spread(x: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------- the flow
 
 
-def train_flow(x1: np.ndarray, c: np.ndarray, cfg: ResidualConfig) -> tuple[dict, np.ndarray]:
+def train_flow(x1: np.ndarray, c: np.ndarray, cfg: ResidualConfig,
+               score: Callable[[dict], float] | None = None
+               ) -> tuple[dict, np.ndarray, dict[str, Any]]:
     """Conditional flow matching of ``x1 [N, D]`` given ``c [N, C]``; returns the vector field's
-    parameters and the loss per step. The whole loop is one ``jit``-ed ``lax.scan``."""
+    parameters, the loss per step and how the step was chosen. The loop runs as ``cfg.checks``
+    ``jit``-ed ``lax.scan`` chunks; with ``score(params) -> float`` (lower is better) the
+    parameters after the best-scoring chunk are returned (early stopping), else the last."""
     fcfg = cfg.flow
     n, dim = x1.shape
     b = min(cfg.batch, n)
@@ -195,19 +214,40 @@ def train_flow(x1: np.ndarray, c: np.ndarray, cfg: ResidualConfig) -> tuple[dict
         return jnp.mean(ex(X[i], C[i], jax.random.split(k_fm, b)))
 
     @jax.jit
-    def run(params, X, C, keys):
+    def run(carry, X, C, keys):
         def step(carry, key):
             p, st = carry
             loss, g = jax.value_and_grad(batch_loss)(p, X, C, key)
             upd, st = opt.update(g, st, p)
             return (optax.apply_updates(p, upd), st), loss
 
-        (p, _), losses = jax.lax.scan(step, (params, opt.init(params)), keys)
-        return p, losses
+        return jax.lax.scan(step, carry, keys)
 
-    params, losses = run(params, jnp.asarray(x1, jnp.float32), jnp.asarray(c, jnp.float32),
-                         jax.random.split(k_loop, cfg.steps))
-    return params, np.asarray(losses)
+    X, C = jnp.asarray(x1, jnp.float32), jnp.asarray(c, jnp.float32)
+    keys = jax.random.split(k_loop, cfg.steps)
+    edges = np.linspace(0, cfg.steps, min(cfg.checks, cfg.steps) + 1).round().astype(int)
+    carry, losses, scores = (params, opt.init(params)), [], []
+    best = (math.inf, cfg.steps, params)
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        carry, chunk = run(carry, X, C, keys[lo:hi])
+        losses.append(np.asarray(chunk))
+        if score is not None:
+            scores.append(float(score(carry[0])))
+            if scores[-1] < best[0]:
+                best = (scores[-1], int(hi), carry[0])
+    chosen = {"steps": cfg.steps, "checked_at": edges[1:].tolist(), "validation_scores": scores}
+    if score is None:
+        return carry[0], np.concatenate(losses), chosen | {"chosen_step": cfg.steps}
+    return best[2], np.concatenate(losses), chosen | {"chosen_step": best[1]}
+
+
+def _validation_split(traj: np.ndarray, share: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sample indices ``(fit, validation)``: the last ``share`` of the trajectories (at least
+    one, if there are two or more; none when ``share`` is 0) go to validation, whole."""
+    ids = np.unique(traj)
+    n_val = 0 if share <= 0 or len(ids) < 2 else max(1, int(round(share * len(ids))))
+    val = np.isin(traj, ids[len(ids) - n_val:])
+    return np.flatnonzero(~val), np.flatnonzero(val)
 
 
 def central(params: dict, c: np.ndarray, dim: int, cfg: ResidualConfig) -> np.ndarray:
@@ -231,7 +271,16 @@ def fit_on_top(sm: SimModel, plan: effects.Plan, train: fit.Data, test: fit.Data
     scales = stride.Scales(qd=_spread(s_tr.qd), tau=_spread(s_tr.tau))
     c_tr, c_te = (contexts(spec, s, scales, cfg.raw_angles) for s in (s_tr, s_te))
     f_scale = _spread(s_tr.force)  # the flow models eps* / f_scale
-    params, losses = train_flow(s_tr.force / f_scale, c_tr, cfg)
+    fit_idx, val_idx = _validation_split(s_tr.traj, cfg.validation)
+
+    def gap_after(p: dict, sel: np.ndarray) -> float:
+        force = central(p, c_tr[sel], spec.nv, cfg) * f_scale
+        acc = np.linalg.solve(s_tr.mass[sel], force[..., None])[..., 0]
+        return fit.gap(s_tr.r[sel] + acc / scale)
+
+    params, losses, chosen = train_flow(
+        s_tr.force[fit_idx] / f_scale, c_tr[fit_idx], cfg,
+        (lambda p: gap_after(p, val_idx)) if len(val_idx) else None)
 
     def after(s: Samples, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         force = central(params, c, spec.nv, cfg) * f_scale
@@ -259,10 +308,14 @@ def fit_on_top(sm: SimModel, plan: effects.Plan, train: fit.Data, test: fit.Data
         "one_step_acc_rmse_after": dict(zip(names, regions.rms(r_after_te * scale, 0).tolist())),
         "force_scale": dict(zip(names, f_scale.tolist())),
         "fm_loss_first": float(losses[:k].mean()), "fm_loss_last": float(losses[-k:].mean()),
+        "early_stopping": chosen | {"validation_trajectories": int(len(np.unique(
+            s_tr.traj[val_idx]))), "validation_gap_left": fit.gap(s_tr.r[val_idx])
+            if len(val_idx) else None},
         "concentration": concentration(sm, test, acc_te / scale, -s_te.r, force_te, scale, bins),
     }
     out["seconds"] = time.time() - t0
-    log(f"  STRIDE residual on top ({cfg.steps} steps, {out['seconds']:.1f} s): held-out gap left "
+    log(f"  STRIDE residual on top (step {chosen['chosen_step']} of {cfg.steps}, "
+        f"{out['seconds']:.1f} s): held-out gap left "
         f"{left:.4g} -> {fitted:.4g} ({out['explained']:.1%} explained, "
         f"{out['explained_above_floor']:.1%} above the noise floor)")
     return out
