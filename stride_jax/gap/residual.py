@@ -78,7 +78,8 @@ class ResidualConfig:
         10% held out). Why off by default, measured on the pendulum with quadratic drag (8 logs
         of 150 steps): the one trajectory held back scored every checkpoint worse than no
         residual, early stopping kept step 100 of 2000 and the held-out split was 1.7%
-        explained, against 83.5% when trained on all six.
+        explained, against 83.5% when trained on all six; Go1 with a joint spring (10 x 150
+        steps): 16.3% against 32.5% (``experiments/gap_residual_validation.py``).
       checks: validation scorings over the run (the step is chosen among them).
     """
 
