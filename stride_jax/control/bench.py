@@ -3,11 +3,11 @@
 Each measurement builds a model of the given size for the robot (parameters at initialisation:
 latency does not depend on training), an MPPI planner with a velocity-tracking cost, jits its
 step once, and reports the median wall time of ``repeats`` steps (after a warm-up call) with
-``block_until_ready``. The FLOP floor is XLA's own count of the compiled step's floating-point
-operations divided by the machine's measured peak (a large float32 matmul); the ratio says how
-far from compute-bound the step runs. Caveat, measured: XLA's cost analysis counts the body of a
-loop once, not once per trip, so for these scans (horizon, substeps, flow steps) the count is far
-below the executed FLOPs and the ratio is an upper bound; an analytic count is still to do.
+``block_until_ready``. The FLOP floor is ``K x H`` times the FLOPs of one model control step
+(:func:`control_step_flops`: XLA's count of a step compiled without loops -- XLA counts a loop
+body once, not once per trip -- with the substeps and residual evaluations added) divided by the
+machine's measured peak (a large float32 matmul); the ratio says how far from compute-bound the
+step runs. The planner's own work (noise, costs, weights) is left out: the floor is a lower bound.
 """
 
 from __future__ import annotations

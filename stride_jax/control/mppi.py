@@ -44,9 +44,9 @@ class MPPIConfig:
       iterations: refinement iterations per control step (each re-samples around the new plan).
       normalize: divide costs by their standard deviation before the softmax.
       unroll: horizon steps per loop iteration of the rollouts (``True``: the whole horizon,
-        no loop). On a GPU each loop iteration costs a host round trip and a string of small
-        kernel launches that unrolling lets XLA schedule back to back; on a CPU it only
-        lengthens compilation.
+        no loop, one CUDA graph on a GPU). Measured: Go1 STRIDE, K=1024, H=30 on an H100, 9.0 ms
+        unrolled against 9.5 ms looped (within run-to-run noise); on a 2-core CPU no faster,
+        and compilation takes ~2.5x longer.
     """
 
     samples: int = 128

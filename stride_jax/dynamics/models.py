@@ -177,7 +177,7 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
                                       servo)[0]
             return integrate.semi_implicit_euler(q, qd, qdd, act.dt, spec.floating_base), None
 
-        if act.n_substeps == 1:  # no loop: on a GPU a loop iteration costs a host round trip
+        if act.n_substeps == 1:  # planners integrate at the control period: no loop of one
             return substep((q, qd), key)[0]
         (q, qd), _ = jax.lax.scan(substep, (q, qd), jax.random.split(key, act.n_substeps))
         return q, qd
