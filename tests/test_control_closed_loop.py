@@ -98,3 +98,29 @@ def test_learned_reward_and_value_drive_the_planner(go1):
     u, _, info = jax.jit(planner.step)(planner.init(jax.random.key(0)), q0, jnp.zeros(18))
     assert u.shape == (12,) and np.isfinite(info.costs).all()
     assert np.ptp(np.asarray(info.costs)) > 0  # the learned reward tells samples apart
+
+
+def test_the_task_clock_runs_inside_rollouts_for_a_clocked_policy(go1):
+    """The G1 task observes a gait clock: inside MPPI rollouts it must advance as in the
+    environment (the policy's candidates read it); the Go1 task has none and keeps it at rest."""
+    from stride_jax.sim import model as sim_model
+
+    hold = lambda q, qd, ctrl, key: (q, qd)
+    for sm in (sim_model.load("g1"), go1):
+        env_cfg = envs.config(sm.robot.name)
+        cfg = cl.ClosedLoopConfig(robot=sm.robot.name)
+        planning = cl.make_planning(cfg, env_cfg, sm, hold)
+        q_aug = cl.augment(jnp.asarray(sm.info.qpos0), jnp.zeros(3), 0.25)
+        q2, _ = planning.dynamics(q_aug, jnp.zeros(sm.mj.nv), jnp.zeros(sm.info.nu),
+                                  jax.random.key(0))
+        step = env_cfg.gait_hz * sm.robot.ctrl_dt
+        assert float(cl.split(q2, sm.mj.nq).clock) == pytest.approx(0.25 + step)
+        assert planning.clock_hz == env_cfg.gait_hz
+    assert envs.config("g1").gait_hz > 0 and envs.config("go1").gait_hz == 0
+
+
+def test_a_policy_of_another_robot_is_a_clear_error(tmp_path):
+    cfg = cl.ClosedLoopConfig(robot="g1", models="policy", scenarios="walk",
+                              policy="results/policies/ppo_go1", out=str(tmp_path))
+    with pytest.raises(ValueError, match="drives go1, not g1"):
+        cl.run(cfg)

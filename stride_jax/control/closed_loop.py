@@ -1,4 +1,4 @@
-"""MPPI in closed loop on the MJX Go1: any dynamics model plans, the simulator acts.
+"""MPPI in closed loop on the MJX Go1 or G1: any dynamics model plans, the simulator acts.
 
 Each control period (20 ms) the planner (:mod:`stride_jax.control.mppi`) sees the simulator's
 state and the current command, plans through its model, and the first action is simulated in MJX
@@ -58,6 +58,7 @@ class ClosedLoopConfig:
     """Closed-loop runs.
 
     Attributes:
+      robot: ``go1`` or ``g1`` (the policy and the learned models must be of it).
       models: comma-separated planner models (``oracle``, ``nominal``, ``policy``, ``NAME=RUN``).
       scenarios: comma-separated names of :data:`SCENARIOS`.
       seconds: override every scenario's duration (0: keep).
@@ -79,6 +80,7 @@ class ClosedLoopConfig:
       seed: planner key and terrain seed.
     """
 
+    robot: str = "go1"
     models: str = "oracle,nominal"
     scenarios: str = "step,changes,slope,low_friction,soft,rough"
     seconds: float = 0.0
@@ -122,6 +124,7 @@ class Planning(NamedTuple):
     hi: np.ndarray
     noise: tuple  # per action entry
     nominal_u: np.ndarray  # [nu_plan] initial plan
+    clock_hz: float = 0.0  # the task's gait clock (G1's policy observes it), without planned gaits
 
 
 class Aug(NamedTuple):
@@ -191,8 +194,8 @@ def make_planning(cfg: ClosedLoopConfig, env_cfg: envs.EnvConfig, sm: sim_model.
     def dynamics(q_aug, qd, u, key):
         a = split(q_aug, nq)
         q2, qd2 = model_step(a.q, qd, ctrl(q_aug, u), key)
-        if not cfg.gait:
-            return augment(q2, a.command), qd2
+        if not cfg.gait:  # the task's clock runs on inside rollouts (the policy candidates see it)
+            return augment(q2, a.command, jnp.mod(a.clock + env_cfg.gait_hz * dt, 1.0)), qd2
         g = gait_of(q_aug, u)
         return augment(q2, a.command, jnp.mod(a.clock + g[0] * dt, 1.0), g, 1.0), qd2
 
@@ -210,7 +213,8 @@ def make_planning(cfg: ClosedLoopConfig, env_cfg: envs.EnvConfig, sm: sim_model.
     cost = analytic_cost
     if learned_params is not None:
         from stride_jax.control import learned as learned_lib
-        obs_aug = lambda q_aug, qd: obs_of(split(q_aug, nq).q, qd, split(q_aug, nq).command)
+        obs_aug = lambda q_aug, qd: obs_of(split(q_aug, nq).q, qd, split(q_aug, nq).command,
+                                           split(q_aug, nq).clock)
         r_cost, value = learned_lib.planner_terms(*learned_params, obs_aug, cfg.value_weight)
 
         def cost(q_aug, qd, u, t):  # the learned reward scores the normalised policy action
@@ -236,7 +240,8 @@ def make_planning(cfg: ClosedLoopConfig, env_cfg: envs.EnvConfig, sm: sim_model.
         noise = noise + (cfg.gait_noise, 0.15 * cfg.gait_noise) + (0.25 * cfg.gait_noise,) * 4
         trot = gait_lib.named("trot")
         nominal = np.asarray(gait_lib.join_action(jnp.asarray(nominal), trot), np.float32)
-    return Planning(dynamics, cost, value, policy, ctrl, lo, hi, noise, nominal)
+    return Planning(dynamics, cost, value, policy, ctrl, lo, hi, noise, nominal,
+                    0.0 if cfg.gait else env_cfg.gait_hz)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -302,7 +307,7 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
             u = planning.policy(q_aug, d.qvel)
         u = jnp.where(down, jnp.asarray(planning.nominal_u), u)  # fallen: stop planning effort
         d2 = envs.physics_step(mx_sim, sm.n_substeps, d, planning.ctrl(q_aug, u))
-        freq = u[nu] if gait else 0.0
+        freq = u[nu] if gait else planning.clock_hz
         clock = jnp.mod(clock + freq * dt, 1.0)
         finite = jnp.all(jnp.isfinite(d2.qpos)) & jnp.all(jnp.isfinite(d2.qvel))
         d2 = jax.tree.map(lambda a, b: jnp.where(finite, a, b), d2, d)  # freeze a diverged sim
@@ -335,11 +340,11 @@ def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
                fall_s=float(tr.t[np.argmax(tr.fallen)]) if fell else None,
                mean_vx=float(tr.v_base[up, 0].mean()) if up.any() else float("nan"),
                upright_s=float(up.sum() * (tr.t[1] - tr.t[0]) if len(tr.t) > 1 else 0.0))
-    if up.sum() >= 10:  # the gait the feet showed, from the measured contacts
+    if up.sum() >= 10 and tr.contact.shape[1] == 4:  # the quadruped gait the feet showed
         out["contact_gait"], out["contact_gait_score"] = gait_lib.classify_contacts(
             tr.contact[up])
     n_joint = tr.contact.shape[1] * 3
-    if tr.action.shape[1] > n_joint and up.any():  # the gait the planner chose
+    if tr.contact.shape[1] == 4 and tr.action.shape[1] > n_joint and up.any():  # planned gait
         g = np.median(tr.action[up, n_joint:], axis=0)
         out["plan_freq"], out["plan_duty"] = float(g[0]), float(g[1])
         out["plan_gait"], out["plan_gait_dist"] = gait_lib.classify(g[2:])
@@ -387,14 +392,16 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     plots to ``cfg.out`` after each pair, and skips pairs already there (resumable)."""
     from stride_jax.control import learned as learned_lib, ppo
 
-    sm = sim_model.load("go1")
+    sm = sim_model.load(cfg.robot)
     unknown = [s for s in cfg.scenarios.split(",") if s and s not in SCENARIOS]
     if unknown:
         raise ValueError(f"unknown scenarios {unknown}; known: {', '.join(SCENARIOS)}")
     models = _parse_models(cfg.models)
-    ppo_policy, env_cfg = None, envs.config("go1")
+    ppo_policy, env_cfg = None, envs.config(cfg.robot)
     if cfg.policy:
         ppo_policy, _, env_cfg = ppo.load_policy(cfg.policy)
+        if env_cfg.robot != cfg.robot:
+            raise ValueError(f"the policy {cfg.policy} drives {env_cfg.robot}, not {cfg.robot}")
     learned_params = learned_lib.load(cfg.learned) if cfg.learned else None
     out = pathlib.Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -462,7 +469,7 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
     atomic_write_text(out / "closed_loop.json", json.dumps(dict(env=env, rows=rows), indent=1))
     fmt = lambda x, f="{:.3f}": "-" if x is None or (isinstance(x, float) and np.isnan(x)) else (
         f.format(x))
-    lines = ["# Closed-loop MPPI on the MJX Go1", "", f"Command: `{command}`", "",
+    lines = [f"# Closed-loop MPPI on the MJX {dict(go1='Go1', g1='G1').get(cfg.robot, cfg.robot)}", "", f"Command: `{command}`", "",
              f"Device: {env['device']} ({env['backend']}), jax {env['jax']}. MPPI K={cfg.samples}, "
              f"H={cfg.horizon}, {cfg.iterations} iteration(s); cost: "
              f"{'learned reward/value ' + cfg.learned if cfg.learned else 'analytic reward terms'}"
