@@ -28,16 +28,18 @@ def test_rollouts_and_training_on_two_devices_match_one(tmp_path):
     from stride_jax import cli
     data = tmp_path / "data"
     cli.main(["data", "--robot", "pendulum", "--preset", "tiny", "--out", str(data)])
-    outs = []
-    for n in (1, 2):
+    outs, procs = [], []
+    for n in (1, 2):  # side by side: each is mostly single-threaded compilation
         env = dict(os.environ)
         env["XLA_FLAGS"] = ("--xla_cpu_enable_concurrency_optimized_scheduler=false "
                             f"--xla_force_host_platform_device_count={n}")
         out = tmp_path / f"dev{n}"
         out.mkdir()
-        subprocess.run([sys.executable, "-c", SCRIPT, str(out), str(data), str(n)],
-                       check=True, env=env)
+        procs.append(subprocess.Popen([sys.executable, "-c", SCRIPT, str(out), str(data), str(n)],
+                                      env=env))
         outs.append(out)
+    codes = [proc.wait(timeout=600) for proc in procs]
+    assert codes == [0, 0], f"subprocess exit codes {codes}"
     np.testing.assert_allclose(np.load(outs[1] / "q.npy"), np.load(outs[0] / "q.npy"), atol=1e-6)
     params = [np.load(o / "params.npy") for o in outs]
     assert np.abs(params[0]).max() > 0
