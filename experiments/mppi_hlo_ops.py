@@ -11,17 +11,11 @@ from __future__ import annotations
 
 import argparse
 import collections
-import dataclasses
-import functools
 import re
 
 import jax
-import jax.numpy as jnp
-import numpy as np
 
-from stride_jax.control import bench, mppi
-from stride_jax.dynamics import models, stride
-from stride_jax.train import job
+from stride_jax.control import bench
 
 
 def entry_ops(hlo: str) -> collections.Counter:
@@ -50,17 +44,9 @@ def main():
     p.add_argument("--samples", type=int, default=1024)
     p.add_argument("--horizon", type=int, default=30)
     a = p.parse_args()
-    sm, meta, spec, act = bench._robot(a.robot)
-    act = dataclasses.replace(act, dt=act.dt * act.n_substeps, n_substeps=1)
-    cfg = job.model_config(a.model, meta, 256, 3, 0)
-    model = models.make(a.model, spec, act, cfg, stride.Scales())
-    params = model.init(jax.random.key(0))
-    lo, hi = np.asarray(meta["ctrl_range"], np.float32).T
-    planner = mppi.make(mppi.MPPIConfig(samples=a.samples, horizon=a.horizon, unroll=True),
-                        functools.partial(model.step, params), bench.tracking_cost(spec), lo, hi)
-    q0 = jnp.asarray(sm.info.qpos0)
-    state = planner.init(jax.random.key(1))
-    compiled = jax.jit(planner.step).lower(state, q0, jnp.zeros(spec.nv)).compile()
+    b = bench.setup(a.robot, a.model, a.samples, a.horizon,
+                    bench.BenchConfig(substeps=1, unroll=0))  # the GPU preset's step, unrolled
+    compiled = jax.jit(b.step).lower(b.state, b.q0, b.qd0).compile()
     counts = entry_ops(compiled.as_text())
     print(f"{a.robot} {a.model} K={a.samples} H={a.horizon} on {jax.devices()[0].device_kind}: "
           f"{sum(counts.values())} ENTRY instructions, "

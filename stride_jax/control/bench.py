@@ -20,6 +20,7 @@ import os
 import pathlib
 import platform
 import time
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -138,8 +139,25 @@ def control_step_flops(model_name: str, spec, act: models.Actuation,
     return (act.n_substeps if structured else 1) * (per_eval + extra)
 
 
-def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
-            peak: float) -> dict:
+class Setup(NamedTuple):
+    """One benchmarked planner: ``step(state, q0, qd0)`` to jit, its inputs, and what the FLOP
+    count needs."""
+
+    step: Callable
+    state: mppi.MPPIState
+    q0: jax.Array
+    qd0: jax.Array
+    model: models.Model
+    params: dict
+    spec: Any
+    act: models.Actuation
+    model_cfg: stride.StructuredConfig
+
+
+def setup(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig) -> Setup:
+    """The planner :func:`measure` times (also read by ``experiments/mppi_hlo_ops.py``): a model
+    of ``cfg``'s size at initialisation, MPPI with ``K`` samples and horizon ``H`` and the
+    tracking cost, from the robot's home pose."""
     sm, meta, spec, act = _robot(robot)
     if cfg.substeps:
         act = dataclasses.replace(act, dt=act.dt * act.n_substeps / cfg.substeps,
@@ -148,24 +166,30 @@ def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
     model = models.make(model_name, spec, act, model_cfg, stride.Scales())
     params = model.init(jax.random.key(0))
     lo, hi = np.asarray(meta["ctrl_range"], np.float32).T
-    unroll = cfg.unroll or True
-    planner = mppi.make(mppi.MPPIConfig(samples=K, horizon=H, unroll=unroll), functools.partial(
-        model.step, params), tracking_cost(spec), lo, hi)
+    planner = mppi.make(mppi.MPPIConfig(samples=K, horizon=H, unroll=cfg.unroll or True),
+                        functools.partial(model.step, params), tracking_cost(spec), lo, hi)
     q0 = jnp.asarray(sm.info.qpos0)
-    qd0 = jnp.zeros(spec.nv)
     state = planner.init(jax.random.key(1), jnp.broadcast_to(q0[
         np.asarray(act.dof) + (1 if spec.floating_base else 0)], (H, len(lo))))
+    return Setup(planner.step, state, q0, jnp.zeros(spec.nv), model, params, spec, act,
+                 model_cfg)
+
+
+def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
+            peak: float) -> dict:
+    b = setup(robot, model_name, K, H, cfg)
+    args = (b.state, b.q0, b.qd0)
     t0 = time.perf_counter()
-    compiled = jax.jit(planner.step).lower(state, q0, qd0).compile()
+    compiled = jax.jit(b.step).lower(*args).compile()
     compile_s = time.perf_counter() - t0
     xla_flops = _flops(compiled)
-    ms = 1e3 * sim_bench.median_time(lambda: jax.block_until_ready(compiled(state, q0, qd0)),
+    ms = 1e3 * sim_bench.median_time(lambda: jax.block_until_ready(compiled(*args)),
                                       cfg.repeats)
-    flops = K * H * control_step_flops(model_name, spec, act, model_cfg, params)
+    flops = K * H * control_step_flops(model_name, b.spec, b.act, b.model_cfg, b.params)
     floor_ms = 1e3 * flops / peak
-    return dict(robot=robot, model=model_name, K=K, H=H, substeps=act.n_substeps,
+    return dict(robot=robot, model=model_name, K=K, H=H, substeps=b.act.n_substeps,
                 unroll=cfg.unroll,
-                nfe=model_cfg.nfe if model.stochastic else None, ms=ms, hz=1e3 / ms,
+                nfe=b.model_cfg.nfe if b.model.stochastic else None, ms=ms, hz=1e3 / ms,
                 gflop=flops / 1e9, xla_gflop=xla_flops / 1e9, floor_ms=floor_ms,
                 ratio=ms / floor_ms if floor_ms > 0 else float("nan"), compile_s=compile_s)
 

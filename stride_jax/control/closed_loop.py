@@ -213,8 +213,10 @@ def make_planning(cfg: ClosedLoopConfig, env_cfg: envs.EnvConfig, sm: sim_model.
     cost = analytic_cost
     if learned_params is not None:
         from stride_jax.control import learned as learned_lib
-        obs_aug = lambda q_aug, qd: obs_of(split(q_aug, nq).q, qd, split(q_aug, nq).command,
-                                           split(q_aug, nq).clock)
+        def obs_aug(q_aug, qd):
+            a = split(q_aug, nq)
+            return obs_of(a.q, qd, a.command, a.clock)
+
         r_cost, value = learned_lib.planner_terms(*learned_params, obs_aug, cfg.value_weight)
 
         def cost(q_aug, qd, u, t):  # the learned reward scores the normalised policy action

@@ -190,8 +190,12 @@ def _factor_from_features(params: dict, spec: ModelSpec, x: jax.Array, cfg: LNNC
 def _mass_from_features(params: dict, spec: ModelSpec, x: jax.Array, cfg: LNNConfig
                         ) -> jax.Array:
     """:func:`mass_matrix` from the network's input features ``x``."""
-    L = _factor_from_features(params, spec, x, cfg)
-    return L @ L.T + cfg.diag_floor * jnp.eye(spec.nv, dtype=L.dtype)
+    return _mass_from_factor(_factor_from_features(params, spec, x, cfg), cfg)
+
+
+def _mass_from_factor(L: jax.Array, cfg: LNNConfig) -> jax.Array:
+    """``M = L L^T + floor I``."""
+    return L @ L.T + cfg.diag_floor * jnp.eye(L.shape[0], dtype=L.dtype)
 
 
 def potential_energy(params: dict, spec: ModelSpec, q: jax.Array,
@@ -235,8 +239,8 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
     # With M = L L^T + floor I every derivative is a product with v (no derivative of M is
     # formed: matrix-vector work, where differentiating L L^T costs batched matrix products).
     u = L.T @ v
-    M = L @ L.T + cfg.diag_floor * jnp.eye(spec.nv, dtype=L.dtype)
-    p = L @ u + cfg.diag_floor * v
+    M = _mass_from_factor(L, cfg)
+    p = L @ u + cfg.diag_floor * v  # M v
     dL = d_terms(T @ v)[0]  # L's rate of change along the motion
     mdot_v = dL @ u + L @ (dL.T @ v)
     # dL/dx of 1/2 |L^T v|^2 - V: the transposed linear map at the cotangent (v u^T, -1).

@@ -226,7 +226,9 @@ def train_flow(x1: np.ndarray, c: np.ndarray, cfg: ResidualConfig,
 
     X, C = jnp.asarray(x1, jnp.float32), jnp.asarray(c, jnp.float32)
     keys = jax.random.split(k_loop, cfg.steps)
-    edges = np.linspace(0, cfg.steps, min(cfg.checks, cfg.steps) + 1).round().astype(int)
+    # One chunk without a score (no host round trips); ``checks`` chunks to score between.
+    chunks = min(cfg.checks, cfg.steps) if score is not None else 1
+    edges = np.linspace(0, cfg.steps, chunks + 1).round().astype(int)
     carry, losses, scores = (params, opt.init(params)), [], []
     best = (math.inf, cfg.steps, params)
     for lo, hi in zip(edges[:-1], edges[1:]):
@@ -236,10 +238,9 @@ def train_flow(x1: np.ndarray, c: np.ndarray, cfg: ResidualConfig,
             scores.append(float(score(carry[0])))
             if scores[-1] < best[0]:
                 best = (scores[-1], int(hi), carry[0])
-    chosen = {"steps": cfg.steps, "checked_at": edges[1:].tolist(), "validation_scores": scores}
-    if score is None:
-        return carry[0], np.concatenate(losses), chosen | {"chosen_step": cfg.steps}
-    return best[2], np.concatenate(losses), chosen | {"chosen_step": best[1]}
+    chosen = {"steps": cfg.steps, "checked_at": edges[1:].tolist() if scores else [],
+              "validation_scores": scores, "chosen_step": best[1]}
+    return (best[2] if scores else carry[0]), np.concatenate(losses), chosen
 
 
 def _validation_split(traj: np.ndarray, share: float) -> tuple[np.ndarray, np.ndarray]:
@@ -274,22 +275,17 @@ def fit_on_top(sm: SimModel, plan: effects.Plan, train: fit.Data, test: fit.Data
     f_scale = _spread(s_tr.force)  # the flow models eps* / f_scale
     fit_idx, val_idx = _validation_split(s_tr.traj, cfg.validation)
 
-    def gap_after(p: dict, sel: np.ndarray) -> float:
-        force = central(p, c_tr[sel], spec.nv, cfg) * f_scale
-        acc = np.linalg.solve(s_tr.mass[sel], force[..., None])[..., 0]
-        return fit.gap(s_tr.r[sel] + acc / scale)
+    def after(p: dict, s: Samples, c: np.ndarray, sel=slice(None)
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The residual's force, acceleration and the scaled residual left, on samples ``sel``."""
+        force = central(p, c[sel], spec.nv, cfg) * f_scale
+        acc = np.linalg.solve(s.mass[sel], force[..., None])[..., 0]
+        return force, acc, s.r[sel] + acc / scale  # the simulator's prediction moves by acc
 
-    params, losses, chosen = train_flow(
-        s_tr.force[fit_idx] / f_scale, c_tr[fit_idx], cfg,
-        (lambda p: gap_after(p, val_idx)) if len(val_idx) else None)
-
-    def after(s: Samples, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        force = central(params, c, spec.nv, cfg) * f_scale
-        acc = np.linalg.solve(s.mass, force[..., None])[..., 0]
-        return force, acc, s.r + acc / scale  # the simulator's prediction moves by acc
-
-    _, _, r_after_tr = after(s_tr, c_tr)
-    force_te, acc_te, r_after_te = after(s_te, c_te)
+    score = (lambda p: fit.gap(after(p, s_tr, c_tr, val_idx)[2])) if len(val_idx) else None
+    params, losses, chosen = train_flow(s_tr.force[fit_idx] / f_scale, c_tr[fit_idx], cfg, score)
+    _, _, r_after_tr = after(params, s_tr, c_tr)
+    force_te, acc_te, r_after_te = after(params, s_te, c_te)
     left, fitted = fit.gap(s_te.r), fit.gap(r_after_te)
     floor = regions.noise_floor(s_te.r, test)
     names = regions.dof_names(sm)
@@ -309,9 +305,9 @@ def fit_on_top(sm: SimModel, plan: effects.Plan, train: fit.Data, test: fit.Data
         "one_step_acc_rmse_after": dict(zip(names, regions.rms(r_after_te * scale, 0).tolist())),
         "force_scale": dict(zip(names, f_scale.tolist())),
         "fm_loss_first": float(losses[:k].mean()), "fm_loss_last": float(losses[-k:].mean()),
-        "early_stopping": chosen | {"validation_trajectories": int(len(np.unique(
-            s_tr.traj[val_idx]))), "validation_gap_left": fit.gap(s_tr.r[val_idx])
-            if len(val_idx) else None},
+        "early_stopping": chosen | {
+            "validation_trajectories": int(len(np.unique(s_tr.traj[val_idx]))),
+            "validation_gap_left": fit.gap(s_tr.r[val_idx]) if len(val_idx) else None},
         "concentration": concentration(sm, test, acc_te / scale, -s_te.r, force_te, scale, bins),
     }
     out["seconds"] = time.time() - t0
