@@ -1,5 +1,7 @@
 """The one interface: every model inits, steps, rolls out under jit and vmap, and refuses bad input."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,9 +17,12 @@ CFG = stride.StructuredConfig(net=mlp.MLPConfig(hidden=16, depth=1), nfe=2)
 Q0 = jnp.zeros(8).at[2].set(0.3).at[3].set(1.0)
 
 
-@pytest.mark.parametrize("name", list(models.MODELS))
+@pytest.mark.parametrize("name", list(models.MODELS) + ["stride-shared"])
 def test_every_model_jits_vmaps_and_rolls_out(name):
-    model = models.make(name, SPEC, ACT, CFG)
+    """(``stride-shared``: STRIDE with one network for L and V.)"""
+    shared = name.endswith("-shared")
+    model = models.make(name.removesuffix("-shared"), SPEC, ACT,
+                        dataclasses.replace(CFG, shared_lnn=shared))
     params = model.init(jax.random.key(0))
     # Perturb the zero-initialised last layers so that outputs depend on inputs and keys.
     params = jax.tree.map(lambda w: w + 0.05 * jax.random.normal(jax.random.key(1), w.shape),

@@ -109,11 +109,14 @@ def test_untrained_flow_is_the_identity_transport():
     np.testing.assert_allclose(flow.integrate(params, z0, jnp.zeros(2), cfg), z0)
 
 
+@pytest.mark.parametrize("shared", [False, True], ids=["two-nets", "shared"])
 @pytest.mark.parametrize("spec", [GO1_SPEC, PENDULUM_SPEC], ids=["go1", "pendulum"])
-def test_feature_space_lagrangian_terms_equal_the_reference(spec):
+def test_feature_space_lagrangian_terms_equal_the_reference(spec, shared):
     """``lnn_terms`` (derivatives split at the networks' features) equals ``bias_force`` through
-    the retraction, for a floating base with a gravity term and for periodic hinge features."""
-    cfg = lagrangian.LNNConfig(net=mlp.MLPConfig(hidden=32, depth=2), mass_init=12.0)
+    the retraction, for a floating base with a gravity term and for periodic hinge features,
+    with L and V from two networks or from one."""
+    cfg = lagrangian.LNNConfig(net=mlp.MLPConfig(hidden=32, depth=2), mass_init=12.0,
+                               shared=shared)
     with jax.enable_x64(True):
         params = jax.tree.map(lambda w: 2.0 * jnp.asarray(w, jnp.float64),
                               lagrangian.lnn_init(jax.random.key(0), spec, cfg))
@@ -126,3 +129,5 @@ def test_feature_space_lagrangian_terms_equal_the_reference(spec):
     for a, b in zip(fast, ref):
         assert np.abs(np.asarray(b)).max() > 1e-3  # not trivially zero
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9)
+    assert set(params) == ({"shared"} if shared else {"mass", "potential"}) | (
+        {"log_mass"} if cfg.learn_mass else set())

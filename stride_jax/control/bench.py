@@ -42,6 +42,7 @@ class BenchConfig:
       horizons: comma-separated H values.
       hidden, depth: network size (the paper's: 256 x 3).
       nfe: residual evaluations for generative models (0: each model's default).
+      shared_lnn: structured models with one network for L and V (``LNNConfig.shared``).
       substeps: model evaluations per control step in the planner's rollouts (0: the robot's
         simulation substeps; 1 integrates at the control period, with the implicit servo).
       unroll: horizon steps per loop iteration of the planner's rollouts (0: the whole horizon;
@@ -57,6 +58,7 @@ class BenchConfig:
     hidden: int = 256
     depth: int = 3
     nfe: int = 0
+    shared_lnn: bool = False
     substeps: int = 0
     unroll: int = 1
     repeats: int = 5
@@ -162,7 +164,8 @@ def setup(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig) -> Setu
     if cfg.substeps:
         act = dataclasses.replace(act, dt=act.dt * act.n_substeps / cfg.substeps,
                                   n_substeps=cfg.substeps)
-    model_cfg = job.model_config(model_name, meta, cfg.hidden, cfg.depth, cfg.nfe)
+    model_cfg = job.model_config(model_name, meta, cfg.hidden, cfg.depth, cfg.nfe,
+                                 cfg.shared_lnn)
     model = models.make(model_name, spec, act, model_cfg, stride.Scales())
     params = model.init(jax.random.key(0))
     lo, hi = np.asarray(meta["ctrl_range"], np.float32).T
@@ -225,8 +228,8 @@ def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> path
              f"{env['peak_gflops']:.0f} GFLOP/s; jax {env['jax']}; XLA_FLAGS "
              f"`{env['xla_flags'] or '-'}`; rollouts unrolled "
              f"{'fully' if not cfg.unroll else f'{cfg.unroll} step(s) per loop iteration'}. "
-             f"Networks {cfg.hidden} x "
-             f"{cfg.depth} at initialisation; one jitted planning step (K rollouts of H control "
+             f"Networks {cfg.hidden} x {cfg.depth}"
+             f"{' (L and V from one network)' if cfg.shared_lnn else ''} at initialisation; one jitted planning step (K rollouts of H control "
              "steps, each the robot's simulation substeps) with block_until_ready; median of "
              f"{cfg.repeats}. FLOP floor = K x H x the FLOPs of one model control step "
              "(`control_step_flops`: counted without loops) / peak; the planner's own work "

@@ -82,6 +82,11 @@ class LNNConfig:
     and 27 kg (DeLaN) from the true 33 kg -- in stance, gravity and the feet's vertical forces
     trade off along directions the data barely constrains -- and the stance forces read from the
     residual carried the difference (~50 N). A team knows its robot's mass to a few percent.
+
+    ``shared``: L's entries and V from one network (shared hidden layers, one more output), as in
+    the original DeLaN (Lutter et al., 2019), instead of two. Each pass through the prior is then
+    one network pass where it was two: the planner's model step costs less (measured in
+    ``results/README.md``), for what accuracy ``experiments/planning_sizes.sh`` measures.
     """
 
     net: mlp.MLPConfig = mlp.MLPConfig()
@@ -89,6 +94,7 @@ class LNNConfig:
     gravity: float = 9.81
     mass_init: float = 1.0
     learn_mass: bool = False
+    shared: bool = False
 
 
 def q_features(spec: ModelSpec, q: jax.Array, height: bool = True) -> jax.Array:
@@ -121,13 +127,15 @@ def _n_mass_outputs(spec: ModelSpec) -> int:
 
 
 def lnn_init(key: jax.Array, spec: ModelSpec, cfg: LNNConfig = LNNConfig()) -> dict:
-    """Parameters of the Cholesky-factor network, of V(q) and, for a floating base with
-    ``learn_mass``, the log of the total mass."""
+    """Parameters of the Cholesky-factor network and of V(q) (``shared``: of the one network
+    with both) and, for a floating base with ``learn_mass``, the log of the total mass."""
     key_m, key_v = jax.random.split(key)
-    init_m, _ = mlp.mlp(cfg.net, _n_mass_outputs(spec))
-    init_v, _ = mlp.mlp(cfg.net, 1)
-    params = {"mass": init_m(key_m, _n_features(spec)),
-              "potential": init_v(key_v, _n_features(spec))}
+    n_out = _n_mass_outputs(spec)
+    if cfg.shared:
+        params = {"shared": mlp.mlp(cfg.net, n_out + 1)[0](key_m, _n_features(spec))}
+    else:
+        params = {"mass": mlp.mlp(cfg.net, n_out)[0](key_m, _n_features(spec)),
+                  "potential": mlp.mlp(cfg.net, 1)[0](key_v, _n_features(spec))}
     if spec.floating_base and cfg.learn_mass:
         params["log_mass"] = jnp.log(jnp.asarray(cfg.mass_init, jnp.float32))
     return params
@@ -172,12 +180,32 @@ def mass_matrix(params: dict, spec: ModelSpec, q: jax.Array,
     return _mass_from_features(params, spec, q_features(spec, q, height=False), cfg)
 
 
+def _networks(params: dict, spec: ModelSpec, x: jax.Array, cfg: LNNConfig
+              ) -> tuple[jax.Array, jax.Array]:
+    """``(raw [n_out], V_net [])`` from the input features ``x``: the factor network's outputs
+    and the learned part of V."""
+    n_out = _n_mass_outputs(spec)
+    if cfg.shared:
+        out = mlp.mlp(cfg.net, n_out + 1)[1](params["shared"], x)
+        return out[:n_out], out[n_out]
+    return (mlp.mlp(cfg.net, n_out)[1](params["mass"], x),
+            mlp.mlp(cfg.net, 1)[1](params["potential"], x)[0])
+
+
 def _factor_from_features(params: dict, spec: ModelSpec, x: jax.Array, cfg: LNNConfig
                           ) -> jax.Array:
     """The Cholesky factor ``L`` ``[nv, nv]`` of :func:`mass_matrix` (without the floor) from
     the network's input features ``x``."""
-    _, apply = mlp.mlp(cfg.net, _n_mass_outputs(spec))
-    raw = apply(params["mass"], x)
+    if cfg.shared:
+        raw = _networks(params, spec, x, cfg)[0]
+    else:
+        raw = mlp.mlp(cfg.net, _n_mass_outputs(spec))[1](params["mass"], x)
+    return _factor_from_raw(params, spec, raw, cfg)
+
+
+def _factor_from_raw(params: dict, spec: ModelSpec, raw: jax.Array, cfg: LNNConfig
+                     ) -> jax.Array:
+    """L from the factor network's outputs ``raw``."""
     index, diag = _factor_layout(spec)
     # One gather from the outputs, the softplus of the diagonal ones, sqrt(m) and zero: no
     # scatters, and transcendentals on the diagonal only (a softplus over all of L, masked,
@@ -207,8 +235,11 @@ def potential_energy(params: dict, spec: ModelSpec, q: jax.Array,
     with the same ``m`` as M's translational block. Without this tie the prior can fold the mean
     contact force of standing into a weaker "gravity" and leave the feet unloaded.
     """
-    _, apply = mlp.mlp(cfg.net, 1)
-    v = apply(params["potential"], q_features(spec, q, height=False))[0]
+    x = q_features(spec, q, height=False)
+    if cfg.shared:
+        v = _networks(params, spec, x, cfg)[1]
+    else:
+        v = mlp.mlp(cfg.net, 1)[1](params["potential"], x)[0]
     if spec.floating_base:
         v = v + total_mass(params, cfg) * cfg.gravity * q[2]
     return v
@@ -231,21 +262,24 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
     fb = spec.floating_base
     zero = jnp.zeros(spec.nv, v.dtype)
     features = lambda delta: q_features(spec, retract(q, delta, fb), height=False)
-    x0, T = features(zero), jax.jacfwd(features)(zero)
-    _, potential_net = mlp.mlp(cfg.net, 1)
-    (L, _), d_terms = jax.linearize(
-        lambda x: (_factor_from_features(params, spec, x, cfg),
-                   potential_net(params["potential"], x)[0]), x0)
+    x0, dx = jax.linearize(features, zero)  # dx(delta) = T delta
+
+    def factor_and_potential(x):
+        raw, v_net = _networks(params, spec, x, cfg)
+        return _factor_from_raw(params, spec, raw, cfg), v_net
+
+    (L, _), d_terms = jax.linearize(factor_and_potential, x0)
     # With M = L L^T + floor I every derivative is a product with v (no derivative of M is
     # formed: matrix-vector work, where differentiating L L^T costs batched matrix products).
     u = L.T @ v
     M = _mass_from_factor(L, cfg)
     p = L @ u + cfg.diag_floor * v  # M v
-    dL = d_terms(T @ v)[0]  # L's rate of change along the motion
+    dL = d_terms(dx(v))[0]  # L's rate of change along the motion
     mdot_v = dL @ u + L @ (dL.T @ v)
     # dL/dx of 1/2 |L^T v|^2 - V: the transposed linear map at the cotangent (v u^T, -1).
     (dl_dx,) = jax.linear_transpose(d_terms, x0)((jnp.outer(v, u), -jnp.ones((), v.dtype)))
-    b = mdot_v - T.T @ dl_dx
+    (dl_dq,) = jax.linear_transpose(dx, zero)(dl_dx)  # T^T dl_dx
+    b = mdot_v - dl_dq
     if fb:
         # V's exact gravity term m g z (world z: the first three tangents translate the base)
         up = np.zeros(spec.nv, v.dtype)

@@ -74,7 +74,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from stride_jax.dynamics import generative, lagrangian, mlp
+from stride_jax.dynamics import generative, lagrangian, linalg, mlp
 from stride_jax.types import ModelSpec
 
 
@@ -95,6 +95,7 @@ class StructuredConfig:
     eta: float = 1.0
     mass_init: float = 1.0  # floating bases: total mass (kg), see LNNConfig
     learn_mass: bool = False
+    shared_lnn: bool = False  # one network for L and V (LNNConfig.shared)
     implicit_servo: bool = True  # rollouts: servo PD at the next state (Actuation.implicit)
     fm_weight: float = 1.0
     residual_weight: float = 0.1
@@ -102,7 +103,8 @@ class StructuredConfig:
     @property
     def lnn(self) -> lagrangian.LNNConfig:
         return lagrangian.LNNConfig(net=self.net, diag_floor=self.diag_floor,
-                                    mass_init=self.mass_init, learn_mass=self.learn_mass)
+                                    mass_init=self.mass_init, learn_mass=self.learn_mass,
+                                    shared=self.shared_lnn)
 
     def generator(self, kind: str) -> generative.Generator:
         return generative.make(kind, self.net, self.nfe, self.integrator, self.diffusion_steps,
@@ -185,8 +187,7 @@ def acceleration(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual:
     if servo is not None:
         tau, extra = servo
         M = M + jnp.diag(extra)
-    cho = jax.scipy.linalg.cho_factor(M)
-    return jax.scipy.linalg.cho_solve(cho, tau - b + eps), eps
+    return linalg.spd_solve(M, tau - b + eps), eps
 
 
 def terms(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,

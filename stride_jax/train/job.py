@@ -30,6 +30,7 @@ class TrainConfig(loop.LoopConfig):
       hidden, depth: width and depth of every network of the model.
       nfe: network evaluations per sample of a generative model; 0 means the model's default
         (``models.DEFAULT_NFE``: 2 for the flow, 10 for diffusion).
+      shared_lnn: structured models: L and V from one network (``LNNConfig.shared``).
       out: run folder; empty means ``runs/<robot>/<model>``.
     """
 
@@ -40,6 +41,7 @@ class TrainConfig(loop.LoopConfig):
     hidden: int = 128
     depth: int = 3
     nfe: int = 0
+    shared_lnn: bool = False
     out: str = ""
 
 
@@ -60,8 +62,8 @@ def spec_from_meta(meta: dict) -> ModelSpec:
                      periodic=tuple(meta["periodic"]))
 
 
-def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0
-                 ) -> stride.StructuredConfig:
+def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0,
+                 shared_lnn: bool = False) -> stride.StructuredConfig:
     """Sizes for ``model``; ``nfe=0`` takes its default. Floating bases start the learned total
     mass at the nominal model's (a spec-sheet number)."""
     if model not in models.MODELS:
@@ -69,7 +71,8 @@ def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0
     nfe = nfe or models.DEFAULT_NFE.get(models.MODELS[model][1], 2)
     mass = meta.get("total_mass") or float(sim_model.load(meta["robot"]).mj.body_mass.sum())
     return stride.StructuredConfig(net=mlp.MLPConfig(hidden, depth), nfe=nfe,
-                                   mass_init=mass if meta["floating_base"] else 1.0)
+                                   mass_init=mass if meta["floating_base"] else 1.0,
+                                   shared_lnn=shared_lnn)
 
 
 def scales(ds: dataset.Dataset) -> stride.Scales:
@@ -98,7 +101,7 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
     if "act_dof" not in ds.meta:
         raise dataset.DatasetError(f"{data_dir} predates actuator metadata; regenerate it")
     spec = spec_from_meta(ds.meta)
-    model_cfg = model_config(cfg.model, ds.meta, cfg.hidden, cfg.depth, cfg.nfe)
+    model_cfg = model_config(cfg.model, ds.meta, cfg.hidden, cfg.depth, cfg.nfe, cfg.shared_lnn)
     act = models.Actuation.from_meta(ds.meta)
     sc = scales(ds)
     model = models.make(cfg.model, spec, act, model_cfg, sc)
