@@ -75,8 +75,9 @@ bench-sim: setup
 	$(BIN)/stride bench-sim --preset $(PRESET)
 
 ## bench-mppi: jitted MPPI step latency per robot, model, K, H -> results/bench_mppi_<cpu|gpu>.md
+## (on a CPU the samples are split over one XLA host device per core: STRIDE_HOST_DEVICES=auto)
 bench-mppi: setup
-	$(BIN)/stride bench-mppi --preset $(PRESET)
+	STRIDE_HOST_DEVICES=$${STRIDE_HOST_DEVICES:-auto} $(BIN)/stride bench-mppi --preset $(PRESET)
 
 ## gap-bench: blind benchmark of the sim-to-real gap tool -> results/gap_bench.md
 ## (GAP=tiny: the pendulum, ~8 min on 2 cores; GAP=default: Go1)

@@ -13,3 +13,17 @@ CPU_SAFE_XLA_FLAGS = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 
 if "XLA_FLAGS" not in os.environ:
     os.environ["XLA_FLAGS"] = CPU_SAFE_XLA_FLAGS
+
+# STRIDE_HOST_DEVICES=N (or "auto": one per core) splits the CPU into N XLA host devices, over which
+# the MPPI planner shards its samples (``control.mppi.sample_sharding``): XLA runs one device's
+# small operations one at a time, so on a small CPU this is what puts both cores to work.
+_host_devices = os.environ.get("STRIDE_HOST_DEVICES", "")
+if _host_devices and "xla_force_host_platform_device_count" not in os.environ["XLA_FLAGS"]:
+    if _host_devices == "auto":
+        _n = os.cpu_count() or 1
+    elif _host_devices.isdigit() and int(_host_devices) > 0:
+        _n = int(_host_devices)
+    else:
+        raise ValueError(f"STRIDE_HOST_DEVICES must be a positive integer or 'auto', got "
+                         f"{_host_devices!r}")
+    os.environ["XLA_FLAGS"] += f" --xla_force_host_platform_device_count={_n}"

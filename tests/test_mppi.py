@@ -121,3 +121,12 @@ def test_bench_counts_every_model_evaluation(tmp_path):
         act, n_substeps=2 * act.n_substeps), cfg, params)
     more = bench.control_step_flops("stride", spec, act, dataclasses.replace(cfg, nfe=4), params)
     assert base > 0 and twice == pytest.approx(2 * base) and more > base
+
+
+def test_sharding_needs_sample_groups_that_split_over_its_devices():
+    mesh = jax.sharding.Mesh(np.array(jax.local_devices()[:1] * 2), ("samples",))
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("samples"))
+    cfg = mppi.MPPIConfig(samples=9, horizon=4)
+    with pytest.raises(ValueError, match="split evenly"):
+        mppi.make(cfg, lambda q, qd, u, k: (q, qd), lambda q, qd, u, t: 0.0, -jnp.ones(1),
+                  jnp.ones(1), sharding=sharding)

@@ -1,4 +1,5 @@
-"""Rollouts and training shard over devices: two forced host devices give the one-device answer.
+"""Rollouts, training and the MPPI planner shard over devices: two forced host devices give the
+one-device answer.
 
 One subprocess per device count does both (importing JAX and MJX twice is most of the cost)."""
 
@@ -21,6 +22,21 @@ cli.main(["train", "--robot", "pendulum", "--preset", "tiny", "--steps", "20", "
           "--eval-every", "10", "--data", data, "--out", out + "/run"])
 _, params = models.load(out + "/run")
 np.save(out + "/params.npy", np.concatenate([np.ravel(x) for x in jax.tree.leaves(params)]))
+# MPPI with a stochastic double integrator, its samples split over the devices.
+import jax.numpy as jnp
+from stride_jax.control import mppi
+def dynamics(q, qd, u, k):
+    qd = qd + 0.05 * (u + 0.1 * jax.random.normal(k, u.shape))
+    return q + 0.05 * qd, qd
+cost = lambda q, qd, u, t: jnp.sum((q - 1.0) ** 2) + 0.01 * jnp.sum(u ** 2)
+cfg = mppi.MPPIConfig(samples=64, horizon=8, policy_samples=2)
+planner = mppi.make(cfg, dynamics, cost, -jnp.ones(2), jnp.ones(2), policy=lambda q, qd: -q,
+                    sharding=mppi.sample_sharding())
+step = jax.jit(planner.step)
+state, q = planner.init(jax.random.key(0)), jnp.zeros(2)
+for _ in range(3):
+    u, state, info = step(state, q, jnp.zeros(2))
+np.save(out + "/plan.npy", np.asarray(state.plan))
 """
 
 
@@ -44,3 +60,6 @@ def test_rollouts_and_training_on_two_devices_match_one(tmp_path):
     params = [np.load(o / "params.npy") for o in outs]
     assert np.abs(params[0]).max() > 0
     np.testing.assert_allclose(params[1], params[0], atol=1e-5, rtol=1e-4)
+    plans = [np.load(o / "plan.npy") for o in outs]
+    assert np.abs(plans[0]).max() > 0.1  # the planner moved
+    np.testing.assert_allclose(plans[1], plans[0], atol=1e-4)  # float rounding, 3 steps

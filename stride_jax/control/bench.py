@@ -170,7 +170,8 @@ def setup(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig) -> Setu
     params = model.init(jax.random.key(0))
     lo, hi = np.asarray(meta["ctrl_range"], np.float32).T
     planner = mppi.make(mppi.MPPIConfig(samples=K, horizon=H, unroll=cfg.unroll or True),
-                        functools.partial(model.step, params), tracking_cost(spec), lo, hi)
+                        functools.partial(model.step, params), tracking_cost(spec), lo, hi,
+                        sharding=mppi.sample_sharding())
     q0 = jnp.asarray(sm.info.qpos0)
     state = planner.init(jax.random.key(1), jnp.broadcast_to(q0[
         np.asarray(act.dof) + (1 if spec.floating_base else 0)], (H, len(lo))))
@@ -225,7 +226,9 @@ def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> path
                                                                  indent=1))
     lines = [f"# MPPI step latency ({tag})", "", f"Command: `{command}`", "",
              f"Device: {env['device']} ({env['backend']}), measured float32 matmul peak "
-             f"{env['peak_gflops']:.0f} GFLOP/s; jax {env['jax']}; XLA_FLAGS "
+             f"{env['peak_gflops']:.0f} GFLOP/s; {env['n_devices']} device(s), the samples "
+             "split over them; "
+             f"jax {env['jax']}; XLA_FLAGS "
              f"`{env['xla_flags'] or '-'}`; rollouts unrolled "
              f"{'fully' if not cfg.unroll else f'{cfg.unroll} step(s) per loop iteration'}. "
              f"Networks {cfg.hidden} x {cfg.depth}"

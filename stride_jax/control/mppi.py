@@ -17,6 +17,13 @@ Sec. IV-B):
 
 ``make`` returns ``init`` and ``step``, pure functions of an immutable :class:`MPPIState`; jit
 ``step`` once per (samples, horizon, model) and call it every control period.
+
+Several devices: ``make(..., sharding=sample_sharding())`` splits the rollouts over all local
+devices. On a CPU this is how a planner uses more than one core: XLA runs one device's small
+operations one after another (a model step at K=128 is ~150 of them, each too small to split),
+so ``STRIDE_HOST_DEVICES=2`` (two host devices, see ``stride_jax/_env.py``) runs two halves of
+the samples side by side. Measured on a 2-core CPU, Go1 STRIDE 64 x 3 (one network for L and
+V), K=128, H=16: 22.7 -> 12.5 ms per planning step, the same plan to float rounding (tested).
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import NamedSharding, PartitionSpec
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,14 +109,26 @@ class Planner(NamedTuple):
 Dynamics = Callable[[jax.Array, jax.Array, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
 
 
+def sample_sharding() -> NamedSharding | None:
+    """The samples split over all local devices (None on one device)."""
+    devices = jax.local_devices()
+    if len(devices) == 1:
+        return None
+    return NamedSharding(jax.sharding.Mesh(np.array(devices), ("samples",)),
+                         PartitionSpec("samples"))
+
+
 def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo, action_hi,
-         terminal_value: Callable | None = None, policy: Callable | None = None) -> Planner:
+         terminal_value: Callable | None = None, policy: Callable | None = None,
+         sharding: NamedSharding | None = None) -> Planner:
     """An MPPI planner for ``dynamics(q, qd, action, key) -> (q', qd')``.
 
     ``running_cost(q, qd, action, t) -> []`` is the cost of taking ``action`` at ``(q, qd)`` at
     horizon step ``t``; ``terminal_value(q, qd) -> []`` is subtracted at the end of the horizon;
     ``policy(q, qd) -> action`` proposes ``cfg.policy_samples`` sequences. Model parameters are
-    closed over: ``dynamics = partial(model.step, params)``.
+    closed over: ``dynamics = partial(model.step, params)``. ``sharding`` (of a leading sample
+    axis, :func:`sample_sharding`) spreads the rollouts over devices; the number of noise and of
+    policy samples must each split evenly over them.
     """
     lo, hi = jnp.asarray(action_lo, jnp.float32), jnp.asarray(action_hi, jnp.float32)
     if lo.ndim != 1 or lo.shape != hi.shape:
@@ -118,6 +138,13 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
     if cfg.policy_samples and policy is None:
         raise ValueError(f"policy_samples={cfg.policy_samples} needs a policy")
     nu, H, K = lo.shape[0], cfg.horizon, cfg.samples
+    if sharding is not None:
+        n_dev = sharding.mesh.size
+        if (K - cfg.policy_samples) % n_dev or cfg.policy_samples % n_dev:
+            raise ValueError(f"samples={K} with policy_samples={cfg.policy_samples}: both groups "
+                             f"must split evenly over the sharding's {n_dev} devices")
+    shard = (lambda x: x) if sharding is None else (
+        lambda x: jax.lax.with_sharding_constraint(x, sharding))
     std = jnp.broadcast_to(jnp.asarray(cfg.noise_std, jnp.float32), (nu,))
     value = terminal_value or (lambda q, qd: jnp.zeros(()))
 
@@ -172,10 +199,10 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
         candidates = jnp.clip(plan[None] + noise(key_noise), lo, hi)
         n_noise = K - cfg.policy_samples
         costs, actions = jax.vmap(rollout, in_axes=(None, None, 0, 0))(
-            q, qd, candidates[:n_noise], jax.random.split(key_roll, n_noise))
+            q, qd, shard(candidates[:n_noise]), shard(jax.random.split(key_roll, n_noise)))
         if cfg.policy_samples:
             p_costs, p_actions = jax.vmap(policy_rollout, in_axes=(None, None, 0))(
-                q, qd, jax.random.split(key_pol, cfg.policy_samples))
+                q, qd, shard(jax.random.split(key_pol, cfg.policy_samples)))
             costs = jnp.concatenate([costs, p_costs])
             actions = jnp.concatenate([actions, p_actions])
         costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)  # a diverged rollout gets no weight
