@@ -34,7 +34,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.experimental.compute_on import compute_on
+from jax.experimental import compute_on
 from jax.sharding import NamedSharding, PartitionSpec
 
 
@@ -118,6 +118,15 @@ class Planner(NamedTuple):
 Dynamics = Callable[[jax.Array, jax.Array, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
 
 
+def _on_stream(f: Callable, stream: int) -> Callable:
+    """``f`` (jitted) run on CUDA stream ``stream`` (JAX's experimental stream annotation, whose
+    signature changed between releases)."""
+    from jax._src.core import MemorySpace
+
+    wrap = getattr(compute_on, "compute_on2", compute_on.compute_on)
+    return wrap(f, compute_type=f"gpu_stream:{stream}", out_memory_spaces=MemorySpace.Device)
+
+
 def sample_sharding() -> NamedSharding | None:
     """The samples split over all local devices (None on one device)."""
     devices = jax.local_devices()
@@ -197,10 +206,9 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
     def rollouts(q, qd, candidates, keys):
         if streams == 1:
             return batched(q, qd, candidates, keys)
-        outs = []
-        for i, (c, k) in enumerate(zip(jnp.split(candidates, streams), jnp.split(keys, streams))):
-            with compute_on(f"gpu_stream:{i + 1}"):
-                outs.append(jax.jit(batched)(q, qd, c, k))
+        outs = [_on_stream(jax.jit(batched), i + 1)(q, qd, c, k)
+                for i, (c, k) in enumerate(zip(jnp.split(candidates, streams),
+                                               jnp.split(keys, streams)))]
         return tuple(jnp.concatenate(x) for x in zip(*outs))
 
     # AR(1) noise along the horizon, e_0 = w_0, e_t = rho e_(t-1) + sqrt(1 - rho^2) w_t (unit
