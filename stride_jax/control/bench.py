@@ -47,7 +47,6 @@ class BenchConfig:
         simulation substeps; 1 integrates at the control period, with the implicit servo).
       unroll: horizon steps per loop iteration of the planner's rollouts (0: the whole horizon;
         see ``MPPIConfig.unroll``).
-      streams: GPU: CUDA streams the rollouts are split over (``MPPIConfig.streams``).
       repeats: timed planning steps per measurement (median reported).
       out: results folder (``bench_mppi_<cpu|gpu>.json`` and ``.md``).
     """
@@ -62,7 +61,6 @@ class BenchConfig:
     shared_lnn: bool = False
     substeps: int = 0
     unroll: int = 1
-    streams: int = 1
     repeats: int = 5
     out: str = "results"
 
@@ -171,8 +169,7 @@ def setup(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig) -> Setu
     model = models.make(model_name, spec, act, model_cfg, stride.Scales())
     params = model.init(jax.random.key(0))
     lo, hi = np.asarray(meta["ctrl_range"], np.float32).T
-    planner = mppi.make(mppi.MPPIConfig(samples=K, horizon=H, unroll=cfg.unroll or True,
-                                        streams=cfg.streams),
+    planner = mppi.make(mppi.MPPIConfig(samples=K, horizon=H, unroll=cfg.unroll or True),
                         functools.partial(model.step, params), tracking_cost(spec), lo, hi,
                         sharding=mppi.sample_sharding())
     q0 = jnp.asarray(sm.info.qpos0)
@@ -195,7 +192,7 @@ def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
     flops = K * H * control_step_flops(model_name, b.spec, b.act, b.model_cfg, b.params)
     floor_ms = 1e3 * flops / peak
     return dict(robot=robot, model=model_name, K=K, H=H, substeps=b.act.n_substeps,
-                unroll=cfg.unroll, streams=cfg.streams, shared_lnn=cfg.shared_lnn,
+                unroll=cfg.unroll,
                 nfe=b.model_cfg.nfe if b.model.stochastic else None, ms=ms, hz=1e3 / ms,
                 gflop=flops / 1e9, xla_gflop=xla_flops / 1e9, floor_ms=floor_ms,
                 ratio=ms / floor_ms if floor_ms > 0 else float("nan"), compile_s=compile_s)

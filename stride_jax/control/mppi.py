@@ -34,7 +34,6 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.experimental import compute_on
 from jax.sharding import NamedSharding, PartitionSpec
 
 
@@ -56,10 +55,6 @@ class MPPIConfig:
         no loop, one CUDA graph on a GPU). Measured: Go1 STRIDE, K=1024, H=30 on an H100, 9.0 ms
         unrolled against 9.5 ms looped (within run-to-run noise); on a 2-core CPU no faster,
         and compilation takes ~2.5x longer.
-      streams: GPU only: the noise samples in this many groups, each rolled out on its own CUDA
-        stream (``jax.experimental.compute_on``), so that the groups' small kernels overlap
-        (a planning step is a sequence of ~80 small kernels per horizon step; see
-        ``results/README.md`` for what it measured). Ignored on other backends.
     """
 
     samples: int = 128
@@ -71,7 +66,6 @@ class MPPIConfig:
     iterations: int = 1
     normalize: bool = True
     unroll: int | bool = 1
-    streams: int = 1
 
     def __post_init__(self):
         problems = []
@@ -89,9 +83,6 @@ class MPPIConfig:
             problems.append(f"policy_samples={self.policy_samples} must be in [0, samples]")
         if self.iterations < 1:
             problems.append(f"iterations={self.iterations} must be >= 1")
-        if self.streams < 1 or (self.samples - self.policy_samples) % self.streams:
-            problems.append(f"streams={self.streams} must be >= 1 and split the "
-                            f"{self.samples - self.policy_samples} noise samples evenly")
         if not isinstance(self.unroll, bool) and self.unroll < 1:
             problems.append(f"unroll={self.unroll} must be >= 1 or True")
         if problems:
@@ -116,15 +107,6 @@ class Planner(NamedTuple):
 
 
 Dynamics = Callable[[jax.Array, jax.Array, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
-
-
-def _on_stream(f: Callable, stream: int) -> Callable:
-    """``f`` (jitted) run on CUDA stream ``stream`` (JAX's experimental stream annotation, whose
-    signature changed between releases)."""
-    from jax._src.core import MemorySpace
-
-    wrap = getattr(compute_on, "compute_on2", compute_on.compute_on)
-    return wrap(f, compute_type=f"gpu_stream:{stream}", out_memory_spaces=MemorySpace.Device)
 
 
 def sample_sharding() -> NamedSharding | None:
@@ -200,17 +182,6 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
                                               unroll=cfg.unroll)
         return cost - value(q, qd), actions
 
-    batched = jax.vmap(rollout, in_axes=(None, None, 0, 0))
-    streams = cfg.streams if jax.default_backend() == "gpu" else 1
-
-    def rollouts(q, qd, candidates, keys):
-        if streams == 1:
-            return batched(q, qd, candidates, keys)
-        outs = [_on_stream(jax.jit(batched), i + 1)(q, qd, c, k)
-                for i, (c, k) in enumerate(zip(jnp.split(candidates, streams),
-                                               jnp.split(keys, streams)))]
-        return tuple(jnp.concatenate(x) for x in zip(*outs))
-
     # AR(1) noise along the horizon, e_0 = w_0, e_t = rho e_(t-1) + sqrt(1 - rho^2) w_t (unit
     # variance at every step), as one matrix product e = A w with A[t, s] = rho^(t-s) c_s: no
     # sequential loop (on a GPU, a loop of H tiny steps costs more than the product).
@@ -227,8 +198,8 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
         key_noise, key_roll, key_pol = jax.random.split(key, 3)
         candidates = jnp.clip(plan[None] + noise(key_noise), lo, hi)
         n_noise = K - cfg.policy_samples
-        costs, actions = rollouts(q, qd, shard(candidates[:n_noise]),
-                                  shard(jax.random.split(key_roll, n_noise)))
+        costs, actions = jax.vmap(rollout, in_axes=(None, None, 0, 0))(
+            q, qd, shard(candidates[:n_noise]), shard(jax.random.split(key_roll, n_noise)))
         if cfg.policy_samples:
             p_costs, p_actions = jax.vmap(policy_rollout, in_axes=(None, None, 0))(
                 q, qd, shard(jax.random.split(key_pol, cfg.policy_samples)))
