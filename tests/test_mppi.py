@@ -130,3 +130,27 @@ def test_sharding_needs_sample_groups_that_split_over_its_devices():
     with pytest.raises(ValueError, match="split evenly"):
         mppi.make(cfg, lambda q, qd, u, k: (q, qd), lambda q, qd, u, t: 0.0, -jnp.ones(1),
                   jnp.ones(1), sharding=sharding)
+
+
+def test_policy_noise_perturbs_the_policy_in_closed_loop():
+    """Without noise every candidate is the policy's own rollout, so the plan is exactly the
+    actions the policy takes inside the model; with noise the candidates spread around it."""
+    import dataclasses
+
+    policy = lambda q, qd: -3.0 * q - 1.0 * qd  # a PD law, evaluated at each predicted state
+    q0, qd0 = jnp.array([0.5]), jnp.array([0.0])
+    cfg = mppi.MPPIConfig(samples=16, horizon=6, noise_std=0.0, policy_noise=True)
+    planner = mppi.make(cfg, pendulum, cost, [-U_MAX], [U_MAX], policy=policy)
+    u, state, info = jax.jit(planner.step)(planner.init(jax.random.key(0)), q0, qd0)
+    expected, q, qd = [], q0, qd0
+    for _ in range(6):
+        expected.append(policy(q, qd))
+        q, qd = pendulum(q, qd, expected[-1])
+    np.testing.assert_allclose(state.plan, jnp.stack(expected), rtol=1e-5, atol=1e-6)
+    assert float(jnp.ptp(info.costs)) < 1e-4  # identical candidates
+    noisy = mppi.make(dataclasses.replace(cfg, noise_std=1.0), pendulum, cost, [-U_MAX], [U_MAX],
+                      policy=policy)
+    _, _, info = jax.jit(noisy.step)(noisy.init(jax.random.key(0)), q0, qd0)
+    assert float(jnp.ptp(info.costs)) > 1e-3
+    with pytest.raises(ValueError, match="policy_noise needs a policy"):
+        mppi.make(cfg, pendulum, cost, [-U_MAX], [U_MAX])

@@ -69,6 +69,8 @@ class ClosedLoopConfig:
       gait_noise: exploration std of the gait frequency (Hz); duty 0.15x, offsets 0.25x this.
       policy: PPO run folder supplying candidates (and the ``policy`` model); "" for none.
       policy_samples: MPPI candidates rolled out by the policy.
+      policy_noise: the other candidates perturb the policy in closed loop instead of the plan
+        (``MPPIConfig.policy_noise``).
       learned: learned reward/value file (``reward_value.msgpack``); "" for the analytic cost.
       value_weight: weight of the learned terminal value.
       fall_cost: planner cost per step spent fallen (reward units per step).
@@ -95,6 +97,7 @@ class ClosedLoopConfig:
     gait_noise: float = 0.2
     policy: str = ""
     policy_samples: int = 0
+    policy_noise: bool = False
     learned: str = ""
     value_weight: float = 1.0
     fall_cost: float = 1.0
@@ -267,6 +270,7 @@ def mppi_config(cfg: ClosedLoopConfig, planning: Planning) -> mppi.MPPIConfig:
     return mppi.MPPIConfig(samples=cfg.samples, horizon=cfg.horizon, temperature=cfg.temperature,
                            noise_std=planning.noise, smoothing=cfg.smoothing,
                            policy_samples=cfg.policy_samples if planning.policy else 0,
+                           policy_noise=cfg.policy_noise,
                            iterations=cfg.iterations)
 
 

@@ -49,6 +49,10 @@ class MPPIConfig:
       noise_std: exploration standard deviation, in action units (scalar or per action).
       smoothing: AR(1) correlation of the noise between consecutive steps, in [0, 1).
       policy_samples: sequences proposed by the policy instead of noise (0 without a policy).
+      policy_noise: the noise sequences perturb the policy acting in closed loop inside the
+        model (``u_t = policy(x_t) + e_t``) instead of the plan: every candidate stays near the
+        policy's own states, where a learned value was fitted (a policy prior in the spirit of
+        TD-MPC). Needs a policy; the plan then serves only as the weighted mean that is applied.
       iterations: refinement iterations per control step (each re-samples around the new plan).
       normalize: divide costs by their standard deviation before the softmax.
       unroll: horizon steps per loop iteration of the rollouts (``True``: the whole horizon,
@@ -63,6 +67,7 @@ class MPPIConfig:
     noise_std: float | tuple[float, ...] = 0.3
     smoothing: float = 0.5
     policy_samples: int = 0
+    policy_noise: bool = False
     iterations: int = 1
     normalize: bool = True
     unroll: int | bool = 1
@@ -137,6 +142,8 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
         raise ValueError("action bounds: every upper bound must exceed its lower bound")
     if cfg.policy_samples and policy is None:
         raise ValueError(f"policy_samples={cfg.policy_samples} needs a policy")
+    if cfg.policy_noise and policy is None:
+        raise ValueError("policy_noise needs a policy (the noise perturbs its actions)")
     nu, H, K = lo.shape[0], cfg.horizon, cfg.samples
     if sharding is not None:
         n_dev = sharding.mesh.size
@@ -168,17 +175,18 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
                                         unroll=cfg.unroll)
         return cost - value(q, qd), actions
 
-    def policy_rollout(q, qd, key):
-        """Cost and actions of the policy acting inside the model."""
+    def policy_rollout(q, qd, key, offsets=None):
+        """Cost and actions of the policy acting inside the model (plus ``offsets`` [H, nu])."""
         def body(carry, inp):
             q, qd, cost = carry
-            t, k = inp
-            u = jnp.clip(policy(q, qd), lo, hi)
+            t, k, e = inp
+            u = jnp.clip(policy(q, qd) + e, lo, hi)
             q2, qd2 = dynamics(q, qd, u, k)
             return (q2, qd2, cost + running_cost(q, qd, u, t)), u
 
+        offsets = jnp.zeros((H, nu)) if offsets is None else offsets
         (q, qd, cost), actions = jax.lax.scan(body, (q, qd, jnp.zeros(())),
-                                              (jnp.arange(H), jax.random.split(key, H)),
+                                              (jnp.arange(H), jax.random.split(key, H), offsets),
                                               unroll=cfg.unroll)
         return cost - value(q, qd), actions
 
@@ -196,10 +204,15 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
 
     def iterate(plan, q, qd, key):
         key_noise, key_roll, key_pol = jax.random.split(key, 3)
-        candidates = jnp.clip(plan[None] + noise(key_noise), lo, hi)
         n_noise = K - cfg.policy_samples
-        costs, actions = jax.vmap(rollout, in_axes=(None, None, 0, 0))(
-            q, qd, shard(candidates[:n_noise]), shard(jax.random.split(key_roll, n_noise)))
+        if cfg.policy_noise:
+            costs, actions = jax.vmap(policy_rollout, in_axes=(None, None, 0, 0))(
+                q, qd, shard(jax.random.split(key_roll, n_noise)),
+                shard(noise(key_noise)[:n_noise]))
+        else:
+            candidates = jnp.clip(plan[None] + noise(key_noise), lo, hi)
+            costs, actions = jax.vmap(rollout, in_axes=(None, None, 0, 0))(
+                q, qd, shard(candidates[:n_noise]), shard(jax.random.split(key_roll, n_noise)))
         if cfg.policy_samples:
             p_costs, p_actions = jax.vmap(policy_rollout, in_axes=(None, None, 0))(
                 q, qd, shard(jax.random.split(key_pol, cfg.policy_samples)))
