@@ -226,13 +226,14 @@ def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> path
                                                                  indent=1))
     lines = [f"# MPPI step latency ({tag})", "", f"Command: `{command}`", "",
              f"Device: {env['device']} ({env['backend']}), measured float32 matmul peak "
-             f"{env['peak_gflops']:.0f} GFLOP/s; {env['n_devices']} device(s), the samples "
-             "split over them; "
-             f"jax {env['jax']}; XLA_FLAGS "
-             f"`{env['xla_flags'] or '-'}`; rollouts unrolled "
+             f"{env['peak_gflops']:.0f} GFLOP/s; "
+             + (f"{env['n_devices']} devices, the samples split over them; "
+                if env["n_devices"] > 1 else "")
+             + f"jax {env['jax']}; XLA_FLAGS `{env['xla_flags'] or '-'}`; rollouts unrolled "
              f"{'fully' if not cfg.unroll else f'{cfg.unroll} step(s) per loop iteration'}. "
              f"Networks {cfg.hidden} x {cfg.depth}"
-             f"{' (L and V from one network)' if cfg.shared_lnn else ''} at initialisation; one jitted planning step (K rollouts of H control "
+             f"{' (L and V from one network)' if cfg.shared_lnn else ''} at initialisation; "
+             "one jitted planning step (K rollouts of H control "
              "steps, each the robot's simulation substeps) with block_until_ready; median of "
              f"{cfg.repeats}. FLOP floor = K x H x the FLOPs of one model control step "
              "(`control_step_flops`: counted without loops) / peak; the planner's own work "

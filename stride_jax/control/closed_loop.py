@@ -475,7 +475,8 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
     atomic_write_text(out / "closed_loop.json", json.dumps(dict(env=env, rows=rows), indent=1))
     fmt = lambda x, f="{:.3f}": "-" if x is None or (isinstance(x, float) and np.isnan(x)) else (
         f.format(x))
-    lines = [f"# Closed-loop MPPI on the MJX {dict(go1='Go1', g1='G1').get(cfg.robot, cfg.robot)}", "", f"Command: `{command}`", "",
+    robot = {"go1": "Go1", "g1": "G1"}.get(cfg.robot, cfg.robot)
+    lines = [f"# Closed-loop MPPI on the MJX {robot}", "", f"Command: `{command}`", "",
              f"Device: {env['device']} ({env['backend']}), jax {env['jax']}. MPPI K={cfg.samples}, "
              f"H={cfg.horizon}, {cfg.iterations} iteration(s); cost: "
              f"{'learned reward/value ' + cfg.learned if cfg.learned else 'analytic reward terms'}"

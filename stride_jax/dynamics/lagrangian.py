@@ -256,8 +256,8 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
     in ``x``. The networks then run one forward pass, one tangent pass (along ``T v``) and one
     transposed pass, with none of the quaternion arithmetic of the retraction differentiated
     through them. Measured with the products on ``L`` below (Go1, 64 x 3 networks, a batch of
-    128 on a 2-core CPU; ``experiments/model_step_time.py``): the model step 3.0 -> 2.1 ms. Equal to :func:`bias_force` to rounding
-    (tested).
+    128 on a 2-core CPU; ``experiments/model_step_time.py``): the model step 3.0 -> 2.1 ms.
+    Equal to :func:`bias_force` to rounding (tested).
     """
     fb = spec.floating_base
     zero = jnp.zeros(spec.nv, v.dtype)

@@ -25,40 +25,13 @@ import pathlib
 import re
 
 from stride_jax.eval.report_common import (
-    FAILS,
-    HOLDS,
-    NAMES,
-    NOT_MEASURABLE,
-    NOT_RUN,
-    PAPER_ALLOCATION,
-    ROBOT_NAMES,
-    ROBOTS,
-    WHERE_ALLOCATION,
-    WHERE_NFE,
-    WHERE_PHASE,
-    Row,
-    _any,
-    _dig,
-    _git_note,
-    _load_json,
-    _pm,
-    _stats,
-    _table,
-    verdict,
+    FAILS, HOLDS, NAMES, NOT_MEASURABLE, NOT_RUN, PAPER_ALLOCATION, ROBOT_NAMES, ROBOTS,
+    WHERE_ALLOCATION, WHERE_NFE, WHERE_PHASE, Row, _any, _dig, _git_note, _load_json, _pm, _stats,
+    _table, verdict,
 )
 from stride_jax.eval.report_common import PAPER_TABLE1  # noqa: F401  (re-exported)
-from stride_jax.eval.report_control import (
-    closed_loop_rows,
-    gap_lines,
-    mppi_rows,
-)
-from stride_jax.eval.report_table1 import (
-    _growth,
-    _ratio_text,
-    load_table1,
-    seed_ratio,
-    table1_rows,
-)
+from stride_jax.eval.report_control import closed_loop_rows, gap_lines, mppi_rows
+from stride_jax.eval.report_table1 import _growth, _ratio_text, load_table1, seed_ratio, table1_rows
 from stride_jax.io import atomic_write_text
 
 # ------------------------------------------------------------------------ reproduce summary

@@ -117,10 +117,11 @@ PRESETS = {
         out_of_library=({"joint_stiffness": 10.0},),
         diagnose="fast", name="gap_bench_go1"),
 }
-# Every case of `default` (each effect at both magnitudes, both pairs, both out-of-library effects,
-# the control) on go1_small's short logs with its fast diagnosis: 18 min on 2 cores with
-# `--workers 2` (measured) where `default` takes ~7 core-hours. Short logs cost power: drag 0.05 is
-# below what they detect (see above), so its row tests the "no confident false attribution" line alone.
+# Every case of `default` (each effect at both magnitudes, both pairs, both out-of-library
+# effects, the control) on go1_small's short logs with its fast diagnosis: 18 min on 2 cores with
+# `--workers 2` (measured) where `default` takes ~7 core-hours. Short logs cost power: drag 0.05
+# is below what they detect (see above), so its row tests the "no confident false attribution"
+# line alone.
 PRESETS["go1_all"] = dataclasses.replace(PRESETS["default"], trajectories=5, steps=60,
                                          diagnose="fast", name="gap_bench_go1_all")
 
