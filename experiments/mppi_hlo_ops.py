@@ -43,9 +43,10 @@ def main():
     p.add_argument("--model", default="stride")
     p.add_argument("--samples", type=int, default=1024)
     p.add_argument("--horizon", type=int, default=30)
+    p.add_argument("--shared-lnn", action="store_true", help="one network for L and V")
     a = p.parse_args()
-    b = bench.setup(a.robot, a.model, a.samples, a.horizon,
-                    bench.BenchConfig(substeps=1, unroll=0))  # the GPU preset's step, unrolled
+    b = bench.setup(a.robot, a.model, a.samples, a.horizon,  # the GPU preset's step, unrolled
+                    bench.BenchConfig(substeps=1, unroll=0, shared_lnn=a.shared_lnn))
     compiled = jax.jit(b.step).lower(b.state, b.q0, b.qd0).compile()
     counts = entry_ops(compiled.as_text())
     print(f"{a.robot} {a.model} K={a.samples} H={a.horizon} on {jax.devices()[0].device_kind}: "
