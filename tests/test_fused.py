@@ -1,0 +1,98 @@
+"""The fused network kernels equal JAX's own derivatives of the Flax networks (Pallas'
+interpreter runs the kernels on a CPU; the GPU timings are in results/README.md)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from stride_jax.dynamics import flow, fused, mlp
+
+# 40 samples: not a multiple of the kernel's rows; widths 21 -> 96 (two chunks) -> 37 (padded)
+NET = mlp.MLPConfig(hidden=96, depth=2)
+N, D_IN, D_OUT = 40, 21, 37
+
+
+@pytest.fixture(scope="module")
+def net():
+    init, apply = mlp.mlp(NET, D_OUT)
+    params = init(jax.random.key(0), D_IN)
+    keys = jax.random.split(jax.random.key(1), 3)
+    x = jax.random.normal(keys[0], (N, D_IN))
+    t = jax.random.normal(keys[1], (N, D_IN))
+    g = jax.random.normal(keys[2], (N, D_OUT))
+    return params, apply, x, t, g
+
+
+def _reference(params, apply, x, t, g):
+    y, yt = jax.vmap(lambda x, t: jax.jvp(lambda x: apply(params, x), (x,), (t,)))(x, t)
+    gx = jax.vmap(lambda x, g: jax.vjp(lambda x: apply(params, x), x)[1](g)[0])(x, g)
+    return y, yt, gx
+
+
+def _fused(params, x, t, g):
+    y, yt = jax.jit(jax.vmap(lambda x, t: fused.jvp(params, x, t)))(x, t)
+    gx = jax.jit(jax.vmap(lambda x, g: fused.vjp(params, x, g)))(x, g)
+    return y, yt, gx
+
+
+@pytest.mark.parametrize("interpret", [False, True], ids=["batched-jax", "pallas-kernel"])
+def test_network_passes_match_autodiff(net, interpret):
+    params, apply, x, t, g = net
+    ref = _reference(params, apply, x, t, g)
+    if interpret:
+        with fused.interpret():
+            out = _fused(params, x, t, g)
+    else:  # on a CPU the vmapped call is the batched maths in plain JAX
+        out = _fused(params, x, t, g)
+    for name, r, o in zip(("outputs", "tangent", "cotangent"), ref, out):
+        assert o.shape == r.shape, name
+        np.testing.assert_allclose(o, r, rtol=1e-5, atol=1e-5, err_msg=name)
+
+
+def test_one_example_and_broadcast_inputs(net):
+    """Unbatched, a pass is the plain network; a tangent shared by the batch is broadcast."""
+    params, apply, x, t, g = net
+    y, yt = fused.jvp(params, x[0], t[0])
+    ref_y, ref_yt = jax.jvp(lambda x: apply(params, x), (x[0],), (t[0],))
+    np.testing.assert_allclose(y, ref_y, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(yt, ref_yt, rtol=1e-6, atol=1e-6)
+    with fused.interpret():
+        _, yt_shared = jax.vmap(lambda x: fused.jvp(params, x, t[0]))(x)
+    ref_shared = jax.vmap(lambda x: jax.jvp(lambda x: apply(params, x), (x,), (t[0],))[1])(x)
+    np.testing.assert_allclose(yt_shared, ref_shared, rtol=1e-5, atol=1e-5)
+
+
+def test_per_sample_weights_fall_back_to_the_reference(net):
+    """Weights batched with the inputs (an ensemble) cannot share one kernel: vmapped maths."""
+    params, apply, x, _, g = net
+    stacked = jax.tree.map(lambda w: jnp.stack([w, 2 * w]), params)
+    with fused.interpret():
+        gx = jax.vmap(lambda p, x, g: fused.vjp(p, x, g))(stacked, x[:2], g[:2])
+    p2 = jax.tree.map(lambda w: 2 * w, params)
+    ref = jax.vjp(lambda x: apply(p2, x), x[1])[1](g[1])[0]
+    np.testing.assert_allclose(gx[1], ref, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("nfe", [1, 3])
+def test_flow_sample_matches_the_integrator(nfe):
+    cfg = flow.FlowConfig(net=NET, nfe=nfe)
+    dim, c_dim = 18, 30
+    params = flow.flow_init(jax.random.key(2), dim, c_dim, cfg)
+    # the field starts at zero: perturb every weight so that the test sees the network
+    params = jax.tree.map(lambda w: w + 0.1 * jax.random.normal(jax.random.key(3), w.shape),
+                          params)
+    z0 = jax.random.normal(jax.random.key(4), (N, dim))
+    c = jax.random.normal(jax.random.key(5), (N, c_dim))
+    ref = jax.vmap(lambda z, c: flow.integrate(params, z, c, cfg))(z0, c)
+    with fused.interpret():
+        z = jax.jit(jax.vmap(lambda z, c: fused.flow_euler(params, z, c, nfe,
+                                                           cfg.time_features)))(z0, c)
+    assert float(jnp.max(jnp.abs(ref - z0))) > 0.1  # the field moved the samples
+    np.testing.assert_allclose(z, ref, rtol=1e-5, atol=1e-5)
+
+
+def test_bad_arguments():
+    params = mlp.mlp(NET, 4)[0](jax.random.key(0), 3)
+    with pytest.raises(ValueError, match="nfe >= 1"):
+        fused.flow_euler(params, jnp.zeros(4), jnp.zeros(3), 0, 8)
