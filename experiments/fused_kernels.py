@@ -37,8 +37,10 @@ def main():
     p.add_argument("--hidden", type=int, default=256)
     p.add_argument("--depth", type=int, default=3)
     p.add_argument("--nfe", type=int, default=2)
-    p.add_argument("--variants", default="64,16,4",
-                   help="kernel layouts to time: 'chunk,rows,warps' separated by ';'")
+    p.add_argument("--variants", default="64,16,4,2,float32",
+                   help="kernel layouts to time, separated by ';': 'tile,rows,warps,stages,dtype' "
+                        "(weight-tile columns, samples per program, warps, pipelining depth, "
+                        "the products' input type)")
     p.add_argument("--loop", type=int, default=30, help="passes per timed call (in one jit)")
     a = p.parse_args()
     net = mlp.MLPConfig(a.hidden, a.depth)
@@ -75,14 +77,17 @@ def main():
     }
     print(f"{jax.devices()[0].device_kind}, K={a.samples}, {a.hidden} x {a.depth}, "
           f"us per pass ({a.loop} passes per call)")
-    variants = [tuple(int(v) for v in s.split(",")) for s in a.variants.split(";")]
-    print(f"{'pass':28s} {'XLA':>7s} " + " ".join(f"{'%d,%d,%d' % v:>9s}" for v in variants)
+    variants = [v.split(",") for v in a.variants.split(";")]
+    print(f"{'pass':28s} {'XLA':>7s} " + " ".join(f"{','.join(v):>9s}" for v in variants)
           + f" {'max |diff|':>11s} {'max |ref|':>10s}")
     us = lambda f, args: 1e3 * median_ms(looped(f), *args) / a.loop
     for name, (ref, fast, args) in passes.items():
         print(f"{name:28s} {us(ref, args):7.1f}", end="", flush=True)
         r, diff = jax.jit(ref)(*args), 0.0
-        for fused.CHUNK, fused.ROWS, fused.WARPS in variants:
+        for tile, rows, warps, stages, dtype in variants:
+            fused.CHUNK, fused.ROWS, fused.WARPS, fused.STAGES = map(int, (tile, rows, warps,
+                                                                          stages))
+            fused.DTYPE = jnp.dtype(dtype)
             print(f" {us(fast, args):9.1f}", end="", flush=True)
             f = jax.jit(fast)(*args)
             diff = max([diff] + [float(jnp.max(jnp.abs(u - v))) for u, v in

@@ -10,6 +10,7 @@ import pytest
 from mujoco import mjx
 
 from stride_jax.control import closed_loop as cl, envs, gait, learned
+from stride_jax.control import planning as planning_lib
 
 
 def test_oracle_closed_loop_runs_jitted_and_deterministically(go1):
@@ -17,8 +18,8 @@ def test_oracle_closed_loop_runs_jitted_and_deterministically(go1):
                               noise_std=0.05)
     sc = cl.SCENARIOS["walk"]
     mx = mjx.put_model(cl.scenario_model(go1, sc))
-    planning = cl.make_planning(cfg, envs.config("go1"), go1, cl.mjx_step_fn(go1, mx))
-    planner = cl.make_planner(planning, cl.mppi_config(cfg, planning))
+    planning = planning_lib.make_planning(cfg, envs.config("go1"), go1, cl.mjx_step_fn(go1, mx))
+    planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cfg, planning))
     starts, values = cl.schedule(sc)
     n = 6
     episode = jax.jit(lambda key: cl.run_episode(go1, mx, envs.contact_slots(mx), planning,
@@ -68,20 +69,20 @@ def _fake_step(q, qd, ctrl, key):  # the robot stands still: planner plumbing on
 
 def test_gait_parameters_are_held_per_rollout(go1):
     cfg = cl.ClosedLoopConfig(gait=True)
-    planning = cl.make_planning(cfg, envs.config("go1"), go1, _fake_step)
-    q0 = cl.augment(jnp.asarray(go1.info.qpos0), jnp.array([1.0, 0, 0]))
+    planning = planning_lib.make_planning(cfg, envs.config("go1"), go1, _fake_step)
+    q0 = planning_lib.augment(jnp.asarray(go1.info.qpos0), jnp.array([1.0, 0, 0]))
     qd0 = jnp.zeros(go1.mj.nv)
     trot, pace = gait.named("trot", freq=2.0), gait.named("pace", freq=3.5)
     u1, u2 = gait.join_action(jnp.zeros(12), trot), gait.join_action(jnp.zeros(12), pace)
     q1, _ = planning.dynamics(q0, qd0, u1, jax.random.key(0))
     q2, _ = planning.dynamics(q1, qd0, u2, jax.random.key(1))
-    a1, a2 = cl.split(q1, go1.mj.nq), cl.split(q2, go1.mj.nq)
+    a1, a2 = planning_lib.split(q1, go1.mj.nq), planning_lib.split(q2, go1.mj.nq)
     np.testing.assert_allclose(a1.clock, 2.0 * 0.02, rtol=1e-6)
     np.testing.assert_allclose(a2.clock, 2 * 2.0 * 0.02, rtol=1e-6)  # still trot's frequency
     np.testing.assert_array_equal(a2.gait[2:], trot.offsets)
     np.testing.assert_array_equal(planning.ctrl(q1, u2), planning.ctrl(q1, u1))
     with pytest.raises(ValueError, match="planner state"):
-        cl.split(jnp.zeros(5), go1.mj.nq)
+        planning_lib.split(jnp.zeros(5), go1.mj.nq)
 
 
 def test_learned_reward_and_value_drive_the_planner(go1):
@@ -91,10 +92,10 @@ def test_learned_reward_and_value_drive_the_planner(go1):
     r_params = learned.init(jax.random.key(0), lc, jnp.ones((4, obs_n + 12)), jnp.ones(4))
     v_params = learned.init(jax.random.key(1), lc, jnp.ones((4, obs_n)), jnp.ones(4))
     cfg = cl.ClosedLoopConfig(samples=8, horizon=3)
-    planning = cl.make_planning(cfg, env_cfg, go1, _fake_step, learned_params=(r_params,
+    planning = planning_lib.make_planning(cfg, env_cfg, go1, _fake_step, learned_params=(r_params,
                                                                               v_params))
-    planner = cl.make_planner(planning, cl.mppi_config(cfg, planning))
-    q0 = cl.augment(jnp.asarray(go1.info.qpos0), jnp.array([1.0, 0, 0]))
+    planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cfg, planning))
+    q0 = planning_lib.augment(jnp.asarray(go1.info.qpos0), jnp.array([1.0, 0, 0]))
     u, _, info = jax.jit(planner.step)(planner.init(jax.random.key(0)), q0, jnp.zeros(18))
     assert u.shape == (12,) and np.isfinite(info.costs).all()
     assert np.ptp(np.asarray(info.costs)) > 0  # the learned reward tells samples apart
@@ -109,12 +110,12 @@ def test_the_task_clock_runs_inside_rollouts_for_a_clocked_policy(go1):
     for sm in (sim_model.load("g1"), go1):
         env_cfg = envs.config(sm.robot.name)
         cfg = cl.ClosedLoopConfig(robot=sm.robot.name)
-        planning = cl.make_planning(cfg, env_cfg, sm, hold)
-        q_aug = cl.augment(jnp.asarray(sm.info.qpos0), jnp.zeros(3), 0.25)
+        planning = planning_lib.make_planning(cfg, env_cfg, sm, hold)
+        q_aug = planning_lib.augment(jnp.asarray(sm.info.qpos0), jnp.zeros(3), 0.25)
         q2, _ = planning.dynamics(q_aug, jnp.zeros(sm.mj.nv), jnp.zeros(sm.info.nu),
                                   jax.random.key(0))
         step = env_cfg.gait_hz * sm.robot.ctrl_dt
-        assert float(cl.split(q2, sm.mj.nq).clock) == pytest.approx(0.25 + step)
+        assert float(planning_lib.split(q2, sm.mj.nq).clock) == pytest.approx(0.25 + step)
         assert planning.clock_hz == env_cfg.gait_hz
     assert envs.config("g1").gait_hz > 0 and envs.config("go1").gait_hz == 0
 

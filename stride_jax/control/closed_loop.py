@@ -10,28 +10,23 @@ with the scenario's ground. Planner models:
 * ``NAME=RUN``: a trained dynamics model of the one interface (``stride_jax.dynamics.models.load``;
   STRIDE, DeLaN, ONN ...), e.g. ``stride=runs/go1/stride``.
 
-The planner's state is ``(q, command, gait clock, latched gait)`` stacked into its ``q`` (the
-dynamics carry the command unchanged and advance the clock), so one jitted planner follows
-command changes. Its action is
-a joint-target offset from the home pose (rad); with ``gait`` it is a residual on a gait reference
-plus the gait parameters (:mod:`stride_jax.control.gait`), which MPPI optimises jointly.
-
-Cost: the environment's reward terms that a state determines (:func:`stride_jax.control.envs.
-state_terms`: tracking kernels, orientation, height, torques of the servo model ...), negated and
-unclipped, plus a quadratic tracking cost (``track_weight``) and ``fall_cost`` per step fallen;
-or, with ``learned``, the learned reward and value (:mod:`stride_jax.control.learned`). A PPO run
-can add ``policy_samples`` candidates.
+The planner's view of the task (:mod:`stride_jax.control.planning`): its state is ``(q, command,
+gait clock, latched gait)``, so one jitted planner follows command changes; its action is a
+joint-target offset from home (with ``gait``, a residual on the Go1 gait reference plus the gait
+parameters, optimised jointly); its cost is the environment's state reward terms, negated, plus a
+tracking term and ``fall_cost`` per step fallen, or (``learned``) the learned reward and value. A
+PPO run can add ``policy_samples`` candidates.
 
 Scenarios (:mod:`stride_jax.control.scenarios`): velocity step 0 -> 2 m/s, sudden command
 changes, a 20 degree slope, low friction, soft contacts, rough terrain. The gait study lives in
-:mod:`stride_jax.control.gait_study`. Reported per (scenario, model): tracking RMSE of the base-frame velocity (xy) and yaw rate while
+:mod:`stride_jax.control.gait_study`. Reported per (scenario, model): tracking RMSE of the
+base-frame velocity (xy) and yaw rate while
 upright, falls, and planning time per step.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import pathlib
 import time
@@ -43,6 +38,8 @@ import numpy as np
 from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
+from stride_jax.control.planning import (Planning, augment, make_planner, make_planning,
+                                         mppi_config)
 from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,  # noqa: F401
                                           scenario_model, schedule)
 from stride_jax.io import atomic_write_text, code_version
@@ -50,7 +47,7 @@ from stride_jax.sim import model as sim_model, rollout_mjx
 
 
 # ---------------------------------------------------------------------------------------------
-# The planner's view: augmented state, action to joint targets, cost.
+# Configuration (the planner's view of the task is in :mod:`stride_jax.control.planning`).
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,140 +112,6 @@ PRESETS = {
 }
 
 
-class Planning(NamedTuple):
-    """The planner-side functions of one configuration (all pure, for one world)."""
-
-    dynamics: Callable  # (q_aug, qd, u, key) -> (q_aug', qd')
-    cost: Callable  # (q_aug, qd, u, t) -> []
-    value: Callable | None  # (q_aug, qd) -> []
-    policy: Callable | None  # (q_aug, qd) -> u
-    ctrl: Callable  # (q_aug, u) -> joint targets [nu]
-    lo: np.ndarray  # [nu_plan]
-    hi: np.ndarray
-    noise: tuple  # per action entry
-    nominal_u: np.ndarray  # [nu_plan] initial plan
-    clock_hz: float = 0.0  # the task's gait clock (G1's policy observes it), without planned gaits
-
-
-class Aug(NamedTuple):
-    """The planner's state beyond the robot's ``q`` (stacked into the planner's ``q``)."""
-
-    q: jax.Array  # [nq]
-    command: jax.Array  # [3] (vx m/s, vy m/s, yaw rad/s), carried unchanged by the dynamics
-    clock: jax.Array  # [] gait clock (cycles)
-    gait: jax.Array  # [6] gait parameters latched at a rollout's first step
-    latched: jax.Array  # [] 1 inside a rollout (after its first step), 0 in the real state
-
-
-N_AUG = 3 + 1 + gait_lib.N_GAIT + 1
-
-
-def augment(q: jax.Array, command: jax.Array, clock: jax.Array | float = 0.0,
-            gait: jax.Array | None = None, latched: jax.Array | float = 0.0) -> jax.Array:
-    """``[nq + 11]``: the robot state with the command, clock and latched gait."""
-    gait = jnp.zeros(gait_lib.N_GAIT) if gait is None else gait
-    return jnp.concatenate([q, command, jnp.reshape(clock, (1,)), gait,
-                            jnp.reshape(jnp.asarray(latched, q.dtype), (1,))])
-
-
-def split(q_aug: jax.Array, nq: int) -> Aug:
-    if q_aug.shape[-1] != nq + N_AUG:
-        raise ValueError(f"planner state must have {nq} + {N_AUG} entries, got {q_aug.shape}")
-    g0 = nq + 4
-    return Aug(q_aug[:nq], q_aug[nq:nq + 3], q_aug[nq + 3], q_aug[g0:g0 + gait_lib.N_GAIT],
-               q_aug[g0 + gait_lib.N_GAIT])
-
-
-def servo_torque(sm: sim_model.SimModel, q: jax.Array, qd: jax.Array, ctrl: jax.Array):
-    """Joint torques ``[nu]`` (N m) of the robot's position servos (as MuJoCo applies them)."""
-    kp, kd = jnp.asarray(sm.robot.kp), jnp.asarray(sm.robot.kd)
-    lo, hi = np.asarray(sm.mj.actuator_forcerange).T
-    tau = kp * (ctrl - q[7:]) - kd * qd[6:]
-    return jnp.where(hi > lo, jnp.clip(tau, lo, hi), tau)
-
-
-def make_planning(cfg: ClosedLoopConfig, env_cfg: envs.EnvConfig, sm: sim_model.SimModel,
-                  model_step: Callable, ppo_policy: Callable | None = None,
-                  learned_params: tuple | None = None,
-                  gait_cfg: gait_lib.GaitConfig = gait_lib.GaitConfig()) -> Planning:
-    """Planner functions around ``model_step(q, qd, ctrl, key) -> (q', qd')``."""
-    nq, nu = sm.mj.nq, sm.info.nu
-    home = jnp.asarray(sm.info.qpos0[7:])
-    c_lo, c_hi = jnp.asarray(sm.info.ctrl_lo), jnp.asarray(sm.info.ctrl_hi)
-    dt = sm.robot.ctrl_dt
-    obs_of = functools.partial(envs.observe, env_cfg, home)
-    if cfg.gait and sm.robot.name != "go1":
-        raise ValueError("the gait reference is the Go1's: --gait needs robot go1")
-
-    def gait_of(q_aug, u):
-        """Gait parameters in force: a rollout's first sample, held (per-rollout sampling)."""
-        a = split(q_aug, nq)
-        return jnp.where(a.latched > 0, a.gait, u[nu:nu + gait_lib.N_GAIT])
-
-    def ctrl(q_aug, u):
-        a = split(q_aug, nq)
-        if cfg.gait:
-            g = gait_lib.split_action(jnp.concatenate([u[:nu], gait_of(q_aug, u)]), nu)[1]
-            target = gait_lib.reference(gait_cfg, g, a.clock, a.command, home) + u[:nu]
-        else:
-            target = home + u
-        return jnp.clip(target, c_lo, c_hi)
-
-    def dynamics(q_aug, qd, u, key):
-        a = split(q_aug, nq)
-        q2, qd2 = model_step(a.q, qd, ctrl(q_aug, u), key)
-        if not cfg.gait:  # the task's clock runs on inside rollouts (the policy candidates see it)
-            return augment(q2, a.command, jnp.mod(a.clock + env_cfg.gait_hz * dt, 1.0)), qd2
-        g = gait_of(q_aug, u)
-        return augment(q2, a.command, jnp.mod(a.clock + g[0] * dt, 1.0), g, 1.0), qd2
-
-    def analytic_cost(q_aug, qd, u, t):
-        q, command = split(q_aug, nq)[:2]
-        fallen = rollout_mjx.fallen(sm, q)
-        terms = envs.state_terms(env_cfg, home, q, qd, command,
-                                 servo_torque(sm, q, qd, ctrl(q_aug, u)), fallen)
-        _, parts = envs.total_reward(env_cfg, terms, dt)
-        v, w, _ = envs.base_signals(q, qd)
-        track = jnp.sum((command[:2] - v[:2]) ** 2) + 0.5 * (command[2] - w[2]) ** 2
-        return -sum(parts.values()) + cfg.track_weight * dt * track + cfg.fall_cost * fallen
-
-    value = None
-    cost = analytic_cost
-    if learned_params is not None:
-        from stride_jax.control import learned as learned_lib
-        def obs_aug(q_aug, qd):
-            a = split(q_aug, nq)
-            return obs_of(a.q, qd, a.command, a.clock)
-
-        r_cost, value = learned_lib.planner_terms(*learned_params, obs_aug, cfg.value_weight)
-
-        def cost(q_aug, qd, u, t):  # the learned reward scores the normalised policy action
-            q = split(q_aug, nq).q
-            a = (ctrl(q_aug, u) - home) / env_cfg.action_scale
-            return r_cost(q_aug, qd, a, t) + cfg.fall_cost * rollout_mjx.fallen(sm, q)
-
-    policy = None
-    if ppo_policy is not None and not cfg.gait:
-        key0 = jax.random.key(0)
-
-        def policy(q_aug, qd):
-            a = split(q_aug, nq)
-            return env_cfg.action_scale * ppo_policy(obs_of(a.q, qd, a.command, a.clock), key0)
-
-    r = cfg.plan_range
-    lo, hi = np.full(nu, -r, np.float32), np.full(nu, r, np.float32)
-    noise = (cfg.noise_std,) * nu
-    nominal = np.zeros(nu, np.float32)
-    if cfg.gait:
-        g_lo, g_hi = gait_cfg.bounds()
-        lo, hi = np.concatenate([lo, g_lo]), np.concatenate([hi, g_hi])
-        noise = noise + (cfg.gait_noise, 0.15 * cfg.gait_noise) + (0.25 * cfg.gait_noise,) * 4
-        trot = gait_lib.named("trot")
-        nominal = np.asarray(gait_lib.join_action(jnp.asarray(nominal), trot), np.float32)
-    return Planning(dynamics, cost, value, policy, ctrl, lo, hi, noise, nominal,
-                    0.0 if cfg.gait else env_cfg.gait_hz)
-
-
 # ---------------------------------------------------------------------------------------------
 # One closed-loop episode.
 
@@ -264,20 +127,6 @@ class Trace(NamedTuple):
     fallen: jax.Array  # [T] bool
     contact: jax.Array  # [T, nfeet] bool, measured
     action: jax.Array  # [T, nu_plan] the applied planner action
-
-
-def mppi_config(cfg: ClosedLoopConfig, planning: Planning) -> mppi.MPPIConfig:
-    return mppi.MPPIConfig(samples=cfg.samples, horizon=cfg.horizon, temperature=cfg.temperature,
-                           noise_std=planning.noise, smoothing=cfg.smoothing,
-                           policy_samples=cfg.policy_samples if planning.policy else 0,
-                           policy_noise=cfg.policy_noise,
-                           iterations=cfg.iterations)
-
-
-def make_planner(planning: Planning, mppi_cfg: mppi.MPPIConfig) -> mppi.Planner:
-    """MPPI over the planning functions (build outside jit: it checks its bounds)."""
-    return mppi.make(mppi_cfg, planning.dynamics, planning.cost, planning.lo, planning.hi,
-                     planning.value, planning.policy)
 
 
 def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Planning,

@@ -13,8 +13,9 @@ import numpy as np
 from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib
-from stride_jax.control.closed_loop import (ClosedLoopConfig, make_planner, make_planning,
-                                            metrics, mjx_step_fn, mppi_config, run_episode)
+from stride_jax.control.closed_loop import (ClosedLoopConfig, metrics, mjx_step_fn,
+                                            run_episode)
+from stride_jax.control.planning import make_planner, make_planning, mppi_config
 from stride_jax.control.scenarios import schedule, Scenario
 from stride_jax.io import atomic_write_text, code_version
 from stride_jax.sim import model as sim_model

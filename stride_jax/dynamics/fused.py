@@ -3,8 +3,7 @@
 A planner's model step on a GPU is bound by the number of kernels it launches, not by arithmetic
 (``results/README.md``: ~70 kernels of ~3.5 us per horizon step, 13x above the FLOP floor). XLA
 runs each of an MLP's matrix products as its own kernel, and a tangent or a transposed pass as
-more of them. Here every pass is one kernel over a block of rows (samples), with the layers'
-activations kept on chip:
+more of them. Here every pass is one kernel over blocks of rows (samples):
 
 * :func:`jvp` -- outputs and their derivative along one tangent (the Lagrangian networks'
   forward and tangent passes together);
@@ -17,21 +16,21 @@ under ``vmap`` (a planner's samples) it becomes one kernel for the whole batch
 (``jax.custom_batching.custom_vmap``) on a GPU, and the same batched maths in plain JAX on a CPU.
 They are inference-only: nothing here is differentiable (training keeps XLA's autodiff).
 
-Layout. A feature dimension is cut into chunks of equal power-of-two width (Triton's blocks);
-a layer is a grid of weight blocks, and its product is a sum of block products: no tensor in the
-kernel is wider than a chunk, so hidden widths of any size fit in shared memory. Padding columns
-and rows are zero and stay zero. The networks are :mod:`stride_jax.dynamics.mlp`'s (SiLU hidden
-layers, a linear output).
+Layout. A feature dimension is padded to a power of two (Triton's tensor shapes; padding
+columns and rows are zero and stay zero). A program holds its rows' activations whole and walks
+each layer's weights one tile of columns at a time in a loop (``fori_loop``, software-pipelined
+by Triton), writing the layer's output through a per-program buffer. The networks are
+:mod:`stride_jax.dynamics.mlp`'s (SiLU hidden layers, a linear output).
 
-Status (measured on one H100, Go1's one-network prior 256 x 3, 1024 samples; commands and numbers
-in ``results/README.md``): correct, but **slower than XLA, so no model uses these kernels yet**.
-A fused forward + tangent pass takes 0.56 ms where XLA's vmapped ``jax.jvp`` takes 0.06 ms
-(30 passes in one call), 0.14 ms with bfloat16 products (``DTYPE``; one call, dispatch included,
-against 0.12 ms for XLA's), and a single kernel program (16 samples) alone takes 0.53 ms: each
-program walks ~100 dependent (load a weight block, multiply) steps with no
-software pipelining, so its time is latency, not arithmetic or bandwidth. The way on is the
-standard pipelined form: a ``fori_loop`` over each layer's weight tiles with ``num_stages`` > 1
-(activations staged through memory), or a Mosaic GPU kernel whose weights stream by TMA.
+Status (one H100, Go1's one-network prior 256 x 3 and the flow's field, 1024 samples; commands
+and numbers in ``results/README.md``): correct, but **not faster than XLA, so no model uses
+these kernels yet**. Per pass (30 passes in one call), XLA against the fused kernel: jvp 47 vs
+74 us, vjp 51 vs 64 us, a flow sample (NFE 2) 60 vs 59 us, or 45 us with bfloat16 products
+(``DTYPE``). A program streams all of a network's weights for only 16 rows, so its time is the
+latency of its tile loop. A first version with the layers unrolled was 7x slower still:
+``ncu`` showed 32 registers and a 13.5 kB stack per thread, and warps stalled on local memory
+(its weight loads spilled). Beating XLA needs the whole model step in one kernel (the solve
+included), so that launches, not weight streaming, are what it saves.
 """
 
 from __future__ import annotations
@@ -45,9 +44,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-CHUNK = 64  # widest block of a feature dimension
+CHUNK = 64  # columns of a weight tile
 ROWS = 16  # samples per kernel program (Triton's smallest matrix-product tile)
 WARPS = 4  # warps per kernel program
+STAGES = 2  # software-pipelining depth of the weight-tile loops
 DTYPE = jnp.float32  # the matrix products' inputs (accumulation is float32)
 
 _INTERPRET = contextvars.ContextVar("stride_fused_interpret", default=False)
@@ -123,23 +123,21 @@ def _flow_ref(layers, z, c, nfe, time_features):
 
 @dataclasses.dataclass(frozen=True)
 class _Dim:
-    """A feature dimension of ``size`` cut into ``n`` chunks of width ``chunk`` (padded)."""
+    """A feature dimension of ``size`` padded to a power of two (Triton's tensor shapes) and
+    worked on in tiles of ``tile`` columns."""
 
     size: int
-    chunk: int
-    n: int
+    padded: int
+    tile: int
 
     @classmethod
     def of(cls, size: int) -> "_Dim":
-        chunk = min(CHUNK, max(16, 1 << (size - 1).bit_length()))
-        return cls(size, chunk, -(-size // chunk))
+        padded = max(16, 1 << (size - 1).bit_length())
+        return cls(size, padded, min(CHUNK, padded))
 
     @property
-    def padded(self) -> int:
-        return self.chunk * self.n
-
-    def cols(self, i: int) -> slice:
-        return slice(i * self.chunk, (i + 1) * self.chunk)
+    def n(self) -> int:
+        return self.padded // self.tile
 
 
 def _pad_cols(x: jax.Array, dim: _Dim) -> jax.Array:
@@ -148,15 +146,6 @@ def _pad_cols(x: jax.Array, dim: _Dim) -> jax.Array:
 
 def _pad_weight(w: jax.Array, din: _Dim, dout: _Dim) -> jax.Array:
     return jnp.pad(w, [(0, din.padded - w.shape[0]), (0, dout.padded - w.shape[1])])
-
-
-def _load(ref, dim: _Dim) -> list:
-    return [ref[:, dim.cols(i)] for i in range(dim.n)]
-
-
-def _store(ref, chunks: list, dim: _Dim) -> None:
-    for i, c in enumerate(chunks):
-        ref[:, dim.cols(i)] = c
 
 
 def _dot(a, b):
@@ -169,99 +158,121 @@ def _dot_t(a, b):
                                preferred_element_type=jnp.float32)
 
 
-def _matmul(h: list, w_ref, din: _Dim, dout: _Dim) -> list:
-    """``h @ W`` chunk by chunk: output chunk j = sum_i h_i W[i, j]."""
-    out = []
-    for j in range(dout.n):
-        acc = None
-        for i in range(din.n):
-            p = _dot(h[i], w_ref[din.cols(i), dout.cols(j)])
-            acc = p if acc is None else acc + p
-        out.append(acc)
-    return out
+def _barrier() -> None:
+    """Every thread of the program gets here (and sees the others' stores) before any goes on."""
+    if not _INTERPRET.get():
+        from jax.experimental.pallas import triton as pl_triton
+        pl_triton.debug_barrier()
 
 
-def _matmul_t(g: list, w_ref, din: _Dim, dout: _Dim) -> list:
-    """``g @ W^T``: input chunk i = sum_j g_j W[i, j]^T."""
-    out = []
-    for i in range(din.n):
-        acc = None
-        for j in range(dout.n):
-            p = _dot_t(g[j], w_ref[din.cols(i), dout.cols(j)])
-            acc = p if acc is None else acc + p
-        out.append(acc)
-    return out
+def _tiles(dim: _Dim, body: Callable) -> None:
+    """``body(cols)`` for each tile of ``dim``'s columns, as a loop: a weight tile is loaded
+    inside it, where Triton pipelines the loads (the unrolled first version spilled them)."""
+    from jax.experimental import pallas as pl
+
+    def step(j, carry):
+        body(pl.ds(pl.multiple_of(j * dim.tile, dim.tile), dim.tile))
+        return carry
+
+    jax.lax.fori_loop(0, dim.n, step, 0)
+    _barrier()
 
 
-def _add_bias(z: list, b_ref, dim: _Dim) -> list:
-    return [zj + b_ref[:, dim.cols(j)] for j, zj in enumerate(z)]
+def _dense(h, w_ref, b_ref, dout: _Dim, out_ref, act: bool, t=None, t_ref=None, z_ref=None):
+    """``out = act(h @ W + b)`` into ``out_ref`` tile by tile; with a tangent ``t``, its image
+    ``act'(z) (t @ W)`` into ``t_ref``; ``z_ref`` keeps the pre-activations."""
+    def body(cols):
+        w = w_ref[:, cols]
+        z = _dot(h, w) + b_ref[:, cols]
+        if z_ref is not None:
+            z_ref[:, cols] = z
+        if t is not None:
+            zt = _dot(t, w)
+            t_ref[:, cols] = _silu_grad(z) * zt if act else zt
+        out_ref[:, cols] = _silu(z) if act else z
+
+    _tiles(dout, body)
 
 
 def _kernel(mode: str, dims: tuple[_Dim, ...], nfe: int = 0) -> Callable:
     """The kernel body of one mode; ``dims`` are the layers' feature dimensions, input first
-    (for ``flow``: the latent's, then the hidden and output ones)."""
+    (for ``flow``: the latent's, the context's, then the layers' outputs). Activations go
+    through per-program buffers (extra outputs, alternating between two so that no layer writes
+    where the one before still reads), whole rows in, one weight tile at a time."""
     n_layers = len(dims) - 1
-
-    def forward(h, refs, tangent=None):
-        """The network on chunks ``h``; returns outputs, pre-activations and the tangent."""
-        pre = []
-        for k in range(n_layers):
-            w_ref, b_ref = refs[2 * k], refs[2 * k + 1]
-            z = _add_bias(_matmul(h, w_ref, dims[k], dims[k + 1]), b_ref, dims[k + 1])
-            if tangent is not None:
-                tangent = _matmul(tangent, w_ref, dims[k], dims[k + 1])
-            if k < n_layers - 1:
-                pre.append(z)
-                if tangent is not None:
-                    tangent = [_silu_grad(zj) * tj for zj, tj in zip(z, tangent)]
-                z = [_silu(zj) for zj in z]
-            h = z
-        return h, pre, tangent
 
     if mode == "jvp":
         def kernel(x_ref, t_ref, *refs):
-            weights, (y_ref, yt_ref) = refs[:-2], refs[-2:]
-            y, _, yt = forward(_load(x_ref, dims[0]), weights, _load(t_ref, dims[0]))
-            _store(y_ref, y, dims[-1])
-            _store(yt_ref, yt, dims[-1])
+            w, (y_ref, yt_ref, a0, a1, t0, t1) = refs[:2 * n_layers], refs[2 * n_layers:]
+            h, t = x_ref[...], t_ref[...]
+            for k in range(n_layers):
+                last = k == n_layers - 1
+                out, t_out = (y_ref, yt_ref) if last else ((a0, t0), (a1, t1))[k % 2]
+                _dense(h, w[2 * k], w[2 * k + 1], dims[k + 1], out, not last, t, t_out)
+                if not last:
+                    width = dims[k + 1].padded
+                    h, t = out[:, :width], t_out[:, :width]
     elif mode == "vjp":
         def kernel(x_ref, g_ref, *refs):
-            weights, gx_ref = refs[:-1], refs[-1]
-            _, pre, _ = forward(_load(x_ref, dims[0]), weights)
-            g = _load(g_ref, dims[-1])
+            w, gx_ref = refs[:2 * n_layers], refs[2 * n_layers]
+            a, gb = refs[2 * n_layers + 1:2 * n_layers + 3], refs[2 * n_layers + 3:2 * n_layers + 5]
+            zs = refs[2 * n_layers + 5:]
+            h = x_ref[...]
+            for k in range(n_layers - 1):  # hidden layers: keep the pre-activations
+                _dense(h, w[2 * k], w[2 * k + 1], dims[k + 1], a[k % 2], True, z_ref=zs[k])
+                h = a[k % 2][:, :dims[k + 1].padded]
+            g = g_ref[...]
             for k in reversed(range(n_layers)):
-                g = _matmul_t(g, weights[2 * k], dims[k], dims[k + 1])
+                out = gx_ref if k == 0 else gb[k % 2]
+
+                def body(cols, k=k, g=g, out=out):
+                    gi = _dot_t(g, w[2 * k][cols, :])
+                    if k > 0:
+                        gi = gi * _silu_grad(zs[k - 1][:, cols])
+                    out[:, cols] = gi
+
+                _tiles(dims[k], body)
                 if k > 0:
-                    g = [gj * _silu_grad(zj) for gj, zj in zip(g, pre[k - 1])]
-            _store(gx_ref, g, dims[0])
+                    g = out[:, :dims[k].padded]
     elif mode == "flow":
         # refs: z0, c | W_z, W_c, time rows (the time embedding's product plus the first bias,
-        # one row per Euler step), then the later layers' (W, b) | out. dims: (latent, context,
-        # hidden..., output == latent)
-        dz, dc, hidden = dims[0], dims[1], dims[2:]
+        # one row per Euler step), then the later layers' (W, b) | out, buffers
+        hidden = dims[2:]
 
         def kernel(z_ref, c_ref, wz_ref, wc_ref, tb_ref, *refs):
-            weights, out_ref = refs[:-1], refs[-1]
-            z = _load(z_ref, dz)
-            context = _matmul(_load(c_ref, dc), wc_ref, dc, hidden[0])
+            n_w = 2 * (len(hidden) - 1)
+            w, (out_ref, cw, a0, a1) = refs[:n_w], refs[n_w:]
+            c = c_ref[...]
+
+            def context(cols):
+                cw[:, cols] = _dot(c, wc_ref[:, cols])
+
+            _tiles(hidden[0], context)
+            z = z_ref[...]
             for i in range(nfe):
-                h = [cj + zj + tb_ref[i:i + 1, hidden[0].cols(j)] for j, (cj, zj) in
-                     enumerate(zip(context, _matmul(z, wz_ref, dz, hidden[0])))]
+                def first(cols, i=i, z=z):
+                    a0[:, cols] = _silu(_dot(z, wz_ref[:, cols]) + cw[:, cols]
+                                        + tb_ref[i:i + 1, cols])
+
+                _tiles(hidden[0], first)
+                h = a0[:, :hidden[0].padded]
                 for k in range(len(hidden) - 1):
-                    h = [_silu(hj) for hj in h]
-                    h = _add_bias(_matmul(h, weights[2 * k], hidden[k], hidden[k + 1]),
-                                  weights[2 * k + 1], hidden[k + 1])
-                z = [zj + hj / nfe for zj, hj in zip(z, h)]
-            _store(out_ref, z, dz)
+                    last = k == len(hidden) - 2
+                    out = (a1, a0)[k % 2]
+                    _dense(h, w[2 * k], w[2 * k + 1], hidden[k + 1], out, not last)
+                    h = out[:, :hidden[k + 1].padded]
+                z = z + h / nfe
+            out_ref[...] = z
     else:
         raise ValueError(f"unknown kernel mode {mode!r}")
     return kernel
 
 
 def _pallas(kernel: Callable, rows: list[jax.Array], consts: list[jax.Array],
-            out_cols: list[int]) -> list[jax.Array]:
+            out_cols: list[int], buffers: list[int]) -> list[jax.Array]:
     """Runs ``kernel`` over blocks of ``ROWS`` rows of ``rows`` (each ``[B, cols]``), with
-    ``consts`` (weights) whole; returns the outputs ``[B, c]`` for ``c`` in ``out_cols``."""
+    ``consts`` (weights) whole; returns the outputs ``[B, c]`` for ``c`` in ``out_cols``
+    (``buffers``: the widths of the per-program buffers, outputs that are dropped)."""
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as pl_triton
 
@@ -270,18 +281,19 @@ def _pallas(kernel: Callable, rows: list[jax.Array], consts: list[jax.Array],
     rows = [jnp.pad(r, ((0, padded - batch), (0, 0))) for r in rows]
     consts = [c.reshape(1, -1) if c.ndim == 1 else c for c in consts]
     row_spec = lambda cols: pl.BlockSpec((ROWS, cols), lambda i: (i, 0))
+    widths = list(out_cols) + list(buffers)
     outs = pl.pallas_call(
         kernel,
-        out_shape=[jax.ShapeDtypeStruct((padded, c), jnp.float32) for c in out_cols],
+        out_shape=[jax.ShapeDtypeStruct((padded, c), jnp.float32) for c in widths],
         grid=(padded // ROWS,),
         in_specs=[row_spec(r.shape[1]) for r in rows]
         + [pl.BlockSpec(c.shape, lambda i: (0, 0)) for c in consts],
-        out_specs=[row_spec(c) for c in out_cols],
+        out_specs=[row_spec(c) for c in widths],
         interpret=_INTERPRET.get(),
-        compiler_params=pl_triton.CompilerParams(num_warps=WARPS, num_stages=1),
+        compiler_params=pl_triton.CompilerParams(num_warps=WARPS, num_stages=STAGES),
         name="stride_fused_mlp",
     )(*rows, *consts)
-    return [o[:batch] for o in outs]
+    return [o[:batch] for o in outs[:len(out_cols)]]
 
 
 def _padded_layers(layers, dims):
@@ -297,15 +309,18 @@ def _dims(layers) -> tuple[_Dim, ...]:
 
 def _jvp_kernel(layers, x, t):
     dims = _dims(layers)
+    width = max(d.padded for d in dims)
     y, yt = _pallas(_kernel("jvp", dims), [_pad_cols(x, dims[0]), _pad_cols(t, dims[0])],
-                    _padded_layers(layers, dims), [dims[-1].padded] * 2)
+                    _padded_layers(layers, dims), [dims[-1].padded] * 2, [width] * 4)
     return y[:, :dims[-1].size], yt[:, :dims[-1].size]
 
 
 def _vjp_kernel(layers, x, g):
     dims = _dims(layers)
+    width = max(d.padded for d in dims)
     (gx,) = _pallas(_kernel("vjp", dims), [_pad_cols(x, dims[0]), _pad_cols(g, dims[-1])],
-                    _padded_layers(layers, dims), [dims[0].padded])
+                    _padded_layers(layers, dims), [dims[0].padded],
+                    [width] * 4 + [d.padded for d in dims[1:-1]])
     return gx[:, :dims[0].size]
 
 
@@ -323,8 +338,9 @@ def _flow_kernel(layers, z, c, nfe, time_features):
     consts = [_pad_weight(w_z, dz, hidden[0]).astype(DTYPE),
               _pad_weight(w_c, dc, hidden[0]).astype(DTYPE), time_rows]
     consts += _padded_layers(rest, hidden)
+    width = max(d.padded for d in hidden)
     (out,) = _pallas(_kernel("flow", (dz, dc) + hidden, nfe),
-                     [_pad_cols(z, dz), _pad_cols(c, dc)], consts, [dz.padded])
+                     [_pad_cols(z, dz), _pad_cols(c, dc)], consts, [dz.padded], [width] * 3)
     return out[:, :nz]
 
 
