@@ -19,13 +19,13 @@ from stride_jax.dynamics import fused, mlp
 
 hidden, depth, K = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 fused.CHUNK, fused.ROWS, fused.WARPS = (int(v) for v in sys.argv[4].split(","))
-fused.DTYPE = jnp.dtype(sys.argv[5])
+dtype = jnp.dtype(sys.argv[5])
 init, apply = mlp.mlp(mlp.MLPConfig(hidden, depth), 166)  # Go1's one-network prior: 21 -> 166
 params = init(jax.random.key(0), 21)
 x = jax.random.normal(jax.random.key(1), (K, 21))
 t = x * 0.5
-const = jax.jit(jax.vmap(lambda x, t: fused.jvp(params, x, t)))
-arg = jax.jit(lambda p, x, t: jax.vmap(lambda x, t: fused.jvp(p, x, t))(x, t))
+const = jax.jit(jax.vmap(lambda x, t: fused.jvp(params, x, t, dtype)))
+arg = jax.jit(lambda p, x, t: jax.vmap(lambda x, t: fused.jvp(p, x, t, dtype))(x, t))
 for name, fn, args in [("const", const, (x, t)), ("arg", arg, (params, x, t))]:
     jax.block_until_ready(fn(*args))
     times = []

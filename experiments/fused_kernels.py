@@ -66,13 +66,14 @@ def main():
     passes = {
         "jvp (forward + tangent)": (
             jax.vmap(lambda x, t: jax.jvp(lambda x: apply(params, x), (x,), (t,))),
-            jax.vmap(lambda x, t: fused.jvp(params, x, t)), (x, t)),
+            lambda dt: jax.vmap(lambda x, t: fused.jvp(params, x, t, dt)), (x, t)),
         "vjp (forward + transposed)": (
             jax.vmap(lambda x, g: jax.vjp(lambda x: apply(params, x), x)[1](g)[0]),
-            jax.vmap(lambda x, g: fused.vjp(params, x, g)), (x, g)),
+            lambda dt: jax.vmap(lambda x, g: fused.vjp(params, x, g, dt)), (x, g)),
         f"flow sample (NFE {a.nfe})": (
             jax.vmap(lambda z, c: flow.integrate(fparams, z, c, fcfg)),
-            jax.vmap(lambda z, c: fused.flow_euler(fparams, z, c, a.nfe, fcfg.time_features)),
+            lambda dt: jax.vmap(lambda z, c: fused.flow_euler(fparams, z, c, a.nfe,
+                                                              fcfg.time_features, dt)),
             (z0, c)),
     }
     print(f"{jax.devices()[0].device_kind}, K={a.samples}, {a.hidden} x {a.depth}, "
@@ -87,9 +88,8 @@ def main():
         for tile, rows, warps, stages, dtype in variants:
             fused.CHUNK, fused.ROWS, fused.WARPS, fused.STAGES = map(int, (tile, rows, warps,
                                                                           stages))
-            fused.DTYPE = jnp.dtype(dtype)
-            print(f" {us(fast, args):9.1f}", end="", flush=True)
-            f = jax.jit(fast)(*args)
+            print(f" {us(fast(jnp.dtype(dtype)), args):9.1f}", end="", flush=True)
+            f = jax.jit(fast(jnp.dtype(dtype)))(*args)
             diff = max([diff] + [float(jnp.max(jnp.abs(u - v))) for u, v in
                                  zip(jax.tree.leaves(r), jax.tree.leaves(f))])
         scale = max(float(jnp.max(jnp.abs(u))) for u in jax.tree.leaves(r))

@@ -43,6 +43,8 @@ class BenchConfig:
       hidden, depth: network size (the paper's: 256 x 3).
       nfe: residual evaluations for generative models (0: each model's default).
       shared_lnn: structured models with one network for L and V (``LNNConfig.shared``).
+      kernel: how the models' networks run: ``xla``, or fused kernels (``pallas``,
+        ``pallas-bf16``; ``stride_jax.dynamics.fused``, GPUs).
       substeps: model evaluations per control step in the planner's rollouts (0: the robot's
         simulation substeps; 1 integrates at the control period, with the implicit servo).
       unroll: horizon steps per loop iteration of the planner's rollouts (0: the whole horizon;
@@ -59,6 +61,7 @@ class BenchConfig:
     depth: int = 3
     nfe: int = 0
     shared_lnn: bool = False
+    kernel: str = "xla"
     substeps: int = 0
     unroll: int = 1
     repeats: int = 5
@@ -126,6 +129,7 @@ def control_step_flops(model_name: str, spec, act: models.Actuation,
     evaluation, and the rest is added: ``substeps x (eval(nfe=1) + (nfe - 1) x 2 P_res)``, with
     ``2 P_res`` the multiply-adds of one pass of the residual network (``P_res`` weights)."""
     one = dataclasses.replace(act, n_substeps=1)
+    model_cfg = dataclasses.replace(model_cfg, kernel="xla")  # XLA counts its own ops only
     model = models.make(model_name, spec, one, model_cfg, stride.Scales())
     nu = len(act.dof)
     q = jnp.zeros(spec.nq).at[3].set(1.0) if spec.floating_base else jnp.zeros(spec.nq)
@@ -164,8 +168,8 @@ def setup(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig) -> Setu
     if cfg.substeps:
         act = dataclasses.replace(act, dt=act.dt * act.n_substeps / cfg.substeps,
                                   n_substeps=cfg.substeps)
-    model_cfg = job.model_config(model_name, meta, cfg.hidden, cfg.depth, cfg.nfe,
-                                 cfg.shared_lnn)
+    model_cfg = dataclasses.replace(job.model_config(model_name, meta, cfg.hidden, cfg.depth,
+                                                     cfg.nfe, cfg.shared_lnn), kernel=cfg.kernel)
     model = models.make(model_name, spec, act, model_cfg, stride.Scales())
     params = model.init(jax.random.key(0))
     lo, hi = np.asarray(meta["ctrl_range"], np.float32).T
@@ -192,7 +196,7 @@ def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
     flops = K * H * control_step_flops(model_name, b.spec, b.act, b.model_cfg, b.params)
     floor_ms = 1e3 * flops / peak
     return dict(robot=robot, model=model_name, K=K, H=H, substeps=b.act.n_substeps,
-                unroll=cfg.unroll,
+                unroll=cfg.unroll, kernel=cfg.kernel,
                 nfe=b.model_cfg.nfe if b.model.stochastic else None, ms=ms, hz=1e3 / ms,
                 gflop=flops / 1e9, xla_gflop=xla_flops / 1e9, floor_ms=floor_ms,
                 ratio=ms / floor_ms if floor_ms > 0 else float("nan"), compile_s=compile_s)
@@ -232,7 +236,9 @@ def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> path
              + f"jax {env['jax']}; XLA_FLAGS `{env['xla_flags'] or '-'}`; rollouts unrolled "
              f"{'fully' if not cfg.unroll else f'{cfg.unroll} step(s) per loop iteration'}. "
              f"Networks {cfg.hidden} x {cfg.depth}"
-             f"{' (L and V from one network)' if cfg.shared_lnn else ''} at initialisation; "
+             f"{' (L and V from one network)' if cfg.shared_lnn else ''} at initialisation"
+             + ("" if cfg.kernel == "xla" else f", network passes as fused kernels ({cfg.kernel})")
+             + "; "
              "one jitted planning step (K rollouts of H control "
              "steps, each the robot's simulation substeps) with block_until_ready; median of "
              f"{cfg.repeats}. FLOP floor = K x H x the FLOPs of one model control step "

@@ -15,7 +15,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from stride_jax.dynamics import mlp
+from stride_jax.dynamics import fused, mlp
 
 INTEGRATORS = ("euler", "midpoint")
 
@@ -28,10 +28,14 @@ class FlowConfig:
     time_features: int = 8  # sinusoidal features of t
     nfe: int = 2
     integrator: str = "euler"
+    kernel: str = "xla"  # sampling: XLA's ops or a fused kernel (fused.KERNELS; Euler only)
 
     def __post_init__(self):
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"integrator {self.integrator!r} is not one of {INTEGRATORS}")
+        if fused.kernel_dtype(self.kernel) is not None and self.integrator != "euler":
+            raise ValueError(f"kernel {self.kernel!r} samples with Euler steps only, "
+                             f"not {self.integrator!r}")
         if self.nfe < 1 or (self.integrator == "midpoint" and self.nfe % 2):
             raise ValueError(f"nfe={self.nfe}: need >= 1 (and even for midpoint)")
 
@@ -66,8 +70,12 @@ def fm_loss(params: dict, x1: jax.Array, context: jax.Array, key: jax.Array,
 
 def integrate(params: dict, z0: jax.Array, context: jax.Array, cfg: FlowConfig = FlowConfig(),
               nfe: int | None = None) -> jax.Array:
-    """Transports ``z0`` to a sample: ``z0 + integral_0^1 v dt`` with ``nfe`` evaluations."""
+    """Transports ``z0`` to a sample: ``z0 + integral_0^1 v dt`` with ``nfe`` evaluations
+    (with a fused ``cfg.kernel``: one kernel for the whole sample, under ``vmap`` on GPUs)."""
     nfe = nfe or cfg.nfe
+    dtype = fused.kernel_dtype(cfg.kernel)
+    if dtype is not None:
+        return fused.flow_euler(params, z0, context, nfe, cfg.time_features, dtype)
     field = lambda z, t: vector_field(params, z, t, context, cfg)
     if cfg.integrator == "euler":
         dt = 1.0 / nfe

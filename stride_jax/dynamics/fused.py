@@ -26,7 +26,7 @@ Status (one H100, Go1's one-network prior 256 x 3 and the flow's field, 1024 sam
 and numbers in ``results/README.md``): correct, but **not faster than XLA, so no model uses
 these kernels yet**. Per pass (30 passes in one call), XLA against the fused kernel: jvp 47 vs
 74 us, vjp 51 vs 64 us, a flow sample (NFE 2) 60 vs 59 us, or 45 us with bfloat16 products
-(``DTYPE``). A program streams all of a network's weights for only 16 rows, so its time is the
+(``dtype``). A program streams all of a network's weights for only 16 rows, so its time is the
 latency of its tile loop. A first version with the layers unrolled was 7x slower still:
 ``ncu`` showed 32 registers and a 13.5 kB stack per thread, and warps stalled on local memory
 (its weight loads spilled). Beating XLA needs the whole model step in one kernel (the solve
@@ -38,6 +38,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import dataclasses
+import functools
 from typing import Callable
 
 import jax
@@ -48,7 +49,6 @@ CHUNK = 64  # columns of a weight tile
 ROWS = 16  # samples per kernel program (Triton's smallest matrix-product tile)
 WARPS = 4  # warps per kernel program
 STAGES = 2  # software-pipelining depth of the weight-tile loops
-DTYPE = jnp.float32  # the matrix products' inputs (accumulation is float32)
 
 _INTERPRET = contextvars.ContextVar("stride_fused_interpret", default=False)
 
@@ -149,12 +149,13 @@ def _pad_weight(w: jax.Array, din: _Dim, dout: _Dim) -> jax.Array:
 
 
 def _dot(a, b):
-    return jnp.dot(a.astype(DTYPE), b, preferred_element_type=jnp.float32)
+    """``a @ b`` in the weights' type ``b.dtype``, accumulated in float32."""
+    return jnp.dot(a.astype(b.dtype), b, preferred_element_type=jnp.float32)
 
 
 def _dot_t(a, b):
     """``a @ b.T``."""
-    return jax.lax.dot_general(a.astype(DTYPE), b, (((1,), (1,)), ((), ())),
+    return jax.lax.dot_general(a.astype(b.dtype), b, (((1,), (1,)), ((), ())),
                                preferred_element_type=jnp.float32)
 
 
@@ -296,10 +297,10 @@ def _pallas(kernel: Callable, rows: list[jax.Array], consts: list[jax.Array],
     return [o[:batch] for o in outs[:len(out_cols)]]
 
 
-def _padded_layers(layers, dims):
+def _padded_layers(layers, dims, dtype):
     out = []
     for (w, b), din, dout in zip(layers, dims[:-1], dims[1:]):
-        out += [_pad_weight(w, din, dout).astype(DTYPE), _pad_cols(b, dout)]
+        out += [_pad_weight(w, din, dout).astype(dtype), _pad_cols(b, dout)]
     return out
 
 
@@ -307,24 +308,24 @@ def _dims(layers) -> tuple[_Dim, ...]:
     return tuple(_Dim.of(n) for n in [layers[0][0].shape[0]] + [w.shape[1] for w, _ in layers])
 
 
-def _jvp_kernel(layers, x, t):
+def _jvp_kernel(layers, x, t, dtype):
     dims = _dims(layers)
     width = max(d.padded for d in dims)
     y, yt = _pallas(_kernel("jvp", dims), [_pad_cols(x, dims[0]), _pad_cols(t, dims[0])],
-                    _padded_layers(layers, dims), [dims[-1].padded] * 2, [width] * 4)
+                    _padded_layers(layers, dims, dtype), [dims[-1].padded] * 2, [width] * 4)
     return y[:, :dims[-1].size], yt[:, :dims[-1].size]
 
 
-def _vjp_kernel(layers, x, g):
+def _vjp_kernel(layers, x, g, dtype):
     dims = _dims(layers)
     width = max(d.padded for d in dims)
     (gx,) = _pallas(_kernel("vjp", dims), [_pad_cols(x, dims[0]), _pad_cols(g, dims[-1])],
-                    _padded_layers(layers, dims), [dims[0].padded],
+                    _padded_layers(layers, dims, dtype), [dims[0].padded],
                     [width] * 4 + [d.padded for d in dims[1:-1]])
     return gx[:, :dims[0].size]
 
 
-def _flow_kernel(layers, z, c, nfe, time_features):
+def _flow_kernel(layers, z, c, nfe, time_features, dtype):
     (w1, b1), rest = layers[0], layers[1:]
     nz = z.shape[-1]
     dz, dc = _Dim.of(nz), _Dim.of(c.shape[-1])
@@ -335,9 +336,9 @@ def _flow_kernel(layers, z, c, nfe, time_features):
     times = np.stack([_time_embedding(i / nfe, time_features) for i in range(nfe)])
     rows = 1 << (nfe - 1).bit_length()  # a power of two for Triton
     time_rows = jnp.pad(times @ w_t + b1, ((0, rows - nfe), (0, hidden[0].padded - b1.shape[0])))
-    consts = [_pad_weight(w_z, dz, hidden[0]).astype(DTYPE),
-              _pad_weight(w_c, dc, hidden[0]).astype(DTYPE), time_rows]
-    consts += _padded_layers(rest, hidden)
+    consts = [_pad_weight(w_z, dz, hidden[0]).astype(dtype),
+              _pad_weight(w_c, dc, hidden[0]).astype(dtype), time_rows]
+    consts += _padded_layers(rest, hidden, dtype)
     width = max(d.padded for d in hidden)
     (out,) = _pallas(_kernel("flow", (dz, dc) + hidden, nfe),
                      [_pad_cols(z, dz), _pad_cols(c, dc)], consts, [dz.padded], [width] * 3)
@@ -372,29 +373,39 @@ def _batched(kernel_fn: Callable, ref_fn: Callable, n_out: int) -> Callable:
     return f
 
 
-_jvp = _batched(_jvp_kernel, _jvp_ref, 2)
-_vjp = _batched(_vjp_kernel, _vjp_ref, 1)
+def jvp(params: dict, x: jax.Array, t: jax.Array, dtype=jnp.float32
+        ) -> tuple[jax.Array, jax.Array]:
+    """``(f(x), df(x) t)`` of an :func:`mlp.mlp` network with ``params``; ``x, t [din]``.
+    ``dtype``: the kernel's matrix-product inputs (float32 or bfloat16; accumulation float32)."""
+    f = _batched(functools.partial(_jvp_kernel, dtype=dtype), _jvp_ref, 2)
+    return f(_layers(params), x, t)
 
 
-def jvp(params: dict, x: jax.Array, t: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``(f(x), df(x) t)`` of an :func:`mlp.mlp` network with ``params``; ``x, t [din]``."""
-    return _jvp(_layers(params), x, t)
-
-
-def vjp(params: dict, x: jax.Array, g: jax.Array) -> jax.Array:
+def vjp(params: dict, x: jax.Array, g: jax.Array, dtype=jnp.float32) -> jax.Array:
     """``df(x)^T g`` ``[din]`` of an :func:`mlp.mlp` network, ``g [dout]``."""
-    return _vjp(_layers(params), x, g)
+    f = _batched(functools.partial(_vjp_kernel, dtype=dtype), _vjp_ref, 1)
+    return f(_layers(params), x, g)
 
 
 def flow_euler(params: dict, z0: jax.Array, context: jax.Array, nfe: int,
-               time_features: int) -> jax.Array:
+               time_features: int, dtype=jnp.float32) -> jax.Array:
     """A flow-matching sample ``[dim]`` from ``z0 [dim]``: :func:`flow.integrate` with Euler
     steps, the vector field's ``params`` and its input ``(z, time embedding, context)``."""
     if nfe < 1:
         raise ValueError(f"flow_euler needs nfe >= 1, got {nfe}")
-    f = _batched(lambda layers, z, c: _flow_kernel(layers, z, c, nfe, time_features),
+    f = _batched(lambda layers, z, c: _flow_kernel(layers, z, c, nfe, time_features, dtype),
                  lambda layers, z, c: _flow_ref(layers, z, c, nfe, time_features), 1)
     return f(_layers(params), z0, context)
 
 
-__all__ = ["jvp", "vjp", "flow_euler", "interpret"]
+KERNELS = {"xla": None, "pallas": jnp.float32, "pallas-bf16": jnp.bfloat16}
+
+
+def kernel_dtype(kernel: str):
+    """The fused kernels' product type for a kernel choice (None: XLA's own ops)."""
+    if kernel not in KERNELS:
+        raise ValueError(f"unknown kernel {kernel!r}; available: {', '.join(KERNELS)}")
+    return KERNELS[kernel]
+
+
+__all__ = ["KERNELS", "flow_euler", "interpret", "jvp", "kernel_dtype", "vjp"]

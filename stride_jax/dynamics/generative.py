@@ -24,9 +24,10 @@ class Generator(NamedTuple):
 
 
 def make(kind: str, net: mlp.MLPConfig, nfe: int, integrator: str = "euler",
-         diffusion_steps: int = 100, eta: float = 1.0) -> Generator:
+         diffusion_steps: int = 100, eta: float = 1.0, kernel: str = "xla") -> Generator:
+    """``kernel``: how the flow samples (``fused.KERNELS``); diffusion always samples in XLA."""
     if kind == "flow":
-        cfg = flow.FlowConfig(net=net, nfe=nfe, integrator=integrator)
+        cfg = flow.FlowConfig(net=net, nfe=nfe, integrator=integrator, kernel=kernel)
         return Generator(lambda key, dim, cdim: flow.flow_init(key, dim, cdim, cfg),
                          lambda p, x, c, key: flow.fm_loss(p, x, c, key, cfg),
                          lambda p, c, key, dim, nfe=None: flow.sample(p, c, key, dim, cfg, nfe),

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.dynamics import mlp
+from stride_jax.dynamics import fused, mlp
 from stride_jax.dynamics.integrate import quat_to_mat, retract
 from stride_jax.types import ModelSpec
 
@@ -246,7 +246,7 @@ def potential_energy(params: dict, spec: ModelSpec, q: jax.Array,
 
 
 def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
-              cfg: LNNConfig = LNNConfig()) -> tuple[jax.Array, jax.Array]:
+              cfg: LNNConfig = LNNConfig(), kernel: str = "xla") -> tuple[jax.Array, jax.Array]:
     """``(M(q), C(q, v) v + g(q))`` of the learned Lagrangian: :func:`bias_force` of
     :func:`mass_matrix` and :func:`potential_energy`, computed in the networks' feature space.
 
@@ -258,26 +258,34 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
     through them. Measured with the products on ``L`` below (Go1, 64 x 3 networks, a batch of
     128 on a 2-core CPU; ``experiments/model_step_time.py``): the model step 3.0 -> 2.1 ms.
     Equal to :func:`bias_force` to rounding (tested).
+
+    ``kernel``: ``"xla"`` (JAX's own differentiation, differentiable again: training uses it)
+    or a fused-kernel choice of :data:`fused.KERNELS` for inference: the networks' forward and
+    tangent passes as one kernel and the transposed pass as another (on GPUs, under ``vmap``).
     """
     fb = spec.floating_base
     zero = jnp.zeros(spec.nv, v.dtype)
     features = lambda delta: q_features(spec, retract(q, delta, fb), height=False)
     x0, dx = jax.linearize(features, zero)  # dx(delta) = T delta
+    dtype = fused.kernel_dtype(kernel)
+    if dtype is None:
+        def factor_and_potential(x):
+            raw, v_net = _networks(params, spec, x, cfg)
+            return _factor_from_raw(params, spec, raw, cfg), v_net
 
-    def factor_and_potential(x):
-        raw, v_net = _networks(params, spec, x, cfg)
-        return _factor_from_raw(params, spec, raw, cfg), v_net
-
-    (L, _), d_terms = jax.linearize(factor_and_potential, x0)
+        (L, _), d_terms = jax.linearize(factor_and_potential, x0)
+        dL = d_terms(dx(v))[0]  # L's rate of change along the motion
+        # dL/dx of 1/2 |L^T v|^2 - V: the transposed linear map at the cotangent (g_L, -1)
+        transpose = lambda g_L: jax.linear_transpose(d_terms, x0)((g_L, -jnp.ones((), v.dtype)))[0]
+    else:
+        L, dL, transpose = _fused_passes(params, spec, cfg, x0, dx(v), dtype)
     # With M = L L^T + floor I every derivative is a product with v (no derivative of M is
     # formed: matrix-vector work, where differentiating L L^T costs batched matrix products).
     u = L.T @ v
     M = _mass_from_factor(L, cfg)
     p = L @ u + cfg.diag_floor * v  # M v
-    dL = d_terms(dx(v))[0]  # L's rate of change along the motion
     mdot_v = dL @ u + L @ (dL.T @ v)
-    # dL/dx of 1/2 |L^T v|^2 - V: the transposed linear map at the cotangent (v u^T, -1).
-    (dl_dx,) = jax.linear_transpose(d_terms, x0)((jnp.outer(v, u), -jnp.ones((), v.dtype)))
+    dl_dx = transpose(jnp.outer(v, u))  # the cotangent of 1/2 |L^T v|^2 on L is v u^T
     (dl_dq,) = jax.linear_transpose(dx, zero)(dl_dx)  # T^T dl_dx
     b = mdot_v - dl_dq
     if fb:
@@ -287,6 +295,31 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
         b = b + total_mass(params, cfg) * cfg.gravity * up
         b = b.at[3:6].add(jnp.cross(v[3:6], p[3:6]))
     return M, b
+
+
+def _fused_passes(params: dict, spec: ModelSpec, cfg: LNNConfig, x: jax.Array, t: jax.Array,
+                  dtype) -> tuple[jax.Array, jax.Array, Callable]:
+    """``(L, dL, transpose)`` of :func:`lnn_terms` by the fused kernels: L and its derivative
+    along the features' tangent ``t``, and ``g_L -> d(<g_L, L> - V)/dx``."""
+    n_out = _n_mass_outputs(spec)
+    factor = lambda raw: _factor_from_raw(params, spec, raw, cfg)
+    if cfg.shared:
+        out, out_t = fused.jvp(params["shared"], x, t, dtype)
+        raw, raw_t = out[:n_out], out_t[:n_out]
+    else:
+        raw, raw_t = fused.jvp(params["mass"], x, t, dtype)
+    L, dL = jax.jvp(factor, (raw,), (raw_t,))
+    factor_vjp = jax.vjp(factor, raw)[1]
+
+    def transpose(g_L):
+        (g_raw,) = factor_vjp(g_L)
+        minus_one = -jnp.ones((1,), g_raw.dtype)
+        if cfg.shared:
+            return fused.vjp(params["shared"], x, jnp.concatenate([g_raw, minus_one]), dtype)
+        return (fused.vjp(params["mass"], x, g_raw, dtype)
+                + fused.vjp(params["potential"], x, minus_one, dtype))
+
+    return L, dL, transpose
 
 
 def lnn_terms_reference(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,

@@ -74,7 +74,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from stride_jax.dynamics import generative, lagrangian, linalg, mlp
+from stride_jax.dynamics import fused, generative, lagrangian, linalg, mlp
 from stride_jax.types import ModelSpec
 
 
@@ -99,6 +99,12 @@ class StructuredConfig:
     implicit_servo: bool = True  # rollouts: servo PD at the next state (Actuation.implicit)
     fm_weight: float = 1.0
     residual_weight: float = 0.1
+    # Inference (acceleration, terms, step, rollout): the networks' passes in XLA or as fused
+    # kernels (fused.KERNELS; the flow with Euler steps). Training always differentiates in XLA.
+    kernel: str = "xla"
+
+    def __post_init__(self):
+        fused.kernel_dtype(self.kernel)  # a clear error for an unknown choice
 
     @property
     def lnn(self) -> lagrangian.LNNConfig:
@@ -108,7 +114,7 @@ class StructuredConfig:
 
     def generator(self, kind: str) -> generative.Generator:
         return generative.make(kind, self.net, self.nfe, self.integrator, self.diffusion_steps,
-                               self.eta)
+                               self.eta, self.kernel)
 
 
 class Scales(NamedTuple):
@@ -182,7 +188,7 @@ def acceleration(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual:
     ``servo = (tau0, extra)`` integrates the actuators implicitly (``Actuation.implicit``):
     ``(M + diag(extra)) qdd = tau0 - b + eps``; the residual still sees ``tau``.
     """
-    M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn)
+    M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn, cfg.kernel)
     eps = residual_force(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
     if servo is not None:
         tau, extra = servo
@@ -194,7 +200,7 @@ def terms(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
           q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales()) -> dict:
     """The split ``qdd = prior + residual``: ``{'prior': f_LNN, 'residual': M^-1 eps, 'eps': eps}``
     (each ``[nv]``), for evaluation and analysis."""
-    M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn)
+    M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn, cfg.kernel)
     eps = residual_force(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
     cho = jax.scipy.linalg.cho_factor(M)
     return {"prior": jax.scipy.linalg.cho_solve(cho, tau - b),
@@ -220,6 +226,7 @@ def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
     ``[R, nv]``: the sole Jacobians of the feet in contact (rows of zeros for feet in swing;
     ``None`` or no rows: free motion)."""
     _check(residual)
+    cfg = dataclasses.replace(cfg, kernel="xla")  # training differentiates through everything
     key_sample, key_gen = jax.random.split(key)
     M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn)
     cho = jax.scipy.linalg.cho_factor(M)
