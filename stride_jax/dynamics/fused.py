@@ -22,15 +22,15 @@ each layer's weights one tile of columns at a time in a loop (``fori_loop``, sof
 by Triton), writing the layer's output through a per-program buffer. The networks are
 :mod:`stride_jax.dynamics.mlp`'s (SiLU hidden layers, a linear output).
 
-Status (one H100, Go1's one-network prior 256 x 3 and the flow's field, 1024 samples; commands
-and numbers in ``results/README.md``): correct, but **not faster than XLA, so no model uses
-these kernels yet**. Per pass (30 passes in one call), XLA against the fused kernel: jvp 47 vs
-74 us, vjp 51 vs 64 us, a flow sample (NFE 2) 60 vs 59 us, or 45 us with bfloat16 products
-(``dtype``). A program streams all of a network's weights for only 16 rows, so its time is the
-latency of its tile loop. A first version with the layers unrolled was 7x slower still:
-``ncu`` showed 32 registers and a 13.5 kB stack per thread, and warps stalled on local memory
-(its weight loads spilled). Beating XLA needs the whole model step in one kernel (the solve
-included), so that launches, not weight streaming, are what it saves.
+Status (one H100, Go1, 1024 samples; commands and numbers in ``results/README.md``): at the
+paper's 256 x 3 a program streams ~0.7 MB of weights for only 16 rows, and the kernels are no
+faster than XLA per pass (jvp 74 vs 47 us, vjp 64 vs 51 us, a flow sample 59 vs 60 us, 45 us
+with bfloat16 products). At planning sizes they are: 64 x 3 per pass 19-24 us against XLA's
+25-34, and a whole MPPI step (K = 1024, H = 30, STRIDE NFE 2) 6.09 ms in XLA, 5.41 ms fused,
+5.12 ms fused with bfloat16 products. Select them with ``StructuredConfig.kernel``
+(``bench-mppi --kernel``). A first version with the layers unrolled was 7x slower: ``ncu``
+showed 32 registers and a 13.5 kB stack per thread, warps stalled on local memory (its weight
+loads spilled), hence the tile loops.
 """
 
 from __future__ import annotations

@@ -32,11 +32,14 @@ def _bench_match(rows: list[dict], target: dict) -> list[dict]:
 
 
 def _net(bench: dict) -> str:
-    """``hidden x depth`` of a bench file's networks, whether L and V share one, and the number
-    of devices the samples were split over."""
+    """``hidden x depth`` of a bench file's networks, whether L and V share one, the fused
+    kernels they ran as (if any) and the number of devices the samples were split over."""
     net = f"{_dig(bench, 'env', 'config', 'hidden')} x {_dig(bench, 'env', 'config', 'depth')}"
     if _dig(bench, "env", "config", "shared_lnn"):
         net += ", one network for L and V"
+    kernel = _dig(bench, "env", "config", "kernel")
+    if kernel and kernel != "xla":
+        net += f", fused kernels ({kernel})"
     n_devices = _dig(bench, "env", "n_devices") or 1
     return net + (f", {n_devices} devices" if n_devices > 1 else "")
 
