@@ -254,8 +254,9 @@ def save_definition(run: pathlib.Path, name: str, spec: ModelSpec, act: Actuatio
         "scales": {k: as_list(v) for k, v in scales._asdict().items()}}, indent=1))
 
 
-def load(run: str | pathlib.Path) -> tuple[Model, dict]:
-    """``(model, params)``: the best (lowest validation loss) parameters of a training run."""
+def load(run: str | pathlib.Path, kernel: str | None = None) -> tuple[Model, dict]:
+    """``(model, params)``: the best (lowest validation loss) parameters of a training run;
+    ``kernel`` overrides how its networks run at inference (``StructuredConfig.kernel``)."""
     import orbax.checkpoint as ocp
 
     run = pathlib.Path(run)
@@ -268,6 +269,8 @@ def load(run: str | pathlib.Path) -> tuple[Model, dict]:
     c = dict(d["config"])
     c.setdefault("learn_mass", True)  # runs defined before the option learned their mass
     cfg = stride.StructuredConfig(**dict(c, net=mlp.MLPConfig(**c["net"])))
+    if kernel is not None:
+        cfg = dataclasses.replace(cfg, kernel=kernel)
     sc = stride.Scales(**{k: jnp.asarray(v, jnp.float32) for k, v in d["scales"].items()})
     model = make(d["name"], spec, act, cfg, sc)
     mngr = ocp.CheckpointManager((run / "best").absolute())
