@@ -159,6 +159,27 @@ def _dot_t(a, b):
                                preferred_element_type=jnp.float32)
 
 
+def _load_in(ref, size: int):
+    """A row input's block, its columns past ``size`` (beyond the array) read as zeros: the
+    inputs need no padded copy (one kernel launch less each)."""
+    from jax.experimental.pallas import triton as pl_triton
+
+    cols = jax.lax.broadcasted_iota(jnp.int32, ref.shape, 1)
+    return pl_triton.load(ref, mask=cols < size, other=0.0)
+
+
+def _put(ref, cols, value, size: int | None = None) -> None:
+    """``ref[:, cols] = value``; with ``size``, only the columns below it (an output array
+    narrower than its block)."""
+    if size is None:
+        ref[:, cols] = value
+        return
+    from jax.experimental.pallas import triton as pl_triton
+
+    index = cols.start + jax.lax.broadcasted_iota(jnp.int32, value.shape, 1)
+    pl_triton.store(ref.at[:, cols], value, mask=index < size)
+
+
 def _barrier() -> None:
     """Every thread of the program gets here (and sees the others' stores) before any goes on."""
     if not _INTERPRET.get():
@@ -179,9 +200,11 @@ def _tiles(dim: _Dim, body: Callable) -> None:
     _barrier()
 
 
-def _dense(h, w_ref, b_ref, dout: _Dim, out_ref, act: bool, t=None, t_ref=None, z_ref=None):
+def _dense(h, w_ref, b_ref, dout: _Dim, out_ref, act: bool, t=None, t_ref=None, z_ref=None,
+           out_size: int | None = None):
     """``out = act(h @ W + b)`` into ``out_ref`` tile by tile; with a tangent ``t``, its image
-    ``act'(z) (t @ W)`` into ``t_ref``; ``z_ref`` keeps the pre-activations."""
+    ``act'(z) (t @ W)`` into ``t_ref``; ``z_ref`` keeps the pre-activations; ``out_size``: the
+    width of output arrays narrower than the block."""
     def body(cols):
         w = w_ref[:, cols]
         z = _dot(h, w) + b_ref[:, cols]
@@ -189,8 +212,8 @@ def _dense(h, w_ref, b_ref, dout: _Dim, out_ref, act: bool, t=None, t_ref=None, 
             z_ref[:, cols] = z
         if t is not None:
             zt = _dot(t, w)
-            t_ref[:, cols] = _silu_grad(z) * zt if act else zt
-        out_ref[:, cols] = _silu(z) if act else z
+            _put(t_ref, cols, _silu_grad(z) * zt if act else zt, out_size)
+        _put(out_ref, cols, _silu(z) if act else z, out_size)
 
     _tiles(dout, body)
 
@@ -205,11 +228,12 @@ def _kernel(mode: str, dims: tuple[_Dim, ...], nfe: int = 0) -> Callable:
     if mode == "jvp":
         def kernel(x_ref, t_ref, *refs):
             w, (y_ref, yt_ref, a0, a1, t0, t1) = refs[:2 * n_layers], refs[2 * n_layers:]
-            h, t = x_ref[...], t_ref[...]
+            h, t = _load_in(x_ref, dims[0].size), _load_in(t_ref, dims[0].size)
             for k in range(n_layers):
                 last = k == n_layers - 1
                 out, t_out = (y_ref, yt_ref) if last else ((a0, t0), (a1, t1))[k % 2]
-                _dense(h, w[2 * k], w[2 * k + 1], dims[k + 1], out, not last, t, t_out)
+                _dense(h, w[2 * k], w[2 * k + 1], dims[k + 1], out, not last, t, t_out,
+                       out_size=dims[-1].size if last else None)
                 if not last:
                     width = dims[k + 1].padded
                     h, t = out[:, :width], t_out[:, :width]
@@ -218,11 +242,11 @@ def _kernel(mode: str, dims: tuple[_Dim, ...], nfe: int = 0) -> Callable:
             w, gx_ref = refs[:2 * n_layers], refs[2 * n_layers]
             a, gb = refs[2 * n_layers + 1:2 * n_layers + 3], refs[2 * n_layers + 3:2 * n_layers + 5]
             zs = refs[2 * n_layers + 5:]
-            h = x_ref[...]
+            h = _load_in(x_ref, dims[0].size)
             for k in range(n_layers - 1):  # hidden layers: keep the pre-activations
                 _dense(h, w[2 * k], w[2 * k + 1], dims[k + 1], a[k % 2], True, z_ref=zs[k])
                 h = a[k % 2][:, :dims[k + 1].padded]
-            g = g_ref[...]
+            g = _load_in(g_ref, dims[-1].size)
             for k in reversed(range(n_layers)):
                 out = gx_ref if k == 0 else gb[k % 2]
 
@@ -230,7 +254,7 @@ def _kernel(mode: str, dims: tuple[_Dim, ...], nfe: int = 0) -> Callable:
                     gi = _dot_t(g, w[2 * k][cols, :])
                     if k > 0:
                         gi = gi * _silu_grad(zs[k - 1][:, cols])
-                    out[:, cols] = gi
+                    _put(out, cols, gi, None if k > 0 else dims[0].size)
 
                 _tiles(dims[k], body)
                 if k > 0:
@@ -243,13 +267,13 @@ def _kernel(mode: str, dims: tuple[_Dim, ...], nfe: int = 0) -> Callable:
         def kernel(z_ref, c_ref, wz_ref, wc_ref, tb_ref, *refs):
             n_w = 2 * (len(hidden) - 1)
             w, (out_ref, cw, a0, a1) = refs[:n_w], refs[n_w:]
-            c = c_ref[...]
+            c = _load_in(c_ref, dims[1].size)
 
             def context(cols):
                 cw[:, cols] = _dot(c, wc_ref[:, cols])
 
             _tiles(hidden[0], context)
-            z = z_ref[...]
+            z = _load_in(z_ref, dims[0].size)
             for i in range(nfe):
                 def first(cols, i=i, z=z):
                     a0[:, cols] = _silu(_dot(z, wz_ref[:, cols]) + cw[:, cols]
@@ -263,38 +287,40 @@ def _kernel(mode: str, dims: tuple[_Dim, ...], nfe: int = 0) -> Callable:
                     _dense(h, w[2 * k], w[2 * k + 1], hidden[k + 1], out, not last)
                     h = out[:, :hidden[k + 1].padded]
                 z = z + h / nfe
-            out_ref[...] = z
+            _put(out_ref, slice(0, dims[0].padded), z, dims[0].size)
     else:
         raise ValueError(f"unknown kernel mode {mode!r}")
     return kernel
 
 
-def _pallas(kernel: Callable, rows: list[jax.Array], consts: list[jax.Array],
-            out_cols: list[int], buffers: list[int]) -> list[jax.Array]:
-    """Runs ``kernel`` over blocks of ``ROWS`` rows of ``rows`` (each ``[B, cols]``), with
-    ``consts`` (weights) whole; returns the outputs ``[B, c]`` for ``c`` in ``out_cols``
+def _pallas(kernel: Callable, rows: list[tuple[jax.Array, int]], consts: list[jax.Array],
+            outs: list[tuple[int, int]], buffers: list[int]) -> list[jax.Array]:
+    """Runs ``kernel`` over blocks of ``ROWS`` rows of the ``rows`` inputs (``(array [B, n],
+    block width)``: the kernel masks the block's columns past ``n``), with ``consts``
+    (weights) whole; returns the outputs ``[B, n]`` for ``(n, block width)`` in ``outs``
     (``buffers``: the widths of the per-program buffers, outputs that are dropped)."""
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as pl_triton
 
-    batch = rows[0].shape[0]
+    batch = rows[0][0].shape[0]
     padded = -(-batch // ROWS) * ROWS
-    rows = [jnp.pad(r, ((0, padded - batch), (0, 0))) for r in rows]
+    arrays = [r if padded == batch else jnp.pad(r, ((0, padded - batch), (0, 0)))
+              for r, _ in rows]
     consts = [c.reshape(1, -1) if c.ndim == 1 else c for c in consts]
     row_spec = lambda cols: pl.BlockSpec((ROWS, cols), lambda i: (i, 0))
-    widths = list(out_cols) + list(buffers)
-    outs = pl.pallas_call(
+    shapes = list(outs) + [(w, w) for w in buffers]
+    results = pl.pallas_call(
         kernel,
-        out_shape=[jax.ShapeDtypeStruct((padded, c), jnp.float32) for c in widths],
+        out_shape=[jax.ShapeDtypeStruct((padded, n), jnp.float32) for n, _ in shapes],
         grid=(padded // ROWS,),
-        in_specs=[row_spec(r.shape[1]) for r in rows]
+        in_specs=[row_spec(block) for _, block in rows]
         + [pl.BlockSpec(c.shape, lambda i: (0, 0)) for c in consts],
-        out_specs=[row_spec(c) for c in widths],
+        out_specs=[row_spec(block) for _, block in shapes],
         interpret=_INTERPRET.get(),
         compiler_params=pl_triton.CompilerParams(num_warps=WARPS, num_stages=STAGES),
         name="stride_fused_mlp",
-    )(*rows, *consts)
-    return [o[:batch] for o in outs[:len(out_cols)]]
+    )(*arrays, *consts)
+    return [r if padded == batch else r[:batch] for r in results[:len(outs)]]
 
 
 def _padded_layers(layers, dims, dtype):
@@ -311,18 +337,18 @@ def _dims(layers) -> tuple[_Dim, ...]:
 def _jvp_kernel(layers, x, t, dtype):
     dims = _dims(layers)
     width = max(d.padded for d in dims)
-    y, yt = _pallas(_kernel("jvp", dims), [_pad_cols(x, dims[0]), _pad_cols(t, dims[0])],
-                    _padded_layers(layers, dims, dtype), [dims[-1].padded] * 2, [width] * 4)
-    return y[:, :dims[-1].size], yt[:, :dims[-1].size]
+    return tuple(_pallas(_kernel("jvp", dims), [(x, dims[0].padded), (t, dims[0].padded)],
+                         _padded_layers(layers, dims, dtype),
+                         [(dims[-1].size, dims[-1].padded)] * 2, [width] * 4))
 
 
 def _vjp_kernel(layers, x, g, dtype):
     dims = _dims(layers)
     width = max(d.padded for d in dims)
-    (gx,) = _pallas(_kernel("vjp", dims), [_pad_cols(x, dims[0]), _pad_cols(g, dims[-1])],
-                    _padded_layers(layers, dims, dtype), [dims[0].padded],
+    (gx,) = _pallas(_kernel("vjp", dims), [(x, dims[0].padded), (g, dims[-1].padded)],
+                    _padded_layers(layers, dims, dtype), [(dims[0].size, dims[0].padded)],
                     [width] * 4 + [d.padded for d in dims[1:-1]])
-    return gx[:, :dims[0].size]
+    return gx
 
 
 def _flow_kernel(layers, z, c, nfe, time_features, dtype):
@@ -340,9 +366,9 @@ def _flow_kernel(layers, z, c, nfe, time_features, dtype):
               _pad_weight(w_c, dc, hidden[0]).astype(dtype), time_rows]
     consts += _padded_layers(rest, hidden, dtype)
     width = max(d.padded for d in hidden)
-    (out,) = _pallas(_kernel("flow", (dz, dc) + hidden, nfe),
-                     [_pad_cols(z, dz), _pad_cols(c, dc)], consts, [dz.padded], [width] * 3)
-    return out[:, :nz]
+    (out,) = _pallas(_kernel("flow", (dz, dc) + hidden, nfe), [(z, dz.padded), (c, dc.padded)],
+                     consts, [(nz, dz.padded)], [width] * 3)
+    return out
 
 
 # --- one example in, a batch under vmap -------------------------------------------------------
