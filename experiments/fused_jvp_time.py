@@ -15,10 +15,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.dynamics import fused, mlp
+from stride_jax.dynamics import fused, fused_pallas, mlp
 
 hidden, depth, K = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
-fused.CHUNK, fused.ROWS, fused.WARPS = (int(v) for v in sys.argv[4].split(","))
+fused_pallas.CHUNK, fused_pallas.ROWS, fused_pallas.WARPS = (int(v) for v in sys.argv[4].split(","))
 dtype = jnp.dtype(sys.argv[5])
 init, apply = mlp.mlp(mlp.MLPConfig(hidden, depth), 166)  # Go1's one-network prior: 21 -> 166
 params = init(jax.random.key(0), 21)

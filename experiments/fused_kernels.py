@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.dynamics import flow, fused, mlp
+from stride_jax.dynamics import flow, fused, fused_pallas, mlp
 
 
 def median_ms(f, *args, repeats: int = 50) -> float:
@@ -86,8 +86,8 @@ def main():
         print(f"{name:28s} {us(ref, args):7.1f}", end="", flush=True)
         r, diff = jax.jit(ref)(*args), 0.0
         for tile, rows, warps, stages, dtype in variants:
-            fused.CHUNK, fused.ROWS, fused.WARPS, fused.STAGES = map(int, (tile, rows, warps,
-                                                                          stages))
+            layout = map(int, (tile, rows, warps, stages))
+            fused_pallas.CHUNK, fused_pallas.ROWS, fused_pallas.WARPS, fused_pallas.STAGES = layout
             print(f" {us(fast(jnp.dtype(dtype)), args):9.1f}", end="", flush=True)
             f = jax.jit(fast(jnp.dtype(dtype)))(*args)
             diff = max([diff] + [float(jnp.max(jnp.abs(u - v))) for u, v in
