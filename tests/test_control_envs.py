@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from stride_jax.control import envs
+from stride_jax.control import envs, wrappers
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +19,7 @@ def go1_env(go1):
 def test_go1_env_runs_jitted_with_fresh_resets(go1_env):
     env = go1_env
     n_envs, n_steps, episode = 2, 4, 3
-    wrapped = envs.wrap_for_training(env, episode_length=episode)
+    wrapped = wrappers.wrap_for_training(env, episode_length=episode)
 
     def run(key):
         s0 = wrapped.reset(jax.random.key_data(jax.random.split(key, n_envs)))

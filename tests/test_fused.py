@@ -108,12 +108,12 @@ def test_model_steps_with_fused_kernels_equal_xla(shared):
     spec = ModelSpec(nq=10, nv=9, floating_base=True)  # a floating base with three joints
     act = models.Actuation(dof=(6, 7, 8), kp=(20.0,) * 3, kd=(0.5,) * 3,
                            force_range=((-5.0, 5.0),) * 3, dt=0.01, n_substeps=1)
-    cfg = stride.StructuredConfig(net=mlp.MLPConfig(hidden=32, depth=2), shared_lnn=shared)
+    cfg = stride.StructuredConfig(net=mlp.MLPConfig(hidden=16, depth=1), shared_lnn=shared)
     xla = models.make("stride", spec, act, cfg)
     fast = models.make("stride", spec, act, dataclasses.replace(cfg, kernel="pallas"))
     params = jax.tree.map(lambda w: w + 0.05 * jax.random.normal(jax.random.key(1), w.shape),
                           xla.init(jax.random.key(0)))
-    n = 20
+    n = 16
     keys = jax.random.split(jax.random.key(2), n)
     q = jnp.zeros((n, 10)).at[:, 2].set(0.3).at[:, 3].set(1.0)
     q = q.at[:, 7:].set(0.3 * jax.random.normal(jax.random.key(3), (n, 3)))

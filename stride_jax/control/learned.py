@@ -216,8 +216,8 @@ def rollouts(env: Any, policy: Callable, key: jax.Array, n_envs: int, n_steps: i
              episode_length: int = 1000) -> Trajectories:
     """``n_steps`` steps of ``n_envs`` worlds of a Brax env under ``policy(obs, key) -> action``
     (worlds reset freshly when an episode ends). Jit the caller or pass through ``jax.jit``."""
-    from stride_jax.control import envs as envs_lib
-    wrapped = envs_lib.wrap_for_training(env, episode_length)
+    from stride_jax.control import wrappers
+    wrapped = wrappers.wrap_for_training(env, episode_length)
     key_reset, key_run = jax.random.split(key)
 
     def body(state, k):

@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import optax
 from flax import serialization
 
-from stride_jax.control import envs
+from stride_jax.control import envs, wrappers
 from stride_jax.io import atomic_write, atomic_write_text, code_version
 
 
@@ -212,7 +212,7 @@ def make_trainer(cfg: PPOConfig, env: Any) -> Trainer:
     from brax.training.agents.ppo import losses as ppo_losses
     from brax.training.agents.ppo import networks as ppo_networks
 
-    env_w = envs.wrap_for_training(env, cfg.episode_length)
+    env_w = wrappers.wrap_for_training(env, cfg.episode_length)
     n_obs, nu = env.observation_size, env.action_size
     nets = _networks(cfg, n_obs, nu)
     make_inference = ppo_networks.make_inference_fn(nets)
