@@ -61,6 +61,8 @@ def test_scenario_grounds(go1):
     np.testing.assert_allclose(cl.command_at(starts, values, 1.5), [2, 0, 0])
     with pytest.raises(ValueError, match="unknown model"):
         cl._parse_models("oracle,bogus")
+    with pytest.raises(ValueError, match="unknown kernel 'triton'"):
+        cl.run(cl.ClosedLoopConfig(kernel="triton"))
 
 
 def _fake_step(q, qd, ctrl, key):  # the robot stands still: planner plumbing only

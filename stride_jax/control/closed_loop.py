@@ -74,6 +74,8 @@ class ClosedLoopConfig:
       track_weight: weight of a quadratic velocity-tracking cost added to the reward terms (per
         (m/s)^2, times dt): the reward's exp-kernels are flat far from the command (at 2 m/s
         below it, exp(-16)), which leaves a planner starting from rest without a direction.
+      kernel: how learned structured models run their networks (``xla``; ``pallas`` or
+        ``pallas-bf16``: fused kernels on GPUs, ``stride_jax.dynamics.fused``).
       settle_s: tracking errors are counted from this long after each command change (s).
       out: results folder (``closed_loop.json``/``.md`` and plots).
       seed: planner key and terrain seed.
@@ -99,6 +101,7 @@ class ClosedLoopConfig:
     value_weight: float = 1.0
     fall_cost: float = 1.0
     track_weight: float = 1.0
+    kernel: str = "xla"
     settle_s: float = 0.5
     out: str = "results/closed_loop"
     seed: int = 0
@@ -219,10 +222,11 @@ def mjx_step_fn(sm: sim_model.SimModel, mx: mjx.Model) -> Callable:
     return step
 
 
-def learned_step_fn(run: str, sm: sim_model.SimModel) -> Callable:
-    """``step(q, qd, ctrl, key)`` of a trained dynamics model (``stride train`` run folder)."""
+def learned_step_fn(run: str, sm: sim_model.SimModel, kernel: str = "xla") -> Callable:
+    """``step(q, qd, ctrl, key)`` of a trained dynamics model (``stride train`` run folder),
+    its networks run as ``kernel`` (``StructuredConfig.kernel``)."""
     from stride_jax.dynamics import models
-    model, params = models.load(run)
+    model, params = models.load(run, kernel=kernel)
     q0 = jnp.asarray(sm.info.qpos0)
     try:  # shape check at the boundary: the run must model this robot
         jax.eval_shape(lambda: model.step(params, q0, jnp.zeros(sm.mj.nv),
@@ -246,7 +250,9 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     """Every (scenario, model) pair of ``cfg``; writes ``closed_loop.json``/``.md``, traces and
     plots to ``cfg.out`` after each pair, and skips pairs already there (resumable)."""
     from stride_jax.control import learned as learned_lib, ppo
+    from stride_jax.dynamics import fused
 
+    fused.kernel_dtype(cfg.kernel)  # a clear error for an unknown choice, before any work
     sm = sim_model.load(cfg.robot)
     unknown = [s for s in cfg.scenarios.split(",") if s and s not in SCENARIOS]
     if unknown:
@@ -264,7 +270,8 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     rows = json.loads(path.read_text())["rows"] if path.is_file() else []
     done = {(r["scenario"], r["model"]) for r in rows}
     mx_nominal = mjx.put_model(sm.mj)
-    learned_steps = {name: learned_step_fn(run_dir, sm) for name, run_dir in models if run_dir}
+    learned_steps = {name: learned_step_fn(run_dir, sm, cfg.kernel) for name, run_dir in models
+                     if run_dir}
     if any(name == "policy" for name, _ in models) and ppo_policy is None:
         raise ValueError("model 'policy' needs --policy RUN")
     compiled = {}  # one executable per (model, episode length, model structures)
