@@ -1,22 +1,9 @@
 """Shared fixtures. MJX compiles are the slow part of the suite: share them per session."""
 
-import atexit
 import os
 import pathlib
-import shutil
-import tempfile
 
-# Many tests compile the same programs through new closures (a model rebuilt, a rollout function
-# made again), which JAX's in-memory cache does not see: a persistent compilation cache for the
-# session (and the subprocesses it starts) compiles each program once. Set before JAX imports.
-if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
-    _cache = tempfile.mkdtemp(prefix="stride-jax-test-cache-")
-    atexit.register(shutil.rmtree, _cache, ignore_errors=True)
-    os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
-    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
-    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
-
-import stride_jax  # noqa: E402, F401  (XLA flags before JAX initialises)
+import stride_jax  # noqa: F401  (XLA flags before JAX initialises)
 
 import pytest
 
