@@ -9,13 +9,12 @@ call ("const") and as arguments ("arg"). ``SAMPLES`` = 16 is one kernel program.
 """
 
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from stride_jax.dynamics import fused, fused_pallas, mlp
+from stride_jax.sim import bench as sim_bench
 
 hidden, depth, K = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 fused_pallas.CHUNK, fused_pallas.ROWS, fused_pallas.WARPS = (int(v) for v in sys.argv[4].split(","))
@@ -27,10 +26,5 @@ t = x * 0.5
 const = jax.jit(jax.vmap(lambda x, t: fused.jvp(params, x, t, dtype)))
 arg = jax.jit(lambda p, x, t: jax.vmap(lambda x, t: fused.jvp(p, x, t, dtype))(x, t))
 for name, fn, args in [("const", const, (x, t)), ("arg", arg, (params, x, t))]:
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(20):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    print(sys.argv[4:], hidden, depth, K, name, f"{1e6 * np.median(times):.1f} us", flush=True)
+    median = sim_bench.median_time(lambda: jax.block_until_ready(fn(*args)), 20)
+    print(sys.argv[4:], hidden, depth, K, name, f"{1e6 * median:.1f} us", flush=True)

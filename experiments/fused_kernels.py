@@ -12,23 +12,16 @@ same batched maths in plain JAX (no kernel), so the numbers only mean something 
 from __future__ import annotations
 
 import argparse
-import time
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from stride_jax.dynamics import flow, fused, fused_pallas, mlp
+from stride_jax.sim import bench as sim_bench
 
 
 def median_ms(f, *args, repeats: int = 50) -> float:
-    jax.block_until_ready(f(*args))
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(f(*args))
-        times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times))
+    return 1e3 * sim_bench.median_time(lambda: jax.block_until_ready(f(*args)), repeats)
 
 
 def main():

@@ -39,7 +39,7 @@ def main():
         f = jax.jit(jax.vmap(lambda q, qd, u, k: model.step(params, q, qd, u, k)))
         args = (jnp.tile(jnp.asarray(sm.info.qpos0), (B, 1)), 0.1 * jnp.ones((B, spec.nv)),
                 jnp.zeros((B, len(act.dof))), jax.random.split(jax.random.key(0), B))
-        n_ops = sum(mppi_hlo_ops.entry_ops(f.lower(*args).compile().as_text()).values())
+        n_ops = sum(mppi_hlo_ops.entry_ops(f.lower(*args).compile().as_text())[0].values())
         jax.block_until_ready(f(*args))
         times = []
         for _ in range(50):

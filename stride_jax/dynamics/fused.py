@@ -21,7 +21,7 @@ The kernels and their layout are in :mod:`stride_jax.dynamics.fused_pallas`.
 Status (one H100, Go1, 1024 samples; commands and numbers in ``results/README.md``): at the
 paper's 256 x 3 a program streams ~0.7 MB of weights for only 16 rows, and the kernels are no
 faster than XLA per pass (jvp 74 vs 47 us, vjp 64 vs 51 us, a flow sample 59 vs 60 us, 45 us
-with bfloat16 products). At planning sizes they are: 64 x 3 per pass 19-24 us against XLA's
+with bfloat16 products). At planning sizes they are: 64 x 3 per pass 18-24 us against XLA's
 25-34, and a whole MPPI step (K = 1024, H = 30, STRIDE NFE 2) 6.09 ms in XLA, 5.41 ms fused,
 5.12 ms fused with bfloat16 products. Select them with ``StructuredConfig.kernel``
 (``bench-mppi --kernel``). A first version with the layers unrolled was 7x slower: ``ncu``
@@ -37,8 +37,8 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from stride_jax.dynamics.fused_pallas import (_INTERPRET, _silu, _time_embedding, flow_batched,
-                                              interpret, jvp_batched, vjp_batched)
+from stride_jax.dynamics.fused_pallas import (_INTERPRET, _silu, flow_batched, interpret,
+                                              jvp_batched, vjp_batched)
 
 # --- the networks' parameters -----------------------------------------------------------------
 
@@ -71,6 +71,8 @@ def _vjp_ref(layers, x, g):
 
 def _flow_ref(layers, z, c, nfe, time_features):
     """``nfe`` Euler steps of ``v(z, t | c)`` (:func:`flow.integrate`'s Euler path)."""
+    from stride_jax.dynamics.flow import _time_embedding  # flow imports this module
+
     dt = 1.0 / nfe
     for i in range(nfe):
         emb = jnp.broadcast_to(_time_embedding(i * dt, time_features),

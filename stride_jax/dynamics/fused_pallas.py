@@ -18,7 +18,6 @@ from typing import Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 CHUNK = 64  # columns of a weight tile
 ROWS = 16  # samples per kernel program (Triton's smallest matrix-product tile)
@@ -46,12 +45,6 @@ def _silu(z):
 def _silu_grad(z):
     s = jax.nn.sigmoid(z)
     return s * (1.0 + z * (1.0 - s))
-
-
-def _time_embedding(t: float, n: int) -> np.ndarray:
-    """:func:`flow._time_embedding` at a static time (the Euler steps' times are static)."""
-    freqs = np.pi * 2.0 ** np.arange(n // 2)
-    return np.concatenate([np.sin(freqs * t), np.cos(freqs * t)]).astype(np.float32)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -295,7 +288,9 @@ def flow_batched(layers, z, c, nfe, time_features, dtype):
     # the first layer split by its input blocks: latent, time embedding, context; the time's
     # product is static per step and joins the bias
     w_z, w_t, w_c = w1[:nz], w1[nz:nz + time_features], w1[nz + time_features:]
-    times = np.stack([_time_embedding(i / nfe, time_features) for i in range(nfe)])
+    from stride_jax.dynamics.flow import _time_embedding  # flow imports this module
+
+    times = jnp.stack([_time_embedding(i / nfe, time_features) for i in range(nfe)])
     rows = 1 << (nfe - 1).bit_length()  # a power of two for Triton
     time_rows = jnp.pad(times @ w_t + b1, ((0, rows - nfe), (0, hidden[0].padded - b1.shape[0])))
     consts = [_pad_weight(w_z, dz, hidden[0]).astype(dtype),
