@@ -134,7 +134,11 @@ def flow_euler(params: dict, z0: jax.Array, context: jax.Array, nfe: int,
     return f(_layers(params), z0, context)
 
 
-KERNELS = {"xla": None, "pallas": jnp.float32, "pallas-bf16": jnp.bfloat16}
+# name -> the kernels' matrix-product type (None: XLA's own ops). The ``-step`` choices run a
+# floating-base STRIDE model's whole acceleration as one kernel (``fused_step``) where the model
+# allows it (one network for L and V, Euler flow); other models take the per-pass kernels.
+KERNELS = {"xla": None, "pallas": jnp.float32, "pallas-bf16": jnp.bfloat16,
+           "pallas-step": jnp.float32, "pallas-step-bf16": jnp.bfloat16}
 
 
 def kernel_dtype(kernel: str):
@@ -144,4 +148,10 @@ def kernel_dtype(kernel: str):
     return KERNELS[kernel]
 
 
-__all__ = ["KERNELS", "flow_euler", "interpret", "jvp", "kernel_dtype", "vjp"]
+def whole_step(kernel: str) -> bool:
+    """Whether a kernel choice asks for the whole-acceleration kernel (``fused_step``)."""
+    kernel_dtype(kernel)
+    return kernel.startswith("pallas-step")
+
+
+__all__ = ["KERNELS", "flow_euler", "interpret", "jvp", "kernel_dtype", "vjp", "whole_step"]

@@ -29,7 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.dynamics import integrate, mlp, next_obs, stride
+from stride_jax.dynamics import (flow, fused, fused_step, integrate, lagrangian, mlp,
+                                  next_obs, stride)
 from stride_jax.types import ModelSpec
 from stride_jax.io import atomic_write_text
 
@@ -168,14 +169,21 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         _check_inputs(name, spec, nu, q=q, qd=qd, tau=tau)
         return stride.acceleration(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)[0]
 
+    def xla_substep(params, q, qd, ctrl, key, nfe):
+        tau = act.torque(q, qd, ctrl, spec)
+        servo = act.implicit(q, qd, ctrl, spec) if cfg.implicit_servo else None
+        qdd = stride.acceleration(params, spec, cfg, residual, q, qd, tau, key, nfe, scales,
+                                  servo)[0]
+        return integrate.semi_implicit_euler(q, qd, qdd, act.dt, spec.floating_base)
+
+    whole = residual == "flow" and _whole_step_applies(spec, act, cfg)
+
     def _step(params, q, qd, ctrl, key, nfe):
         def substep(carry, k):
-            q, qd = carry
-            tau = act.torque(q, qd, ctrl, spec)
-            servo = act.implicit(q, qd, ctrl, spec) if cfg.implicit_servo else None
-            qdd = stride.acceleration(params, spec, cfg, residual, q, qd, tau, k, nfe, scales,
-                                      servo)[0]
-            return integrate.semi_implicit_euler(q, qd, qdd, act.dt, spec.floating_base), None
+            if whole:
+                return _fused_substep(xla_substep, spec, act, cfg, scales, params, *carry, ctrl,
+                                      k, nfe), None
+            return xla_substep(params, *carry, ctrl, k, nfe), None
 
         if act.n_substeps == 1:  # planners integrate at the control period: no loop of one
             return substep((q, qd), key)[0]
@@ -202,6 +210,44 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         return stride.terms(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
 
     return Model(name, residual != "mlp", init, loss, acceleration, step, rollout, terms)
+
+
+def _whole_step_applies(spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig) -> bool:
+    """Whether a STRIDE model's substep runs as one kernel (``fused_step``): a ``-step`` kernel
+    choice, a floating base without periodic joints, position servos integrated implicitly,
+    one network for L and V and Euler flow steps (the planning configuration)."""
+    return (fused.whole_step(cfg.kernel) and spec.floating_base and not any(spec.periodic)
+            and act.kp is not None and cfg.implicit_servo and cfg.shared_lnn
+            and cfg.integrator == "euler")
+
+
+def _fused_substep(xla_substep: Callable, spec: ModelSpec, act: Actuation,
+                   cfg: stride.StructuredConfig, scales: stride.Scales, params: dict, q, qd,
+                   ctrl, key, nfe):
+    """One substep of STRIDE by :mod:`fused_step`: one kernel under ``vmap`` on a GPU, the XLA
+    substep otherwise. The residual's latent is drawn from ``key`` as the flow's sampler draws
+    it, so both give the same step."""
+    nfe = nfe or cfg.nfe
+    ref = lambda params, q, qd, ctrl, key: xla_substep(params, q, qd, ctrl, key, nfe)
+
+    def kernel(params, q, qd, ctrl, keys):
+        z = jax.vmap(lambda k: jax.random.normal(k, (spec.nv,)))(keys)
+        per_dof = lambda x: jnp.zeros(spec.nv).at[np.asarray(act.dof)].set(jnp.asarray(x))
+        lo, hi = np.asarray(act.force_range, np.float32).T
+        servo = jnp.stack([per_dof(act.kp), per_dof(act.kd), per_dof(lo), per_dof(hi),
+                           per_dof((hi > lo).astype(np.float32)),
+                           jnp.broadcast_to(1.0 / jnp.asarray(scales.qd), (spec.nv,)),
+                           jnp.broadcast_to(1.0 / jnp.asarray(scales.tau), (spec.nv,))])
+        lnn_cfg = cfg.lnn
+        mass = lagrangian.total_mass(params["lnn"], lnn_cfg)
+        static = fused_step.Static(fused_step.Layout.of(spec.nv, act.dof), nfe,
+                                   flow.FlowConfig().time_features, lnn_cfg.diag_floor, act.dt,
+                                   fused.kernel_dtype(cfg.kernel))
+        return fused_step.step_batched(
+            static, fused._layers(params["lnn"]["shared"]), fused._layers(params["residual"]),
+            jnp.sqrt(mass), mass * lnn_cfg.gravity, servo, scales.force, q, qd, ctrl, z)
+
+    return fused_step.batched(ref, kernel, params, q, qd, ctrl, key)
 
 
 def next_observation(name: str, spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig,

@@ -1,0 +1,93 @@
+"""The whole-acceleration kernel (``stride_jax/dynamics/fused_step.py``) against XLA on this
+machine's default device: agreement of one model step over a batch of states, and the time of one step and of
+a vmapped 30-step rollout for each kernel choice. Go1 STRIDE, one network for L and V:
+
+    python experiments/fused_step_check.py [--run results/planning_shared/stride-h64-shared]
+        [--samples 1024] [--kernels xla,pallas-bf16,pallas-step,pallas-step-bf16]
+
+Without ``--run`` the model is at initialisation with its weights perturbed (the flow's last
+layer starts at zero). Prints as it goes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stride_jax.control import bench
+from stride_jax.dynamics import fused_step, models, stride
+from stride_jax.sim.bench import median_time
+from stride_jax.train import job
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--run", default="", help="a Go1 STRIDE run with shared_lnn (else: init)")
+    p.add_argument("--hidden", type=int, default=64)
+    p.add_argument("--samples", type=int, default=1024)
+    p.add_argument("--horizon", type=int, default=30)
+    p.add_argument("--repeats", type=int, default=20)
+    p.add_argument("--substeps", type=int, default=1,
+                   help="model steps per control step, at-init models only (the bench's 1)")
+    p.add_argument("--kernels", default="xla,pallas-bf16,pallas-step,pallas-step-bf16")
+    p.add_argument("--skip", default="", help="parts of the step kernel to leave out, to time "
+                   "the others (fused_step.SKIP: products, flow, solve; wrong results)")
+    p.add_argument("--unroll", default="", help="the step kernel's loops to unroll "
+                   "(fused_step.UNROLL: products, gram, factor, backward)")
+    a = p.parse_args()
+    fused_step.UNROLL = frozenset(x for x in a.unroll.split(",") if x)
+    fused_step.SKIP = frozenset(x for x in a.skip.split(",") if x)
+    sm, meta, spec, act = bench._robot("go1")
+    if a.run:
+        params = models.load(a.run)[1]
+        model_of = lambda kernel: models.load(a.run, kernel=kernel)[0]
+    else:
+        act = dataclasses.replace(act, dt=act.dt * act.n_substeps / a.substeps,
+                                  n_substeps=a.substeps)
+        cfg = job.model_config("stride", meta, a.hidden, 3, 2, True)
+        scales = stride.Scales()
+        params = models.make("stride", spec, act, cfg, scales).init(jax.random.key(0))
+        noise = lambda x, k: x + 0.05 * jax.random.normal(k, x.shape)
+        leaves, tree = jax.tree.flatten(params)
+        params = tree.unflatten([noise(x, jax.random.key(i)) for i, x in enumerate(leaves)])
+        model_of = lambda kernel: models.make("stride", spec, act,
+                                              dataclasses.replace(cfg, kernel=kernel), scales)
+    K, H = a.samples, a.horizon
+    rng = np.random.default_rng(0)
+    q0 = np.asarray(sm.info.qpos0, np.float32)
+    q = np.tile(q0, (K, 1)) + 0.05 * rng.standard_normal((K, q0.size)).astype(np.float32)
+    q[:, 3:7] /= np.linalg.norm(q[:, 3:7], axis=1, keepdims=True)
+    qd = (0.5 * rng.standard_normal((K, spec.nv))).astype(np.float32)
+    ctrl = q[:, 7:] + 0.1 * rng.standard_normal((K, 12)).astype(np.float32)
+    keys = jax.random.split(jax.random.key(1), K)
+    ctrls = jnp.asarray(np.tile(ctrl[:, None], (1, H, 1)))
+    print(f"{jax.devices()[0].device_kind}: Go1 STRIDE, K={K}, H={H}", flush=True)
+    ref = None
+    for kernel in a.kernels.split(","):
+        model = model_of(kernel)
+        step = jax.jit(jax.vmap(model.step, in_axes=(None, 0, 0, 0, 0)))
+        out = jax.block_until_ready(step(params, q, qd, ctrl, keys))
+        acc = (np.asarray(out[1]) - qd) / act.dt  # the step's acceleration
+        if ref is None:
+            ref = acc
+        err = np.abs(acc - ref).max(axis=1) / (np.abs(ref).max(axis=1) + 1.0)
+        one_ms = 1e3 * median_time(lambda: jax.block_until_ready(step(params, q, qd, ctrl, keys)),
+                                   a.repeats)
+        roll = jax.jit(jax.vmap(model.rollout, in_axes=(None, 0, 0, 0, 0)))
+        t0 = time.perf_counter()
+        jax.block_until_ready(roll(params, q, qd, ctrls, keys))
+        compile_s = time.perf_counter() - t0
+        ms = 1e3 * median_time(lambda: jax.block_until_ready(roll(params, q, qd, ctrls, keys)),
+                               a.repeats)
+        print(f"{kernel:18s} one step {one_ms:6.3f} ms; rollout {ms:7.3f} ms ({1e3 * ms / H:6.1f} us/step, compile "
+              f"{compile_s:.1f} s); acceleration vs {a.kernels.split(',')[0]}: max rel "
+              f"{err.max():.2e}, median {np.median(err):.2e}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

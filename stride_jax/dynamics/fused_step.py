@@ -1,0 +1,527 @@
+"""A structured model's whole acceleration as one Pallas (Triton) kernel: a planner's model step
+on a GPU in one launch where XLA takes ~30 (``results/README.md``, session 7).
+
+For a floating-base robot with one network for L and V (``StructuredConfig.shared_lnn``) and a
+flow residual sampled with Euler steps, one kernel program takes a block of ``ROWS`` samples
+through
+
+1. the prior's network forward and along the features' tangent (L, dL/dt, V);
+2. the products with L (``u = L^T v``, ``M v``, ``dM/dt v``) and the cotangent of the kinetic
+   energy on L's entries, then the network's transposed pass (``dL/dx``) and the features'
+   transposed Jacobian (joints, and the body-frame rotation's ``vee(skew(R^T G))``);
+3. the flow's ``nfe`` Euler steps from the latent ``z`` given the context;
+4. the Cholesky factorisation of ``M + diag(servo)`` and the two triangular solves;
+
+and writes ``qdd``. XLA keeps what is elementwise and cheap around it (the servo, the features
+and their tangent, the flow's context, the integration), which it fuses with the planner's
+cost. Written for one example like the rest of the library: under ``vmap`` on a GPU it is one
+kernel for the batch (``jax.custom_batching.custom_vmap``); on a CPU, and unbatched, it is the
+plain XLA acceleration it replaces.
+
+Layout inside a program (``fused_pallas`` has the network helpers): L's learned entries stay in
+the network's output order in a per-program buffer, and L is read from it as a
+``[ROWS, n, n]`` tensor by a gather through a static index table (``n``: nv padded to a power of
+two); matrix-vector products are broadcasts and reductions over that tensor; the factorisation
+is right-looking, one column per loop iteration, on ``M + diag(servo)`` held in registers, its
+columns kept in a buffer for the backward solve.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stride_jax.dynamics import fused_pallas as fp
+
+WARPS = 8  # warps per program of the step kernel (M's [ROWS, n, n] tensors in registers)
+# Parts left out, to time the others (``experiments/fused_step_check.py --skip``; wrong results):
+# "products" (L's products and the transposed pass), "flow", "solve".
+SKIP: frozenset = frozenset()
+# The small loops unrolled, by name ("products", "gram", "factor", "backward"). Unrolled, a loop's
+# loads are issued ahead; but Triton's compile time grows steeply (all four unrolled: > 2 min).
+UNROLL: frozenset = frozenset()
+
+
+# The prologue's per-program scratch row: its segments, ``n`` columns each (nv padded).
+PREP = ("qd_n", "tau_n", "rot", "rot_t", "q", "qd", "extra", "zero")
+
+
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """Static sizes and index tables of one robot's step kernel.
+
+    Entry slots (the network's outputs, padded to ``entries``): ``0 .. n_out - 1`` L's learned
+    entries (row-major lower triangle of rows 3..nv-1), ``n_out`` V, ``n_out + 1`` the base's
+    fixed ``sqrt(m)``, ``n_out + 2`` zero (L above its diagonal, padding).
+    """
+
+    nv: int
+    n: int  # nv padded
+    nr: int  # nv - 3 padded: the reduced system without the base's translation
+    n_out: int
+    entries: int  # padded slots
+    index: np.ndarray  # [n, n] the slot of L[i, j]
+    index_r: np.ndarray  # [n, nr] the slots of column k of L's rows 3.. (row k)
+    entry_row: np.ndarray  # [entries] i of each learned slot's L[i, j]
+    entry_col: np.ndarray  # [entries] j
+    diag: np.ndarray  # [entries] 1 where the slot is a learned diagonal entry (softplus)
+    learned: np.ndarray  # [entries] 1 for L's learned entries
+    feature_of_dof: np.ndarray  # [n] the feature column of each joint dof
+    # the prologue's scratch row (``PREP``) and what the kernel gathers from it
+    x_index: np.ndarray  # [nf padded] the prior's features: rotation matrix, joint angles
+    t_index: np.ndarray  # [nf padded] their tangent along qd
+    c_index: np.ndarray  # [nc padded] the flow's context (height, rotation, joints, qd, tau)
+    qpos_of_dof: np.ndarray  # [n] a dof's coordinate (joints; 0 for the base)
+    dof_of_qpos: np.ndarray  # [nq padded] a coordinate's dof (position, joints)
+    act_of_dof: np.ndarray  # [n] the actuator driving a dof (0 where none: its gains are 0)
+    prep: dict  # segment name -> first column in the scratch row
+
+    @classmethod
+    def of(cls, nv: int, act_dof: tuple[int, ...] = ()) -> "Layout":
+        pow2 = lambda k: max(16, 1 << (k - 1).bit_length())
+        n, nr = pow2(nv), pow2(nv - 3)
+        rows, cols = np.tril_indices(nv)
+        keep = rows >= 3
+        rows, cols = rows[keep], cols[keep]
+        n_out = len(rows)
+        entries = pow2(n_out + 3)
+        root, zero = n_out + 1, n_out + 2
+        index = np.full((n, n), zero, np.int32)
+        index[rows, cols] = np.arange(n_out)
+        index[np.arange(3), np.arange(3)] = root
+        index_r = np.full((n, nr), zero, np.int32)
+        index_r[:nv, :nv - 3] = index[3:nv, :nv].T
+        entry_row = np.zeros(entries, np.int32)
+        entry_col = np.zeros(entries, np.int32)
+        entry_row[:n_out], entry_col[:n_out] = rows, cols
+        diag = np.zeros(entries, np.float32)
+        diag[np.flatnonzero(rows == cols)] = 1.0
+        learned = np.zeros(entries, np.float32)
+        learned[:n_out] = 1.0
+        feature_of_dof = np.zeros(n, np.int32)
+        feature_of_dof[6:nv] = 9 + np.arange(nv - 6)  # features: rotation (9), then joints
+        nj, nq = nv - 6, nv + 1
+        nf, nc = 9 + nj, 1 + 9 + nj + 2 * nv
+        P = {name: i * n for i, name in enumerate(PREP)}
+        x_index = np.full(pow2(nf), P["zero"], np.int32)
+        x_index[:9] = P["rot"] + np.arange(9)
+        x_index[9:nf] = P["q"] + 7 + np.arange(nj)
+        t_index = np.full(pow2(nf), P["zero"], np.int32)
+        t_index[:9] = P["rot_t"] + np.arange(9)
+        t_index[9:nf] = P["qd"] + 6 + np.arange(nj)
+        c_index = np.full(pow2(nc), P["zero"], np.int32)
+        c_index[:nc] = np.concatenate([[P["q"] + 2], x_index[:nf], P["qd_n"] + np.arange(nv),
+                                       P["tau_n"] + np.arange(nv)])
+        qpos_of_dof = np.zeros(n, np.int32)
+        qpos_of_dof[6:nv] = 7 + np.arange(nj)
+        if nq > n:
+            raise ValueError(f"fused step: nv={nv} leaves no room for the quaternion's extra "
+                             f"coordinate in blocks of {n}")
+        dof_of_qpos = np.zeros(n, np.int32)
+        dof_of_qpos[:3] = np.arange(3)
+        dof_of_qpos[7:nq] = 6 + np.arange(nj)
+        act_of_dof = np.zeros(n, np.int32)
+        act_of_dof[list(act_dof)] = np.arange(len(act_dof))
+        return cls(nv, n, nr, n_out, entries, index, index_r, entry_row, entry_col, diag,
+                   learned, feature_of_dof, x_index, t_index, c_index, qpos_of_dof, dof_of_qpos,
+                   act_of_dof, P)
+
+
+def _col(x, i):
+    """Column ``i`` ``[R, 1]`` of a register tensor ``x [R, c]`` (``i`` static or traced)."""
+    cols = jax.lax.broadcasted_iota(jnp.int32, x.shape, 1)
+    return jnp.sum(jnp.where(cols == i, x, 0.0), axis=1, keepdims=True)
+
+
+def _set(x, i, value):
+    cols = jax.lax.broadcasted_iota(jnp.int32, x.shape, 1)
+    return jnp.where(cols == i, value, x)
+
+
+def _gather(ref, index):
+    """``ref[r, index[r, c]]`` for a row block ``ref`` and ``index [1 or R, c]``."""
+    shape = (fp.ROWS, index.shape[-1])
+    rows = jax.lax.broadcasted_iota(jnp.int32, shape, 0)
+    return ref[rows, jnp.broadcast_to(index, shape)]
+
+
+def _loop(name: str, n: int, body: Callable, init):
+    """``body(i, carry)`` for ``i < n``: as a loop, or unrolled if ``name`` is in ``UNROLL``."""
+    if name not in UNROLL:
+        return jax.lax.fori_loop(0, n, body, init)
+    for i in range(n):
+        init = body(i, init)
+    return init
+
+
+def _prior_network(dims, w, zs, h, tt, bufs, raw_ref, rawt_ref):
+    """The prior's network forward and along the tangent: its outputs into ``raw_ref,
+    rawt_ref``, the hidden pre-activations into ``zs``."""
+    a0, a1, t0, t1 = bufs
+    n_l = len(dims) - 1
+    for k in range(n_l):
+        last = k == n_l - 1
+        out, t_out = (raw_ref, rawt_ref) if last else ((a0, t0), (a1, t1))[k % 2]
+        fp._dense(h, w[2 * k], w[2 * k + 1], dims[k + 1], out, not last, tt, t_out,
+                  z_ref=None if last else zs[k])
+        if not last:
+            h, tt = out[:, :dims[k + 1].padded], t_out[:, :dims[k + 1].padded]
+
+
+def _transposed(dims, w, zs, g, out_ref, bufs):
+    """The prior network's transposed pass of the output cotangent ``g`` into ``out_ref``."""
+    for k in reversed(range(len(dims) - 1)):
+        out = out_ref if k == 0 else bufs[k % 2]
+
+        def body(cols, k=k, g=g, out=out):
+            gi = fp._dot_t(g, w[2 * k][cols, :])
+            if k > 0:
+                gi = gi * fp._silu_grad(zs[k - 1][:, cols])
+            out[:, cols] = gi
+
+        fp._tiles(dims[k], body)
+        if k > 0:
+            g = out[:, :dims[k].padded]
+
+
+def _flow(dims, nfe, c, wz_ref, wc_ref, tb_ref, w, cw, a0, a1, z):
+    """``nfe`` Euler steps of the flow from ``z`` given ``c`` (``fused_pallas``'s flow kernel)."""
+    hidden = dims[2:]
+
+    def context(cols):
+        cw[:, cols] = fp._dot(c, wc_ref[:, cols])
+
+    fp._tiles(hidden[0], context)
+    for i in range(nfe):
+        def first(cols, i=i, z=z):
+            a0[:, cols] = fp._silu(fp._dot(z, wz_ref[:, cols]) + cw[:, cols]
+                                   + tb_ref[i:i + 1, cols])
+
+        fp._tiles(hidden[0], first)
+        h = a0[:, :hidden[0].padded]
+        for k in range(len(hidden) - 1):
+            last = k == len(hidden) - 2
+            out = (a1, a0)[k % 2]
+            fp._dense(h, w[2 * k], w[2 * k + 1], hidden[k + 1], out, not last)
+            h = out[:, :hidden[k + 1].padded]
+        z = z + h / nfe
+    return z
+
+
+def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float) -> Callable:
+    """The kernel body; ``lnn_dims``: the prior network's feature dimensions (input first),
+    ``flow_dims``: the flow's (latent, context, then its layers' outputs)."""
+    n_l = len(lnn_dims) - 1
+    n_fw = 2 * (len(flow_dims) - 3)
+    R, n, nr, nv, P = fp.ROWS, lay.n, lay.nr, lay.nv, lay.prep
+
+    def kernel(q_ref, qd_ref, ctrl_ref, z_ref, *refs):
+        w_lnn, refs = refs[:2 * n_l], refs[2 * n_l:]
+        wz_ref, wc_ref, tb_ref, refs = refs[0], refs[1], refs[2], refs[3:]
+        w_flow, refs = refs[:n_fw], refs[n_fw:]
+        (index_ref, index_t_ref, index_r_ref, erow_ref, ecol_ref, diag_ref, learned_ref,
+         fixed_ref, fdof_ref, force_ref, mass_ref, x_index_ref, t_index_ref, c_index_ref,
+         qpos_ref, dof_of_qpos_ref, act_ref, servo_ref), refs = refs[:18], refs[18:]
+        (q_out, qd_out, a0, a1, t0, t1, raw_ref, rawt_ref, ent_ref, dent_ref, uw_ref, p_ref,
+         gx_ref, vec_ref, cw, chol_ref, prep_ref), zs = refs[:17], refs[17:]
+        dof = jax.lax.broadcasted_iota(jnp.int32, (R, n), 1)
+        seg = lambda name, i=0: prep_ref[:, P[name] + i:P[name] + i + 1]
+
+        # 0. the servo at the next state (Actuation.implicit), the features, their tangent and
+        # the flow's context, through the scratch row
+        q, qd = fp._load_in(q_ref, nv + 1), fp._load_in(qd_ref, nv)
+        kp, kd, lo, hi, limited, inv_qd, inv_tau = (servo_ref[i:i + 1, :] for i in range(7))
+        qj, cj = _gather(q_ref, qpos_ref[...]), _gather(ctrl_ref, act_ref[...])
+        raw_servo = kp * (cj - qj) - kd * qd
+        tau = jnp.where(limited > 0, jnp.clip(raw_servo, lo, hi), raw_servo)
+        free = (limited == 0) | ((raw_servo >= lo) & (raw_servo <= hi))
+        tau0 = jnp.where(free, kp * (cj - qj - dt * qd) - kd * qd, tau)
+        extra = jnp.where(free, kp * dt * dt + kd * dt, 0.0)
+        w_, x_, y_, z_ = (q_ref[:, k:k + 1] for k in range(3, 7))
+        rot = [[1 - 2 * (y_ * y_ + z_ * z_), 2 * (x_ * y_ - w_ * z_), 2 * (x_ * z_ + w_ * y_)],
+               [2 * (x_ * y_ + w_ * z_), 1 - 2 * (x_ * x_ + z_ * z_), 2 * (y_ * z_ - w_ * x_)],
+               [2 * (x_ * z_ - w_ * y_), 2 * (y_ * z_ + w_ * x_), 1 - 2 * (x_ * x_ + y_ * y_)]]
+        om = [qd_ref[:, k:k + 1] for k in range(3, 6)]
+        rot_row = rot_t_row = jnp.zeros((R, n), jnp.float32)
+        for a in range(3):
+            for b in range(3):  # (R [omega]x)_ab = R_a,b+1 omega_b+2 - R_a,b+2 omega_b+1
+                b1, b2 = (b + 1) % 3, (b + 2) % 3
+                rot_row = _set(rot_row, 3 * a + b, rot[a][b])
+                rot_t_row = _set(rot_t_row, 3 * a + b, rot[a][b1] * om[b2] - rot[a][b2] * om[b1])
+        for name, value in [("qd_n", qd * inv_qd), ("tau_n", tau * inv_tau), ("rot", rot_row),
+                            ("rot_t", rot_t_row), ("q", q), ("qd", qd), ("extra", extra),
+                            ("zero", jnp.zeros((R, n), jnp.float32))]:
+            prep_ref[:, P[name]:P[name] + n] = value
+        fp._barrier()
+        x, t = _gather(prep_ref, x_index_ref[...]), _gather(prep_ref, t_index_ref[...])
+        c = _gather(prep_ref, c_index_ref[...])
+        r0 = tau0 - jnp.where(dof == 2, mass_ref[:, 4:5], 0.0)  # m g along world z
+
+        # 1. the prior's network forward and along the tangent; L's entries and their rates
+        _prior_network(lnn_dims, w_lnn, zs, x, t, (a0, a1, t0, t1), raw_ref, rawt_ref)
+        raw, raw_t = raw_ref[...], rawt_ref[...]
+        diag, learned = diag_ref[...], learned_ref[...]
+        sig = jax.nn.sigmoid(raw)
+        ent_ref[...] = learned * jnp.where(diag > 0, jax.nn.softplus(raw), raw) + fixed_ref[...]
+        dent_ref[...] = learned * jnp.where(diag > 0, sig * raw_t, raw_t)
+        fp._barrier()
+
+        # 2. products with L (rows and columns gathered from the entries) and the bias force
+        bias = jnp.zeros((R, n), jnp.float32)
+        if "products" not in SKIP:
+            def by_rows(i, uw):  # u = L^T v, w = dL^T v
+                vi = qd_ref[:, pl_ds(i)]
+                row = index_ref[pl_ds(i), :]
+                return uw[0] + vi * _gather(ent_ref, row), uw[1] + vi * _gather(dent_ref, row)
+
+            zero = jnp.zeros((R, n), jnp.float32)
+            u, w = _loop("products", nv, by_rows, (zero, zero))
+            uw_ref[:, :n], uw_ref[:, n:] = u, w
+            fp._barrier()
+
+            def by_cols(j, pm):  # p = L u, dM/dt v = dL u + L w
+                col = index_t_ref[pl_ds(j), :]
+                lc, dlc = _gather(ent_ref, col), _gather(dent_ref, col)
+                uj, wj = uw_ref[:, pl_ds(j)], uw_ref[:, pl_ds(n + j)]
+                return pm[0] + uj * lc, pm[1] + uj * dlc + wj * lc
+
+            p, mdot_v = _loop("products", nv, by_cols, (zero, zero))
+            p = p + floor * qd
+            p_ref[...] = p
+            # cotangent of 1/2 |L^T v|^2 on L's entries (v_i u_j, through softplus on the
+            # diagonal) and -1 on V; then the network's transposed pass
+            g = learned * _gather(qd_ref, erow_ref[...]) * _gather(uw_ref, ecol_ref[...])
+            g = g * jnp.where(diag > 0, sig, 1.0)
+            slot = jax.lax.broadcasted_iota(jnp.int32, g.shape, 1)
+            g = jnp.where(slot == lay.n_out, -1.0, g)
+            _transposed(lnn_dims, w_lnn, zs, g, gx_ref, (a0, a1))
+            # dL/d(delta): joints read their features; the rotation is vee(skew(R^T G)), G the
+            # cotangent of the rotation matrix's features (row-major, the first nine)
+            dl_dq = jnp.where((dof >= 6) & (dof < nv), _gather(gx_ref, fdof_ref[...]), 0.0)
+
+            def skew_part(i, j):  # (R^T G)_ij - (R^T G)_ji
+                gx = lambda a, b: gx_ref[:, 3 * a + b:3 * a + b + 1]
+                return sum(rot[a][i] * gx(a, j) - rot[a][j] * gx(a, i) for a in range(3))
+
+            for axis, (i, j) in enumerate([(2, 1), (0, 2), (1, 0)]):
+                dl_dq = _set(dl_dq, 3 + axis, skew_part(i, j))
+            cross = jnp.zeros((R, n), jnp.float32)  # the body rotation's omega x p_omega
+            for a in range(3):
+                i1, i2 = 3 + (a + 1) % 3, 3 + (a + 2) % 3
+                cross = _set(cross, 3 + a, qd_ref[:, i1:i1 + 1] * p_ref[:, i2:i2 + 1]
+                             - qd_ref[:, i2:i2 + 1] * p_ref[:, i1:i1 + 1])
+            bias = mdot_v - dl_dq + cross
+
+        # 3. the flow's sample from z given the context
+        z = fp._load_in(z_ref, nv)
+        if "flow" not in SKIP:
+            z = _flow(flow_dims, nfe, c, wz_ref, wc_ref, tb_ref, w_flow, cw, a0, a1, z)
+        rhs = r0 - bias + force_ref[...] * z
+        qdd = rhs
+        if "solve" not in SKIP:
+            qdd = _solve(lay, floor, rhs, ent_ref, index_r_ref, mass_ref, prep_ref, vec_ref,
+                         chol_ref)
+
+        # 5. semi-implicit Euler: qd' = qd + dt qdd, then q' = q (+) dt qd' (integrate.retract)
+        qd2 = jnp.where(dof < nv, qd + dt * qdd, 0.0)
+        vec_ref[:, :n] = qd2
+        fp._barrier()
+        rv = [dt * _col(qd2, 3 + k) for k in range(3)]
+        angle2 = rv[0] * rv[0] + rv[1] * rv[1] + rv[2] * rv[2]
+        small = angle2 < 1e-12
+        angle = jnp.sqrt(jnp.where(small, 1.0, angle2))
+        half = 0.5 * jnp.where(small, 0.0, angle)
+        scale = jnp.where(small, 0.5 - angle2 / 48.0, jnp.sin(half) / angle)
+        bw, bv = jnp.cos(half), [scale * r for r in rv]
+        av = [x_, y_, z_]
+        quat = [w_ * bw - (av[0] * bv[0] + av[1] * bv[1] + av[2] * bv[2])]
+        quat += [w_ * bv[k] + bw * av[k] + av[(k + 1) % 3] * bv[(k + 2) % 3]
+                 - av[(k + 2) % 3] * bv[(k + 1) % 3] for k in range(3)]
+        norm = jnp.sqrt(sum(e * e for e in quat))
+        q2 = q + dt * _gather(vec_ref, dof_of_qpos_ref[...])
+        for k in range(4):
+            q2 = _set(q2, 3 + k, quat[k] / norm)
+        fp._put(q_out, slice(0, n), q2, nv + 1)
+        fp._put(qd_out, slice(0, n), qd2, nv)
+
+    return kernel
+
+
+def _solve(lay, floor, rhs, ent_ref, index_r_ref, mass_ref, prep_ref, vec_ref, chol_ref):
+    """``(L L^T + floor I + diag(extra)) qdd = rhs``. L's first rows are sqrt(m) I, so the base's
+    translation eliminates exactly (a Schur complement): ``S x2 = r2 - (s / a) B r1`` with
+    ``S = (floor / a) B B^T + L22 L22^T + D2``, ``a = m + floor``, ``s = sqrt(m)``, B L's rows
+    3.. and columns 0-2; then ``x1 = (r1 - s B^T x2) / a``. S is factorised right-looking in
+    registers, the forward substitution in the same loop, its columns kept for the backward
+    one."""
+    R, n, nr, nv, P = fp.ROWS, lay.n, lay.nr, lay.nv, lay.prep
+    dof = jax.lax.broadcasted_iota(jnp.int32, (R, n), 1)
+    vec_ref[:, :n] = rhs
+    fp._barrier()
+    s, f_a, s_a, inv_a = (mass_ref[:, k:k + 1] for k in range(4))
+    red = jax.lax.broadcasted_iota(jnp.int32, (R, nr), 1)
+    shift = jnp.minimum(jax.lax.broadcasted_iota(jnp.int32, (1, nr), 1) + 3, n - 1)
+    r2 = jnp.where(red < nv - 3, _gather(vec_ref, shift), 0.0)
+    d2 = jnp.where(red < nv - 3, floor + _gather(prep_ref, shift + P["extra"]), 0.0)
+    ii = jax.lax.broadcasted_iota(jnp.int32, (R, nr, nr), 1)
+    jj = jax.lax.broadcasted_iota(jnp.int32, (R, nr, nr), 2)
+    base_cols = [_gather(ent_ref, index_r_ref[k:k + 1, :]) for k in range(3)]
+    for k in range(3):
+        r2 = r2 - s_a * _col(rhs, k) * base_cols[k]
+
+    def gram(k, S):
+        col = _gather(ent_ref, index_r_ref[pl_ds(k), :])
+        return S + col[:, :, None] * col[:, None, :]
+
+    S = sum(f_a[:, :, None] * c[:, :, None] * c[:, None, :] for c in base_cols)
+    S = S + jnp.where(ii == jj, d2[:, :, None], 0.0)
+    S = _loop("gram", nv - 3, lambda k, S: gram(k + 3, S), S)
+
+    def factor(j, carry):  # right-looking Cholesky with the forward substitution
+        S, y = carry
+        col = jnp.sum(jnp.where(jj == j, S, 0.0), axis=2)  # S[:, :, j]
+        root = jnp.sqrt(_col(col, j))
+        col = jnp.where(red >= j, col, 0.0) / root
+        chol_ref[:, pl_ds(j * nr, nr)] = col
+        yj = _col(y, j) / root
+        y = jnp.where(red > j, y - col * yj, jnp.where(red == j, yj, y))
+        return S - col[:, :, None] * col[:, None, :], y
+
+    _, y = _loop("factor", nv - 3, factor, (S, r2))
+    fp._barrier()
+
+    def backward(i, x):
+        j = nv - 4 - i
+        col = chol_ref[:, pl_ds(j * nr, nr)]
+        dot = jnp.sum(jnp.where(red > j, col * x, 0.0), axis=1, keepdims=True)
+        return jnp.where(red == j, (_col(x, j) - dot) / _col(col, j), x)
+
+    x2 = _loop("backward", nv - 3, backward, y)
+    vec_ref[:, n:n + nr] = x2
+    fp._barrier()
+    qdd = jnp.where((dof >= 3) & (dof < nv),
+                    _gather(vec_ref, jnp.clip(jax.lax.broadcasted_iota(
+                        jnp.int32, (1, n), 1) - 3, 0, nr - 1) + n), 0.0)
+    for k in range(3):
+        dot = jnp.sum(base_cols[k] * x2, axis=1, keepdims=True)
+        qdd = _set(qdd, k, (_col(rhs, k) - s * dot) * inv_a)
+    return qdd
+
+
+def pl_ds(start, size=1):
+    from jax.experimental import pallas as pl
+    return pl.ds(start, size)
+
+
+@dataclasses.dataclass(frozen=True)
+class Static:
+    """What the kernel needs besides arrays: the layout, the flow's budget and time features,
+    the mass floor, the time step and the products' type."""
+
+    layout: Layout
+    nfe: int
+    time_features: int
+    floor: float
+    dt: float
+    dtype: object
+
+
+def step_batched(st: Static, lnn_layers, flow_layers, sqrt_mass, gravity, servo, force_scale,
+                 q, qd, ctrl, z):
+    """``(q', qd')``: one semi-implicit Euler step of ``st.dt`` for each row of ``q [B, nq]``,
+    ``qd [B, nv]``, ``ctrl [B, nu]`` and the flow's latent ``z [B, nv]``. ``servo [7, nv]``: the
+    servo's ``kp, kd, lo, hi, limited`` per dof (zeros where no actuator drives it) and the
+    context's ``1 / qd`` and ``1 / tau`` scales."""
+    from jax.experimental import pallas as pl
+    from jax.experimental.pallas import triton as pl_triton
+
+    lay, dtype = st.layout, st.dtype
+    n, nv, nz, tf = lay.n, lay.nv, lay.nv, st.time_features
+    lnn_dims = fp._dims(lnn_layers)
+    lnn_dims = lnn_dims[:-1] + (fp._Dim(lnn_dims[-1].size, lay.entries,
+                                        min(fp.CHUNK, lay.entries)),)
+    (w1, b1), rest = flow_layers[0], flow_layers[1:]
+    dz = fp._Dim(nz, n, min(fp.CHUNK, n))
+    dc = fp._Dim(w1.shape[0] - nz - tf, len(lay.c_index), min(fp.CHUNK, len(lay.c_index)))
+    hidden = tuple(fp._Dim.of(w.shape[1]) for w, _ in flow_layers)
+    hidden = hidden[:-1] + (dz,)
+    w_z, w_t, w_c = w1[:nz], w1[nz:nz + tf], w1[nz + tf:]
+    from stride_jax.dynamics.flow import _time_embedding
+
+    times = jnp.stack([_time_embedding(i / st.nfe, tf) for i in range(st.nfe)])
+    n_rows = 1 << (st.nfe - 1).bit_length()
+    time_rows = jnp.pad(times @ w_t + b1, ((0, n_rows - st.nfe),
+                                          (0, hidden[0].padded - b1.shape[0])))
+    flow_consts = [fp._pad_weight(w_z, dz, hidden[0]).astype(dtype),
+                   fp._pad_weight(w_c, dc, hidden[0]).astype(dtype), time_rows]
+    flow_consts += fp._padded_layers(rest, hidden, dtype)
+    fixed = jnp.zeros((1, lay.entries), jnp.float32).at[0, lay.n_out + 1].set(sqrt_mass)
+    a = sqrt_mass ** 2 + st.floor
+    mass = jnp.zeros((1, 16), jnp.float32).at[0, :5].set(
+        jnp.stack([sqrt_mass, st.floor / a, sqrt_mass / a, 1.0 / a, gravity]))
+    row = lambda x: jnp.asarray(x)[None]
+    pad_n = lambda x: jnp.pad(jnp.asarray(x, jnp.float32),
+                              [(0, 0)] * (jnp.ndim(x) - 1) + [(0, n - jnp.shape(x)[-1])])
+    servo_rows = jnp.pad(pad_n(servo), ((0, 8 - servo.shape[0]), (0, 0)))
+    tables = [jnp.asarray(lay.index), jnp.asarray(lay.index.T.copy()), jnp.asarray(lay.index_r),
+              row(lay.entry_row), row(lay.entry_col), row(lay.diag), row(lay.learned), fixed,
+              row(lay.feature_of_dof),
+              pad_n(jnp.broadcast_to(jnp.asarray(force_scale, jnp.float32), (nz,)))[None], mass,
+              row(lay.x_index), row(lay.t_index), row(lay.c_index), row(lay.qpos_of_dof),
+              row(lay.dof_of_qpos), row(lay.act_of_dof), servo_rows]
+    consts = fp._padded_layers(lnn_layers, lnn_dims, dtype) + flow_consts + tables
+    consts = [x.reshape(1, -1) if x.ndim == 1 else x for x in consts]
+
+    batch = q.shape[0]
+    padded = -(-batch // fp.ROWS) * fp.ROWS
+    rows = [jnp.pad(r, ((0, padded - batch), (0, 0))) for r in (q, qd, ctrl, z)]
+    blocks = [n, n, max(16, 1 << (ctrl.shape[1] - 1).bit_length()), n]
+    wide = max([d.padded for d in lnn_dims] + [d.padded for d in hidden])
+    widths = ([wide] * 4 + [lay.entries] * 4 + [2 * n, n, lnn_dims[0].padded, n + lay.nr,
+                                                 hidden[0].padded, lay.nr * lay.nr,
+                                                 len(PREP) * n]
+              + [d.padded for d in lnn_dims[1:-1]])
+    row_spec = lambda cols: pl.BlockSpec((fp.ROWS, cols), lambda i: (i, 0))
+    results = pl.pallas_call(
+        _kernel(lay, lnn_dims, (dz, dc) + hidden, st.nfe, st.floor, st.dt),
+        out_shape=[jax.ShapeDtypeStruct((padded, nv + 1), jnp.float32),
+                   jax.ShapeDtypeStruct((padded, nv), jnp.float32)]
+        + [jax.ShapeDtypeStruct((padded, w), jnp.float32) for w in widths],
+        grid=(padded // fp.ROWS,),
+        in_specs=[row_spec(b) for b in blocks]
+        + [pl.BlockSpec(x.shape, lambda i: (0, 0)) for x in consts],
+        out_specs=[row_spec(n), row_spec(n)] + [row_spec(w) for w in widths],
+        interpret=fp._INTERPRET.get(),
+        compiler_params=pl_triton.CompilerParams(num_warps=WARPS, num_stages=fp.STAGES),
+        name="stride_fused_step",
+    )(*rows, *consts)
+    return results[0][:batch], results[1][:batch]
+
+
+def batched(ref: Callable, kernel_fn: Callable, params, *xs):
+    """``(q', qd') = ref(params, *xs)`` for one example; under ``vmap`` (unbatched ``params``) on a GPU,
+    ``kernel_fn(params, *batched_xs)`` (one kernel), on a CPU the vmapped ``ref``."""
+    @jax.custom_batching.custom_vmap
+    def f(params, *xs):
+        return ref(params, *xs)
+
+    @f.def_vmap
+    def rule(axis_size, in_batched, params, *xs):
+        params_batched, xs_batched = in_batched[0], in_batched[1:]
+        axes = (jax.tree.map(lambda b: 0 if b else None, params_batched),
+                *[0 if b else None for b in xs_batched])
+        if any(jax.tree.leaves(params_batched)):  # per-sample weights: no shared kernel
+            return jax.vmap(ref, in_axes=axes)(params, *xs), (True, True)
+        xs = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape)
+              for x, b in zip(xs, xs_batched)]
+        if fp._INTERPRET.get():
+            return kernel_fn(params, *xs), (True, True)
+        batched_ref = jax.vmap(ref, in_axes=(None,) + (0,) * len(xs))
+        return jax.lax.platform_dependent(params, *xs, cpu=batched_ref, default=kernel_fn), \
+            (True, True)
+
+    return f(params, *xs)
