@@ -44,6 +44,7 @@ SKIP: frozenset = frozenset()
 # The small loops unrolled, by name ("products", "gram", "factor", "backward"). Unrolled, a loop's
 # loads are issued ahead; but Triton's compile time grows steeply (all four unrolled: > 2 min).
 UNROLL: frozenset = frozenset()
+OUT_CHUNK = 256  # columns of the prior's last layer per piece of its transposed weight tiles
 
 
 # The prologue's per-program scratch row: its segments, ``n`` columns each (nv padded).
@@ -60,7 +61,7 @@ class Layout:
     """
 
     nv: int
-    n: int  # nv padded
+    n: int  # nq = nv + 1 padded
     nr: int  # nv - 3 padded: the reduced system without the base's translation
     n_out: int
     entries: int  # padded slots
@@ -83,7 +84,7 @@ class Layout:
     @classmethod
     def of(cls, nv: int, act_dof: tuple[int, ...] = ()) -> "Layout":
         pow2 = lambda k: max(16, 1 << (k - 1).bit_length())
-        n, nr = pow2(nv), pow2(nv - 3)
+        n, nr = pow2(nv + 1), pow2(nv - 3)  # n: room for the configuration's nq = nv + 1
         rows, cols = np.tril_indices(nv)
         keep = rows >= 3
         rows, cols = rows[keep], cols[keep]
@@ -118,9 +119,6 @@ class Layout:
                                        P["tau_n"] + np.arange(nv)])
         qpos_of_dof = np.zeros(n, np.int32)
         qpos_of_dof[6:nv] = 7 + np.arange(nj)
-        if nq > n:
-            raise ValueError(f"fused step: nv={nv} leaves no room for the quaternion's extra "
-                             f"coordinate in blocks of {n}")
         dof_of_qpos = np.zeros(n, np.int32)
         dof_of_qpos[:3] = np.arange(3)
         dof_of_qpos[7:nq] = 6 + np.arange(nj)
@@ -172,13 +170,28 @@ def _prior_network(dims, w, zs, h, tt, bufs, raw_ref, rawt_ref):
             h, tt = out[:, :dims[k + 1].padded], t_out[:, :dims[k + 1].padded]
 
 
-def _transposed(dims, w, zs, g, out_ref, bufs):
-    """The prior network's transposed pass of the output cotangent ``g`` into ``out_ref``."""
+def _transposed(dims, w, zs, g, out_ref, bufs, g_ref):
+    """The prior network's transposed pass of the output cotangent ``g`` into ``out_ref``.
+    The last layer's weight tiles span all its outputs; wider than ``OUT_CHUNK`` (G1's 627
+    outputs: 256 kB in float32, past an SM's shared memory) they are read in pieces, ``g``
+    through ``g_ref``."""
+    last = len(dims) - 2
+    pieces = max(1, dims[-1].padded // OUT_CHUNK)
+    if pieces > 1:
+        g_ref[...] = g
+        fp._barrier()
     for k in reversed(range(len(dims) - 1)):
         out = out_ref if k == 0 else bufs[k % 2]
 
+        def product(g, w_ref, cols, k):
+            if k != last or pieces == 1:
+                return fp._dot_t(g, w_ref[cols, :])
+            piece = lambda p: slice(p * OUT_CHUNK, (p + 1) * OUT_CHUNK)
+            return sum(fp._dot_t(g_ref[:, piece(p)], w_ref[cols, piece(p)])
+                       for p in range(pieces))
+
         def body(cols, k=k, g=g, out=out):
-            gi = fp._dot_t(g, w[2 * k][cols, :])
+            gi = product(g, w[2 * k], cols, k)
             if k > 0:
                 gi = gi * fp._silu_grad(zs[k - 1][:, cols])
             out[:, cols] = gi
@@ -298,7 +311,7 @@ def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float)
             g = g * jnp.where(diag > 0, sig, 1.0)
             slot = jax.lax.broadcasted_iota(jnp.int32, g.shape, 1)
             g = jnp.where(slot == lay.n_out, -1.0, g)
-            _transposed(lnn_dims, w_lnn, zs, g, gx_ref, (a0, a1))
+            _transposed(lnn_dims, w_lnn, zs, g, gx_ref, (a0, a1), rawt_ref)
             # dL/d(delta): joints read their features; the rotation is vee(skew(R^T G)), G the
             # cotangent of the rotation matrix's features (row-major, the first nine)
             dl_dq = jnp.where((dof >= 6) & (dof < nv), _gather(gx_ref, fdof_ref[...]), 0.0)

@@ -1,0 +1,83 @@
+"""The whole model step as one kernel (``fused_step``) equals the XLA step: Pallas' interpreter
+runs the kernel on a CPU (the GPU timings are in results/README.md)."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stride_jax.dynamics import fused, mlp, models, stride
+from stride_jax.types import ModelSpec
+
+
+def _robot(n_joints: int):
+    nv = 6 + n_joints
+    spec = ModelSpec(nq=nv + 1, nv=nv, floating_base=True, periodic=(False,) * n_joints)
+    # mixed gains; the last joint's servo unlimited (an empty force range)
+    ranges = ((-6.0, 6.0),) * (n_joints - 1) + ((0.0, 0.0),)
+    act = models.Actuation(dof=tuple(range(6, nv)), kp=tuple(np.linspace(15, 30, n_joints)),
+                           kd=tuple(np.linspace(0.3, 0.8, n_joints)), force_range=ranges,
+                           dt=0.01, n_substeps=1)
+    return spec, act
+
+
+def _states(spec, n: int, seed: int = 0):
+    keys = jax.random.split(jax.random.key(seed), 5)
+    q = jnp.zeros((n, spec.nq)).at[:, 2].set(0.3)
+    q = q.at[:, 3:7].set(jax.random.normal(keys[0], (n, 4)))  # any orientation
+    q = q.at[:, 3:7].set(q[:, 3:7] / jnp.linalg.norm(q[:, 3:7], axis=1, keepdims=True))
+    q = q.at[:, 7:].set(0.4 * jax.random.normal(keys[1], (n, spec.nv - 6)))
+    qd = 1.5 * jax.random.normal(keys[2], (n, spec.nv))
+    ctrl = q[:, 7:] + 0.5 * jax.random.normal(keys[3], (n, spec.nv - 6))  # some saturate
+    return q, qd, ctrl, jax.random.split(keys[4], n)
+
+
+def test_whole_step_equals_the_xla_step():
+    """Servo (saturated and unlimited joints), features, the prior's networks and products, the
+    flow sample, the solve and the integration: the kernel's next states are XLA's (a Go1-sized
+    robot, a learned mass)."""
+    spec, act = _robot(12)
+    scales = stride.Scales(qd=jnp.linspace(0.5, 2.0, spec.nv), tau=jnp.linspace(1.0, 3.0, spec.nv),
+                           force=jnp.linspace(2.0, 4.0, spec.nv))
+    cfg = stride.StructuredConfig(net=mlp.MLPConfig(hidden=32, depth=2), shared_lnn=True,
+                                  learn_mass=True, mass_init=5.0)
+    xla = models.make("stride", spec, act, cfg, scales)
+    fast = models.make("stride", spec, act, dataclasses.replace(cfg, kernel="pallas-step"),
+                       scales)
+    noise = lambda w, k: w + 0.1 * jax.random.normal(k, w.shape)
+    leaves, tree = jax.tree.flatten(xla.init(jax.random.key(1)))
+    params = tree.unflatten([noise(w, jax.random.key(i)) for i, w in enumerate(leaves)])
+    q, qd, ctrl, keys = _states(spec, 20)  # not a multiple of the kernel's 16 rows
+    step = lambda m: jax.jit(jax.vmap(lambda *a: m.step(params, *a)))
+    ref = step(xla)(q, qd, ctrl, keys)
+    with fused.interpret():
+        jaxpr = jax.make_jaxpr(jax.vmap(lambda *a: fast.step(params, *a)))(q, qd, ctrl, keys)
+        out = step(fast)(q, qd, ctrl, keys)
+    assert "stride_fused_step" in str(jaxpr)  # the whole step ran as the kernel
+    acc_ref, acc = (ref[1] - qd) / act.dt, (out[1] - qd) / act.dt
+    scale = jnp.max(jnp.abs(acc_ref), axis=1, keepdims=True)
+    assert float(jnp.min(scale)) > 1.0  # the steps accelerate
+    np.testing.assert_allclose(acc / scale, acc_ref / scale, atol=2e-5)
+    np.testing.assert_allclose(out[0], ref[0], atol=1e-5)
+    np.testing.assert_allclose(jnp.linalg.norm(out[0][:, 3:7], axis=1), 1.0, atol=1e-6)
+
+
+def test_whole_step_only_where_it_applies():
+    """A model the whole step does not cover (two networks for L and V) takes the per-pass
+    kernels; on a CPU, outside the interpreter, the step is the XLA step."""
+    spec, act = _robot(3)
+    q, qd, ctrl, keys = _states(spec, 4)
+    net = mlp.MLPConfig(hidden=16, depth=1)
+    two = stride.StructuredConfig(net=net, shared_lnn=False, kernel="pallas-step")
+    model = models.make("stride", spec, act, two)
+    params = model.init(jax.random.key(0))
+    jaxpr = jax.make_jaxpr(jax.vmap(lambda *a: model.step(params, *a)))(q, qd, ctrl, keys)
+    assert "stride_fused_mlp" in str(jaxpr) and "stride_fused_step" not in str(jaxpr)
+    cfg = stride.StructuredConfig(net=net, shared_lnn=True)
+    xla = models.make("stride", spec, act, cfg)
+    fast = models.make("stride", spec, act, dataclasses.replace(cfg, kernel="pallas-step"))
+    params = xla.init(jax.random.key(0))
+    run = lambda m: jax.jit(jax.vmap(lambda *a: m.step(params, *a)))(q, qd, ctrl, keys)
+    for r, o in zip(run(xla), run(fast)):
+        np.testing.assert_allclose(o, r, rtol=1e-5, atol=1e-6)
