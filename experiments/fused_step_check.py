@@ -1,6 +1,7 @@
-"""The whole-acceleration kernel (``stride_jax/dynamics/fused_step.py``) against XLA on this
-machine's default device: agreement of one model step over a batch of states, and the time of one step and of
-a vmapped 30-step rollout for each kernel choice. Go1 STRIDE, one network for L and V:
+"""The whole-step kernel (``stride_jax/dynamics/fused_step.py``) against XLA on this machine's
+default device: agreement of one model step over a batch of states (the step's acceleration),
+and the time of one vmapped step and of a vmapped 30-step rollout for each kernel choice. Go1
+STRIDE, one network for L and V:
 
     python experiments/fused_step_check.py [--run results/planning_shared/stride-h64-shared]
         [--samples 1024] [--kernels xla,pallas-bf16,pallas-step,pallas-step-bf16]
@@ -84,9 +85,10 @@ def main():
         compile_s = time.perf_counter() - t0
         ms = 1e3 * median_time(lambda: jax.block_until_ready(roll(params, q, qd, ctrls, keys)),
                                a.repeats)
-        print(f"{kernel:18s} one step {one_ms:6.3f} ms; rollout {ms:7.3f} ms ({1e3 * ms / H:6.1f} us/step, compile "
-              f"{compile_s:.1f} s); acceleration vs {a.kernels.split(',')[0]}: max rel "
-              f"{err.max():.2e}, median {np.median(err):.2e}", flush=True)
+        print(f"{kernel:18s} one step {one_ms:6.3f} ms; rollout {ms:7.3f} ms "
+              f"({1e3 * ms / H:6.1f} us/step, compile {compile_s:.1f} s); acceleration vs "
+              f"{a.kernels.split(',')[0]}: max rel {err.max():.2e}, median "
+              f"{np.median(err):.2e}", flush=True)
 
 
 if __name__ == "__main__":

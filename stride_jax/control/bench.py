@@ -44,7 +44,8 @@ class BenchConfig:
       nfe: residual evaluations for generative models (0: each model's default).
       shared_lnn: structured models with one network for L and V (``LNNConfig.shared``).
       kernel: how the models' networks run: ``xla``, or fused kernels (``pallas``,
-        ``pallas-bf16``; ``stride_jax.dynamics.fused``, GPUs).
+        ``pallas-bf16``; ``stride_jax.dynamics.fused``, GPUs; ``pallas-step[-bf16]``: STRIDE's
+        whole model step as one kernel where it applies, ``stride_jax.dynamics.fused_step``).
       substeps: model evaluations per control step in the planner's rollouts (0: the robot's
         simulation substeps; 1 integrates at the control period, with the implicit servo).
       unroll: horizon steps per loop iteration of the planner's rollouts (0: the whole horizon;

@@ -75,7 +75,8 @@ class ClosedLoopConfig:
         (m/s)^2, times dt): the reward's exp-kernels are flat far from the command (at 2 m/s
         below it, exp(-16)), which leaves a planner starting from rest without a direction.
       kernel: how learned structured models run their networks (``xla``; ``pallas`` or
-        ``pallas-bf16``: fused kernels on GPUs, ``stride_jax.dynamics.fused``).
+        ``pallas-bf16``: fused kernels on GPUs, ``stride_jax.dynamics.fused``;
+        ``pallas-step[-bf16]``: STRIDE's whole step as one kernel where it applies).
       settle_s: tracking errors are counted from this long after each command change (s).
       out: results folder (``closed_loop.json``/``.md`` and plots).
       seed: planner key and terrain seed.

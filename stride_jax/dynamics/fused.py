@@ -16,7 +16,9 @@ under ``vmap`` (a planner's samples) it becomes one kernel for the whole batch
 (``jax.custom_batching.custom_vmap``) on a GPU, and the same batched maths in plain JAX on a CPU.
 They are inference-only: nothing here is differentiable (training keeps XLA's autodiff).
 
-The kernels and their layout are in :mod:`stride_jax.dynamics.fused_pallas`.
+The kernels and their layout are in :mod:`stride_jax.dynamics.fused_pallas`; the
+``pallas-step`` choices of :data:`KERNELS` go further and run a STRIDE model's whole step as one
+kernel (:mod:`stride_jax.dynamics.fused_step`, 2.5 ms for the MPPI step below at 64 x 3).
 
 Status (one H100, Go1, 1024 samples; commands and numbers in ``results/README.md``): at the
 paper's 256 x 3 a program streams ~0.7 MB of weights for only 16 rows, and the kernels are no

@@ -1,29 +1,39 @@
-"""A structured model's whole acceleration as one Pallas (Triton) kernel: a planner's model step
-on a GPU in one launch where XLA takes ~30 (``results/README.md``, session 7).
+"""A STRIDE model step as one Pallas (Triton) kernel: a planner's horizon step on a GPU in ~10
+launches where XLA makes ~30 (``results/README.md``, sessions 7-8).
 
-For a floating-base robot with one network for L and V (``StructuredConfig.shared_lnn``) and a
-flow residual sampled with Euler steps, one kernel program takes a block of ``ROWS`` samples
-through
+For a floating-base robot with position servos integrated implicitly, one network for L and V
+(``StructuredConfig.shared_lnn``) and a flow residual sampled with Euler steps, one kernel
+program takes a block of ``ROWS`` samples ``(q, qd, ctrl, z)`` through
 
-1. the prior's network forward and along the features' tangent (L, dL/dt, V);
-2. the products with L (``u = L^T v``, ``M v``, ``dM/dt v``) and the cotangent of the kinetic
-   energy on L's entries, then the network's transposed pass (``dL/dx``) and the features'
-   transposed Jacobian (joints, and the body-frame rotation's ``vee(skew(R^T G))``);
+0. the servo at the next state (``Actuation.implicit``), the prior's features (rotation matrix,
+   joint angles) and their tangent along ``qd``, and the flow's context;
+1. the prior's network forward and along the tangent (L, its rate, V);
+2. the products with L (``u = L^T v``, ``M v``, ``dM/dt v``), the cotangent of the kinetic
+   energy on L's entries, the network's transposed pass and the features' transposed Jacobian
+   (joints, and the body rotation's ``vee(skew(R^T G))``), then ``omega x p_omega``;
 3. the flow's ``nfe`` Euler steps from the latent ``z`` given the context;
-4. the Cholesky factorisation of ``M + diag(servo)`` and the two triangular solves;
+4. the solve with ``M + diag(servo)``: L's first rows are ``sqrt(m) I``, so the base's
+   translation eliminates exactly and a Cholesky factorisation of the rest (15 x 15 for Go1)
+   runs in registers;
+5. semi-implicit Euler with the quaternion's exponential map,
 
-and writes ``qdd``. XLA keeps what is elementwise and cheap around it (the servo, the features
-and their tangent, the flow's context, the integration), which it fuses with the planner's
-cost. Written for one example like the rest of the library: under ``vmap`` on a GPU it is one
-kernel for the batch (``jax.custom_batching.custom_vmap``); on a CPU, and unbatched, it is the
-plain XLA acceleration it replaces.
+and writes ``(q', qd')``. XLA keeps the random draws and the planner's cost. Written for one
+example like the rest of the library: under ``vmap`` on a GPU it is one kernel for the batch
+(``jax.custom_batching.custom_vmap``); on a CPU, and unbatched, it is the XLA step it
+replaces (the kernel runs on a CPU only in Pallas' interpreter, which the tests use).
 
-Layout inside a program (``fused_pallas`` has the network helpers): L's learned entries stay in
-the network's output order in a per-program buffer, and L is read from it as a
-``[ROWS, n, n]`` tensor by a gather through a static index table (``n``: nv padded to a power of
-two); matrix-vector products are broadcasts and reductions over that tensor; the factorisation
-is right-looking, one column per loop iteration, on ``M + diag(servo)`` held in registers, its
-columns kept in a buffer for the backward solve.
+Layout inside a program (``fused_pallas`` has the network helpers): per-dof quantities are
+``[ROWS, n]`` tensors (``n``: nq padded to a power of two); the prologue writes its quantities
+into one scratch row (``PREP``) and the networks' inputs are gathered from it through static
+index tables; L's entries stay in the network's output order in a buffer, and L's rows and
+columns are gathered from it (``Layout.index``) inside short loops.
+
+Measured (one H100, Go1 STRIDE NFE 2, K = 1024, H = 30, MPPI step; commands in
+``results/README.md``): 64 x 3 networks 2.80 ms (2.47 ms with bfloat16 products) against 6.27 ms
+in XLA; 128 x 3 3.94 / 3.24 ms against 6.52; 256 x 3 8.19 / 4.21 against 7.57. Within the kernel
+(64 x 3, leaving parts out) the solve takes ~24 us, the products and transposed pass ~22 us, the
+flow ~6 us. Unrolling the small loops lets their loads issue ahead but Triton's compile time
+grows steeply (``UNROLL``; the products' loops alone: -4% time, +11 s compile).
 """
 
 from __future__ import annotations
@@ -230,7 +240,7 @@ def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float)
     ``flow_dims``: the flow's (latent, context, then its layers' outputs)."""
     n_l = len(lnn_dims) - 1
     n_fw = 2 * (len(flow_dims) - 3)
-    R, n, nr, nv, P = fp.ROWS, lay.n, lay.nr, lay.nv, lay.prep
+    R, n, nv, P = fp.ROWS, lay.n, lay.nv, lay.prep
 
     def kernel(q_ref, qd_ref, ctrl_ref, z_ref, *refs):
         w_lnn, refs = refs[:2 * n_l], refs[2 * n_l:]
@@ -242,7 +252,6 @@ def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float)
         (q_out, qd_out, a0, a1, t0, t1, raw_ref, rawt_ref, ent_ref, dent_ref, uw_ref, p_ref,
          gx_ref, vec_ref, cw, chol_ref, prep_ref), zs = refs[:17], refs[17:]
         dof = jax.lax.broadcasted_iota(jnp.int32, (R, n), 1)
-        seg = lambda name, i=0: prep_ref[:, P[name] + i:P[name] + i + 1]
 
         # 0. the servo at the next state (Actuation.implicit), the features, their tangent and
         # the flow's context, through the scratch row
@@ -516,8 +525,8 @@ def step_batched(st: Static, lnn_layers, flow_layers, sqrt_mass, gravity, servo,
 
 
 def batched(ref: Callable, kernel_fn: Callable, params, *xs):
-    """``(q', qd') = ref(params, *xs)`` for one example; under ``vmap`` (unbatched ``params``) on a GPU,
-    ``kernel_fn(params, *batched_xs)`` (one kernel), on a CPU the vmapped ``ref``."""
+    """``(q', qd') = ref(params, *xs)`` for one example; under ``vmap`` (unbatched ``params``)
+    on a GPU ``kernel_fn(params, *batched_xs)`` (one kernel), on a CPU the vmapped ``ref``."""
     @jax.custom_batching.custom_vmap
     def f(params, *xs):
         return ref(params, *xs)
