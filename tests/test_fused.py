@@ -139,3 +139,19 @@ def test_bad_kernel_choices():
         stride.StructuredConfig(kernel="cuda")
     with pytest.raises(ValueError, match="Euler steps only"):
         flow.FlowConfig(kernel="pallas", integrator="midpoint")
+
+
+def test_transposed_pass_reads_wide_weight_tiles_in_pieces():
+    """An output wider than ``OUT_CHUNK`` (G1's mass network: 627 outputs) is transposed in
+    pieces of the weight tiles (whole, they exceed an SM's shared memory in float32)."""
+    from stride_jax.dynamics import fused_pallas
+
+    d_out = 2 * fused_pallas.OUT_CHUNK + 11  # padded to 4 pieces
+    params = mlp.mlp(mlp.MLPConfig(hidden=32, depth=1), d_out)[0](jax.random.key(0), D_IN)
+    apply = mlp.mlp(mlp.MLPConfig(hidden=32, depth=1), d_out)[1]
+    x = jax.random.normal(jax.random.key(1), (16, D_IN))
+    g = jax.random.normal(jax.random.key(2), (16, d_out))
+    ref = jax.vmap(lambda x, g: jax.vjp(lambda x: apply(params, x), x)[1](g)[0])(x, g)
+    with fused.interpret():
+        out = jax.jit(jax.vmap(lambda x, g: fused.vjp(params, x, g)))(x, g)
+    np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-4)

@@ -144,6 +144,82 @@ def _dense(h, w_ref, b_ref, dout: _Dim, out_ref, act: bool, t=None, t_ref=None, 
     _tiles(dout, body)
 
 
+OUT_CHUNK = 256  # transposed passes: columns of a layer's outputs per piece of a weight tile
+
+
+def _forward(dims, w, h, bufs, outs, t=None, zs=None, out_size=None) -> None:
+    """The layers of ``w`` forward from ``h`` (and along the tangent ``t``): hidden layers
+    through ``bufs = (a0, a1[, t0, t1])``, the last into ``outs = (y_ref[, yt_ref])``; ``zs``
+    keeps the hidden pre-activations; ``out_size``: the width of a narrower output array."""
+    n_l = len(dims) - 1
+    for k in range(n_l):
+        last = k == n_l - 1
+        out = outs[0] if last else bufs[k % 2]
+        t_out = None if t is None else (outs[1] if last else bufs[2 + k % 2])
+        _dense(h, w[2 * k], w[2 * k + 1], dims[k + 1], out, not last, t, t_out,
+               z_ref=None if last or zs is None else zs[k], out_size=out_size if last else None)
+        if not last:
+            width = dims[k + 1].padded
+            h = out[:, :width]
+            t = None if t is None else t_out[:, :width]
+
+
+def _transposed(dims, w, zs, g, out_ref, bufs, g_ref=None, in_size=None) -> None:
+    """The transposed pass of the output cotangent ``g`` into ``out_ref`` (``zs``: the hidden
+    pre-activations; ``in_size``: the width of a narrower input-cotangent array). The last
+    layer's weight tiles span all its outputs; wider than ``OUT_CHUNK`` (G1's 627 outputs: 256
+    kB in float32, past an SM's shared memory) they are read in pieces, ``g`` through
+    ``g_ref``."""
+    last = len(dims) - 2
+    pieces = max(1, dims[-1].padded // OUT_CHUNK)
+    if pieces > 1:
+        g_ref[...] = g
+        _barrier()
+    piece = lambda p: slice(p * OUT_CHUNK, (p + 1) * OUT_CHUNK)
+    for k in reversed(range(len(dims) - 1)):
+        out = out_ref if k == 0 else bufs[k % 2]
+
+        def body(cols, k=k, g=g, out=out):
+            if k != last or pieces == 1:
+                gi = _dot_t(g, w[2 * k][cols, :])
+            else:
+                gi = sum(_dot_t(g_ref[:, piece(p)], w[2 * k][cols, piece(p)])
+                         for p in range(pieces))
+            if k > 0:
+                gi = gi * _silu_grad(zs[k - 1][:, cols])
+            _put(out, cols, gi, None if k > 0 else in_size)
+
+        _tiles(dims[k], body)
+        if k > 0:
+            g = out[:, :dims[k].padded]
+
+
+def _flow_steps(dims, nfe, c, wz_ref, wc_ref, tb_ref, w, cw, a0, a1, z):
+    """``nfe`` Euler steps of the flow from ``z`` given its context ``c``; ``dims``: the
+    latent's, the context's, then the layers' outputs. The first layer is split by its inputs
+    (``W_z``, ``W_c``, and ``tb_ref``: the time embedding's product plus the bias, one row per
+    step); ``cw`` keeps the context's product."""
+    hidden = dims[2:]
+
+    def context(cols):
+        cw[:, cols] = _dot(c, wc_ref[:, cols])
+
+    _tiles(hidden[0], context)
+    for i in range(nfe):
+        def first(cols, i=i, z=z):
+            a0[:, cols] = _silu(_dot(z, wz_ref[:, cols]) + cw[:, cols] + tb_ref[i:i + 1, cols])
+
+        _tiles(hidden[0], first)
+        h = a0[:, :hidden[0].padded]
+        for k in range(len(hidden) - 1):
+            last = k == len(hidden) - 2
+            out = (a1, a0)[k % 2]
+            _dense(h, w[2 * k], w[2 * k + 1], hidden[k + 1], out, not last)
+            h = out[:, :hidden[k + 1].padded]
+        z = z + h / nfe
+    return z
+
+
 def _kernel(mode: str, dims: tuple[_Dim, ...], nfe: int = 0) -> Callable:
     """The kernel body of one mode; ``dims`` are the layers' feature dimensions, input first
     (for ``flow``: the latent's, the context's, then the layers' outputs). Activations go
@@ -154,15 +230,8 @@ def _kernel(mode: str, dims: tuple[_Dim, ...], nfe: int = 0) -> Callable:
     if mode == "jvp":
         def kernel(x_ref, t_ref, *refs):
             w, (y_ref, yt_ref, a0, a1, t0, t1) = refs[:2 * n_layers], refs[2 * n_layers:]
-            h, t = _load_in(x_ref, dims[0].size), _load_in(t_ref, dims[0].size)
-            for k in range(n_layers):
-                last = k == n_layers - 1
-                out, t_out = (y_ref, yt_ref) if last else ((a0, t0), (a1, t1))[k % 2]
-                _dense(h, w[2 * k], w[2 * k + 1], dims[k + 1], out, not last, t, t_out,
-                       out_size=dims[-1].size if last else None)
-                if not last:
-                    width = dims[k + 1].padded
-                    h, t = out[:, :width], t_out[:, :width]
+            _forward(dims, w, _load_in(x_ref, dims[0].size), (a0, a1, t0, t1), (y_ref, yt_ref),
+                     _load_in(t_ref, dims[0].size), out_size=dims[-1].size)
     elif mode == "vjp":
         def kernel(x_ref, g_ref, *refs):
             w, gx_ref = refs[:2 * n_layers], refs[2 * n_layers]
@@ -172,47 +241,16 @@ def _kernel(mode: str, dims: tuple[_Dim, ...], nfe: int = 0) -> Callable:
             for k in range(n_layers - 1):  # hidden layers: keep the pre-activations
                 _dense(h, w[2 * k], w[2 * k + 1], dims[k + 1], a[k % 2], True, z_ref=zs[k])
                 h = a[k % 2][:, :dims[k + 1].padded]
-            g = _load_in(g_ref, dims[-1].size)
-            for k in reversed(range(n_layers)):
-                out = gx_ref if k == 0 else gb[k % 2]
-
-                def body(cols, k=k, g=g, out=out):
-                    gi = _dot_t(g, w[2 * k][cols, :])
-                    if k > 0:
-                        gi = gi * _silu_grad(zs[k - 1][:, cols])
-                    _put(out, cols, gi, None if k > 0 else dims[0].size)
-
-                _tiles(dims[k], body)
-                if k > 0:
-                    g = out[:, :dims[k].padded]
+            _transposed(dims, w, zs, _load_in(g_ref, dims[-1].size), gx_ref, gb, a[0],
+                        in_size=dims[0].size)
     elif mode == "flow":
-        # refs: z0, c | W_z, W_c, time rows (the time embedding's product plus the first bias,
-        # one row per Euler step), then the later layers' (W, b) | out, buffers
         hidden = dims[2:]
 
         def kernel(z_ref, c_ref, wz_ref, wc_ref, tb_ref, *refs):
             n_w = 2 * (len(hidden) - 1)
             w, (out_ref, cw, a0, a1) = refs[:n_w], refs[n_w:]
-            c = _load_in(c_ref, dims[1].size)
-
-            def context(cols):
-                cw[:, cols] = _dot(c, wc_ref[:, cols])
-
-            _tiles(hidden[0], context)
-            z = _load_in(z_ref, dims[0].size)
-            for i in range(nfe):
-                def first(cols, i=i, z=z):
-                    a0[:, cols] = _silu(_dot(z, wz_ref[:, cols]) + cw[:, cols]
-                                        + tb_ref[i:i + 1, cols])
-
-                _tiles(hidden[0], first)
-                h = a0[:, :hidden[0].padded]
-                for k in range(len(hidden) - 1):
-                    last = k == len(hidden) - 2
-                    out = (a1, a0)[k % 2]
-                    _dense(h, w[2 * k], w[2 * k + 1], hidden[k + 1], out, not last)
-                    h = out[:, :hidden[k + 1].padded]
-                z = z + h / nfe
+            z = _flow_steps(dims, nfe, _load_in(c_ref, dims[1].size), wz_ref, wc_ref, tb_ref, w,
+                            cw, a0, a1, _load_in(z_ref, dims[0].size))
             _put(out_ref, slice(0, dims[0].padded), z, dims[0].size)
     else:
         raise ValueError(f"unknown kernel mode {mode!r}")

@@ -22,11 +22,11 @@ example like the rest of the library: under ``vmap`` on a GPU it is one kernel f
 (``jax.custom_batching.custom_vmap``); on a CPU, and unbatched, it is the XLA step it
 replaces (the kernel runs on a CPU only in Pallas' interpreter, which the tests use).
 
-Layout inside a program (``fused_pallas`` has the network helpers): per-dof quantities are
-``[ROWS, n]`` tensors (``n``: nq padded to a power of two); the prologue writes its quantities
-into one scratch row (``PREP``) and the networks' inputs are gathered from it through static
-index tables; L's entries stay in the network's output order in a buffer, and L's rows and
-columns are gathered from it (``Layout.index``) inside short loops.
+Layout inside a program (``fused_pallas`` has the network passes, ``fused_layout`` the index
+tables): per-dof quantities are ``[ROWS, n]`` tensors (``n``: nq padded to a power of two); the
+prologue writes its quantities into one scratch row (``PREP``) and the networks' inputs are
+gathered from it through static index tables; L's entries stay in the network's output order in
+a buffer, and L's rows and columns are gathered from it (``Layout.index``) inside short loops.
 
 Measured (one H100, Go1 STRIDE NFE 2, K = 1024, H = 30, MPPI step; commands in
 ``results/README.md``): 64 x 3 networks 2.80 ms (2.47 ms with bfloat16 products) against 6.27 ms
@@ -43,9 +43,9 @@ from typing import Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from stride_jax.dynamics import fused_pallas as fp
+from stride_jax.dynamics.fused_layout import PREP, Layout
 
 WARPS = 8  # warps per program of the step kernel (M's [ROWS, n, n] tensors in registers)
 # Parts left out, to time the others (``experiments/fused_step_check.py --skip``; wrong results):
@@ -54,89 +54,6 @@ SKIP: frozenset = frozenset()
 # The small loops unrolled, by name ("products", "gram", "factor", "backward"). Unrolled, a loop's
 # loads are issued ahead; but Triton's compile time grows steeply (all four unrolled: > 2 min).
 UNROLL: frozenset = frozenset()
-OUT_CHUNK = 256  # columns of the prior's last layer per piece of its transposed weight tiles
-
-
-# The prologue's per-program scratch row: its segments, ``n`` columns each (nv padded).
-PREP = ("qd_n", "tau_n", "rot", "rot_t", "q", "qd", "extra", "zero")
-
-
-@dataclasses.dataclass(frozen=True)
-class Layout:
-    """Static sizes and index tables of one robot's step kernel.
-
-    Entry slots (the network's outputs, padded to ``entries``): ``0 .. n_out - 1`` L's learned
-    entries (row-major lower triangle of rows 3..nv-1), ``n_out`` V, ``n_out + 1`` the base's
-    fixed ``sqrt(m)``, ``n_out + 2`` zero (L above its diagonal, padding).
-    """
-
-    nv: int
-    n: int  # nq = nv + 1 padded
-    nr: int  # nv - 3 padded: the reduced system without the base's translation
-    n_out: int
-    entries: int  # padded slots
-    index: np.ndarray  # [n, n] the slot of L[i, j]
-    index_r: np.ndarray  # [n, nr] the slots of column k of L's rows 3.. (row k)
-    entry_row: np.ndarray  # [entries] i of each learned slot's L[i, j]
-    entry_col: np.ndarray  # [entries] j
-    diag: np.ndarray  # [entries] 1 where the slot is a learned diagonal entry (softplus)
-    learned: np.ndarray  # [entries] 1 for L's learned entries
-    feature_of_dof: np.ndarray  # [n] the feature column of each joint dof
-    # the prologue's scratch row (``PREP``) and what the kernel gathers from it
-    x_index: np.ndarray  # [nf padded] the prior's features: rotation matrix, joint angles
-    t_index: np.ndarray  # [nf padded] their tangent along qd
-    c_index: np.ndarray  # [nc padded] the flow's context (height, rotation, joints, qd, tau)
-    qpos_of_dof: np.ndarray  # [n] a dof's coordinate (joints; 0 for the base)
-    dof_of_qpos: np.ndarray  # [nq padded] a coordinate's dof (position, joints)
-    act_of_dof: np.ndarray  # [n] the actuator driving a dof (0 where none: its gains are 0)
-    prep: dict  # segment name -> first column in the scratch row
-
-    @classmethod
-    def of(cls, nv: int, act_dof: tuple[int, ...] = ()) -> "Layout":
-        pow2 = lambda k: max(16, 1 << (k - 1).bit_length())
-        n, nr = pow2(nv + 1), pow2(nv - 3)  # n: room for the configuration's nq = nv + 1
-        rows, cols = np.tril_indices(nv)
-        keep = rows >= 3
-        rows, cols = rows[keep], cols[keep]
-        n_out = len(rows)
-        entries = pow2(n_out + 3)
-        root, zero = n_out + 1, n_out + 2
-        index = np.full((n, n), zero, np.int32)
-        index[rows, cols] = np.arange(n_out)
-        index[np.arange(3), np.arange(3)] = root
-        index_r = np.full((n, nr), zero, np.int32)
-        index_r[:nv, :nv - 3] = index[3:nv, :nv].T
-        entry_row = np.zeros(entries, np.int32)
-        entry_col = np.zeros(entries, np.int32)
-        entry_row[:n_out], entry_col[:n_out] = rows, cols
-        diag = np.zeros(entries, np.float32)
-        diag[np.flatnonzero(rows == cols)] = 1.0
-        learned = np.zeros(entries, np.float32)
-        learned[:n_out] = 1.0
-        feature_of_dof = np.zeros(n, np.int32)
-        feature_of_dof[6:nv] = 9 + np.arange(nv - 6)  # features: rotation (9), then joints
-        nj, nq = nv - 6, nv + 1
-        nf, nc = 9 + nj, 1 + 9 + nj + 2 * nv
-        P = {name: i * n for i, name in enumerate(PREP)}
-        x_index = np.full(pow2(nf), P["zero"], np.int32)
-        x_index[:9] = P["rot"] + np.arange(9)
-        x_index[9:nf] = P["q"] + 7 + np.arange(nj)
-        t_index = np.full(pow2(nf), P["zero"], np.int32)
-        t_index[:9] = P["rot_t"] + np.arange(9)
-        t_index[9:nf] = P["qd"] + 6 + np.arange(nj)
-        c_index = np.full(pow2(nc), P["zero"], np.int32)
-        c_index[:nc] = np.concatenate([[P["q"] + 2], x_index[:nf], P["qd_n"] + np.arange(nv),
-                                       P["tau_n"] + np.arange(nv)])
-        qpos_of_dof = np.zeros(n, np.int32)
-        qpos_of_dof[6:nv] = 7 + np.arange(nj)
-        dof_of_qpos = np.zeros(n, np.int32)
-        dof_of_qpos[:3] = np.arange(3)
-        dof_of_qpos[7:nq] = 6 + np.arange(nj)
-        act_of_dof = np.zeros(n, np.int32)
-        act_of_dof[list(act_dof)] = np.arange(len(act_dof))
-        return cls(nv, n, nr, n_out, entries, index, index_r, entry_row, entry_col, diag,
-                   learned, feature_of_dof, x_index, t_index, c_index, qpos_of_dof, dof_of_qpos,
-                   act_of_dof, P)
 
 
 def _col(x, i):
@@ -164,75 +81,6 @@ def _loop(name: str, n: int, body: Callable, init):
     for i in range(n):
         init = body(i, init)
     return init
-
-
-def _prior_network(dims, w, zs, h, tt, bufs, raw_ref, rawt_ref):
-    """The prior's network forward and along the tangent: its outputs into ``raw_ref,
-    rawt_ref``, the hidden pre-activations into ``zs``."""
-    a0, a1, t0, t1 = bufs
-    n_l = len(dims) - 1
-    for k in range(n_l):
-        last = k == n_l - 1
-        out, t_out = (raw_ref, rawt_ref) if last else ((a0, t0), (a1, t1))[k % 2]
-        fp._dense(h, w[2 * k], w[2 * k + 1], dims[k + 1], out, not last, tt, t_out,
-                  z_ref=None if last else zs[k])
-        if not last:
-            h, tt = out[:, :dims[k + 1].padded], t_out[:, :dims[k + 1].padded]
-
-
-def _transposed(dims, w, zs, g, out_ref, bufs, g_ref):
-    """The prior network's transposed pass of the output cotangent ``g`` into ``out_ref``.
-    The last layer's weight tiles span all its outputs; wider than ``OUT_CHUNK`` (G1's 627
-    outputs: 256 kB in float32, past an SM's shared memory) they are read in pieces, ``g``
-    through ``g_ref``."""
-    last = len(dims) - 2
-    pieces = max(1, dims[-1].padded // OUT_CHUNK)
-    if pieces > 1:
-        g_ref[...] = g
-        fp._barrier()
-    for k in reversed(range(len(dims) - 1)):
-        out = out_ref if k == 0 else bufs[k % 2]
-
-        def product(g, w_ref, cols, k):
-            if k != last or pieces == 1:
-                return fp._dot_t(g, w_ref[cols, :])
-            piece = lambda p: slice(p * OUT_CHUNK, (p + 1) * OUT_CHUNK)
-            return sum(fp._dot_t(g_ref[:, piece(p)], w_ref[cols, piece(p)])
-                       for p in range(pieces))
-
-        def body(cols, k=k, g=g, out=out):
-            gi = product(g, w[2 * k], cols, k)
-            if k > 0:
-                gi = gi * fp._silu_grad(zs[k - 1][:, cols])
-            out[:, cols] = gi
-
-        fp._tiles(dims[k], body)
-        if k > 0:
-            g = out[:, :dims[k].padded]
-
-
-def _flow(dims, nfe, c, wz_ref, wc_ref, tb_ref, w, cw, a0, a1, z):
-    """``nfe`` Euler steps of the flow from ``z`` given ``c`` (``fused_pallas``'s flow kernel)."""
-    hidden = dims[2:]
-
-    def context(cols):
-        cw[:, cols] = fp._dot(c, wc_ref[:, cols])
-
-    fp._tiles(hidden[0], context)
-    for i in range(nfe):
-        def first(cols, i=i, z=z):
-            a0[:, cols] = fp._silu(fp._dot(z, wz_ref[:, cols]) + cw[:, cols]
-                                   + tb_ref[i:i + 1, cols])
-
-        fp._tiles(hidden[0], first)
-        h = a0[:, :hidden[0].padded]
-        for k in range(len(hidden) - 1):
-            last = k == len(hidden) - 2
-            out = (a1, a0)[k % 2]
-            fp._dense(h, w[2 * k], w[2 * k + 1], hidden[k + 1], out, not last)
-            h = out[:, :hidden[k + 1].padded]
-        z = z + h / nfe
-    return z
 
 
 def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float) -> Callable:
@@ -284,7 +132,7 @@ def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float)
         r0 = tau0 - jnp.where(dof == 2, mass_ref[:, 4:5], 0.0)  # m g along world z
 
         # 1. the prior's network forward and along the tangent; L's entries and their rates
-        _prior_network(lnn_dims, w_lnn, zs, x, t, (a0, a1, t0, t1), raw_ref, rawt_ref)
+        fp._forward(lnn_dims, w_lnn, x, (a0, a1, t0, t1), (raw_ref, rawt_ref), t, zs)
         raw, raw_t = raw_ref[...], rawt_ref[...]
         diag, learned = diag_ref[...], learned_ref[...]
         sig = jax.nn.sigmoid(raw)
@@ -320,7 +168,7 @@ def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float)
             g = g * jnp.where(diag > 0, sig, 1.0)
             slot = jax.lax.broadcasted_iota(jnp.int32, g.shape, 1)
             g = jnp.where(slot == lay.n_out, -1.0, g)
-            _transposed(lnn_dims, w_lnn, zs, g, gx_ref, (a0, a1), rawt_ref)
+            fp._transposed(lnn_dims, w_lnn, zs, g, gx_ref, (a0, a1), rawt_ref)
             # dL/d(delta): joints read their features; the rotation is vee(skew(R^T G)), G the
             # cotangent of the rotation matrix's features (row-major, the first nine)
             dl_dq = jnp.where((dof >= 6) & (dof < nv), _gather(gx_ref, fdof_ref[...]), 0.0)
@@ -341,7 +189,7 @@ def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float)
         # 3. the flow's sample from z given the context
         z = fp._load_in(z_ref, nv)
         if "flow" not in SKIP:
-            z = _flow(flow_dims, nfe, c, wz_ref, wc_ref, tb_ref, w_flow, cw, a0, a1, z)
+            z = fp._flow_steps(flow_dims, nfe, c, wz_ref, wc_ref, tb_ref, w_flow, cw, a0, a1, z)
         rhs = r0 - bias + force_ref[...] * z
         qdd = rhs
         if "solve" not in SKIP:

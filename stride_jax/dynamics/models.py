@@ -29,8 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.dynamics import (flow, fused, fused_step, integrate, lagrangian, mlp,
-                                  next_obs, stride)
+from stride_jax.dynamics import (flow, fused, fused_layout, fused_step, integrate, lagrangian,
+                                  mlp, next_obs, stride)
 from stride_jax.types import ModelSpec
 from stride_jax.io import atomic_write_text
 
@@ -240,7 +240,7 @@ def _fused_substep(xla_substep: Callable, spec: ModelSpec, act: Actuation,
                            jnp.broadcast_to(1.0 / jnp.asarray(scales.tau), (spec.nv,))])
         lnn_cfg = cfg.lnn
         mass = lagrangian.total_mass(params["lnn"], lnn_cfg)
-        static = fused_step.Static(fused_step.Layout.of(spec.nv, act.dof), nfe,
+        static = fused_step.Static(fused_layout.Layout.of(spec.nv, act.dof), nfe,
                                    flow.FlowConfig().time_features, lnn_cfg.diag_floor, act.dt,
                                    fused.kernel_dtype(cfg.kernel))
         return fused_step.step_batched(
