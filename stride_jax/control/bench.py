@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stride_jax.control import mppi
-from stride_jax.dynamics import models, stride
+from stride_jax.dynamics import fused, models, stride
 from stride_jax.io import atomic_write_text
 from stride_jax.sim import bench as sim_bench, collect, model as sim_model
 from stride_jax.train import job
@@ -238,7 +238,10 @@ def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> path
              f"{'fully' if not cfg.unroll else f'{cfg.unroll} step(s) per loop iteration'}. "
              f"Networks {cfg.hidden} x {cfg.depth}"
              f"{' (L and V from one network)' if cfg.shared_lnn else ''} at initialisation"
-             + ("" if cfg.kernel == "xla" else f", network passes as fused kernels ({cfg.kernel})")
+             + ("" if cfg.kernel == "xla" else
+                f", STRIDE's model step as one fused kernel where it applies ({cfg.kernel})"
+                if fused.whole_step(cfg.kernel) else
+                f", network passes as fused kernels ({cfg.kernel})")
              + "; "
              "one jitted planning step (K rollouts of H control "
              "steps, each the robot's simulation substeps) with block_until_ready; median of "

@@ -47,7 +47,7 @@ import jax.numpy as jnp
 from stride_jax.dynamics import fused_pallas as fp
 from stride_jax.dynamics.fused_layout import PREP, Layout
 
-WARPS = 8  # warps per program of the step kernel (M's [ROWS, n, n] tensors in registers)
+WARPS = 8  # warps per program of the step kernel (the reduced mass matrix in registers)
 # Parts left out, to time the others (``experiments/fused_step_check.py --skip``; wrong results):
 # "products" (L's products and the transposed pass), "flow", "solve".
 SKIP: frozenset = frozenset()
@@ -144,8 +144,8 @@ def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float)
         bias = jnp.zeros((R, n), jnp.float32)
         if "products" not in SKIP:
             def by_rows(i, uw):  # u = L^T v, w = dL^T v
-                vi = qd_ref[:, pl_ds(i)]
-                row = index_ref[pl_ds(i), :]
+                vi = qd_ref[:, _ds(i)]
+                row = index_ref[_ds(i), :]
                 return uw[0] + vi * _gather(ent_ref, row), uw[1] + vi * _gather(dent_ref, row)
 
             zero = jnp.zeros((R, n), jnp.float32)
@@ -154,9 +154,9 @@ def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float)
             fp._barrier()
 
             def by_cols(j, pm):  # p = L u, dM/dt v = dL u + L w
-                col = index_t_ref[pl_ds(j), :]
+                col = index_t_ref[_ds(j), :]
                 lc, dlc = _gather(ent_ref, col), _gather(dent_ref, col)
-                uj, wj = uw_ref[:, pl_ds(j)], uw_ref[:, pl_ds(n + j)]
+                uj, wj = uw_ref[:, _ds(j)], uw_ref[:, _ds(n + j)]
                 return pm[0] + uj * lc, pm[1] + uj * dlc + wj * lc
 
             p, mdot_v = _loop("products", nv, by_cols, (zero, zero))
@@ -191,6 +191,8 @@ def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float)
         if "flow" not in SKIP:
             z = fp._flow_steps(flow_dims, nfe, c, wz_ref, wc_ref, tb_ref, w_flow, cw, a0, a1, z)
         rhs = r0 - bias + force_ref[...] * z
+
+        # 4. (M + diag(servo)) qdd = rhs
         qdd = rhs
         if "solve" not in SKIP:
             qdd = _solve(lay, floor, rhs, ent_ref, index_r_ref, mass_ref, prep_ref, vec_ref,
@@ -244,7 +246,7 @@ def _solve(lay, floor, rhs, ent_ref, index_r_ref, mass_ref, prep_ref, vec_ref, c
         r2 = r2 - s_a * _col(rhs, k) * base_cols[k]
 
     def gram(k, S):
-        col = _gather(ent_ref, index_r_ref[pl_ds(k), :])
+        col = _gather(ent_ref, index_r_ref[_ds(k), :])
         return S + col[:, :, None] * col[:, None, :]
 
     S = sum(f_a[:, :, None] * c[:, :, None] * c[:, None, :] for c in base_cols)
@@ -256,7 +258,7 @@ def _solve(lay, floor, rhs, ent_ref, index_r_ref, mass_ref, prep_ref, vec_ref, c
         col = jnp.sum(jnp.where(jj == j, S, 0.0), axis=2)  # S[:, :, j]
         root = jnp.sqrt(_col(col, j))
         col = jnp.where(red >= j, col, 0.0) / root
-        chol_ref[:, pl_ds(j * nr, nr)] = col
+        chol_ref[:, _ds(j * nr, nr)] = col
         yj = _col(y, j) / root
         y = jnp.where(red > j, y - col * yj, jnp.where(red == j, yj, y))
         return S - col[:, :, None] * col[:, None, :], y
@@ -266,7 +268,7 @@ def _solve(lay, floor, rhs, ent_ref, index_r_ref, mass_ref, prep_ref, vec_ref, c
 
     def backward(i, x):
         j = nv - 4 - i
-        col = chol_ref[:, pl_ds(j * nr, nr)]
+        col = chol_ref[:, _ds(j * nr, nr)]
         dot = jnp.sum(jnp.where(red > j, col * x, 0.0), axis=1, keepdims=True)
         return jnp.where(red == j, (_col(x, j) - dot) / _col(col, j), x)
 
@@ -282,7 +284,8 @@ def _solve(lay, floor, rhs, ent_ref, index_r_ref, mass_ref, prep_ref, vec_ref, c
     return qdd
 
 
-def pl_ds(start, size=1):
+def _ds(start, size=1):
+    """``pl.ds``: a (possibly traced) slice of ``size`` from ``start``."""
     from jax.experimental import pallas as pl
     return pl.ds(start, size)
 
