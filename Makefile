@@ -66,9 +66,10 @@ reproduce: setup
 report: setup
 	$(BIN)/python experiments/report.py
 
-## test: the whole suite (about 12 minutes on 2 cores)
+## test: the whole suite, in two pytest processes balanced by tests/durations.json (about
+## 10 minutes on 2 cores; `$(BIN)/python -m pytest -q` runs it in one)
 test: setup
-	$(BIN)/python -m pytest -q
+	$(BIN)/python tests/run_parallel.py
 
 ## bench-sim: simulation steps/s per robot, backend and batch size -> results/bench_sim_<cpu|gpu>.md
 bench-sim: setup

@@ -1,0 +1,101 @@
+"""The test suite in several pytest processes at once (``make test``).
+
+Most of the suite's time is XLA and MJX compiling, one core per process, so on CI's two cores
+two processes take about two thirds of one's time. Test files go to the processes greedily by
+their measured durations (``tests/durations.json``, rewritten with ``--record``; a new file
+counts as the median). Each process's output is streamed with its number in front; the exit
+status is non-zero when any process fails.
+
+    python tests/run_parallel.py [--workers N] [--record] [-- PYTEST_ARGS...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import xml.etree.ElementTree as ET
+
+TESTS = pathlib.Path(__file__).resolve().parent
+DURATIONS = TESTS / "durations.json"
+
+
+def plan(files: list[str], durations: dict[str, float], workers: int) -> list[list[str]]:
+    """Files split into ``workers`` groups of about equal measured time (longest first)."""
+    default = statistics.median(durations.values()) if durations else 1.0
+    cost = {f: durations.get(f, default) for f in files}
+    groups: list[list[str]] = [[] for _ in range(workers)]
+    totals = [0.0] * workers
+    for f in sorted(files, key=lambda f: -cost[f]):
+        i = totals.index(min(totals))
+        groups[i].append(f)
+        totals[i] += cost[f]
+    return [g for g in groups if g]
+
+
+def _stream(i: int, proc: subprocess.Popen) -> None:
+    for line in proc.stdout:
+        sys.stdout.write(f"[{i}] {line}")
+        sys.stdout.flush()
+
+
+def file_durations(junit: pathlib.Path) -> dict[str, float]:
+    """Seconds per test file (setup, call and teardown) from a pytest JUnit XML report."""
+    out: dict[str, float] = {}
+    for case in ET.parse(junit).getroot().iter("testcase"):
+        module = case.get("classname", "").split(".")
+        name = next((f"{'/'.join(module[:k + 1])}.py" for k in range(len(module))
+                     if module[k].startswith("test_")), None)
+        if name:
+            out[name] = out.get(name, 0.0) + float(case.get("time", 0.0))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    extra = argv[argv.index("--") + 1:] if "--" in argv else []
+    argv = argv[:argv.index("--")] if "--" in argv else argv
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    p.add_argument("--record", action="store_true", help=f"rewrite {DURATIONS.name}")
+    a = p.parse_args(argv)
+    if a.workers < 1:
+        p.error(f"--workers must be >= 1, got {a.workers}")
+    root = TESTS.parent
+    files = sorted(str(f.relative_to(root)) for f in TESTS.glob("test_*.py"))
+    durations = json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
+    groups = plan(files, durations, a.workers)
+    with tempfile.TemporaryDirectory() as tmp:
+        procs, threads = [], []
+        for i, group in enumerate(groups, 1):
+            junit = pathlib.Path(tmp) / f"worker{i}.xml"
+            cmd = [sys.executable, "-m", "pytest", "-q", f"--junitxml={junit}", *extra, *group]
+            print(f"[{i}] {len(group)} files: {' '.join(pathlib.Path(f).stem for f in group)}",
+                  flush=True)
+            proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.PIPE,
+                                    stderr=subprocess.STDOUT, text=True)
+            thread = threading.Thread(target=_stream, args=(i, proc))
+            thread.start()
+            procs.append((proc, junit))
+            threads.append(thread)
+        for t in threads:
+            t.join()
+        codes = [proc.wait() for proc, _ in procs]
+        measured = {}
+        for _, junit in procs:
+            if junit.is_file():
+                measured.update(file_durations(junit))
+        if a.record and measured:
+            DURATIONS.write_text(json.dumps(dict(sorted(measured.items())), indent=1) + "\n")
+    print(f"workers' exit codes: {codes}", flush=True)
+    return 0 if all(c == 0 for c in codes) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
