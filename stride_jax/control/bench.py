@@ -218,6 +218,14 @@ def run(cfg: BenchConfig, command: str) -> list[dict]:
     return rows
 
 
+def _kernel_note(kernel: str) -> str:
+    if kernel == "xla":
+        return ""
+    if fused.whole_step(kernel):
+        return f", STRIDE's model step as one fused kernel where it applies ({kernel})"
+    return f", network passes as fused kernels ({kernel})"
+
+
 def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> pathlib.Path:
     tag = "cpu" if jax.default_backend() == "cpu" else "gpu"
     out = pathlib.Path(cfg.out)
@@ -238,10 +246,7 @@ def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> path
              f"{'fully' if not cfg.unroll else f'{cfg.unroll} step(s) per loop iteration'}. "
              f"Networks {cfg.hidden} x {cfg.depth}"
              f"{' (L and V from one network)' if cfg.shared_lnn else ''} at initialisation"
-             + ("" if cfg.kernel == "xla" else
-                f", STRIDE's model step as one fused kernel where it applies ({cfg.kernel})"
-                if fused.whole_step(cfg.kernel) else
-                f", network passes as fused kernels ({cfg.kernel})")
+             + _kernel_note(cfg.kernel)
              + "; "
              "one jitted planning step (K rollouts of H control "
              "steps, each the robot's simulation substeps) with block_until_ready; median of "

@@ -20,9 +20,9 @@ plus, for robots with a gait clock (the G1), ``[cos 2 pi c, sin 2 pi c]`` -- so 
 that holds ``(q, qd, command)`` can query the policy (:func:`observation_fn`).
 
 Written for one world; :func:`stride_jax.control.wrappers.wrap_for_training` vmaps it, counts
-episodes, and resets finished
-worlds to a freshly drawn state and command (Brax's own auto-reset returns every world to its first
-state, which would fix each world's command and start for the whole run).
+episodes, and resets finished worlds to a freshly drawn state and command (Brax's own auto-reset
+returns every world to its first state, which would fix each world's command and start for the
+whole run).
 """
 
 from __future__ import annotations

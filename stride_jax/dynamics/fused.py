@@ -86,9 +86,12 @@ def _flow_ref(layers, z, c, nfe, time_features):
 # --- one example in, a batch under vmap -------------------------------------------------------
 
 
-def _batched(kernel_fn: Callable, ref_fn: Callable, n_out: int) -> Callable:
+def _batched(kernel_fn: Callable, ref_fn: Callable, n_out: int,
+             batched_ref: Callable | None = None) -> Callable:
     """``f(layers, *xs)`` for one example; under ``vmap`` (unbatched weights) one kernel for the
-    batch on GPUs (``kernel_fn``), the batched reference on CPUs (``ref_fn``)."""
+    batch on GPUs (``kernel_fn``), the batched reference on CPUs (``batched_ref``; by default
+    ``ref_fn`` itself, for references written for any leading batch). Weights batched with the
+    inputs (an ensemble) share no kernel: then ``ref_fn`` is vmapped."""
     @jax.custom_batching.custom_vmap
     def f(layers, *xs):
         return ref_fn(layers, *xs)
@@ -105,8 +108,8 @@ def _batched(kernel_fn: Callable, ref_fn: Callable, n_out: int) -> Callable:
               for x, b in zip(xs, xs_batched)]
         if _INTERPRET.get():
             return kernel_fn(layers, *xs), out_batched
-        return jax.lax.platform_dependent(layers, *xs, cpu=ref_fn, default=kernel_fn), \
-            out_batched
+        return jax.lax.platform_dependent(layers, *xs, cpu=batched_ref or ref_fn,
+                                          default=kernel_fn), out_batched
 
     return f
 
@@ -137,8 +140,8 @@ def flow_euler(params: dict, z0: jax.Array, context: jax.Array, nfe: int,
 
 
 # name -> the kernels' matrix-product type (None: XLA's own ops). The ``-step`` choices run a
-# floating-base STRIDE model's whole acceleration as one kernel (``fused_step``) where the model
-# allows it (one network for L and V, Euler flow); other models take the per-pass kernels.
+# floating-base STRIDE model's whole step as one kernel (``fused_step``) where the model allows
+# it (``models._whole_step_applies``); other models take the per-pass kernels.
 KERNELS = {"xla": None, "pallas": jnp.float32, "pallas-bf16": jnp.bfloat16,
            "pallas-step": jnp.float32, "pallas-step-bf16": jnp.bfloat16}
 
@@ -151,7 +154,7 @@ def kernel_dtype(kernel: str):
 
 
 def whole_step(kernel: str) -> bool:
-    """Whether a kernel choice asks for the whole-acceleration kernel (``fused_step``)."""
+    """Whether a kernel choice asks for the whole-step kernel (``fused_step``)."""
     kernel_dtype(kernel)
     return kernel.startswith("pallas-step")
 

@@ -1,5 +1,5 @@
 """A STRIDE model step as one Pallas (Triton) kernel: a planner's horizon step on a GPU in ~10
-launches where XLA makes ~30 (``results/README.md``, sessions 7-8).
+launches where XLA makes ~57 and the per-pass kernels ~32 (``results/README.md``, sessions 7-8).
 
 For a floating-base robot with position servos integrated implicitly, one network for L and V
 (``StructuredConfig.shared_lnn``) and a flow residual sampled with Euler steps, one kernel
@@ -30,10 +30,11 @@ a buffer, and L's rows and columns are gathered from it (``Layout.index``) insid
 
 Measured (one H100, Go1 STRIDE NFE 2, K = 1024, H = 30, MPPI step; commands in
 ``results/README.md``): 64 x 3 networks 2.80 ms (2.47 ms with bfloat16 products) against 6.27 ms
-in XLA; 128 x 3 3.94 / 3.24 ms against 6.52; 256 x 3 8.19 / 4.21 against 7.57. Within the kernel
-(64 x 3, leaving parts out) the solve takes ~24 us, the products and transposed pass ~22 us, the
-flow ~6 us. Unrolling the small loops lets their loads issue ahead but Triton's compile time
-grows steeply (``UNROLL``; the products' loops alone: -4% time, +11 s compile).
+in XLA; 128 x 3 3.94 / 3.24 ms against 6.52; 256 x 3 8.19 / 4.21 against 7.57. In the version
+before the prologue and integration moved in (64 x 3, leaving parts out: ``SKIP``) the solve
+took ~24 us per step, the products and transposed pass ~22 us, the flow ~6 us. Unrolling the
+small loops lets their loads issue ahead but Triton's compile time grows steeply (``UNROLL``;
+the products' loops alone: -4% time, +11 s compile).
 """
 
 from __future__ import annotations
@@ -374,27 +375,3 @@ def step_batched(st: Static, lnn_layers, flow_layers, sqrt_mass, gravity, servo,
     )(*rows, *consts)
     return results[0][:batch], results[1][:batch]
 
-
-def batched(ref: Callable, kernel_fn: Callable, params, *xs):
-    """``(q', qd') = ref(params, *xs)`` for one example; under ``vmap`` (unbatched ``params``)
-    on a GPU ``kernel_fn(params, *batched_xs)`` (one kernel), on a CPU the vmapped ``ref``."""
-    @jax.custom_batching.custom_vmap
-    def f(params, *xs):
-        return ref(params, *xs)
-
-    @f.def_vmap
-    def rule(axis_size, in_batched, params, *xs):
-        params_batched, xs_batched = in_batched[0], in_batched[1:]
-        axes = (jax.tree.map(lambda b: 0 if b else None, params_batched),
-                *[0 if b else None for b in xs_batched])
-        if any(jax.tree.leaves(params_batched)):  # per-sample weights: no shared kernel
-            return jax.vmap(ref, in_axes=axes)(params, *xs), (True, True)
-        xs = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape)
-              for x, b in zip(xs, xs_batched)]
-        if fp._INTERPRET.get():
-            return kernel_fn(params, *xs), (True, True)
-        batched_ref = jax.vmap(ref, in_axes=(None,) + (0,) * len(xs))
-        return jax.lax.platform_dependent(params, *xs, cpu=batched_ref, default=kernel_fn), \
-            (True, True)
-
-    return f(params, *xs)

@@ -247,7 +247,8 @@ def _fused_substep(xla_substep: Callable, spec: ModelSpec, act: Actuation,
             static, fused._layers(params["lnn"]["shared"]), fused._layers(params["residual"]),
             jnp.sqrt(mass), mass * lnn_cfg.gravity, servo, scales.force, q, qd, ctrl, z)
 
-    return fused_step.batched(ref, kernel, params, q, qd, ctrl, key)
+    cpu = jax.vmap(ref, in_axes=(None, 0, 0, 0, 0))
+    return fused._batched(kernel, ref, 2, cpu)(params, q, qd, ctrl, key)
 
 
 def next_observation(name: str, spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig,
