@@ -7,6 +7,7 @@ benchmark vary it at sampling time.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable, NamedTuple
 
 import jax
@@ -24,8 +25,11 @@ class Generator(NamedTuple):
 
 
 def make(kind: str, net: mlp.MLPConfig, nfe: int, integrator: str = "euler",
-         diffusion_steps: int = 100, eta: float = 1.0, kernel: str = "xla") -> Generator:
-    """``kernel``: how the flow samples (``fused.KERNELS``); diffusion always samples in XLA."""
+         kernel: str = "xla", diffusion_cfg: diffusion.DiffusionConfig | None = None
+         ) -> Generator:
+    """``kernel``: how the flow samples (``fused.KERNELS``); diffusion always samples in XLA,
+    with ``diffusion_cfg``'s schedule and parameterisation (its ``net`` and ``nfe`` are
+    replaced by these arguments)."""
     if kind == "flow":
         cfg = flow.FlowConfig(net=net, nfe=nfe, integrator=integrator, kernel=kernel)
         return Generator(lambda key, dim, cdim: flow.flow_init(key, dim, cdim, cfg),
@@ -33,7 +37,7 @@ def make(kind: str, net: mlp.MLPConfig, nfe: int, integrator: str = "euler",
                          lambda p, c, key, dim, nfe=None: flow.sample(p, c, key, dim, cfg, nfe),
                          lambda p, c, dim, nfe=None: flow.central(p, c, dim, cfg, nfe))
     if kind == "diffusion":
-        cfg = diffusion.DiffusionConfig(net=net, nfe=nfe, steps=diffusion_steps, eta=eta)
+        cfg = dataclasses.replace(diffusion_cfg or diffusion.DiffusionConfig(), net=net, nfe=nfe)
         return Generator(lambda key, dim, cdim: diffusion.init(key, dim, cdim, cfg),
                          lambda p, x, c, key: diffusion.loss(p, x, c, key, cfg),
                          lambda p, c, key, dim, nfe=None: diffusion.sample(p, c, key, dim, cfg,

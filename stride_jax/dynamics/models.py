@@ -315,6 +315,11 @@ def load(run: str | pathlib.Path, kernel: str | None = None) -> tuple[Model, dic
     act = Actuation.from_dict(d["actuation"])
     c = dict(d["config"])
     c.setdefault("learn_mass", True)  # runs defined before the option learned their mass
+    # Runs defined before v-prediction: noise prediction on a schedule ending at 1e-5, clipped
+    # at 10; their acceleration loss trained the prior only.
+    for k, v in dict(diffusion_target="eps", abar_min=1e-5, diffusion_clip=10.0,
+                     acc_through="prior").items():
+        c.setdefault(k, v)
     cfg = stride.StructuredConfig(**dict(c, net=mlp.MLPConfig(**c["net"])))
     if kernel is not None:
         cfg = dataclasses.replace(cfg, kernel=kernel)

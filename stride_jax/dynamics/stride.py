@@ -74,25 +74,35 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from stride_jax.dynamics import fused, generative, lagrangian, linalg, mlp
+from stride_jax.dynamics import diffusion, fused, generative, lagrangian, linalg, mlp
 from stride_jax.types import ModelSpec
 
 
 RESIDUALS = ("mlp",) + generative.KINDS
+# What the acceleration loss trains besides the prior (module docstring): nothing of the residual
+# ("prior", the first version), the residual's central sample ("central", the default) or a
+# random sample of it ("sample", the paper's Algorithm 1 taken literally).
+ACC_THROUGH = ("prior", "central", "sample")
 
 
 @dataclasses.dataclass(frozen=True)
 class StructuredConfig:
     """Sizes and loss settings shared by the structured models (one ``net`` size for every
     network). ``nfe``: evaluations per residual sample; ``integrator``: the flow's ODE solver;
-    ``diffusion_steps``, ``eta``: the DDPM schedule and sampler (see ``diffusion.py``)."""
+    ``diffusion_*``, ``eta``, ``abar_min``: the diffusion's schedule, parameterisation and
+    sampler (``diffusion.DiffusionConfig``); ``acc_through``: what the acceleration loss trains
+    (``ACC_THROUGH``, module docstring)."""
 
     net: mlp.MLPConfig = mlp.MLPConfig()
     diag_floor: float = 1e-3
     nfe: int = 2
     integrator: str = "euler"
     diffusion_steps: int = 100
-    eta: float = 1.0
+    eta: float = 0.0
+    diffusion_target: str = "v"
+    diffusion_clip: float = 5.0
+    abar_min: float = 1e-3
+    acc_through: str = "central"
     mass_init: float = 1.0  # floating bases: total mass (kg), see LNNConfig
     learn_mass: bool = False
     shared_lnn: bool = False  # one network for L and V (LNNConfig.shared)
@@ -105,6 +115,9 @@ class StructuredConfig:
 
     def __post_init__(self):
         fused.kernel_dtype(self.kernel)  # a clear error for an unknown choice
+        if self.acc_through not in ACC_THROUGH:
+            raise ValueError(f"acc_through {self.acc_through!r} is not one of {ACC_THROUGH}")
+        self.diffusion  # likewise for the diffusion's settings
 
     @property
     def lnn(self) -> lagrangian.LNNConfig:
@@ -112,9 +125,15 @@ class StructuredConfig:
                                     mass_init=self.mass_init, learn_mass=self.learn_mass,
                                     shared=self.shared_lnn)
 
+    @property
+    def diffusion(self) -> diffusion.DiffusionConfig:
+        return diffusion.DiffusionConfig(net=self.net, steps=self.diffusion_steps, eta=self.eta,
+                                         clip=self.diffusion_clip, target=self.diffusion_target,
+                                         abar_min=self.abar_min)
+
     def generator(self, kind: str) -> generative.Generator:
-        return generative.make(kind, self.net, self.nfe, self.integrator, self.diffusion_steps,
-                               self.eta, self.kernel)
+        return generative.make(kind, self.net, self.nfe, self.integrator, self.kernel,
+                               self.diffusion)
 
 
 class Scales(NamedTuple):
@@ -232,20 +251,25 @@ def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
     cho = jax.scipy.linalg.cho_factor(M)
     c = context(spec, q, qd, tau, scales)
     generative_kind = residual != "mlp"
-    if generative_kind:
-        res_params = jax.lax.stop_gradient(params["residual"])
-        eps = scales.force * cfg.generator(residual).central(res_params, c, spec.nv)
-        err = (qdd - jax.scipy.linalg.cho_solve(cho, tau - b + eps)) / scales.qdd
-        l_acc = jnp.sum(err ** 2)
+    if not generative_kind:
+        eps = _residual(params["residual"], spec, cfg, residual, c, key_sample)
     else:
-        eps = scales.force * _residual(params["residual"], spec, cfg, residual, c, key_sample)
-        qdd_pred = jax.scipy.linalg.cho_solve(cho, tau - b + eps)
-        l_acc = jnp.sum(((qdd - qdd_pred) / scales.qdd) ** 2)
+        gen = cfg.generator(residual)
+        res_params = params["residual"]
+        if cfg.acc_through == "prior":
+            res_params = jax.lax.stop_gradient(res_params)
+        if cfg.acc_through == "sample":
+            eps = gen.sample(res_params, c, key_sample, spec.nv)
+        else:
+            eps = gen.central(res_params, c, spec.nv)
+    err = (qdd - jax.scipy.linalg.cho_solve(cho, tau - b + scales.force * eps)) / scales.qdd
+    l_acc = jnp.sum(err ** 2)
     r_star = M @ qdd - (tau - b)  # the residual the prior leaves (N, N m)
     implied = r_star / scales.force
     off_contact = non_contact_part(r_star, contact_jac) / scales.force
     parts = {"acc": l_acc, "res": jnp.sum(implied ** 2), "res_free": jnp.sum(off_contact ** 2)}
     total = l_acc + cfg.residual_weight * parts["res_free"]
+    parts["select"] = total  # what the best checkpoint is chosen on: not the generator's loss
     if generative_kind:
         target = jax.lax.stop_gradient(implied)
         l_gen = cfg.generator(residual).loss(params["residual"], target, c, key_gen)
