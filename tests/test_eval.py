@@ -2,6 +2,7 @@
 through Jacobians, and the table that ``stride eval`` writes."""
 
 import json
+import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -82,6 +83,18 @@ def test_eval_writes_the_table(runs, tmp_path):
     assert all(r["state"]["diverged"] == 0.0 for r in d["runs"])
     md = (out / "table.md").read_text()
     assert "| stride |" in md and "STRIDE/DeLaN state RMSE" in md
+    # Distribution scores against the logged and re-simulated futures (cached per dataset).
+    for r in d["runs"]:
+        dist = r["distribution"]
+        assert dist["truths"] == 3 and 0.0 <= dist["coverage"] <= 1.0
+        assert np.isfinite(dist["energy"]) and dist["energy"] > 0
+    deterministic = {r["model"]: r for r in d["runs"]}["delan"]["distribution"]
+    assert deterministic["coverage"] == 0.0 and deterministic["samples"] == 1
+    stochastic = {r["model"]: r for r in d["runs"]}["stride"]["distribution"]
+    assert stochastic["samples"] == 3 and stochastic["nominal_coverage"] == 0.5
+    data_dir = json.loads((runs / "stride" / "config.json").read_text())["dataset"]
+    assert list((pathlib.Path(data_dir) / "continuations").glob("*.npz"))
+    assert "energy score" in md
 
 
 def test_eval_without_runs_is_a_clear_error(tmp_path):

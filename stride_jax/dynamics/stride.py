@@ -183,16 +183,20 @@ def init(key: jax.Array, spec: ModelSpec, cfg: StructuredConfig, residual: str) 
 
 
 def _residual(res_params, spec, cfg, residual, c, key, nfe=None):
-    """Normalised residual: a sample (generative kinds) or the MLP's prediction."""
+    """Normalised residual: a sample (generative kinds; ``key=None``: the central sample) or
+    the MLP's prediction."""
     if residual == "mlp":
         return mlp.mlp(cfg.net, spec.nv, zero_last=True)[1](res_params, c)
+    if key is None:
+        return cfg.generator(residual).central(res_params, c, spec.nv, nfe)
     return cfg.generator(residual).sample(res_params, c, key, spec.nv, nfe)
 
 
 def residual_force(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
                    q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales()
                    ) -> jax.Array:
-    """``eps`` [nv]: a sample of the generative residual, or the MLP's (``key`` unused)."""
+    """``eps`` [nv]: a sample of the generative residual (``key=None``: its central sample, the
+    transport of the latent's centre), or the MLP's (``key`` unused)."""
     _check(residual)
     c = context(spec, q, qd, tau, scales)
     return scales.force * _residual(params["residual"], spec, cfg, residual, c, key, nfe)

@@ -50,35 +50,59 @@ def observation_scales(split: dict, spec: ModelSpec, horizon: int) -> tuple[np.n
     return floor(dq.std(0) * horizon), floor(split["qd"][split["valid"]].std(0))
 
 
-def rollout_errors(rollout_fn, params, split: dict, spec: ModelSpec, horizon: int,
-                   starts: np.ndarray, scales: tuple[np.ndarray, np.ndarray],
-                   key: jax.Array) -> np.ndarray:
-    """Per-window, per-horizon RMSE ``[N, H]`` of ``rollout_fn(params, q, qd, ctrls, key)``.
+def normalised_errors(q, qd, q_ref, qd_ref, scales, floating_base: bool) -> jax.Array:
+    """``[H, 2 nv]``: the error of ``(q [H, nq], qd [H, nv])`` against a reference trajectory in
+    the normalised observation coordinates of the module docstring (jittable)."""
+    sig_dq, sig_qd = (jnp.asarray(x) for x in scales)
+    dq = jax.vmap(lambda a, b: integrate.difference(a, b, floating_base))(q, q_ref)
+    return jnp.concatenate([dq / sig_dq, (qd - qd_ref) / sig_qd], axis=-1)
 
-    ``key`` may also be ``S`` keys (stochastic models): then ``[S, N, H]``, one independent
-    sample per key, all in one compiled call. The parameters and windows are arguments of the
+
+def rollout_error_vectors(rollout_fn, params, split: dict, spec: ModelSpec, horizon: int,
+                          starts: np.ndarray, scales: tuple[np.ndarray, np.ndarray],
+                          keys: jax.Array) -> np.ndarray:
+    """``[S, N, H, 2 nv]``: normalised errors (module docstring) of ``rollout_fn(params, q, qd,
+    ctrls, key)`` from ``N`` windows against the logged futures, one independent sample per key
+    of ``keys [S]``, all in one compiled call. The parameters and windows are arguments of the
     compiled program, not constants in it, so runs of one model (seeds) share a compilation
-    (and JAX's persistent cache).
-    """
-    ep, t0 = starts[:, 0], starts[:, 1]
-    idx = t0[:, None] + np.arange(horizon + 1)[None]
-    q = jnp.asarray(split["q"][ep[:, None], idx], jnp.float32)  # [N, H+1, nq]
-    qd = jnp.asarray(split["qd"][ep[:, None], idx], jnp.float32)
-    ctrl = jnp.asarray(split["ctrl"][ep[:, None], idx[:, :-1]], jnp.float32)
-    sig_dq, sig_qd = (jnp.asarray(s) for s in scales)
+    (and JAX's persistent cache)."""
+    q, qd, ctrl = window_arrays(split, starts, horizon)
     fb = spec.floating_base
 
-    def per_key(params, q, qd, ctrl, sig_dq, sig_qd, keys):
+    def per_key(params, q, qd, ctrl, scales, keys):
         def one(q, qd, ctrl, k):
             q_pred, qd_pred = rollout_fn(params, q[0], qd[0], ctrl, k)
-            dq = jax.vmap(lambda a, b: integrate.difference(a, b, fb))(q_pred, q[1:])
-            err = jnp.concatenate([dq / sig_dq, (qd_pred - qd[1:]) / sig_qd], axis=-1)
-            return jnp.sqrt(jnp.mean(err ** 2, axis=-1))
+            return normalised_errors(q_pred, qd_pred, q[1:], qd[1:], scales, fb)
 
         return jax.vmap(lambda k: jax.vmap(one)(q, qd, ctrl, jax.random.split(k, len(q))))(keys)
 
+    scales = tuple(jnp.asarray(x) for x in scales)
+    return np.asarray(jax.jit(per_key)(params, q, qd, ctrl, scales, keys))
+
+
+def window_arrays(split: dict, starts: np.ndarray, horizon: int):
+    """``(q [N, H+1, nq], qd [N, H+1, nv], ctrl [N, H, nu])`` of the windows ``starts``."""
+    ep, t0 = starts[:, 0], starts[:, 1]
+    idx = t0[:, None] + np.arange(horizon + 1)[None]
+    q = jnp.asarray(split["q"][ep[:, None], idx], jnp.float32)
+    qd = jnp.asarray(split["qd"][ep[:, None], idx], jnp.float32)
+    ctrl = jnp.asarray(split["ctrl"][ep[:, None], idx[:, :-1]], jnp.float32)
+    return q, qd, ctrl
+
+
+def per_horizon_rmse(errors: np.ndarray) -> np.ndarray:
+    """``[..., H]``: RMSE over the observation entries of normalised errors ``[..., H, D]``."""
+    return np.sqrt(np.mean(errors ** 2, axis=-1))
+
+
+def rollout_errors(rollout_fn, params, split: dict, spec: ModelSpec, horizon: int,
+                   starts: np.ndarray, scales: tuple[np.ndarray, np.ndarray],
+                   key: jax.Array) -> np.ndarray:
+    """Per-window, per-horizon RMSE ``[N, H]`` of ``rollout_fn(params, q, qd, ctrls, key)``;
+    ``key`` may also be ``S`` keys (stochastic models): then ``[S, N, H]``."""
     keys = key[None] if key.ndim == 0 else key
-    errs = np.asarray(jax.jit(per_key)(params, q, qd, ctrl, sig_dq, sig_qd, keys))
+    errs = per_horizon_rmse(rollout_error_vectors(rollout_fn, params, split, spec, horizon,
+                                                  starts, scales, keys))
     return errs[0] if key.ndim == 0 else errs
 
 

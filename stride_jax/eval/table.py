@@ -11,9 +11,17 @@ trained on:
 * **share**: the residual's share of the predicted acceleration in free motion and in contact
   (any foot -- for the bouncing pendulum its bob -- carrying a contact force).
 
-Stochastic models are evaluated ``samples`` times with independent latents; a run reports the mean
-over samples and their spread (std). Runs of one model with different seeds are then aggregated
-into a mean and a std over seeds, which is what the table shows.
+* **distribution** (``eval/distribution.py``): the mean-of-samples error, the energy score and
+  CRPS of the ``samples`` rollouts, and the coverage of their range, against the logged future
+  and ``continuations`` more true futures re-simulated from the same start state under new draws
+  of the hidden randomness (``sim/continuations.py``; made once per dataset and settings, cached
+  in the dataset's folder).
+
+Stochastic models are evaluated ``samples`` times with independent latents (19 by default: their
+range is then a 90% interval); a run reports the mean over samples and their spread (std). Forces
+are also read from the residual's central sample and from the mean of the samples' residuals.
+Runs of one model with different seeds are then aggregated into a mean and a std over seeds,
+which is what the table shows.
 """
 
 from __future__ import annotations
@@ -30,10 +38,10 @@ import numpy as np
 from tqdm import tqdm
 
 from stride_jax.dynamics import models
-from stride_jax.eval import forces, rollout
-from stride_jax.sim import dataset, model as sim_model
+from stride_jax.eval import distribution, forces, rollout
+from stride_jax.sim import continuations, dataset, model as sim_model
 from stride_jax.train import job
-from stride_jax.io import atomic_write_text, code_version
+from stride_jax.io import atomic_write, atomic_write_text, code_version
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,6 +53,8 @@ class EvalConfig:
       horizon: open-loop rollout length (control steps).
       windows: rollout windows drawn from the test split.
       samples: latent samples per stochastic model.
+      continuations: true futures per window re-simulated under new hidden draws (0: the
+        logged one only).
       force_steps: test steps used for the force error and the residual share.
       nfe: evaluations per residual sample; 0 means each model's trained default.
       out: output folder; empty means ``results/<robot>``.
@@ -55,7 +65,8 @@ class EvalConfig:
     runs: str = "runs/pendulum/*"
     horizon: int = 30
     windows: int = 256
-    samples: int = 8
+    samples: int = 19
+    continuations: int = 8
     force_steps: int = 1024
     nfe: int = 0
     out: str = ""
@@ -63,7 +74,8 @@ class EvalConfig:
     label: str = ""
 
 
-PRESETS = {"tiny": dict(horizon=10, windows=32, samples=2, force_steps=128), "default": {}}
+PRESETS = {"tiny": dict(horizon=10, windows=32, samples=3, force_steps=128, continuations=2),
+           "default": {}}
 
 
 def find_runs(pattern: str) -> list[pathlib.Path]:
@@ -72,6 +84,16 @@ def find_runs(pattern: str) -> list[pathlib.Path]:
     if not runs:
         raise FileNotFoundError(f"no training runs (folders with model.json) match {pattern!r}")
     return runs
+
+
+def _label(name: str, train: dict) -> str:
+    """A model's row in the table: its name, with the training variant when it is not the
+    default (``stride[acc_through=prior]``), so ablations get rows of their own."""
+    through = train.get("acc_through", "central")
+    generative = models.MODELS.get(name, ("", None))[1] not in (None, "mlp")
+    structured = models.MODELS.get(name, ("",))[0] == "structured"
+    return f"{name}[acc_through={through}]" if structured and generative and \
+        through != "central" else name
 
 
 def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
@@ -85,7 +107,8 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     nfe = cfg.nfe or None
     key = jax.random.key(cfg.seed)
     n_samples = cfg.samples if model.stochastic else 1
-    out = {"run": str(run), "model": model.name, "seed": run_cfg["train"]["seed"],
+    out = {"run": str(run), "model": _label(model.name, run_cfg["train"]),
+           "seed": run_cfg["train"]["seed"],
            "robot": ds.meta["robot"], "params": int(sum(x.size for x in jax.tree.leaves(params))),
            "stochastic": model.stochastic, "nfe": (nfe or trained_nfe) if model.stochastic else None,
            "steps_done": json.loads((run / "summary.json").read_text()).get("steps_done")}
@@ -95,8 +118,11 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     obs_scales = rollout.observation_scales(train, spec, cfg.horizon)
     rollout_fn = lambda p, q, qd, u, k: model.rollout(p, q, qd, u, k, nfe)
     sample_keys = jax.vmap(lambda s: jax.random.fold_in(key, s))(jnp.arange(n_samples))
-    errs = rollout.rollout_errors(rollout_fn, params, test, spec, cfg.horizon, starts,
-                                  obs_scales, sample_keys)  # [S, N, H]
+    vectors = rollout.rollout_error_vectors(rollout_fn, params, test, spec, cfg.horizon, starts,
+                                            obs_scales, sample_keys)  # [S, N, H, D]
+    errs = rollout.per_horizon_rmse(vectors)  # [S, N, H]
+    truths = true_futures(ds, test, spec, starts, cfg, obs_scales)
+    out["distribution"] = distribution.scores(vectors, truths)
     # A rollout that leaves the floating-point range has diverged: it is counted, not averaged.
     finite = np.isfinite(errs).all(-1)  # [S, N]
     cum = np.array([errs[s][finite[s]].sum(-1).mean() if finite[s].any() else np.nan
@@ -139,6 +165,9 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     oracle = forces.normal_force_errors(jac, stance, true_eps, true_normal)
     mean_eps = np.mean([np.asarray(t["eps"]) for t in terms], axis=0)
     of_mean = forces.normal_force_errors(jac, stance, mean_eps, true_normal)
+    central = jax.jit(jax.vmap(lambda q, qd, tau: model.terms(params, q, qd, tau, None, nfe)))
+    of_central = forces.normal_force_errors(jac, stance, np.asarray(central(q, qd, tau)["eps"]),
+                                            true_normal)
     sample_means = np.nanmean(per_sample, axis=(1, 2))
     out["force"] = {
         "mean": float(sample_means.mean()), "spread": float(sample_means.std()),
@@ -146,8 +175,44 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
                              np.nanmean(per_sample, axis=(0, 1)).tolist())),
         "oracle": float(np.nanmean(oracle)), "stance_feet": int(stance.sum()),
         "of_sample_mean": float(np.nanmean(of_mean)),
+        "of_central": float(np.nanmean(of_central)),
         "mean_true_normal": float(true_normal[stance].mean())}
     return out
+
+
+def true_futures(ds: dataset.Dataset, split: dict, spec, starts: np.ndarray, cfg: EvalConfig,
+                 obs_scales) -> np.ndarray | None:
+    """``[N, 1 + K, H, D]``: the logged future of each window (zeros) and ``K =
+    cfg.continuations`` more re-simulated under new draws of the dataset's hidden randomness, in
+    the normalised error coordinates against the logged future (``None`` for none). Cached in ``<dataset>/continuations/`` (the same
+    windows and draws serve every run on the dataset)."""
+    if cfg.continuations <= 0:
+        return None
+    key = f"h{cfg.horizon}-w{len(starts)}-k{cfg.continuations}-s{cfg.seed}"
+    cache = ds.path / "continuations" / f"{key}-{ds.meta['arrays_sha256'][:12]}.npz"
+    if cache.is_file():
+        return np.load(cache)["truths"]
+    sm = sim_model.load(ds.meta["robot"])
+    q, qd, ctrl = (np.asarray(a) for a in rollout.window_arrays(split, starts, cfg.horizon))
+    ctrl_dt = ds.meta["ctrl_dt"]
+    futures = continuations.simulate(
+        sm, continuations.randomization_of(ds.meta), q[:, 0], qd[:, 0], ctrl,
+        starts[:, 1] * ctrl_dt, split["q"].shape[1] * ctrl_dt, cfg.continuations,
+        jax.random.key(cfg.seed + 7919))
+    err = jax.jit(jax.vmap(jax.vmap(
+        lambda a, b, c, d: rollout.normalised_errors(a, b, c, d, obs_scales, spec.floating_base),
+        in_axes=(0, 0, None, None))))
+    truths = np.asarray(err(jnp.asarray(futures.q, jnp.float32), jnp.asarray(futures.qd,
+                                                                            jnp.float32),
+                            q[:, 1:], qd[:, 1:]))
+    # A future that fell or diverged is no future the models are asked to predict.
+    truths = np.where(futures.valid[..., None, None], truths, np.nan)
+    keep = np.isfinite(truths).all((2, 3))
+    truths = np.where(keep[..., None, None], truths, 0.0)  # fallen: the logged future instead
+    truths = np.concatenate([np.zeros_like(truths[:, :1]), truths], axis=1)  # the logged one
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(cache, lambda f: np.savez(f, truths=truths.astype(np.float32)))
+    return truths
 
 
 def _cached(run: pathlib.Path, cfg: EvalConfig) -> dict:
@@ -193,6 +258,9 @@ def aggregate(results: list[dict]) -> dict[str, dict]:
             "force_of_mean": _agg([get(r, "force", "of_sample_mean") for r in rs]),
             "share_free": _agg([get(r, "share", "free", "mean") for r in rs]),
             "share_contact": _agg([get(r, "share", "contact", "mean") for r in rs]),
+            "force_of_central": _agg([get(r, "force", "of_central") for r in rs]),
+            **{f"dist_{k}": _agg([get(r, "distribution", k) for r in rs])
+               for k in ("mean_of_samples", "energy", "crps", "coverage", "nominal_coverage")},
         }
     return table
 
@@ -233,6 +301,21 @@ def markdown(table: dict, robot: str, command: str, cfg: EvalConfig) -> str:
             f"{_fmt(row['diverged'], 1, True)} | {_fmt(row['force'], 1)} | "
             f"{_fmt(row['force_of_mean'], 1)} | {_fmt(row['force_oracle'], 1)} | "
             f"{_fmt(row['share_free'], 1, True)} | {_fmt(row['share_contact'], 1, True)} |")
+    lines += ["", f"Distributions ({cfg.samples} samples of each stochastic model against the "
+              f"logged future and {cfg.continuations} re-simulated ones under new hidden draws, "
+              "`eval/distribution.py`): error of the samples' mean, energy score and CRPS "
+              "(normalised units, lower is better), coverage of the samples' range (%) against "
+              "its nominal level; force read from the residual's central sample (N).", "",
+              "| model | state RMSE per sample | of sample mean | energy score | CRPS | "
+              "coverage (%) | nominal (%) | force, central sample (N) |",
+              "|---|---|---|---|---|---|---|---|"]
+    for name, row in table.items():
+        lines.append(
+            f"| {name} | {_fmt(row['state'])} | {_fmt(row.get('dist_mean_of_samples'))} | "
+            f"{_fmt(row.get('dist_energy'))} | {_fmt(row.get('dist_crps'))} | "
+            f"{_fmt(row.get('dist_coverage'), 1, True)} | "
+            f"{_fmt(row.get('dist_nominal_coverage'), 1, True)} | "
+            f"{_fmt(row.get('force_of_central'), 1)} |")
     ratios = _ratios(table)
     if ratios:
         lines += ["", "Ratios (ours; the paper's Go1 / G1 in brackets):", ""]

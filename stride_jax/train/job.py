@@ -31,6 +31,8 @@ class TrainConfig(loop.LoopConfig):
       nfe: network evaluations per sample of a generative model; 0 means the model's default
         (``models.DEFAULT_NFE``: 2 for the flow, 10 for diffusion).
       shared_lnn: structured models: L and V from one network (``LNNConfig.shared``).
+      acc_through: generative structured models: what the acceleration loss trains besides the
+        prior (``stride.ACC_THROUGH``: prior, central, sample).
       out: run folder; empty means ``runs/<robot>/<model>``.
     """
 
@@ -42,6 +44,7 @@ class TrainConfig(loop.LoopConfig):
     depth: int = 3
     nfe: int = 0
     shared_lnn: bool = False
+    acc_through: str = "central"
     out: str = ""
 
 
@@ -63,7 +66,8 @@ def spec_from_meta(meta: dict) -> ModelSpec:
 
 
 def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0,
-                 shared_lnn: bool = False) -> stride.StructuredConfig:
+                 shared_lnn: bool = False, acc_through: str = "central"
+                 ) -> stride.StructuredConfig:
     """Sizes for ``model``; ``nfe=0`` takes its default. Floating bases start the learned total
     mass at the nominal model's (a spec-sheet number)."""
     if model not in models.MODELS:
@@ -72,7 +76,7 @@ def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0,
     mass = meta.get("total_mass") or float(sim_model.load(meta["robot"]).mj.body_mass.sum())
     return stride.StructuredConfig(net=mlp.MLPConfig(hidden, depth), nfe=nfe,
                                    mass_init=mass if meta["floating_base"] else 1.0,
-                                   shared_lnn=shared_lnn)
+                                   shared_lnn=shared_lnn, acc_through=acc_through)
 
 
 def scales(ds: dataset.Dataset) -> stride.Scales:
@@ -101,7 +105,8 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
     if "act_dof" not in ds.meta:
         raise dataset.DatasetError(f"{data_dir} predates actuator metadata; regenerate it")
     spec = spec_from_meta(ds.meta)
-    model_cfg = model_config(cfg.model, ds.meta, cfg.hidden, cfg.depth, cfg.nfe, cfg.shared_lnn)
+    model_cfg = model_config(cfg.model, ds.meta, cfg.hidden, cfg.depth, cfg.nfe, cfg.shared_lnn,
+                             cfg.acc_through)
     act = models.Actuation.from_meta(ds.meta)
     sc = scales(ds)
     model = models.make(cfg.model, spec, act, model_cfg, sc)

@@ -1,0 +1,78 @@
+"""True continuations: the same start state and commands re-simulated under new draws of a
+dataset's hidden randomisation.
+
+A stochastic model predicts a distribution of futures; one logged future is one draw of it. To
+judge the distribution, evaluation needs several true futures from the same start state: this
+module re-simulates a window's logged commands (open loop, as the models roll them out) from its
+logged start state in ``K`` worlds, each with a fresh draw of everything the dataset hid from the
+models (ground friction and softness, payload, joint damping and friction, the push, the
+pendulum's bump: ``randomize.sample`` with the dataset's own ranges), on MuJoCo's CPU backend.
+Pushes are drawn on the episode's timeline, so a window sees one only when the new draw puts it
+there, as in the data.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stride_jax.robots import Randomization
+from stride_jax.sim import randomize, rollout_cpu
+from stride_jax.sim.model import SimModel
+
+
+class Continuations:
+    """``q [N, K, H, nq]``, ``qd [N, K, H, nv]`` after each of the ``H`` commands, and
+    ``valid [N, K]`` (the world stayed finite and upright)."""
+
+    def __init__(self, q: np.ndarray, qd: np.ndarray, valid: np.ndarray):
+        self.q, self.qd, self.valid = q, qd, valid
+
+
+def randomization_of(meta: dict) -> Randomization | None:
+    """The hidden randomisation a dataset was made with (``None``: none)."""
+    r = meta.get("randomization")
+    if r is None:
+        return None
+    fields = {f.name for f in dataclasses.fields(Randomization)}
+    return Randomization(**{k: tuple(v) if isinstance(v, list) else v
+                            for k, v in r.items() if k in fields})
+
+
+def simulate(sm: SimModel, r: Randomization | None, q0: np.ndarray, qd0: np.ndarray,
+             ctrls: np.ndarray, t0: np.ndarray, episode_s: float, k: int, key: jax.Array,
+             nthread: int | None = None) -> Continuations:
+    """``k`` continuations of each of ``N`` windows.
+
+    ``q0 [N, nq]``, ``qd0 [N, nv]``: start states; ``ctrls [N, H, nu]``: the logged commands;
+    ``t0 [N]``: the windows' start times in their episodes (s); ``episode_s``: the episodes'
+    length (s), over which pushes are drawn. ``r=None``: the nominal model, ``k`` identical
+    futures.
+    """
+    n, h = ctrls.shape[:2]
+    if q0.shape != (n, sm.mj.nq) or qd0.shape != (n, sm.mj.nv) or t0.shape != (n,):
+        raise ValueError(f"continuations: q0 {q0.shape}, qd0 {qd0.shape} and t0 {t0.shape} must "
+                         f"be [N, nq], [N, nv] and [N] for N = {n} windows")
+    rep = lambda a: np.repeat(np.asarray(a, np.float64), k, axis=0)  # world i * k + j
+    fields = randomize.nominal_fields(sm.mj)
+    worlds = [sm.mj] * (n * k)
+    disturb = None
+    if r is not None:
+        draw = jax.jit(jax.vmap(lambda kk: randomize.sample(kk, r, episode_s)))
+        rand = jax.tree.map(np.asarray, draw(jax.random.split(key, n * k)))
+        worlds = [randomize.apply_mujoco(sm.mj, fields, jax.tree.map(lambda a: a[i], rand),
+                                         sm.base_body) for i in range(n * k)]
+        per_world = jax.jit(jax.vmap(lambda v, t, q: randomize.disturbance(v, r, t, q,
+                                                                            sm.mj.nv)))
+        start = jnp.asarray(rep(t0), jnp.float32)
+        disturb = lambda t, q: per_world(jax.tree.map(jnp.asarray, rand),
+                                         start + jnp.asarray(t, jnp.float32),
+                                         jnp.asarray(q, jnp.float32))
+    u = rep(ctrls)
+    policy = lambda step, q, qd: u[:, min(step, h - 1)]
+    recs, alive = rollout_cpu.run(sm, worlds, rep(q0), rep(qd0), h + 1, policy, disturb, nthread)
+    shape = lambda a: a[:, 1:].reshape(n, k, h, -1)
+    return Continuations(shape(recs.q), shape(recs.qd), alive[:, -1].reshape(n, k))
