@@ -38,6 +38,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--preset", default="paper", choices=list(PRESETS))
     p.add_argument("--seeds", default="0,1,2")
     p.add_argument("--models", default=",".join(MODELS))
+    p.add_argument("--ablation", default="",
+                   help="extra STRIDE runs (first seed) trained with these comma-separated "
+                        "--acc-through choices, e.g. prior,sample")
     p.add_argument("--steps", type=int, default=0, help="training steps (0: the preset's)")
     p.add_argument("--parallel", type=int, default=5, help="processes at once")
     p.add_argument("--minutes", type=float, default=0.0,
@@ -65,26 +68,35 @@ def main(argv: list[str] | None = None) -> None:
     if failed:
         raise SystemExit(f"data generation failed: {failed} (see {root / 'logs'})")
 
-    jobs = [(r, m, int(s)) for s in args.seeds.split(",") for r in robots
+    first_seed = int(args.seeds.split(",")[0])
+    # (robot, model, seed, acc_through variant or "" for the default)
+    jobs = [(r, m, int(s), "") for s in args.seeds.split(",") for r in robots
             for m in args.models.split(",")]
-    name = lambda r, m, s: f"{r}/{m}-s{s}"
-    run_dir = lambda r, m, s: runs[r] / f"{m}-s{s}"
-    leader = {name(r, m, s): run_dir(r, m, int(args.seeds.split(",")[0])) for r, m, s in jobs}
-    train = {name(r, m, s): pool.stride_command(
+    jobs += [(r, "stride", first_seed, v) for r in robots for v in args.ablation.split(",") if v]
+    tag = lambda m, v: f"{m}-{v}" if v else m
+    name = lambda r, m, s, v: f"{r}/{tag(m, v)}-s{s}"
+    run_dir = lambda r, m, s, v: runs[r] / f"{tag(m, v)}-s{s}"
+    leader = {name(*j): run_dir(j[0], j[1], first_seed, "") for j in jobs}
+    train = {name(r, m, s, v): pool.stride_command(
         "train", "--robot", r, "--model", m, "--preset", preset["train"], "--steps", str(steps),
-        "--seed", str(s), "--data", str(data[r]), "--out", str(run_dir(r, m, s)),
-        "--deadline", str(deadline)) for r, m, s in jobs}
-    folders = {name(r, m, s): run_dir(r, m, s) for r, m, s in jobs}
+        "--seed", str(s), "--data", str(data[r]), "--out", str(run_dir(r, m, s, v)),
+        "--deadline", str(deadline), *(["--acc-through", v] if v else []))
+        for r, m, s, v in jobs}
+    folders = {name(*j): run_dir(*j) for j in jobs}
     follows = lambda n, marker: (lambda: leader[n] == folders[n] or (leader[n] / marker).exists())
     ready = {n: follows(n, "metrics.csv") for n in train}
     failed = pool.run(train, {n: folders[n] / "train.log" for n in train}, args.parallel, env,
                       ready, t0, "train")
     ok = [n for n in train if n not in failed]
-    # Evaluate runs side by side (each caches its eval.json), then tabulate per robot.
+    # Evaluate runs side by side (each caches its eval.json), then tabulate per robot. The first
+    # evaluation of a robot goes alone: it re-simulates the true continuations every other
+    # evaluation of that dataset reuses.
     evals = {n: pool.stride_command("eval", "--preset", preset["eval"], "--runs",
                                     str(folders[n]), "--out", str(folders[n] / "eval_out"))
              for n in ok}
-    ready = {n: follows(n, "eval.json") for n in evals}
+    first = {r: next((folders[n] for n in evals if n.startswith(f"{r}/")), None) for r in robots}
+    ready = {n: (lambda n=n: folders[n] == first[n.split("/")[0]]
+                 or (first[n.split("/")[0]] / "eval.json").exists()) for n in evals}
     failed += pool.run(evals, {n: folders[n] / "eval.log" for n in evals}, args.parallel, env,
                        ready, t0, "eval")
     for r in robots:
