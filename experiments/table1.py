@@ -45,6 +45,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--parallel", type=int, default=5, help="processes at once")
     p.add_argument("--minutes", type=float, default=0.0,
                    help="wall-clock budget for training (0: none); runs stop cleanly at it")
+    p.add_argument("--eval-only", action="store_true",
+                   help="evaluate and tabulate the runs already trained (no data, no training)")
     p.add_argument("--root", default="", help="data and runs folder (default: data/, runs/)")
     p.add_argument("--out", default="", help="results folder (default: results/<robot>)")
     args = p.parse_args(argv)
@@ -62,7 +64,7 @@ def main(argv: list[str] | None = None) -> None:
     gen = {f"data-{r}": pool.stride_command("data", "--robot", r, "--preset", "paper",
                                             "--episodes", str(preset["episodes"]),
                                             "--out", str(data[r]))
-           for r in robots if not (data[r] / "meta.json").exists()}
+           for r in robots if not (data[r] / "meta.json").exists() and not args.eval_only}
     failed = pool.run(gen, {n: root / "logs" / f"{n}.log" for n in gen}, args.parallel, env,
                       t0=t0)
     if failed:
@@ -85,8 +87,12 @@ def main(argv: list[str] | None = None) -> None:
     folders = {name(*j): run_dir(*j) for j in jobs}
     follows = lambda n, marker: (lambda: leader[n] == folders[n] or (leader[n] / marker).exists())
     ready = {n: follows(n, "metrics.csv") for n in train}
-    failed = pool.run(train, {n: folders[n] / "train.log" for n in train}, args.parallel, env,
-                      ready, t0, "train")
+    if args.eval_only:
+        train = {n: c for n, c in train.items() if (folders[n] / "summary.json").exists()}
+        failed = []
+    else:
+        failed = pool.run(train, {n: folders[n] / "train.log" for n in train}, args.parallel,
+                          env, ready, t0, "train")
     ok = [n for n in train if n not in failed]
     # Evaluate runs side by side (each caches its eval.json), then tabulate per robot. The first
     # evaluation of a robot goes alone: it re-simulates the true continuations every other

@@ -8,7 +8,10 @@ logged start state in ``K`` worlds, each with a fresh draw of everything the dat
 models (ground friction and softness, payload, joint damping and friction, the push, the
 pendulum's bump: ``randomize.sample`` with the dataset's own ranges), on MuJoCo's CPU backend.
 Pushes are drawn on the episode's timeline, so a window sees one only when the new draw puts it
-there, as in the data.
+there, as in the data. Pushes and bumps are drawn per future; the model parameters (friction,
+softness, payload, damping) come from a pool of at most ``MODEL_POOL`` draws, future ``i`` taking
+draw ``i mod MODEL_POOL``: copying a MuJoCo model takes ~30 ms (Go1, measured), which for 2048
+futures was a minute, where the simulation itself takes seconds.
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ import numpy as np
 from stride_jax.robots import Randomization
 from stride_jax.sim import randomize, rollout_cpu
 from stride_jax.sim.model import SimModel
+
+MODEL_POOL = 64
 
 
 class Continuations:
@@ -63,8 +68,9 @@ def simulate(sm: SimModel, r: Randomization | None, q0: np.ndarray, qd0: np.ndar
     if r is not None:
         draw = jax.jit(jax.vmap(lambda kk: randomize.sample(kk, r, episode_s)))
         rand = jax.tree.map(np.asarray, draw(jax.random.split(key, n * k)))
-        worlds = [randomize.apply_mujoco(sm.mj, fields, jax.tree.map(lambda a: a[i], rand),
-                                         sm.base_body) for i in range(n * k)]
+        pool = [randomize.apply_mujoco(sm.mj, fields, jax.tree.map(lambda a: a[i], rand),
+                                       sm.base_body) for i in range(min(n * k, MODEL_POOL))]
+        worlds = [pool[i % len(pool)] for i in range(n * k)]
         per_world = jax.jit(jax.vmap(lambda v, t, q: randomize.disturbance(v, r, t, q,
                                                                             sm.mj.nv)))
         start = jnp.asarray(rep(t0), jnp.float32)
@@ -73,6 +79,7 @@ def simulate(sm: SimModel, r: Randomization | None, q0: np.ndarray, qd0: np.ndar
                                          jnp.asarray(q, jnp.float32))
     u = rep(ctrls)
     policy = lambda step, q, qd: u[:, min(step, h - 1)]
-    recs, alive = rollout_cpu.run(sm, worlds, rep(q0), rep(qd0), h + 1, policy, disturb, nthread)
+    q, qd, alive = rollout_cpu.states(sm, worlds, rep(q0), rep(qd0), h + 1, policy, disturb,
+                                      nthread)
     shape = lambda a: a[:, 1:].reshape(n, k, h, -1)
-    return Continuations(shape(recs.q), shape(recs.qd), alive[:, -1].reshape(n, k))
+    return Continuations(shape(q), shape(qd), alive[:, -1].reshape(n, k))

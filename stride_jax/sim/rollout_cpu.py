@@ -61,14 +61,16 @@ class _Worlds:
     def time(self) -> np.ndarray:
         return self.state[:, 0]
 
-    def step(self, ctrl: np.ndarray, push: np.ndarray, qfrc: np.ndarray) -> list[record.Record]:
+    def step(self, ctrl: np.ndarray, push: np.ndarray, qfrc: np.ndarray, recorded: bool = True
+             ) -> list[record.Record]:
         """Records the current state under ``ctrl`` [n, nu], base ``push`` [n, 3] (N) and
-        generalised force ``qfrc`` [n, nv], then steps one control period."""
+        generalised force ``qfrc`` [n, nv], then steps one control period. ``recorded=False``:
+        steps without recording (no per-world forward pass; returns no records)."""
         sm, d = self.sm, self.scratch
         xfrc = np.zeros((len(ctrl), sm.mj.nbody, 6))
         xfrc[:, sm.base_body, :3] = push
         recs = []
-        for i, m in enumerate(self.models):
+        for i, m in enumerate(self.models if recorded else ()):
             mujoco.mj_setState(m, d, self.state[i], _STATE)
             d.ctrl[:], d.qfrc_applied[:], d.xfrc_applied[:] = ctrl[i], qfrc[i], xfrc[i]
             d.qacc_warmstart[:] = self.warmstart[i]
@@ -111,26 +113,44 @@ def run(sm: SimModel, models: list[mujoco.MjModel], qpos: np.ndarray, qvel: np.n
     returns the hidden (push [n, 3], qfrc [n, nv]), none if ``disturb`` is None.
     Returns records ``[n, T, ...]`` and the validity mask ``[n, T]``.
     """
+    recs, _, _, valid = _loop(sm, models, qpos, qvel, n_steps, policy, disturb, nthread,
+                              progress, recorded=True)
+    return _stack(recs), valid
+
+
+def states(sm: SimModel, models: list[mujoco.MjModel], qpos: np.ndarray, qvel: np.ndarray,
+           n_steps: int, policy: Callable, disturb: Callable | None = None,
+           nthread: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`run` without records, several times faster: ``(q [n, T, nq], qd [n, T, nv],
+    valid [n, T])`` at the start of each control step."""
+    _, q, qd, valid = _loop(sm, models, qpos, qvel, n_steps, policy, disturb, nthread, None,
+                            recorded=False)
+    return q, qd, valid
+
+
+def _loop(sm, models, qpos, qvel, n_steps, policy, disturb, nthread, progress, recorded):
     nthread = nthread if nthread is not None else min(len(models), os.cpu_count() or 1)
     worlds = _Worlds(sm, models, qpos, qvel, nthread)
     alive = np.ones(len(models), bool)
-    recs, valid = [], []
+    recs, qs, qds, valid = [], [], [], []
     try:
         for step in range(n_steps):
-            q, qd = worlds.qpos, worlds.qvel
+            q, qd = worlds.qpos.copy(), worlds.qvel.copy()
             alive &= ~fallen(sm, q, np) & np.isfinite(q).all(1) & np.isfinite(qd).all(1)
             valid.append(alive.copy())
+            qs.append(q)
+            qds.append(qd)
             ctrl = np.asarray(policy(step, q, qd), dtype=np.float64)
             if disturb is None:
                 push, qfrc = np.zeros((len(q), 3)), np.zeros_like(qd)
             else:
                 push, qfrc = (np.asarray(x, dtype=np.float64) for x in disturb(worlds.time, q))
-            recs.append(worlds.step(ctrl, push, qfrc))
+            recs.append(worlds.step(ctrl, push, qfrc, recorded))
             if progress:
                 progress(1)
     finally:
         worlds.close()
-    return _stack(recs), np.stack(valid, axis=1)
+    return recs, np.stack(qs, 1), np.stack(qds, 1), np.stack(valid, axis=1)
 
 
 @functools.lru_cache(maxsize=None)
