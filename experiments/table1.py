@@ -3,6 +3,13 @@
     python experiments/table1.py --robot go1,g1                    # full size (use a GPU)
     python experiments/table1.py --robot go1 --preset tiny          # minutes on a CPU
     python experiments/table1.py --robot go1 --minutes 7            # stop cleanly, resume later
+    python experiments/table1.py --robot go1 --data walk            # walking, stochastic ground
+
+``--data`` picks the dataset: ``explore`` (the robot's own explorer, per-episode randomisation:
+the datasets of the first Table I) or ``walk`` (the trained PPO policy of ``results/policies/``
+walking under velocity commands with noise on its actions, on ground patches of varying friction
+and softness with several pushes: a contact residual that is stochastic given the state). The
+walk variant's folders and results carry ``_walk`` (``results/go1_walk/``).
 
 Runs train side by side (``--parallel`` processes share the device: the models are small, so one
 process leaves a GPU idle between kernel launches). Seeds of one model compile to the same
@@ -29,6 +36,7 @@ PRESETS = {
     "paper": dict(episodes=1024, train="paper", steps=6000, eval="default"),
 }
 MODELS = ("stride", "delan", "lnn_diffusion", "onn", "diffusion")
+DATA = {"explore": [], "walk": ["--stochastic", "--policy", "results/policies/ppo_{robot}"]}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -36,6 +44,7 @@ def main(argv: list[str] | None = None) -> None:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--robot", default="go1", help="comma-separated robots")
     p.add_argument("--preset", default="paper", choices=list(PRESETS))
+    p.add_argument("--data", default="explore", choices=list(DATA))
     p.add_argument("--seeds", default="0,1,2")
     p.add_argument("--models", default=",".join(MODELS))
     p.add_argument("--ablation", default="",
@@ -58,11 +67,13 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.time()
     deadline = t0 + 60 * args.minutes if args.minutes else 0.0
     env = pool.shared_env(root)
-    data = {r: root / "data" / f"{r}-{args.preset}" for r in robots}
-    runs = {r: root / "runs" / f"{r}-{args.preset}" for r in robots}
+    suffix = "" if args.data == "explore" else f"_{args.data}"
+    data = {r: root / "data" / f"{r}{suffix}-{args.preset}" for r in robots}
+    runs = {r: root / "runs" / f"{r}{suffix}-{args.preset}" for r in robots}
 
     gen = {f"data-{r}": pool.stride_command("data", "--robot", r, "--preset", "paper",
                                             "--episodes", str(preset["episodes"]),
+                                            *[a.format(robot=r) for a in DATA[args.data]],
                                             "--out", str(data[r]))
            for r in robots if not (data[r] / "meta.json").exists() and not args.eval_only}
     failed = pool.run(gen, {n: root / "logs" / f"{n}.log" for n in gen}, args.parallel, env,
@@ -109,7 +120,7 @@ def main(argv: list[str] | None = None) -> None:
         mine = [str(folders[n]) for n in ok if n.startswith(f"{r}/") and n not in failed]
         if not mine:
             continue
-        out = args.out or f"results/{r}"
+        out = args.out or f"results/{r}{suffix}"
         subprocess.run(pool.stride_command("eval", "--preset", preset["eval"], "--runs",
                                            ",".join(mine), "--out", out, "--label", command),
                        check=True, env=env)

@@ -1,25 +1,39 @@
 #!/usr/bin/env bash
 # Table I on a lent GPU machine: carried wheels and Menagerie, data, every model x seeds (plus
-# STRIDE ablations), evaluation; tables, training curves and the seed-0 checkpoints land in OUT,
-# the driver's log as it goes. Usage (repository root, on the GPU machine, with .whl and
-# .menagerie carried):
-#   bash experiments/table1_device.sh OUT ROBOT STEPS TRAIN_MINUTES [ABLATION [EXTRA...]]
-# EXTRA goes to experiments/table1.py: --eval-only in a second call on the same (warm) machine
-# evaluates what the first trained.
+# STRIDE ablations), evaluation. What comes back, in OUT (a device call returns at most 8 files):
+# NAME_driver.log as it goes, then NAME.tar.xz with the table (md, json), every run's
+# metrics.csv / train.log / summary.json / eval.log and the seed-0 checkpoints, where NAME is
+# ROBOT or ROBOT_DATA. Usage (repository root, on the GPU machine, with .whl and .menagerie
+# carried):
+#   [DATA=walk] bash experiments/table1_device.sh OUT ROBOT STEPS TRAIN_MINUTES [ABLATION [EXTRA...]]
+# DATA picks experiments/table1.py's --data (explore: default); two calls with different DATA
+# may run side by side (they share the compilation cache). LIMIT_S stops the driver after that
+# many seconds (0: never), so that what it made is still packed inside the device call's limit. EXTRA goes to experiments/table1.py:
+# --eval-only in a second call on the same (warm) machine evaluates what the first trained.
 set -uo pipefail
 out=$1; robot=$2; steps=$3; minutes=$4; ablation=${5:-}; shift 5 || shift $#
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-  --target /tmp/site .whl/*.whl || exit 1
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
-tar -C .menagerie -xJf .menagerie/menagerie.tar.xz && export MENAGERIE_ROOT=$PWD/.menagerie/menagerie
+data=${DATA:-explore}
+name=$robot; [ "$data" = explore ] || name=${robot}_$data
+(
+  flock 9
+  if [ ! -f /tmp/site/.done ]; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+      --target /tmp/site .whl/*.whl && touch /tmp/site/.done
+  fi
+  [ -d .menagerie/menagerie ] || tar -C .menagerie -xJf .menagerie/menagerie.tar.xz
+) 9>/tmp/table1_setup.lock
+[ -f /tmp/site/.done ] || exit 1
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MENAGERIE_ROOT=$PWD/.menagerie/menagerie
 root=/tmp/table1
-mkdir -p "$out/$robot"
-python3 experiments/table1.py --robot "$robot" --preset paper --parallel 17 --steps "$steps" \
-  --minutes "$minutes" --ablation "$ablation" --root "$root" --out "$out/$robot" "$@" 2>&1 |
-  grep --line-buffered -v -i "warp\|warn" | tee "$out/${robot}_driver.log" | tail -40
-runs=$root/runs/$robot-paper
-(cd "$runs" && tar -cJf "$out/${robot}_logs.tar.xz" */metrics.csv */train.log */summary.json \
-  $(ls */eval.log 2>/dev/null))
-[ -f "$out/$robot/table.md" ] &&
-  (cd "$runs" && tar -cJf "$out/${robot}_models_s0.tar.xz" --exclude=ckpt --exclude=eval_out *-s0)
-ls -la "$out" "$out/$robot"
+res=/tmp/table1_results/$name
+mkdir -p "$res"
+timeout -s INT "${LIMIT_S:-0}" python3 experiments/table1.py --robot "$robot" --data "$data" \
+  --preset paper --parallel 17 \
+  --steps "$steps" --minutes "$minutes" --ablation "$ablation" --root "$root" --out "$res" "$@" \
+  2>&1 | grep --line-buffered -v -i "warp\|warn" | tee "$out/${name}_driver.log" | tail -40
+suffix=""; [ "$data" = explore ] || suffix=_$data
+runs=$root/runs/$robot$suffix-paper
+(cd "$runs" && tar -cf "$res/runs.tar" */metrics.csv */train.log */summary.json \
+  $(ls */eval.log 2>/dev/null) && tar -rf "$res/runs.tar" --exclude=ckpt --exclude=eval_out *-s0)
+tar -C "$res" -cJf "$out/$name.tar.xz" .
+ls -la "$out" "$res"

@@ -81,7 +81,12 @@ def _commands():
 
 def _run_data(cfg, command: str) -> None:
     from stride_jax.sim import collect, plots
-    ds = collect.generate(cfg)
+    explorer = None
+    if cfg.policy:
+        from stride_jax.control import walk
+        explorer = walk.PolicyExplorer(cfg.policy, cfg.action_noise,
+                                       max_seconds=cfg.seconds or 60.0)
+    ds = collect.generate(cfg, explorer)
     png = plots.dataset_summary(ds)
     m = ds.meta
     print(f"wrote {ds.path}: {m['n_episodes']} episodes x {m['n_steps']} steps of {m['robot']} "

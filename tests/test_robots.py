@@ -37,3 +37,25 @@ def test_missing_menagerie_names_the_variable_and_robot(name, tmp_path, monkeypa
     with pytest.raises(robots.RobotError, match=f"robot '{name}' needs .*MENAGERIE_ROOT"):
         model.compile_robot(robots.get(name))
 
+
+
+@pytest.mark.parametrize("name", ["go1", "g1"])
+def test_models_without_visual_meshes_simulate_the_same(name):
+    import copy
+    import numpy as np
+    lean, full = model.load(name), model.compile_robot(robots.get(name), visual=True)
+    assert lean.mj.nmesh == 0 and lean.mj.ntex == 0 and full.mj.nmesh > 0
+    np.testing.assert_array_equal(lean.mj.body_mass, full.mj.body_mass)
+    np.testing.assert_array_equal(lean.mj.body_inertia, full.mj.body_inertia)
+    qs = []
+    for m in (lean.mj, full.mj):
+        d = mujoco.MjData(m)
+        d.qpos[:] = lean.info.qpos0
+        d.qpos[2] += 0.02
+        for _ in range(60):
+            d.ctrl[:] = lean.info.qpos0[7:]
+            mujoco.mj_step(m, d)
+        qs.append(d.qpos.copy())
+        assert d.ncon > 0  # standing on its feet
+    np.testing.assert_array_equal(qs[0], qs[1])
+    assert copy.copy(lean.mj).nbuffer < full.mj.nbuffer / 50

@@ -49,7 +49,10 @@ class ContactConfig:
 
 
 def behaviours(robot: str, arrays: dict) -> tuple[tuple[str, ...], np.ndarray]:
-    """``(names, index [E])``: the behaviour (gait, mode) of every episode of a dataset."""
+    """``(names, index [E])``: the behaviour (gait, mode) of every episode of a dataset; data
+    collected by a walking policy (:mod:`stride_jax.control.walk`) is all ``walk``."""
+    if "explore/commands" in arrays:
+        return ("walk",), np.zeros(len(arrays["explore/commands"]), int)
     if robot == "go1":
         return go1.GAITS, np.asarray(arrays["explore/gait"])
     if robot == "g1":

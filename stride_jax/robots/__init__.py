@@ -1,6 +1,7 @@
 """Robot definitions: ``get('go1')`` returns a :class:`Robot`."""
 
-from stride_jax.robots.base import Foot, ModelInfo, Randomization, Robot, RobotError
+from stride_jax.robots.base import (Explorer, Foot, ModelInfo, Randomization, Robot, RobotError,
+                                    stochastic)
 from stride_jax.robots.g1 import G1
 from stride_jax.robots.go1 import GO1
 from stride_jax.robots.pendulum import PENDULUM, PENDULUM_BOUNCING
@@ -16,4 +17,5 @@ def get(name: str) -> Robot:
         raise RobotError(f"unknown robot {name!r}; known robots: {', '.join(ROBOTS)}") from None
 
 
-__all__ = ["Foot", "ModelInfo", "Randomization", "Robot", "RobotError", "ROBOTS", "get"]
+__all__ = ["Explorer", "Foot", "ModelInfo", "Randomization", "Robot", "RobotError", "ROBOTS", "get",
+           "stochastic"]

@@ -48,6 +48,12 @@ class Randomization:
       bump_nm: magnitude of a hidden torque on the first joint of a fixed-base robot, acting only
         near ``bump_at`` (a Gaussian bump of width ``bump_width`` in the wrapped angle), with a
         random sign per episode: a bimodal residual there (the pendulum's upright).
+      pushes: number of pushes per episode (each with the ranges above, at its own time).
+      patch_m: side of the square ground patches (m) whose friction and softness vary along the
+        path, drawn per episode and per patch; each foot takes the patch under it, so two feet
+        of one stance can stand on different ground. 0: the ground is uniform.
+      patch_friction: scale of a patch's sliding friction on top of ``friction``, (lo, hi).
+      patch_softness: scale of a patch's contact time constant on top of ``softness``, (lo, hi).
     """
 
     friction: tuple[float, float] = (1.0, 1.0)
@@ -60,6 +66,33 @@ class Randomization:
     bump_nm: tuple[float, float] = (0.0, 0.0)
     bump_at: float = 0.0
     bump_width: float = 0.25
+    pushes: int = 1
+    patch_m: float = 0.0
+    patch_friction: tuple[float, float] = (1.0, 1.0)
+    patch_softness: tuple[float, float] = (1.0, 1.0)
+
+    def __post_init__(self):
+        if self.pushes < 0 or self.patch_m < 0:
+            raise ValueError(f"randomisation: pushes ({self.pushes}) and patch_m ({self.patch_m}) "
+                             "must be >= 0")
+        for name in ("friction", "softness", "patch_friction", "patch_softness"):
+            lo, hi = getattr(self, name)
+            if not 0 < lo <= hi:
+                raise ValueError(f"randomisation: {name} range ({lo}, {hi}) must satisfy "
+                                 "0 < lo <= hi")
+
+    @property
+    def patches(self) -> bool:
+        """Whether the ground varies along the path."""
+        return self.patch_m > 0
+
+
+def stochastic(r: Randomization) -> Randomization:
+    """``r`` with a contact residual that is stochastic given the state: ground patches of 0.3 m
+    whose friction (x0.3-1.5, so feet slip on some) and softness (x0.5-3) vary per patch, and
+    three pushes per episode instead of one. The per-episode ranges of ``r`` stay."""
+    return dataclasses.replace(r, pushes=max(r.pushes, 3), patch_m=0.3,
+                               patch_friction=(0.3, 1.5), patch_softness=(0.5, 3.0))
 
 
 class ModelInfo(NamedTuple):

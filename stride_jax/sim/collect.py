@@ -10,6 +10,7 @@ import jax
 import mujoco
 from tqdm import tqdm
 
+from stride_jax.robots import Explorer, stochastic
 from stride_jax.sim import dataset, model, rollout_cpu, rollout_mjx
 
 
@@ -25,7 +26,13 @@ class DataConfig:
       seconds: episode length (s); 0 uses the robot's default.
       batch: worlds per jitted MJX call (0: all at once).
       seed: PRNG seed of randomisation, exploration and the split.
-      randomized: apply the hidden per-episode randomisation.
+      randomized: apply the hidden randomisation.
+      stochastic: a contact residual that is stochastic given the state: ground patches of
+        varying friction and softness along the path, several pushes per episode
+        (:func:`stride_jax.robots.stochastic`; implies ``randomized``).
+      policy: a PPO run folder whose policy explores (walking under velocity commands,
+        :class:`stride_jax.control.walk.PolicyExplorer`); empty: the robot's own explorer.
+      action_noise: with ``policy``, the largest per-episode std of the noise on its actions.
       out: output folder; empty means ``data/<robot>``.
     """
 
@@ -36,6 +43,9 @@ class DataConfig:
     batch: int = 0
     seed: int = 0
     randomized: bool = True
+    stochastic: bool = False
+    policy: str = ""
+    action_noise: float = 0.3
     out: str = ""
 
 
@@ -54,9 +64,24 @@ def resolve_backend(backend: str) -> str:
     return backend
 
 
-def generate(cfg: DataConfig) -> dataset.Dataset:
-    """Simulates ``cfg`` and writes the dataset; shows progress; returns the saved dataset."""
+def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Dataset:
+    """Simulates ``cfg`` and writes the dataset; shows progress; returns the saved dataset.
+
+    ``explorer`` replaces the robot's own; it is required when ``cfg.policy`` is set (the command
+    line builds the policy's explorer: :class:`stride_jax.control.walk.PolicyExplorer`).
+    """
     sm = model.load(cfg.robot)
+    if cfg.policy and explorer is None:
+        raise ValueError(f"policy={cfg.policy!r}: pass its explorer, "
+                         "stride_jax.control.walk.PolicyExplorer(cfg.policy, cfg.action_noise)")
+    robot = sm.robot
+    if cfg.stochastic:
+        robot = dataclasses.replace(robot, randomization=stochastic(robot.randomization))
+    if explorer is not None:
+        robot = dataclasses.replace(robot, explorer=explorer)
+    if robot is not sm.robot:
+        sm = dataclasses.replace(sm, robot=robot)
+    randomized = cfg.randomized or cfg.stochastic
     if cfg.episodes < 3:
         raise ValueError(f"episodes must be >= 3 (train/val/test split), got {cfg.episodes}")
     seconds = cfg.seconds or sm.robot.episode_s
@@ -67,17 +92,18 @@ def generate(cfg: DataConfig) -> dataset.Dataset:
     if backend == "mjx":
         with tqdm(total=cfg.episodes, desc=f"{cfg.robot} mjx", unit="episode") as bar:
             ep = rollout_mjx.collect(sm, key, cfg.episodes, n_steps, cfg.batch or None,
-                                     cfg.randomized, bar.update)
+                                     randomized, bar.update)
     else:
         with tqdm(total=n_steps, desc=f"{cfg.robot} cpu", unit="step") as bar:
-            ep = rollout_cpu.collect(sm, key, cfg.episodes, n_steps, cfg.randomized,
+            ep = rollout_cpu.collect(sm, key, cfg.episodes, n_steps, randomized,
                                      progress=bar.update)
     seconds_taken = time.perf_counter() - t0
     out = pathlib.Path(cfg.out or f"data/{cfg.robot}")
     meta = dict(
         robot_meta(sm), backend=backend, seed=cfg.seed,
         exploration=type(sm.robot.explorer).__name__,
-        randomization=dataclasses.asdict(sm.robot.randomization) if cfg.randomized else None,
+        explorer=repr(explorer) if explorer is not None else None,
+        randomization=dataclasses.asdict(sm.robot.randomization) if randomized else None,
         config=dataclasses.asdict(cfg), generation_seconds=seconds_taken,
     )
     return dataset.save(out, ep, meta)

@@ -8,10 +8,9 @@ logged start state in ``K`` worlds, each with a fresh draw of everything the dat
 models (ground friction and softness, payload, joint damping and friction, the push, the
 pendulum's bump: ``randomize.sample`` with the dataset's own ranges), on MuJoCo's CPU backend.
 Pushes are drawn on the episode's timeline, so a window sees one only when the new draw puts it
-there, as in the data. Pushes and bumps are drawn per future; the model parameters (friction,
-softness, payload, damping) come from a pool of at most ``MODEL_POOL`` draws, future ``i`` taking
-draw ``i mod MODEL_POOL``: copying a MuJoCo model takes ~30 ms (Go1, measured), which for 2048
-futures was a minute, where the simulation itself takes seconds.
+there, as in the data. Everything is drawn per future, each with a model of its own
+(a copy takes under a millisecond since the robots' models carry no visual meshes), and with
+ground patches (``patch_m > 0``) a fresh draw of the patches.
 """
 
 from __future__ import annotations
@@ -25,8 +24,6 @@ import numpy as np
 from stride_jax.robots import Randomization
 from stride_jax.sim import randomize, rollout_cpu
 from stride_jax.sim.model import SimModel
-
-MODEL_POOL = 64
 
 
 class Continuations:
@@ -62,15 +59,17 @@ def simulate(sm: SimModel, r: Randomization | None, q0: np.ndarray, qd0: np.ndar
         raise ValueError(f"continuations: q0 {q0.shape}, qd0 {qd0.shape} and t0 {t0.shape} must "
                          f"be [N, nq], [N, nv] and [N] for N = {n} windows")
     rep = lambda a: np.repeat(np.asarray(a, np.float64), k, axis=0)  # world i * k + j
-    fields = randomize.nominal_fields(sm.mj)
     worlds = [sm.mj] * (n * k)
-    disturb = None
+    disturb = ground = None
     if r is not None:
         draw = jax.jit(jax.vmap(lambda kk: randomize.sample(kk, r, episode_s)))
         rand = jax.tree.map(np.asarray, draw(jax.random.split(key, n * k)))
-        pool = [randomize.apply_mujoco(sm.mj, fields, jax.tree.map(lambda a: a[i], rand),
-                                       sm.base_body) for i in range(min(n * k, MODEL_POOL))]
-        worlds = [pool[i % len(pool)] for i in range(n * k)]
+        mj = randomize.ground_ready(sm.mj, sm.geom_foot) if r.patches else sm.mj
+        fields = randomize.nominal_fields(mj)
+        worlds = [randomize.apply_mujoco(mj, fields, jax.tree.map(lambda a: a[i], rand),
+                                         sm.base_body) for i in range(n * k)]
+        if r.patches:
+            ground = rollout_cpu.ground_fn(sm, r, rand)
         per_world = jax.jit(jax.vmap(lambda v, t, q: randomize.disturbance(v, r, t, q,
                                                                             sm.mj.nv)))
         start = jnp.asarray(rep(t0), jnp.float32)
@@ -80,6 +79,6 @@ def simulate(sm: SimModel, r: Randomization | None, q0: np.ndarray, qd0: np.ndar
     u = rep(ctrls)
     policy = lambda step, q, qd: u[:, min(step, h - 1)]
     q, qd, alive = rollout_cpu.states(sm, worlds, rep(q0), rep(qd0), h + 1, policy, disturb,
-                                      nthread)
+                                      nthread, ground)
     shape = lambda a: a[:, 1:].reshape(n, k, h, -1)
     return Continuations(shape(q), shape(qd), alive[:, -1].reshape(n, k))

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import mujoco
 import mujoco.rollout
 import numpy as np
+from mujoco import mjx
 
 from stride_jax.sim import randomize, record
 from stride_jax.sim.model import SimModel, check_open_loop
@@ -48,6 +49,23 @@ class _Worlds:
             self.scratch.qpos[:], self.scratch.qvel[:] = qpos[i], qvel[i]
             mujoco.mj_getState(models[i], self.scratch, self.state[i], _STATE)
         self.warmstart = np.zeros((n, self.nv))
+        self.ground_base: list[dict] | None = None
+
+    def set_ground(self, friction: np.ndarray, softness: np.ndarray):
+        """Scales each world's foot contacts by the ground under its feet (``[n, F]`` each)."""
+        sm = self.sm
+        if self.ground_base is None:  # the episode's own values, before any patch
+            if len({id(m) for m in self.models}) < len(self.models):
+                raise ValueError("ground patches change each world's model: give every world a "
+                                 "model of its own")
+            self.ground_base = [{k: np.array(getattr(m, k)) for k in randomize.GROUND_FIELDS}
+                                for m in self.models]
+            self.pair_foot = randomize.pair_feet(self.models[0], sm.geom_foot)
+        for i, m in enumerate(self.models):
+            new = randomize.apply_ground(self.ground_base[i], sm.geom_foot, self.pair_foot,
+                                         friction[i], softness[i], np)
+            for k, a in new.items():
+                getattr(m, k)[...] = a
 
     @property
     def qpos(self) -> np.ndarray:  # FULLPHYSICS state: time, qpos, qvel, act, ...
@@ -105,30 +123,35 @@ def _stack(recs: list[list[record.Record]]) -> record.Record:
 
 def run(sm: SimModel, models: list[mujoco.MjModel], qpos: np.ndarray, qvel: np.ndarray,
         n_steps: int, policy: Callable, disturb: Callable | None = None,
-        nthread: int | None = None, progress: Callable[[int], None] | None = None
-        ) -> tuple[record.Record, np.ndarray]:
+        nthread: int | None = None, progress: Callable[[int], None] | None = None,
+        ground: Callable | None = None) -> tuple[record.Record, np.ndarray]:
     """Rolls ``len(models)`` worlds for ``n_steps`` control steps.
 
     ``policy(step, qpos [n, nq], qvel [n, nv]) -> ctrl [n, nu]``; ``disturb(time [n], qpos)``
-    returns the hidden (push [n, 3], qfrc [n, nv]), none if ``disturb`` is None.
+    returns the hidden (push [n, 3], qfrc [n, nv]), none if ``disturb`` is None;
+    ``ground(qpos)``, if given, the friction and softness scales ``([n, F], [n, F])`` of the
+    ground under each world's feet (every world needs a model of its own, made by
+    :func:`~stride_jax.sim.randomize.ground_ready`).
     Returns records ``[n, T, ...]`` and the validity mask ``[n, T]``.
     """
     recs, _, _, valid = _loop(sm, models, qpos, qvel, n_steps, policy, disturb, nthread,
-                              progress, recorded=True)
+                              progress, True, ground)
     return _stack(recs), valid
 
 
 def states(sm: SimModel, models: list[mujoco.MjModel], qpos: np.ndarray, qvel: np.ndarray,
            n_steps: int, policy: Callable, disturb: Callable | None = None,
-           nthread: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+           nthread: int | None = None, ground: Callable | None = None
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`run` without records, several times faster: ``(q [n, T, nq], qd [n, T, nv],
     valid [n, T])`` at the start of each control step."""
     _, q, qd, valid = _loop(sm, models, qpos, qvel, n_steps, policy, disturb, nthread, None,
-                            recorded=False)
+                            False, ground)
     return q, qd, valid
 
 
-def _loop(sm, models, qpos, qvel, n_steps, policy, disturb, nthread, progress, recorded):
+def _loop(sm, models, qpos, qvel, n_steps, policy, disturb, nthread, progress, recorded,
+          ground=None):
     nthread = nthread if nthread is not None else min(len(models), os.cpu_count() or 1)
     worlds = _Worlds(sm, models, qpos, qvel, nthread)
     alive = np.ones(len(models), bool)
@@ -145,6 +168,8 @@ def _loop(sm, models, qpos, qvel, n_steps, policy, disturb, nthread, progress, r
                 push, qfrc = np.zeros((len(q), 3)), np.zeros_like(qd)
             else:
                 push, qfrc = (np.asarray(x, dtype=np.float64) for x in disturb(worlds.time, q))
+            if ground is not None:
+                worlds.set_ground(*(np.asarray(x, np.float64) for x in ground(q)))
             recs.append(worlds.step(ctrl, push, qfrc, recorded))
             if progress:
                 progress(1)
@@ -171,6 +196,16 @@ def _jitted(sm: SimModel):
     return jax.jit(jax.vmap(draw, in_axes=(0, None))), jax.jit(act), jax.jit(disturb)
 
 
+def ground_fn(sm: SimModel, r, rand: randomize.RandValues) -> Callable:
+    """``ground(qpos [n, nq]) -> (friction, softness)`` ``[n, F]`` each: the patches under the
+    feet of worlds whose hidden values are ``rand`` (batched over worlds)."""
+    mx = mjx.put_model(sm.mj)
+    patches = jax.jit(jax.vmap(lambda v, q: randomize.foot_patches(
+        v, r, randomize.foot_xy(mx, sm.foot_sites, q))))
+    rand = jax.tree.map(jnp.asarray, rand)
+    return lambda q: patches(rand, jnp.asarray(q, jnp.float32))
+
+
 def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, randomized: bool = True,
             nthread: int | None = None, progress: Callable[[int], None] | None = None) -> Episode:
     """Collects episodes exactly as :func:`stride_jax.sim.rollout_mjx.collect` describes them.
@@ -181,17 +216,20 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, randomi
     draw, act, disturb_fn = _jitted(sm)
     episode_s = n_steps * sm.robot.ctrl_dt
     rand, params, qpos, qvel = draw(jax.random.split(key, n_episodes), episode_s)
-    fields = randomize.nominal_fields(sm.mj)
+    r = sm.robot.randomization
+    mj = randomize.ground_ready(sm.mj, sm.geom_foot) if randomized and r.patches else sm.mj
+    fields = randomize.nominal_fields(mj)
     rand_np = jax.tree.map(np.asarray, rand)
-    models = [randomize.apply_mujoco(sm.mj, fields, jax.tree.map(lambda a: a[i], rand_np),
-                                     sm.base_body) if randomized else sm.mj
+    models = [randomize.apply_mujoco(mj, fields, jax.tree.map(lambda a: a[i], rand_np),
+                                     sm.base_body) if randomized else mj
               for i in range(n_episodes)]
+    ground = ground_fn(sm, r, rand) if randomized and r.patches else None
     policy = lambda step, q, qd: act(params, step, jnp.asarray(q, jnp.float32),
                                      jnp.asarray(qd, jnp.float32))
     disturb = (lambda t, q: disturb_fn(rand, jnp.asarray(t, jnp.float32),
                                        jnp.asarray(q, jnp.float32))) if randomized else None
     recs, valid = run(sm, models, np.asarray(qpos, np.float64), np.asarray(qvel, np.float64),
-                      n_steps, policy, disturb, nthread, progress)
+                      n_steps, policy, disturb, nthread, progress, ground)
     return Episode(recs, valid, rand_np, jax.device_get(_keys_to_data(params)))
 
 

@@ -62,11 +62,13 @@ def control_step(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, d: m
     return d, rec
 
 
-def run_episode(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, qpos: jax.Array, qvel: jax.Array, n_steps: int,
-                policy: Callable, disturb: Callable) -> tuple[record.Record, jax.Array]:
+def run_episode(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, qpos: jax.Array,
+                qvel: jax.Array, n_steps: int, policy: Callable, disturb: Callable,
+                ground: Callable | None = None) -> tuple[record.Record, jax.Array]:
     """Rolls one world out for ``n_steps`` control steps under ``policy(step, qpos, qvel)``.
 
-    ``disturb(time, qpos)`` returns the hidden :class:`~stride_jax.sim.randomize.Disturbance`.
+    ``disturb(time, qpos)`` returns the hidden :class:`~stride_jax.sim.randomize.Disturbance`;
+    ``ground(mx, qpos)``, if given, the model of this control step (the ground under the feet).
 
     Returns the records ``[T, ...]`` and the validity mask ``[T]``.
     """
@@ -77,7 +79,8 @@ def run_episode(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, qpos:
         alive = alive & ~fallen(sm, d.qpos) & jnp.all(jnp.isfinite(d.qpos)) & jnp.all(
             jnp.isfinite(d.qvel))
         ctrl = policy(step, d.qpos, d.qvel)
-        d, rec = control_step(sm, layout, mx, d, ctrl, disturb(d.time, d.qpos))
+        mx_t = mx if ground is None else ground(mx, d.qpos)
+        d, rec = control_step(sm, layout, mx_t, d, ctrl, disturb(d.time, d.qpos))
         return (d, alive), (rec, alive)
 
     _, (recs, valid) = jax.lax.scan(body, (d, jnp.ones((), bool)), jnp.arange(n_steps))
@@ -86,10 +89,14 @@ def run_episode(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, qpos:
 
 def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True) -> Callable:
     """A pure ``episode(key) -> Episode`` for one world, exploring with the robot's explorer."""
-    mx0 = mjx.put_model(sm.mj)
-    layout = record.mjx_contact_layout(sm, mx0)
-    fields = randomize.nominal_fields(sm.mj)
     explorer, info, robot = sm.robot.explorer, sm.info, sm.robot
+    r = robot.randomization
+    patches = randomized and r.patches
+    mj = randomize.ground_ready(sm.mj, sm.geom_foot) if patches else sm.mj
+    mx0 = mjx.put_model(mj)
+    layout = record.mjx_contact_layout(sm, mx0)
+    fields = randomize.nominal_fields(mj)
+    pair_foot = randomize.pair_feet(mj, sm.geom_foot)
     episode_s = n_steps * robot.ctrl_dt
 
     def episode(key: jax.Array) -> Episode:
@@ -100,7 +107,15 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True) -> Call
         qpos, qvel = explorer.reset(params, info)
         policy = lambda step, q, qd: explorer.act(params, info, step, q, qd)
         disturb = functools.partial(_disturbance, sm, rand if randomized else None)
-        recs, valid = run_episode(sm, layout, mx, qpos, qvel, n_steps, policy, disturb)
+        ground = None
+        if patches:
+            here = {k: getattr(mx, k) for k in randomize.GROUND_FIELDS}
+
+            def ground(mx_, q):
+                fr, so = randomize.foot_patches(rand, r, randomize.foot_xy(mx0, sm.foot_sites, q))
+                new = randomize.apply_ground(here, sm.geom_foot, pair_foot, fr, so)
+                return mx_.replace(**{k: a.astype(here[k].dtype) for k, a in new.items()})
+        recs, valid = run_episode(sm, layout, mx, qpos, qvel, n_steps, policy, disturb, ground)
         return Episode(recs, valid, rand, params)
 
     return episode
