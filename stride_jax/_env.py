@@ -7,9 +7,13 @@
 import os
 
 # On small CPUs, XLA's concurrency-optimised scheduler deadlocks inside the batched Cholesky that
-# vmapped MJX steps use (batch >= 16 on a 2-core machine, reproduced with jax 0.10.2). The user's
-# own XLA_FLAGS win: we only add the flag when they set none.
-CPU_SAFE_XLA_FLAGS = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+# vmapped MJX steps use (batch >= 16 on a 2-core machine, reproduced with jax 0.10.2), and with
+# that flag alone a training step of a Go1-sized structured model (128 x 3, batch 256) still hung
+# after its first step in Eigen's thread pool (reproduced with jax 0.10.2 on 2 cores; single-
+# threaded Eigen trains at 32 steps/s there). The user's own XLA_FLAGS win: we only add the flags
+# when they set none.
+CPU_SAFE_XLA_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false "
+                      "--xla_cpu_multi_thread_eigen=false")
 
 if "XLA_FLAGS" not in os.environ:
     os.environ["XLA_FLAGS"] = CPU_SAFE_XLA_FLAGS

@@ -45,6 +45,12 @@ def test_diverged_windows_are_counted_not_scored():
     assert d["diverged"] == 0.25 and np.isfinite(d["energy"])
 
 
+def test_all_windows_diverged_gives_nan_scores_not_an_error():
+    samples = np.full((3, 4, 5, 19), np.inf)
+    out = distribution.scores(samples, np.zeros((4, 9, 5, 19)))
+    assert out["diverged"] == 1.0 and np.isnan(out["energy"]) and np.isnan(out["crps"])
+
+
 def test_mismatched_truths_are_a_clear_error():
     with pytest.raises(ValueError, match="truths"):
         distribution.scores(np.zeros((3, 4, 2, 2)), np.zeros((5, 1, 2, 2)))

@@ -21,7 +21,8 @@ def test_host_devices_split_the_cpu(value, devices):
     assert out.returncode == 0, out.stderr
     n, flags = out.stdout.split(" ", 1)
     assert int(n) == devices
-    assert "concurrency_optimized_scheduler=false" in flags  # the deadlock guard stays
+    assert "concurrency_optimized_scheduler=false" in flags  # the deadlock guards stay
+    assert "multi_thread_eigen=false" in flags
 
 
 def test_bad_host_device_count_is_a_clear_error():

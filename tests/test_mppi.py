@@ -154,3 +154,31 @@ def test_policy_noise_perturbs_the_policy_in_closed_loop():
     assert float(jnp.ptp(info.costs)) > 1e-3
     with pytest.raises(ValueError, match="policy_noise needs a policy"):
         mppi.make(cfg, pendulum, cost, [-U_MAX], [U_MAX])
+
+
+def test_a_glitch_or_a_step_with_no_finite_rollout_falls_back_safely():
+    """A non-finite state (a sensor glitch) or a step in which every rollout diverges applies the
+    shifted previous plan, says so, stores nothing non-finite, and the next valid state plans."""
+    cfg = mppi.MPPIConfig(samples=32, horizon=8, noise_std=1.0)
+    planner = mppi.make(cfg, pendulum, cost, [-U_MAX], [U_MAX])
+    step = jax.jit(planner.step)
+    state = planner.init(jax.random.key(0))
+    q, qd = jnp.array([0.5]), jnp.array([0.0])
+    u, state, info = step(state, q, qd)
+    assert int(info.status) == mppi.PLANNED and np.isfinite(np.asarray(u)).all()
+    before = np.asarray(state.plan)
+    u, state, info = step(state, jnp.array([np.nan]), qd)
+    assert int(info.status) == mppi.BAD_STATE
+    np.testing.assert_array_equal(np.asarray(u), before[1])  # the shifted previous plan
+    assert np.isfinite(np.asarray(state.plan)).all()
+    u, state, info = step(state, q, qd)
+    assert int(info.status) == mppi.PLANNED and np.isfinite(np.asarray(state.plan)).all()
+
+    def exploding(q, qd, u, key=None):
+        return q * jnp.inf, qd * jnp.inf
+
+    bad = mppi.make(cfg, exploding, cost, [-U_MAX], [U_MAX])
+    s0 = bad.init(jax.random.key(1), jnp.full((8, 1), 0.7))
+    u, s1, info = jax.jit(bad.step)(s0, q, qd)
+    assert int(info.status) == mppi.NO_FINITE_ROLLOUT
+    assert float(u[0]) == pytest.approx(0.7) and np.isfinite(np.asarray(s1.plan)).all()

@@ -8,7 +8,7 @@ import numpy as np
 import optax
 import pytest
 
-from stride_jax.dynamics import mlp, stride
+from stride_jax.dynamics import lagrangian, mlp, stride
 from stride_jax.types import ModelSpec
 
 SPEC = ModelSpec(nq=1, nv=1, floating_base=False, periodic=(True,))
@@ -155,6 +155,33 @@ def test_acceleration_loss_trains_the_residual_as_algorithm_1(residual):
     assert acc_grad(dataclasses.replace(CFG, acc_through="prior")) == 0.0
 
 
+@pytest.mark.parametrize("residual", ["flow", "diffusion"])
+def test_mean_head_takes_the_acceleration_loss_and_the_generator_the_remainder(residual):
+    """acc_through="mean": the acceleration loss reaches the mean head and not the generator;
+    the generator's own loss reaches the generator and not the head; samples scatter around the
+    head's prediction."""
+    cfg = dataclasses.replace(CFG, acc_through="mean")
+    params = stride.init(jax.random.key(1), SPEC, cfg, residual)
+    assert set(params["residual"]) == {"mean", "gen"}
+    params = jax.tree.map(lambda x: x + 0.05 * jax.random.normal(jax.random.key(2), x.shape),
+                          params)
+    q, qd, tau, qdd = jnp.array([0.3]), jnp.array([-1.0]), jnp.array([0.5]), jnp.array([2.0])
+    part = "fm" if residual == "flow" else "ddpm"
+    size = lambda g, k: float(sum(jnp.sum(jnp.abs(x)) for x in jax.tree.leaves(g["residual"][k])))
+    grad = lambda name: jax.grad(lambda p: stride.loss(p, SPEC, cfg, residual, q, qd, tau, qdd,
+                                                       jax.random.key(0))[1][name])(params)
+    g_acc, g_gen = grad("acc"), grad(part)
+    assert size(g_acc, "mean") > 1e-3 and size(g_acc, "gen") == 0.0
+    assert size(g_gen, "gen") > 1e-3 and size(g_gen, "mean") == 0.0
+    gen = cfg.generator(residual)
+    c = stride.context(SPEC, q, qd, tau)
+    head = gen.mean(params["residual"], c, 1)
+    draws = jax.vmap(lambda k: gen.sample(params["residual"], c, k, 1))(
+        jax.random.split(jax.random.key(3), 64))
+    assert float(jnp.std(draws)) > 0 and abs(float(jnp.mean(draws) - head[0])) < 3 * float(
+        jnp.std(draws))
+
+
 def test_best_checkpoint_criterion_leaves_the_generator_loss_out():
     params = stride.init(jax.random.key(1), SPEC, CFG, "flow")
     q, qd, tau, qdd = jnp.array([0.3]), jnp.array([-1.0]), jnp.array([0.5]), jnp.array([2.0])
@@ -167,3 +194,18 @@ def test_best_checkpoint_criterion_leaves_the_generator_loss_out():
 def test_unknown_acc_through_is_a_clear_error():
     with pytest.raises(ValueError, match="acc_through"):
         stride.StructuredConfig(acc_through="everything")
+
+
+def test_delan_as_published_is_the_prior_alone():
+    """``none``: no residual parameters, a zero residual, and the terms give the prior's own
+    inverse dynamics: mass @ (qdd - prior) = M qdd - (tau - b)."""
+    params = stride.init(jax.random.key(1), SPEC, CFG, "none")
+    assert params["residual"] == {}
+    q, qd, tau, qdd = jnp.array([0.3]), jnp.array([-1.0]), jnp.array([0.5]), jnp.array([2.0])
+    t = stride.terms(params, SPEC, CFG, "none", q, qd, tau, None)
+    np.testing.assert_array_equal(t["eps"], 0.0)
+    M, b = lagrangian.lnn_terms(params["lnn"], SPEC, q, qd, CFG.lnn)
+    np.testing.assert_allclose(t["mass"] @ (qdd - t["prior"]), M @ qdd - (tau - b), rtol=1e-5)
+    total, parts = stride.loss(params, SPEC, CFG, "none", q, qd, tau, qdd, jax.random.key(0))
+    assert set(parts) == {"acc", "res", "res_free", "select"}
+    np.testing.assert_allclose(total, parts["select"], rtol=1e-6)

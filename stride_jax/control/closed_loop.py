@@ -131,6 +131,7 @@ class Trace(NamedTuple):
     fallen: jax.Array  # [T] bool
     contact: jax.Array  # [T, nfeet] bool, measured
     action: jax.Array  # [T, nu_plan] the applied planner action
+    status: jax.Array  # [T] int32 the planner's mppi status (PLANNED, or why it fell back)
 
 
 def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Planning,
@@ -158,8 +159,10 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
         t = step * dt
         command = command_at(starts, values, t)
         q_aug = augment(d.qpos, command, clock)
+        status = jnp.zeros((), jnp.int32)
         if planner is not None:
-            u, ps, _ = planner.step(ps, q_aug, d.qvel)
+            u, ps, info = planner.step(ps, q_aug, d.qvel)
+            status = info.status
             if gait:  # gait parameters are per rollout: hold the chosen ones over the plan
                 ps = ps._replace(plan=ps.plan.at[:, nu:].set(ps.plan[0, nu:]))
         else:
@@ -172,7 +175,8 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
         d2 = jax.tree.map(lambda a, b: jnp.where(finite, a, b), d2, d)  # freeze a diverged sim
         down = down | rollout_mjx.fallen(sm, d2.qpos) | ~finite
         v, w, _ = envs.base_signals(d2.qpos, d2.qvel)
-        rec = Trace(t + dt, command, v, w, d2.qpos[2], down, envs.foot_contact(sm, slots, d2), u)
+        rec = Trace(t + dt, command, v, w, d2.qpos[2], down, envs.foot_contact(sm, slots, d2), u,
+                    status)
         return (d2, ps, clock, down), rec
 
     init = (d0, ps0, jnp.zeros(()), jnp.zeros((), bool))
@@ -198,7 +202,8 @@ def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
     out = dict(vel_rmse=rmse(v_err), yaw_rmse=rmse(w_err), fell=fell,
                fall_s=float(tr.t[np.argmax(tr.fallen)]) if fell else None,
                mean_vx=float(tr.v_base[up, 0].mean()) if up.any() else float("nan"),
-               upright_s=float(up.sum() * (tr.t[1] - tr.t[0]) if len(tr.t) > 1 else 0.0))
+               upright_s=float(up.sum() * (tr.t[1] - tr.t[0]) if len(tr.t) > 1 else 0.0),
+               fallbacks=int((tr.status != mppi.PLANNED).sum()))
     if up.sum() >= 10 and tr.contact.shape[1] == 4:  # the quadruped gait the feet showed
         out["contact_gait"], out["contact_gait_score"] = gait_lib.classify_contacts(
             tr.contact[up])

@@ -18,6 +18,13 @@ Sec. IV-B):
 ``make`` returns ``init`` and ``step``, pure functions of an immutable :class:`MPPIState`; jit
 ``step`` once per (samples, horizon, model) and call it every control period.
 
+Failing safe: a state with a NaN or inf (a sensor glitch), or a step in which no rollout stays
+finite, does not plan. The step then applies the previous plan shifted by one step (the
+warm start, finite by construction: no non-finite plan is ever stored; the action bounds' middle
+if a caller's initial plan was not finite), keeps that as its plan, and says why in
+``Info.status`` (:data:`PLANNED`, :data:`BAD_STATE`, :data:`NO_FINITE_ROLLOUT`). The next valid
+state plans as usual.
+
 Several devices: ``make(..., sharding=sample_sharding())`` splits the rollouts over all local
 devices. On a CPU this is how a planner uses more than one core: XLA runs one device's small
 operations one after another (a model step at K=128 compiles to ~220 of them, each too small to
@@ -101,11 +108,16 @@ class MPPIState(NamedTuple):
     key: jax.Array
 
 
+# Info.status: what the step did.
+PLANNED, BAD_STATE, NO_FINITE_ROLLOUT = 0, 1, 2
+
+
 class Info(NamedTuple):
     costs: jax.Array  # [K] of the last iteration
     weights: jax.Array  # [K]
     best_cost: jax.Array  # []
     plan: jax.Array  # [H, nu] after the update
+    status: jax.Array  # [] int32: PLANNED, or why the step fell back to the shifted plan
 
 
 class Planner(NamedTuple):
@@ -229,14 +241,24 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
             shifted = shifted / jnp.maximum(spread, 1e-6)
         weights = jax.nn.softmax(-shifted / cfg.temperature)
         new_plan = jnp.einsum("k,khu->hu", weights, actions)
-        return new_plan, Info(costs, weights, jnp.min(costs), new_plan)
+        ok = finite.any() & jnp.all(jnp.isfinite(new_plan))
+        status = jnp.where(ok, PLANNED, NO_FINITE_ROLLOUT).astype(jnp.int32)
+        new_plan = jnp.where(ok, new_plan, plan)
+        return new_plan, Info(costs, weights, jnp.min(costs), new_plan, status)
 
     def step(state: MPPIState, q: jax.Array, qd: jax.Array):
         key, key_step = jax.random.split(state.key)
         plan = jnp.concatenate([state.plan[1:], state.plan[-1:]])  # warm start: shift
-        info = None
+        plan = jnp.where(jnp.all(jnp.isfinite(plan)), plan, 0.5 * (lo + hi))
+        good_state = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd))
+        # A bad state still runs the (discarded) rollouts: one program, no branch on the device.
+        q_in, qd_in = jnp.where(jnp.isfinite(q), q, 0.0), jnp.where(jnp.isfinite(qd), qd, 0.0)
+        warm, info = plan, None
         for i in range(cfg.iterations):
-            plan, info = iterate(plan, q, qd, jax.random.fold_in(key_step, i))
+            plan, info = iterate(plan, q_in, qd_in, jax.random.fold_in(key_step, i))
+        plan = jnp.where(good_state, plan, warm)
+        status = jnp.where(good_state, info.status, BAD_STATE).astype(jnp.int32)
+        info = info._replace(plan=plan, status=status)
         return plan[0], MPPIState(plan, key), info
 
     return Planner(init, step)

@@ -22,6 +22,33 @@ class Generator(NamedTuple):
     loss: Callable  # (params, x [dim], context, key) -> scalar training loss of one example
     sample: Callable  # (params, context, key, dim, nfe=None) -> x [dim]
     central: Callable  # (params, context, dim, nfe=None) -> x [dim]: the latent's centre mapped
+    mean: Callable | None = None  # (params, context, dim) -> x [dim]: a deterministic part,
+    # trained by the caller (with_mean); None: the generator has none
+
+
+def with_mean(gen: Generator, net: mlp.MLPConfig) -> Generator:
+    """``x = m(c) + y``: a mean head ``m``, an MLP of size ``net``, plus ``gen`` for the remainder
+    ``y``. ``gen`` is trained by its own loss on ``x - m(c)`` with ``m`` held fixed there, so it
+    models the spread around ``m``; ``m`` gets no gradient from that loss: the caller trains it
+    (STRIDE's acceleration loss, ``acc_through="mean"``). Parameters ``{'mean', 'gen'}``."""
+    head = lambda dim: mlp.mlp(net, dim, zero_last=True)
+
+    def init(key, dim, cdim):
+        key_mean, key_gen = jax.random.split(key)
+        return {"mean": head(dim)[0](key_mean, cdim), "gen": gen.init(key_gen, dim, cdim)}
+
+    def mean(p, c, dim):
+        return head(dim)[1](p["mean"], c)
+
+    def loss(p, x, c, key):
+        return gen.loss(p["gen"], x - jax.lax.stop_gradient(mean(p, c, x.shape[-1])), c, key)
+
+    return Generator(init, loss,
+                     lambda p, c, key, dim, nfe=None: mean(p, c, dim) + gen.sample(
+                         p["gen"], c, key, dim, nfe),
+                     lambda p, c, dim, nfe=None: mean(p, c, dim) + gen.central(
+                         p["gen"], c, dim, nfe),
+                     mean)
 
 
 def make(kind: str, net: mlp.MLPConfig, nfe: int, integrator: str = "euler",

@@ -122,6 +122,7 @@ class Model(NamedTuple):
 MODELS = {
     "stride": ("structured", "flow"),
     "delan": ("structured", "mlp"),
+    "delan_prior": ("structured", "none"),
     "lnn_diffusion": ("structured", "diffusion"),
     "onn": ("next_obs", None),
     "diffusion": ("next_obs", "diffusion"),
@@ -209,16 +210,18 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         _check_inputs(name, spec, nu, q=q, qd=qd, tau=tau)
         return stride.terms(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
 
-    return Model(name, residual != "mlp", init, loss, acceleration, step, rollout, terms)
+    return Model(name, residual not in ("mlp", "none"), init, loss, acceleration, step, rollout,
+                 terms)
 
 
 def _whole_step_applies(spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig) -> bool:
     """Whether a STRIDE model's substep runs as one kernel (``fused_step``): a ``-step`` kernel
     choice, a floating base without periodic joints, position servos integrated implicitly,
-    one network for L and V and Euler flow steps (the planning configuration)."""
+    one network for L and V and Euler flow steps (the planning configuration), and no mean head
+    (the kernel holds the flow alone)."""
     return (fused.whole_step(cfg.kernel) and spec.floating_base and not any(spec.periodic)
             and act.kp is not None and cfg.implicit_servo and cfg.shared_lnn
-            and cfg.integrator == "euler")
+            and cfg.integrator == "euler" and cfg.acc_through != "mean")
 
 
 def _fused_substep(xla_substep: Callable, spec: ModelSpec, act: Actuation,

@@ -6,8 +6,11 @@ The ``residual`` kind picks how ``eps`` comes about:
 
 * ``"flow"`` (STRIDE): sampled from a conditional flow, ``eps ~ p(eps | q, qd, tau)`` (Sec. III-C);
 * ``"diffusion"`` (LNN + Diffusion): sampled from a DDPM of the same size, trained the same way;
-* ``"mlp"`` (DeLaN, Lutter et al., 2019, with the deterministic residual the paper compares
-  against): predicted, ``eps = r(q, qd, tau)``, by an MLP of the same size.
+* ``"mlp"`` (DeLaN, Lutter et al., 2019, with a deterministic residual): predicted,
+  ``eps = r(q, qd, tau)``, by an MLP of the same size;
+* ``"none"`` (DeLaN as published: the prior alone, ``eps = 0``), trained on the same
+  acceleration loss (the paper's DeLaN baseline, Sec. IV-A: "loss: RMSE on predicted
+  accelerations"). Contact forces then have no term of their own: the prior fits what it can.
 
 All are pure functions of a params dict, written for one example. The diffusion baseline models
 the residual *force* like STRIDE (the paper words it as a residual acceleration): with everything
@@ -22,7 +25,10 @@ denoising loss in place of flow matching). Per example, with
   residual's **central sample** -- the flow's transport of ``z0 = 0`` (for the DDPM, its
   deterministic DDIM map from ``x = 0``), with ``nfe`` evaluations: a deterministic function of
   the context (the mean for a Gaussian residual, a point between the modes of a symmetric
-  mixture). History, both measured: a *random* sample's squared error adds the spread
+  mixture). With ``acc_through="mean"`` the residual is a mean head plus a generator of the
+  zero-mean remainder (``generative.with_mean``): the acceleration loss trains the head (DeLaN's
+  deterministic residual, in effect) and the generator models only the spread around it, so the
+  mean prediction cannot drift with the flow. History, both measured: a *random* sample's squared error adds the spread
   ``tr(W M^-1 Cov(eps) M^-T W)``, which the prior lowered by inflating M (Go1: the residual left
   by the prior grew to 10x DeLaN's, foot forces off by 200 N); the product ``e1 . e2`` of two
   independent samples' errors removes that term in expectation but is unbounded below on a
@@ -78,11 +84,12 @@ from stride_jax.dynamics import diffusion, fused, generative, lagrangian, linalg
 from stride_jax.types import ModelSpec
 
 
-RESIDUALS = ("mlp",) + generative.KINDS
+RESIDUALS = ("mlp", "none") + generative.KINDS
 # What the acceleration loss trains besides the prior (module docstring): nothing of the residual
-# ("prior", the first version), the residual's central sample ("central", the default) or a
-# random sample of it ("sample", the paper's Algorithm 1 taken literally).
-ACC_THROUGH = ("prior", "central", "sample")
+# ("prior", the first version), the residual's central sample ("central", the default), a
+# random sample of it ("sample", the paper's Algorithm 1 taken literally), or a mean head beside
+# a generator of the zero-mean remainder ("mean", generative.with_mean).
+ACC_THROUGH = ("prior", "central", "sample", "mean")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,8 +139,9 @@ class StructuredConfig:
                                          abar_min=self.abar_min)
 
     def generator(self, kind: str) -> generative.Generator:
-        return generative.make(kind, self.net, self.nfe, self.integrator, self.kernel,
-                               self.diffusion)
+        gen = generative.make(kind, self.net, self.nfe, self.integrator, self.kernel,
+                              self.diffusion)
+        return generative.with_mean(gen, self.net) if self.acc_through == "mean" else gen
 
 
 class Scales(NamedTuple):
@@ -177,6 +185,8 @@ def init(key: jax.Array, spec: ModelSpec, cfg: StructuredConfig, residual: str) 
     c_dim = _context_dim(spec)
     if residual == "mlp":
         res = mlp.mlp(cfg.net, spec.nv, zero_last=True)[0](key_res, c_dim)
+    elif residual == "none":
+        res = {}
     else:
         res = cfg.generator(residual).init(key_res, spec.nv, c_dim)
     return {"lnn": lagrangian.lnn_init(key_lnn, spec, cfg.lnn), "residual": res}
@@ -187,6 +197,8 @@ def _residual(res_params, spec, cfg, residual, c, key, nfe=None):
     the MLP's prediction."""
     if residual == "mlp":
         return mlp.mlp(cfg.net, spec.nv, zero_last=True)[1](res_params, c)
+    if residual == "none":
+        return jnp.zeros(spec.nv, c.dtype)
     if key is None:
         return cfg.generator(residual).central(res_params, c, spec.nv, nfe)
     return cfg.generator(residual).sample(res_params, c, key, spec.nv, nfe)
@@ -221,13 +233,14 @@ def acceleration(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual:
 
 def terms(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
           q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales()) -> dict:
-    """The split ``qdd = prior + residual``: ``{'prior': f_LNN, 'residual': M^-1 eps, 'eps': eps}``
-    (each ``[nv]``), for evaluation and analysis."""
+    """The split ``qdd = prior + residual``: ``{'prior': f_LNN, 'residual': M^-1 eps, 'eps': eps,
+    'mass': M}`` (``[nv]``, ``[nv, nv]``), for evaluation and analysis. With the true ``qdd``,
+    ``mass @ (qdd - prior)`` is the residual force the prior implies (its inverse dynamics)."""
     M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn, cfg.kernel)
     eps = residual_force(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
     cho = jax.scipy.linalg.cho_factor(M)
     return {"prior": jax.scipy.linalg.cho_solve(cho, tau - b),
-            "residual": jax.scipy.linalg.cho_solve(cho, eps), "eps": eps}
+            "residual": jax.scipy.linalg.cho_solve(cho, eps), "eps": eps, "mass": M}
 
 
 def non_contact_part(force: jax.Array, jac: jax.Array | None) -> jax.Array:
@@ -254,7 +267,7 @@ def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
     M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn)
     cho = jax.scipy.linalg.cho_factor(M)
     c = context(spec, q, qd, tau, scales)
-    generative_kind = residual != "mlp"
+    generative_kind = residual not in ("mlp", "none")
     if not generative_kind:
         eps = _residual(params["residual"], spec, cfg, residual, c, key_sample)
     else:
@@ -264,6 +277,8 @@ def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
             res_params = jax.lax.stop_gradient(res_params)
         if cfg.acc_through == "sample":
             eps = gen.sample(res_params, c, key_sample, spec.nv)
+        elif cfg.acc_through == "mean":
+            eps = gen.mean(res_params, c, spec.nv)
         else:
             eps = gen.central(res_params, c, spec.nv)
     err = (qdd - jax.scipy.linalg.cho_solve(cho, tau - b + scales.force * eps)) / scales.qdd

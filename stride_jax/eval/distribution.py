@@ -56,6 +56,11 @@ def scores(samples: np.ndarray, truths: np.ndarray | None = None) -> dict:
     y = truths.astype(np.float64)
     ok = np.isfinite(x).all((1, 2, 3))
     x, y = x[ok], y[ok]
+    if not len(x):  # every window diverged in some sample: nothing to score
+        nan = float("nan")
+        return {"energy": nan, "crps": nan, "coverage": nan, "mean_of_samples": nan,
+                "nominal_coverage": nominal_coverage(s) if s > 1 else 0.0,
+                "truths": int(y.shape[1]), "samples": int(s), "diverged": 1.0}
     flat = lambda a: a.reshape(a.shape[0], a.shape[1], -1)
     to_truth = _pairwise_rms(flat(x), flat(y)).mean((1, 2))
     spread = _pairwise_rms(flat(x), flat(x)).sum((1, 2)) / max(s * (s - 1), 1)
@@ -70,10 +75,9 @@ def scores(samples: np.ndarray, truths: np.ndarray | None = None) -> dict:
     lo, hi = xs[:, 0], xs[:, -1]
     inside = (y >= lo[:, None]) & (y <= hi[:, None]) & (s > 1)
     mean_err = np.sqrt(np.mean((x.mean(1)[:, None] - y) ** 2, -1)).sum(-1).mean(-1)  # [N]
-    return {"energy": float(energy.mean()) if len(x) else float("nan"),
-            "crps": float(crps.mean()) if len(x) else float("nan"),
-            "coverage": float(inside.mean()) if len(x) else float("nan"),
+    return {"energy": float(energy.mean()), "crps": float(crps.mean()),
+            "coverage": float(inside.mean()),
             "nominal_coverage": nominal_coverage(s) if s > 1 else 0.0,
-            "mean_of_samples": float(mean_err.mean()) if len(x) else float("nan"),
+            "mean_of_samples": float(mean_err.mean()),
             "truths": int(y.shape[1]), "samples": int(s),
             "diverged": float(1.0 - ok.mean())}

@@ -90,7 +90,7 @@ def _label(name: str, train: dict) -> str:
     """A model's row in the table: its name, with the training variant when it is not the
     default (``stride[acc_through=prior]``), so ablations get rows of their own."""
     through = train.get("acc_through", "central")
-    generative = models.MODELS.get(name, ("", None))[1] not in (None, "mlp")
+    generative = models.MODELS.get(name, ("", None))[1] not in (None, "mlp", "none")
     structured = models.MODELS.get(name, ("",))[0] == "structured"
     return f"{name}[acc_through={through}]" if structured and generative and \
         through != "central" else name
@@ -168,6 +168,11 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     central = jax.jit(jax.vmap(lambda q, qd, tau: model.terms(params, q, qd, tau, None, nfe)))
     of_central = forces.normal_force_errors(jac, stance, np.asarray(central(q, qd, tau)["eps"]),
                                             true_normal)
+    # The prior's own inverse dynamics with the true acceleration: r* = M (qdd - f_LNN), read
+    # through the same map (no residual involved; the only force readout of a prior-only model).
+    implied = np.einsum("nij,nj->ni", np.asarray(terms[0]["mass"]),
+                        pick("qdd") - np.asarray(terms[0]["prior"]))
+    of_prior = forces.normal_force_errors(jac, stance, implied, true_normal)
     sample_means = np.nanmean(per_sample, axis=(1, 2))
     out["force"] = {
         "mean": float(sample_means.mean()), "spread": float(sample_means.std()),
@@ -176,6 +181,7 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
         "oracle": float(np.nanmean(oracle)), "stance_feet": int(stance.sum()),
         "of_sample_mean": float(np.nanmean(of_mean)),
         "of_central": float(np.nanmean(of_central)),
+        "of_prior": float(np.nanmean(of_prior)),
         "mean_true_normal": float(true_normal[stance].mean())}
     return out
 
@@ -259,6 +265,7 @@ def aggregate(results: list[dict]) -> dict[str, dict]:
             "share_free": _agg([get(r, "share", "free", "mean") for r in rs]),
             "share_contact": _agg([get(r, "share", "contact", "mean") for r in rs]),
             "force_of_central": _agg([get(r, "force", "of_central") for r in rs]),
+            "force_of_prior": _agg([get(r, "force", "of_prior") for r in rs]),
             **{f"dist_{k}": _agg([get(r, "distribution", k) for r in rs])
                for k in ("mean_of_samples", "energy", "crps", "coverage", "nominal_coverage")},
         }
@@ -305,17 +312,21 @@ def markdown(table: dict, robot: str, command: str, cfg: EvalConfig) -> str:
               f"logged future and {cfg.continuations} re-simulated ones under new hidden draws, "
               "`eval/distribution.py`): error of the samples' mean, energy score and CRPS "
               "(normalised units, lower is better), coverage of the samples' range (%) against "
-              "its nominal level; force read from the residual's central sample (N).", "",
+              "its nominal level; force read from the residual's central sample (N), and from "
+              "the residual the prior implies with the true acceleration, M (qdd - f_LNN): the "
+              "prior's own inverse dynamics, no residual involved (N).", "",
               "| model | state RMSE per sample | of sample mean | energy score | CRPS | "
-              "coverage (%) | nominal (%) | force, central sample (N) |",
-              "|---|---|---|---|---|---|---|---|"]
+              "coverage (%) | nominal (%) | force, central sample (N) | force, prior's "
+              "inverse dynamics (N) |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for name, row in table.items():
         lines.append(
             f"| {name} | {_fmt(row['state'])} | {_fmt(row.get('dist_mean_of_samples'))} | "
             f"{_fmt(row.get('dist_energy'))} | {_fmt(row.get('dist_crps'))} | "
             f"{_fmt(row.get('dist_coverage'), 1, True)} | "
             f"{_fmt(row.get('dist_nominal_coverage'), 1, True)} | "
-            f"{_fmt(row.get('force_of_central'), 1)} |")
+            f"{_fmt(row.get('force_of_central'), 1)} | "
+            f"{_fmt(row.get('force_of_prior'), 1)} |")
     ratios = _ratios(table)
     if ratios:
         lines += ["", "Ratios (ours; the paper's Go1 / G1 in brackets):", ""]
@@ -329,7 +340,10 @@ def _ratios(table: dict) -> dict[str, float]:
     pairs = [("STRIDE/DeLaN state RMSE [0.70 / 0.28]", "delan", "state"),
              ("STRIDE/DeLaN force error [0.71 / 0.71]", "delan", "force"),
              ("STRIDE/(LNN+Diffusion) state RMSE [0.81 / 0.31]", "lnn_diffusion", "state"),
-             ("STRIDE/ONN state RMSE [0.17 / 0.47]", "onn", "state")]
+             ("STRIDE/ONN state RMSE [0.17 / 0.47]", "onn", "state"),
+             ("STRIDE/DeLaN as published (prior only) state RMSE", "delan_prior", "state"),
+             ("STRIDE/DeLaN energy score", "delan", "dist_energy"),
+             ("STRIDE/DeLaN CRPS", "delan", "dist_crps")]
     for label, other, key in pairs:
         a, b = m("stride", key), m(other, key)
         if a is not None and b:
