@@ -52,6 +52,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--ablation", default="",
                    help="extra STRIDE runs (first seed) trained with these comma-separated "
                         "--acc-through choices, e.g. prior,sample")
+    p.add_argument("--ablation-seeds", action="store_true",
+                   help="train the ablation runs on every seed, not only the first")
     p.add_argument("--steps", type=int, default=0, help="training steps (0: the preset's)")
     p.add_argument("--parallel", type=int, default=5, help="processes at once")
     p.add_argument("--minutes", type=float, default=0.0,
@@ -90,7 +92,9 @@ def main(argv: list[str] | None = None) -> None:
     # (robot, model, seed, acc_through variant or "" for the default)
     jobs = [(r, m, int(s), "") for s in args.seeds.split(",") for r in robots
             for m in args.models.split(",")]
-    jobs += [(r, "stride", first_seed, v) for r in robots for v in args.ablation.split(",") if v]
+    ablation_seeds = [int(s) for s in args.seeds.split(",")] if args.ablation_seeds else [first_seed]
+    jobs += [(r, "stride", s, v) for s in ablation_seeds for r in robots
+             for v in args.ablation.split(",") if v]
     tag = lambda m, v: f"{m}-{v}" if v else m
     name = lambda r, m, s, v: f"{r}/{tag(m, v)}-s{s}"
     run_dir = lambda r, m, s, v: runs[r] / f"{tag(m, v)}-s{s}"

@@ -211,3 +211,25 @@ def test_script(results, tmp_path):
     rep = mod.main(["--results", str(results), "--out", str(out)])
     assert out.read_text() == rep["markdown"]
     assert rep["path"] == out
+
+
+def test_further_data_sets_get_their_own_ratios_and_targets(results):
+    runs = []
+    for s in (0, 1):
+        runs += [_run("stride", s, 7.0, 7.0), _run("delan", s, 10.0, 10.0),
+                 _run("stride[acc_through=mean]", s, 9.5, 9.0)]
+        runs[-3]["distribution"] = {"energy": 0.3, "crps": 0.2}
+        runs[-2]["distribution"] = {"energy": 0.5, "crps": 0.25}
+    _write(results / "go1_walk" / "table.json",
+           {"command": "python experiments/table1.py --data walk", "runs": runs})
+    md = report.build(results)["markdown"]
+    section = md[md.index("## Table I on further data sets"):]
+    rows = [line for line in section.splitlines() if line.startswith("| stride")]
+    state = [r for r in rows if r.startswith("| stride | delan | state")][0]
+    assert "0.70" in state and "| holds |" in state  # 0.70 <= 0.80
+    force = [r for r in rows if r.startswith("| stride | delan | force")][0]
+    assert "0.70" in force and "| holds |" in force  # 0.70 <= 0.75
+    mean_state = [r for r in rows if r.startswith("| stride[acc_through=mean] | delan | state")]
+    assert "0.95" in mean_state[0] and "does not hold" in mean_state[0]
+    energy = [r for r in rows if r.startswith("| stride | delan | energy score")][0]
+    assert "0.60" in energy and "(better)" in energy

@@ -31,7 +31,8 @@ from stride_jax.eval.report_common import (
 )
 from stride_jax.eval.report_common import PAPER_TABLE1  # noqa: F401  (re-exported)
 from stride_jax.eval.report_control import closed_loop_rows, gap_lines, mppi_rows
-from stride_jax.eval.report_table1 import _growth, _ratio_text, load_table1, seed_ratio, table1_rows
+from stride_jax.eval.report_table1 import (_growth, _ratio_text, further_section, further_tables,
+                                           load_table1, seed_ratio, table1_rows)
 from stride_jax.io import atomic_write_text
 
 # ------------------------------------------------------------------------ reproduce summary
@@ -283,7 +284,8 @@ def build(results: str | os.PathLike = "results", out: str | os.PathLike | None 
     cmds = list(dict.fromkeys(r.command for r in rows if r.command))
     lines += ["", "Commands that produced these numbers (from the files' `command` fields):", ""]
     lines += [f"- `{c}`" for c in cmds] + [""]
-    lines += t_lines + s_lines + m_lines + c_lines + gap_lines(results, rel)
+    lines += t_lines + further_section(further_tables(results), rel)
+    lines += s_lines + m_lines + c_lines + gap_lines(results, rel)
     lines += ["## How to regenerate", "",
               "`R` is a data and runs folder; the GPU steps fit 10-minute calls by resuming "
               "(`--minutes`, `--parts`; see `docs/reproduce.md`).", ""]

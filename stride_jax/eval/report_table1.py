@@ -227,3 +227,66 @@ def table1_section(tables: dict[str, dict], rel) -> list[str]:
     return lines + [""]
 
 
+
+
+# ------------------------------------------------------------- further Table I data sets
+
+# Issue 16's targets for STRIDE against DeLaN (prior plus MLP residual), per data set.
+TARGET_STATE, TARGET_FORCE = 0.80, 0.75
+
+
+def further_tables(results: pathlib.Path) -> dict[str, dict]:
+    """``results/<name>/table.json`` beyond the robots' own (``go1_walk``, ``go1_cpu`` ...):
+    Table I on other data sets or at other sizes."""
+    out = {}
+    for path in sorted(results.glob("*/table.json")):
+        name = path.parent.name
+        if name in ROBOTS:
+            continue
+        d = _load_json(path)
+        if isinstance(d, dict) and isinstance(d.get("runs"), list):
+            d["_path"] = path
+            out[name] = d
+    return out
+
+
+def further_section(tables: dict[str, dict], rel) -> list[str]:
+    """STRIDE and its ablations against DeLaN per further data set: state, force, distribution
+    scores, per seed, with issue 16's targets as computed verdicts."""
+    if not tables:
+        return []
+    lines = ["## Table I on further data sets", "",
+             "Each STRIDE variant (`acc_through`: what its acceleration loss trains, README "
+             "'Training and using a model') against DeLaN with an MLP residual (`delan`) and DeLaN "
+             "as published (`delan_prior`, the prior alone), per seed (seeds paired), mean ± "
+             "std. Force: the per-sample force error; energy score and CRPS judge the 30-step "
+             f"distribution. Targets (issue 16): state <= {TARGET_STATE}, force <= "
+             f"{TARGET_FORCE} of DeLaN's.", ""]
+    metrics = (("state", _state, TARGET_STATE), ("force", _force, TARGET_FORCE),
+               ("energy score", lambda r: _dig(r, "distribution", "energy"), None),
+               ("CRPS", lambda r: _dig(r, "distribution", "crps"), None))
+    for name, t in tables.items():
+        note = _git_note(t["_path"])
+        lines += [f"### `{name}`", "", f"`{rel(t['_path'])}`{' (' + note + ')' if note else ''}; "
+                  f"command: `{t.get('command', 'not recorded')}`", ""]
+        models = list(dict.fromkeys(r["model"] for r in t["runs"]))
+        rows = []
+        variants = sorted((m for m in models if m.startswith("stride")),
+                          key=lambda m: (m != "stride", m))
+        for m in variants:
+            for base in ("delan", "delan_prior"):
+                if base not in models:
+                    continue
+                for label, fn, target in metrics:
+                    r = seed_ratio(_per_seed(t, m, fn), _per_seed(t, base, fn))
+                    if not r["seeds"]:
+                        continue
+                    if base == "delan" and target is not None:
+                        v = _ratio_verdict(r, target)
+                    else:
+                        better = _ratio_verdict(r, 1.0, True) == verdict(True)
+                        v = "(better)" if better else "(not better)"
+                    rows.append([m, base, label, _ratio_text(r, None, base), v])
+        lines += _table(["model", "against", "metric", "ratio", "target / direction"], rows)
+        lines.append("")
+    return lines
