@@ -225,11 +225,11 @@ def test_further_data_sets_get_their_own_ratios_and_targets(results):
     md = report.build(results)["markdown"]
     section = md[md.index("## Table I on further data sets"):]
     rows = [line for line in section.splitlines() if line.startswith("| stride")]
-    state = [r for r in rows if r.startswith("| stride | delan | state")][0]
+    state = [r for r in rows if r.startswith("| stride | state")][0]
     assert "0.70" in state and "| holds |" in state  # 0.70 <= 0.80
-    force = [r for r in rows if r.startswith("| stride | delan | force")][0]
+    force = [r for r in rows if r.startswith("| stride | force")][0]
     assert "0.70" in force and "| holds |" in force  # 0.70 <= 0.75
-    mean_state = [r for r in rows if r.startswith("| stride[acc_through=mean] | delan | state")]
+    mean_state = [r for r in rows if r.startswith("| stride[acc_through=mean] | state")]
     assert "0.95" in mean_state[0] and "does not hold" in mean_state[0]
-    energy = [r for r in rows if r.startswith("| stride | delan | energy score")][0]
+    energy = [r for r in rows if r.startswith("| stride | energy score")][0]
     assert "0.60" in energy and "(better)" in energy

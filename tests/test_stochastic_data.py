@@ -44,20 +44,23 @@ def test_ground_ready_model_has_the_same_contacts(go1):
     assert (ready.geom_priority[go1.foot_geoms[:, 0]] > 0).all()
 
 
-def test_a_patch_scales_only_its_own_foot(go1):
-    ready = randomize.ground_ready(go1.mj, go1.geom_foot)
+@pytest.mark.parametrize("name", ["go1", "g1"])  # geom-geom contacts; explicit contact pairs
+def test_a_patch_scales_only_its_own_foot(name):
+    sm = model.load(name)
+    ready = randomize.ground_ready(sm.mj, sm.geom_foot)
     base = randomize.nominal_fields(ready)
-    pair_foot = randomize.pair_feet(ready, go1.geom_foot)
-    fric, soft = np.array([0.3, 1.0, 1.0, 1.0]), np.array([1.0, 1.0, 2.0, 1.0])
+    pair_foot = randomize.pair_feet(ready, sm.geom_foot)
+    fric, soft = np.ones(sm.nfeet), np.ones(sm.nfeet)
+    fric[0], soft[-1] = 0.3, 2.0  # the first foot on slippery ground, the last on soft ground
     edited = randomize.apply_mujoco(ready, base, randomize.sample(
-        jax.random.key(0), dataclasses.replace(go1.robot.randomization, friction=(1, 1),
+        jax.random.key(0), dataclasses.replace(sm.robot.randomization, friction=(1, 1),
                                                softness=(1, 1), payload_kg=(0, 0)), 5.0),
-        go1.base_body)
-    for k, a in randomize.apply_ground(base, go1.geom_foot, pair_foot, fric, soft, np).items():
+        sm.base_body)
+    for k, a in randomize.apply_ground(base, sm.geom_foot, pair_foot, fric, soft, np).items():
         getattr(edited, k)[...] = a
-    foot, f0, r0, _ = _standing_contacts(ready, go1)
-    foot1, f1, r1, _ = _standing_contacts(edited, go1)
-    assert (foot == foot1).all()
+    foot, f0, r0, _ = _standing_contacts(ready, sm)
+    foot1, f1, r1, _ = _standing_contacts(edited, sm)
+    assert (foot == foot1).all() and len(set(foot.tolist())) == sm.nfeet
     np.testing.assert_allclose(f1[:, 0], f0[:, 0] * fric[foot], rtol=1e-9)
     np.testing.assert_allclose(r1[:, 0], r0[:, 0] * soft[foot], rtol=1e-9)
 

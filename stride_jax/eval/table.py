@@ -330,7 +330,7 @@ def markdown(table: dict, robot: str, command: str, cfg: EvalConfig) -> str:
     ratios = _ratios(table)
     if ratios:
         lines += ["", "Ratios (ours; the paper's Go1 / G1 in brackets):", ""]
-        lines += [f"- {k}: {v:.2f}" for k, v in ratios.items()]
+        lines += [f"- {k}: {v:.3g}" for k, v in ratios.items()]
     return "\n".join(lines) + "\n"
 
 
