@@ -20,6 +20,7 @@ from stride_jax.train import job
 NETWORKS = {
     "stride": "L(q) Cholesky net, V(q) net, flow field v(z, t; q, qd, tau)",
     "delan": "L(q) Cholesky net, V(q) net, residual MLP r(q, qd, tau)",
+    "delan_prior": "L(q) Cholesky net, V(q) net (DeLaN as published: no residual)",
     "lnn_diffusion": "L(q) Cholesky net, V(q) net, DDPM noise net e(x, s; q, qd, tau)",
     "onn": "one MLP (q, qd, ctrl) -> change of (q, qd)",
     "diffusion": "one DDPM noise net e(x, s; q, qd, ctrl) over the change of (q, qd)",
