@@ -122,3 +122,14 @@ def test_true_residual_maps_to_the_measured_foot_forces(robot, tmp_path):
     # A residual without its contact part does not give the forces.
     wrong = forces.normal_force_errors(jac, stance, pick("qfrc_passive"), pick("foot_force"))
     assert np.nanmean(wrong) > 0.5 * mean_force
+
+
+def test_training_variants_get_rows_of_their_own():
+    from stride_jax.eval import table
+    assert table._label("stride", {}) == "stride"
+    assert table._label("stride", {"acc_through": "mean"}) == "stride[acc_through=mean]"
+    assert table._label("stride", {"acc_through": "prior", "learn_mass": True}) == \
+        "stride[acc_through=prior,learn_mass]"
+    assert table._label("delan", {"acc_through": "mean", "learn_mass": True}) == \
+        "delan[learn_mass]"  # no generative residual: acc_through does not apply
+    assert table._label("onn", {"learn_mass": True}) == "onn"

@@ -92,8 +92,10 @@ def _label(name: str, train: dict) -> str:
     through = train.get("acc_through", "central")
     generative = models.MODELS.get(name, ("", None))[1] not in (None, "mlp", "none")
     structured = models.MODELS.get(name, ("",))[0] == "structured"
-    return f"{name}[acc_through={through}]" if structured and generative and \
-        through != "central" else name
+    variant = [f"acc_through={through}"] if structured and generative and through != "central" \
+        else []
+    variant += ["learn_mass"] if structured and train.get("learn_mass") else []
+    return f"{name}[{','.join(variant)}]" if variant else name
 
 
 def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:

@@ -32,7 +32,9 @@ class TrainConfig(loop.LoopConfig):
         (``models.DEFAULT_NFE``: 2 for the flow, 10 for diffusion).
       shared_lnn: structured models: L and V from one network (``LNNConfig.shared``).
       acc_through: generative structured models: what the acceleration loss trains besides the
-        prior (``stride.ACC_THROUGH``: prior, central, sample).
+        prior (``stride.ACC_THROUGH``: prior, central, sample, mean).
+      learn_mass: structured models on a floating base: learn the total mass (starting at the
+        spec sheet's) instead of holding it there (an ablation of the fixed mass).
       out: run folder; empty means ``runs/<robot>/<model>``.
     """
 
@@ -45,6 +47,7 @@ class TrainConfig(loop.LoopConfig):
     nfe: int = 0
     shared_lnn: bool = False
     acc_through: str = "central"
+    learn_mass: bool = False
     out: str = ""
 
 
@@ -66,8 +69,8 @@ def spec_from_meta(meta: dict) -> ModelSpec:
 
 
 def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0,
-                 shared_lnn: bool = False, acc_through: str = "central"
-                 ) -> stride.StructuredConfig:
+                 shared_lnn: bool = False, acc_through: str = "central",
+                 learn_mass: bool = False) -> stride.StructuredConfig:
     """Sizes for ``model``; ``nfe=0`` takes its default. Floating bases start the learned total
     mass at the nominal model's (a spec-sheet number)."""
     if model not in models.MODELS:
@@ -76,7 +79,8 @@ def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0,
     mass = meta.get("total_mass") or float(sim_model.load(meta["robot"]).mj.body_mass.sum())
     return stride.StructuredConfig(net=mlp.MLPConfig(hidden, depth), nfe=nfe,
                                    mass_init=mass if meta["floating_base"] else 1.0,
-                                   shared_lnn=shared_lnn, acc_through=acc_through)
+                                   shared_lnn=shared_lnn, acc_through=acc_through,
+                                   learn_mass=learn_mass)
 
 
 def scales(ds: dataset.Dataset) -> stride.Scales:
@@ -106,7 +110,7 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
         raise dataset.DatasetError(f"{data_dir} predates actuator metadata; regenerate it")
     spec = spec_from_meta(ds.meta)
     model_cfg = model_config(cfg.model, ds.meta, cfg.hidden, cfg.depth, cfg.nfe, cfg.shared_lnn,
-                             cfg.acc_through)
+                             cfg.acc_through, cfg.learn_mass)
     act = models.Actuation.from_meta(ds.meta)
     sc = scales(ds)
     model = models.make(cfg.model, spec, act, model_cfg, sc)
