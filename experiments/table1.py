@@ -97,7 +97,8 @@ def main(argv: list[str] | None = None) -> None:
     # (robot, model, seed, acc_through variant or "" for the default)
     jobs = [(r, m, int(s), "") for s in args.seeds.split(",") for r in robots
             for m in args.models.split(",")]
-    ablation_seeds = [int(s) for s in args.seeds.split(",")] if args.ablation_seeds else [first_seed]
+    seeds = [int(s) for s in args.seeds.split(",")]
+    ablation_seeds = seeds if args.ablation_seeds else [first_seed]
     jobs += [(r, "stride", s, v) for s in ablation_seeds for r in robots
              for v in args.ablation.split(",") if v]
     tag = lambda m, v: f"{m}-{v}" if v else m

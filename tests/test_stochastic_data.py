@@ -83,7 +83,8 @@ def test_patches_are_a_function_of_place(go1_stochastic):
     np.testing.assert_array_equal(f, f2)
     np.testing.assert_array_equal(s, s2)
     assert f[0] == f[1] and f[1] != f[2]  # 0.3 m squares: the third point is in the next one
-    assert (np.asarray(f) >= r.patch_friction[0]).all() and (np.asarray(f) <= r.patch_friction[1]).all()
+    lo, hi = r.patch_friction
+    assert ((np.asarray(f) >= lo) & (np.asarray(f) <= hi)).all()
     other = randomize.sample(jax.random.key(6), r, 10.0)
     assert not np.array_equal(f, randomize.foot_patches(other, r, xy)[0])
 

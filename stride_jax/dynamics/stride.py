@@ -28,11 +28,11 @@ denoising loss in place of flow matching). Per example, with
   mixture). With ``acc_through="mean"`` the residual is a mean head plus a generator of the
   zero-mean remainder (``generative.with_mean``): the acceleration loss trains the head (DeLaN's
   deterministic residual, in effect) and the generator models only the spread around it, so the
-  mean prediction cannot drift with the flow. History, both measured: a *random* sample's squared error adds the spread
-  ``tr(W M^-1 Cov(eps) M^-T W)``, which the prior lowered by inflating M (Go1: the residual left
-  by the prior grew to 10x DeLaN's, foot forces off by 200 N); the product ``e1 . e2`` of two
-  independent samples' errors removes that term in expectation but is unbounded below on a
-  batch, and the prior learned to exploit it (LNN + Diffusion, whose samples spread most: the
+  mean prediction cannot drift with the flow. History, both measured: a *random* sample's
+  squared error adds the spread ``tr(W M^-1 Cov(eps) M^-T W)``, which the prior lowered by
+  inflating M (Go1: the residual left by the prior grew to 10x DeLaN's, foot forces off by
+  200 N); the product ``e1 . e2`` of two independent samples' errors removes that term in
+  expectation but is unbounded below on a batch, and the prior learned to exploit it (LNN + Diffusion, whose samples spread most: the
   validation loss fell to -1e7 on 2 of 3 Go1 seeds and their rollouts diverged). DeLaN's
   deterministic residual uses the same squared error, trained into both parts;
 * ``L_fm``: the conditional flow-matching loss of the flow on the target ``stop_gradient(r*)``

@@ -133,7 +133,8 @@ def true_trajectories(sm: sim_model.SimModel, starts: np.ndarray, steps: int, bu
     rand = randomize.RandValues(friction=one, softness=one, payload_kg=zero, damping=one,
                                 frictionloss=one, bump_nm=sign * bump_nm, push_t=zero,
                                 push_s=zero, push_force=np.zeros((2 * k, 3)),
-                                extra_push_t=np.zeros((2 * k, 0)), extra_push_s=np.zeros((2 * k, 0)),
+                                extra_push_t=np.zeros((2 * k, 0)),
+                                extra_push_s=np.zeros((2 * k, 0)),
                                 extra_push_force=np.zeros((2 * k, 0, 3)),
                                 terrain_seed=np.zeros(2 * k, np.uint32))
     recs, _ = rollout_cpu.run(sm, [sm.mj] * (2 * k), np.tile(starts[:, :1], (2, 1)),

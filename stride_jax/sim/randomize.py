@@ -121,8 +121,9 @@ def disturbance(v: RandValues, r: Randomization, t: jax.Array, qpos: jax.Array,
                 nv: int) -> Disturbance:
     """The episode's hidden external forces at time ``t`` (s) and configuration ``qpos``.
 
-    A push is a rectangular force pulse on the base (``r.pushes`` of them, which may overlap). The bump is a torque on the first dof of
-    a fixed-base robot, a Gaussian in the wrapped angle from ``r.bump_at`` (zero if unused).
+    A push is a rectangular force pulse on the base (``r.pushes`` of them, which may overlap).
+    The bump is a torque on the first dof of a fixed-base robot, a Gaussian in the wrapped angle
+    from ``r.bump_at`` (zero if unused).
     """
     on = (t >= v.push_t) & (t < v.push_t + v.push_s)
     push = jnp.where(on, v.push_force, 0.0)
