@@ -85,7 +85,7 @@ class PolicyExplorer:
         clock = jnp.mod(params.clock0 + cfg.gait_hz * info.ctrl_dt * step, 1.0)
         home = jnp.asarray(info.qpos0[7:])
         obs = envs.observe(cfg, home, qpos, qvel, self.command(params, info, step), clock)
-        key = jax.random.fold_in(params.key, step)
+        key = jax.random.fold_in(params.key, step)  # the deterministic policy draws nothing
         action = self.policy(obs, key) + params.noise * jax.random.normal(key, (info.nu,))
         ctrl = home + cfg.action_scale * jnp.clip(action, -1.0, 1.0)
         return jnp.clip(ctrl, info.ctrl_lo, info.ctrl_hi)
