@@ -111,9 +111,7 @@ def true_accelerations(sm: sim_model.SimModel, q: np.ndarray, qd: np.ndarray, wo
     rand = jax.vmap(lambda k: randomize.sample(k, sm.robot.randomization, sm.robot.episode_s))(
         jax.random.split(key, worlds))
     rand_np = jax.tree.map(np.asarray, rand)
-    fields = randomize.nominal_fields(sm.mj)
-    per_world = [randomize.apply_mujoco(sm.mj, fields, jax.tree.map(lambda a: a[w], rand_np),
-                                        sm.base_body) for w in range(worlds)]
+    per_world, _ = rollout_cpu.randomized_worlds(sm, sm.robot.randomization, rand_np)
     models = [m for m in per_world for _ in range(n)]  # references, not copies
     tiled = jax.tree.map(lambda a: np.repeat(a, n, axis=0), rand_np)
     recs, _ = rollout_cpu.run(sm, models, np.tile(q, worlds)[:, None],

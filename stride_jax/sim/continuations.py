@@ -64,12 +64,7 @@ def simulate(sm: SimModel, r: Randomization | None, q0: np.ndarray, qd0: np.ndar
     if r is not None:
         draw = jax.jit(jax.vmap(lambda kk: randomize.sample(kk, r, episode_s)))
         rand = jax.tree.map(np.asarray, draw(jax.random.split(key, n * k)))
-        mj = randomize.ground_ready(sm.mj, sm.geom_foot) if r.patches else sm.mj
-        fields = randomize.nominal_fields(mj)
-        worlds = [randomize.apply_mujoco(mj, fields, jax.tree.map(lambda a: a[i], rand),
-                                         sm.base_body) for i in range(n * k)]
-        if r.patches:
-            ground = rollout_cpu.ground_fn(sm, r, rand)
+        worlds, ground = rollout_cpu.randomized_worlds(sm, r, rand)
         per_world = jax.jit(jax.vmap(lambda v, t, q: randomize.disturbance(v, r, t, q,
                                                                             sm.mj.nv)))
         start = jnp.asarray(rep(t0), jnp.float32)

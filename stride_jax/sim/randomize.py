@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from mujoco import mjx
 
 from stride_jax.robots import Randomization
 
@@ -188,7 +189,6 @@ def apply_ground(fields: dict, geom_foot: np.ndarray, pair_foot: np.ndarray, fri
 def foot_xy(mx, foot_sites: np.ndarray, qpos: jax.Array) -> jax.Array:
     """``[F, 2]`` world positions (m) of the foot sites at ``qpos``: MJX's kinematics, used by
     both backends so that they look up the same patches."""
-    from mujoco import mjx
     d = mjx.kinematics(mx, mjx.make_data(mx).replace(qpos=qpos))
     return d.site_xpos[foot_sites, :2]
 

@@ -206,6 +206,20 @@ def ground_fn(sm: SimModel, r, rand: randomize.RandValues) -> Callable:
     return lambda q: patches(rand, jnp.asarray(q, jnp.float32))
 
 
+def randomized_worlds(sm: SimModel, r, rand: randomize.RandValues
+                      ) -> tuple[list[mujoco.MjModel], Callable | None]:
+    """``(models, ground)``: one randomised copy of the robot's model per world of ``rand``
+    (batched hidden values, ``r`` their ranges) and, where the ground varies along the path, the
+    :func:`ground_fn` that :func:`run` and :func:`states` take (``None`` otherwise)."""
+    mj = randomize.ground_ready(sm.mj, sm.geom_foot) if r.patches else sm.mj
+    fields = randomize.nominal_fields(mj)
+    rand_np = jax.tree.map(np.asarray, rand)
+    n = len(rand_np.friction)
+    models = [randomize.apply_mujoco(mj, fields, jax.tree.map(lambda a: a[i], rand_np),
+                                     sm.base_body) for i in range(n)]
+    return models, (ground_fn(sm, r, rand_np) if r.patches else None)
+
+
 def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, randomized: bool = True,
             nthread: int | None = None, progress: Callable[[int], None] | None = None) -> Episode:
     """Collects episodes exactly as :func:`stride_jax.sim.rollout_mjx.collect` describes them.
@@ -216,14 +230,9 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, randomi
     draw, act, disturb_fn = _jitted(sm)
     episode_s = n_steps * sm.robot.ctrl_dt
     rand, params, qpos, qvel = draw(jax.random.split(key, n_episodes), episode_s)
-    r = sm.robot.randomization
-    mj = randomize.ground_ready(sm.mj, sm.geom_foot) if randomized and r.patches else sm.mj
-    fields = randomize.nominal_fields(mj)
     rand_np = jax.tree.map(np.asarray, rand)
-    models = [randomize.apply_mujoco(mj, fields, jax.tree.map(lambda a: a[i], rand_np),
-                                     sm.base_body) if randomized else mj
-              for i in range(n_episodes)]
-    ground = ground_fn(sm, r, rand) if randomized and r.patches else None
+    models, ground = (randomized_worlds(sm, sm.robot.randomization, rand_np) if randomized
+                      else ([sm.mj] * n_episodes, None))
     policy = lambda step, q, qd: act(params, step, jnp.asarray(q, jnp.float32),
                                      jnp.asarray(qd, jnp.float32))
     disturb = (lambda t, q: disturb_fn(rand, jnp.asarray(t, jnp.float32),
