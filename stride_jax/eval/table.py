@@ -145,6 +145,8 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     terms_fn = jax.jit(jax.vmap(lambda q, qd, tau, k: model.terms(params, q, qd, tau, k, nfe)))
     terms = [terms_fn(q, qd, tau, jax.random.split(jax.random.fold_in(key, 1000 + s), len(q)))
              for s in range(n_samples)]
+    for t in terms[1:]:  # M is the same for every sample: keep one copy ([N, nv, nv] each)
+        t.pop("mass", None)
     qdd_scale = np.asarray(train["qdd"][train["valid"]].std(0)) + 1e-6
     contact = pick("foot_contact").any(-1)  # robots without feet are always in free motion
     shares = np.stack([forces.residual_share(np.asarray(t["prior"]), np.asarray(t["residual"]),
