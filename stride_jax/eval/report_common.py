@@ -55,7 +55,10 @@ CPU_TARGET = dict(robot="go1", model="stride", K=128, H=16, max_nfe=2, min_hz=50
 GPU_TARGET = dict(robot="go1", model="stride", K=1024, H=30, max_nfe=2, max_ms=3.0)
 
 ROBOTS = ("go1", "g1")
-NAMES = {"stride": "STRIDE", "delan": "DeLaN", "lnn_diffusion": "LNN + Diffusion",
+# ``delan`` is the Lagrangian prior with a deterministic MLP residual (STRIDE's structure without
+# the stochastic residual); ``delan_prior`` is DeLaN as published (the prior alone).
+NAMES = {"stride": "STRIDE", "delan": "DeLaN + MLP residual", "delan_prior": "DeLaN (prior only)",
+         "lnn_diffusion": "LNN + Diffusion",
          "onn": "ONN (plain MLP)", "diffusion": "Pure diffusion", "oracle": "oracle",
          "nominal": "nominal"}
 ROBOT_NAMES = {"go1": "Go1", "g1": "G1"}
