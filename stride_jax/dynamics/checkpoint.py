@@ -173,7 +173,7 @@ def _read_npz(folder: pathlib.Path, model: Model, entry: dict) -> tuple[Any, pat
     except Exception as e:  # noqa: BLE001 -- zip, zlib and key errors all mean a damaged file
         raise CheckpointError(f"{path} is damaged: cannot read it ({type(e).__name__}: {e})"
                               ) from e
-    for x, s in zip(leaves, shapes):
+    for x, s in zip(leaves, shapes, strict=True):
         if x.shape != s.shape or x.dtype != s.dtype:
             raise CheckpointError(f"{path} does not fit the model of model.json: "
                                   f"{x.dtype}{list(x.shape)} where {s.dtype}{list(s.shape)}")

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stride_jax.dynamics import (flow, fused, fused_layout, fused_step, integrate, lagrangian,
-                                  mlp, next_obs, stride)
+                                  next_obs, stride)
 from stride_jax.types import InputError, ModelSpec
 
 __all__ = ["Actuation", "DEFAULT_NFE", "InputError", "MODELS", "Model", "load", "make",

@@ -21,7 +21,8 @@ from stride_jax.types import ModelSpec
 
 
 def fit(q, qd, tau, qdd, out: str | pathlib.Path, model: str = "delan_prior",
-        periodic: tuple[bool, ...] = (), config: stride.StructuredConfig = stride.StructuredConfig(),
+        periodic: tuple[bool, ...] = (),
+        config: stride.StructuredConfig = stride.StructuredConfig(),
         loop_cfg: loop.LoopConfig = loop.LoopConfig(), val_fraction: float = 0.1,
         dt: float = 0.01, log: Callable[[str], None] = print) -> tuple[models.Model, dict]:
     """Trains ``model`` on samples ``q, qd, tau, qdd`` ``[N, n]`` (rad, rad/s, N m, rad/s^2) of
@@ -40,9 +41,8 @@ def fit(q, qd, tau, qdd, out: str | pathlib.Path, model: str = "delan_prior",
     """
     family = models.MODELS.get(model, (None,))[0]
     if family != "structured":
-        raise ValueError(f"fit trains the structured models "
-                         f"({', '.join(k for k, v in models.MODELS.items() if v[0] == 'structured')}"
-                         f"), not {model!r}")
+        names = ", ".join(k for k, v in models.MODELS.items() if v[0] == "structured")
+        raise ValueError(f"fit trains the structured models ({names}), not {model!r}")
     dtype = jax.dtypes.canonicalize_dtype(np.float64)
     arrays = {k: np.asarray(x, dtype) for k, x in dict(q=q, qd=qd, tau=tau, qdd=qdd).items()}
     n, nq = arrays["q"].shape if arrays["q"].ndim == 2 else (None, None)
