@@ -40,6 +40,10 @@ def test_a_saved_model_loads_with_nothing_else(tmp_path):
     q, qd, tau = jnp.array([0.3, -0.2]), jnp.array([0.1, 0.5]), jnp.array([1.0, -1.0])
     np.testing.assert_array_equal(back.acceleration(got, q, qd, tau, jax.random.key(1)),
                                   model.acceleration(params, q, qd, tau, jax.random.key(1)))
+    with jax.enable_x64(True):  # parameters cast to float64 by a user come back float64
+        dyn.save(tmp_path / "f64", model, jax.tree.map(lambda x: x.astype(jnp.float64), params))
+        _, got = dyn.load(tmp_path / "f64")
+        assert all(x.dtype == jnp.float64 for x in jax.tree.leaves(got))
 
 
 def test_bit_flips_in_the_parameters_are_refused(tmp_path):

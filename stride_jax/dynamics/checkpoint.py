@@ -173,8 +173,8 @@ def _read_npz(folder: pathlib.Path, model: Model, entry: dict) -> tuple[Any, pat
     except Exception as e:  # noqa: BLE001 -- zip, zlib and key errors all mean a damaged file
         raise CheckpointError(f"{path} is damaged: cannot read it ({type(e).__name__}: {e})"
                               ) from e
-    for x, s in zip(leaves, shapes, strict=True):
-        if x.shape != s.shape or x.dtype != s.dtype:
+    for x, s in zip(leaves, shapes, strict=True):  # float64 params (a user's cast) stay so
+        if x.shape != s.shape or x.dtype.kind != np.dtype(s.dtype).kind:
             raise CheckpointError(f"{path} does not fit the model of model.json: "
                                   f"{x.dtype}{list(x.shape)} where {s.dtype}{list(s.shape)}")
     return jax.tree.unflatten(treedef, [jnp.asarray(x) for x in leaves]), path, entry["sha256"]

@@ -37,7 +37,7 @@ def fit(q, qd, tau, qdd, out: str | pathlib.Path, model: str = "delan_prior",
 
     The default ``delan_prior`` is DeLaN as published: the prior alone, trained on the
     acceleration error. Arrays are used in JAX's default float precision (float64 with
-    ``jax_enable_x64``).
+    ``jax_enable_x64``, where the float32 parameters are promoted in every computation).
     """
     family = models.MODELS.get(model, (None,))[0]
     if family != "structured":
