@@ -9,8 +9,9 @@ Writes ``closed_loop.json``/``.md``, traces and one plot per scenario to ``--out
 with the same ``--out`` skips the (scenario, model) pairs already there.
 """
 
-import stride_jax  # noqa: F401  (XLA flags before JAX initialises)
+import stride_jax
 from stride_jax.control import closed_loop
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     closed_loop.main()

@@ -5,11 +5,12 @@ MJX, and the gait MPPI settles on when it plans frequency, duty and phase offset
     python experiments/closed_loop_gait.py --preset gpu     # one GPU, minutes
 """
 
-import stride_jax  # noqa: F401  (XLA flags before JAX initialises)
+import stride_jax
 from stride_jax import cli
 from stride_jax.control import gait_study
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     cli.config_main("python experiments/closed_loop_gait.py", gait_study.GaitStudyConfig,
                     gait_study.GAIT_PRESETS, gait_study.gait_study,
                     description=__doc__.split("\n")[0])

@@ -15,6 +15,7 @@ import argparse
 import jax
 import numpy as np
 
+import stride_jax
 from stride_jax.dynamics import fused, models
 from stride_jax.eval import rollout
 from stride_jax.sim import dataset
@@ -54,4 +55,5 @@ def main():
 
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     main()

@@ -13,9 +13,11 @@ import sys
 import jax
 import jax.numpy as jnp
 
+import stride_jax
 from stride_jax.dynamics import fused, fused_pallas, mlp
 from stride_jax.sim import bench as sim_bench
 
+stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
 hidden, depth, K = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 fused_pallas.CHUNK, fused_pallas.ROWS, fused_pallas.WARPS = (int(v) for v in sys.argv[4].split(","))
 dtype = jnp.dtype(sys.argv[5])

@@ -16,6 +16,7 @@ import argparse
 import jax
 import jax.numpy as jnp
 
+import stride_jax
 from stride_jax.dynamics import flow, fused, fused_pallas, mlp
 from stride_jax.sim import bench as sim_bench
 
@@ -90,4 +91,5 @@ def main():
 
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     main()

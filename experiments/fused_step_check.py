@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import stride_jax
 from stride_jax.control import bench
 from stride_jax.dynamics import fused_step, models, stride
 from stride_jax.sim.bench import median_time
@@ -92,4 +93,5 @@ def main():
 
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     main()

@@ -12,7 +12,7 @@ import argparse
 import dataclasses
 import json
 
-import stride_jax  # noqa: F401  (XLA flags before JAX initialises)
+import stride_jax
 from stride_jax.gap import diagnose, real, residual
 from stride_jax.sim import model
 
@@ -42,4 +42,5 @@ def main():
 
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     main()

@@ -9,7 +9,7 @@ import argparse
 import dataclasses
 import time
 
-import stride_jax  # noqa: F401  (XLA flags before JAX initialises)
+import stride_jax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -52,4 +52,5 @@ def main():
 
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     main()

@@ -16,6 +16,7 @@ import re
 
 import jax
 
+import stride_jax
 from stride_jax.control import bench
 
 
@@ -69,4 +70,5 @@ def main():
 
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     main()

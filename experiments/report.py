@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 
+import stride_jax
 from stride_jax.eval import report
 
 
@@ -29,4 +30,5 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     main()

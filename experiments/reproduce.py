@@ -25,7 +25,7 @@ import shlex
 import sys
 import time
 
-import stride_jax  # noqa: F401  (XLA flags before JAX initialises)
+import stride_jax
 from stride_jax import cli
 
 
@@ -80,4 +80,5 @@ def _pretrain(cfg, preset: str, parallel: int, t0: float) -> None:
 
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     main()

@@ -12,6 +12,7 @@ import sys
 
 import jax
 
+import stride_jax
 from stride_jax.dynamics import models, stride
 from stride_jax.io import atomic_write_text
 from stride_jax.sim import collect, model as sim_model
@@ -63,4 +64,5 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     main()

@@ -9,7 +9,7 @@ batch last on a CPU); jitted, median of 300 calls, with the largest difference t
 import argparse
 import time
 
-import stride_jax  # noqa: F401  (XLA flags before JAX initialises)
+import stride_jax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -43,4 +43,5 @@ def main():
 
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     main()

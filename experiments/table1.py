@@ -28,6 +28,7 @@ import subprocess
 import sys
 import time
 
+import stride_jax
 from stride_jax import pool
 
 PRESETS = {
@@ -145,4 +146,5 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     main()

@@ -1,10 +1,19 @@
-"""Process-level XLA settings that must be in place before JAX initialises.
+"""Process-level XLA settings that must be in place before JAX initialises its backend.
 
-``stride_jax/__init__.py`` imports this module first, so any ``import stride_jax`` before the first
-``import jax`` is enough.
+Importing ``stride_jax`` changes nothing in a user's process. The entry points (the ``stride``
+command, ``python -m`` modules, ``experiments/*.py``, the test suite) call
+:func:`set_xla_flags` first; a user's own script on a small CPU does the same::
+
+    import stride_jax
+    stride_jax.set_xla_flags()   # before the first JAX computation
+
+XLA reads ``XLA_FLAGS`` when its backend starts (the first computation or device query), not at
+``import jax``, so the call works anywhere before that.
 """
 
 import os
+import sys
+import warnings
 
 # On small CPUs, XLA's concurrency-optimised scheduler deadlocks inside the batched Cholesky that
 # vmapped MJX steps use (batch >= 16 on a 2-core machine, reproduced with jax 0.10.2), and with
@@ -15,19 +24,41 @@ import os
 CPU_SAFE_XLA_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false "
                       "--xla_cpu_multi_thread_eigen=false")
 
-if "XLA_FLAGS" not in os.environ:
-    os.environ["XLA_FLAGS"] = CPU_SAFE_XLA_FLAGS
 
-# STRIDE_HOST_DEVICES=N (or "auto": one per core) splits the CPU into N XLA host devices, over which
-# the MPPI planner shards its samples (``control.mppi.sample_sharding``): XLA runs one device's
-# small operations one at a time, so on a small CPU this is what puts both cores to work.
-_host_devices = os.environ.get("STRIDE_HOST_DEVICES", "")
-if _host_devices and "xla_force_host_platform_device_count" not in os.environ["XLA_FLAGS"]:
-    if _host_devices == "auto":
-        _n = os.cpu_count() or 1
-    elif _host_devices.isdigit() and int(_host_devices) > 0:
-        _n = int(_host_devices)
-    else:
-        raise ValueError(f"STRIDE_HOST_DEVICES must be a positive integer or 'auto', got "
-                         f"{_host_devices!r}")
-    os.environ["XLA_FLAGS"] += f" --xla_force_host_platform_device_count={_n}"
+def set_xla_flags() -> None:
+    """Sets ``XLA_FLAGS`` to :data:`CPU_SAFE_XLA_FLAGS` unless the process (user) set any, and
+    splits the CPU into ``STRIDE_HOST_DEVICES`` XLA host devices where that is set. Idempotent;
+    child processes inherit the setting. Warns if JAX's backend already started (too late).
+
+    ``STRIDE_HOST_DEVICES=N`` (or ``auto``: one per core) splits the CPU into N XLA host
+    devices, over which the MPPI planner shards its samples (``control.mppi.sample_sharding``):
+    XLA runs one device's small operations one at a time, so on a small CPU this is what puts
+    both cores to work.
+    """
+    before = os.environ.get("XLA_FLAGS")
+    if before is None:
+        os.environ["XLA_FLAGS"] = CPU_SAFE_XLA_FLAGS
+    host_devices = os.environ.get("STRIDE_HOST_DEVICES", "")
+    if host_devices and "xla_force_host_platform_device_count" not in os.environ["XLA_FLAGS"]:
+        if host_devices == "auto":
+            n = os.cpu_count() or 1
+        elif host_devices.isdigit() and int(host_devices) > 0:
+            n = int(host_devices)
+        else:
+            raise ValueError(f"STRIDE_HOST_DEVICES must be a positive integer or 'auto', got "
+                             f"{host_devices!r}")
+        os.environ["XLA_FLAGS"] += f" --xla_force_host_platform_device_count={n}"
+    if os.environ["XLA_FLAGS"] != before and _backend_started():
+        warnings.warn("stride_jax.set_xla_flags() ran after JAX's backend started: XLA_FLAGS "
+                      "take effect in child processes only; call it before the first JAX "
+                      "computation", stacklevel=2)
+
+
+def _backend_started() -> bool:
+    if "jax" not in sys.modules:
+        return False
+    try:
+        from jax._src import xla_bridge
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):  # a JAX without the (private) query: cannot tell
+        return False

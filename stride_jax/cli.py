@@ -19,7 +19,7 @@ import shlex
 import sys
 import typing
 
-import stride_jax  # noqa: F401  (XLA flags before JAX initialises)
+import stride_jax
 
 
 def _add_config_args(parser: argparse.ArgumentParser, cls) -> None:
@@ -117,6 +117,7 @@ def _run_bench_mppi(cfg, command: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     args_in = sys.argv[1:] if argv is None else argv
     if args_in and args_in[0] == "gap":  # the gap tool has its own subcommands (stride_jax.gap.cli)
         from stride_jax.gap import cli as gap_cli

@@ -4,6 +4,24 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
+
+
+class InputError(ValueError):
+    """A model or physics function was called with inputs of the wrong shape or with non-finite
+    values."""
+
+
+def check_shape(fn: str, arg: str, x, shape: tuple[int, ...]) -> None:
+    """Raises :class:`InputError` naming ``fn`` and ``arg`` unless ``x`` has ``shape`` (checked
+    at trace time: free under ``jit``). Core maths take one example; batches go through ``vmap``.
+    """
+    got = np.shape(x)
+    if got != tuple(shape):
+        hint = "; vmap over the batch" if len(got) > len(shape) else ""
+        raise InputError(f"{fn}: {arg} must have shape {tuple(shape)} (one example{hint}), "
+                         f"got {got}")
+
 
 @dataclasses.dataclass(frozen=True)
 class ModelSpec:

@@ -3,9 +3,11 @@
 import os
 import pathlib
 
-import stride_jax  # noqa: F401  (XLA flags before JAX initialises)
-
 import pytest
+
+import stride_jax
+
+stride_jax.set_xla_flags()  # before JAX starts: the 2-core CPU deadlocks in XLA without
 
 SHARED = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "menagerie"
 if "MENAGERIE_ROOT" not in os.environ and SHARED.is_dir():

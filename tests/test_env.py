@@ -1,4 +1,5 @@
-"""Process-level settings read before JAX starts (``stride_jax/_env.py``)."""
+"""Process-level settings read before JAX starts (``stride_jax/_env.py``): set by the entry
+points through ``stride_jax.set_xla_flags``, never by importing the package."""
 
 import os
 import subprocess
@@ -6,13 +7,14 @@ import sys
 
 import pytest
 
-PROBE = "import stride_jax, jax, os; print(len(jax.devices()), os.environ['XLA_FLAGS'])"
+PROBE = ("import stride_jax, jax, os; stride_jax.set_xla_flags(); "
+         "print(len(jax.devices()), os.environ['XLA_FLAGS'])")
 
 
-def _run(**env):
+def _run(probe=PROBE, **env):
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "STRIDE_HOST_DEVICES")
            } | env
-    return subprocess.run([sys.executable, "-c", PROBE], env=env, capture_output=True, text=True)
+    return subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True)
 
 
 @pytest.mark.parametrize("value, devices", [("2", 2), ("auto", os.cpu_count() or 1)])
@@ -28,3 +30,28 @@ def test_host_devices_split_the_cpu(value, devices):
 def test_bad_host_device_count_is_a_clear_error():
     out = _run(STRIDE_HOST_DEVICES="two")
     assert out.returncode != 0 and "STRIDE_HOST_DEVICES must be a positive integer" in out.stderr
+
+
+def test_importing_sets_nothing_and_the_order_does_not_matter():
+    """A user's process keeps its environment on ``import stride_jax`` (with any import order);
+    the user's own flags win over the helper's; a call after JAX started warns."""
+    probe = ("import jax, stride_jax, stride_jax.dynamics, os; "
+             "print(os.environ.get('XLA_FLAGS'))")
+    out = _run(probe)
+    assert out.returncode == 0 and out.stdout.strip() == "None", out.stderr
+    out = _run(PROBE, XLA_FLAGS="--xla_dump_to=/dev/null")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split(" ", 1)[1].strip() == "--xla_dump_to=/dev/null"
+    late = ("import warnings, jax, stride_jax; jax.devices(); warnings.simplefilter('error'); "
+            "stride_jax.set_xla_flags()")
+    out = _run(late)
+    assert out.returncode != 0 and "after JAX's backend started" in out.stderr
+
+
+def test_the_command_line_sets_the_flags():
+    probe = ("import os, sys; from stride_jax import cli; sys.argv = ['stride', '--help']\n"
+             "try:\n    cli.main()\nexcept SystemExit:\n    pass\n"
+             "print(os.environ['XLA_FLAGS'])")
+    out = _run(probe)
+    assert out.returncode == 0, out.stderr
+    assert "multi_thread_eigen=false" in out.stdout.splitlines()[-1]

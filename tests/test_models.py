@@ -63,13 +63,22 @@ def test_bad_inputs_are_clear_errors(name):
         model.rollout(params, Q0, jnp.zeros(7), jnp.zeros(5), key)
     with pytest.raises(models.InputError, match="qd holds NaN"):
         model.step(params, Q0, jnp.full(7, jnp.nan), jnp.zeros(1), key)
-    with pytest.raises(models.InputError, match="batches"):  # a batch without vmap
+    with pytest.raises(models.InputError, match="vmap over the batch"):  # a batch without vmap
         jax.jit(model.step)(params, jnp.tile(Q0, (4, 1)), jnp.zeros((4, 7)), jnp.zeros((4, 1)), key)
 
 
 def test_unknown_model_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown model 'lstm'; available: stride, delan"):
         models.make("lstm", SPEC, ACT, CFG)
+    with pytest.raises(TypeError, match="StructuredConfig"):  # sizes given the wrong way
+        models.make("stride", SPEC, ACT, mlp.MLPConfig(16, 1))
+
+
+def test_a_model_carries_what_it_was_made_from():
+    model = models.make("delan_prior", ModelSpec(nq=2, nv=2, floating_base=False))
+    assert model.actuation == models.motors(2) and model.config == stride.StructuredConfig()
+    assert model.residual == "none" and set(models.DESCRIPTIONS) == set(models.MODELS)
+    assert "as published" in models.DESCRIPTIONS["delan_prior"]
 
 
 def test_implicit_servo_is_the_pd_law_at_the_next_state():

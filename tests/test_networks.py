@@ -6,7 +6,7 @@ import numpy as np
 import optax
 import pytest
 
-from stride_jax.dynamics import diffusion, flow, generative, lagrangian, mlp
+from stride_jax.dynamics import diffusion, flow, generative, lagrangian, mlp, stride
 from stride_jax.types import ModelSpec
 
 GO1_SPEC = ModelSpec(nq=19, nv=18, floating_base=True)
@@ -131,3 +131,43 @@ def test_feature_space_lagrangian_terms_equal_the_reference(spec, shared):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9)
     assert set(params) == ({"shared"} if shared else {"mass", "potential"}) | (
         {"log_mass"} if cfg.learn_mass else set())
+
+
+def test_default_activation_and_init_are_the_original_network():
+    """``MLPConfig()``'s SiLU and LeCun-normal init give bitwise the network of earlier versions
+    (a plain Flax MLP with Dense's defaults), so saved runs and results stay the same; other
+    choices change it; unknown names and sizes are clear errors."""
+    import flax.linen as nn
+
+    class Original(nn.Module):
+        @nn.compact
+        def __call__(self, x):
+            for _ in range(2):
+                x = nn.silu(nn.Dense(16)(x))
+            return nn.Dense(3)(x)
+
+    key, x = jax.random.key(0), jnp.linspace(-1.0, 1.0, 5)
+    init, apply = mlp.mlp(mlp.MLPConfig(16, 2), 3)
+    params = init(key, 5)
+    want = Original().init(key, jnp.zeros(5))
+    assert jax.tree.all(jax.tree.map(lambda a, b: bool((a == b).all()), params, want))
+    np.testing.assert_array_equal(apply(params, x), Original().apply(want, x))
+    init_t, apply_t = mlp.mlp(mlp.MLPConfig(16, 2, activation="tanh", init="orthogonal"), 3)
+    params_t = init_t(key, 5)
+    assert not np.allclose(params_t["params"]["Dense_0"]["kernel"],
+                           params["params"]["Dense_0"]["kernel"])
+    assert not np.allclose(apply_t(params, x), apply(params, x))  # tanh in place of SiLU
+    with pytest.raises(ValueError, match="activation 'swish' is not one of silu"):
+        mlp.MLPConfig(activation="swish")
+    with pytest.raises(ValueError, match="hidden must be a positive integer"):
+        mlp.MLPConfig(hidden=0)
+    with pytest.raises(ValueError, match="SiLU networks only"):
+        stride.StructuredConfig(net=mlp.MLPConfig(activation="tanh"), kernel="pallas")
+
+
+@pytest.mark.parametrize("floor", [0.0, -1e-3, float("nan"), float("inf"), "1e-3"])
+def test_a_wrong_diag_floor_is_refused(floor):
+    with pytest.raises(ValueError, match="diag_floor must be a finite number > 0"):
+        lagrangian.LNNConfig(diag_floor=floor)
+    with pytest.raises(ValueError, match="diag_floor"):
+        stride.StructuredConfig(diag_floor=floor)

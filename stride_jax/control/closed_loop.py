@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
+import stride_jax
 from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.control.planning import (Planning, augment, make_planner, make_planning,
                                          mppi_config)
@@ -405,4 +406,5 @@ def main(argv: list[str] | None = None) -> None:
                     argv, __doc__.split("\n")[0])
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     main()

@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import optax
 from flax import serialization
 
+import stride_jax
 from stride_jax.dynamics import mlp as mlp_lib
 from stride_jax.io import atomic_write, atomic_write_text, code_version
 
@@ -337,4 +338,5 @@ def main(argv: list[str] | None = None) -> None:
                     fit_from_policy, argv, __doc__.split("\n")[0])
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     main()

@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import optax
 from flax import serialization
 
+import stride_jax
 from stride_jax.control import envs, wrappers
 from stride_jax.io import atomic_write, atomic_write_text, code_version
 
@@ -474,4 +475,5 @@ def main(argv: list[str] | None = None) -> None:
                     __doc__.split("\n")[0])
 
 if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     main()

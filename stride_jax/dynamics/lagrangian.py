@@ -22,6 +22,7 @@ MuJoCo's own bias force with MuJoCo's mass matrix and potential plugged in.
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Callable
 
 import jax
@@ -30,7 +31,7 @@ import numpy as np
 
 from stride_jax.dynamics import fused, mlp
 from stride_jax.dynamics.integrate import quat_to_mat, retract
-from stride_jax.types import ModelSpec
+from stride_jax.types import ModelSpec, check_shape
 
 MassFn = Callable[[jax.Array], jax.Array]  # q [nq] -> M [nv, nv]
 PotentialFn = Callable[[jax.Array], jax.Array]  # q [nq] -> V []
@@ -96,6 +97,17 @@ class LNNConfig:
     learn_mass: bool = False
     shared: bool = False
 
+    def __post_init__(self):
+        check_diag_floor(self.diag_floor)
+
+
+def check_diag_floor(floor) -> None:
+    """``diag_floor`` must be a finite positive number: M's smallest eigenvalue stays above it."""
+    if isinstance(floor, bool) or not isinstance(floor, (int, float)) or not math.isfinite(floor) \
+            or floor <= 0:
+        raise ValueError(f"diag_floor must be a finite number > 0 (M = L L^T + diag_floor I), "
+                         f"got {floor!r}")
+
 
 def q_features(spec: ModelSpec, q: jax.Array, height: bool = True) -> jax.Array:
     """Network input from a configuration: invariant where the physics is.
@@ -104,6 +116,7 @@ def q_features(spec: ModelSpec, q: jax.Array, height: bool = True) -> jax.Array:
     ambiguity) and joint angles -- never the horizontal position. Periodic hinges enter as
     (sin, cos).
     """
+    check_shape("q_features", "q", q, (spec.nq,))
     if spec.floating_base:
         joints = q[7:]
         head = ([q[2:3]] if height else []) + [quat_to_mat(q[3:7]).reshape(9)]
@@ -243,6 +256,16 @@ def potential_energy(params: dict, spec: ModelSpec, q: jax.Array,
     if spec.floating_base:
         v = v + total_mass(params, cfg) * cfg.gravity * q[2]
     return v
+
+
+def gravity(params: dict, spec: ModelSpec, q: jax.Array, cfg: LNNConfig = LNNConfig()
+            ) -> jax.Array:
+    """``g(q) = dV/dq`` ``[nv]`` (N, N m): the generalised gravity force of the learned prior,
+    the derivative of :func:`potential_energy` along ``q (+) delta`` at ``delta = 0`` (for a
+    floating base, along the world translation and the body-frame rotation)."""
+    zero = jnp.zeros(spec.nv, jnp.result_type(q, float))
+    return jax.grad(lambda d: potential_energy(params, spec, retract(q, d, spec.floating_base),
+                                               cfg))(zero)
 
 
 def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,

@@ -7,19 +7,44 @@ size" is one config, not a convention.
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from typing import Any, Callable
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+# Names a config may give (a saved model's ``model.json`` holds the name, not the function).
+ACTIVATIONS = {"silu": nn.silu, "tanh": nn.tanh, "relu": nn.relu, "gelu": nn.gelu,
+               "softplus": nn.softplus, "elu": nn.elu}
+INITS = {"lecun_normal": nn.initializers.lecun_normal, "glorot_normal":
+         nn.initializers.glorot_normal, "glorot_uniform": nn.initializers.glorot_uniform,
+         "he_normal": nn.initializers.he_normal, "orthogonal": nn.initializers.orthogonal}
+
 
 @dataclasses.dataclass(frozen=True)
 class MLPConfig:
-    """Hidden width and number of hidden layers; SiLU activations."""
+    """Hidden width and number of hidden layers, the hidden layers' ``activation``
+    (:data:`ACTIVATIONS`) and the weights' ``init`` (:data:`INITS`; biases start at zero).
+
+    The fused inference kernels (``StructuredConfig.kernel``) implement SiLU only.
+    """
 
     hidden: int = 256
     depth: int = 3
+    activation: str = "silu"
+    init: str = "lecun_normal"
+
+    def __post_init__(self):
+        for name in ("hidden", "depth"):
+            value = getattr(self, name)
+            if not isinstance(value, numbers.Integral) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"MLPConfig.{name} must be a positive integer, got {value!r}")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"MLPConfig.activation {self.activation!r} is not one of "
+                             f"{', '.join(ACTIVATIONS)}")
+        if self.init not in INITS:
+            raise ValueError(f"MLPConfig.init {self.init!r} is not one of {', '.join(INITS)}")
 
 
 class _MLP(nn.Module):
@@ -27,13 +52,14 @@ class _MLP(nn.Module):
     depth: int
     out: int
     activation: Callable = nn.silu
+    kernel_init: Callable = nn.initializers.lecun_normal()
     zero_last: bool = False
 
     @nn.compact
     def __call__(self, x):
         for _ in range(self.depth):
-            x = self.activation(nn.Dense(self.hidden)(x))
-        init = nn.initializers.zeros if self.zero_last else nn.initializers.lecun_normal()
+            x = self.activation(nn.Dense(self.hidden, kernel_init=self.kernel_init)(x))
+        init = nn.initializers.zeros if self.zero_last else self.kernel_init
         return nn.Dense(self.out, kernel_init=init)(x)
 
 
@@ -42,7 +68,8 @@ def mlp(cfg: MLPConfig, out: int, zero_last: bool = False) -> tuple[Callable, Ca
 
     ``zero_last`` starts the output at exactly zero (used for residuals and vector fields).
     """
-    module = _MLP(cfg.hidden, cfg.depth, out, zero_last=zero_last)
+    module = _MLP(cfg.hidden, cfg.depth, out, ACTIVATIONS[cfg.activation], INITS[cfg.init](),
+                  zero_last=zero_last)
 
     def init(key: jax.Array, in_dim: int) -> Any:
         return module.init(key, jnp.zeros((in_dim,)))

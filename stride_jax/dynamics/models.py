@@ -15,13 +15,16 @@ batch with ``vmap``):
   robot's servo model turning commands into joint torques at every substep, as the simulator does
 * ``rollout(params, q, qd, ctrls [H, nu], key) -> (qs [H, nq], qds [H, nv])``
 
+and carries what it was made from (``spec``, ``actuation``, ``config``, ``scales``,
+``residual``), so that :func:`stride_jax.dynamics.save` needs nothing else and the physics
+functions of :mod:`stride_jax.dynamics.physics` can be called on it.
+
 The training loop, the evaluation, the MPPI planner and a user's controller all use these.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import pathlib
 from typing import Callable, NamedTuple
 
@@ -30,9 +33,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from stride_jax.dynamics import (flow, fused, fused_layout, fused_step, integrate, lagrangian,
-                                  mlp, next_obs, stride)
-from stride_jax.types import ModelSpec
-from stride_jax.io import atomic_write_text
+                                  next_obs, stride)
+from stride_jax.types import InputError, ModelSpec
+
+__all__ = ["Actuation", "DEFAULT_NFE", "InputError", "MODELS", "Model", "load", "make",
+           "motors", "next_observation", "save_definition", "structured"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,6 +111,13 @@ def _tuple(x):
     return None if x is None else tuple(x)
 
 
+def motors(nv: int, dt: float = 0.01, n_substeps: int = 1) -> Actuation:
+    """Unlimited torque motors on every dof (``tau = ctrl``): the actuation of a robot known
+    only from arrays of ``q, qd, tau, qdd`` (``dt``: the step of ``model.step``, s)."""
+    return Actuation(dof=tuple(range(nv)), kp=None, kd=None,
+                     force_range=((0.0, 0.0),) * nv, dt=dt, n_substeps=n_substeps)
+
+
 class Model(NamedTuple):
     name: str
     stochastic: bool
@@ -115,10 +127,19 @@ class Model(NamedTuple):
     step: Callable
     rollout: Callable
     terms: Callable | None = None  # structured models: (params, q, qd, tau, key, nfe) -> dict
+    # What the model was made from (``make``'s arguments; ``residual``: structured models' kind).
+    spec: ModelSpec | None = None
+    actuation: Actuation | None = None
+    config: stride.StructuredConfig | None = None
+    scales: stride.Scales | None = None
+    residual: str | None = None
 
 
 # name -> (family, kind): structured models pair the Lagrangian prior with a residual of ``kind``;
 # next-observation models predict the change of observation with an MLP (None) or a generator.
+# The names are those of the paper's tables and of saved runs (``model.json``): ``delan`` is the
+# Lagrangian prior *plus an MLP residual force* (DeLaN extended with a deterministic residual),
+# ``delan_prior`` is DeLaN as published (the prior alone). :data:`DESCRIPTIONS` says so in words.
 MODELS = {
     "stride": ("structured", "flow"),
     "delan": ("structured", "mlp"),
@@ -127,13 +148,17 @@ MODELS = {
     "onn": ("next_obs", None),
     "diffusion": ("next_obs", "diffusion"),
 }
+DESCRIPTIONS = {
+    "stride": "Lagrangian prior + flow-matching residual force (STRIDE)",
+    "delan": "Lagrangian prior + MLP residual force (DeLaN with a deterministic residual)",
+    "delan_prior": "Lagrangian prior alone (DeLaN as published, Lutter et al. 2019)",
+    "lnn_diffusion": "Lagrangian prior + diffusion residual force",
+    "onn": "MLP of the next observation (no physics)",
+    "diffusion": "diffusion model of the next observation (no physics)",
+}
 # Residual samples per call when the caller does not choose (``nfe`` of the model config is the
 # flow's; diffusion needs more evaluations for comparable samples).
 DEFAULT_NFE = {"flow": 2, "diffusion": 10}
-
-
-class InputError(ValueError):
-    """A model was called with inputs of the wrong shape or with non-finite values."""
 
 
 def _check_inputs(name: str, spec: ModelSpec, nu: int, **arrays) -> None:
@@ -147,8 +172,8 @@ def _check_inputs(name: str, spec: ModelSpec, nu: int, **arrays) -> None:
         else:
             ok, want = shape == expected[k], expected[k]
         if not ok:
-            raise InputError(f"{name}: {k} must have shape {want} (one example; vmap for "
-                             f"batches), got {shape}")
+            raise InputError(f"{name}: {k} must have shape {want} (one example; vmap over "
+                             f"the batch), got {shape}")
         if not isinstance(x, jax.core.Tracer) and not np.isfinite(np.asarray(x)).all():
             raise InputError(f"{name}: {k} holds NaN or inf values")
 
@@ -211,7 +236,7 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         return stride.terms(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
 
     return Model(name, residual not in ("mlp", "none"), init, loss, acceleration, step, rollout,
-                 terms)
+                 terms, spec, act, cfg, scales, residual)
 
 
 def _whole_step_applies(spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig) -> bool:
@@ -281,14 +306,23 @@ def next_observation(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Str
     return Model(name, kind is not None,
                  lambda key: next_obs.init(key, spec, cfg, nu, scales, kind),
                  lambda params, ex, key: next_obs.loss(params, spec, cfg, scales, ex, key, kind),
-                 None, step, rollout)
+                 None, step, rollout, None, spec, act, cfg, scales, None)
 
 
-def make(name: str, spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig,
+def make(name: str, spec: ModelSpec, act: Actuation | None = None,
+         cfg: stride.StructuredConfig = stride.StructuredConfig(),
          scales: stride.Scales = stride.Scales()) -> Model:
-    """The model called ``name``; a clear error for unknown names."""
+    """The model called ``name`` (:data:`MODELS`, :data:`DESCRIPTIONS`); a clear error for
+    unknown names. ``act=None``: :func:`motors` on every dof."""
     if name not in MODELS:
         raise ValueError(f"unknown model {name!r}; available: {', '.join(MODELS)}")
+    if not isinstance(spec, ModelSpec):
+        raise TypeError(f"spec must be a ModelSpec, got {type(spec).__name__}")
+    if not isinstance(cfg, stride.StructuredConfig):
+        raise TypeError(f"cfg must be a StructuredConfig (network sizes: "
+                        f"StructuredConfig(net=MLPConfig(hidden, depth))), got "
+                        f"{type(cfg).__name__}")
+    act = act if act is not None else motors(spec.nv)
     if MODELS[name][0] == "next_obs":
         return next_observation(name, spec, act, cfg, scales)
     return structured(name, spec, act, cfg, scales)
@@ -296,47 +330,16 @@ def make(name: str, spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfi
 
 def save_definition(run: pathlib.Path, name: str, spec: ModelSpec, act: Actuation,
                     cfg: stride.StructuredConfig, scales: stride.Scales) -> None:
-    """Writes ``run/model.json``: everything :func:`load` needs besides the parameters."""
-    as_list = lambda x: np.asarray(x, np.float64).reshape(-1).tolist()
-    atomic_write_text(pathlib.Path(run) / "model.json", json.dumps({
-        "name": name, "spec": dataclasses.asdict(spec), "actuation": dataclasses.asdict(act),
-        "config": dataclasses.asdict(cfg),
-        "scales": {k: as_list(v) for k, v in scales._asdict().items()}}, indent=1))
+    """Writes ``run/model.json``: everything :func:`load` needs besides the parameters
+    (:func:`stride_jax.dynamics.checkpoint.save_definition`)."""
+    from stride_jax.dynamics import checkpoint
+
+    checkpoint.save_definition(run, make(name, spec, act, cfg, scales))
 
 
 def load(run: str | pathlib.Path, kernel: str | None = None) -> tuple[Model, dict]:
-    """``(model, params)``: the best (lowest validation loss) parameters of a training run;
-    ``kernel`` overrides how its networks run at inference (``StructuredConfig.kernel``)."""
-    import orbax.checkpoint as ocp
+    """``(model, params)`` of a saved model or training run
+    (:func:`stride_jax.dynamics.checkpoint.load`)."""
+    from stride_jax.dynamics import checkpoint
 
-    run = pathlib.Path(run)
-    if not (run / "model.json").is_file():
-        raise FileNotFoundError(f"{run} is not a training run (no model.json); train one with "
-                                "`stride train`")
-    d = json.loads((run / "model.json").read_text())
-    spec = ModelSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in d["spec"].items()})
-    act = Actuation.from_dict(d["actuation"])
-    c = dict(d["config"])
-    c.setdefault("learn_mass", True)  # runs defined before the option learned their mass
-    # Runs defined before v-prediction: noise prediction on a schedule ending at 1e-5, clipped
-    # at 10; their acceleration loss trained the prior only.
-    for k, v in dict(diffusion_target="eps", abar_min=1e-5, diffusion_clip=10.0,
-                     acc_through="prior").items():
-        c.setdefault(k, v)
-    cfg = stride.StructuredConfig(**dict(c, net=mlp.MLPConfig(**c["net"])))
-    if kernel is not None:
-        cfg = dataclasses.replace(cfg, kernel=kernel)
-    sc = stride.Scales(**{k: jnp.asarray(v, jnp.float32) for k, v in d["scales"].items()})
-    model = make(d["name"], spec, act, cfg, sc)
-    mngr = ocp.CheckpointManager((run / "best").absolute())
-    step = mngr.latest_step()
-    # The step the run's summary names, where it has one: a copied run folder may carry stale
-    # checkpoints beside it (a later step of an older model, say).
-    summary = run / "summary.json"
-    named = json.loads(summary.read_text()).get("best_step") if summary.is_file() else None
-    if named in mngr.all_steps():
-        step = named
-    if step is None:
-        raise FileNotFoundError(f"{run / 'best'} holds no checkpoint")
-    target = model.init(jax.random.key(0))
-    return model, mngr.restore(step, args=ocp.args.StandardRestore(target))
+    return checkpoint.load(run, kernel)

@@ -122,6 +122,10 @@ class StructuredConfig:
 
     def __post_init__(self):
         fused.kernel_dtype(self.kernel)  # a clear error for an unknown choice
+        lagrangian.check_diag_floor(self.diag_floor)
+        if self.kernel != "xla" and self.net.activation != "silu":
+            raise ValueError(f"kernel {self.kernel!r} implements SiLU networks only, not "
+                             f"{self.net.activation!r}; use kernel='xla'")
         if self.acc_through not in ACC_THROUGH:
             raise ValueError(f"acc_through {self.acc_through!r} is not one of {ACC_THROUGH}")
         self.diffusion  # likewise for the diffusion's settings

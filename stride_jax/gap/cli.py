@@ -9,6 +9,8 @@ import json
 import shlex
 import sys
 
+import stride_jax
+
 
 def _parser() -> argparse.ArgumentParser:
     from stride_jax.gap import bench, diagnose, residual
@@ -69,6 +71,7 @@ def _diagnose_config(args: argparse.Namespace):
 
 
 def main(argv: list[str] | None = None) -> int:
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)
     from stride_jax.gap import logs

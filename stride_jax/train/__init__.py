@@ -1,1 +1,6 @@
-"""Training: the optax loop with resumable orbax checkpoints, and the ``stride train`` job."""
+"""Training: the optax loop with resumable orbax checkpoints, the ``stride train`` job, and
+:func:`fit` for a robot given as arrays."""
+
+from stride_jax.train.fit import fit
+
+__all__ = ["fit"]

@@ -28,6 +28,8 @@ class TrainConfig(loop.LoopConfig):
       data: dataset folder; empty means ``data/<robot>`` (generated with ``data_preset`` if absent).
       data_preset: the ``stride data`` preset used when the dataset has to be generated.
       hidden, depth: width and depth of every network of the model.
+      activation, weight_init: the networks' hidden activation and weight initialisation
+        (``mlp.ACTIVATIONS``, ``mlp.INITS``).
       nfe: network evaluations per sample of a generative model; 0 means the model's default
         (``models.DEFAULT_NFE``: 2 for the flow, 10 for diffusion).
       shared_lnn: structured models: L and V from one network (``LNNConfig.shared``).
@@ -44,6 +46,8 @@ class TrainConfig(loop.LoopConfig):
     data_preset: str = "default"
     hidden: int = 128
     depth: int = 3
+    activation: str = "silu"
+    weight_init: str = "lecun_normal"
     nfe: int = 0
     shared_lnn: bool = False
     acc_through: str = "central"
@@ -70,14 +74,16 @@ def spec_from_meta(meta: dict) -> ModelSpec:
 
 def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0,
                  shared_lnn: bool = False, acc_through: str = "central",
-                 learn_mass: bool = False) -> stride.StructuredConfig:
+                 learn_mass: bool = False, activation: str = "silu",
+                 weight_init: str = "lecun_normal") -> stride.StructuredConfig:
     """Sizes for ``model``; ``nfe=0`` takes its default. Floating bases start the learned total
     mass at the nominal model's (a spec-sheet number)."""
     if model not in models.MODELS:
         raise ValueError(f"unknown model {model!r}; available: {', '.join(models.MODELS)}")
     nfe = nfe or models.DEFAULT_NFE.get(models.MODELS[model][1], 2)
     mass = meta.get("total_mass") or float(sim_model.load(meta["robot"]).mj.body_mass.sum())
-    return stride.StructuredConfig(net=mlp.MLPConfig(hidden, depth), nfe=nfe,
+    return stride.StructuredConfig(net=mlp.MLPConfig(hidden, depth, activation, weight_init),
+                                   nfe=nfe,
                                    mass_init=mass if meta["floating_base"] else 1.0,
                                    shared_lnn=shared_lnn, acc_through=acc_through,
                                    learn_mass=learn_mass)
@@ -110,7 +116,7 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
         raise dataset.DatasetError(f"{data_dir} predates actuator metadata; regenerate it")
     spec = spec_from_meta(ds.meta)
     model_cfg = model_config(cfg.model, ds.meta, cfg.hidden, cfg.depth, cfg.nfe, cfg.shared_lnn,
-                             cfg.acc_through, cfg.learn_mass)
+                             cfg.acc_through, cfg.learn_mass, cfg.activation, cfg.weight_init)
     act = models.Actuation.from_meta(ds.meta)
     sc = scales(ds)
     model = models.make(cfg.model, spec, act, model_cfg, sc)

@@ -22,6 +22,7 @@ import optax
 import orbax.checkpoint as ocp
 from tqdm import tqdm
 
+from stride_jax.dynamics.checkpoint import params_sha256
 from stride_jax.sim import rollout_mjx
 from stride_jax.io import atomic_write_text
 
@@ -110,8 +111,18 @@ def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: di
     ``out/metrics.csv``; resumes from ``out/ckpt`` when it exists. ``jacobians``: see
     ``_examples``.
     """
-    out.mkdir(parents=True, exist_ok=True)
     data, val = _examples(train_split, jacobians), _examples(val_split, jacobians)
+    return train_examples(loss_fn, init_fn, data, val, cfg, out, log)
+
+
+def train_examples(loss_fn: Callable, init_fn: Callable, data: dict, val: dict,
+                   cfg: LoopConfig, out: pathlib.Path, log: Callable[[str], None] = print
+                   ) -> dict:
+    """:func:`train` on flat examples ``{name: [N, ...]}`` (``q, qd, tau, qdd``, and whatever
+    else ``loss_fn`` reads) for training and validation. ``out/summary.json`` records the best
+    step and the SHA-256 of its parameters (``checkpoint.params_sha256``)."""
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     n_train = len(data["q"])
     if n_train == 0 or len(val["q"]) == 0:
         raise TrainingError("no valid training or validation steps in the dataset")
@@ -216,6 +227,7 @@ def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: di
     params = best.restore(best.latest_step(), args=ocp.args.StandardRestore(state["params"]))
     atomic_write_text(out / "summary.json", json.dumps(
         {"best_val": float(state["best_val"]), "best_step": best.latest_step(),
+         "params_sha256": params_sha256(params),
          "steps": cfg.steps, "steps_done": int(state["step"]),
          "finished": int(state["step"]) >= cfg.steps}, indent=1))
     return params
