@@ -182,3 +182,63 @@ def test_a_glitch_or_a_step_with_no_finite_rollout_falls_back_safely():
     u, s1, info = jax.jit(bad.step)(s0, q, qd)
     assert int(info.status) == mppi.NO_FINITE_ROLLOUT
     assert float(u[0]) == pytest.approx(0.7) and np.isfinite(np.asarray(s1.plan)).all()
+
+
+def _gamble(q, qd, u, key):
+    """A one-step bet: pushing forward (u > 0) lands at 0 (70%) or 10 (30%), mean 3; holding
+    back (u < 0) lands at 3.5 for sure. The landing point is the cost."""
+    jump = jnp.where(jax.random.bernoulli(key, 0.3), 10.0, 0.0)
+    return jnp.where(u > 0, jump, 3.5), qd
+
+
+def _gamble_plan(**risk):
+    cfg = mppi.MPPIConfig(samples=256, horizon=1, noise_std=1.0, temperature=0.05, **risk)
+    planner = mppi.make(cfg, _gamble, lambda q, qd, u, t: jnp.zeros(()), [-1.0], [1.0],
+                        terminal_value=lambda q, qd: -q[0])
+    u, _, info = jax.jit(planner.step)(planner.init(jax.random.key(3)), jnp.zeros(1),
+                                       jnp.zeros(1))
+    return float(u[0]), info
+
+
+def test_risk_aware_cost_prefers_the_safe_action_that_the_mean_rejects():
+    """On a known bimodal model the mean over draws takes the bet (mean cost 3 < 3.5) and the
+    CVaR of the worst 30% (cost 10 > 3.5) or a variance penalty declines it."""
+    assert _gamble_plan(risk_draws=64, risk="mean")[0] > 0.3
+    assert _gamble_plan(risk_draws=64, risk="cvar", risk_alpha=0.7)[0] < -0.3
+    assert _gamble_plan(risk_draws=64, risk="std", risk_weight=1.0)[0] < -0.3
+    # one draw per candidate: the 70% of risky candidates that drew the good outcome win
+    assert _gamble_plan()[0] > 0.3
+
+
+def test_risk_cost_statistics():
+    c = jnp.array([1.0, 2.0, 3.0, 10.0])
+    assert float(mppi.risk_cost(c)) == pytest.approx(4.0)
+    assert float(mppi.risk_cost(c, "cvar", 0.75)) == pytest.approx(10.0)
+    assert float(mppi.risk_cost(c, "cvar", 0.5)) == pytest.approx(6.5)
+    assert float(mppi.risk_cost(c, "std", weight=2.0)) == pytest.approx(4.0 + 2 * float(
+        jnp.std(c)))
+    assert not np.isfinite(float(mppi.risk_cost(jnp.array([1.0, jnp.inf]), "cvar", 0.5)))
+    with pytest.raises(ValueError, match="risk="):
+        mppi.MPPIConfig(risk="worst")
+    with pytest.raises(ValueError, match="risk_draws"):
+        mppi.MPPIConfig(risk_draws=0)
+
+
+def test_bench_oracle_row_plans_through_mjx(tmp_path):
+    """`stride bench-mppi` times planning through the robot's MJX model beside a learned model,
+    and the table says how many times faster the learned model plans."""
+    import dataclasses
+
+    from stride_jax.control import bench
+
+    cfg = dataclasses.replace(bench.BenchConfig(**bench.PRESETS["tiny"]), out=str(tmp_path))
+    rows = bench.run(cfg, "test")
+    by = {r["model"]: r for r in rows}
+    assert set(by) == {"delan", "oracle"}
+    assert by["oracle"]["ms"] > 0 and by["oracle"]["kernel"] == "mjx"
+    table = (tmp_path / "bench_mppi_cpu.md").read_text()
+    oracle_line = [ln for ln in table.splitlines() if "| oracle |" in ln][0]
+    delan_line = [ln for ln in table.splitlines() if "| delan |" in ln][0]
+    assert delan_line.rstrip(" |").split("|")[-1].strip() == \
+        f"{by['oracle']['ms'] / by['delan']['ms']:.1f}"
+    assert oracle_line.rstrip().endswith("| - |")

@@ -8,6 +8,11 @@ step once, and reports the median wall time of ``repeats`` steps (after a warm-u
 body once, not once per trip -- with the substeps and residual evaluations added) divided by the
 machine's measured peak (a large float32 matmul); the ratio says how far from compute-bound the
 step runs. The planner's own work (noise, costs, weights) is left out: the floor is a lower bound.
+
+The model ``oracle`` plans through the simulator itself (the robot's MJX model, its simulation
+substeps per control step: the MJX-MPPI of tools like hydrax), at the same K and H, so each
+learned model's speed against planning through physics is measured in one run (the table's
+"x oracle" column: the oracle's time over the model's). It has no FLOP floor.
 """
 
 from __future__ import annotations
@@ -26,7 +31,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.control import mppi
+from mujoco import mjx
+
+from stride_jax.control import envs, mppi
 from stride_jax.dynamics import fused, models, stride
 from stride_jax.io import atomic_write_text
 from stride_jax.sim import bench as sim_bench, collect, model as sim_model
@@ -37,7 +44,8 @@ from stride_jax.train import job
 class BenchConfig:
     """Attributes:
       robots: comma-separated robot names.
-      models: comma-separated model names.
+      models: comma-separated model names (``models.MODELS``), and ``oracle``: planning through
+        the robot's MJX model.
       samples: comma-separated K values.
       horizons: comma-separated H values.
       hidden, depth: network size (the paper's: 256 x 3).
@@ -55,7 +63,7 @@ class BenchConfig:
     """
 
     robots: str = "go1,g1"
-    models: str = "stride,delan,onn"
+    models: str = "stride,delan,onn,oracle"
     samples: str = "64,256,1024"
     horizons: str = "10,20,30"
     hidden: int = 256
@@ -70,8 +78,8 @@ class BenchConfig:
 
 
 PRESETS = {
-    "tiny": dict(robots="go1", models="delan", samples="8", horizons="4", hidden=32, depth=1,
-                 repeats=1),
+    "tiny": dict(robots="go1", models="delan,oracle", samples="8", horizons="4", hidden=32,
+                 depth=1, repeats=1),
     "target": dict(robots="go1", models="stride,delan,onn", samples="128", horizons="16"),
     "target-coarse": dict(robots="go1", models="stride,delan", samples="128", horizons="16",
                           substeps=1),
@@ -154,8 +162,8 @@ class Setup(NamedTuple):
     state: mppi.MPPIState
     q0: jax.Array
     qd0: jax.Array
-    model: models.Model
-    params: dict
+    model: models.Model | None  # None for the oracle
+    params: dict | None
     spec: Any
     act: models.Actuation
     model_cfg: stride.StructuredConfig
@@ -166,17 +174,22 @@ def setup(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig) -> Setu
     of ``cfg``'s size at initialisation, MPPI with ``K`` samples and horizon ``H`` and the
     tracking cost, from the robot's home pose."""
     sm, meta, spec, act = _robot(robot)
-    if cfg.substeps:
+    lo, hi = np.asarray(meta["ctrl_range"], np.float32).T
+    if model_name == "oracle":
+        dynamics, model, params, model_cfg = envs.mjx_step_fn(sm.n_substeps,
+                                                              mjx.put_model(sm.mj)), None, None, None
+    elif cfg.substeps:
         act = dataclasses.replace(act, dt=act.dt * act.n_substeps / cfg.substeps,
                                   n_substeps=cfg.substeps)
-    model_cfg = dataclasses.replace(job.model_config(model_name, meta, cfg.hidden, cfg.depth,
-                                                     cfg.nfe, cfg.shared_lnn), kernel=cfg.kernel)
-    model = models.make(model_name, spec, act, model_cfg, stride.Scales())
-    params = model.init(jax.random.key(0))
-    lo, hi = np.asarray(meta["ctrl_range"], np.float32).T
+    if model_name != "oracle":
+        model_cfg = dataclasses.replace(job.model_config(model_name, meta, cfg.hidden,
+                                                         cfg.depth, cfg.nfe, cfg.shared_lnn),
+                                        kernel=cfg.kernel)
+        model = models.make(model_name, spec, act, model_cfg, stride.Scales())
+        params = model.init(jax.random.key(0))
+        dynamics = functools.partial(model.step, params)
     planner = mppi.make(mppi.MPPIConfig(samples=K, horizon=H, unroll=cfg.unroll or True),
-                        functools.partial(model.step, params), tracking_cost(spec), lo, hi,
-                        sharding=mppi.sample_sharding())
+                        dynamics, tracking_cost(spec), lo, hi, sharding=mppi.sample_sharding())
     q0 = jnp.asarray(sm.info.qpos0)
     state = planner.init(jax.random.key(1), jnp.broadcast_to(q0[
         np.asarray(act.dof) + (1 if spec.floating_base else 0)], (H, len(lo))))
@@ -194,11 +207,15 @@ def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
     xla_flops = _flops(compiled)
     ms = 1e3 * sim_bench.median_time(lambda: jax.block_until_ready(compiled(*args)),
                                       cfg.repeats)
-    flops = K * H * control_step_flops(model_name, b.spec, b.act, b.model_cfg, b.params)
+    oracle = b.model is None
+    flops = float("nan") if oracle else K * H * control_step_flops(
+        model_name, b.spec, b.act, b.model_cfg, b.params)
     floor_ms = 1e3 * flops / peak
-    return dict(robot=robot, model=model_name, K=K, H=H, substeps=b.act.n_substeps,
-                unroll=cfg.unroll, kernel=cfg.kernel,
-                nfe=b.model_cfg.nfe if b.model.stochastic else None, ms=ms, hz=1e3 / ms,
+    return dict(robot=robot, model=model_name, K=K, H=H,
+                substeps=_robot(robot)[0].n_substeps if oracle else b.act.n_substeps,
+                unroll=cfg.unroll, kernel="mjx" if oracle else cfg.kernel,
+                nfe=b.model_cfg.nfe if not oracle and b.model.stochastic else None, ms=ms,
+                hz=1e3 / ms,
                 gflop=flops / 1e9, xla_gflop=xla_flops / 1e9, floor_ms=floor_ms,
                 ratio=ms / floor_ms if floor_ms > 0 else float("nan"), compile_s=compile_s)
 
@@ -212,8 +229,9 @@ def run(cfg: BenchConfig, command: str) -> list[dict]:
                                                map(int, split(cfg.horizons))):
         r = measure(robot, name, K, H, cfg, peak)
         rows.append(r)
-        print(f"{robot} {name} K={K} H={H}: {r['ms']:.2f} ms ({r['hz']:.0f} Hz), "
-              f"{r['gflop']:.2f} GFLOP, {r['ratio']:.0f}x the FLOP floor", flush=True)
+        print(f"{robot} {name} K={K} H={H}: {r['ms']:.2f} ms ({r['hz']:.0f} Hz)"
+              + ("" if name == "oracle" else
+                 f", {r['gflop']:.2f} GFLOP, {r['ratio']:.0f}x the FLOP floor"), flush=True)
         write(rows, cfg, command, peak)
     return rows
 
@@ -254,14 +272,17 @@ def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> path
              "(`control_step_flops`: counted without loops) / peak; the planner's own work "
              "(noise, costs, weights) is left out, so the floor is a lower bound.", "",
              "| robot | model | NFE | substeps | unroll | K | H | median ms | Hz | GFLOP | "
-             "FLOP floor ms | ratio |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "FLOP floor ms | ratio | x oracle |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    oracle_ms = {(r["robot"], r["K"], r["H"]): r["ms"] for r in rows if r["model"] == "oracle"}
+    num = lambda x, f: "-" if not np.isfinite(x) else format(x, f)
     for r in rows:
+        vs = oracle_ms.get((r["robot"], r["K"], r["H"]))
+        speedup = "-" if vs is None or r["model"] == "oracle" else f"{vs / r['ms']:.1f}"
         lines.append(f"| {r['robot']} | {r['model']} | {r['nfe'] or '-'} | "
                      f"{r.get('substeps', '-')} | {r.get('unroll', 1) or 'all'} | {r['K']} | "
-                     f"{r['H']} | "
-                     f"{r['ms']:.2f} | {r['hz']:.0f} | {r['gflop']:.2f} | {r['floor_ms']:.3f} | "
-                     f"{r['ratio']:.0f} |")
+                     f"{r['H']} | {r['ms']:.2f} | {r['hz']:.0f} | {num(r['gflop'], '.2f')} | "
+                     f"{num(r['floor_ms'], '.3f')} | {num(r['ratio'], '.0f')} | {speedup} |")
     path = out / f"bench_mppi_{tag}.md"
     atomic_write_text(path, "\n".join(lines) + "\n")
     return path

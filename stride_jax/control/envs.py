@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -353,6 +354,15 @@ def physics_step(mx: mjx.Model, n_substeps: int, d: mjx.Data, ctrl: jax.Array) -
     """Holds ``ctrl`` for ``n_substeps`` MJX steps."""
     d = d.replace(ctrl=ctrl)
     return jax.lax.fori_loop(0, n_substeps, lambda _, dd: mjx.step(mx, dd), d)
+
+
+def mjx_step_fn(n_substeps: int, mx: mjx.Model) -> Callable:
+    """``step(q, qd, ctrl, key) -> (q', qd')``: one control period of an MJX model, the
+    planner's dynamics when it plans through the simulator (the oracle; ``key`` is unused)."""
+    def step(q, qd, ctrl, key):
+        d = physics_step(mx, n_substeps, mjx.make_data(mx).replace(qpos=q, qvel=qd), ctrl)
+        return d.qpos, d.qvel
+    return step
 
 
 def contact_slots(mx: mjx.Model) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,202 @@
+"""Why planning through a learned model can make the policy worse (issue 19, item 1).
+
+Along the PPO policy's own closed-loop episode in each scenario, at every ``--every``-th control
+step, the MPPI planner of each learned model proposes its candidates; they are replayed in the
+scenario's MJX model from the same state (``stride_jax.control.model_check``): the model's error
+along them, its cost bias, how well it ranks them, and the regret of its weights. Also the
+policy's own action spread against the planner's exploration noise. Writes ``diagnosis.json``,
+``diagnosis.md`` and ``errors.png`` to ``--out``.
+
+    python experiments/planning_diagnosis.py --preset tiny --out /tmp/diag           # CPU, minutes
+    python experiments/planning_diagnosis.py --preset gpu --out results/planning_diagnosis
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import shlex
+import sys
+import time
+
+import stride_jax
+
+PRESETS = {
+    "tiny": dict(samples=16, horizon=4, policy_samples=4, seconds=0.6, every=10,
+                 scenarios="slope"),
+    "cpu": dict(samples=128, horizon=20, policy_samples=16, seconds=3.0, every=15),
+    "gpu": dict(samples=1024, horizon=20, policy_samples=64, seconds=6.0, every=10),
+}
+MODELS = "stride=results/models/go1/stride-s0,delan=results/models/go1/delan-s0," \
+         "onn=results/models/go1/onn-s0"
+
+
+def main(argv: list[str] | None = None) -> dict:
+    stride_jax.set_xla_flags()
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--preset", default="cpu", choices=list(PRESETS))
+    p.add_argument("--robot", default="go1")
+    p.add_argument("--models", default=MODELS, help="NAME=RUN,... (trained dynamics models)")
+    p.add_argument("--scenarios", default=None, help="default: slope,rough,changes (tiny: slope)")
+    p.add_argument("--policy", default="results/policies/ppo_go1")
+    p.add_argument("--learned", default="results/learned_go1/reward_value.msgpack",
+                   help="learned reward/value ('' for the analytic cost)")
+    for k in ("samples", "horizon", "policy_samples", "every"):
+        p.add_argument(f"--{k.replace('_', '-')}", type=int, default=None)
+    p.add_argument("--seconds", type=float, default=None)
+    p.add_argument("--out", default="results/planning_diagnosis")
+    args = p.parse_args(argv)
+    preset = dict(PRESETS[args.preset])
+    for k in ("samples", "horizon", "policy_samples", "every", "seconds"):
+        if getattr(args, k) is not None:
+            preset[k] = getattr(args, k)
+    preset["scenarios"] = args.scenarios or preset.get("scenarios", "slope,rough,changes")
+    command = "python " + " ".join(map(shlex.quote, [sys.argv[0], *(argv or sys.argv[1:])]))
+    return run(args, preset, command)
+
+
+def run(args, preset: dict, command: str) -> dict:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from mujoco import mjx
+
+    from stride_jax.control import envs, learned as learned_lib, model_check, ppo
+    from stride_jax.control.closed_loop import ClosedLoopConfig, learned_step_fn
+    from stride_jax.control.planning import augment, make_planner, make_planning, mppi_config
+    from stride_jax.control.scenarios import SCENARIOS, command_at, scenario_model, schedule
+    from stride_jax.io import atomic_write_text, code_version
+    from stride_jax.sim import model as sim_model
+
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    sm = sim_model.load(args.robot)
+    nu = sm.info.nu
+    policy, _, env_cfg = ppo.load_policy(args.policy)
+    learned = learned_lib.load(args.learned) if args.learned else None
+    cfg = ClosedLoopConfig(robot=args.robot, samples=preset["samples"],
+                           horizon=preset["horizon"], policy=args.policy,
+                           policy_samples=preset["policy_samples"], learned=args.learned)
+    models = [tuple(m.split("=", 1)) for m in args.models.split(",") if m]
+    steps = {name: learned_step_fn(run_dir, sm) for name, run_dir in models}
+    rows, t_start = [], time.time()
+    for sc_name in [s for s in preset["scenarios"].split(",") if s]:
+        sc = dataclasses.replace(SCENARIOS[sc_name], seconds=preset["seconds"])
+        mx = mjx.put_model(scenario_model(sm, sc, cfg.seed))
+        true_step = envs.mjx_step_fn(sm.n_substeps, mx)
+        truth = make_planning(cfg, env_cfg, sm, true_step, policy, learned)
+        starts, values = map(jnp.asarray, schedule(sc))
+        n_steps = max(1, int(round(sc.seconds / sm.robot.ctrl_dt)))
+
+        @jax.jit
+        def policy_episode():
+            """The policy alone in the scenario: the states the planner would meet."""
+            d0 = mjx.make_data(mx).replace(qpos=jnp.asarray(sm.info.qpos0).at[2].add(0.02))
+
+            def body(carry, step):
+                d, clock = carry
+                q_aug = augment(d.qpos, command_at(starts, values, step * sm.robot.ctrl_dt),
+                                clock)
+                u = truth.policy(q_aug, d.qvel)
+                d = envs.physics_step(mx, sm.n_substeps, d, truth.ctrl(q_aug, u))
+                clock = jnp.mod(clock + truth.clock_hz * sm.robot.ctrl_dt, 1.0)
+                return (d, clock), (q_aug, d.qvel, u)
+            return jax.lax.scan(body, (d0, jnp.zeros(())), jnp.arange(n_steps))[1]
+
+        q_aug, qd, actions = policy_episode()
+        # qd recorded after the step: pair each q_aug with the velocity it was planned from
+        qd = jnp.concatenate([jnp.zeros_like(qd[:1]), qd[:-1]])
+        pick = np.arange(preset["every"], n_steps, preset["every"])
+        spread = float(np.asarray(actions).std(axis=0).mean())
+        for name, _ in models:
+            planning = make_planning(cfg, env_cfg, sm, steps[name], policy, learned)
+            with jax.ensure_compile_time_eval():
+                planner = make_planner(planning, mppi_config(cfg, planning))
+            H = cfg.horizon
+
+            def at(q, v, key):
+                st = planner.init(key, jnp.broadcast_to(jnp.asarray(planning.nominal_u),
+                                                        (H, len(planning.lo))))
+                _, _, info = planner.step(st, q, v)
+                return model_check.one_state(planning.dynamics, truth.dynamics, planning.cost,
+                                             planning.value or (lambda q, qd: jnp.zeros(())),
+                                             info.candidates, q, v, key, cfg.temperature, nu)
+
+            t0 = time.time()
+            per = jax.jit(jax.vmap(at))(q_aug[pick], qd[pick],
+                                        jax.random.split(jax.random.key(cfg.seed), len(pick)))
+            per = jax.device_get(per)
+            row = dict(scenario=sc_name, model=name, seconds=time.time() - t0,
+                       policy_action_std=spread, noise_std=cfg.noise_std,
+                       **model_check.summarise(per, cfg.policy_samples))
+            rows.append(row)
+            print(f"{sc_name:>8} {name:>6}: rank corr {row['spearman']:.2f}, top-10% overlap "
+                  f"{row['top10_overlap']:.2f}, regret {row['regret']:.3f}, cost bias "
+                  f"{row['cost_bias_mean']:.3f} (true spread {row['cost_true_spread']:.3f}), "
+                  f"vel err H={H} {row['vel_err_noise'][-1]:.3f} m/s ({row['seconds']:.0f} s)",
+                  flush=True)
+            env = dict(command=command, backend=jax.default_backend(),
+                       device=jax.devices()[0].device_kind, code=code_version(),
+                       preset=preset, models=dict(models), policy=args.policy,
+                       learned=args.learned)
+            atomic_write_text(out / "diagnosis.json", json.dumps(dict(env=env, rows=rows),
+                                                                 indent=1))
+    write_md(out, rows, command, preset)
+    plot(out, rows)
+    print(f"wrote {out / 'diagnosis.md'} ({time.time() - t_start:.0f} s)")
+    return dict(rows=rows)
+
+
+def write_md(out: pathlib.Path, rows: list[dict], command: str, preset: dict) -> None:
+    from stride_jax.io import atomic_write_text
+
+    lines = ["# Planning through learned models: candidates replayed in the simulator", "",
+             f"Command: `{command}`", "",
+             f"K={preset['samples']}, H={preset['horizon']}, {preset['policy_samples']} policy "
+             f"candidates; states every {preset['every']} control steps of the policy's own "
+             f"{preset['seconds']} s episode per scenario (`stride_jax/control/model_check.py`).",
+             "", "| scenario | model | rank corr | top-10% overlap | regret | cost bias (noise "
+             "/ policy cand.) | true cost spread | vel err at H, noise / policy cand. (m/s) | "
+             "joint err at H (rad) | policy action std / noise std (rad) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    f = lambda x: "-" if x is None else f"{x:.3f}"
+    for r in rows:
+        lines.append(
+            f"| {r['scenario']} | {r['model']} | {r['spearman']:.2f} | {r['top10_overlap']:.2f} | "
+            f"{f(r['regret'])} | {f(r.get('cost_bias_noise', r['cost_bias_mean']))} / "
+            f"{f(r.get('cost_bias_policy'))} | {f(r['cost_true_spread'])} | "
+            f"{f(r['vel_err_noise'][-1])} / "
+            f"{f((r.get('vel_err_policy') or [None])[-1])} | {f(r['joint_err_noise'][-1])} | "
+            f"{r['policy_action_std']:.3f} / {r['noise_std']:.3f} |")
+    atomic_write_text(out / "diagnosis.md", "\n".join(lines) + "\n")
+
+
+def plot(out: pathlib.Path, rows: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenarios = list(dict.fromkeys(r["scenario"] for r in rows))
+    fig, axes = plt.subplots(1, len(scenarios), figsize=(4.5 * len(scenarios), 3.5),
+                             squeeze=False)
+    for ax, sc in zip(axes[0], scenarios):
+        for i, r in enumerate(x for x in rows if x["scenario"] == sc):
+            h = range(1, len(r["vel_err_noise"]) + 1)
+            ax.plot(h, r["vel_err_noise"], color=f"C{i}", label=f"{r['model']}: noise cand.")
+            if r.get("vel_err_policy"):
+                ax.plot(h, r["vel_err_policy"], color=f"C{i}", ls="--",
+                        label=f"{r['model']}: policy cand.")
+        ax.set(title=sc, xlabel="horizon step", ylabel="base velocity error (m/s)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "errors.png", dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()

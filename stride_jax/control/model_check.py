@@ -1,0 +1,107 @@
+"""Where a planner's learned model leads it astray: its candidates replayed in the simulator.
+
+At a state the planner meets in closed loop, MPPI proposes ``K`` action sequences and weighs them
+by the costs its model predicts. Replaying the same sequences through the true dynamics (the
+scenario's MJX model) from the same state says what those weights should have been:
+
+* **model error along the candidates** (off the data's distribution where the noise takes them)
+  against the error along the policy's own candidates (near the data), per horizon step: the
+  base's linear velocity (m/s) and the joint angles (rad);
+* **cost bias**: the predicted minus the true cost of each candidate (reward units);
+* **ranking**: Spearman's rank correlation of predicted and true costs over the candidates, and
+  the share of the model's best 10% that are among the truly best 10%;
+* **regret**: the true cost of the plan the model's weights make, minus that of the plan the true
+  costs' weights make (the same candidates, the same temperature): what the model's errors cost
+  the planner, in the task's own units.
+
+Pure functions of one state; :func:`check` batches them over states with ``vmap`` (the MPPI step
+itself is a scan over horizon steps, so a batch of states is one program).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stride_jax.control import mppi
+
+
+def _ranks(x: jax.Array) -> jax.Array:
+    return jnp.argsort(jnp.argsort(x)).astype(jnp.float32)
+
+
+def spearman(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Rank correlation of ``a`` and ``b`` ``[K]`` (ties broken by order; 1: same ranking)."""
+    ra, rb = _ranks(a), _ranks(b)
+    ra, rb = ra - ra.mean(), rb - rb.mean()
+    return jnp.sum(ra * rb) / jnp.sqrt(jnp.sum(ra ** 2) * jnp.sum(rb ** 2))
+
+
+def weights(costs: jax.Array, temperature: float, normalize: bool = True) -> jax.Array:
+    """MPPI's softmax weights of ``costs`` ``[K]`` (:func:`stride_jax.control.mppi.make`'s rule)."""
+    costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
+    finite = jnp.isfinite(costs)
+    shifted = costs - jnp.min(costs)
+    if normalize:
+        spread = jnp.sqrt(jnp.sum(jnp.where(finite, shifted, 0.0) ** 2)
+                          / jnp.maximum(finite.sum(), 1))
+        shifted = shifted / jnp.maximum(spread, 1e-6)
+    return jax.nn.softmax(-shifted / temperature)
+
+
+def one_state(model_dynamics: Callable, true_dynamics: Callable, running_cost: Callable,
+              value: Callable, candidates: jax.Array, q: jax.Array, qd: jax.Array,
+              key: jax.Array, temperature: float, n_joints: int) -> dict:
+    """The comparison at one planner state ``(q, qd)`` (the planner's augmented ``q``; its first
+    ``7 + n_joints`` entries are the floating base's pose and the joints) for ``candidates``
+    ``[K, H, nu]`` (MPPI's ``Info.candidates``)."""
+    keys = jax.random.split(key, candidates.shape[0])
+    roll = lambda dyn: jax.vmap(lambda a, k: mppi.open_loop_cost(dyn, running_cost, value, q, qd,
+                                                                 a, k))(candidates, keys)
+    c_model, qs_m, qds_m = roll(model_dynamics)
+    c_true, qs_t, qds_t = roll(true_dynamics)
+    vel = jnp.linalg.norm(qds_m[..., :3] - qds_t[..., :3], axis=-1)  # [K, H] base velocity
+    joints = jnp.sqrt(jnp.mean((qs_m[..., 7:7 + n_joints] - qs_t[..., 7:7 + n_joints]) ** 2, -1))
+    w_model, w_true = weights(c_model, temperature), weights(c_true, temperature)
+    plan = lambda w: jnp.einsum("k,khu->hu", w, candidates)
+    cost_of = lambda a: mppi.open_loop_cost(true_dynamics, running_cost, value, q, qd, a, key)[0]
+    K = candidates.shape[0]
+    top = max(1, K // 10)
+    best_model = jnp.argsort(jnp.where(jnp.isfinite(c_model), c_model, jnp.inf))[:top]
+    best_true = jnp.argsort(jnp.where(jnp.isfinite(c_true), c_true, jnp.inf))[:top]
+    overlap = jnp.isin(best_model, best_true).mean()
+    ok = jnp.isfinite(c_model) & jnp.isfinite(c_true)
+    return dict(vel_err=vel, joint_err=joints, cost_model=c_model, cost_true=c_true,
+                spearman=spearman(jnp.where(ok, c_model, 1e9), jnp.where(ok, c_true, 1e9)),
+                top10_overlap=overlap, regret=cost_of(plan(w_model)) - cost_of(plan(w_true)),
+                finite=ok.mean())
+
+
+def summarise(per_state: dict, n_policy: int) -> dict:
+    """Means over states (and candidates) of :func:`one_state`'s outputs stacked over states;
+    the last ``n_policy`` candidates are the policy's (MPPI puts them last)."""
+    a = {k: np.asarray(v) for k, v in per_state.items()}
+    K = a["cost_model"].shape[1]
+    noise = slice(0, K - n_policy)
+    pol = slice(K - n_policy, K) if n_policy else slice(0, 0)
+    bias = a["cost_model"] - a["cost_true"]
+    fin = np.isfinite(bias)
+    out = dict(
+        states=int(a["cost_model"].shape[0]), candidates=K, policy_candidates=n_policy,
+        vel_err_noise=np.nanmean(a["vel_err"][:, noise], axis=(0, 1)).tolist(),
+        joint_err_noise=np.nanmean(a["joint_err"][:, noise], axis=(0, 1)).tolist(),
+        cost_bias_mean=float(np.mean(bias[fin])) if fin.any() else float("nan"),
+        cost_bias_std=float(np.std(bias[fin])) if fin.any() else float("nan"),
+        cost_true_spread=float(np.nanmean(np.nanstd(np.where(np.isfinite(a["cost_true"]),
+                                                             a["cost_true"], np.nan), 1))),
+        spearman=float(np.nanmean(a["spearman"])), top10_overlap=float(a["top10_overlap"].mean()),
+        regret=float(np.nanmean(a["regret"])), finite=float(a["finite"].mean()))
+    if n_policy:
+        out["vel_err_policy"] = np.nanmean(a["vel_err"][:, pol], axis=(0, 1)).tolist()
+        out["joint_err_policy"] = np.nanmean(a["joint_err"][:, pol], axis=(0, 1)).tolist()
+        out["cost_bias_policy"] = float(np.nanmean(bias[:, pol]))
+        out["cost_bias_noise"] = float(np.nanmean(bias[:, noise]))
+    return out
