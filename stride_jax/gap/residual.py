@@ -41,12 +41,11 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-import optax
 
 from stride_jax.dynamics import flow, mlp, stride
 from stride_jax.gap import effects, fit, regions, sim
 from stride_jax.sim.collect import robot_meta
-from stride_jax.train import job
+from stride_jax.train import job, loop
 from stride_jax.sim.model import SimModel
 from stride_jax.types import ModelSpec
 
@@ -61,7 +60,8 @@ class ResidualConfig:
       when: ``"unexplained"`` fits it only when the verdict is "unexplained by the library",
         ``"always"`` after every diagnosis with a significant gap, ``"never"`` not at all.
       hidden, depth: the vector field's MLP (SiLU).
-      steps: optimiser steps (Adam, cosine decay, gradient clipping at 10).
+      steps: optimiser steps (``train.loop.optimizer``: Adam, cosine decay, gradient clipping
+        at 10).
       batch: examples per step (capped at the training set's size).
       lr: peak learning rate.
       nfe: vector-field evaluations of the central sample.
@@ -80,7 +80,8 @@ class ResidualConfig:
         residual, early stopping kept step 100 of 2000 and the held-out split was 1.7%
         explained, against 83.5% when trained on all six; Go1 with a joint spring (10 x 150
         steps): 16.3% against 32.5% (``experiments/gap_residual_validation.py``).
-      checks: validation scorings over the run (the step is chosen among them).
+      checks: validation scorings over the run, every ``ceil(steps / checks)`` steps and after
+        the last (the step is chosen among them).
     """
 
     when: str = "unexplained"
@@ -195,52 +196,33 @@ def _spread(x: np.ndarray) -> np.ndarray:
 def train_flow(x1: np.ndarray, c: np.ndarray, cfg: ResidualConfig,
                score: Callable[[dict], float] | None = None
                ) -> tuple[dict, np.ndarray, dict[str, Any]]:
-    """Conditional flow matching of ``x1 [N, D]`` given ``c [N, C]``; returns the vector field's
-    parameters, the loss per step and how the step was chosen. The loop runs as ``cfg.checks``
-    ``jit``-ed ``lax.scan`` chunks; with ``score(params) -> float`` (lower is better) the
-    parameters after the best-scoring chunk are returned (early stopping), else the last."""
+    """Conditional flow matching of ``x1 [N, D]`` given ``c [N, C]`` with the training loop
+    (:func:`stride_jax.train.loop.run`); returns the vector field's parameters, the loss per step
+    and how the step was chosen. With ``score(params) -> float`` (lower is better) the fit is
+    scored every ``ceil(steps / checks)`` steps and after the last, and the best-scoring
+    parameters are returned (early stopping); without one, the last, after one scanned chunk of
+    all the steps (no host round trips)."""
     fcfg = cfg.flow
     n, dim = x1.shape
-    b = min(cfg.batch, n)
     k_init, k_loop = jax.random.split(jax.random.PRNGKey(cfg.seed))
     params = flow.flow_init(k_init, dim, c.shape[1], fcfg)
-    opt = optax.chain(optax.clip_by_global_norm(10.0),
-                      optax.adamw(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05),
-                                  weight_decay=cfg.weight_decay))
 
-    def batch_loss(p, X, C, key):
-        k_idx, k_fm = jax.random.split(key)
-        i = jax.random.randint(k_idx, (b,), 0, n)
-        ex = jax.vmap(lambda x, cc, k: flow.fm_loss(p, x, cc, k, fcfg))
-        return jnp.mean(ex(X[i], C[i], jax.random.split(k_fm, b)))
+    def batch_loss(p, ex, key):
+        b = ex["x"].shape[0]
+        per = jax.vmap(lambda x, cc, k: flow.fm_loss(p, x, cc, k, fcfg))
+        return jnp.mean(per(ex["x"], ex["c"], jax.random.split(key, b))), {}
 
-    @jax.jit
-    def run(carry, X, C, keys):
-        def step(carry, key):
-            p, st = carry
-            loss, g = jax.value_and_grad(batch_loss)(p, X, C, key)
-            upd, st = opt.update(g, st, p)
-            return (optax.apply_updates(p, upd), st), loss
-
-        return jax.lax.scan(step, carry, keys)
-
-    X, C = jnp.asarray(x1, jnp.float32), jnp.asarray(c, jnp.float32)
-    keys = jax.random.split(k_loop, cfg.steps)
-    # One chunk without a score (no host round trips); ``checks`` chunks to score between.
-    chunks = min(cfg.checks, cfg.steps) if score is not None else 1
-    edges = np.linspace(0, cfg.steps, chunks + 1).round().astype(int)
-    carry, losses, scores = (params, opt.init(params)), [], []
-    best = (math.inf, cfg.steps, params)
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        carry, chunk = run(carry, X, C, keys[lo:hi])
-        losses.append(np.asarray(chunk))
-        if score is not None:
-            scores.append(float(score(carry[0])))
-            if scores[-1] < best[0]:
-                best = (scores[-1], int(hi), carry[0])
-    chosen = {"steps": cfg.steps, "checked_at": edges[1:].tolist() if scores else [],
-              "validation_scores": scores, "chosen_step": best[1]}
-    return (best[2] if scores else carry[0]), np.concatenate(losses), chosen
+    data = {"x": jnp.asarray(x1, jnp.float32), "c": jnp.asarray(c, jnp.float32)}
+    every = math.ceil(cfg.steps / min(cfg.checks, cfg.steps)) if score is not None else cfg.steps
+    lcfg = loop.LoopConfig(steps=cfg.steps, batch=min(cfg.batch, n), lr=cfg.lr, eval_every=every,
+                           ckpt_every=cfg.steps, seed=cfg.seed)
+    validate = (lambda p: (float(score(p)), {})) if score is not None else None
+    res = loop.run(batch_loss, params, data, lcfg,
+                   loop.optimizer(cfg.lr, cfg.steps, cfg.weight_decay), k_loop, validate,
+                   progress=None)
+    chosen = {"steps": cfg.steps, "checked_at": res.checked_at,
+              "validation_scores": res.scores, "chosen_step": res.best_step}
+    return res.params, res.losses, chosen
 
 
 def _validation_split(traj: np.ndarray, share: float) -> tuple[np.ndarray, np.ndarray]:
