@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from stride_jax.gap import effects, fit, linear_probe, logs, regions, residual, sim
+from stride_jax.gap import effects, filters, fit, linear_probe, logs, regions, residual, sim
 from stride_jax.gap.residual import ResidualConfig
 from stride_jax.gap.regions import PHASES, dof_names, foot_phases, noise_floor  # noqa: F401 (re-exported)
 from stride_jax.sim.model import SimModel
@@ -80,7 +80,7 @@ class DiagnoseConfig:
     holdout: float = 0.34
     steps: int = 5
     seed: int = 0
-    preprocess: logs.Preprocess = logs.Preprocess()
+    preprocess: filters.Preprocess = filters.Preprocess()
     fit: fit.FitConfig = fit.FitConfig()
     pairs_of: int = 3
     penalty: float = 0.005
@@ -533,7 +533,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     arrays under keys starting with ``_`` for the plots)."""
     t_start = time.time()
     dt = sm.robot.ctrl_dt
-    prep = [logs.preprocess(tr, dt, cfg.preprocess) for tr in trajs]
+    prep = [filters.preprocess(tr, dt, cfg.preprocess) for tr in trajs]
     trajs = [p[0] for p in prep]
     tr_idx, te_idx = split(len(trajs), cfg.holdout, cfg.seed)
     data = fit.make_data(trajs)
