@@ -25,7 +25,7 @@ cannot be explained by anything.
 Where it concentrates (:func:`concentration`): on the held-out states, the magnitude of the
 fitted correction per dof (force and scaled acceleration), per contact phase of each foot, per
 base-speed bin, and per bin of each actuated joint's own velocity and position (relative to its
-home angle) -- the phases and bins of :func:`stride_jax.gap.diagnose.where`. Each bin also gives
+home angle) -- the phases and bins of :func:`stride_jax.gap.localise.where`. Each bin also gives
 the residual actually left there (``left``), so a bin where the fit is small but the residual is
 not shows what the flow missed.
 """
