@@ -290,7 +290,8 @@ FIT_PRESETS = {"tiny": dict(PRESETS["tiny"], envs=8, rollout_steps=40, holdout=0
 def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     """Collects rollouts with the (stochastic) PPO policy, fits both models, writes them with a
     held-out report."""
-    from stride_jax.control import envs as envs_lib, ppo
+    from stride_jax.control import envs as envs_lib
+    from stride_jax.control import ppo
 
     t0 = time.monotonic()
     policy, _, env_cfg = ppo.load_policy(cfg.policy, deterministic=False)

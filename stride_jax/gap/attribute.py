@@ -159,7 +159,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
                            "gain_lower": lo, "fraction_of_left": float(gain / max(left_S, 1e-300)),
                            "preferred": ok})
         P["vs_best_single"] = pair_tests[-1]
-    chosen = max((P for P, t in zip(pair_rows, pair_tests) if t["preferred"]),
+    chosen = max((P for P, t in zip(pair_rows, pair_tests, strict=True) if t["preferred"]),
                  key=lambda r: r["explained"], default=S)
     rows.remove(chosen)
     rows.insert(0, chosen)

@@ -85,7 +85,7 @@ def concentration(sm: SimModel, data: fit.Data, fitted: np.ndarray, left: np.nda
     out["joint_velocity_bins"] = {names[d]: _joint_bins(data.qd[idx, d], raw_fit[:, d], raw_left[:, d], bins)
                                   for d in sm.act_dof}
     out["joint_position_bins"] = {names[d]: _joint_bins(data.q[idx, a] - q0[a], raw_fit[:, d], raw_left[:, d], bins)
-                                  for d, a in zip(sm.act_dof, qadr)}
+                                  for d, a in zip(sm.act_dof, qadr, strict=True)}
     out["summary"] = _summary(out)
     return out
 

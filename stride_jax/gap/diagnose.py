@@ -146,8 +146,8 @@ def how_far(sm: SimModel, test: fit.Data, scale: np.ndarray, w: dict[str, Any], 
     div1 = divergence(sm, w["plan_best"], test, cfg)
     g0, g1 = fit.gap(r0), fit.gap(r1)
     k0, k1 = fit.gap(w["r_nom_test"]), fit.gap(w["r_best_test"])
-    return {"one_step_acc_rmse_before": dict(zip(names, _rms(r0 * scale, 0).tolist())),
-            "one_step_acc_rmse_after": dict(zip(names, _rms(r1 * scale, 0).tolist())),
+    return {"one_step_acc_rmse_before": dict(zip(names, _rms(r0 * scale, 0).tolist(), strict=True)),
+            "one_step_acc_rmse_after": dict(zip(names, _rms(r1 * scale, 0).tolist(), strict=True)),
             "gap_before": g0, "gap_after": g1, "shrink": 1 - g1 / max(g0, 1e-300),
             "kstep_gap_before": k0, "kstep_gap_after": k1, "kstep_shrink": 1 - k1 / max(k0, 1e-300),
             "rollout_before": div0, "rollout_after": div1,

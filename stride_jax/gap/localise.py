@@ -29,9 +29,9 @@ def where(sm: SimModel, data: fit.Data, r: np.ndarray, scale: np.ndarray, cfg: D
     idx = fit.samples_before_next(data)
     raw = r * scale  # rad/s^2 or m/s^2
     out: dict[str, Any] = {"dof_names": names,
-                           "per_dof_rms": dict(zip(names, _rms(raw, 0).tolist())),
-                           "per_dof_rms_scaled": dict(zip(names, _rms(r, 0).tolist())),
-                           "scale": dict(zip(names, scale.tolist()))}
+                           "per_dof_rms": dict(zip(names, _rms(raw, 0).tolist(), strict=True)),
+                           "per_dof_rms_scaled": dict(zip(names, _rms(r, 0).tolist(), strict=True)),
+                           "scale": dict(zip(names, scale.tolist(), strict=True))}
     total = _rms(r) + 1e-300
     # contact phases per foot
     phases = regions.sample_phases(sm, data)
@@ -56,7 +56,7 @@ def where(sm: SimModel, data: fit.Data, r: np.ndarray, scale: np.ndarray, cfg: D
                                   for i in range(len(edges) - 1) if (k == i).any()]
     # joint velocity bins: signed mean and RMS of each actuated joint's own residual
     jv = {}
-    for a, dof in enumerate(sm.act_dof):
+    for dof in sm.act_dof:
         k, centres = regions.symmetric_bins(data.qd[idx, dof], cfg.bins)
         jv[names[dof]] = [{"centre": float(centres[i]), "count": int((k == i).sum()),
                            "mean": float(raw[k == i, dof].mean()) if (k == i).any() else None,
@@ -94,7 +94,7 @@ def divergence(sm: SimModel, plan: effects.Plan, data: fit.Data, cfg: DiagnoseCo
     e = np.concatenate(errs)  # [W, H, nd]
     e = np.where(np.isfinite(e), e, 10.0)
     return {"names": names, "horizon": H, "rmse": np.sqrt((e ** 2).mean(0)).tolist(),
-            "final_rmse": dict(zip(names, np.sqrt((e[:, -1] ** 2).mean(0)).tolist())),
+            "final_rmse": dict(zip(names, np.sqrt((e[:, -1] ** 2).mean(0)).tolist(), strict=True)),
             "windows": int(e.shape[0])}
 
 

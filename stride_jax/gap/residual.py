@@ -281,9 +281,9 @@ def fit_on_top(sm: SimModel, plan: effects.Plan, train: fit.Data, test: fit.Data
         "explained_above_floor": min(1.0, (left - fitted) / max(left - floor, 1e-300)),
         "train_gap_left": fit.gap(s_tr.r), "train_gap_after": fit.gap(r_after_tr),
         "train_explained": 1 - fit.gap(r_after_tr) / max(fit.gap(s_tr.r), 1e-300),
-        "one_step_acc_rmse_left": dict(zip(names, regions.rms(s_te.r * scale, 0).tolist())),
-        "one_step_acc_rmse_after": dict(zip(names, regions.rms(r_after_te * scale, 0).tolist())),
-        "force_scale": dict(zip(names, f_scale.tolist())),
+        "one_step_acc_rmse_left": dict(zip(names, regions.rms(s_te.r * scale, 0).tolist(), strict=True)),
+        "one_step_acc_rmse_after": dict(zip(names, regions.rms(r_after_te * scale, 0).tolist(), strict=True)),
+        "force_scale": dict(zip(names, f_scale.tolist(), strict=True)),
         "fm_loss_first": float(losses[:k].mean()), "fm_loss_last": float(losses[-k:].mean()),
         "early_stopping": chosen | {
             "validation_trajectories": int(len(np.unique(s_tr.traj[val_idx]))),
