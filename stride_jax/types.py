@@ -1,10 +1,44 @@
-"""Shared contracts: what a dynamics model needs to know about the robot it models."""
+"""Shared contracts: the shapes of the arrays the library passes around, the protocols its parts
+meet (a dynamics model, a conditional generator, a planner, the dynamics a planner rolls out, a
+data-collecting explorer), and what a dynamics model needs to know about the robot it models.
+
+Core maths take **one example** (no batch axis); callers batch with ``vmap``. The aliases below
+name the per-example shapes: ``nq`` configuration size, ``nv`` velocity size, ``nu`` actuators,
+``H`` horizon steps. Units: rad or m (``q``), rad/s or m/s (``qd``), N m or N (``tau``),
+the actuator's unit (``ctrl``: a position target for servos, a torque for motors).
+
+The protocols document call signatures; the concrete bundles are NamedTuples of pure functions
+(``dynamics.Model``, ``dynamics.generative.Generator``, ``control.mppi.Planner``) or small
+classes (the robots' explorers, ``control.walk.PolicyExplorer``). ``tests/test_types.py`` checks
+that they conform.
+"""
 
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING, Annotated, Any, Protocol, runtime_checkable
 
+import jax
 import numpy as np
+
+if TYPE_CHECKING:
+    from stride_jax.robots.base import ModelInfo
+
+# ----------------------------------------------------------------------------- shaped arrays
+
+Key = Annotated[jax.Array, "PRNG key"]
+Params = Any  # a pytree of arrays (a model's or network's parameters)
+Q = Annotated[jax.Array, "[nq] generalised positions (free joint: position, quaternion wxyz)"]
+Qd = Annotated[jax.Array, "[nv] generalised velocities (free joint: world linear, body angular)"]
+Qdd = Annotated[jax.Array, "[nv] generalised accelerations"]
+Tau = Annotated[jax.Array, "[nv] generalised forces"]
+Ctrl = Annotated[jax.Array, "[nu] actuator commands"]
+Ctrls = Annotated[jax.Array, "[H, nu] a command sequence"]
+Qs = Annotated[jax.Array, "[H, nq] positions after each command"]
+Qds = Annotated[jax.Array, "[H, nv] velocities after each command"]
+Context = Annotated[jax.Array, "[C] a generator's conditioning input"]
+Sample = Annotated[jax.Array, "[dim] one sample of a generator"]
+Scalar = Annotated[jax.Array, "[] a scalar"]
 
 
 class InputError(ValueError):
@@ -48,3 +82,100 @@ class ModelSpec:
             raise ValueError(f"fixed base needs nv = nq, got nq={self.nq}, nv={self.nv}")
         if self.periodic and len(self.periodic) != n_hinge:
             raise ValueError(f"periodic has {len(self.periodic)} entries for {n_hinge} hinges")
+
+
+# ----------------------------------------------------------------------------- protocols
+
+
+@runtime_checkable
+class Dynamics(Protocol):
+    """What a planner rolls out: one control period from ``(q, qd)`` under ``ctrl``, e.g.
+    ``functools.partial(model.step, params)`` (``control.mppi.make``'s ``dynamics``)."""
+
+    def __call__(self, q: Q, qd: Qd, ctrl: Ctrl, key: Key) -> tuple[Q, Qd]: ...
+
+
+@runtime_checkable
+class Acceleration(Protocol):
+    """A structured model's ``acceleration``: ``qdd`` under generalised force ``tau``."""
+
+    def __call__(self, params: Params, q: Q, qd: Qd, tau: Tau, key: Key,
+                 nfe: int | None = None) -> Qdd: ...
+
+
+@runtime_checkable
+class Model(Protocol):
+    """Every dynamics model (``dynamics.make``): pure functions over a params pytree, for one
+    example. ``nfe``: residual or generator evaluations per sample (None: the model's own).
+    Deterministic models ignore ``key``. ``acceleration`` (and ``terms``) are None for the
+    next-observation models (no physics to split)."""
+
+    name: str
+    stochastic: bool
+    spec: ModelSpec | None
+    acceleration: Acceleration | None  # None: next-observation models
+
+    def init(self, key: Key) -> Params:
+        """Fresh parameters."""
+
+    def loss(self, params: Params, example: dict, key: Key) -> tuple[Scalar, dict]:
+        """Training loss of one example (``q, qd, tau, qdd, ctrl, q_next, qd_next,
+        contact_jac``) and its named parts (``select``: the part that picks the best step)."""
+
+    def step(self, params: Params, q: Q, qd: Qd, ctrl: Ctrl, key: Key,
+             nfe: int | None = None) -> tuple[Q, Qd]:
+        """One control period under command ``ctrl`` (the servo model at every substep)."""
+
+    def rollout(self, params: Params, q: Q, qd: Qd, ctrls: Ctrls, key: Key,
+                nfe: int | None = None) -> tuple[Qs, Qds]:
+        """``H`` steps under ``ctrls``."""
+
+
+@runtime_checkable
+class Generator(Protocol):
+    """A conditional sampler ``x ~ p(x | c)`` (flow matching or DDPM,
+    ``dynamics.generative.make``)."""
+
+    def init(self, key: Key, dim: int, context_dim: int) -> Params:
+        """Parameters for samples ``[dim]`` given contexts ``[context_dim]``."""
+
+    def loss(self, params: Params, x: Sample, context: Context, key: Key) -> Scalar:
+        """Training loss of one example."""
+
+    def sample(self, params: Params, context: Context, key: Key, dim: int,
+               nfe: int | None = None) -> Sample:
+        """A random sample, with ``nfe`` network evaluations."""
+
+    def central(self, params: Params, context: Context, dim: int,
+                nfe: int | None = None) -> Sample:
+        """The deterministic image of the latent's centre (``z0 = 0``)."""
+
+
+@runtime_checkable
+class Planner(Protocol):
+    """A receding-horizon planner (``control.mppi.make``): ``init``/``step`` over an immutable
+    state that carries the warm start (the plan ``[H, nu]``) and the key."""
+
+    def init(self, key: Key, plan: Ctrls | None = None) -> Any:
+        """The first state; ``plan`` warm-starts it."""
+
+    def step(self, state: Any, q: Q, qd: Qd) -> tuple[Ctrl, Any, Any]:
+        """``(action [nu], next state, info)`` at state ``(q, qd)``."""
+
+
+@runtime_checkable
+class Explorer(Protocol):
+    """The data-collecting controller: pure JAX, written for one world, vmapped by the caller.
+
+    Everything random is drawn from the episode parameters (``sample``) and ``fold_in(key, step)``,
+    so that MJX and the CPU backend issue identical controls from identical states.
+    """
+
+    def sample(self, key: Key, info: ModelInfo) -> Any:
+        """Episode parameters (a pytree of arrays), including the episode key."""
+
+    def reset(self, params: Any, info: ModelInfo) -> tuple[Q, Qd]:
+        """Initial ``(qpos [nq], qvel [nv])`` of the episode."""
+
+    def act(self, params: Any, info: ModelInfo, step: jax.Array, qpos: Q, qvel: Qd) -> Ctrl:
+        """Control ``[nu]`` at control step ``step`` from the current state."""

@@ -83,3 +83,23 @@ def test_nan_loss_stops_with_a_clear_message(tmp_path):
     cfg = loop.LoopConfig(steps=4, batch=4, eval_every=2, ckpt_every=2)
     with pytest.raises(loop.TrainingError, match="loss became nan by step 2.*learning rate"):
         loop.train(loss, init, split, split, cfg, tmp_path / "nan")
+
+
+def test_chunked_steps_take_the_same_draws_as_one_scan():
+    """Step i's minibatch and loss key come from fold_in(key, i): two chunks of scan_steps land
+    where one scan does (what makes resumption and validation chunking exact)."""
+    data = {"x": jnp.linspace(-1.0, 1.0, 50), "y": jnp.linspace(0.0, 3.0, 50)}
+    loss = lambda p, b, key: (jnp.mean((p["w"] * b["x"] + p["b"] - b["y"]
+                                        + 0.01 * jax.random.normal(key, b["x"].shape)) ** 2), {})
+    opt = loop.optimizer(1e-2, 10)
+    p0, key = {"w": jnp.zeros(()), "b": jnp.zeros(())}, jax.random.key(0)
+    (one, _), losses, _ = loop.scan_steps(loss, opt, p0, opt.init(p0), data, key, 0, 10, 8)
+    (p, s), first, _ = loop.scan_steps(loss, opt, p0, opt.init(p0), data, key, 0, 4, 8)
+    (two, _), second, _ = loop.scan_steps(loss, opt, p, s, data, key, 4, 6, 8)
+    jax.tree.map(np.testing.assert_array_equal, one, two)
+    np.testing.assert_array_equal(losses, np.concatenate([first, second]))
+    # the host loop without validation returns the last parameters, and every step's loss
+    cfg = loop.LoopConfig(steps=10, batch=8, eval_every=3)
+    res = loop.run(loss, p0, data, cfg, opt, key, progress=None)
+    assert res.best_step == 10 and len(res.losses) == 10
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6), res.params, one)

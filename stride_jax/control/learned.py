@@ -37,6 +37,7 @@ from flax import serialization
 import stride_jax
 from stride_jax.dynamics import mlp as mlp_lib
 from stride_jax.io import atomic_write, atomic_write_text, code_version
+from stride_jax.train import loop
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,25 +124,20 @@ def reward_input(obs: jax.Array, action: jax.Array) -> jax.Array:
 
 def _regress(key: jax.Array, cfg: LearnedConfig, params: dict, x: jax.Array, y: jax.Array
              ) -> tuple[dict, jax.Array]:
-    """``cfg.steps`` Adam steps of mean squared error (normalised targets) on ``x [M, D]``,
-    ``y [M]``; returns the parameters and the loss per step."""
+    """``cfg.steps`` Adam steps (constant step size) of mean squared error (normalised targets)
+    on ``x [M, D]``, ``y [M]``, as one scan of the training loop
+    (:func:`stride_jax.train.loop.scan_steps`; pure: runs inside ``jit`` and the value model's
+    rounds); returns the parameters and the loss per step."""
     opt = optax.adam(cfg.learning_rate)
-    fixed = {k: v for k, v in params.items() if k != "net"}
+    fixed = {k: v for k, v in params.items() if k != "net"}  # the normalisation is not trained
 
-    def loss(net, xb, yb):
+    def loss(net, batch, key):
         p = {**fixed, "net": net}
-        pred = jax.vmap(lambda xi: apply(p, xi))(xb)
-        return jnp.mean(((pred - yb) / params["y_std"]) ** 2)
+        pred = jax.vmap(lambda xi: apply(p, xi))(batch["x"])
+        return jnp.mean(((pred - batch["y"]) / params["y_std"]) ** 2), {}
 
-    def step(carry, k):
-        net, state = carry
-        idx = jax.random.randint(k, (cfg.batch,), 0, x.shape[0])
-        value, grads = jax.value_and_grad(loss)(net, x[idx], y[idx])
-        upd, state = opt.update(grads, state, net)
-        return (optax.apply_updates(net, upd), state), value
-
-    (net, _), losses = jax.lax.scan(step, (params["net"], opt.init(params["net"])),
-                                    jax.random.split(key, cfg.steps))
+    (net, _), losses, _ = loop.scan_steps(loss, opt, params["net"], opt.init(params["net"]),
+                                          {"x": x, "y": y}, key, 0, cfg.steps, cfg.batch)
     return {**params, "net": net}, losses
 
 
@@ -294,7 +290,8 @@ FIT_PRESETS = {"tiny": dict(PRESETS["tiny"], envs=8, rollout_steps=40, holdout=0
 def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     """Collects rollouts with the (stochastic) PPO policy, fits both models, writes them with a
     held-out report."""
-    from stride_jax.control import envs as envs_lib, ppo
+    from stride_jax.control import envs as envs_lib
+    from stride_jax.control import ppo
 
     t0 = time.monotonic()
     policy, _, env_cfg = ppo.load_policy(cfg.policy, deterministic=False)

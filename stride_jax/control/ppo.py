@@ -21,7 +21,9 @@ runs ``checkpoints`` jitted epochs of PPO updates, saving after each. It ends af
 more before the deadline (compilation included), so a chunk fits a time-boxed job. Resuming from
 disk continues exactly as the in-memory run would (tested).
 
-``policy(obs, key) -> action`` of a run is :func:`load_policy`; a planner that holds
+The learner (networks, training state, one jitted epoch, the policy of its parameters) is
+:mod:`stride_jax.control.ppo_learner`; this module runs it: configuration, chunks, checkpoints and
+the command line. ``policy(obs, key) -> action`` of a run is :func:`load_policy`; a planner that holds
 ``(q, qd, command)`` builds the observation with the environment's ``observation_fn``.
 
 Command line (resumes when ``--out`` holds a checkpoint):
@@ -32,19 +34,25 @@ Command line (resumes when ``--out`` holds a checkpoint):
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import pathlib
 import time
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
-import optax
 from flax import serialization
 
 import stride_jax
-from stride_jax.control import envs, wrappers
+from stride_jax.control import envs
+from stride_jax.control.ppo_learner import (  # noqa: F401 (the learner's names, re-exported)
+    Trainer,
+    TrainState,
+    init_state,
+    make_policy,
+    make_trainer,
+    network_factory,
+)
 from stride_jax.io import atomic_write, atomic_write_text, code_version
 
 
@@ -136,157 +144,6 @@ def preset(name: str, **overrides) -> PPOConfig:
     if name not in PRESETS:
         raise ValueError(f"unknown PPO preset {name!r}; choose from {', '.join(PRESETS)}")
     return PPOConfig(**{**PRESETS[name], **overrides})
-
-
-# ---------------------------------------------------------------------------------------------
-# Networks, training state, one jitted epoch.
-
-
-def network_factory(cfg: PPOConfig) -> Callable:
-    from brax.training.agents.ppo import networks as ppo_networks
-    return functools.partial(ppo_networks.make_ppo_networks,
-                             policy_hidden_layer_sizes=(cfg.policy_width,) * cfg.policy_depth,
-                             value_hidden_layer_sizes=(cfg.value_width,) * cfg.value_depth)
-
-
-def _networks(cfg: PPOConfig, obs_size: int, action_size: int):
-    from brax.training.acme import running_statistics
-    return network_factory(cfg)((obs_size,), action_size,
-                                preprocess_observations_fn=running_statistics.normalize)
-
-
-def _optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
-    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm),
-                       optax.adam(cfg.learning_rate))
-
-
-class TrainState(NamedTuple):
-    """Everything a chunk needs to continue exactly (a pytree)."""
-
-    normalizer: Any  # brax running_statistics.RunningStatisticsState over observations
-    policy: Any  # policy network parameters
-    value: Any  # value network parameters
-    opt_state: Any  # optax state over (policy, value)
-    key: jax.Array  # raw uint32 key data [2]
-
-    @property
-    def params(self) -> tuple:
-        """``(normaliser, policy, value)``, Brax's inference layout."""
-        return (self.normalizer, self.policy, self.value)
-
-
-def init_state(cfg: PPOConfig, obs_size: int, action_size: int, key: jax.Array) -> TrainState:
-    """A fresh training state (also the structure checkpoints restore into)."""
-    from brax.training.acme import specs
-    from brax.training.acme import running_statistics
-    from brax.training.agents.ppo import losses as ppo_losses
-    nets = _networks(cfg, obs_size, action_size)
-    key_policy, key_value, key_train = jax.random.split(key, 3)
-    policy = nets.policy_network.init(key_policy)
-    value = nets.value_network.init(key_value)
-    norm = running_statistics.init_state(specs.Array((obs_size,), jnp.dtype("float32")))
-    opt_state = _optimizer(cfg).init(ppo_losses.PPONetworkParams(policy, value))
-    return _strong(TrainState(norm, policy, value, opt_state, jax.random.key_data(key_train)))
-
-
-def _strong(tree):
-    """Arrays without weak types (Python scalars in Brax's normaliser state would otherwise make
-    the first epoch compile twice: once for the weak inputs, once for the epoch's outputs)."""
-    def leaf(x):
-        x = jnp.asarray(x)
-        return x.astype(x.dtype)
-    return jax.tree.map(leaf, tree)
-
-
-class Trainer(NamedTuple):
-    init: Callable  # key -> TrainState
-    reset: Callable  # key -> batched, wrapped env state (jitted)
-    epoch: Callable  # (TrainState, env_state) -> (TrainState, env_state, metrics) (jitted)
-    updates_per_epoch: int
-
-
-def make_trainer(cfg: PPOConfig, env: Any) -> Trainer:
-    """PPO (Brax's loss, networks, normaliser and unroll) for an unwrapped Brax env; one epoch is
-    ``updates_per_epoch`` updates of ``cfg.steps_per_update`` env steps, in one jitted scan."""
-    from brax.training import acting
-    from brax.training.acme import running_statistics
-    from brax.training.agents.ppo import losses as ppo_losses
-    from brax.training.agents.ppo import networks as ppo_networks
-
-    env_w = wrappers.wrap_for_training(env, cfg.episode_length)
-    n_obs, nu = env.observation_size, env.action_size
-    nets = _networks(cfg, n_obs, nu)
-    make_inference = ppo_networks.make_inference_fn(nets)
-    optimizer = _optimizer(cfg)
-    loss_fn = functools.partial(
-        ppo_losses.compute_ppo_loss, ppo_network=nets, entropy_cost=cfg.entropy_cost,
-        discounting=cfg.discounting, reward_scaling=cfg.reward_scaling,
-        gae_lambda=cfg.gae_lambda, clipping_epsilon=cfg.clipping_epsilon,
-        normalize_advantage=True)
-    n_unrolls = cfg.batch_size * cfg.num_minibatches // cfg.num_envs
-    extra = ("truncation", "episode_metrics", "episode_done")
-    updates = max(1, cfg.chunk_steps // (cfg.checkpoints * cfg.steps_per_update))
-
-    def update(carry, _):
-        ts, env_state = carry
-        key, k_unroll, k_sgd = jax.random.split(jax.random.wrap_key_data(ts.key), 3)
-        policy = make_inference(ts.params)
-
-        def unroll(c, _):
-            st, k = c
-            k, k_now = jax.random.split(k)
-            st, data = acting.generate_unroll(env_w, st, policy, k_now, cfg.unroll_length, extra)
-            return (st, k), data
-
-        (env_state, _), data = jax.lax.scan(unroll, (env_state, k_unroll), length=n_unrolls)
-        # [n_unrolls, T, envs, ...] -> [n_unrolls * envs, T, ...]
-        data = jax.tree.map(lambda x: jnp.swapaxes(x, 1, 2).reshape((-1,) + x.shape[1:2]
-                                                                    + x.shape[3:]), data)
-        normalizer = running_statistics.update(ts.normalizer, data.observation)
-
-        def sgd(c, _):
-            opt_state, params, k = c
-            k, k_perm, k_grad = jax.random.split(k, 3)
-            shuffled = jax.tree.map(lambda x: jax.random.permutation(k_perm, x).reshape(
-                (cfg.num_minibatches, -1) + x.shape[1:]), data)
-
-            def minibatch(c2, batch):
-                opt_state, params, k = c2
-                k, k_loss = jax.random.split(k)
-                (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-                    params, normalizer, batch, k_loss)
-                upd, opt_state = optimizer.update(grads, opt_state, params)
-                return (opt_state, optax.apply_updates(params, upd), k), metrics
-
-            (opt_state, params, _), metrics = jax.lax.scan(minibatch, (opt_state, params,
-                                                                       k_grad), shuffled)
-            return (opt_state, params, k), metrics
-
-        params = ppo_losses.PPONetworkParams(ts.policy, ts.value)
-        (opt_state, params, _), metrics = jax.lax.scan(
-            sgd, (ts.opt_state, params, k_sgd), length=cfg.num_updates_per_batch)
-        done = data.extras["state_extras"]["episode_done"]
-        episodes = data.extras["state_extras"]["episode_metrics"]
-        sums = {k: jnp.sum(v * done) for k, v in episodes.items()}
-        ts = TrainState(normalizer, params.policy, params.value, opt_state,
-                        jax.random.key_data(key))
-        return (ts, env_state), (jax.tree.map(jnp.mean, metrics), sums, jnp.sum(done))
-
-    def epoch(ts, env_state):
-        (ts, env_state), (losses, sums, n) = jax.lax.scan(update, (ts, env_state),
-                                                           length=updates)
-        count = jnp.sum(n)
-        metrics = {f"train/{k}": jnp.mean(v) for k, v in losses.items()}
-        metrics.update({f"episode/{k}": jnp.sum(v) / jnp.maximum(count, 1)
-                        for k, v in sums.items()})
-        metrics["episode/count"] = count
-        return ts, env_state, metrics
-
-    def reset(key):  # Brax's wrappers expect raw uint32 keys [num_envs, 2]
-        return env_w.reset(jax.random.key_data(jax.random.split(key, cfg.num_envs)))
-
-    return Trainer(functools.partial(init_state, cfg, n_obs, nu), jax.jit(reset),
-                   jax.jit(epoch, donate_argnums=(0, 1)), updates)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -444,24 +301,6 @@ def load_policy(out: str | pathlib.Path, deterministic: bool = True
     if state is None:
         raise FileNotFoundError(f"{out} holds no checkpoint yet")
     return make_policy(cfg, state.train.params, n_obs, nu, deterministic) + (env_cfg,)
-
-
-def make_policy(cfg: PPOConfig, params: tuple, obs_size: int, action_size: int,
-                deterministic: bool = True) -> tuple[Callable, Callable]:
-    """``policy(obs, key) -> action`` and ``value(obs) -> []`` of Brax PPO parameters."""
-    from brax.training.agents.ppo import networks as ppo_networks
-    nets = _networks(cfg, obs_size, action_size)
-    inference = ppo_networks.make_inference_fn(nets)(params, deterministic=deterministic)
-
-    def policy(obs, key):
-        if obs.shape[-1] != obs_size:
-            raise ValueError(f"policy observation must have {obs_size} entries, got {obs.shape}")
-        return inference(obs, key)[0]
-
-    def value(obs):
-        return nets.value_network.apply(params[0], params[2], obs)
-
-    return policy, value
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -18,6 +18,8 @@ KINDS = ("flow", "diffusion")
 
 
 class Generator(NamedTuple):
+    """A conditional sampler as pure functions; meets :class:`stride_jax.types.Generator`."""
+
     init: Callable  # (key, dim, context_dim) -> params
     loss: Callable  # (params, x [dim], context, key) -> scalar training loss of one example
     sample: Callable  # (params, context, key, dim, nfe=None) -> x [dim]

@@ -119,6 +119,9 @@ def motors(nv: int, dt: float = 0.01, n_substeps: int = 1) -> Actuation:
 
 
 class Model(NamedTuple):
+    """A dynamics model as pure functions (the module docstring lists them); it meets the
+    contract :class:`stride_jax.types.Model`."""
+
     name: str
     stochastic: bool
     init: Callable

@@ -1,4 +1,5 @@
-"""The log format a real robot writes, its reader (with validation) and estimation helpers.
+"""The log format a real robot writes, its writer and its reader (with validation), and the export
+of simulated runs in it. Cleaning and estimation on the logs: :mod:`stride_jax.gap.filters`.
 
 Format (``stride-gap-log`` version 1): one folder per log set,
 
@@ -32,11 +33,6 @@ Format (``stride-gap-log`` version 1): one folder per log set,
 No accelerations and no contact forces: the tool estimates what it needs. The reader rejects a
 missing column, a joint that the robot lacks (or a robot joint the log lacks), non-monotonic
 timestamps, and NaN or non-numeric entries with a :class:`LogError` naming file, column and row.
-
-Estimation helpers: :func:`resample` (onto the control grid: linear for states, normalised
-linear for quaternions, zero-order hold for commands), :func:`hampel` (outliers), :func:`savgol`
-(smoothing and derivatives; :func:`savgol_bandwidth` states the -3 dB frequency) and
-:func:`noise_std` (white-noise level from second differences).
 """
 
 from __future__ import annotations
@@ -301,140 +297,6 @@ def read(folder: str | os.PathLike, sm: SimModel) -> tuple[Header, list[Trajecto
     if not files:
         raise LogError(f"{folder}: no trajectory CSV files")
     return h, [read_csv(f, h, lay, sm.mj.nq, sm.mj.nv) for f in files]
-
-
-# ----------------------------------------------------------------------------- estimation
-
-
-def resample(tr: Trajectory, dt: float) -> Trajectory:
-    """Onto the uniform grid ``t0 + k dt`` inside the log: states and torques linearly,
-    the quaternion by normalised linear interpolation, commands and IMU by zero-order hold."""
-    t = tr.t[0] + dt * np.arange(int(np.floor((tr.t[-1] - tr.t[0]) / dt + 1e-9)) + 1)
-    if len(t) == len(tr.t) and np.allclose(t, tr.t, atol=1e-6 * dt):
-        return tr
-    lin = lambda x: np.stack([np.interp(t, tr.t, x[:, i]) for i in range(x.shape[1])], axis=1)
-    hold = lambda x: x[np.clip(np.searchsorted(tr.t, t + 1e-9 * dt, side="right") - 1, 0, len(tr.t) - 1)]
-    q = lin(tr.q)
-    if tr.q.shape[1] >= 7 and tr.qd.shape[1] == tr.q.shape[1] - 1:  # free joint: renormalise
-        quat = tr.q[:, 3:7] * np.sign((tr.q[:, 3:7] * tr.q[:1, 3:7]).sum(1, keepdims=True))
-        q[:, 3:7] = lin(quat)
-        q[:, 3:7] /= np.linalg.norm(q[:, 3:7], axis=1, keepdims=True)
-    return Trajectory(tr.name, t, q, lin(tr.qd), hold(tr.cmd),
-                      None if tr.tau is None else lin(tr.tau), None if tr.imu is None else hold(tr.imu))
-
-
-def hampel(x: np.ndarray, half_window: int = 3, k: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
-    """Hampel outlier filter along axis 0: a sample further than ``k`` robust standard deviations
-    (1.4826 MAD) from the median of its ``2 half_window + 1`` neighbours is replaced by that median.
-
-    ``x [T, ...]``; returns ``(cleaned [T, ...], outlier mask [T, ...])``.
-    """
-    x = np.asarray(x, np.float64)
-    pad = np.pad(x, [(half_window, half_window)] + [(0, 0)] * (x.ndim - 1), mode="edge")
-    win = np.lib.stride_tricks.sliding_window_view(pad, 2 * half_window + 1, axis=0)
-    med = np.median(win, axis=-1)
-    mad = 1.4826 * np.median(np.abs(win - med[..., None]), axis=-1)
-    out = np.abs(x - med) > k * np.maximum(mad, 1e-12)
-    return np.where(out, med, x), out
-
-
-def savgol(x: np.ndarray, dt: float, window: int, order: int = 3, deriv: int = 0) -> np.ndarray:
-    """Savitzky-Golay smoothing (``deriv=0``) or derivative of ``x [T, ...]`` sampled every ``dt`` s.
-
-    ``window`` is an odd number of samples; see :func:`savgol_bandwidth` for the pass band.
-    """
-    from scipy.signal import savgol_filter
-
-    if window % 2 == 0 or window <= order:
-        raise ValueError(f"savgol window must be odd and larger than order {order}, got {window}")
-    if len(x) < window:
-        raise ValueError(f"savgol needs at least {window} samples, got {len(x)}")
-    return savgol_filter(np.asarray(x, np.float64), window, order, deriv=deriv, delta=dt, axis=0,
-                         mode="interp")
-
-
-def savgol_bandwidth(dt: float, window: int, order: int = 3) -> float:
-    """The -3 dB frequency (Hz) of the Savitzky-Golay smoother (its centre-point response)."""
-    from scipy.signal import freqz, savgol_coeffs
-
-    w, h = freqz(savgol_coeffs(window, order), worN=4096, fs=1.0 / dt)
-    below = np.flatnonzero(np.abs(h) < 1 / np.sqrt(2))
-    return float(w[below[0]]) if len(below) else float(w[-1])
-
-
-def noise_std(x: np.ndarray) -> np.ndarray:
-    """Robust white-noise level per channel of ``x [T, C]``: 1.4826 MAD of second differences / sqrt(6).
-
-    Exact for white noise on a signal whose second difference is small; an upper bound otherwise.
-    """
-    d2 = np.diff(np.asarray(x, np.float64), n=2, axis=0)
-    return 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0)
-
-
-def spikes(x: np.ndarray, k: float = 8.0) -> tuple[np.ndarray, np.ndarray]:
-    """Isolated one-sample spikes along axis 0 of ``x [T, C]``, replaced by the mean of their
-    neighbours: the sample leaves the neighbours' mean by more than ``k`` robust standard deviations
-    of the channel's second difference while the two neighbours agree (within half that jump).
-    Steps (impacts: the level changes and stays) are kept, unlike a plain Hampel filter's
-    treatment of fast legitimate transients. Returns ``(cleaned, mask)``."""
-    x = np.asarray(x, np.float64).copy()
-    mask = np.zeros(x.shape, bool)
-    if len(x) < 3:
-        return x, mask
-    mid = 0.5 * (x[:-2] + x[2:])
-    dev = x[1:-1] - mid
-    sig = 1.4826 * np.median(np.abs(np.diff(x, 2, axis=0)), axis=0) + 1e-12
-    hit = (np.abs(dev) > k * sig) & (np.abs(x[2:] - x[:-2]) < 0.5 * np.abs(dev))
-    mask[1:-1] = hit
-    x[1:-1] = np.where(hit, mid, x[1:-1])
-    return x, mask
-
-
-@dataclasses.dataclass(frozen=True)
-class Preprocess:
-    """How logged states are cleaned before replay.
-
-    Attributes:
-      outliers: replace isolated spikes in the joint/base velocities (:func:`spikes` with ``k``).
-      smooth_window: Savitzky-Golay window (samples, odd) for q and qd; 0 disables smoothing.
-      smooth_order: its polynomial order.
-    """
-
-    outliers: bool = True
-    k: float = 8.0
-    smooth_window: int = 0
-    smooth_order: int = 3
-
-    def bandwidth_hz(self, dt: float) -> float | None:
-        return savgol_bandwidth(dt, self.smooth_window, self.smooth_order) if self.smooth_window else None
-
-
-def preprocess(tr: Trajectory, dt: float, cfg: Preprocess) -> tuple[Trajectory, dict]:
-    """Resamples onto the control grid, removes outliers, optionally smooths. Returns the cleaned
-    trajectory and a summary (outlier counts, noise estimates)."""
-    tr = resample(tr, dt)
-    q, qd = tr.q.copy(), tr.qd.copy()
-    n_out = 0
-    if cfg.outliers:
-        qd, m1 = spikes(qd, cfg.k)
-        n_out = int(m1.sum())
-    if cfg.smooth_window and len(q) >= cfg.smooth_window:
-        fb = q.shape[1] == qd.shape[1] + 1
-        q = savgol(q, dt, cfg.smooth_window, cfg.smooth_order)
-        qd = savgol(qd, dt, cfg.smooth_window, cfg.smooth_order)
-        if fb:
-            q[:, 3:7] /= np.linalg.norm(q[:, 3:7], axis=1, keepdims=True)
-    info = {"outliers_replaced": n_out, "qd_noise_std": noise_std(tr.qd).tolist()}
-    return tr._replace(q=q, qd=qd), info
-
-
-def acceleration(tr: Trajectory, dt: float, window: int = 7, order: int = 3) -> np.ndarray:
-    """Joint accelerations ``[T, nv]`` by Savitzky-Golay differentiation of the velocities.
-
-    Pass band: :func:`savgol_bandwidth(dt, window, order)`; meaningless across impacts (the
-    velocity jumps), which is why the diagnosis compares one-step replays instead.
-    """
-    return savgol(tr.qd, dt, window, order, deriv=1)
 
 
 # ----------------------------------------------------------------------------- export of sim runs

@@ -1,6 +1,6 @@
 """Where in the data a residual lives: names of the dofs, contact phases of the feet, state bins.
 
-Shared by the decomposition of the nominal residual (:func:`stride_jax.gap.diagnose.where`) and
+Shared by the decomposition of the nominal residual (:func:`stride_jax.gap.localise.where`) and
 by the concentration of the STRIDE residual fitted on top of the best hypothesis
 (:mod:`stride_jax.gap.residual`), so that both speak of the same phases and the same bins.
 """

@@ -22,12 +22,10 @@ in the ranking -- before and after adding ``M^-1 eps_central`` to the simulator'
 given above the noise floor (:func:`stride_jax.gap.regions.noise_floor`): white sensor noise
 cannot be explained by anything.
 
-Where it concentrates (:func:`concentration`): on the held-out states, the magnitude of the
-fitted correction per dof (force and scaled acceleration), per contact phase of each foot, per
-base-speed bin, and per bin of each actuated joint's own velocity and position (relative to its
-home angle) -- the phases and bins of :func:`stride_jax.gap.diagnose.where`. Each bin also gives
-the residual actually left there (``left``), so a bin where the fit is small but the residual is
-not shows what the flow missed.
+Where it concentrates (:mod:`stride_jax.gap.concentration`): on the held-out states, the
+magnitude of the fitted correction per dof (force and scaled acceleration), per contact phase of
+each foot, per base-speed bin, and per bin of each actuated joint's own velocity and position
+(relative to its home angle), beside the residual actually left there.
 """
 
 from __future__ import annotations
@@ -41,13 +39,12 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-import optax
 
 from stride_jax.dynamics import flow, mlp, stride
-from stride_jax.gap import effects, fit, regions, sim
+from stride_jax.gap import concentration, effects, fit, regions, sim
 from stride_jax.sim.collect import robot_meta
-from stride_jax.train import job
 from stride_jax.sim.model import SimModel
+from stride_jax.train import job, loop
 from stride_jax.types import ModelSpec
 
 WHEN = ("unexplained", "always", "never")
@@ -61,7 +58,8 @@ class ResidualConfig:
       when: ``"unexplained"`` fits it only when the verdict is "unexplained by the library",
         ``"always"`` after every diagnosis with a significant gap, ``"never"`` not at all.
       hidden, depth: the vector field's MLP (SiLU).
-      steps: optimiser steps (Adam, cosine decay, gradient clipping at 10).
+      steps: optimiser steps (``train.loop.optimizer``: Adam, cosine decay, gradient clipping
+        at 10).
       batch: examples per step (capped at the training set's size).
       lr: peak learning rate.
       nfe: vector-field evaluations of the central sample.
@@ -80,7 +78,8 @@ class ResidualConfig:
         residual, early stopping kept step 100 of 2000 and the held-out split was 1.7%
         explained, against 83.5% when trained on all six; Go1 with a joint spring (10 x 150
         steps): 16.3% against 32.5% (``experiments/gap_residual_validation.py``).
-      checks: validation scorings over the run (the step is chosen among them).
+      checks: validation scorings over the run, every ``ceil(steps / checks)`` steps and after
+        the last (the step is chosen among them).
     """
 
     when: str = "unexplained"
@@ -195,52 +194,33 @@ def _spread(x: np.ndarray) -> np.ndarray:
 def train_flow(x1: np.ndarray, c: np.ndarray, cfg: ResidualConfig,
                score: Callable[[dict], float] | None = None
                ) -> tuple[dict, np.ndarray, dict[str, Any]]:
-    """Conditional flow matching of ``x1 [N, D]`` given ``c [N, C]``; returns the vector field's
-    parameters, the loss per step and how the step was chosen. The loop runs as ``cfg.checks``
-    ``jit``-ed ``lax.scan`` chunks; with ``score(params) -> float`` (lower is better) the
-    parameters after the best-scoring chunk are returned (early stopping), else the last."""
+    """Conditional flow matching of ``x1 [N, D]`` given ``c [N, C]`` with the training loop
+    (:func:`stride_jax.train.loop.run`); returns the vector field's parameters, the loss per step
+    and how the step was chosen. With ``score(params) -> float`` (lower is better) the fit is
+    scored every ``ceil(steps / checks)`` steps and after the last, and the best-scoring
+    parameters are returned (early stopping); without one, the last, after one scanned chunk of
+    all the steps (no host round trips)."""
     fcfg = cfg.flow
     n, dim = x1.shape
-    b = min(cfg.batch, n)
     k_init, k_loop = jax.random.split(jax.random.PRNGKey(cfg.seed))
     params = flow.flow_init(k_init, dim, c.shape[1], fcfg)
-    opt = optax.chain(optax.clip_by_global_norm(10.0),
-                      optax.adamw(optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05),
-                                  weight_decay=cfg.weight_decay))
 
-    def batch_loss(p, X, C, key):
-        k_idx, k_fm = jax.random.split(key)
-        i = jax.random.randint(k_idx, (b,), 0, n)
-        ex = jax.vmap(lambda x, cc, k: flow.fm_loss(p, x, cc, k, fcfg))
-        return jnp.mean(ex(X[i], C[i], jax.random.split(k_fm, b)))
+    def batch_loss(p, ex, key):
+        b = ex["x"].shape[0]
+        per = jax.vmap(lambda x, cc, k: flow.fm_loss(p, x, cc, k, fcfg))
+        return jnp.mean(per(ex["x"], ex["c"], jax.random.split(key, b))), {}
 
-    @jax.jit
-    def run(carry, X, C, keys):
-        def step(carry, key):
-            p, st = carry
-            loss, g = jax.value_and_grad(batch_loss)(p, X, C, key)
-            upd, st = opt.update(g, st, p)
-            return (optax.apply_updates(p, upd), st), loss
-
-        return jax.lax.scan(step, carry, keys)
-
-    X, C = jnp.asarray(x1, jnp.float32), jnp.asarray(c, jnp.float32)
-    keys = jax.random.split(k_loop, cfg.steps)
-    # One chunk without a score (no host round trips); ``checks`` chunks to score between.
-    chunks = min(cfg.checks, cfg.steps) if score is not None else 1
-    edges = np.linspace(0, cfg.steps, chunks + 1).round().astype(int)
-    carry, losses, scores = (params, opt.init(params)), [], []
-    best = (math.inf, cfg.steps, params)
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        carry, chunk = run(carry, X, C, keys[lo:hi])
-        losses.append(np.asarray(chunk))
-        if score is not None:
-            scores.append(float(score(carry[0])))
-            if scores[-1] < best[0]:
-                best = (scores[-1], int(hi), carry[0])
-    chosen = {"steps": cfg.steps, "checked_at": edges[1:].tolist() if scores else [],
-              "validation_scores": scores, "chosen_step": best[1]}
-    return (best[2] if scores else carry[0]), np.concatenate(losses), chosen
+    data = {"x": jnp.asarray(x1, jnp.float32), "c": jnp.asarray(c, jnp.float32)}
+    every = math.ceil(cfg.steps / min(cfg.checks, cfg.steps)) if score is not None else cfg.steps
+    lcfg = loop.LoopConfig(steps=cfg.steps, batch=min(cfg.batch, n), lr=cfg.lr, eval_every=every,
+                           ckpt_every=cfg.steps, seed=cfg.seed)
+    validate = (lambda p: (float(score(p)), {})) if score is not None else None
+    res = loop.run(batch_loss, params, data, lcfg,
+                   loop.optimizer(cfg.lr, cfg.steps, cfg.weight_decay), k_loop, validate,
+                   progress=None)
+    chosen = {"steps": cfg.steps, "checked_at": res.checked_at,
+              "validation_scores": res.scores, "chosen_step": res.best_step}
+    return res.params, res.losses, chosen
 
 
 def _validation_split(traj: np.ndarray, share: float) -> tuple[np.ndarray, np.ndarray]:
@@ -301,120 +281,20 @@ def fit_on_top(sm: SimModel, plan: effects.Plan, train: fit.Data, test: fit.Data
         "explained_above_floor": min(1.0, (left - fitted) / max(left - floor, 1e-300)),
         "train_gap_left": fit.gap(s_tr.r), "train_gap_after": fit.gap(r_after_tr),
         "train_explained": 1 - fit.gap(r_after_tr) / max(fit.gap(s_tr.r), 1e-300),
-        "one_step_acc_rmse_left": dict(zip(names, regions.rms(s_te.r * scale, 0).tolist())),
-        "one_step_acc_rmse_after": dict(zip(names, regions.rms(r_after_te * scale, 0).tolist())),
-        "force_scale": dict(zip(names, f_scale.tolist())),
+        "one_step_acc_rmse_left": dict(zip(names, regions.rms(s_te.r * scale, 0).tolist(), strict=True)),
+        "one_step_acc_rmse_after": dict(zip(names, regions.rms(r_after_te * scale, 0).tolist(), strict=True)),
+        "force_scale": dict(zip(names, f_scale.tolist(), strict=True)),
         "fm_loss_first": float(losses[:k].mean()), "fm_loss_last": float(losses[-k:].mean()),
         "early_stopping": chosen | {
             "validation_trajectories": int(len(np.unique(s_tr.traj[val_idx]))),
             "validation_gap_left": fit.gap(s_tr.r[val_idx]) if len(val_idx) else None},
-        "concentration": concentration(sm, test, acc_te / scale, -s_te.r, force_te, scale, bins),
+        "concentration": concentration.concentration(sm, test, acc_te / scale, -s_te.r, force_te, scale, bins),
     }
     out["seconds"] = time.time() - t0
     log(f"  STRIDE residual on top (step {chosen['chosen_step']} of {cfg.steps}, "
         f"{out['seconds']:.1f} s): held-out gap left "
         f"{left:.4g} -> {fitted:.4g} ({out['explained']:.1%} explained, "
         f"{out['explained_above_floor']:.1%} above the noise floor)")
-    return out
-
-
-# ----------------------------------------------------------------------------- where it concentrates
-
-
-def _cell(fitted: np.ndarray, left: np.ndarray, sel: np.ndarray, overall: float) -> dict[str, Any]:
-    """RMS of the fitted correction and of the residual left over the samples ``sel``, and the
-    fitted RMS relative to its overall RMS (> 1: concentrated here)."""
-    if not sel.any():
-        return {"count": 0, "rms": None, "left_rms": None, "ratio": None}
-    rms = regions.rms(fitted[sel])
-    return {"count": int(sel.sum()), "rms": rms, "left_rms": regions.rms(left[sel]),
-            "ratio": rms / max(overall, 1e-300)}
-
-
-def _joint_bins(values: np.ndarray, fitted: np.ndarray, left: np.ndarray, bins: int
-                ) -> list[dict[str, Any]]:
-    """Bins of one joint's velocity or position: count, RMS and signed mean of the joint's own
-    fitted correction and of its residual left (rad/s^2 or m/s^2)."""
-    k, centres = regions.symmetric_bins(values, bins)
-    overall = regions.rms(fitted)
-    out = []
-    for i in range(bins):
-        sel = k == i
-        row = {"centre": float(centres[i])} | _cell(fitted, left, sel, overall)
-        row["mean"] = float(fitted[sel].mean()) if sel.any() else None
-        row["left_mean"] = float(left[sel].mean()) if sel.any() else None
-        out.append(row)
-    return out
-
-
-def concentration(sm: SimModel, data: fit.Data, fitted: np.ndarray, left: np.ndarray,
-                  force: np.ndarray, scale: np.ndarray, bins: int = 8) -> dict[str, Any]:
-    """Where the fitted residual lives on the samples of ``data``.
-
-    ``fitted [M, nv]``: the acceleration the residual adds to the simulator's (``M^-1 eps``,
-    scaled); ``left [M, nv]``: what the best hypothesis leaves (logged minus simulated
-    acceleration, scaled; a good fit matches it in sign and size); ``force [M, nv]``: the fitted
-    generalised force ``eps``.
-    Per dof: mean |force|, RMS of the correction (scaled) and its share of the total; per foot and
-    contact phase and per base-speed bin: scaled RMS over all dofs (and over the leg's dofs);
-    per bin of each actuated joint's velocity and position (from home): the joint's own
-    correction in rad/s^2 (m/s^2). ``summary`` names the dof, the phase and the bins where it
-    is largest."""
-    names = regions.dof_names(sm)
-    idx = fit.samples_before_next(data)
-    ms = (fitted ** 2).mean(0)
-    overall = regions.rms(fitted)
-    out: dict[str, Any] = {"per_dof": {n: {"force_mean_abs": float(np.abs(force[:, i]).mean()),
-                                           "rms_scaled": float(np.sqrt(ms[i])),
-                                           "left_rms_scaled": float(regions.rms(left[:, i])),
-                                           "share": float(ms[i] / max(ms.sum(), 1e-300))}
-                                       for i, n in enumerate(names)},
-                           "rms_scaled": overall, "left_rms_scaled": regions.rms(left)}
-    phases = regions.sample_phases(sm, data)
-    per_foot = {}
-    for f, foot in enumerate(sm.robot.feet):
-        leg = regions.leg_dofs(sm, foot.name)
-        per_foot[foot.name] = {label: _cell(fitted, left, phases[:, f] == p, overall)
-                               | {"rms_leg": regions.rms(fitted[phases[:, f] == p][:, leg])
-                                  if (phases[:, f] == p).any() else None}
-                               for p, label in enumerate(regions.PHASES)}
-    out["per_foot_phase"] = per_foot
-    if sm.robot.floating_base:
-        k, edges = regions.quantile_bins(regions.base_speed(data), bins)
-        out["base_speed_bins"] = [{"lo": float(edges[i]), "hi": float(edges[i + 1])}
-                                  | _cell(fitted, left, k == i, overall)
-                                  for i in range(len(edges) - 1) if (k == i).any()]
-    raw_fit, raw_left = fitted * scale, left * scale
-    q0 = np.asarray(sm.info.qpos0, np.float64)
-    qadr = sm.mj.jnt_qposadr[sm.mj.actuator_trnid[:, 0]]
-    out["joint_velocity_bins"] = {names[d]: _joint_bins(data.qd[idx, d], raw_fit[:, d], raw_left[:, d], bins)
-                                  for d in sm.act_dof}
-    out["joint_position_bins"] = {names[d]: _joint_bins(data.q[idx, a] - q0[a], raw_fit[:, d], raw_left[:, d], bins)
-                                  for d, a in zip(sm.act_dof, qadr)}
-    out["summary"] = _summary(out)
-    return out
-
-
-def _peak(rows: list[dict], min_count: int) -> dict | None:
-    rows = [r for r in rows if r["count"] >= min_count and r["rms"] is not None]
-    return max(rows, key=lambda r: r["rms"], default=None)
-
-
-def _summary(c: dict[str, Any], min_count: int = 10) -> dict[str, Any]:
-    """The dof with the largest share; the foot phase, base-speed bin and joint bins with the
-    largest RMS among those with at least ``min_count`` samples."""
-    dof = max(c["per_dof"], key=lambda n: c["per_dof"][n]["share"])
-    out: dict[str, Any] = {"dof": dof, "dof_share": c["per_dof"][dof]["share"]}
-    phases = [dict(r, foot=f, phase=p) for f, rows in c["per_foot_phase"].items() for p, r in rows.items()]
-    if (pk := _peak(phases, min_count)) is not None:
-        out["phase"] = {"foot": pk["foot"], "phase": pk["phase"], "ratio": pk["ratio"]}
-    if (pk := _peak(c.get("base_speed_bins", []), min_count)) is not None:
-        out["base_speed"] = {"lo": pk["lo"], "hi": pk["hi"], "ratio": pk["ratio"]}
-    for key in ("joint_velocity_bins", "joint_position_bins"):
-        peaks = [dict(pk, joint=j) for j, rows in c[key].items() if (pk := _peak(rows, min_count))]
-        if peaks:
-            pk = max(peaks, key=lambda r: r["rms"])
-            out[key.removesuffix("_bins")] = {"joint": pk["joint"], "centre": pk["centre"], "ratio": pk["ratio"]}
     return out
 
 

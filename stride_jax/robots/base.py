@@ -12,10 +12,11 @@ from __future__ import annotations
 import dataclasses
 import os
 import pathlib
-from typing import Any, Callable, NamedTuple, Protocol
+from typing import Any, Callable, NamedTuple
 
-import jax
 import mujoco
+
+from stride_jax.types import Explorer  # the contract lives with the others; re-exported
 
 ASSETS = pathlib.Path(__file__).parent / "assets"
 
@@ -106,24 +107,6 @@ class ModelInfo(NamedTuple):
     ctrl_hi: Any  # [nu]
     ctrl_dt: float
     base_body: int  # body id of the floating base (or the moving body for fixed-base robots)
-
-
-class Explorer(Protocol):
-    """The data-collecting controller: pure JAX, written for one world, vmapped by the caller.
-
-    Everything random is drawn from the episode parameters (``sample``) and ``fold_in(key, step)``,
-    so that MJX and the CPU backend issue identical controls from identical states.
-    """
-
-    def sample(self, key: jax.Array, info: ModelInfo) -> Any:
-        """Episode parameters (a pytree of arrays), including the episode key."""
-
-    def reset(self, params: Any, info: ModelInfo) -> tuple[jax.Array, jax.Array]:
-        """Initial ``(qpos [nq], qvel [nv])`` of the episode."""
-
-    def act(self, params: Any, info: ModelInfo, step: jax.Array, qpos: jax.Array,
-            qvel: jax.Array) -> jax.Array:
-        """Control ``[nu]`` at control step ``step`` from the current state."""
 
 
 @dataclasses.dataclass(frozen=True)

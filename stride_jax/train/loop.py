@@ -1,19 +1,31 @@
-"""The training loop: jitted optax steps on minibatches sharded over devices, validation,
-best-checkpoint selection, resumable orbax checkpoints, a NaN guard, progress and a CSV log.
+"""The one training loop: optax steps on random minibatches, run as jitted ``lax.scan`` chunks,
+with validation and best-parameter selection, resumable orbax checkpoints, a NaN guard, progress
+and a CSV log.
+
+Two layers, both used by every model trained with optax here (the dynamics models, the gap
+tool's STRIDE residual, the learned reward and value; PPO keeps Brax's own loop):
+
+* :func:`scan_steps` -- ``n`` optimiser steps as one ``lax.scan``: pure, jit-able, usable inside
+  another ``scan`` (the value model's fitted-value-iteration rounds).
+* :func:`run` -- the host loop around it: chunks of steps between validations and checkpoints,
+  the best validated parameters, resumption from ``out/ckpt``, ``out/metrics.csv``, a progress
+  bar.
 
 Minibatch ``i`` is drawn with ``fold_in(key, i)``, so a run that was killed and resumed from its
-last checkpoint takes exactly the steps an uninterrupted run takes.
+last checkpoint takes exactly the steps an uninterrupted run takes, and the chunking does not
+change the draws.
 """
 
 from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import json
 import pathlib
 import shutil
 import time
-from typing import Callable
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -23,8 +35,12 @@ import orbax.checkpoint as ocp
 from tqdm import tqdm
 
 from stride_jax.dynamics.checkpoint import params_sha256
-from stride_jax.sim import rollout_mjx
 from stride_jax.io import atomic_write_text
+from stride_jax.sim import rollout_mjx
+
+# ``loss_fn(params, batch, key) -> (loss [], parts {name: []})``: the mean loss of a minibatch
+# (every leaf of the data with a leading axis of ``batch``) and named parts to log.
+LossFn = Callable[[Any, Any, jax.Array], tuple[jax.Array, dict]]
 
 
 class TrainingError(RuntimeError):
@@ -45,6 +61,228 @@ class LoopConfig:
     ckpt_every: int = 500
     seed: int = 0
     deadline: float = 0.0
+
+
+def optimizer(lr: float, steps: int, weight_decay: float = 0.0) -> optax.GradientTransformation:
+    """The house optimiser: gradients clipped at global norm 10, then Adam (AdamW with decoupled
+    ``weight_decay`` > 0) with a cosine decay from ``lr`` to ``0.05 lr`` over ``steps``. (Plain
+    Adam at 0: AdamW's extra state would not restore older checkpoints.)"""
+    schedule = optax.cosine_decay_schedule(lr, steps, alpha=0.05)
+    adam = optax.adamw(schedule, weight_decay=weight_decay) if weight_decay else \
+        optax.adam(schedule)
+    return optax.chain(optax.clip_by_global_norm(10.0), adam)
+
+
+def scan_steps(loss_fn: LossFn, opt: optax.GradientTransformation, params: Any, opt_state: Any,
+               data: Any, key: jax.Array, start: jax.Array | int, n: int, batch: int,
+               sharding: Any = None) -> tuple[tuple[Any, Any], jax.Array, dict]:
+    """Steps ``start .. start + n - 1`` of the optimiser as one ``lax.scan`` (pure; jit it).
+
+    Step ``i`` takes ``k_batch, k_loss = split(fold_in(key, i))``, a minibatch of ``batch``
+    examples drawn uniformly with replacement from ``data`` (a pytree of arrays ``[N, ...]``)
+    with ``k_batch``, and one ``opt`` update on the gradient of ``loss_fn(params, minibatch,
+    k_loss)``. ``sharding``: splits the minibatch over devices (XLA all-reduces the gradients).
+
+    Returns ``((params, opt_state), losses [n], parts {name: [n]})``.
+    """
+    n_data = jax.tree.leaves(data)[0].shape[0]
+
+    def step(carry, i):
+        params, opt_state = carry
+        k_batch, k_loss = jax.random.split(jax.random.fold_in(key, i))
+        idx = jax.random.randint(k_batch, (batch,), 0, n_data)
+        ex = jax.tree.map(lambda a: a[idx], data)
+        if sharding is not None:
+            ex = jax.lax.with_sharding_constraint(ex, sharding)
+        (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, ex, k_loss)
+        updates, opt_state = opt.update(grads, opt_state, params)
+        return (optax.apply_updates(params, updates), opt_state), (loss, parts)
+
+    carry, (losses, parts) = jax.lax.scan(step, (params, opt_state), start + jnp.arange(n))
+    return carry, losses, parts
+
+
+class Result(NamedTuple):
+    """What :func:`run` returns.
+
+    Attributes:
+      params: the best validated parameters (the last without a ``validate``).
+      losses: ``[steps run by this call]`` the training loss of every step.
+      checked_at: the steps validated by this call.
+      scores: their validation scores (lower is better).
+      best_step: the step of ``params``.
+      best_score: its validation score (inf without a ``validate``).
+      steps_done: the steps taken, counting those of a resumed run.
+    """
+
+    params: Any
+    losses: np.ndarray
+    checked_at: list[int]
+    scores: list[float]
+    best_step: int
+    best_score: float
+    steps_done: int
+
+
+def _manager(path: pathlib.Path, max_to_keep: int) -> ocp.CheckpointManager:
+    """A checkpoint manager with the unfinished steps of a killed run removed.
+
+    A process killed while saving can leave a step folder that orbax does not count as a
+    checkpoint (no commit marker) but that blocks saving that step again after resuming.
+    """
+    path = path.absolute()
+    options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True,
+                                           cleanup_tmp_directories=True)
+    mngr = ocp.CheckpointManager(path, options=options)
+    mngr.reload()
+    finished = set(mngr.all_steps())
+    stale = [p for p in path.iterdir() if p.name.isdigit() and int(p.name) not in finished]
+    if not stale:
+        return mngr
+    mngr.close()
+    for p in stale:
+        shutil.rmtree(p)
+    return ocp.CheckpointManager(path, options=options)
+
+
+def _next_stop(step: int, cfg: LoopConfig, validating: bool, saving: bool) -> int:
+    """Where the chunk that starts after ``step`` ends: the next validation, the next
+    checkpoint or the last step."""
+    stop = cfg.steps
+    if validating:
+        stop = min(stop, (step // cfg.eval_every + 1) * cfg.eval_every)
+    if saving:
+        stop = min(stop, (step // cfg.ckpt_every + 1) * cfg.ckpt_every)
+    return stop
+
+
+class _Log:
+    """Rows of ``metrics.csv``, appended (the file is opened per row: one per validation); a
+    resumed run keeps the columns of the file's header."""
+
+    def __init__(self, path: pathlib.Path | None):
+        self.path, self.fields = path, None
+        if path is not None and path.exists():
+            header = path.read_text().split("\n", 1)[0]
+            self.fields = next(csv.reader([header]), None) if header else None
+
+    def write(self, row: dict) -> None:
+        if self.path is None:
+            return
+        new = self.fields is None
+        self.fields = self.fields or list(row)
+        with open(self.path, "a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
+            if new:
+                writer.writeheader()
+            writer.writerow(row)
+
+
+def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
+        opt: optax.GradientTransformation, key: jax.Array,
+        validate: Callable[[Any], tuple[float, dict[str, float]]] | None = None,
+        out: pathlib.Path | None = None, log: Callable[[str], None] = print,
+        progress: str | None = "train") -> Result:
+    """Trains ``params`` on ``loss_fn`` (see :data:`LossFn`) over ``data`` (a pytree of arrays
+    ``[N, ...]``) for ``cfg.steps`` minibatches of ``min(cfg.batch, N)`` with ``opt``.
+
+    ``validate(params) -> (score, metrics)`` runs every ``cfg.eval_every`` steps and after the
+    last; the parameters with the lowest score are returned. ``out``: a run folder; then
+    ``out/ckpt`` holds the latest state (every ``cfg.ckpt_every`` steps; a later call resumes
+    from it), ``out/best`` the best validated parameters and ``out/metrics.csv`` one row per
+    validation (step, time, training loss and parts, ``metrics``). Without ``out`` nothing is
+    written and the best parameters are kept in memory. ``progress``: the progress bar's label
+    (None: no bar). Raises :class:`TrainingError` when the loss stops being finite.
+    """
+    n_data = jax.tree.leaves(data)[0].shape[0]
+    batch = min(cfg.batch, n_data)
+    state = {"params": params, "opt": opt.init(params), "step": jnp.zeros((), jnp.int32),
+             "best_val": jnp.array(jnp.inf, jnp.float32)}
+    ckpt = best = None
+    if out is not None:
+        out = pathlib.Path(out)
+        ckpt, best = _manager(out / "ckpt", 2), _manager(out / "best", 1)
+        if ckpt.latest_step() is not None:
+            try:
+                state = ckpt.restore(ckpt.latest_step(), args=ocp.args.StandardRestore(state))
+            except Exception as e:  # noqa: BLE001 -- any unreadable checkpoint is the same problem
+                raise TrainingError(f"cannot resume from {out / 'ckpt'}: {e}") from e
+            log(f"resumed from step {int(state['step'])} ({out / 'ckpt'})")
+        # Best checkpoints saved after the resumed step belong to the lost part of a killed run.
+        for s in best.all_steps():
+            if s > int(state["step"]):
+                best.delete(s)
+
+    sharding = rollout_mjx.world_sharding(batch) \
+        if batch % max(1, jax.local_device_count()) == 0 else None
+    data = jax.device_put(data)  # the training set lives on the device(s) once
+
+    # The data and the key are arguments, not constants of the program: no dataset baked into
+    # the executable, and runs that differ only in their seed share the compilation cache.
+    @functools.partial(jax.jit, static_argnames="n")
+    def chunk(params, opt_state, data, key, start, n):
+        return scan_steps(loss_fn, opt, params, opt_state, data, key, start, n, batch, sharding)
+
+    step = start = int(state["step"])
+    kept, best_step, best_score = state["params"], step, float(state["best_val"])
+    losses, checked_at, scores = [], [], []
+    metrics_log = _Log(out / "metrics.csv" if out is not None else None)
+    with tqdm(total=cfg.steps, initial=start, desc=progress, unit="step",
+              disable=progress is None) as bar:
+        while step < cfg.steps:
+            stop = _next_stop(step, cfg, validate is not None, ckpt is not None)
+            (p, o), chunk_losses, parts = chunk(state["params"], state["opt"], data, key,
+                                                step, n=stop - step)
+            state = dict(state, params=p, opt=o, step=jnp.asarray(stop, jnp.int32))
+            bar.update(stop - step)
+            step, chunk_losses = stop, np.asarray(chunk_losses)
+            losses.append(chunk_losses)
+            if not np.isfinite(chunk_losses).all():
+                bad = chunk_losses[~np.isfinite(chunk_losses)][0]
+                where = (f"; the last good checkpoint is in {out / 'ckpt'} (step "
+                         f"{ckpt.latest_step()})") if ckpt is not None else ""
+                raise TrainingError(
+                    f"the training loss became {bad} by step {step}{where}. Lower the "
+                    f"learning rate ({cfg.lr}) or check the data for outliers.")
+            last = step == cfg.steps
+            if validate is not None and (step % cfg.eval_every == 0 or last):
+                score, metrics = validate(state["params"])
+                checked_at.append(step)
+                scores.append(float(score))
+                metrics_log.write({"step": step, "time": time.time(),
+                                   "train_loss": float(chunk_losses[-1]),
+                                   **{f"train_{k}": float(v[-1]) for k, v in parts.items()},
+                                   **metrics})
+                if score < best_score:
+                    state = dict(state, best_val=jnp.asarray(score, jnp.float32))
+                    kept, best_step, best_score = state["params"], step, float(score)
+                    if best is not None:
+                        best.save(step, args=ocp.args.StandardSave(state["params"]),
+                                  force=True)
+                bar.set_postfix(loss=f"{float(chunk_losses[-1]):.4g}", val=f"{score:.4g}")
+            elif validate is None:
+                kept, best_step = state["params"], step
+            out_of_time = bool(cfg.deadline) and step % cfg.eval_every == 0 and \
+                time.time() > cfg.deadline
+            if ckpt is not None and (step % cfg.ckpt_every == 0 or last or out_of_time):
+                ckpt.save(step, args=ocp.args.StandardSave(state), force=True)
+            if out_of_time and not last:
+                log(f"deadline reached: stopped at step {step} of {cfg.steps}; run again "
+                    "to resume")
+                break
+    if ckpt is not None:
+        ckpt.wait_until_finished()
+        best.wait_until_finished()
+        if validate is not None:
+            if best.latest_step() is None:
+                raise TrainingError("no validation ever ran (steps < eval_every?)")
+            best_step = best.latest_step()
+            kept = best.restore(best_step, args=ocp.args.StandardRestore(state["params"]))
+    return Result(kept, np.concatenate(losses) if losses else np.zeros(0), checked_at, scores,
+                  best_step, best_score, step)
+
+
+# ----------------------------------------------------------------------------- dynamics models
 
 
 def _examples(split: dict, jacobians: Callable | None = None) -> dict:
@@ -80,27 +318,6 @@ def _examples(split: dict, jacobians: Callable | None = None) -> dict:
     return ex
 
 
-def _manager(path: pathlib.Path, max_to_keep: int) -> ocp.CheckpointManager:
-    """A checkpoint manager with the unfinished steps of a killed run removed.
-
-    A process killed while saving can leave a step folder that orbax does not count as a
-    checkpoint (no commit marker) but that blocks saving that step again after resuming.
-    """
-    path = path.absolute()
-    options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True,
-                                           cleanup_tmp_directories=True)
-    mngr = ocp.CheckpointManager(path, options=options)
-    mngr.reload()
-    finished = set(mngr.all_steps())
-    stale = [p for p in path.iterdir() if p.name.isdigit() and int(p.name) not in finished]
-    if not stale:
-        return mngr
-    mngr.close()
-    for p in stale:
-        shutil.rmtree(p)
-    return ocp.CheckpointManager(path, options=options)
-
-
 def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: dict,
           cfg: LoopConfig, out: pathlib.Path, log: Callable[[str], None] = print,
           jacobians: Callable | None = None) -> dict:
@@ -119,115 +336,36 @@ def train_examples(loss_fn: Callable, init_fn: Callable, data: dict, val: dict,
                    cfg: LoopConfig, out: pathlib.Path, log: Callable[[str], None] = print
                    ) -> dict:
     """:func:`train` on flat examples ``{name: [N, ...]}`` (``q, qd, tau, qdd``, and whatever
-    else ``loss_fn`` reads) for training and validation. ``out/summary.json`` records the best
-    step and the SHA-256 of its parameters (``checkpoint.params_sha256``)."""
+    else ``loss_fn`` reads) for training and validation: :func:`run` with :func:`optimizer`.
+    ``loss_fn(params, example, key) -> (loss, parts)`` is for one example. ``out/summary.json``
+    records the best step and the SHA-256 of its parameters (``checkpoint.params_sha256``)."""
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    n_train = len(data["q"])
-    if n_train == 0 or len(val["q"]) == 0:
+    if len(data["q"]) == 0 or len(val["q"]) == 0:
         raise TrainingError("no valid training or validation steps in the dataset")
-    key = jax.random.key(cfg.seed)
-    key_init, key_loop = jax.random.split(key)
-    schedule = optax.cosine_decay_schedule(cfg.lr, cfg.steps, alpha=0.05)
-    opt = optax.chain(optax.clip_by_global_norm(10.0), optax.adam(schedule))
-    params = init_fn(key_init)
-    state = {"params": params, "opt": opt.init(params), "step": jnp.zeros((), jnp.int32),
-             "best_val": jnp.array(jnp.inf, jnp.float32)}
-
-    ckpt, best = _manager(out / "ckpt", 2), _manager(out / "best", 1)
-    if ckpt.latest_step() is not None:
-        try:
-            state = ckpt.restore(ckpt.latest_step(), args=ocp.args.StandardRestore(state))
-        except Exception as e:  # noqa: BLE001 -- any unreadable checkpoint is the same problem
-            raise TrainingError(f"cannot resume from {out / 'ckpt'}: {e}") from e
-        log(f"resumed from step {int(state['step'])} ({out / 'ckpt'})")
-    # Best checkpoints saved after the resumed step belong to the lost part of a killed run.
-    for step in best.all_steps():
-        if step > int(state["step"]):
-            best.delete(step)
-
-    batch = min(cfg.batch, n_train)
-    sharding = rollout_mjx.world_sharding(batch) if batch % max(1, jax.local_device_count()) == 0 \
-        else None
-    # The training set lives on the device(s) once; minibatches are gathered there.
-    data = jax.device_put(data)
+    key_init, key_loop = jax.random.split(jax.random.key(cfg.seed))
 
     def mean_loss(params, ex, key):
         keys = jax.random.split(key, len(ex["q"]))
         total, parts = jax.vmap(loss_fn, in_axes=(None, 0, 0))(params, ex, keys)
         return jnp.mean(total), jax.tree.map(jnp.mean, parts)
 
-    # The key is an argument, not a constant of the program: runs that differ only in their seed
-    # compile to the same program and share JAX's persistent compilation cache.
-    @jax.jit
-    def train_step(state, data, key_loop, i):
-        k_batch, k_loss = jax.random.split(jax.random.fold_in(key_loop, i))
-        idx = jax.random.randint(k_batch, (batch,), 0, n_train)
-        ex = {k: v[idx] for k, v in data.items()}
-        if sharding is not None:  # split the minibatch over devices; XLA all-reduces the grads
-            ex = jax.lax.with_sharding_constraint(ex, sharding)
-        (loss, parts), grads = jax.value_and_grad(mean_loss, has_aux=True)(state["params"], ex,
-                                                                           k_loss)
-        updates, opt_state = opt.update(grads, state["opt"], state["params"])
-        new = dict(state, params=optax.apply_updates(state["params"], updates), opt=opt_state,
-                   step=state["step"] + 1)
-        return new, loss, parts
-
     eval_fn = jax.jit(mean_loss)
     val_ex = jax.tree.map(lambda a: a[: min(len(a), 4096)], val)
-    metrics_path = out / "metrics.csv"
-    new_file = not metrics_path.exists()
-    start = int(state["step"])
-    with open(metrics_path, "a", newline="") as f, tqdm(total=cfg.steps, initial=start,
-                                                        desc="train", unit="step") as bar:
-        writer = None
-        for i in range(start, cfg.steps):
-            state, loss, parts = train_step(state, data, key_loop, i)
-            step = i + 1
-            last = step == cfg.steps
-            if step % cfg.eval_every == 0 or last:
-                loss = float(loss)
-                if not np.isfinite(loss):
-                    raise TrainingError(
-                        f"the training loss became {loss} by step {step}; the last good "
-                        f"checkpoint is in {out / 'ckpt'} (step {ckpt.latest_step()}). Lower "
-                        f"the learning rate ({cfg.lr}) or check the dataset for outliers.")
-                val_loss, val_parts = eval_fn(state["params"], val_ex, jax.random.key(0))
-                row = {"step": step, "time": time.time(), "train_loss": loss,
-                       "val_loss": float(val_loss),
-                       **{f"train_{k}": float(v) for k, v in parts.items()},
-                       **{f"val_{k}": float(v) for k, v in val_parts.items()}}
-                if writer is None:
-                    writer = csv.DictWriter(f, fieldnames=list(row))
-                    if new_file:
-                        writer.writeheader()
-                writer.writerow(row)
-                f.flush()
-                # The best checkpoint: the lowest validation "select" part where the loss names
-                # one (structured models: acceleration error plus the allocation term, not a
-                # total dominated by the generator's loss), else the lowest total.
-                val_select = float(val_parts.get("select", val_loss))
-                if val_select < float(state["best_val"]):
-                    state = dict(state, best_val=jnp.asarray(val_select, jnp.float32))
-                    best.save(step, args=ocp.args.StandardSave(state["params"]), force=True)
-                bar.set_postfix(loss=f"{loss:.4g}", val=f"{float(val_loss):.4g}")
-            out_of_time = bool(cfg.deadline) and step % cfg.eval_every == 0 and \
-                time.time() > cfg.deadline
-            if step % cfg.ckpt_every == 0 or last or out_of_time:
-                ckpt.save(step, args=ocp.args.StandardSave(state), force=True)
-            bar.update(1)
-            if out_of_time and not last:
-                log(f"deadline reached: stopped at step {step} of {cfg.steps}; run again to "
-                    "resume")
-                break
-    ckpt.wait_until_finished()
-    best.wait_until_finished()
-    if best.latest_step() is None:
-        raise TrainingError("no validation ever ran (steps < eval_every?)")
-    params = best.restore(best.latest_step(), args=ocp.args.StandardRestore(state["params"]))
+
+    def validate(params):
+        val_loss, parts = eval_fn(params, val_ex, jax.random.key(0))
+        # The best checkpoint: the lowest validation "select" part where the loss names one
+        # (structured models: acceleration error plus the allocation term, not a total
+        # dominated by the generator's loss), else the lowest total.
+        return float(parts.get("select", val_loss)), {
+            "val_loss": float(val_loss), **{f"val_{k}": float(v) for k, v in parts.items()}}
+
+    res = run(mean_loss, init_fn(key_init), data, cfg, optimizer(cfg.lr, cfg.steps), key_loop,
+              validate, out, log)
     atomic_write_text(out / "summary.json", json.dumps(
-        {"best_val": float(state["best_val"]), "best_step": best.latest_step(),
-         "params_sha256": params_sha256(params),
-         "steps": cfg.steps, "steps_done": int(state["step"]),
-         "finished": int(state["step"]) >= cfg.steps}, indent=1))
-    return params
+        {"best_val": res.best_score, "best_step": res.best_step,
+         "params_sha256": params_sha256(res.params),
+         "steps": cfg.steps, "steps_done": res.steps_done,
+         "finished": res.steps_done >= cfg.steps}, indent=1))
+    return res.params

@@ -1,0 +1,301 @@
+"""Which effect causes the gap, and the verdict (the diagnosis's second question).
+
+:func:`which` fits every library effect on a training split of whole trajectories
+(:mod:`stride_jax.gap.fit`), pairs of the best few jointly, and scores all on the held-out split:
+gap explained = 1 - held-out loss / nominal held-out loss, with a complexity penalty per
+parameter and block-bootstrap intervals over the held-out trajectories (a fit with the wrong
+effect lowers the *training* loss too; only the held-out comparison chooses). It also tests
+detection by cross-fitting and measures the systematic structure left after the best hypothesis
+with a linear probe (:mod:`stride_jax.gap.linear_probe`). :func:`verdict` turns that into
+"no significant gap", "explained" (confident or not) or "unexplained by the library".
+:func:`check_nominal` checks that every candidate reproduces the nominal model at its nominal
+value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from stride_jax.gap import effects, fit, linear_probe, regions
+from stride_jax.gap.regions import noise_floor
+from stride_jax.sim.model import SimModel
+
+if TYPE_CHECKING:
+    from stride_jax.gap.diagnose import DiagnoseConfig
+
+_rms = regions.rms
+
+
+def _boot_weights(n: int, B: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.multinomial(n, np.full(n, 1 / n), size=B).astype(float)  # [B, n]
+
+
+def check_nominal(sm: SimModel, data: fit.Data, scale: np.ndarray, r_nom: np.ndarray
+                  ) -> dict[str, float]:
+    """Max |residual change| of each candidate at its nominal value against the nominal model."""
+    out = {}
+    for e in effects.candidates(sm):
+        r = fit.residual(sm, effects.build(sm, {e.name: np.asarray(e.nominal)}), data, scale)
+        out[e.name] = float(np.abs(r - r_nom).max())
+    return out
+
+
+def _block_ids(data: fit.Data, length: int) -> tuple[np.ndarray, int]:
+    """``[M]`` block index of each replayed sample (consecutive ``length`` control steps of one
+    trajectory) and the number of blocks."""
+    local = data.start - data.bounds[data.traj]
+    key = data.traj.astype(np.int64) * 10 ** 7 + local // max(int(length), 1)
+    _, ids = np.unique(key, return_inverse=True)
+    return ids.ravel(), int(ids.max()) + 1
+
+
+def _lower(x: np.ndarray, level: float) -> float:
+    return float(np.quantile(x, min(max(level, 0.0), 1.0)))
+
+
+def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: DiagnoseConfig,
+          log=print) -> dict[str, Any]:
+    """Fits every candidate on ``train``, then pairs of the best (unless the best single is exact),
+    and scores all on ``test``.
+
+    Held-out statistics resample blocks of ``cfg.block`` control steps within the held-out
+    trajectories (``cfg.boot`` times, the same resamples for every hypothesis, so differences
+    between hypotheses are paired). A pair replaces the best single only if (a) the paired
+    bootstrap puts its held-out improvement over the single above zero at level ``alpha / pairs``
+    and (b) it removes at least ``pair_min`` of what the single leaves above the noise floor.
+    """
+    nom = effects.build(sm)
+    r_nom_tr = fit.residual(sm, nom, train, scale)
+    r_nom_te = fit.residual(sm, nom, test, scale)
+    M = len(r_nom_te)
+    ids, nb = _block_ids(test, cfg.block)
+    Wb = _boot_weights(nb, max(cfg.boot, cfg.fit.bootstrap or 0, 100), cfg.seed + 1)  # [B, nb]
+    blocks = lambda r: np.bincount(ids, weights=(r ** 2).sum(1), minlength=nb)
+    Lb_nom = blocks(r_nom_te)
+    L_nom = float(Lb_nom.sum())
+    boot_nom = np.maximum(Wb @ Lb_nom, 1e-300)
+    fits: list[fit.Fit] = []
+    r_te: dict[tuple, np.ndarray] = {}
+
+    def score(f: fit.Fit) -> None:
+        fits.append(f)
+        r_te[f.names] = fit.residual(sm, effects.build(sm, f.params), test, scale)
+
+    for e in effects.candidates(sm):
+        t0 = time.time()
+        f = fit.fit(sm, train, scale, (e.name,), cfg.fit)
+        score(f)
+        log(f"  fit {e.name:17s} {_fmt(f.params)}  train loss {f.train_loss:.4g}  ({f.evals} evals, "
+            f"{time.time() - t0:.1f} s)")
+    n_single = len(fits)
+    singles = {f.names[0]: f for f in fits}
+    held = lambda names: float((r_te[names] ** 2).sum())
+    ranked = sorted(fits, key=lambda f: held(f.names))
+    best_single = ranked[0]
+    exact = held(best_single.names) <= 1e-8 * L_nom
+    if not exact and cfg.pairs_of >= 2:
+        # pairs: the best few singles with each other, and the best single with the effects that
+        # most lower the training loss on top of it (a conditional grid screen: an effect that is
+        # weak alone, e.g. a delay masked by damping, can still be the missing second one)
+        S0 = best_single.names[0]
+        screen = []
+        for e in effects.candidates(sm):
+            if e.name == S0 or e.size != 1:
+                continue
+            lo, hi = (float(b[0]) for b in e.bounds(sm))
+            xs = (np.arange(int(lo), int(hi) + 1, max(1, int(hi - lo) // 15)) if e.integer
+                  else np.linspace(lo, hi, cfg.fit.grid))
+            obj = fit.Objective(sm, train, scale, (e.name,), base=best_single.params)
+            tot = [obj.losses(np.array([float(x)])).sum() for x in xs]
+            screen.append((min(tot), e.name, float(xs[int(np.argmin(tot))])))
+        screen.sort()
+        pairs = list(itertools.combinations([f.names[0] for f in ranked[:cfg.pairs_of]], 2))
+        pairs += [(S0, n) for _, n, _ in screen[:cfg.pairs_of - 1]]
+        seen = set()
+        for a, b in pairs:
+            if frozenset((a, b)) in seen:
+                continue
+            seen.add(frozenset((a, b)))
+            start = singles[a].params | singles[b].params
+            for _, n, x in screen:
+                if (a, b) == (S0, n):
+                    start[n] = np.array([x])
+            t0 = time.time()
+            f = fit.fit(sm, train, scale, (a, b), cfg.fit, start)
+            score(f)
+            log(f"  fit {a}+{b}: {_fmt(f.params)}  ({f.evals} evals, {time.time() - t0:.1f} s)")
+    rows = []
+    for f in fits:
+        Lb = blocks(r_te[f.names])
+        k = sum(effects.ALL[n].size for n in f.names)
+        expl = 1 - Lb.sum() / max(L_nom, 1e-300)
+        boot = 1 - (Wb @ Lb) / boot_nom
+        rows.append({"effects": list(f.names), "params": _jsonable(f.params), "param_lo": _jsonable(f.lo),
+                     "param_hi": _jsonable(f.hi), "n_params": k, "train_loss": f.train_loss,
+                     "heldout_loss": float(Lb.sum()), "explained": float(expl),
+                     "explained_ci": np.percentile(boot, [5, 95]).tolist(),
+                     "p_no_better_than_nominal": float((boot <= 0).mean()),
+                     "score": float(expl - cfg.penalty * k), "_boot": boot})
+    rows.sort(key=lambda r: -r["score"])
+    single_rows = [r for r in rows if len(r["effects"]) == 1]
+    pair_rows = [r for r in rows if len(r["effects"]) == 2]
+    S = single_rows[0]
+    r_S = r_te[tuple(S["effects"])]
+    floor_S = noise_floor(r_S, test)
+    left_S = max(S["heldout_loss"] / M - floor_S, 0.0)  # mean squared residual above the floor
+    pair_tests = []
+    for P in pair_rows:
+        gain = (S["heldout_loss"] - P["heldout_loss"]) / M
+        d = P["_boot"] - S["_boot"]  # paired: explained(pair) - explained(single)
+        lo = _lower(d, cfg.alpha / max(len(pair_rows), 1))
+        ok = bool(lo > 0 and gain >= cfg.pair_min * left_S and gain > 1e-6 * L_nom / M)
+        pair_tests.append({"pair": P["effects"], "single": S["effects"], "gain_explained": float(gain * M / L_nom),
+                           "gain_lower": lo, "fraction_of_left": float(gain / max(left_S, 1e-300)),
+                           "preferred": ok})
+        P["vs_best_single"] = pair_tests[-1]
+    chosen = max((P for P, t in zip(pair_rows, pair_tests, strict=True) if t["preferred"]),
+                 key=lambda r: r["explained"], default=S)
+    rows.remove(chosen)
+    rows.insert(0, chosen)
+    # bootstrap probability that the chosen hypothesis beats the runner-up (for a chosen single:
+    # by penalised score, against the best hypothesis that is not a superset of it; for a chosen
+    # pair: unpenalised, against the best single)
+    for i, row in enumerate(rows):
+        if i == 0 and len(row["effects"]) == 2:
+            other = S
+            row["p_beats_next"] = float((row["_boot"] > other["_boot"]).mean())
+            continue
+        others = [r for r in rows if r is not row and not set(row["effects"]) < set(r["effects"])]
+        if not others:
+            row["p_beats_next"] = 1.0
+            continue
+        other = others[0]
+        s_self = row["_boot"] - cfg.penalty * row["n_params"]
+        s_other = other["_boot"] - cfg.penalty * other["n_params"]
+        row["p_beats_next"] = float((s_self > s_other).mean())
+    # detection: is the best hypothesis better than the nominal model on data it was not fitted
+    # on? Cross-fitting: the held-out split scored with the training fit, and the training split
+    # scored with a refit on the held-out split (every trajectory is held-out once). One-sided
+    # test at level alpha / (hypotheses compared), for the selection.
+    best = rows[0]
+    n_hyp = len(rows)
+    bnames = tuple(best["effects"])
+    start = {k: np.asarray(v) for k, v in best["params"].items()}
+    if exact:
+        swap_params = start
+    else:
+        f_sw = fit.fit(sm, test, scale, bnames, dataclasses.replace(cfg.fit, profile=0, refits=0), start)
+        swap_params = f_sw.params
+    r_sw_tr = fit.residual(sm, effects.build(sm, swap_params), train, scale)
+    ids_tr, nb_tr = _block_ids(train, cfg.block)
+    Lb_all_nom = np.concatenate([Lb_nom, np.bincount(ids_tr, weights=(r_nom_tr ** 2).sum(1), minlength=nb_tr)])
+    Lb_all_best = np.concatenate([blocks(r_te[bnames]),
+                                  np.bincount(ids_tr, weights=(r_sw_tr ** 2).sum(1), minlength=nb_tr)])
+    Wa = _boot_weights(len(Lb_all_nom), len(Wb), cfg.seed + 3)
+    cf_boot = 1 - (Wa @ Lb_all_best) / np.maximum(Wa @ Lb_all_nom, 1e-300)
+    detect_lower = _lower(cf_boot, cfg.alpha / n_hyp)
+    # sign-flip test of the paired block improvements (nominal minus best): under "no gap" the
+    # fitted effect helps and hurts alike; blocks it leaves unchanged carry no weight, which keeps
+    # the test sharp for effects that act rarely (saturation, dead band)
+    d = Lb_all_nom - Lb_all_best
+    flips = np.random.default_rng(cfg.seed + 4).choice([-1.0, 1.0], size=(max(cfg.boot, 1000) * 2, len(d)))
+    p_flip = float((1 + ((flips @ d) >= d.sum() - 1e-12 * np.abs(d).sum()).sum()) / (1 + len(flips)))
+    detection = {"explained_crossfit": float(1 - Lb_all_best.sum() / max(Lb_all_nom.sum(), 1e-300)),
+                 "explained_lower": detect_lower, "p_value": p_flip, "significant": bool(p_flip < cfg.alpha / n_hyp),
+                 "level": cfg.alpha / n_hyp, "hypotheses": n_hyp,
+                 "blocks": int(len(Lb_all_nom)), "resamples": int(len(Wa)),
+                 "swapped_fit": _jsonable(swap_params)}
+    # rivals the held-out data cannot tell apart from the best: other effects (neither a subset
+    # nor a superset) that match or beat it in at least alpha of the paired resamples
+    for row in rows[1:]:
+        row["p_matches_best"] = float((row["_boot"] >= best["_boot"] - 1e-12).mean())
+    # residual structure left: linear probe on the nominal and on the best hypothesis
+    plan_best = effects.build(sm, {k: np.asarray(v) for k, v in best["params"].items()})
+    r_best_tr = fit.residual(sm, plan_best, train, scale)
+    r_best_te = r_te[tuple(best["effects"])]
+    floor = noise_floor(r_best_te, test)
+    g_nom = fit.gap(r_nom_te)
+    g_best = fit.gap(r_best_te)
+    above = max(g_nom - floor, 1e-300)
+    pr_nom = linear_probe.probe(sm, train, r_nom_tr, test, r_nom_te)
+    pr_best = linear_probe.probe(sm, train, r_best_tr, test, r_best_te)
+    probe_nom = 1 - fit.gap(pr_nom) / max(g_nom, 1e-300)
+    left = max(g_best - fit.gap(pr_best), 0.0) / above
+    hints = linear_probe.structure_hints(sm, train, r_best_tr, test, r_best_te)
+    for row in rows:
+        row["explained_above_floor"] = float(min(1.0, (g_nom - row["heldout_loss"] / M) / above))
+        del row["_boot"]
+    return {"ranking": rows, "nominal_heldout_loss": L_nom, "noise_floor": floor,
+            "gap_ms": g_nom, "probe_explained_nominal": probe_nom, "structure_left": left,
+            "detection": detection,
+            "structure_hints": hints, "pair_tests": pair_tests, "best_single": S["effects"], "singles_fitted": n_single,
+            "residual_after_best": {"per_dof_rms_scaled": _rms(r_best_te, 0).tolist()},
+            "r_nom_test": r_nom_te, "r_best_test": r_best_te, "plan_best": plan_best}
+
+
+def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
+    """The answer to "which": ``no significant gap``, ``explained`` (by the best hypothesis, with
+    ``confident`` True/False) or ``unexplained by the library``.
+
+    A gap is significant when the best hypothesis beats the nominal model on cross-fitted held-out
+    data in a one-sided sign-flip test of block improvements (``w["detection"]``, level
+    ``alpha`` / hypotheses) or the linear probe explains more than
+    ``cfg.significant`` of the held-out residual."""
+    best = w["ranking"][0]
+    det = w["detection"]
+    significant = det["significant"] or w["probe_explained_nominal"] > cfg.significant
+    if not significant:
+        return {"verdict": "no significant gap", "effects": [], "confident": False,
+                "reason": f"best candidate explains {best['explained']:.1%} of the held-out gap, cross-fitted "
+                          f"{det['explained_crossfit']:.2%} (sign-flip p = {det['p_value']:.3g}, needs < "
+                          f"{det['level']:.3g}; one-sided {1 - det['level']:.2%} bootstrap bound "
+                          f"{det['explained_lower']:.2%}); linear probe "
+                          f"{w['probe_explained_nominal']:.1%}"}
+    # hypotheses the held-out data cannot tell apart from the best (other effects, paired bootstrap)
+    ties = ["+".join(r["effects"]) for r in w["ranking"][1:]
+            if r.get("p_matches_best", 0.0) >= cfg.alpha and set(r["effects"]) - set(best["effects"])
+            and not set(best["effects"]) < set(r["effects"]) and not set(r["effects"]) < set(best["effects"])]
+    explained = best["explained_above_floor"] >= cfg.attribute_min
+    pair_note = ""
+    if len(best["effects"]) == 2:
+        t = best["vs_best_single"]
+        pair_note = (f"; the pair beats the best single ({'+'.join(t['single'])}) by {t['gain_explained']:.2%} of the "
+                     f"gap (lower bound {t['gain_lower']:.2%}), {t['fraction_of_left']:.0%} of what the single leaves "
+                     f"above the noise floor")
+    hint = ""
+    h = (w.get("structure_hints") or [None])[0]
+    # structure as a fraction of the nominal gap above the noise floor (noise would hide it when
+    # measured against the whole residual left)
+    above = max(w["gap_ms"] - w["noise_floor"], 1e-300)
+    left_ms = w["gap_ms"] * (1 - best["explained"])
+    if h and best["explained"] < 0.999 and h["explained"] * left_ms / above > 0.01:
+        hint = (f"; the fit leaves structure: {h['feature']} alone explains {h['explained']:.1%} of the residual "
+                f"left after it ({h['explained'] * left_ms / above:.1%} of the gap above the noise floor; "
+                f"held-out linear probe)")
+    if explained and w["structure_left"] <= cfg.structure_max:
+        confident = (best["explained_ci"][0] >= cfg.attribute_min * (1 - w["noise_floor"] / max(w["gap_ms"], 1e-300))
+                     and best["p_beats_next"] >= cfg.confident_p and not ties and not hint)
+        return {"verdict": "explained", "effects": best["effects"], "confident": bool(confident),
+                "indistinguishable_from": ties,
+                "reason": f"{'+'.join(best['effects'])} explains {best['explained']:.1%} of the held-out gap "
+                          f"({best['explained_above_floor']:.1%} above the noise floor), beats the runner-up "
+                          f"in {best['p_beats_next']:.0%} of resamples; structure left {w['structure_left']:.1%}"
+                          + pair_note + hint
+                          + (f"; indistinguishable on these logs from {', '.join(ties)}" if ties else "")}
+    return {"verdict": "unexplained by the library", "effects": best["effects"], "confident": False,
+            "reason": f"best ({'+'.join(best['effects'])}) explains {best['explained_above_floor']:.1%} above the "
+                      f"noise floor; systematic residual left (linear probe) {w['structure_left']:.1%} of the gap" + hint}
+
+
+def _jsonable(d: dict) -> dict:
+    return {k: np.asarray(v, float).round(6).tolist() for k, v in d.items()}
+
+
+def _fmt(params: dict) -> str:
+    return ", ".join(f"{k}={np.array2string(np.asarray(v), precision=4)}" for k, v in params.items())
