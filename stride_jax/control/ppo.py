@@ -465,7 +465,7 @@ def make_policy(cfg: PPOConfig, params: tuple, obs_size: int, action_size: int,
 
 
 def main(argv: list[str] | None = None) -> None:
-    from stride_jax import cli
+    from stride_jax import config as cli  # config_main: flags without the `stride` command
 
     def run_chunk(cfg, command, log):
         log(f"command: {command}")
