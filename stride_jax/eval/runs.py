@@ -113,7 +113,7 @@ def load_run(run: str | pathlib.Path) -> LoadedRun:
     ds = load_dataset(str(pathlib.Path(cfg["dataset"]).absolute()))
     nfe = json.loads((run / "model.json").read_text())["config"]["nfe"] if model.stochastic \
         else None
-    return LoadedRun(run, model, params, ds, job.spec_from_meta(ds.meta), cfg["train"]["seed"],
+    return LoadedRun(run, model, params, ds, models.spec_from_meta(ds.meta), cfg["train"]["seed"],
                      nfe, summary.get("best_step"), summary.get("steps_done"),
                      bool(summary.get("finished")))
 

@@ -9,11 +9,11 @@ import pathlib
 import numpy as np
 
 from stride_jax.dynamics import mlp, models, stride
+from stride_jax.dynamics.models import spec_from_meta  # noqa: F401  (its old home; re-exported)
 from stride_jax.eval import forces, rollout
 from stride_jax.sim import collect, dataset
 from stride_jax.sim import model as sim_model
 from stride_jax.train import loop
-from stride_jax.types import ModelSpec
 from stride_jax.io import atomic_write_text, code_version
 
 
@@ -62,14 +62,6 @@ PRESETS = {
     "paper": dict(hidden=256, depth=3, steps=50_000, batch=1024, lr=1e-3, eval_every=1000,
                   ckpt_every=2000, data_preset="paper"),
 }
-
-
-def spec_from_meta(meta: dict) -> ModelSpec:
-    """The model spec from a dataset's ``meta.json`` (or ``collect.robot_meta``)."""
-    nq = meta.get("nq") or len(meta["stats"]["q"]["mean"])
-    nv = meta.get("nv") or len(meta["stats"]["qd"]["mean"])
-    return ModelSpec(nq=nq, nv=nv, floating_base=meta["floating_base"],
-                     periodic=tuple(meta["periodic"]))
 
 
 def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0,
