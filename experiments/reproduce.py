@@ -26,7 +26,7 @@ import sys
 import time
 
 import stride_jax
-from stride_jax import cli
+from stride_jax import config
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -37,9 +37,10 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--preset", default="tiny", help=f"one of {', '.join(figures.PRESETS)}")
     p.add_argument("--parallel", type=int, default=1,
                    help="train the pendulum runs this many at a time first (1: in the parts)")
-    cli._add_config_args(p, figures.ReproduceConfig)
+    config.add_flags(p, figures.ReproduceConfig)
     args = p.parse_args(argv)
-    cfg = cli._config(figures.ReproduceConfig, figures.PRESETS, args)
+    cfg = config.from_flags(figures.ReproduceConfig, args,
+                            config.preset(figures.ReproduceConfig, figures.PRESETS, args.preset))
     command = "python experiments/reproduce.py " + shlex.join(sys.argv[1:] if argv is None
                                                               else argv)
     if args.parallel > 1:  # the training processes share the device with this one

@@ -44,6 +44,33 @@ def _default(f: dataclasses.Field):
     return None
 
 
+def field_docs(cls) -> dict[str, str]:
+    """Each field's description from the ``Attributes:`` section of ``cls``'s docstring
+    (``name: text`` or ``a, b: text`` entries, continuation lines indented deeper)."""
+    docs: dict[str, str] = {}
+    lines = (cls.__doc__ or "").splitlines()
+    if not any(line.strip() == "Attributes:" for line in lines):
+        return docs
+    start = next(i for i, line in enumerate(lines) if line.strip() == "Attributes:") + 1
+    names: list[str] = []
+    indent = None
+    for line in lines[start:]:
+        if not line.strip():
+            break
+        depth = len(line) - len(line.lstrip())
+        head, sep, text = line.strip().partition(": ")
+        if sep and (indent is None or depth <= indent) and all(
+                n.strip().isidentifier() for n in head.split(",")):
+            indent = depth
+            names = [n.strip() for n in head.split(",")]
+            for n in names:
+                docs[n] = text.strip()
+        elif names:
+            for n in names:
+                docs[n] += " " + line.strip()
+    return docs
+
+
 def flag_names(cls, prefix: str = "") -> dict[str, tuple[str, Any, Any]]:
     """``{dest: (flag, type, default)}`` for every field of ``cls`` a flag can set (nested
     configs recursively; ``dest`` is the dotted path with ``.`` as the separator)."""
@@ -58,18 +85,36 @@ def flag_names(cls, prefix: str = "") -> dict[str, tuple[str, Any, Any]]:
     return out
 
 
-def add_flags(parser: argparse.ArgumentParser, cls, skip: tuple[str, ...] = ()) -> None:
+def add_flags(parser: argparse.ArgumentParser, cls, skip: tuple[str, ...] = (),
+              aliases: Mapping[str, str] | None = None,
+              choices: Mapping[str, tuple] | None = None,
+              required: tuple[str, ...] = ()) -> None:
     """One flag per settable field of ``cls`` (see :func:`flag_names`); unset flags stay
-    ``None``. ``skip``: dotted field names the caller declares itself."""
+    ``None``. ``skip``: dotted field names the caller declares itself; ``aliases``: an older
+    spelling a field's flag also answers to (``{"residual.steps": "--residual-steps"}``);
+    ``choices``: the values a field's flag accepts; ``required``: fields that must be given."""
+    aliases, choices = aliases or {}, choices or {}
     for dest, (flag, kind, default) in flag_names(cls).items():
         if dest in skip:
             continue
+        names = [flag, *([aliases[dest]] if dest in aliases else [])]
+        help_ = _help(cls, dest) + (" (required)" if dest in required
+                                    else f" (default {default!r})")
         if kind is bool:
-            parser.add_argument(flag, dest=dest, action=argparse.BooleanOptionalAction,
-                                default=None, help=f"(default {default!r})")
+            parser.add_argument(*names, dest=dest, action=argparse.BooleanOptionalAction,
+                                default=None, help=help_.replace("%", "%%").strip())
         else:
-            parser.add_argument(flag, dest=dest, type=kind, default=None,
-                                help=f"(default {default!r})")
+            parser.add_argument(*names, dest=dest, type=kind, default=None,
+                                choices=choices.get(dest), required=dest in required,
+                                help=help_.replace("%", "%%").strip())
+
+
+def _help(cls, dest: str) -> str:
+    """The docstring description of the field at dotted ``dest`` (empty if none)."""
+    *path, name = dest.split(_SEP)
+    for part in path:
+        cls = typing.get_type_hints(cls)[part]
+    return field_docs(cls).get(name, "")
 
 
 def replace(cfg, values: Mapping[str, Any]):

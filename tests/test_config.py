@@ -50,3 +50,21 @@ def test_to_flags_inverts_from_flags():
 def test_unknown_preset_names_the_choices():
     with pytest.raises(SystemExit, match="tiny, default"):
         config.preset(Outer, {"tiny": {}, "default": {}}, "huge")
+
+
+def test_help_comes_from_the_attributes_docstring():
+    @dataclasses.dataclass(frozen=True)
+    class Documented:
+        """Attributes:
+          a, b: two numbers that
+            share a line.
+          c: a third.
+        """
+
+        a: int = 1
+        b: int = 2
+        c: int = 3
+
+    assert config.field_docs(Documented) == {"a": "two numbers that share a line.",
+                                             "b": "two numbers that share a line.",
+                                             "c": "a third."}
