@@ -60,7 +60,8 @@ class ReproduceConfig:
         ``experiments/table1.py``).
       legged_episodes, legged_seconds: a legged dataset to generate when training here
         (seconds 0: the robot's default).
-      legged_train_preset, legged_steps: ``stride train`` preset and steps of legged runs.
+      legged_train_preset, legged_steps: ``stride train`` preset and steps of legged runs
+        (steps 0: the preset's).
       pendulum_episodes, pendulum_seconds, pendulum_train_preset, pendulum_steps,
         pendulum_seeds: the same for the pendulum and bouncing-pendulum runs.
       horizon_tables: Table I files (``results/<robot>/table.json``) to read the horizon part's
@@ -88,7 +89,7 @@ class ReproduceConfig:
     legged_episodes: int = 1024
     legged_seconds: float = 0.0
     legged_train_preset: str = "paper"
-    legged_steps: int = 6000
+    legged_steps: int = 0
     pendulum_episodes: int = 512
     pendulum_seconds: float = 5.0
     pendulum_train_preset: str = "paper"
@@ -211,8 +212,10 @@ def _legged_runs(ctx: _Ctx, robot: str, names: list[str]) -> tuple[dict[str, lis
     for name in names:
         for seed in _ints(c.seeds):
             path = runs_lib.run_dir(c.root, robot, ctx.tag, name, seed)
-            tc = job.TrainConfig(**dict(job.PRESETS[c.legged_train_preset], robot=robot,
-                                        model=name, seed=seed, steps=c.legged_steps,
+            preset = dict(job.PRESETS[c.legged_train_preset])
+            if c.legged_steps:
+                preset["steps"] = c.legged_steps
+            tc = job.TrainConfig(**dict(preset, robot=robot, model=name, seed=seed,
                                         data=str(data), out=str(path)))
             run = runs_lib.ensure_run(tc, c.train_legged, ctx.log)
             if run is None:
