@@ -12,7 +12,7 @@ models leave a GPU idle between kernel launches); the parts then find them finis
 Parts: phase (pendulum phase portrait), allocation (bouncing pendulum residual share), nfe (CFM
 vs DDPM: error and Hz vs NFE, Go1), horizon (error vs horizon, five models, Go1 and G1), forces
 (vertical GRF per foot, Go1 gaits and G1). Every flag is a field of
-``stride_jax.eval.figures.ReproduceConfig``; the preset fills the rest. Re-running resumes:
+``stride_paper.figures.ReproduceConfig``; the preset fills the rest. Re-running resumes:
 finished runs and cached evaluations are reused.
 """
 
@@ -28,9 +28,11 @@ import time
 import stride_jax
 from stride_jax import config
 
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # stride_paper, if not installed
+
 
 def main(argv: list[str] | None = None) -> dict:
-    from stride_jax.eval import figures
+    from stride_paper import figures
 
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -65,7 +67,8 @@ def main(argv: list[str] | None = None) -> dict:
 def _pretrain(cfg, preset: str, parallel: int, t0: float) -> None:
     """The pendulum runs of the selected parts, ``parallel`` ``stride train`` processes at once."""
     from stride_jax import pool
-    from stride_jax.eval import figures, runs
+    from stride_jax.eval import runs
+    from stride_paper import figures
 
     tag = cfg.tag or preset
     jobs = [tc for tc in figures.pendulum_jobs(cfg, tag)
