@@ -39,7 +39,7 @@ data: setup
 
 ## train: one model, e.g. make train ROBOT=go1 MODEL=delan PRESET=tiny (generates data if absent)
 train: setup
-	$(BIN)/stride train --robot $(or $(TRAIN_ROBOT),$(ROBOT)) --model $(MODEL) --preset $(PRESET)
+	$(BIN)/stride train --robot $(or $(TRAIN_ROBOT),$(ROBOT)) --model $(MODEL) --preset $(PRESET) --make-data
 
 ## eval: Table I metrics of trained runs, e.g. make eval ROBOT=go1 -> results/go1/table.md
 eval: setup

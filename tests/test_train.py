@@ -83,3 +83,11 @@ def test_nan_loss_stops_with_a_clear_message(tmp_path):
     cfg = loop.LoopConfig(steps=4, batch=4, eval_every=2, ckpt_every=2)
     with pytest.raises(loop.TrainingError, match="loss became nan by step 2.*learning rate"):
         loop.train(loss, init, split, split, cfg, tmp_path / "nan")
+
+
+def test_missing_dataset_says_how_to_make_it(tmp_path):
+    """Training makes no data unless asked (--make-data): the error names the command."""
+    with pytest.raises(SystemExit, match="stride data --robot pendulum --preset tiny"):
+        cli.main(["train", "--robot", "pendulum", "--preset", "tiny",
+                  "--data", str(tmp_path / "none"), "--out", str(tmp_path / "run")])
+    assert not (tmp_path / "none").exists()

@@ -25,8 +25,10 @@ class TrainConfig(loop.LoopConfig):
     Attributes:
       robot: pendulum, pendulum_bouncing, go1 or g1.
       model: stride, delan, lnn_diffusion, onn or diffusion (see ``models.MODELS``).
-      data: dataset folder; empty means ``data/<robot>`` (generated with ``data_preset`` if absent).
-      data_preset: the ``stride data`` preset used when the dataset has to be generated.
+      data: dataset folder; empty means ``data/<robot>`` (``stride data`` makes it).
+      make_data: generate a missing dataset first (``stride data`` with ``data_preset``);
+        without it a missing dataset is an error that says how to make it.
+      data_preset: the ``stride data`` preset ``make_data`` uses.
       hidden, depth: width and depth of every network of the model (defaults: ``MLPConfig``'s,
         256 x 3, the paper's; the ``default`` preset is CPU-sized, 128 x 3).
       activation, weight_init: the networks' hidden activation and weight initialisation
@@ -44,6 +46,7 @@ class TrainConfig(loop.LoopConfig):
     robot: str = "pendulum"
     model: str = "stride"
     data: str = ""
+    make_data: bool = False
     data_preset: str = "default"
     hidden: int = mlp.MLPConfig.hidden
     depth: int = mlp.MLPConfig.depth
@@ -106,6 +109,10 @@ def scales(ds: dataset.Dataset) -> stride.Scales:
 def run(cfg: TrainConfig, log=print) -> pathlib.Path:
     data_dir = pathlib.Path(cfg.data or f"data/{cfg.robot}")
     if not (data_dir / "meta.json").exists():
+        if not cfg.make_data:
+            raise dataset.DatasetError(
+                f"no dataset at {data_dir}: make it first with `stride data --robot {cfg.robot} "
+                f"--preset {cfg.data_preset} --out {data_dir}`, or train with --make-data")
         log(f"no dataset at {data_dir}: generating one (preset {cfg.data_preset})")
         preset = dict(collect.PRESETS[cfg.data_preset], robot=cfg.robot, out=str(data_dir))
         collect.generate(collect.DataConfig(**preset))
