@@ -8,6 +8,7 @@
     stride ppo --robot go1 --preset gpu --out runs/ppo_go1 --minutes 8   (one resumable chunk)
     stride fit-reward-value --policy runs/ppo_go1 --out runs/learned_go1
     stride closed-loop --preset tiny [--models oracle,nominal,stride=RUN ...]
+    stride show [--stride runs/pendulum/stride --baseline runs/pendulum/delan --phase.grid 15]
     stride gap diagnose --robot go1 --logs DIR --out DIR   (also: gap simulate, export, bench)
 """
 
@@ -24,6 +25,7 @@ from stride_jax import config
 def _commands():
     from stride_jax.control import bench as mppi_bench, closed_loop, learned, ppo
     from stride_jax.eval import table
+    from stride_jax.jobs import show
     from stride_jax.sim import bench, collect
     from stride_jax.train import job
     return {
@@ -41,6 +43,9 @@ def _commands():
         "closed-loop": (closed_loop.ClosedLoopConfig, closed_loop.PRESETS,
                         "closed-loop MPPI in MJX per model and scenario",
                         lambda cfg, command: closed_loop.run(cfg, command)),
+        "show": (show.ShowConfig, show.PRESETS,
+                 "what trained pendulum models predict near the upright (a figure)",
+                 lambda cfg, command: show.run(cfg, command)),
     }
 
 
