@@ -26,12 +26,14 @@ $(BIN)/stride: pyproject.toml
 
 setup: $(BIN)/stride
 
-## demo: datasets (pendulum, bouncing pendulum, Go1) with summary plots, then STRIDE on the pendulum
+## demo: the pendulum's dataset (with a summary plot), STRIDE and DeLaN trained on it, and what they
+## predict near the upright against MuJoCo: runs/pendulum/phase_portrait.png and one line of
+## accuracy (a few minutes on a laptop CPU)
 demo: setup
 	$(BIN)/stride data --robot pendulum
-	$(BIN)/stride data --robot pendulum_bouncing
-	$(BIN)/stride data --robot go1 --episodes 32 --seconds 5
 	$(BIN)/stride train --robot pendulum --model stride
+	$(BIN)/stride train --robot pendulum --model delan
+	$(BIN)/stride show
 
 ## data: one dataset, e.g. make data ROBOT=g1 PRESET=tiny
 data: setup
@@ -39,7 +41,7 @@ data: setup
 
 ## train: one model, e.g. make train ROBOT=go1 MODEL=delan PRESET=tiny (generates data if absent)
 train: setup
-	$(BIN)/stride train --robot $(or $(TRAIN_ROBOT),$(ROBOT)) --model $(MODEL) --preset $(PRESET)
+	$(BIN)/stride train --robot $(or $(TRAIN_ROBOT),$(ROBOT)) --model $(MODEL) --preset $(PRESET) --make-data
 
 ## eval: Table I metrics of trained runs, e.g. make eval ROBOT=go1 -> results/go1/table.md
 eval: setup

@@ -6,11 +6,11 @@ MJX, and the gait MPPI settles on when it plans frequency, duty and phase offset
 """
 
 import stride_jax
-from stride_jax import cli
+from stride_jax import config
 from stride_jax.control import gait_study
 
 if __name__ == "__main__":
     stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
-    cli.config_main("python experiments/closed_loop_gait.py", gait_study.GaitStudyConfig,
-                    gait_study.GAIT_PRESETS, gait_study.gait_study,
-                    description=__doc__.split("\n")[0])
+    config.config_main("python experiments/closed_loop_gait.py", gait_study.GaitStudyConfig,
+                       gait_study.GAIT_PRESETS, gait_study.gait_study,
+                       description=__doc__.split("\n")[0])

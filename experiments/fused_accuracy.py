@@ -19,7 +19,6 @@ import stride_jax
 from stride_jax.dynamics import fused, models
 from stride_jax.eval import rollout
 from stride_jax.sim import dataset
-from stride_jax.train import job
 
 
 def main():
@@ -32,7 +31,7 @@ def main():
     a = p.parse_args()
     ds = dataset.load(a.data)
     test, train = ds.split("test"), ds.split("train")
-    spec = job.spec_from_meta(ds.meta)
+    spec = models.spec_from_meta(ds.meta)
     errors = {}
     starts = rollout.windows(test["valid"], a.horizon, a.windows)
     scales = rollout.observation_scales(train, spec, a.horizon)

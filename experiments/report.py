@@ -5,15 +5,19 @@
 
 Reads only result files (Table I's results/<robot>/table.json, required; reproduce summaries,
 MPPI benchmarks, closed-loop runs and the gap benchmark when present); see
-``stride_jax.eval.report``.
+``stride_paper.report``.
 """
 
 from __future__ import annotations
 
 import argparse
+import pathlib
+import sys
 
 import stride_jax
-from stride_jax.eval import report
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # stride_paper, if not installed
+from stride_paper import report  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -12,7 +12,7 @@ models leave a GPU idle between kernel launches); the parts then find them finis
 Parts: phase (pendulum phase portrait), allocation (bouncing pendulum residual share), nfe (CFM
 vs DDPM: error and Hz vs NFE, Go1), horizon (error vs horizon, five models, Go1 and G1), forces
 (vertical GRF per foot, Go1 gaits and G1). Every flag is a field of
-``stride_jax.eval.figures.ReproduceConfig``; the preset fills the rest. Re-running resumes:
+``stride_paper.figures.ReproduceConfig``; the preset fills the rest. Re-running resumes:
 finished runs and cached evaluations are reused.
 """
 
@@ -26,20 +26,23 @@ import sys
 import time
 
 import stride_jax
-from stride_jax import cli
+from stride_jax import config
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # stride_paper, if not installed
 
 
 def main(argv: list[str] | None = None) -> dict:
-    from stride_jax.eval import figures
+    from stride_paper import figures
 
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--preset", default="tiny", help=f"one of {', '.join(figures.PRESETS)}")
     p.add_argument("--parallel", type=int, default=1,
                    help="train the pendulum runs this many at a time first (1: in the parts)")
-    cli._add_config_args(p, figures.ReproduceConfig)
+    config.add_flags(p, figures.ReproduceConfig)
     args = p.parse_args(argv)
-    cfg = cli._config(figures.ReproduceConfig, figures.PRESETS, args)
+    cfg = config.from_flags(figures.ReproduceConfig, args,
+                            config.preset(figures.ReproduceConfig, figures.PRESETS, args.preset))
     command = "python experiments/reproduce.py " + shlex.join(sys.argv[1:] if argv is None
                                                               else argv)
     if args.parallel > 1:  # the training processes share the device with this one
@@ -64,7 +67,8 @@ def main(argv: list[str] | None = None) -> dict:
 def _pretrain(cfg, preset: str, parallel: int, t0: float) -> None:
     """The pendulum runs of the selected parts, ``parallel`` ``stride train`` processes at once."""
     from stride_jax import pool
-    from stride_jax.eval import figures, runs
+    from stride_jax.eval import runs
+    from stride_paper import figures
 
     tag = cfg.tag or preset
     jobs = [tc for tc in figures.pendulum_jobs(cfg, tag)

@@ -42,7 +42,7 @@ def main(argv=None) -> None:
         for robot in robots:
             meta = collect.robot_meta(sim_model.load(robot))
             cfg = job.model_config(name, meta, args.hidden, args.depth)
-            model = models.make(name, job.spec_from_meta(meta), models.Actuation.from_meta(meta),
+            model = models.make(name, models.spec_from_meta(meta), models.Actuation.from_meta(meta),
                                 cfg, stride.Scales())
             params = model.init(jax.random.key(0))
             counts.append(sum(x.size for x in jax.tree.leaves(params)))

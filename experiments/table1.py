@@ -22,6 +22,7 @@ checkpoint, and evaluations are reused. Logs: ``<runs>/<model>-s<seed>/{train,ev
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import pathlib
 import shlex
 import subprocess
@@ -29,14 +30,15 @@ import sys
 import time
 
 import stride_jax
-from stride_jax import pool
+from stride_jax import config, pool
 
 PRESETS = {
-    # data episodes, training preset and steps, eval preset
-    "tiny": dict(episodes=8, train="tiny", steps=100, eval="tiny", data="default"),
+    # data episodes, training preset (its steps unless ``steps`` is given), eval preset
+    "tiny": dict(episodes=8, train="tiny", eval="tiny", data="default"),
     # CPU-sized: the training default (128 x 3, batch 256) on 96 episodes, tens of minutes
     "cpu": dict(episodes=96, train="default", steps=4000, eval="default", data="default"),
-    "paper": dict(episodes=1024, train="paper", steps=6000, eval="default", data="paper"),
+    # the training preset `paper` is the committed tables' (12k steps; the G1's ran --steps 8000)
+    "paper": dict(episodes=1024, train="paper", eval="default", data="paper"),
 }
 MODELS = ("stride", "delan", "delan_prior", "lnn_diffusion", "onn", "diffusion")
 DATA = {"explore": [], "walk": ["--stochastic", "--policy", "results/policies/ppo_{robot}",
@@ -46,31 +48,49 @@ DATA = {"explore": [], "walk": ["--stochastic", "--policy", "results/policies/pp
 WALK_NOISE = {"g1": 0.1}
 
 
+@dataclasses.dataclass(frozen=True)
+class Table1Config:
+    """What ``experiments/table1.py`` runs (lists are comma-separated strings).
+
+    Attributes:
+      robot: robots.
+      preset: one of :data:`PRESETS` (data size, training and evaluation presets).
+      data: the dataset kind, one of :data:`DATA`.
+      seeds, models: training seeds and models.
+      ablation: extra STRIDE runs (first seed) trained with these ``--acc-through`` choices,
+        e.g. ``prior,sample``.
+      ablation_seeds: train the ablation runs on every seed, not only the first.
+      steps: training steps (0: the training preset's).
+      parallel: processes at once.
+      minutes: wall-clock budget for training, from when the data exist (0: none); runs stop
+        cleanly at it.
+      eval_only: evaluate and tabulate the runs already trained (no data, no training).
+      root: data and runs folder (default: ``data/``, ``runs/``).
+      out: results folder (default: ``results/<robot>``).
+    """
+
+    robot: str = "go1"
+    preset: str = "paper"
+    data: str = "explore"
+    seeds: str = "0,1,2"
+    models: str = ",".join(MODELS)
+    ablation: str = ""
+    ablation_seeds: bool = False
+    steps: int = 0
+    parallel: int = 5
+    minutes: float = 0.0
+    eval_only: bool = False
+    root: str = ""
+    out: str = ""
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--robot", default="go1", help="comma-separated robots")
-    p.add_argument("--preset", default="paper", choices=list(PRESETS))
-    p.add_argument("--data", default="explore", choices=list(DATA))
-    p.add_argument("--seeds", default="0,1,2")
-    p.add_argument("--models", default=",".join(MODELS))
-    p.add_argument("--ablation", default="",
-                   help="extra STRIDE runs (first seed) trained with these comma-separated "
-                        "--acc-through choices, e.g. prior,sample")
-    p.add_argument("--ablation-seeds", action="store_true",
-                   help="train the ablation runs on every seed, not only the first")
-    p.add_argument("--steps", type=int, default=0, help="training steps (0: the preset's)")
-    p.add_argument("--parallel", type=int, default=5, help="processes at once")
-    p.add_argument("--minutes", type=float, default=0.0,
-                   help="wall-clock budget for training, from when the data exist (0: none); "
-                        "runs stop cleanly at it")
-    p.add_argument("--eval-only", action="store_true",
-                   help="evaluate and tabulate the runs already trained (no data, no training)")
-    p.add_argument("--root", default="", help="data and runs folder (default: data/, runs/)")
-    p.add_argument("--out", default="", help="results folder (default: results/<robot>)")
-    args = p.parse_args(argv)
+    config.add_flags(p, Table1Config, choices={"preset": tuple(PRESETS), "data": tuple(DATA)})
+    args = config.from_flags(Table1Config, p.parse_args(argv))
     preset = PRESETS[args.preset]
-    steps = args.steps or preset["steps"]
+    steps = args.steps or preset.get("steps", 0)
     root = pathlib.Path(args.root or ".")
     robots = [r for r in args.robot.split(",") if r]
     command = "python experiments/table1.py " + shlex.join(sys.argv[1:] if argv is None else argv)
@@ -107,7 +127,8 @@ def main(argv: list[str] | None = None) -> None:
     run_dir = lambda r, m, s, v: runs[r] / f"{tag(m, v)}-s{s}"
     leader = {name(*j): run_dir(j[0], j[1], first_seed, "") for j in jobs}
     train = {name(r, m, s, v): pool.stride_command(
-        "train", "--robot", r, "--model", m, "--preset", preset["train"], "--steps", str(steps),
+        "train", "--robot", r, "--model", m, "--preset", preset["train"],
+        *(["--steps", str(steps)] if steps else []),
         "--seed", str(s), "--data", str(data[r]), "--out", str(run_dir(r, m, s, v)),
         "--deadline", str(deadline), *(["--acc-through", v] if v else []))
         for r, m, s, v in jobs}

@@ -8,57 +8,24 @@
     stride ppo --robot go1 --preset gpu --out runs/ppo_go1 --minutes 8   (one resumable chunk)
     stride fit-reward-value --policy runs/ppo_go1 --out runs/learned_go1
     stride closed-loop --preset tiny [--models oracle,nominal,stride=RUN ...]
+    stride show [--stride runs/pendulum/stride --baseline runs/pendulum/delan --phase.grid 15]
     stride gap diagnose --robot go1 --logs DIR --out DIR   (also: gap simulate, export, bench)
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import shlex
 import sys
-import typing
 
 import stride_jax
-
-
-def _add_config_args(parser: argparse.ArgumentParser, cls) -> None:
-    hints = typing.get_type_hints(cls)
-    for f in dataclasses.fields(cls):
-        kind = hints[f.name]
-        flag = "--" + f.name.replace("_", "-")
-        if kind is bool:
-            parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction,
-                                default=None)
-        else:
-            parser.add_argument(flag, dest=f.name, type=kind, default=None,
-                                help=f"(default {f.default!r})")
-
-
-def _config(cls, presets: dict, args: argparse.Namespace):
-    if args.preset not in presets:
-        raise SystemExit(f"unknown preset {args.preset!r}; choose from {', '.join(presets)}")
-    values = dict(presets[args.preset])
-    values.update({f.name: getattr(args, f.name) for f in dataclasses.fields(cls)
-                   if getattr(args, f.name) is not None})
-    return cls(**values)
-
-
-def config_main(prog: str, cls, presets: dict, run, argv: list[str] | None = None,
-                description: str = "") -> None:
-    """A module's own command line (``python -m ...``, ``experiments/*.py``): ``--preset`` and
-    one flag per field of ``cls``, then ``run(cfg, command, log=print)``."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    parser = argparse.ArgumentParser(prog=prog, description=description)
-    parser.add_argument("--preset", default="default", help=f"one of {', '.join(presets)}")
-    _add_config_args(parser, cls)
-    cfg = _config(cls, presets, parser.parse_args(argv))
-    run(cfg, shlex.join([*prog.split(), *argv]), log=lambda line: print(line, flush=True))
+from stride_jax import config
 
 
 def _commands():
     from stride_jax.control import bench as mppi_bench, closed_loop, learned, ppo
     from stride_jax.eval import table
+    from stride_jax.jobs import show
     from stride_jax.sim import bench, collect
     from stride_jax.train import job
     return {
@@ -76,6 +43,9 @@ def _commands():
         "closed-loop": (closed_loop.ClosedLoopConfig, closed_loop.PRESETS,
                         "closed-loop MPPI in MJX per model and scenario",
                         lambda cfg, command: closed_loop.run(cfg, command)),
+        "show": (show.ShowConfig, show.PRESETS,
+                 "what trained pendulum models predict near the upright (a figure)",
+                 lambda cfg, command: show.run(cfg, command)),
     }
 
 
@@ -129,15 +99,15 @@ def main(argv: list[str] | None = None) -> None:
     for name, (cls, presets, help_, _) in commands.items():
         p = sub.add_parser(name, help=help_)
         p.add_argument("--preset", default="default", help=f"one of {', '.join(presets)}")
-        _add_config_args(p, cls)
+        config.add_flags(p, cls)
     args = parser.parse_args(argv)
     cls, presets, _, run = commands[args.command]
     from stride_jax.robots import RobotError
     from stride_jax.sim.dataset import DatasetError
     from stride_jax.train.loop import TrainingError
     try:
-        run(_config(cls, presets, args), "stride " + shlex.join(
-            sys.argv[1:] if argv is None else argv))
+        cfg = config.from_flags(cls, args, config.preset(cls, presets, args.preset))
+        run(cfg, "stride " + shlex.join(sys.argv[1:] if argv is None else argv))
     except (RobotError, DatasetError, TrainingError, ValueError, FileNotFoundError) as e:
         raise SystemExit(f"stride {args.command}: error: {e}") from None
 

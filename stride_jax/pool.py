@@ -9,16 +9,14 @@ its ``ready`` predicate holds.
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import pathlib
 import subprocess
 import sys
 import time
-import typing
 from typing import Callable, Mapping
 
-from stride_jax import _env
+from stride_jax import _env, config
 
 
 def stride_command(*args: str) -> list[str]:
@@ -62,15 +60,7 @@ def set_env(env: Mapping[str, str]) -> None:
 def config_flags(cfg) -> list[str]:
     """Every field of a config dataclass as ``stride`` flags (with ``--preset default``, the
     command rebuilds exactly ``cfg``)."""
-    hints = typing.get_type_hints(type(cfg))
-    flags = ["--preset", "default"]
-    for f in dataclasses.fields(cfg):
-        value, flag = getattr(cfg, f.name), "--" + f.name.replace("_", "-")
-        if hints[f.name] is bool:
-            flags.append(flag if value else "--no-" + flag[2:])
-        else:
-            flags += [flag, str(value)]
-    return flags
+    return ["--preset", "default", *config.to_flags(cfg)]
 
 
 def run(cmds: dict[str, list[str]], logs: dict[str, pathlib.Path], parallel: int,

@@ -14,7 +14,6 @@ from stride_jax.dynamics import integrate, models
 from stride_jax.eval import forces, rollout
 from stride_jax.sim import dataset
 from stride_jax.sim import model as sim_model
-from stride_jax.train import job
 
 
 def test_difference_inverts_retract():
@@ -56,7 +55,7 @@ def test_training_lowers_the_rollout_error(name, data, runs):
               "--steps", "150", "--lr", "3e-3", "--data", str(data), "--out", str(run)])
     ds = dataset.load(data)
     model, params = models.load(run)
-    spec = job.spec_from_meta(ds.meta)
+    spec = models.spec_from_meta(ds.meta)
     test = ds.split("val")
     starts = rollout.windows(test["valid"], 10, 64)
     scales = rollout.observation_scales(ds.split("train"), spec, 10)

@@ -7,7 +7,7 @@ import pathlib
 
 import pytest
 
-from stride_jax.eval import report
+from stride_paper import report
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -198,7 +198,7 @@ def test_missing_table1_names_the_file(results):
 
 
 def test_paper_constants_match_figures():
-    from stride_jax.eval import figures
+    from stride_paper import figures
     assert report.PAPER_TABLE1 == figures.PAPER_TABLE
 
 

@@ -10,7 +10,8 @@ import pathlib
 import numpy as np
 import pytest
 
-from stride_jax.eval import figures, horizon, phase, runs
+from stride_jax.eval import horizon, phase, runs
+from stride_paper import figures, layout
 from stride_jax.train import job
 
 
@@ -70,13 +71,13 @@ def test_residual_allocation_numbers_are_sane(made):
 
 def test_finished_runs_are_reused_not_retrained(made):
     cfg, _ = made
-    path = runs.run_dir(cfg.root, "pendulum", "tiny", "stride", 0)
+    path = layout.run_dir(cfg.root, "pendulum", "tiny", "stride", 0)
     said = []
     tc = job.TrainConfig(robot="pendulum", model="stride", out=str(path))
-    assert runs.ensure_run(tc, train=True, log=said.append) == path
+    assert layout.ensure_run(tc, train=True, log=said.append) == path
     assert said == []
-    missing = runs.run_dir(cfg.root, "pendulum", "tiny", "delan", 7)
-    assert runs.ensure_run(dataclasses.replace(tc, out=str(missing)), train=False) is None
+    missing = layout.run_dir(cfg.root, "pendulum", "tiny", "delan", 7)
+    assert layout.ensure_run(dataclasses.replace(tc, out=str(missing)), train=False) is None
 
 
 def test_wasserstein1_matches_analytic_values():

@@ -103,3 +103,11 @@ def test_chunked_steps_take_the_same_draws_as_one_scan():
     res = loop.run(loss, p0, data, cfg, opt, key, progress=None)
     assert res.best_step == 10 and len(res.losses) == 10
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6), res.params, one)
+
+
+def test_missing_dataset_says_how_to_make_it(tmp_path):
+    """Training makes no data unless asked (--make-data): the error names the command."""
+    with pytest.raises(SystemExit, match="stride data --robot pendulum --preset tiny"):
+        cli.main(["train", "--robot", "pendulum", "--preset", "tiny",
+                  "--data", str(tmp_path / "none"), "--out", str(tmp_path / "run")])
+    assert not (tmp_path / "none").exists()

@@ -38,83 +38,16 @@ import numpy as np
 from mujoco import mjx
 
 import stride_jax
+from stride_jax import config
 from stride_jax.control import envs, gait as gait_lib, mppi
+# The configuration (re-exported); the planner's view of the task is in ``planning``.
+from stride_jax.control.closed_loop_config import PRESETS, ClosedLoopConfig  # noqa: F401
 from stride_jax.control.planning import (Planning, augment, make_planner, make_planning,
                                          mppi_config)
 from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,  # noqa: F401
                                           scenario_model, schedule)
 from stride_jax.io import atomic_write_text, code_version
 from stride_jax.sim import model as sim_model, rollout_mjx
-
-
-# ---------------------------------------------------------------------------------------------
-# Configuration (the planner's view of the task is in :mod:`stride_jax.control.planning`).
-
-
-@dataclasses.dataclass(frozen=True)
-class ClosedLoopConfig:
-    """Closed-loop runs.
-
-    Attributes:
-      robot: ``go1`` or ``g1`` (the policy and the learned models must be of it).
-      models: comma-separated planner models (``oracle``, ``nominal``, ``policy``, ``NAME=RUN``).
-      scenarios: comma-separated names of :data:`SCENARIOS`.
-      seconds: override every scenario's duration (0: keep).
-      samples, horizon, iterations, temperature, smoothing: MPPI settings.
-      noise_std: exploration std of the joint offsets (rad).
-      plan_range: bound of the planner's joint offsets around home (rad).
-      gait: plan gait parameters jointly with joint residuals (Go1 gait reference).
-      gait_noise: exploration std of the gait frequency (Hz); duty 0.15x, offsets 0.25x this.
-      policy: PPO run folder supplying candidates (and the ``policy`` model); "" for none.
-      policy_samples: MPPI candidates rolled out by the policy.
-      policy_noise: the other candidates perturb the policy in closed loop instead of the plan
-        (``MPPIConfig.policy_noise``).
-      learned: learned reward/value file (``reward_value.msgpack``); "" for the analytic cost.
-      value_weight: weight of the learned terminal value.
-      fall_cost: planner cost per step spent fallen (reward units per step).
-      track_weight: weight of a quadratic velocity-tracking cost added to the reward terms (per
-        (m/s)^2, times dt): the reward's exp-kernels are flat far from the command (at 2 m/s
-        below it, exp(-16)), which leaves a planner starting from rest without a direction.
-      kernel: how learned structured models run their networks (``xla``; ``pallas`` or
-        ``pallas-bf16``: fused kernels on GPUs, ``stride_jax.dynamics.fused``;
-        ``pallas-step[-bf16]``: STRIDE's whole step as one kernel where it applies).
-      settle_s: tracking errors are counted from this long after each command change (s).
-      out: results folder (``closed_loop.json``/``.md`` and plots).
-      seed: planner key and terrain seed.
-    """
-
-    robot: str = "go1"
-    models: str = "oracle,nominal"
-    scenarios: str = "step,changes,slope,low_friction,soft,rough"
-    seconds: float = 0.0
-    samples: int = 256
-    horizon: int = 16
-    iterations: int = 1
-    temperature: float = 0.1
-    smoothing: float = 0.5
-    noise_std: float = 0.15
-    plan_range: float = 0.6
-    gait: bool = False
-    gait_noise: float = 0.2
-    policy: str = ""
-    policy_samples: int = 0
-    policy_noise: bool = False
-    learned: str = ""
-    value_weight: float = 1.0
-    fall_cost: float = 1.0
-    track_weight: float = 1.0
-    kernel: str = "xla"
-    settle_s: float = 0.5
-    out: str = "results/closed_loop"
-    seed: int = 0
-
-
-PRESETS = {
-    "tiny": dict(models="oracle", scenarios="step", seconds=0.2, samples=8, horizon=3,
-                 settle_s=0.0, out="results/closed_loop_tiny"),
-    "default": {},
-    "gpu": dict(samples=1024, horizon=20, out="results/closed_loop_gpu"),
-}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -401,9 +334,9 @@ def plot(out: pathlib.Path, rows: list[dict]) -> list[pathlib.Path]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from stride_jax import cli
-    cli.config_main("python -m stride_jax.control.closed_loop", ClosedLoopConfig, PRESETS, run,
-                    argv, __doc__.split("\n")[0])
+    config.config_main("python -m stride_jax.control.closed_loop", ClosedLoopConfig, PRESETS, run,
+                      argv, __doc__.split("\n")[0])
+
 
 if __name__ == "__main__":
     stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
-from stride_jax.control import envs, gait as gait_lib
+from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.control.closed_loop import (ClosedLoopConfig, metrics, mjx_step_fn,
                                             run_episode)
 from stride_jax.control.planning import make_planner, make_planning, mppi_config
@@ -37,7 +37,7 @@ class GaitStudyConfig:
     starts: int = 2
     seconds: float = 4.0
     freq: float = 2.0
-    samples: int = 256
+    samples: int = mppi.MPPIConfig.samples
     horizon: int = 25
     noise_std: float = 0.05
     gait_noise: float = 0.2
@@ -50,7 +50,7 @@ GAIT_PRESETS = {
                  out="results/closed_loop_gait_tiny"),
     "cpu": dict(speeds="0.5,1.5", starts=1, seconds=2.0, samples=32, horizon=15,
                 out="results/closed_loop_gait_cpu"),
-    "default": {},
+    "default": dict(samples=256),
     "gpu": dict(samples=1024, horizon=30, starts=3, out="results/closed_loop_gait_gpu"),
 }
 

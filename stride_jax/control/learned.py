@@ -330,7 +330,7 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from stride_jax import cli
+    from stride_jax import config as cli  # config_main: flags without the `stride` command
     cli.config_main("python -m stride_jax.control.learned", FitConfig, FIT_PRESETS,
                     fit_from_policy, argv, __doc__.split("\n")[0])
 

@@ -23,7 +23,7 @@ from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.sim import model as sim_model, rollout_mjx
 
 if TYPE_CHECKING:
-    from stride_jax.control.closed_loop import ClosedLoopConfig
+    from stride_jax.control.closed_loop_config import ClosedLoopConfig
 
 
 class Planning(NamedTuple):

@@ -304,7 +304,7 @@ def load_policy(out: str | pathlib.Path, deterministic: bool = True
 
 
 def main(argv: list[str] | None = None) -> None:
-    from stride_jax import cli
+    from stride_jax import config as cli  # config_main: flags without the `stride` command
 
     def run_chunk(cfg, command, log):
         log(f"command: {command}")

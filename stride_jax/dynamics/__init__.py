@@ -23,7 +23,8 @@ from stride_jax.dynamics.checkpoint import CheckpointError, load, save
 from stride_jax.dynamics.integrate import retract, semi_implicit_euler
 from stride_jax.dynamics.lagrangian import LNNConfig, lnn_init, lnn_terms
 from stride_jax.dynamics.mlp import MLPConfig
-from stride_jax.dynamics.models import DESCRIPTIONS, MODELS, Actuation, Model, make, motors
+from stride_jax.dynamics.models import (DESCRIPTIONS, MODELS, Actuation, Model, make, motors,
+                                        spec_from_meta)
 from stride_jax.dynamics.physics import (bias_force, coriolis, forward_dynamics, gravity,
                                          inverse_dynamics, kinetic_energy, mass_matrix,
                                          potential_energy)
@@ -36,4 +37,4 @@ __all__ = ["Actuation", "CheckpointError", "DESCRIPTIONS", "InputError", "LNNCon
            "generative", "gravity", "inverse_dynamics", "kinetic_energy", "lagrangian",
            "lnn_init", "lnn_terms", "load", "make", "mass_matrix", "mlp", "models", "motors",
            "next_obs", "physics", "potential_energy", "retract", "save", "semi_implicit_euler",
-           "stride"]
+           "spec_from_meta", "stride"]

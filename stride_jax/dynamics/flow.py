@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from stride_jax.dynamics import fused, mlp
+from stride_jax.dynamics.time_embedding import time_embedding
 
 INTEGRATORS = ("euler", "midpoint")
 
@@ -40,11 +41,6 @@ class FlowConfig:
             raise ValueError(f"nfe={self.nfe}: need >= 1 (and even for midpoint)")
 
 
-def _time_embedding(t: jax.Array, n: int) -> jax.Array:
-    freqs = jnp.pi * 2.0 ** jnp.arange(n // 2)
-    return jnp.concatenate([jnp.sin(freqs * t), jnp.cos(freqs * t)])
-
-
 def flow_init(key: jax.Array, dim: int, context_dim: int, cfg: FlowConfig = FlowConfig()) -> dict:
     """Parameters of ``v(z [dim], t | c [context_dim])``; the field starts at zero."""
     init, _ = mlp.mlp(cfg.net, dim, zero_last=True)
@@ -55,7 +51,7 @@ def vector_field(params: dict, z: jax.Array, t: jax.Array, context: jax.Array,
                  cfg: FlowConfig = FlowConfig()) -> jax.Array:
     """``v(z, t | c)`` ``[dim]``."""
     _, apply = mlp.mlp(cfg.net, z.shape[-1], zero_last=True)
-    return apply(params, jnp.concatenate([z, _time_embedding(t, cfg.time_features), context]))
+    return apply(params, jnp.concatenate([z, time_embedding(t, cfg.time_features), context]))
 
 
 def fm_loss(params: dict, x1: jax.Array, context: jax.Array, key: jax.Array,

@@ -41,6 +41,7 @@ import jax.numpy as jnp
 
 from stride_jax.dynamics.fused_pallas import (_INTERPRET, _silu, flow_batched, interpret,
                                               jvp_batched, vjp_batched)
+from stride_jax.dynamics.time_embedding import time_embedding
 
 # --- the networks' parameters -----------------------------------------------------------------
 
@@ -73,11 +74,10 @@ def _vjp_ref(layers, x, g):
 
 def _flow_ref(layers, z, c, nfe, time_features):
     """``nfe`` Euler steps of ``v(z, t | c)`` (:func:`flow.integrate`'s Euler path)."""
-    from stride_jax.dynamics.flow import _time_embedding  # flow imports this module
 
     dt = 1.0 / nfe
     for i in range(nfe):
-        emb = jnp.broadcast_to(_time_embedding(i * dt, time_features),
+        emb = jnp.broadcast_to(time_embedding(i * dt, time_features),
                                z.shape[:-1] + (time_features,))
         z = z + dt * _forward_ref(layers, jnp.concatenate([z, emb, c], axis=-1))
     return z

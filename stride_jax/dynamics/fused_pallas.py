@@ -19,6 +19,8 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
+from stride_jax.dynamics.time_embedding import time_embedding
+
 CHUNK = 64  # columns of a weight tile
 ROWS = 16  # samples per kernel program (Triton's smallest matrix-product tile)
 WARPS = 4  # warps per kernel program
@@ -326,9 +328,8 @@ def flow_batched(layers, z, c, nfe, time_features, dtype):
     # the first layer split by its input blocks: latent, time embedding, context; the time's
     # product is static per step and joins the bias
     w_z, w_t, w_c = w1[:nz], w1[nz:nz + time_features], w1[nz + time_features:]
-    from stride_jax.dynamics.flow import _time_embedding  # flow imports this module
 
-    times = jnp.stack([_time_embedding(i / nfe, time_features) for i in range(nfe)])
+    times = jnp.stack([time_embedding(i / nfe, time_features) for i in range(nfe)])
     rows = 1 << (nfe - 1).bit_length()  # a power of two for Triton
     time_rows = jnp.pad(times @ w_t + b1, ((0, rows - nfe), (0, hidden[0].padded - b1.shape[0])))
     consts = [_pad_weight(w_z, dz, hidden[0]).astype(dtype),

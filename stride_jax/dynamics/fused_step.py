@@ -47,6 +47,7 @@ import jax.numpy as jnp
 
 from stride_jax.dynamics import fused_pallas as fp
 from stride_jax.dynamics.fused_layout import PREP, Layout
+from stride_jax.dynamics.time_embedding import time_embedding
 
 WARPS = 8  # warps per program of the step kernel (the reduced mass matrix in registers)
 # Parts left out, to time the others (``experiments/fused_step_check.py --skip``; wrong results):
@@ -324,9 +325,8 @@ def step_batched(st: Static, lnn_layers, flow_layers, sqrt_mass, gravity, servo,
     hidden = tuple(fp._Dim.of(w.shape[1]) for w, _ in flow_layers)
     hidden = hidden[:-1] + (dz,)
     w_z, w_t, w_c = w1[:nz], w1[nz:nz + tf], w1[nz + tf:]
-    from stride_jax.dynamics.flow import _time_embedding
 
-    times = jnp.stack([_time_embedding(i / st.nfe, tf) for i in range(st.nfe)])
+    times = jnp.stack([time_embedding(i / st.nfe, tf) for i in range(st.nfe)])
     n_rows = 1 << (st.nfe - 1).bit_length()
     time_rows = jnp.pad(times @ w_t + b1, ((0, n_rows - st.nfe),
                                           (0, hidden[0].padded - b1.shape[0])))

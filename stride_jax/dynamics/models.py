@@ -37,7 +37,7 @@ from stride_jax.dynamics import (flow, fused, fused_layout, fused_step, integrat
 from stride_jax.types import InputError, ModelSpec
 
 __all__ = ["Actuation", "DEFAULT_NFE", "InputError", "MODELS", "Model", "load", "make",
-           "motors", "next_observation", "save_definition", "structured"]
+           "motors", "next_observation", "save_definition", "spec_from_meta", "structured"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,6 +105,14 @@ class Actuation:
         extra = jnp.where(free, kp * dt ** 2 + kd * dt, 0.0)
         zeros = jnp.zeros(spec.nv, explicit.dtype)
         return zeros.at[dof].set(tau0), zeros.at[dof].set(extra)
+
+
+def spec_from_meta(meta: dict) -> ModelSpec:
+    """The model spec from a dataset's ``meta.json`` (or ``collect.robot_meta``)."""
+    nq = meta.get("nq") or len(meta["stats"]["q"]["mean"])
+    nv = meta.get("nv") or len(meta["stats"]["qd"]["mean"])
+    return ModelSpec(nq=nq, nv=nv, floating_base=meta["floating_base"],
+                     periodic=tuple(meta["periodic"]))
 
 
 def _tuple(x):

@@ -1,13 +1,8 @@
-"""Where the reproduction finds (or makes) its datasets and trained runs, and how it loads them.
+"""Trained runs as the evaluation sees them: whether a run folder (``stride train``) is trained
+or finished, loading it with its dataset, and caching an evaluation's numbers per checkpoint.
 
-Layout under a root folder, the one ``experiments/table1.py`` writes:
-
-    <root>/data/<robot>-<tag>/                 a dataset (``stride data``)
-    <root>/runs/<robot>-<tag>/<model>-s<seed>/  a training run (``stride train``)
-
-``tag`` is the preset's name (``tiny``, ``paper``), so runs of different sizes never mix. A run
-that exists is reused: finished runs as they are, stopped ones resumed (when training is allowed)
-or evaluated from their best checkpoint so far.
+Evaluation never trains: where runs are made for a reproduction is the paper package's business
+(``stride_paper.layout``).
 """
 
 from __future__ import annotations
@@ -22,28 +17,8 @@ import numpy as np
 
 from stride_jax.dynamics import models
 from stride_jax.io import atomic_write_text
-from stride_jax.sim import collect, dataset
-from stride_jax.train import job
+from stride_jax.sim import dataset
 from stride_jax.types import ModelSpec
-
-
-def data_dir(root: str | pathlib.Path, robot: str, tag: str) -> pathlib.Path:
-    return pathlib.Path(root) / "data" / f"{robot}-{tag}"
-
-
-def run_dir(root: str | pathlib.Path, robot: str, tag: str, model: str, seed: int
-            ) -> pathlib.Path:
-    return pathlib.Path(root) / "runs" / f"{robot}-{tag}" / f"{model}-s{seed}"
-
-
-def ensure_data(path: pathlib.Path, robot: str, episodes: int, seconds: float, seed: int = 0,
-                log: Callable[[str], None] = print) -> pathlib.Path:
-    """The dataset at ``path``, generated (``stride data``, backend ``auto``) if absent."""
-    if not (path / "meta.json").is_file():
-        log(f"generating {path} ({robot}, {episodes} episodes x {seconds} s)")
-        collect.generate(collect.DataConfig(robot=robot, episodes=episodes, seconds=seconds,
-                                            seed=seed, out=str(path)))
-    return path
 
 
 def is_trained(run: pathlib.Path) -> bool:
@@ -54,19 +29,6 @@ def is_trained(run: pathlib.Path) -> bool:
 def is_finished(run: pathlib.Path) -> bool:
     return is_trained(run) and bool(json.loads((run / "summary.json").read_text()).get(
         "finished"))
-
-
-def ensure_run(cfg: job.TrainConfig, train: bool, log: Callable[[str], None] = print
-               ) -> pathlib.Path | None:
-    """The run ``cfg.out``: reused when finished; trained (or resumed) when ``train``; reused
-    from its best checkpoint so far when not; None if absent and not to be trained."""
-    run = pathlib.Path(cfg.out)
-    if is_finished(run):
-        return run
-    if train:
-        log(f"training {cfg.model} on {cfg.robot} (seed {cfg.seed}, {cfg.steps} steps) -> {run}")
-        return job.run(cfg, log=log)
-    return run if is_trained(run) else None
 
 
 @functools.lru_cache(maxsize=4)
@@ -113,7 +75,7 @@ def load_run(run: str | pathlib.Path) -> LoadedRun:
     ds = load_dataset(str(pathlib.Path(cfg["dataset"]).absolute()))
     nfe = json.loads((run / "model.json").read_text())["config"]["nfe"] if model.stochastic \
         else None
-    return LoadedRun(run, model, params, ds, job.spec_from_meta(ds.meta), cfg["train"]["seed"],
+    return LoadedRun(run, model, params, ds, models.spec_from_meta(ds.meta), cfg["train"]["seed"],
                      nfe, summary.get("best_step"), summary.get("steps_done"),
                      bool(summary.get("finished")))
 

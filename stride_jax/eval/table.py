@@ -40,7 +40,6 @@ from tqdm import tqdm
 from stride_jax.dynamics import models
 from stride_jax.eval import distribution, forces, rollout
 from stride_jax.sim import continuations, dataset, model as sim_model
-from stride_jax.train import job
 from stride_jax.io import atomic_write, atomic_write_text, code_version
 
 
@@ -104,7 +103,7 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     run_cfg = json.loads((run / "config.json").read_text())
     trained_nfe = json.loads((run / "model.json").read_text())["config"]["nfe"]
     ds = dataset.load(run_cfg["dataset"])
-    spec = job.spec_from_meta(ds.meta)
+    spec = models.spec_from_meta(ds.meta)
     test, train = ds.split("test"), ds.split("train")
     nfe = cfg.nfe or None
     key = jax.random.key(cfg.seed)

@@ -6,10 +6,88 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import shlex
 import sys
 
 import stride_jax
+from stride_jax import config
+
+
+@dataclasses.dataclass(frozen=True)
+class DiagnoseJob:
+    """``stride gap diagnose``: which robot, which log folder, where the report goes; the
+    diagnosis settings are :class:`~stride_jax.gap.diagnose.DiagnoseConfig`'s flags on top of
+    ``--preset`` (nested ones dotted: ``--residual.when always``, ``--fit.grid 7``).
+
+    Attributes:
+      robot: the nominal robot model (``stride_jax.robots``).
+      logs: folder with header.json and one CSV per trajectory.
+      out: report folder (report.md, diagnosis.json, plots).
+    """
+
+    robot: str = ""
+    logs: str = ""
+    out: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulateJob:
+    """``stride gap simulate``: "real" logs, the robot's explorer with hidden effects.
+
+    Attributes:
+      robot: the robot.
+      out: log folder to write.
+      effects: JSON, e.g. ``'{"damping": 0.5, "delay": 3}'``.
+      trajectories, steps: how many logged trajectories, and control steps each.
+      seed: explorer and effect draws.
+      noise: add a real robot's sensor noise.
+    """
+
+    robot: str = ""
+    out: str = ""
+    effects: str = "{}"
+    trajectories: int = 8
+    steps: int = 250
+    seed: int = 0
+    noise: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class ExportJob:
+    """``stride gap export``: a simulated dataset folder as a log folder.
+
+    Attributes:
+      dataset: the dataset folder (``stride data``).
+      out: log folder to write.
+    """
+
+    dataset: str = ""
+    out: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class BenchJob:
+    """``stride gap bench``: the blind benchmark (cases from ``--preset``, a name of
+    ``stride_jax.gap.bench.PRESETS``).
+
+    Attributes:
+      out: result folder (<name>.md/json; finished rows in <name>_cases/, which a rerun resumes).
+      workers: diagnoses side by side, one process each (rows do not depend on it).
+      threads: MuJoCo rollout threads per worker (with workers > 1; workers x threads <= cores).
+      minutes: start no new case after this long, then exit 0 (rerun the same command to
+        continue); inf: no limit.
+    """
+
+    out: str = "results"
+    workers: int = 1
+    threads: int = 1
+    minutes: float = math.inf
+
+
+# Spellings of the diagnosis flags before they were derived from the nested config.
+_DIAGNOSE_ALIASES = {"residual.when": "--residual", "residual.steps": "--residual-steps",
+                     "residual.validation": "--residual-validation"}
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -18,41 +96,17 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="stride gap", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
     d = sub.add_parser("diagnose", help="where / which / how far, from a log folder")
-    d.add_argument("--robot", required=True)
-    d.add_argument("--logs", required=True, help="folder with header.json and one CSV per trajectory")
-    d.add_argument("--out", required=True, help="report folder (report.md, diagnosis.json, plots)")
+    config.add_flags(d, DiagnoseJob, required=("robot", "logs", "out"))
     d.add_argument("--preset", default="default", choices=sorted(diagnose.PRESETS))
-    for f in dataclasses.fields(diagnose.DiagnoseConfig):  # scalar fields become flags
-        if f.type in ("int", "float"):
-            d.add_argument(f"--{f.name.replace('_', '-')}", type=int if f.type == "int" else float,
-                           default=None)
-    d.add_argument("--residual", choices=residual.WHEN, default=None,
-                   help="when to fit the STRIDE residual on top of the best hypothesis")
-    d.add_argument("--residual-steps", type=int, default=None, help="its optimiser steps")
-    d.add_argument("--residual-validation", type=float, default=None,
-                   help="share of the training trajectories held back to stop its training early "
-                        "(0: off)")
+    config.add_flags(d, diagnose.DiagnoseConfig, aliases=_DIAGNOSE_ALIASES,
+                     choices={"residual.when": residual.WHEN})
     s = sub.add_parser("simulate", help="'real' logs: the explorer with hidden effects")
-    s.add_argument("--robot", required=True)
-    s.add_argument("--out", required=True)
-    s.add_argument("--effects", default="{}", help='JSON, e.g. \'{"damping": 0.5, "delay": 3}\'')
-    s.add_argument("--trajectories", type=int, default=8)
-    s.add_argument("--steps", type=int, default=250)
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--noise", action="store_true", help="add a real robot's sensor noise")
+    config.add_flags(s, SimulateJob, required=("robot", "out"))
     e = sub.add_parser("export", help="a simulated dataset folder as a log folder")
-    e.add_argument("--dataset", required=True)
-    e.add_argument("--out", required=True)
+    config.add_flags(e, ExportJob, required=("dataset", "out"))
     b = sub.add_parser("bench", help="the blind benchmark")
     b.add_argument("--preset", default="tiny", choices=sorted(bench.PRESETS))
-    b.add_argument("--out", default="results",
-                   help="result folder (<name>.md/json; finished rows in <name>_cases/, which a rerun resumes)")
-    b.add_argument("--workers", type=int, default=1,
-                   help="diagnoses side by side, one process each (rows do not depend on it)")
-    b.add_argument("--threads", type=int, default=1,
-                   help="MuJoCo rollout threads per worker (with --workers > 1; workers x threads <= cores)")
-    b.add_argument("--minutes", type=float, default=None,
-                   help="start no new case after this long, then exit 0 (rerun the same command to continue)")
+    config.add_flags(b, BenchJob)
     return p
 
 
@@ -60,20 +114,16 @@ def _diagnose_config(args: argparse.Namespace):
     """The preset with the flags given on top (``ValueError`` for bad values)."""
     from stride_jax.gap import diagnose
 
-    cfg = diagnose.PRESETS[args.preset]
-    over = {f.name: getattr(args, f.name) for f in dataclasses.fields(cfg)
-            if f.name != "residual" and getattr(args, f.name, None) is not None}
-    res = {k: v for k, v in (("when", args.residual), ("steps", args.residual_steps),
-                             ("validation", args.residual_validation)) if v is not None}
-    if res:
-        over["residual"] = dataclasses.replace(cfg.residual, **res)
-    return dataclasses.replace(cfg, **over)
+    return config.from_flags(diagnose.DiagnoseConfig, args, diagnose.PRESETS[args.preset])
 
 
 def main(argv: list[str] | None = None) -> int:
     stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)
+    job = {"diagnose": DiagnoseJob, "simulate": SimulateJob, "export": ExportJob,
+           "bench": BenchJob}[args.cmd]
+    j = config.from_flags(job, args)
     from stride_jax.gap import logs
 
     try:
@@ -86,29 +136,29 @@ def main(argv: list[str] | None = None) -> int:
             except ValueError as err:
                 print(f"error: {err}", file=sys.stderr)
                 return 2
-            sm = model.load(args.robot)
-            _, trajs = logs.read(args.logs, sm)
+            sm = model.load(j.robot)
+            _, trajs = logs.read(j.logs, sm)
             d = diagnose.diagnose(sm, trajs, cfg)
-            path = report.write(d, args.out, "stride gap " + shlex.join(argv))
+            path = report.write(d, j.out, "stride gap " + shlex.join(argv))
             print(f"report: {path}")
         elif args.cmd == "simulate":
             from stride_jax.gap import real
             from stride_jax.sim import model
 
-            sm = model.load(args.robot)
-            _, logged = real.generate(sm, json.loads(args.effects), args.trajectories, args.steps,
-                                      args.seed, real.SensorNoise() if args.noise else None)
-            logs.write(args.out, sm, logged, notes="simulated by `stride gap " + shlex.join(argv) + "`")
-            print(f"{len(logged)} trajectories in {args.out}")
+            sm = model.load(j.robot)
+            _, logged = real.generate(sm, json.loads(j.effects), j.trajectories, j.steps,
+                                      j.seed, real.SensorNoise() if j.noise else None)
+            logs.write(j.out, sm, logged, notes="simulated by `stride gap " + shlex.join(argv) + "`")
+            print(f"{len(logged)} trajectories in {j.out}")
         elif args.cmd == "export":
-            print(logs.export_dataset(args.dataset, args.out))
+            print(logs.export_dataset(j.dataset, j.out))
         elif args.cmd == "bench":
             from stride_jax.gap import bench
 
             try:
-                bench.run(bench.PRESETS[args.preset], args.out, command="stride gap " + shlex.join(argv),
-                          log=lambda line: print(line, flush=True), workers=args.workers, threads=args.threads,
-                          minutes=args.minutes)
+                bench.run(bench.PRESETS[args.preset], j.out, command="stride gap " + shlex.join(argv),
+                          log=lambda line: print(line, flush=True), workers=j.workers, threads=j.threads,
+                          minutes=None if math.isinf(j.minutes) else j.minutes)
             except bench.BenchError as err:  # rows on disk from another config, bad --workers/--threads
                 print(f"error: {err}", file=sys.stderr)
                 return 2

@@ -216,7 +216,7 @@ def residual_section(d: dict[str, Any], files: dict[str, str]) -> list[str]:
     if not res:
         when = d["config"].get("residual", {}).get("when", "unexplained")
         return L + [f"Not fitted (verdict: {d['verdict']['verdict']}; `residual.when = {when}`: fitted when the "
-                    "verdict is 'unexplained by the library', or always with `--residual always`).", ""]
+                    "verdict is 'unexplained by the library', or always with `--residual.when always`).", ""]
     cfg, c = res["config"], res["concentration"]
     L += [f"A conditional flow-matching model of the generalised force that the best hypothesis's simulator "
           f"({' + '.join(res['on_top_of']) or 'nominal'}) misses, given (q, qd, tau); trained on "

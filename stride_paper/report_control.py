@@ -8,7 +8,7 @@ import json
 import pathlib
 import re
 
-from stride_jax.eval.report_common import (
+from stride_paper.report_common import (
     CPU_TARGET, GPU_TARGET, NAMES, NOT_RUN, PAPER_MPPI_HZ, PAPER_MPPI_MS, WHERE_CLOSED, WHERE_MPPI,
     Row, _dig, _finite, _git_note, _load_json, _num, _stats, _table, verdict,
 )

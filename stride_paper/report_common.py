@@ -1,5 +1,5 @@
 """The report's verdicts, the paper's numbers it checks against (with where they are in
-``stride.tex``) and the helpers its sections share (see :mod:`stride_jax.eval.report`).
+``stride.tex``) and the helpers its sections share (see :mod:`stride_paper.report`).
 """
 
 from __future__ import annotations

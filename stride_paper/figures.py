@@ -15,7 +15,7 @@ Parts (each a PNG and a JSON of its numbers in ``out``, with the command that ma
 
 and ``summary.json``: every number, plus the paper's claims side by side with ours.
 
-Runs come from ``<root>`` (layout in :mod:`~stride_jax.eval.runs`): pendulum runs are trained
+Runs come from ``<root>`` (layout in :mod:`~stride_paper.layout`): pendulum runs are trained
 here when absent (minutes even at paper size); legged runs are the ones
 ``experiments/table1.py`` trains, and are trained here only when ``train_legged`` is set (the
 ``tiny`` preset). Everything is resumable: finished runs are reused, evaluations are cached in
@@ -40,6 +40,7 @@ from stride_jax.eval import allocation, contact, horizon, nfe, phase
 from stride_jax.eval import runs as runs_lib
 from stride_jax.io import atomic_write_text
 from stride_jax.train import job
+from stride_paper import layout
 
 PARTS = ("phase", "allocation", "nfe", "horizon", "forces")
 
@@ -60,7 +61,8 @@ class ReproduceConfig:
         ``experiments/table1.py``).
       legged_episodes, legged_seconds: a legged dataset to generate when training here
         (seconds 0: the robot's default).
-      legged_train_preset, legged_steps: ``stride train`` preset and steps of legged runs.
+      legged_train_preset, legged_steps: ``stride train`` preset and steps of legged runs
+        (steps 0: the preset's).
       pendulum_episodes, pendulum_seconds, pendulum_train_preset, pendulum_steps,
         pendulum_seeds: the same for the pendulum and bouncing-pendulum runs.
       horizon_tables: Table I files (``results/<robot>/table.json``) to read the horizon part's
@@ -88,7 +90,7 @@ class ReproduceConfig:
     legged_episodes: int = 1024
     legged_seconds: float = 0.0
     legged_train_preset: str = "paper"
-    legged_steps: int = 6000
+    legged_steps: int = 0
     pendulum_episodes: int = 512
     pendulum_seconds: float = 5.0
     pendulum_train_preset: str = "paper"
@@ -171,11 +173,11 @@ def _json_default(x):
 
 def pendulum_configs(cfg: ReproduceConfig, tag: str, robot: str, names) -> dict[str, list]:
     """The pendulum runs a part needs, ``{model: [TrainConfig per seed]}``."""
-    data = runs_lib.data_dir(cfg.root, robot, tag)
+    data = layout.data_dir(cfg.root, robot, tag)
     return {name: [job.TrainConfig(**dict(job.PRESETS[cfg.pendulum_train_preset], robot=robot,
                                           model=name, seed=seed, steps=cfg.pendulum_steps,
                                           data=str(data),
-                                          out=str(runs_lib.run_dir(cfg.root, robot, tag, name,
+                                          out=str(layout.run_dir(cfg.root, robot, tag, name,
                                                                    seed))))
                    for seed in _ints(cfg.pendulum_seeds)]
             for name in names}
@@ -190,31 +192,33 @@ def pendulum_jobs(cfg: ReproduceConfig, tag: str) -> list[job.TrainConfig]:
 
 
 def ensure_pendulum_data(cfg: ReproduceConfig, tag: str, robot: str, log=print) -> pathlib.Path:
-    return runs_lib.ensure_data(runs_lib.data_dir(cfg.root, robot, tag), robot,
+    return layout.ensure_data(layout.data_dir(cfg.root, robot, tag), robot,
                                 cfg.pendulum_episodes, cfg.pendulum_seconds, log=log)
 
 
 def _pendulum_runs(ctx: _Ctx, robot: str, names: tuple[str, ...]) -> dict[str, list]:
     """Pendulum runs (trained when absent), ``{model: [LoadedRun per seed]}``."""
     ensure_pendulum_data(ctx.cfg, ctx.tag, robot, ctx.log)
-    return {name: [runs_lib.load_run(runs_lib.ensure_run(tc, True, ctx.log)) for tc in tcs]
+    return {name: [runs_lib.load_run(layout.ensure_run(tc, True, ctx.log)) for tc in tcs]
             for name, tcs in pendulum_configs(ctx.cfg, ctx.tag, robot, names).items()}
 
 
 def _legged_runs(ctx: _Ctx, robot: str, names: list[str]) -> tuple[dict[str, list], list[str]]:
     """Legged runs ``{model: [LoadedRun per seed]}`` and the run folders that are missing."""
     c = ctx.cfg
-    data = runs_lib.data_dir(c.root, robot, ctx.tag)
+    data = layout.data_dir(c.root, robot, ctx.tag)
     if c.train_legged:
-        runs_lib.ensure_data(data, robot, c.legged_episodes, c.legged_seconds, log=ctx.log)
+        layout.ensure_data(data, robot, c.legged_episodes, c.legged_seconds, log=ctx.log)
     out, missing = {}, []
     for name in names:
         for seed in _ints(c.seeds):
-            path = runs_lib.run_dir(c.root, robot, ctx.tag, name, seed)
-            tc = job.TrainConfig(**dict(job.PRESETS[c.legged_train_preset], robot=robot,
-                                        model=name, seed=seed, steps=c.legged_steps,
+            path = layout.run_dir(c.root, robot, ctx.tag, name, seed)
+            preset = dict(job.PRESETS[c.legged_train_preset])
+            if c.legged_steps:
+                preset["steps"] = c.legged_steps
+            tc = job.TrainConfig(**dict(preset, robot=robot, model=name, seed=seed,
                                         data=str(data), out=str(path)))
-            run = runs_lib.ensure_run(tc, c.train_legged, ctx.log)
+            run = layout.ensure_run(tc, c.train_legged, ctx.log)
             if run is None:
                 missing.append(str(path))
                 continue

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 import pathlib
 
-from stride_jax.eval.report_common import (
+from stride_paper.report_common import (
     ABSTRACT_FORCE_MAX_RATIO, ABSTRACT_STATE_MAX_RATIO, LEARNED, NAMES, NOT_MEASURABLE, NOT_RUN,
     PAPER_FORCE_RELATIVE, PAPER_TABLE1, PAPER_TEXT_REDUCTION, ROBOT_NAMES, ROBOTS, WHERE_ABSTRACT,
     WHERE_FORCE_30, WHERE_FORCE_REL, WHERE_GROWTH, WHERE_TABLE1, Row, _dig, _finite, _git_note,

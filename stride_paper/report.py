@@ -24,14 +24,14 @@ import os
 import pathlib
 import re
 
-from stride_jax.eval.report_common import (
+from stride_paper.report_common import (
     FAILS, HOLDS, NAMES, NOT_MEASURABLE, NOT_RUN, PAPER_ALLOCATION, ROBOT_NAMES, ROBOTS,
     WHERE_ALLOCATION, WHERE_NFE, WHERE_PHASE, Row, _any, _dig, _git_note, _load_json, _pm, _stats,
     _table, verdict,
 )
-from stride_jax.eval.report_common import PAPER_TABLE1  # noqa: F401  (re-exported)
-from stride_jax.eval.report_control import closed_loop_rows, gap_lines, mppi_rows
-from stride_jax.eval.report_table1 import (_growth, _ratio_text, further_section, further_tables,
+from stride_paper.report_common import PAPER_TABLE1  # noqa: F401  (re-exported)
+from stride_paper.report_control import closed_loop_rows, gap_lines, mppi_rows
+from stride_paper.report_table1 import (_growth, _ratio_text, further_section, further_tables,
                                            load_table1, seed_ratio, table1_rows)
 from stride_jax.io import atomic_write_text
 
@@ -58,7 +58,7 @@ def summary_claims(summary: dict) -> tuple[list[dict], str]:
     ``figures.claims``); a note says when a stored verdict differs or recomputing failed."""
     stored = {c.get("id"): c.get("holds") for c in summary.get("claims") or []}
     try:
-        from stride_jax.eval import figures
+        from stride_paper import figures
         claims = figures.claims(summary)
         note = "verdicts recomputed from the summary's numbers"
     except (KeyError, TypeError, ValueError, IndexError, AttributeError, ZeroDivisionError) as e:
@@ -214,7 +214,7 @@ def summary_section(summary: dict, path: pathlib.Path, tag: str, claims: list[di
     if missing:
         lines += ["", "Runs missing from the figures: " + "; ".join(
             f"{p}: {', '.join(map(str, m))}" for p, m in missing.items())]
-    lines += ["", "Every claim of `summary.json` (criteria in `stride_jax/eval/figures.py`):", ""]
+    lines += ["", "Every claim of `summary.json` (criteria in `stride_paper/figures.py`):", ""]
     rows = []
     for c in claims:
         spread = claim_spread(summary, c["id"])
