@@ -242,3 +242,24 @@ def test_bench_oracle_row_plans_through_mjx(tmp_path):
     assert delan_line.rstrip(" |").split("|")[-1].strip() == \
         f"{by['oracle']['ms'] / by['delan']['ms']:.1f}"
     assert oracle_line.rstrip().endswith("| - |")
+
+
+def test_model_check_finds_a_model_that_misranks_candidates():
+    """Candidates replayed through the truth: a perfect model has no error, ranks them as the
+    truth does and has no regret; a model with the sign of its input flipped misranks them."""
+    from stride_jax.control import model_check
+
+    truth = lambda q, qd, u, k: (q + 0.1 * qd, qd + 0.1 * u)
+    wrong = lambda q, qd, u, k: (q + 0.1 * qd, qd - 0.1 * u)
+    cost = lambda q, qd, u, t: jnp.sum((q - 1.0) ** 2) + 0.01 * jnp.sum(u ** 2)
+    zero = lambda q, qd: jnp.zeros(())
+    cands = jax.random.normal(jax.random.key(0), (64, 8, 1))
+    q, qd = jnp.zeros(8), jnp.zeros(8)  # 7 + one joint
+    same = model_check.one_state(truth, truth, cost, zero, cands, q, qd, jax.random.key(1), 0.1, 1)
+    assert float(same["spearman"]) == pytest.approx(1.0)
+    assert float(same["regret"]) == pytest.approx(0.0, abs=1e-6)
+    assert float(np.max(same["vel_err"])) == 0.0
+    bad = model_check.one_state(wrong, truth, cost, zero, cands, q, qd, jax.random.key(1), 0.1, 1)
+    assert float(bad["spearman"]) < 0.5 and float(bad["regret"]) > 0.0
+    s = model_check.summarise(jax.tree.map(lambda x: jnp.stack([x, x]), bad), n_policy=8)
+    assert s["states"] == 2 and len(s["vel_err_noise"]) == 8 and "vel_err_policy" in s

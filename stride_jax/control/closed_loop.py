@@ -155,11 +155,7 @@ def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
 
 def mjx_step_fn(sm: sim_model.SimModel, mx: mjx.Model) -> Callable:
     """``step(q, qd, ctrl, key) -> (q', qd')`` of an MJX model (the oracle's dynamics)."""
-    def step(q, qd, ctrl, key):
-        d = mjx.make_data(mx).replace(qpos=q, qvel=qd)
-        d = envs.physics_step(mx, sm.n_substeps, d, ctrl)
-        return d.qpos, d.qvel
-    return step
+    return envs.mjx_step_fn(sm.n_substeps, mx)
 
 
 def learned_step_fn(run: str, sm: sim_model.SimModel, kernel: str = "xla") -> Callable:

@@ -30,6 +30,9 @@ class ClosedLoopConfig:
       policy_samples: MPPI candidates rolled out by the policy.
       policy_noise: the other candidates perturb the policy in closed loop instead of the plan
         (``MPPIConfig.policy_noise``).
+      risk_draws, risk, risk_alpha, risk_weight: risk-aware planning: each candidate rolled
+        out under this many residual draws, their costs combined as ``mean``, ``std`` or
+        ``cvar`` (``MPPIConfig``; 1 draw: the classic planner).
       learned: learned reward/value file (``reward_value.msgpack``); "" for the analytic cost.
       value_weight: weight of the learned terminal value.
       fall_cost: planner cost per step spent fallen (reward units per step).
@@ -60,6 +63,10 @@ class ClosedLoopConfig:
     policy: str = ""
     policy_samples: int = 0
     policy_noise: bool = False
+    risk_draws: int = mppi.MPPIConfig.risk_draws
+    risk: str = mppi.MPPIConfig.risk
+    risk_alpha: float = mppi.MPPIConfig.risk_alpha
+    risk_weight: float = mppi.MPPIConfig.risk_weight
     learned: str = ""
     value_weight: float = 1.0
     fall_cost: float = 1.0

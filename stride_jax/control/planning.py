@@ -165,7 +165,8 @@ def mppi_config(cfg: ClosedLoopConfig, planning: Planning) -> mppi.MPPIConfig:
                            noise_std=planning.noise, smoothing=cfg.smoothing,
                            policy_samples=cfg.policy_samples if planning.policy else 0,
                            policy_noise=cfg.policy_noise,
-                           iterations=cfg.iterations)
+                           iterations=cfg.iterations, risk_draws=cfg.risk_draws, risk=cfg.risk,
+                           risk_alpha=cfg.risk_alpha, risk_weight=cfg.risk_weight)
 
 
 def make_planner(planning: Planning, mppi_cfg: mppi.MPPIConfig) -> mppi.Planner:
