@@ -55,3 +55,17 @@ def test_the_command_line_sets_the_flags():
     out = _run(probe)
     assert out.returncode == 0, out.stderr
     assert "multi_thread_eigen=false" in out.stdout.splitlines()[-1]
+
+
+def test_importing_any_module_leaves_jax_unstarted():
+    """XLA reads its flags when its backend starts: no module may start it at import (a
+    module-level jnp array did, so `python -m stride_jax.control.closed_loop` set them too late)."""
+    code = ("import importlib, pkgutil, stride_jax, stride_paper\n"
+            "from jax._src import xla_bridge\n"
+            "for pkg in (stride_jax, stride_paper):\n"
+            "    for m in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + '.'):\n"
+            "        importlib.import_module(m.name)\n"
+            "        assert not xla_bridge.backends_are_initialized(), m.name\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    assert out.returncode == 0, out.stderr[-2000:]

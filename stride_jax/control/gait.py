@@ -47,7 +47,8 @@ def named(name: str, freq: float = 2.0, duty: float = 0.5) -> Gait:
     if name not in go1_robot.GAITS:
         raise ValueError(f"unknown gait {name!r}; named gaits: {', '.join(go1_robot.GAITS)}")
     offsets = go1_robot.GAIT_PHASES[go1_robot.GAITS.index(name)]
-    return Gait(jnp.float32(freq), jnp.float32(duty), jnp.asarray(offsets))
+    # numpy, not jnp: a module-level table must not start JAX (the XLA flags come later)
+    return Gait(np.float32(freq), np.float32(duty), np.asarray(offsets, np.float32))
 
 
 NAMED = {name: named(name) for name in go1_robot.GAITS}
