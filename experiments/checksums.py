@@ -1,0 +1,50 @@
+"""The SHA-256 of every committed checkpoint the report and the closed-loop commands load, in
+``results/SHA256SUMS`` (the format ``sha256sum -c`` reads), so a copy can be checked with the
+standard tool and a changed file is noticed (``tests/test_results.py`` checks the list).
+
+    python experiments/checksums.py            # rewrite results/SHA256SUMS
+    cd results && sha256sum -c SHA256SUMS      # check a copy
+"""
+
+from __future__ import annotations
+
+import hashlib
+import pathlib
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "results"
+# Trained parameters: dynamics models, PPO policies, learned reward/value models.
+FOLDERS = ("models", "policies", "learned_go1", "learned_g1")
+
+
+def files(results: pathlib.Path = RESULTS) -> list[pathlib.Path]:
+    """Every file under the checkpoint folders, sorted (hidden files left out)."""
+    out = []
+    for folder in FOLDERS:
+        out += [p for p in (results / folder).rglob("*")
+                if p.is_file() and not any(part.startswith(".") for part in p.parts)]
+    return sorted(out)
+
+
+def sha256(path: pathlib.Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def listing(results: pathlib.Path = RESULTS) -> str:
+    return "".join(f"{sha256(p)}  {p.relative_to(results).as_posix()}\n"
+                   for p in files(results))
+
+
+def main() -> None:
+    from stride_jax.io import atomic_write_text
+
+    atomic_write_text(RESULTS / "SHA256SUMS", listing())
+    print(f"wrote {RESULTS / 'SHA256SUMS'} ({len(files())} files)")
+
+
+if __name__ == "__main__":
+    main()
