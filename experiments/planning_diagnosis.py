@@ -64,7 +64,7 @@ def run(args, preset: dict, command: str) -> dict:
     import numpy as np
     from mujoco import mjx
 
-    from stride_jax.control import envs, learned as learned_lib, model_check, ppo
+    from stride_jax.control import envs, learned as learned_lib, model_check, mppi, ppo
     from stride_jax.control.closed_loop import ClosedLoopConfig, learned_step_fn
     from stride_jax.control.planning import augment, make_planner, make_planning, mppi_config
     from stride_jax.control.scenarios import SCENARIOS, command_at, scenario_model, schedule
@@ -77,9 +77,10 @@ def run(args, preset: dict, command: str) -> dict:
     nu = sm.info.nu
     policy, _, env_cfg = ppo.load_policy(args.policy)
     learned = learned_lib.load(args.learned) if args.learned else None
-    cfg = ClosedLoopConfig(robot=args.robot, samples=preset["samples"],
-                           horizon=preset["horizon"], policy=args.policy,
-                           policy_samples=preset["policy_samples"], learned=args.learned)
+    cfg = ClosedLoopConfig(robot=args.robot, policy=args.policy, learned=args.learned,
+                           mppi=mppi.MPPIConfig(samples=preset["samples"],
+                                                horizon=preset["horizon"],
+                                                policy_samples=preset["policy_samples"]))
     models = [tuple(m.split("=", 1)) for m in args.models.split(",") if m]
     steps = {name: learned_step_fn(run_dir, sm) for name, run_dir in models}
     rows, t_start = [], time.time()
@@ -92,7 +93,7 @@ def run(args, preset: dict, command: str) -> dict:
         planning = make_planning(cfg, env_cfg, sm, steps[name], policy, learned)
         with jax.ensure_compile_time_eval():
             planner = make_planner(planning, mppi_config(cfg, planning))
-        H = cfg.horizon
+        H = cfg.mppi.horizon
 
         def at(mx, q, v, key):
             truth = make_planning(cfg, env_cfg, sm, envs.mjx_step_fn(sm.n_substeps, mx), policy,
@@ -102,7 +103,7 @@ def run(args, preset: dict, command: str) -> dict:
             _, _, info = planner.step(st, q, v)
             return model_check.one_state(planning.dynamics, truth.dynamics, planning.cost,
                                          planning.value or (lambda q, qd: jnp.zeros(())),
-                                         info.candidates, q, v, key, cfg.temperature, nu)
+                                         info.candidates, q, v, key, cfg.mppi.temperature, nu)
 
         jitted[name, slots_sig] = jax.jit(jax.vmap(at, in_axes=(None, 0, 0, 0)))
         return jitted[name, slots_sig]
@@ -142,7 +143,7 @@ def run(args, preset: dict, command: str) -> dict:
             per = jax.device_get(per)
             row = dict(scenario=sc_name, model=name, seconds=time.time() - t0,
                        policy_action_std=spread, noise_std=cfg.noise_std,
-                       **model_check.summarise(per, cfg.policy_samples))
+                       **model_check.summarise(per, cfg.mppi.policy_samples))
             rows.append(row)
             print(f"{sc_name:>8} {name:>6}: rank corr {row['spearman']:.2f}, top-10% overlap "
                   f"{row['top10_overlap']:.2f}, regret {row['regret']:.3f}, cost bias "

@@ -91,9 +91,11 @@ def add_flags(parser: argparse.ArgumentParser, cls, skip: tuple[str, ...] = (),
               required: tuple[str, ...] = ()) -> None:
     """One flag per settable field of ``cls`` (see :func:`flag_names`); unset flags stay
     ``None``. ``skip``: dotted field names the caller declares itself; ``aliases``: an older
-    spelling a field's flag also answers to (``{"residual.steps": "--residual-steps"}``);
+    spelling a field's flag also answers to (``{"residual.steps": "--residual-steps"}``; a
+    config class may declare its own in a ``FLAG_ALIASES`` class attribute);
     ``choices``: the values a field's flag accepts; ``required``: fields that must be given."""
-    aliases, choices = aliases or {}, choices or {}
+    aliases = {**getattr(cls, "FLAG_ALIASES", {}), **(aliases or {})}
+    choices = choices or {}
     for dest, (flag, kind, default) in flag_names(cls).items():
         if dest in skip:
             continue

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from stride_jax.control import closed_loop as cl, envs, gait, learned
+from stride_jax.control import closed_loop as cl, envs, gait, learned, mppi
 from stride_jax.control import planning as planning_lib
 
 
@@ -93,7 +93,7 @@ def test_learned_reward_and_value_drive_the_planner(go1):
     lc = learned.LearnedConfig(width=8, depth=1)
     r_params = learned.init(jax.random.key(0), lc, jnp.ones((4, obs_n + 12)), jnp.ones(4))
     v_params = learned.init(jax.random.key(1), lc, jnp.ones((4, obs_n)), jnp.ones(4))
-    cfg = cl.ClosedLoopConfig(samples=8, horizon=3)
+    cfg = cl.ClosedLoopConfig(mppi=mppi.MPPIConfig(samples=8, horizon=3))
     planning = planning_lib.make_planning(cfg, env_cfg, go1, _fake_step, learned_params=(r_params,
                                                                               v_params))
     planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cfg, planning))
@@ -127,3 +127,26 @@ def test_a_policy_of_another_robot_is_a_clear_error(tmp_path):
                               policy="results/policies/ppo_go1", out=str(tmp_path))
     with pytest.raises(ValueError, match="drives go1, not g1"):
         cl.run(cfg)
+
+
+def test_mppi_settings_are_one_nested_config_with_the_old_flags_kept():
+    """`--mppi.samples` sets the planner's samples; the flat `--samples` of recorded commands
+    still does; a planner without a policy gets no policy candidates."""
+    import argparse
+
+    from stride_jax import config
+
+    parser = argparse.ArgumentParser()
+    config.add_flags(parser, cl.ClosedLoopConfig)
+    new = config.from_flags(cl.ClosedLoopConfig, parser.parse_args(
+        ["--mppi.samples", "64", "--mppi.risk", "cvar"]))
+    old = config.from_flags(cl.ClosedLoopConfig, parser.parse_args(
+        ["--samples", "64", "--risk", "cvar", "--policy-noise"]))
+    assert new.mppi.samples == old.mppi.samples == 64 and new.mppi.risk == old.mppi.risk == "cvar"
+    assert old.mppi.policy_noise and not new.mppi.policy_noise
+    assert cl.ClosedLoopConfig().mppi == mppi.MPPIConfig()  # one source of MPPI's defaults
+    planning = planning_lib.Planning(None, None, None, None, None, np.zeros(2), np.ones(2),
+                                     (0.1, 0.2), np.zeros(2))
+    got = planning_lib.mppi_config(dataclasses.replace(
+        new, mppi=dataclasses.replace(new.mppi, policy_samples=8)), planning)
+    assert got.policy_samples == 0 and got.noise_std == (0.1, 0.2) and got.samples == 64

@@ -249,7 +249,8 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             row = dict(scenario=sc.name, model=name, run=run_dir or None,
                        **metrics(trace, cfg.settle_s),
                        ms_per_step=1e3 * run_s / n_steps, compile_s=compile_s, steps=n_steps,
-                       K=cfg.samples if planned else None, H=cfg.horizon if planned else None)
+                       K=cfg.mppi.samples if planned else None,
+                       H=cfg.mppi.horizon if planned else None)
             rows.append(row)
             np.savez_compressed(out / f"trace_{sc.name}_{name}.npz",
                                 **{k: np.asarray(v) for k, v in trace._asdict().items()})
@@ -269,11 +270,11 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
         f.format(x))
     robot = {"go1": "Go1", "g1": "G1"}.get(cfg.robot, cfg.robot)
     lines = [f"# Closed-loop MPPI on the MJX {robot}", "", f"Command: `{command}`", "",
-             f"Device: {env['device']} ({env['backend']}), jax {env['jax']}. MPPI K={cfg.samples}, "
-             f"H={cfg.horizon}, {cfg.iterations} iteration(s); cost: "
+             f"Device: {env['device']} ({env['backend']}), jax {env['jax']}. MPPI K={cfg.mppi.samples}, "
+             f"H={cfg.mppi.horizon}, {cfg.mppi.iterations} iteration(s); cost: "
              f"{'learned reward/value ' + cfg.learned if cfg.learned else 'analytic reward terms'}"
              f"{', gait parameters planned' if cfg.gait else ''}"
-             f"{', PPO candidates from ' + cfg.policy if cfg.policy and cfg.policy_samples else ''}"
+             f"{', PPO candidates from ' + cfg.policy if cfg.policy and cfg.mppi.policy_samples else ''}"
              ". Tracking RMSE of the base-frame velocity (xy) and yaw rate while upright, "
              f"{cfg.settle_s} s after each command change.", "",
              "Gait: the named pattern the measured foot contacts fit best (score: in-phase minus "

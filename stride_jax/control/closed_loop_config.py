@@ -8,8 +8,9 @@ MPPI's own settings default to :class:`stride_jax.control.mppi.MPPIConfig`'s (on
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
-from stride_jax.control import mppi
+from stride_jax.control.mppi import MPPIConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -21,18 +22,15 @@ class ClosedLoopConfig:
       models: comma-separated planner models (``oracle``, ``nominal``, ``policy``, ``NAME=RUN``).
       scenarios: comma-separated names of :data:`SCENARIOS`.
       seconds: override every scenario's duration (0: keep).
-      samples, horizon, iterations, temperature, smoothing: MPPI settings.
+      mppi: the planner's settings (``--mppi.samples``, ``--mppi.horizon``, ...; the older flat
+        flags ``--samples``, ``--horizon``, ``--policy-samples`` ... still answer). Its
+        ``noise_std`` is set from ``noise_std`` below (and ``gait_noise``), its
+        ``policy_samples`` dropped to 0 without a policy.
       noise_std: exploration std of the joint offsets (rad).
       plan_range: bound of the planner's joint offsets around home (rad).
       gait: plan gait parameters jointly with joint residuals (Go1 gait reference).
       gait_noise: exploration std of the gait frequency (Hz); duty 0.15x, offsets 0.25x this.
       policy: PPO run folder supplying candidates (and the ``policy`` model); "" for none.
-      policy_samples: MPPI candidates rolled out by the policy.
-      policy_noise: the other candidates perturb the policy in closed loop instead of the plan
-        (``MPPIConfig.policy_noise``).
-      risk_draws, risk, risk_alpha, risk_weight: risk-aware planning: each candidate rolled
-        out under this many residual draws, their costs combined as ``mean``, ``std`` or
-        ``cvar`` (``MPPIConfig``; 1 draw: the classic planner).
       learned: learned reward/value file (``reward_value.msgpack``); "" for the analytic cost.
       value_weight: weight of the learned terminal value.
       fall_cost: planner cost per step spent fallen (reward units per step).
@@ -51,22 +49,12 @@ class ClosedLoopConfig:
     models: str = "oracle,nominal"
     scenarios: str = "step,changes,slope,low_friction,soft,rough"
     seconds: float = 0.0
-    samples: int = mppi.MPPIConfig.samples
-    horizon: int = mppi.MPPIConfig.horizon
-    iterations: int = mppi.MPPIConfig.iterations
-    temperature: float = mppi.MPPIConfig.temperature
-    smoothing: float = mppi.MPPIConfig.smoothing
+    mppi: MPPIConfig = MPPIConfig()
     noise_std: float = 0.15
     plan_range: float = 0.6
     gait: bool = False
     gait_noise: float = 0.2
     policy: str = ""
-    policy_samples: int = 0
-    policy_noise: bool = False
-    risk_draws: int = mppi.MPPIConfig.risk_draws
-    risk: str = mppi.MPPIConfig.risk
-    risk_alpha: float = mppi.MPPIConfig.risk_alpha
-    risk_weight: float = mppi.MPPIConfig.risk_weight
     learned: str = ""
     value_weight: float = 1.0
     fall_cost: float = 1.0
@@ -76,10 +64,18 @@ class ClosedLoopConfig:
     out: str = "results/closed_loop"
     seed: int = 0
 
+    # The flat flags of earlier commands (recorded in results/) still answer.
+    FLAG_ALIASES: ClassVar[dict[str, str]] = {
+        f"mppi.{name}": "--" + name.replace("_", "-")
+        for name in ("samples", "horizon", "iterations", "temperature", "smoothing",
+                     "policy_samples", "policy_noise", "risk_draws", "risk", "risk_alpha",
+                     "risk_weight")}
+
 
 PRESETS = {
-    "tiny": dict(models="oracle", scenarios="step", seconds=0.2, samples=8, horizon=3,
-                 settle_s=0.0, out="results/closed_loop_tiny"),
+    "tiny": dict(models="oracle", scenarios="step", seconds=0.2,
+                 mppi=MPPIConfig(samples=8, horizon=3), settle_s=0.0,
+                 out="results/closed_loop_tiny"),
     "default": {},
-    "gpu": dict(samples=1024, horizon=20, out="results/closed_loop_gpu"),
+    "gpu": dict(mppi=MPPIConfig(samples=1024, horizon=20), out="results/closed_loop_gpu"),
 }

@@ -63,7 +63,8 @@ def gait_study(cfg: GaitStudyConfig, command: str = "", log=print) -> dict:
     mx = mjx.put_model(sm.mj)
     slots = envs.contact_slots(mx)
     n_steps = max(1, int(round(cfg.seconds / sm.robot.ctrl_dt)))
-    cl_cfg = ClosedLoopConfig(samples=cfg.samples, horizon=cfg.horizon, gait=True,
+    cl_cfg = ClosedLoopConfig(mppi=mppi.MPPIConfig(samples=cfg.samples, horizon=cfg.horizon),
+                              gait=True,
                               noise_std=cfg.noise_std, gait_noise=cfg.gait_noise)
     planning = make_planning(cl_cfg, envs.config("go1"), sm, mjx_step_fn(sm, mx))
     planner = make_planner(planning, mppi_config(cl_cfg, planning))

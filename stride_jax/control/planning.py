@@ -12,6 +12,7 @@ study.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import TYPE_CHECKING, Callable, NamedTuple
 
@@ -161,12 +162,10 @@ def make_planning(cfg: ClosedLoopConfig, env_cfg: envs.EnvConfig, sm: sim_model.
 
 
 def mppi_config(cfg: ClosedLoopConfig, planning: Planning) -> mppi.MPPIConfig:
-    return mppi.MPPIConfig(samples=cfg.samples, horizon=cfg.horizon, temperature=cfg.temperature,
-                           noise_std=planning.noise, smoothing=cfg.smoothing,
-                           policy_samples=cfg.policy_samples if planning.policy else 0,
-                           policy_noise=cfg.policy_noise,
-                           iterations=cfg.iterations, risk_draws=cfg.risk_draws, risk=cfg.risk,
-                           risk_alpha=cfg.risk_alpha, risk_weight=cfg.risk_weight)
+    """The run's MPPI settings with the task's exploration noise per action entry (and no policy
+    candidates without a policy)."""
+    return dataclasses.replace(cfg.mppi, noise_std=planning.noise,
+                               policy_samples=cfg.mppi.policy_samples if planning.policy else 0)
 
 
 def make_planner(planning: Planning, mppi_cfg: mppi.MPPIConfig) -> mppi.Planner:
