@@ -10,6 +10,8 @@ import jax
 import mujoco
 from tqdm import tqdm
 
+from stride_jax import distributed
+from stride_jax.distributed import DistributedConfig
 from stride_jax.robots import Explorer, stochastic
 from stride_jax.sim import dataset, model, rollout_cpu, rollout_mjx
 
@@ -34,6 +36,7 @@ class DataConfig:
         :class:`stride_jax.control.walk.PolicyExplorer`); empty: the robot's own explorer.
       action_noise: with ``policy``, the largest per-episode std of the noise on its actions.
       out: output folder; empty means ``data/<robot>``.
+      distributed: several processes share the episodes (:mod:`stride_jax.distributed`).
     """
 
     robot: str = "pendulum"
@@ -47,6 +50,7 @@ class DataConfig:
     policy: str = ""
     action_noise: float = 0.3
     out: str = ""
+    distributed: DistributedConfig = DistributedConfig()
 
 
 PRESETS = {
@@ -70,6 +74,7 @@ def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Datas
     ``explorer`` replaces the robot's own; it is required when ``cfg.policy`` is set (the command
     line builds the policy's explorer: :class:`stride_jax.control.walk.PolicyExplorer`).
     """
+    distributed.initialize(cfg.distributed)
     sm = model.load(cfg.robot)
     if cfg.policy and explorer is None:
         raise ValueError(f"policy={cfg.policy!r}: pass its explorer, "
@@ -88,17 +93,24 @@ def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Datas
     n_steps = max(1, int(round(seconds / sm.robot.ctrl_dt)))
     backend = resolve_backend(cfg.backend)
     key = jax.random.key(cfg.seed)
+    part = distributed.share(cfg.episodes)  # all of them for a single process
+    quiet = not distributed.is_main()
     t0 = time.perf_counter()
     if backend == "mjx":
-        with tqdm(total=cfg.episodes, desc=f"{cfg.robot} mjx", unit="episode") as bar:
+        with tqdm(total=part.stop - part.start, desc=f"{cfg.robot} mjx", unit="episode",
+                  disable=quiet) as bar:
             ep = rollout_mjx.collect(sm, key, cfg.episodes, n_steps, cfg.batch or None,
-                                     randomized, bar.update)
+                                     randomized, bar.update, part)
     else:
-        with tqdm(total=n_steps, desc=f"{cfg.robot} cpu", unit="step") as bar:
+        with tqdm(total=n_steps, desc=f"{cfg.robot} cpu", unit="step", disable=quiet) as bar:
             ep = rollout_cpu.collect(sm, key, cfg.episodes, n_steps, randomized,
-                                     progress=bar.update)
+                                     progress=bar.update, part=part)
+    ep = distributed.gather(ep)  # every process's share, in episode order
     seconds_taken = time.perf_counter() - t0
     out = pathlib.Path(cfg.out or f"data/{cfg.robot}")
+    if not distributed.is_main():
+        distributed.barrier("dataset written")
+        return dataset.load(out)
     meta = dict(
         robot_meta(sm), backend=backend, seed=cfg.seed,
         exploration=type(sm.robot.explorer).__name__,
@@ -106,7 +118,9 @@ def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Datas
         randomization=dataclasses.asdict(sm.robot.randomization) if randomized else None,
         config=dataclasses.asdict(cfg), generation_seconds=seconds_taken,
     )
-    return dataset.save(out, ep, meta)
+    ds = dataset.save(out, ep, meta)
+    distributed.barrier("dataset written")
+    return ds
 
 
 def robot_meta(sm: model.SimModel) -> dict:

@@ -221,15 +221,19 @@ def randomized_worlds(sm: SimModel, r, rand: randomize.RandValues
 
 
 def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, randomized: bool = True,
-            nthread: int | None = None, progress: Callable[[int], None] | None = None) -> Episode:
-    """Collects episodes exactly as :func:`stride_jax.sim.rollout_mjx.collect` describes them.
+            nthread: int | None = None, progress: Callable[[int], None] | None = None,
+            part: slice = slice(None)) -> Episode:
+    """Collects episodes exactly as :func:`stride_jax.sim.rollout_mjx.collect` describes them
+    (``part`` included).
 
     Per-episode draws (randomisation, explorer parameters, initial state) use the same keys and
     code as the MJX backend, so both backends simulate the same worlds from the same seed.
     """
     draw, act, disturb_fn = _jitted(sm)
     episode_s = n_steps * sm.robot.ctrl_dt
-    rand, params, qpos, qvel = draw(jax.random.split(key, n_episodes), episode_s)
+    keys = jax.random.split(key, n_episodes)[part]
+    n_episodes = keys.shape[0]
+    rand, params, qpos, qvel = draw(keys, episode_s)
     rand_np = jax.tree.map(np.asarray, rand)
     models, ground = (randomized_worlds(sm, sm.robot.randomization, rand_np) if randomized
                       else ([sm.mj] * n_episodes, None))

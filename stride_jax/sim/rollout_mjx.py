@@ -147,15 +147,19 @@ def world_sharding(n_worlds: int) -> NamedSharding | None:
 
 
 def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, batch: int | None = None,
-            randomized: bool = True, progress: Callable[[int], None] | None = None) -> Episode:
+            randomized: bool = True, progress: Callable[[int], None] | None = None,
+            part: slice = slice(None)) -> Episode:
     """Collects ``n_episodes`` episodes of ``n_steps`` control steps, ``batch`` worlds at a time.
 
     Each batch is one jitted, vmapped call, sharded over the local devices. Returns numpy arrays
     with a leading episode axis. ``progress(n)`` is called after each batch with its size.
+    ``part``: only these of the ``n_episodes`` (each episode's draws come from its own key, so a
+    part is exactly those episodes of the whole; several processes each make one).
     """
+    keys = jax.random.split(key, n_episodes)[part]
+    n_episodes = keys.shape[0]
     batch = min(batch or n_episodes, n_episodes)
     fn = jax.jit(jax.vmap(make_collect_fn(sm, n_steps, randomized)))
-    keys = jax.random.split(key, n_episodes)
     sharding = world_sharding(batch)
     out = []
     for start in range(0, n_episodes, batch):

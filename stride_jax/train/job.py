@@ -8,6 +8,8 @@ import pathlib
 
 import numpy as np
 
+from stride_jax import distributed
+from stride_jax.distributed import DistributedConfig
 from stride_jax.dynamics import mlp, models, stride
 from stride_jax.dynamics.models import spec_from_meta  # noqa: F401  (its old home; re-exported)
 from stride_jax.eval import forces, rollout
@@ -41,6 +43,7 @@ class TrainConfig(loop.LoopConfig):
       learn_mass: structured models on a floating base: learn the total mass (starting at the
         spec sheet's) instead of holding it there (an ablation of the fixed mass).
       out: run folder; empty means ``runs/<robot>/<model>``.
+      distributed: train data-parallel over several processes (:mod:`stride_jax.distributed`).
     """
 
     robot: str = "pendulum"
@@ -57,6 +60,7 @@ class TrainConfig(loop.LoopConfig):
     acc_through: str = "central"
     learn_mass: bool = False
     out: str = ""
+    distributed: DistributedConfig = DistributedConfig()
 
 
 PRESETS = {
@@ -107,6 +111,7 @@ def scales(ds: dataset.Dataset) -> stride.Scales:
 
 
 def run(cfg: TrainConfig, log=print) -> pathlib.Path:
+    distributed.initialize(cfg.distributed)
     data_dir = pathlib.Path(cfg.data or f"data/{cfg.robot}")
     if not (data_dir / "meta.json").exists():
         if not cfg.make_data:
@@ -114,7 +119,8 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
                 f"no dataset at {data_dir}: make it first with `stride data --robot {cfg.robot} "
                 f"--preset {cfg.data_preset} --out {data_dir}`, or train with --make-data")
         log(f"no dataset at {data_dir}: generating one (preset {cfg.data_preset})")
-        preset = dict(collect.PRESETS[cfg.data_preset], robot=cfg.robot, out=str(data_dir))
+        preset = dict(collect.PRESETS[cfg.data_preset], robot=cfg.robot, out=str(data_dir),
+                      distributed=cfg.distributed)
         collect.generate(collect.DataConfig(**preset))
     ds = dataset.load(data_dir, robot=cfg.robot)
     if "act_dof" not in ds.meta:
@@ -127,10 +133,11 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
     model = models.make(cfg.model, spec, act, model_cfg, sc)
     out = pathlib.Path(cfg.out or f"runs/{cfg.robot}/{cfg.model}")
     out.mkdir(parents=True, exist_ok=True)
-    models.save_definition(out, cfg.model, spec, act, model_cfg, sc)
-    atomic_write_text(out / "config.json", json.dumps(
-        {"train": dataclasses.asdict(cfg), "dataset": str(data_dir), "code": code_version(),
-         "dataset_sha256": ds.meta["arrays_sha256"]}, indent=1))
+    if distributed.is_main():
+        models.save_definition(out, cfg.model, spec, act, model_cfg, sc)
+        atomic_write_text(out / "config.json", json.dumps(
+            {"train": dataclasses.asdict(cfg), "dataset": str(data_dir), "code": code_version(),
+             "dataset_sha256": ds.meta["arrays_sha256"]}, indent=1))
     jacobians = None
     if ds.meta["feet"]:
         sm = sim_model.load(ds.meta["robot"])

@@ -32,8 +32,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import orbax.checkpoint as ocp
+from jax.sharding import NamedSharding, PartitionSpec
 from tqdm import tqdm
 
+from stride_jax import distributed
 from stride_jax.dynamics.checkpoint import params_sha256
 from stride_jax.io import atomic_write_text
 from stride_jax.sim import rollout_mjx
@@ -213,25 +215,41 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
             if s > int(state["step"]):
                 best.delete(s)
 
-    sharding = rollout_mjx.world_sharding(batch) \
-        if batch % max(1, jax.local_device_count()) == 0 else None
-    data = jax.device_put(data)  # the training set lives on the device(s) once
+    # Several processes (stride_jax.distributed): one mesh over every device of every process,
+    # data, parameters and optimiser state replicated on it, each minibatch split over it.
+    multi = jax.process_count() > 1
+    if multi:
+        on = distributed.mesh()
+        if batch % jax.device_count():
+            raise TrainingError(f"batch {batch} does not split over the job's "
+                                f"{jax.device_count()} devices; use a multiple of it")
+        sharding = NamedSharding(on, PartitionSpec("batch"))
+        data, state = distributed.replicate(data, on), distributed.replicate(state, on)
+        key_data = distributed.replicate(jax.random.key_data(key), on)
+    else:
+        sharding = rollout_mjx.world_sharding(batch) \
+            if batch % max(1, jax.local_device_count()) == 0 else None
+        data = jax.device_put(data)  # the training set lives on the device(s) once
+        key_data = jax.random.key_data(key)
+    host = distributed.to_host if multi else (lambda tree: tree)
+    main = distributed.is_main()
 
     # The data and the key are arguments, not constants of the program: no dataset baked into
     # the executable, and runs that differ only in their seed share the compilation cache.
     @functools.partial(jax.jit, static_argnames="n")
-    def chunk(params, opt_state, data, key, start, n):
-        return scan_steps(loss_fn, opt, params, opt_state, data, key, start, n, batch, sharding)
+    def chunk(params, opt_state, data, key_data, start, n):
+        return scan_steps(loss_fn, opt, params, opt_state, data,
+                          jax.random.wrap_key_data(key_data), start, n, batch, sharding)
 
     step = start = int(state["step"])
     kept, best_step, best_score = state["params"], step, float(state["best_val"])
     losses, checked_at, scores = [], [], []
-    metrics_log = _Log(out / "metrics.csv" if out is not None else None)
+    metrics_log = _Log(out / "metrics.csv" if out is not None and main else None)
     with tqdm(total=cfg.steps, initial=start, desc=progress, unit="step",
-              disable=progress is None) as bar:
+              disable=progress is None or not main) as bar:
         while step < cfg.steps:
             stop = _next_stop(step, cfg, validate is not None, ckpt is not None)
-            (p, o), chunk_losses, parts = chunk(state["params"], state["opt"], data, key,
+            (p, o), chunk_losses, parts = chunk(state["params"], state["opt"], data, key_data,
                                                 step, n=stop - step)
             state = dict(state, params=p, opt=o, step=jnp.asarray(stop, jnp.int32))
             bar.update(stop - step)
@@ -246,7 +264,7 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
                     f"learning rate ({cfg.lr}) or check the data for outliers.")
             last = step == cfg.steps
             if validate is not None and (step % cfg.eval_every == 0 or last):
-                score, metrics = validate(state["params"])
+                score, metrics = validate(host(state["params"]))
                 checked_at.append(step)
                 scores.append(float(score))
                 metrics_log.write({"step": step, "time": time.time(),
@@ -257,7 +275,7 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
                     state = dict(state, best_val=jnp.asarray(score, jnp.float32))
                     kept, best_step, best_score = state["params"], step, float(score)
                     if best is not None:
-                        best.save(step, args=ocp.args.StandardSave(state["params"]),
+                        best.save(step, args=ocp.args.StandardSave(host(state["params"])),
                                   force=True)
                 bar.set_postfix(loss=f"{float(chunk_losses[-1]):.4g}", val=f"{score:.4g}")
             elif validate is None:
@@ -265,7 +283,7 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
             out_of_time = bool(cfg.deadline) and step % cfg.eval_every == 0 and \
                 time.time() > cfg.deadline
             if ckpt is not None and (step % cfg.ckpt_every == 0 or last or out_of_time):
-                ckpt.save(step, args=ocp.args.StandardSave(state), force=True)
+                ckpt.save(step, args=ocp.args.StandardSave(host(state)), force=True)
             if out_of_time and not last:
                 log(f"deadline reached: stopped at step {step} of {cfg.steps}; run again "
                     "to resume")
@@ -277,8 +295,9 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
             if best.latest_step() is None:
                 raise TrainingError("no validation ever ran (steps < eval_every?)")
             best_step = best.latest_step()
-            kept = best.restore(best_step, args=ocp.args.StandardRestore(state["params"]))
-    return Result(kept, np.concatenate(losses) if losses else np.zeros(0), checked_at, scores,
+            kept = best.restore(best_step,
+                                args=ocp.args.StandardRestore(host(state["params"])))
+    return Result(host(kept), np.concatenate(losses) if losses else np.zeros(0), checked_at, scores,
                   best_step, best_score, step)
 
 
@@ -363,6 +382,8 @@ def train_examples(loss_fn: Callable, init_fn: Callable, data: dict, val: dict,
 
     res = run(mean_loss, init_fn(key_init), data, cfg, optimizer(cfg.lr, cfg.steps), key_loop,
               validate, out, log)
+    if not distributed.is_main():
+        return res.params
     atomic_write_text(out / "summary.json", json.dumps(
         {"best_val": res.best_score, "best_step": res.best_step,
          "params_sha256": params_sha256(res.params),

@@ -1,0 +1,84 @@
+"""Several processes, one job (stride_jax.distributed): two processes on this CPU make the dataset
+one process makes, byte for byte, and train the model one process trains, up to the order of the
+gradients' summation."""
+
+import json
+import os
+import pathlib
+import socket
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+from stride_jax import distributed
+from stride_jax.dynamics import models
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def _stride(args: list[str], log: pathlib.Path) -> subprocess.Popen:
+    # Output to a file, not a pipe: a process blocked on a full pipe would stall the other's
+    # collectives.
+    with open(log, "w") as f:
+        return subprocess.Popen([sys.executable, "-m", "stride_jax.cli", *args], stdout=f,
+                                stderr=subprocess.STDOUT,
+                                env={**os.environ, "JAX_PLATFORMS": "cpu"})
+
+
+def _wait(procs: list[subprocess.Popen], logs: list[pathlib.Path]) -> None:
+    for p, log in zip(procs, logs):
+        p.wait(timeout=600)
+        assert p.returncode == 0, log.read_text()[-3000:]
+
+
+def _together(args: list[str], tmp: pathlib.Path) -> None:
+    """``stride ARGS`` as a job of two processes on this machine."""
+    port = _port()
+    logs = [tmp / f"{args[0]}-{i}.log" for i in (0, 1)]
+    _wait([_stride([*args, "--distributed.coordinator", f"localhost:{port}",
+                    "--distributed.num-processes", "2", "--distributed.process-id", str(i)],
+                   log) for i, log in enumerate(logs)], logs)
+
+
+def _alone(args: list[str], tmp: pathlib.Path) -> None:
+    _wait([_stride(args, tmp / f"{args[0]}.log")], [tmp / f"{args[0]}.log"])
+
+
+def test_two_processes_make_the_same_dataset_and_model(tmp_path):
+    data = ["data", "--robot", "pendulum", "--preset", "tiny"]
+    _alone([*data, "--out", str(tmp_path / "d1")], tmp_path)
+    _together([*data, "--out", str(tmp_path / "d2")], tmp_path)
+    meta = [json.loads((tmp_path / d / "meta.json").read_text()) for d in ("d1", "d2")]
+    assert meta[0]["arrays_sha256"] == meta[1]["arrays_sha256"]
+
+    train = ["train", "--robot", "pendulum", "--model", "delan", "--preset", "tiny", "--steps",
+             "30", "--data", str(tmp_path / "d1")]
+    _alone([*train, "--out", str(tmp_path / "r1")], tmp_path)
+    _together([*train, "--out", str(tmp_path / "r2")], tmp_path)
+    (_, p1), (_, p2) = models.load(tmp_path / "r1"), models.load(tmp_path / "r2")
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5), p1, p2)
+    s1, s2 = (json.loads((tmp_path / r / "summary.json").read_text()) for r in ("r1", "r2"))
+    assert s1["best_step"] == s2["best_step"] == 30
+    assert s2["best_val"] == pytest.approx(s1["best_val"], rel=1e-4)
+
+
+def test_settings_come_from_flags_or_the_environment():
+    none = distributed.DistributedConfig()
+    assert distributed.resolve(none, {}) is None  # a single process
+    env = {"STRIDE_COORDINATOR": "node0:1234", "STRIDE_NUM_PROCESSES": "4",
+           "STRIDE_PROCESS_ID": "3"}
+    assert distributed.resolve(none, env) == distributed.DistributedConfig("node0:1234", 4, 3)
+    flags = distributed.DistributedConfig("node1:99", 2, 0)
+    assert distributed.resolve(flags, env) == flags  # flags win
+    assert distributed.resolve(distributed.DistributedConfig("auto"), {}).coordinator == "auto"
+    with pytest.raises(ValueError, match="process_id"):
+        distributed.resolve(distributed.DistributedConfig("node0:1", 2, 2), {})
+    with pytest.raises(ValueError, match="num_processes"):
+        distributed.resolve(distributed.DistributedConfig("node0:1"), {})
