@@ -28,7 +28,7 @@ a robot with :class:`SineExplorer` (smooth random commands around the home pose)
 from __future__ import annotations
 
 import dataclasses
-import functools
+import hashlib
 import os
 import pathlib
 import tomllib
@@ -262,7 +262,12 @@ def _servo_gains(m: mujoco.MjModel, path: pathlib.Path):
                      "robot file with actuators = 'position' or 'motor'")
 
 
-@functools.lru_cache(maxsize=None)
+def file_key(path: str) -> str:
+    """A digest of the file's text (empty if it is missing): what a cache of its robot keys on."""
+    p = pathlib.Path(path)
+    return hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else ""
+
+
 def load(path: str) -> base.Robot:
     """The robot of an MJCF file (``.xml``) or of a robot/mapping file's ``[robot]`` table (``.toml``)."""
     p = pathlib.Path(path)
