@@ -65,7 +65,7 @@ def arm(tmp_path_factory):
     return d, sm, clean
 
 
-def _write_bag(path, clean, pause_s=1.0):
+def _write_bag(path, clean, pause_s=1.0, storage="MCAP"):
     """The two trajectories one after the other (``pause_s`` apart): joint states stamped at the
     sample times but recorded 0-3 ms late, the elbow's velocity sign flipped and the joints listed
     in the other order; commands published 2 ms before each sample."""
@@ -79,7 +79,7 @@ def _write_bag(path, clean, pause_s=1.0):
                                            "builtin_interfaces/msg/Time"))
     Cmd, MCmd = store.types["test_msgs/msg/LowCmd"], store.types["test_msgs/msg/MotorCmd"]
     rng = np.random.default_rng(0)
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+    with Writer(path, version=9, storage_plugin=StoragePlugin[storage]) as w:
         cj = w.add_connection("/joint_states", JS.__msgtype__, typestore=store)
         cc = w.add_connection("/lowcmd", Cmd.__msgtype__, typestore=store)
         start = int(T0) * 10**9
@@ -216,8 +216,10 @@ def test_bad_csv_names_the_column_and_row(tmp_path):
 
 
 def test_cli_import(arm, tmp_path, capsys):
+    """From a bag in ROS 2 Humble's default storage (SQLite, .db3)."""
     d, sm, clean = arm
-    bag = _write_bag(tmp_path / "bag", clean)
+    bag = _write_bag(tmp_path / "bag", clean, storage="SQLITE3")
+    assert list(bag.glob("*.db3"))
     assert cli.main(["import", "--mapping", str(d / "map.toml"), "--out", str(tmp_path / "logs"),
                      str(bag)]) == 0
     assert len(logs.read(tmp_path / "logs", sm)[1]) == 2
