@@ -226,3 +226,46 @@ def test_cli_import(arm, tmp_path, capsys):
     assert cli.main(["import", "--mapping", str(d / "map.toml"), "--out", str(tmp_path / "l2"),
                      str(tmp_path / "nothing.mcap")]) == 2
     assert "nothing.mcap: no such file" in capsys.readouterr().err
+
+
+def test_floating_base_from_csv_with_body_frame_velocity(tmp_path):
+    """A free body with one flap: base pose and a body-frame linear velocity (as in
+    nav_msgs/Odometry) on a 20 ms grid, recorded every 10 ms; the log holds it in the world frame."""
+    (tmp_path / "box.xml").write_text("""<mujoco><option timestep="0.005"/><worldbody>
+      <body name="torso" pos="0 0 0.5"><freejoint/><geom type="box" size="0.1 0.1 0.05" mass="2"/>
+      <body name="flap"><joint name="flap" type="hinge" axis="0 1 0"/>
+      <geom type="capsule" fromto="0 0 0 0.2 0 0" size="0.02" mass="0.1"/></body></body>
+      </worldbody><actuator><position joint="flap" kp="5" ctrlrange="-1 1"/></actuator></mujoco>""")
+    t = 0.01 * np.arange(41)
+    yaw = 0.8 * t
+    cols = {"t": t, "flap_q": np.sin(t), "flap_dq": np.cos(t), "flap_cmd": 0.5 + 0 * t,
+            "x": t, "y": 0 * t, "z": 0.5 + 0 * t, "qw": np.cos(yaw / 2), "qx": 0 * t, "qy": 0 * t,
+            "qz": np.sin(yaw / 2), "vx": 1 + 0 * t, "vy": 0 * t, "vz": 0 * t, "wx": 0 * t,
+            "wy": 0 * t, "wz": 0.8 + 0 * t}
+    (tmp_path / "run.csv").write_text(",".join(cols) + "\n" + "\n".join(
+        ",".join(f"{v[k]:.12g}" for v in cols.values()) for k in range(len(t))) + "\n")
+    (tmp_path / "map.toml").write_text(textwrap.dedent("""
+        base_linvel_frame = "body"
+        [robot]
+        mjcf = "box.xml"
+        control_period_s = 0.02
+        [sources]
+        time = {column = "t"}
+        q = {column = "flap_q"}
+        qd = {column = "flap_dq"}
+        cmd = {column = "flap_cmd"}
+        base_pos = {column = "{axis}"}
+        base_quat = {column = "q{axis}"}
+        base_linvel = {column = "v{axis}"}
+        base_angvel = {column = "w{axis}"}
+        """))
+    sm = model.load(str(tmp_path / "map.toml"))
+    out = importer.run(tmp_path / "map.toml", [tmp_path / "run.csv"], tmp_path / "logs", log=lambda s: None)
+    h, (tr,) = logs.read(out, sm)
+    assert h.floating_base and h.robot == "box" and len(tr.t) == 21
+    np.testing.assert_allclose(tr.q[:, 0], t[::2], atol=1e-9)
+    yaw = 0.8 * t[::2]
+    np.testing.assert_allclose(tr.q[:, 3:7], np.stack([np.cos(yaw / 2), 0 * yaw, 0 * yaw,
+                                                        np.sin(yaw / 2)], 1), atol=1e-9)
+    np.testing.assert_allclose(tr.qd[:, :2], np.stack([np.cos(yaw), np.sin(yaw)], 1), atol=1e-9)
+    np.testing.assert_allclose(tr.q[:, 7], np.sin(t[::2]), atol=1e-9)

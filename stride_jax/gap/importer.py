@@ -6,6 +6,7 @@ Mapping file (every key but ``robot`` and ``[sources]`` optional)::
     robot = "go1"                  # registered name, MJCF/robot file (relative to this file),
                                    # or an inline [robot] table (stride_jax.robots.mjcf)
     split_gap_s = 0.5              # a pause longer than this in any source starts a new trajectory
+    base_linvel_frame = "world"    # or "body" (nav_msgs/Odometry): rotated to world by base_quat
     msg_types = ["msg/LowState.msg"]   # ROS message definitions the bag does not embed
 
     [joints]                       # robot joint -> what the recording calls it: {joint} below
@@ -64,7 +65,8 @@ VECTOR_GROUPS = {g: tuple(c.rsplit("_", 1)[1] for c in cols) for g, cols in (
     ("base_linvel", logs.BASE_COLS[7:10]), ("base_angvel", logs.BASE_COLS[10:13]),
     ("imu_acc", logs.IMU_COLS[0:3]), ("imu_gyro", logs.IMU_COLS[3:6]))}
 HELD = ("cmd_", "imu_")  # zero-order hold; everything else is interpolated
-TOP_KEYS = {"robot", "split_gap_s", "msg_types", "joints", "sources", "stamps", "csv"}
+TOP_KEYS = {"robot", "split_gap_s", "msg_types", "joints", "sources", "stamps", "csv",
+            "base_linvel_frame"}
 SOURCE_KEYS = {"topic", "field", "column", "scale", "offset"}
 
 
@@ -100,6 +102,8 @@ class Mapping:
       stamps: topic -> field of its header stamp.
       msg_types: ROS message definition files (``.msg``) to register.
       delimiter: CSV field separator.
+      linvel_body: the base linear velocity source is in the body frame (nav_msgs/Odometry's
+        twist is in its child frame): rotated to the world frame with the base quaternion.
     """
 
     path: pathlib.Path
@@ -110,6 +114,7 @@ class Mapping:
     stamps: dict[str, str]
     msg_types: tuple[pathlib.Path, ...]
     delimiter: str = ","
+    linvel_body: bool = False
 
     @property
     def has_torque(self) -> bool:
@@ -235,8 +240,11 @@ def load_mapping(path: str | os.PathLike) -> Mapping:
     for p in types:
         if not p.is_file():
             raise MappingError(f"{path}: msg_types: no such file {p}")
+    frame = d.get("base_linvel_frame", "world")
+    if frame not in ("world", "body"):
+        raise MappingError(f"{path}: base_linvel_frame must be 'world' or 'body', got {frame!r}")
     return Mapping(path, sm, cols, time, gap, dict(d.get("stamps", {})), types,
-                   d.get("csv", {}).get("delimiter", ","))
+                   d.get("csv", {}).get("delimiter", ","), frame == "body")
 
 
 # ----------------------------------------------------------------------------- message fields
@@ -502,11 +510,21 @@ def to_trajectories(streams: dict[str, Stream], mp: Mapping, name: str) -> list[
                 raise LogError(f"{name}: base_quat_w..z must come from one topic (one clock)")
             q[:, 3:7] = filters.interp_quat(ts, quat, t)
             qd[:, :6] = grid(list(logs.BASE_COLS[7:]))
+            if mp.linvel_body:
+                qd[:, :3] = np.einsum("tij,tj->ti", _rotation(q[:, 3:7]), qd[:, :3])
         cmd = grid([f"cmd_{j}" for j in lay.cmd_joints])
         tau = grid([f"tau_{j}" for j in lay.cmd_joints]) if mp.has_torque else None
         imu = grid(list(logs.IMU_COLS)) if mp.has_imu else None
         out.append(logs.Trajectory(f"{name}_{k:03d}", t - t[0], q, qd, cmd, tau, imu))
     return out
+
+
+def _rotation(quat: np.ndarray) -> np.ndarray:
+    """``[T, 3, 3]`` body-to-world rotations of unit quaternions ``[T, 4]`` (w x y z)."""
+    w, x, y, z = quat.T
+    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
 
 
 def is_bag(path: pathlib.Path) -> bool:
