@@ -96,3 +96,27 @@ def test_gap_simulate_and_diagnose_a_robot_file(tmp_path, capsys):
     assert cli.main(["diagnose", "--robot", str(tmp_path / "nope.toml"), "--logs", str(logs_dir),
                      "--out", str(rep)]) == 2
     assert "nope.toml': no such file" in capsys.readouterr().err
+
+
+def test_welding_a_gripper_drops_its_tendon_equality_and_actuator(tmp_path):
+    """Coupled fingers as in Menagerie's Panda: a fixed tendon over both, a joint equality and a
+    tendon actuator; welding the fingers leaves the arm joint and its own servo."""
+    (tmp_path / "grip.xml").write_text("""<mujoco><worldbody><body name="a" pos="0 0 1">
+      <joint name="j1" axis="0 1 0"/><geom size="0.1" mass="1"/>
+      <body name="f1"><joint name="finger_joint1" type="slide" axis="1 0 0" range="0 0.04"/>
+      <geom size="0.01" mass="0.1"/></body>
+      <body name="f2"><joint name="finger_joint2" type="slide" axis="-1 0 0" range="0 0.04"/>
+      <geom size="0.01" mass="0.1"/></body></body></worldbody>
+      <tendon><fixed name="split"><joint joint="finger_joint1" coef="0.5"/>
+      <joint joint="finger_joint2" coef="0.5"/></fixed></tendon>
+      <equality><joint joint1="finger_joint1" joint2="finger_joint2"/></equality>
+      <actuator><general joint="j1" gainprm="10" biasprm="0 -10 -1" biastype="affine"/>
+      <general tendon="split" ctrlrange="0 255" gainprm="0.0157" biasprm="0 -100 -10" biastype="affine"/>
+      </actuator></mujoco>""")
+    f = tmp_path / "grip.toml"
+    f.write_text('[robot]\nmjcf = "grip.xml"\nweld = ["finger_joint1", "finger_joint2"]\n')
+    sm = model.load(str(f))
+    assert sm.robot.joints == ("j1",) and sm.robot.kp == (10.0,) and sm.robot.kd == (1.0,)
+    assert (sm.mj.njnt, sm.mj.ntendon, sm.mj.neq, sm.mj.nu) == (1, 0, 0, 1)
+    with pytest.raises(RobotError, match="only joint actuators"):
+        model.load(str(tmp_path / "grip.xml"))

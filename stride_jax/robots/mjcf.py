@@ -18,7 +18,8 @@ says more, in a ``[robot]`` table (the same table may sit in a log mapping file,
     home_key = "home"                # keyframe of the home pose (default: the MJCF's qpos0)
     base_body = "forearm"            # where a payload sits (default: the free joint's body, or the
                                      # body of the last actuated joint of a fixed-base robot)
-    weld = ["finger_left"]           # joints the logs do not carry: removed, their bodies welded
+    weld = ["finger_joint1"]         # joints the logs do not carry: removed, their bodies welded
+                                     # (with the tendons, equalities and actuators on them)
     feet = [{name = "foot", geoms = ["foot_geom"], site = "foot_site"}]   # floating base only
 
 Every joint left (except a free joint) must appear in the logs. ``stride gap simulate`` drives such
@@ -127,8 +128,8 @@ def _spec_edit(joints, kind, kp, kd, limit, weld, where):
         gone = [w for w in weld if w not in names]
         if gone:
             raise RobotError(f"{where}: weld: no joint named {gone} in the MJCF")
-        for j in [j for j in spec.joints if j.name in weld]:
-            spec.delete(j)
+        if weld:
+            _drop_welded(spec, set(weld))
         if kind == "mjcf":
             return
         for a in list(spec.actuators):
@@ -148,6 +149,30 @@ def _spec_edit(joints, kind, kp, kd, limit, weld, where):
                 a.forcelimited, a.forcerange = mujoco.mjtLimited.mjLIMITED_TRUE, [-limit[i], limit[i]]
 
     return edit
+
+
+def _drop_welded(spec: mujoco.MjSpec, weld: set[str]) -> None:
+    """Deletes the ``weld`` joints, the tendons that wrap them, the equalities and actuators on
+    either, so that the model compiles without them (a gripper's coupled fingers, say)."""
+    m = spec.compile()
+    jid = {mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, w) for w in weld}
+    tendons = set()
+    for t in range(m.ntendon):
+        a, n = m.tendon_adr[t], m.tendon_num[t]
+        if any(m.wrap_type[k] == mujoco.mjtWrap.mjWRAP_JOINT and m.wrap_objid[k] in jid
+               for k in range(a, a + n)):
+            tendons.add(m.tendon(t).name)
+    gone = weld | tendons
+    for e in list(spec.equalities):
+        if e.type in (mujoco.mjtEq.mjEQ_JOINT, mujoco.mjtEq.mjEQ_TENDON) and ({e.name1, e.name2} - {""}) & gone:
+            spec.delete(e)
+    for a in list(spec.actuators):
+        if a.target in gone:
+            spec.delete(a)
+    for t in [t for t in spec.tendons if t.name in tendons]:
+        spec.delete(t)
+    for j in [j for j in spec.joints if j.name in weld]:
+        spec.delete(j)
 
 
 def _mjcf_path(value, folder: pathlib.Path, where: str) -> pathlib.Path:
@@ -182,7 +207,9 @@ def from_table(d: dict[str, Any], folder: str | os.PathLike = ".", where: str = 
     movable = [j.name for j in spec.joints if j.type in (mujoco.mjtJoint.mjJNT_HINGE,
                                                           mujoco.mjtJoint.mjJNT_SLIDE)]
     if kind == "mjcf":
-        joints = _mjcf_actuated(spec, path)
+        welded = load_spec()
+        _spec_edit((), kind, None, None, None, weld, where)(welded)
+        joints = _mjcf_actuated(welded, path)
         if "joints" in d and tuple(d["joints"]) != joints:
             raise RobotError(f"{where}: robot.joints {list(d['joints'])} differ from the joints the "
                              f"MJCF's actuators drive, in order: {list(joints)}")
