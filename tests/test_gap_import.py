@@ -269,3 +269,24 @@ def test_floating_base_from_csv_with_body_frame_velocity(tmp_path):
                                                         np.sin(yaw / 2)], 1), atol=1e-9)
     np.testing.assert_allclose(tr.qd[:, :2], np.stack([np.cos(yaw), np.sin(yaw)], 1), atol=1e-9)
     np.testing.assert_allclose(tr.q[:, 7], np.sin(t[::2]), atol=1e-9)
+
+
+def test_mapping_examples_in_the_docs_parse(go1, tmp_path):
+    import pathlib
+    import re
+    import tomllib
+
+    from stride_jax.robots import mjcf
+
+    doc = pathlib.Path(__file__).resolve().parents[1] / "docs" / "gap.md"
+    go1_map, csv_map, panda = re.findall(r"```toml\n(.*?)```", doc.read_text(), re.S)
+    (tmp_path / "go1.toml").write_text(go1_map)
+    mp = importer.load_mapping(tmp_path / "go1.toml")
+    assert mp.sm is go1 and mp.has_torque and mp.has_imu and mp.linvel_body
+    assert mp.columns["q_FR_hip_joint"].scale == -1.0
+    assert mp.columns["qd_RL_calf_joint"].field == "motor_state[11].dq"
+    assert mp.columns["base_quat_w"].field == "pose.pose.orientation.w"
+    assert mp.columns["imu_acc_z"].field == "imu_state.accelerometer[2]"
+    (tmp_path / "csv.toml").write_text(csv_map)
+    assert importer.load_mapping(tmp_path / "csv.toml").time.scale == 1e-6
+    assert set(tomllib.loads(panda)["robot"]) <= mjcf.KEYS
