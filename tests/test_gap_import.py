@@ -226,6 +226,10 @@ def test_cli_import(arm, tmp_path, capsys):
     assert cli.main(["import", "--mapping", str(d / "map.toml"), "--out", str(tmp_path / "l2"),
                      str(tmp_path / "nothing.mcap")]) == 2
     assert "nothing.mcap: no such file" in capsys.readouterr().err
+    (tmp_path / "logs" / "old_run.csv").write_text("time\n")
+    assert cli.main(["import", "--mapping", str(d / "map.toml"), "--out", str(tmp_path / "logs"),
+                     str(bag)]) == 2
+    assert "holds other trajectory files ['old_run.csv']" in capsys.readouterr().err
 
 
 def test_floating_base_from_csv_with_body_frame_velocity(tmp_path):

@@ -193,6 +193,8 @@ def load_mapping(path: str | os.PathLike) -> Mapping:
     sm = _robot(d, path)
     lay = logs.layout(sm)
     names = d.get("joints", {})
+    if not isinstance(names, dict) or not isinstance(d.get("stamps", {}), dict):
+        raise MappingError(f"{path}: [joints] and [stamps] must be tables (name = value)")
     bad = sorted(set(names) - set(lay.joints))
     if bad:
         raise MappingError(f"{path}: [joints] {bad} are not joints of robot {sm.robot.name!r} "
@@ -549,5 +551,8 @@ def run(mapping: str | os.PathLike, files: list[str | os.PathLike], out: str | o
         log(f"{f}: {len(got)} trajectories, {sum(len(tr.t) for tr in got)} samples")
         trajs += got
         notes.append(f.name)
+    stale = sorted({p.name for p in pathlib.Path(out).glob("*.csv")} - {f"{tr.name}.csv" for tr in trajs})
+    if stale:  # the reader would take them for trajectories of this import
+        raise LogError(f"{out}: holds other trajectory files {stale[:4]}; import into a fresh folder")
     return logs.write(out, mp.sm, trajs, notes=f"imported by stride gap import with {mp.path.name} "
                                                 f"from {', '.join(notes)}")
