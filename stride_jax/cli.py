@@ -9,7 +9,7 @@
     stride fit-reward-value --policy runs/ppo_go1 --out runs/learned_go1
     stride closed-loop --preset tiny [--models oracle,nominal,stride=RUN ...]
     stride show [--stride runs/pendulum/stride --baseline runs/pendulum/delan --phase.grid 15]
-    stride gap diagnose --robot go1 --logs DIR --out DIR   (also: gap simulate, export, bench)
+    stride gap diagnose --robot go1 --logs DIR --out DIR   (also: gap simulate, import, export, bench)
 """
 
 from __future__ import annotations

@@ -83,6 +83,14 @@ def test_every_robot_explorer_is_an_explorer(robot):
     _conforms(ex, types.Explorer)
 
 
+def test_the_sine_explorer_of_mjcf_robots_is_an_explorer():
+    from stride_jax.robots import mjcf
+
+    ex = mjcf.SineExplorer((0.0,), (1.0,))
+    assert isinstance(ex, types.Explorer)
+    _conforms(ex, types.Explorer)
+
+
 def test_the_policy_explorer_is_an_explorer():
     # its constructor loads a PPO run; the methods are checked on the class
     _conforms(walk.PolicyExplorer, types.Explorer, skip_self=True)

@@ -1,5 +1,6 @@
-"""``stride gap``: ``diagnose`` a log folder, ``simulate`` "real" logs with hidden effects, ``export``
-a simulated dataset as logs, ``bench`` the blind benchmark. Wire with ``gap.cli.main(argv)``."""
+"""``stride gap``: ``diagnose`` a log folder, ``simulate`` "real" logs with hidden effects, ``import``
+recordings (ROS 2 bags, MCAP, CSV) as logs, ``export`` a simulated dataset as logs, ``bench`` the
+blind benchmark. Wire with ``gap.cli.main(argv)``."""
 
 from __future__ import annotations
 
@@ -21,7 +22,8 @@ class DiagnoseJob:
     ``--preset`` (nested ones dotted: ``--residual.when always``, ``--fit.grid 7``).
 
     Attributes:
-      robot: the nominal robot model (``stride_jax.robots``).
+      robot: the nominal robot model: a registered name (``stride_jax.robots``), an MJCF file
+        (.xml) or a robot/mapping file with a [robot] table (.toml).
       logs: folder with header.json and one CSV per trajectory.
       out: report folder (report.md, diagnosis.json, plots).
     """
@@ -51,6 +53,21 @@ class SimulateJob:
     steps: int = 250
     seed: int = 0
     noise: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class ImportJob:
+    """``stride gap import``: recordings (the positional arguments: ROS 2 bag folders, ``.mcap``,
+    ``.db3`` or ``.csv`` files) as a log folder, through a mapping file
+    (:mod:`stride_jax.gap.importer`).
+
+    Attributes:
+      mapping: the mapping file (TOML): robot, joint names, column sources.
+      out: log folder to write.
+    """
+
+    mapping: str = ""
+    out: str = ""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,6 +119,9 @@ def _parser() -> argparse.ArgumentParser:
                      choices={"residual.when": residual.WHEN})
     s = sub.add_parser("simulate", help="'real' logs: the explorer with hidden effects")
     config.add_flags(s, SimulateJob, required=("robot", "out"))
+    i = sub.add_parser("import", help="recordings (ROS 2 bags, MCAP, CSV) as a log folder")
+    config.add_flags(i, ImportJob, required=("mapping", "out"))
+    i.add_argument("files", nargs="+", help="bag folders, .mcap, .db3 or .csv files")
     e = sub.add_parser("export", help="a simulated dataset folder as a log folder")
     config.add_flags(e, ExportJob, required=("dataset", "out"))
     b = sub.add_parser("bench", help="the blind benchmark")
@@ -121,10 +141,11 @@ def main(argv: list[str] | None = None) -> int:
     stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)
-    job = {"diagnose": DiagnoseJob, "simulate": SimulateJob, "export": ExportJob,
+    job = {"diagnose": DiagnoseJob, "simulate": SimulateJob, "import": ImportJob, "export": ExportJob,
            "bench": BenchJob}[args.cmd]
     j = config.from_flags(job, args)
     from stride_jax.gap import logs
+    from stride_jax.robots.base import RobotError
 
     try:
         if args.cmd == "diagnose":
@@ -150,6 +171,10 @@ def main(argv: list[str] | None = None) -> int:
                                       j.seed, real.SensorNoise() if j.noise else None)
             logs.write(j.out, sm, logged, notes="simulated by `stride gap " + shlex.join(argv) + "`")
             print(f"{len(logged)} trajectories in {j.out}")
+        elif args.cmd == "import":
+            from stride_jax.gap import importer
+
+            print(f"log folder: {importer.run(j.mapping, args.files, j.out)}")
         elif args.cmd == "export":
             print(logs.export_dataset(j.dataset, j.out))
         elif args.cmd == "bench":
@@ -162,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
             except bench.BenchError as err:  # rows on disk from another config, bad --workers/--threads
                 print(f"error: {err}", file=sys.stderr)
                 return 2
-    except logs.LogError as err:
+    except (logs.LogError, RobotError) as err:  # bad logs, mapping, recordings or robot file
         print(f"error: {err}", file=sys.stderr)
         return 2
     return 0

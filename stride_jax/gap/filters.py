@@ -1,7 +1,8 @@
 """Cleaning and estimation on logged trajectories (:mod:`stride_jax.gap.logs`), before replay.
 
 :func:`resample` puts a log onto the control grid (linear for states, normalised linear for
-quaternions, zero-order hold for commands and IMU); :func:`spikes` and :func:`hampel` remove
+quaternions, zero-order hold for commands and IMU; :func:`interp`, :func:`interp_quat` and
+:func:`hold` do it per signal, for logs whose signals have their own clocks); :func:`spikes` and :func:`hampel` remove
 outliers; :func:`savgol` smooths and differentiates (:func:`savgol_bandwidth` states its -3 dB
 frequency); :func:`noise_std` estimates the white-noise level from second differences.
 :class:`Preprocess` configures and :func:`preprocess` applies the cleaning the diagnosis uses;
@@ -17,21 +18,36 @@ import numpy as np
 from stride_jax.gap.logs import Trajectory
 
 
+def interp(t_src: np.ndarray, x: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Linear interpolation of ``x [N, C]`` sampled at increasing ``t_src [N]`` onto ``t [T]``."""
+    return np.stack([np.interp(t, t_src, x[:, i]) for i in range(x.shape[1])], axis=1)
+
+
+def hold(t_src: np.ndarray, x: np.ndarray, t: np.ndarray, dt: float) -> np.ndarray:
+    """Zero-order hold: at each ``t`` the last sample of ``x [N, ...]`` at or before it (within
+    ``1e-9 dt``; the first sample before the log starts)."""
+    return x[np.clip(np.searchsorted(t_src, t + 1e-9 * dt, side="right") - 1, 0, len(t_src) - 1)]
+
+
+def interp_quat(t_src: np.ndarray, quat: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Normalised linear interpolation of unit quaternions ``[N, 4]`` (signs aligned to the first)."""
+    quat = quat * np.sign((quat * quat[:1]).sum(1, keepdims=True))
+    out = interp(t_src, quat, t)
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
 def resample(tr: Trajectory, dt: float) -> Trajectory:
     """Onto the uniform grid ``t0 + k dt`` inside the log: states and torques linearly,
     the quaternion by normalised linear interpolation, commands and IMU by zero-order hold."""
     t = tr.t[0] + dt * np.arange(int(np.floor((tr.t[-1] - tr.t[0]) / dt + 1e-9)) + 1)
     if len(t) == len(tr.t) and np.allclose(t, tr.t, atol=1e-6 * dt):
         return tr
-    lin = lambda x: np.stack([np.interp(t, tr.t, x[:, i]) for i in range(x.shape[1])], axis=1)
-    hold = lambda x: x[np.clip(np.searchsorted(tr.t, t + 1e-9 * dt, side="right") - 1, 0, len(tr.t) - 1)]
-    q = lin(tr.q)
+    q = interp(tr.t, tr.q, t)
     if tr.q.shape[1] >= 7 and tr.qd.shape[1] == tr.q.shape[1] - 1:  # free joint: renormalise
-        quat = tr.q[:, 3:7] * np.sign((tr.q[:, 3:7] * tr.q[:1, 3:7]).sum(1, keepdims=True))
-        q[:, 3:7] = lin(quat)
-        q[:, 3:7] /= np.linalg.norm(q[:, 3:7], axis=1, keepdims=True)
-    return Trajectory(tr.name, t, q, lin(tr.qd), hold(tr.cmd),
-                      None if tr.tau is None else lin(tr.tau), None if tr.imu is None else hold(tr.imu))
+        q[:, 3:7] = interp_quat(tr.t, tr.q[:, 3:7], t)
+    held = lambda x: None if x is None else hold(tr.t, x, t, dt)
+    return Trajectory(tr.name, t, q, interp(tr.t, tr.qd, t), held(tr.cmd),
+                      None if tr.tau is None else interp(tr.t, tr.tau, t), held(tr.imu))
 
 
 def hampel(x: np.ndarray, half_window: int = 3, k: float = 5.0) -> tuple[np.ndarray, np.ndarray]:

@@ -33,6 +33,8 @@ Format (``stride-gap-log`` version 1): one folder per log set,
 No accelerations and no contact forces: the tool estimates what it needs. The reader rejects a
 missing column, a joint that the robot lacks (or a robot joint the log lacks), non-monotonic
 timestamps, and NaN or non-numeric entries with a :class:`LogError` naming file, column and row.
+Recordings of a real robot (ROS 2 bags, MCAP, CSV) become such a folder with ``stride gap import``
+(:mod:`stride_jax.gap.importer`).
 """
 
 from __future__ import annotations

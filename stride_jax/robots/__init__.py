@@ -1,4 +1,5 @@
-"""Robot definitions: ``get('go1')`` returns a :class:`Robot`."""
+"""Robot definitions: ``get('go1')`` returns a :class:`Robot`; ``get('path/arm.xml')`` or
+``get('path/arm.toml')`` builds one from an MJCF file (:mod:`stride_jax.robots.mjcf`)."""
 
 from stride_jax.robots.base import (Explorer, Foot, ModelInfo, Randomization, Robot, RobotError,
                                     stochastic)
@@ -10,11 +11,16 @@ ROBOTS: dict[str, Robot] = {r.name: r for r in (PENDULUM, PENDULUM_BOUNCING, GO1
 
 
 def get(name: str) -> Robot:
-    """The robot called ``name``; a clear error listing the known robots otherwise."""
-    try:
+    """The robot called ``name``, or the one an MJCF / robot file describes (a path ending in
+    ``.xml`` or ``.toml``); a clear error listing the known robots otherwise."""
+    from stride_jax.robots import mjcf
+
+    if name in ROBOTS:
         return ROBOTS[name]
-    except KeyError:
-        raise RobotError(f"unknown robot {name!r}; known robots: {', '.join(ROBOTS)}") from None
+    if mjcf.is_path(name):
+        return mjcf.load(name)
+    raise RobotError(f"unknown robot {name!r}; known robots: {', '.join(ROBOTS)}, or an MJCF file "
+                     "(.xml) or robot file (.toml)")
 
 
 __all__ = ["Explorer", "Foot", "ModelInfo", "Randomization", "Robot", "RobotError", "ROBOTS", "get",

@@ -123,9 +123,18 @@ def compile_robot(robot: Robot, visual: bool = False) -> SimModel:
                     geom_foot=geom_foot)
 
 
-@functools.lru_cache(maxsize=None)
 def load(name: str) -> SimModel:
-    """The compiled robot called ``name`` (cached). Raises RobotError for unknown/missing robots."""
+    """The compiled robot called ``name``, or described by an MJCF / robot file at path ``name``
+    (cached; a file is compiled again when its text changes). Raises RobotError for unknown or
+    missing robots."""
+    from stride_jax.robots import mjcf
+
+    return _load(name, mjcf.file_key(name) if mjcf.is_path(name) else "")
+
+
+@functools.lru_cache(maxsize=None)
+def _load(name: str, key: str) -> SimModel:
+    del key  # part of the cache key only
     return compile_robot(robots_lib.get(name))
 
 
