@@ -280,7 +280,8 @@ def scalar_interval(obj: Objective, x: float, f: float, lo: float, hi: float, le
     near ``x`` this is ``x +- t sqrt(V) / H``, the sandwich interval, and where the loss is not
     quadratic the profile bends it. ``V`` is the block variance of the loss gradient (central
     differences of the per-block losses), ``H`` the curvature. Clipped to ``[lo, hi]``; contains
-    ``x`` by construction. A flat or concave profile (``H <= 0``) gives the bounds.
+    ``x`` by construction. A flat or concave profile (``H <= 0``) gives the bounds. The ends are
+    bracketed by doubling steps from ``x`` and refined by bisection to 2% of the half width.
     """
     span = hi - lo
     total = lambda v: float(obj.block_losses(np.array([v])).sum())
@@ -322,9 +323,13 @@ def scalar_interval(obj: Objective, x: float, f: float, lo: float, hi: float, le
         if outside is None:
             ends.append(bound)
             continue
-        root, _ = optimize.brentq(lambda u: total(u) - f - c, inside, outside, xtol=0.02 * half,
-                                  maxiter=8, full_output=True, disp=False)
-        ends.append(float(root))
+        a, b = inside, outside  # bisection: the profile need not be monotone, nor exactly repeatable
+        for _ in range(8):
+            if abs(b - a) <= 0.02 * half:
+                break
+            m = (a + b) / 2
+            a, b = (a, m) if total(m) - f > c else (m, b)
+        ends.append(float((a + b) / 2))
     return min(ends[0], x), max(ends[1], x), info
 
 
