@@ -305,8 +305,8 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
                 "reason": f"no significant gap: the best hypothesis ({name}) does not beat the nominal model on "
                           f"cross-fitted held-out data ({flip}; it explains {det['explained_crossfit']:.2%} cross-fitted, "
                           f"{best['explained']:.1%} held out) and the {probe}" + tie_note}
-    why = (f"significant gap ({flip})" if det["significant"]
-           else f"significant gap by the probe only ({probe}; {flip} fails)")
+    why = (f"the gap is significant ({flip})" if det["significant"]
+           else f"the gap is significant by the probe only ({probe}; {flip} fails)")
     pair_note = ""
     if len(best["effects"]) == 2:
         t = best["vs_best_single"]
@@ -337,7 +337,7 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
         return {"verdict": "unexplained by the library", "effects": best["effects"], "confident": False,
                 "indistinguishable_from": ties, "rule": "attribute_min" if best["explained_above_floor"] < cfg.attribute_min
                 else "structure_max",
-                "reason": f"unexplained by the library: {'; and '.join(failed)} ({why})" + bounds + hint + tie_note}
+                "reason": f"unexplained by the library: {'; and '.join(failed)}; {why}" + bounds + hint + tie_note}
     ci_min = cfg.attribute_min * (1 - w["noise_floor"] / max(w["gap_ms"], 1e-300))
     shortfalls = []
     if best["explained_ci"][0] < ci_min:
@@ -349,15 +349,15 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
     if ties:
         shortfalls.append("other effects tie with it")
     if hint:
-        shortfalls.append("the fit leaves structure")
+        shortfalls.append("the fit leaves structure (below)")
     confident = not shortfalls
     return {"verdict": "explained", "effects": best["effects"], "confident": confident,
             "indistinguishable_from": ties, "rule": "attribute_min",
-            "reason": f"explained ({why}): {closes}, at least the {cfg.attribute_min:.0%} rule, and {left} "
-                      f"(at most {cfg.structure_max:.0%}); "
-                      + ("confident: " if confident else "not confident: " + "; ".join(shortfalls) + " (")
-                      + f"beats the runner-up in {best['p_beats_next']:.0%} of resamples"
-                      + ("" if confident else ")") + pair_note + bounds + hint + tie_note}
+            "reason": f"explained: {closes}, at least the {cfg.attribute_min:.0%} rule, and {left} (at most "
+                      f"{cfg.structure_max:.0%}); {why}; "
+                      + (f"confident: it beats the runner-up in {best['p_beats_next']:.0%} of resamples" if confident
+                         else "not confident: " + "; ".join(shortfalls))
+                      + pair_note + bounds + hint + tie_note}
 
 
 def _num(x) -> str:
