@@ -75,7 +75,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     r_nom_te = fit.residual(sm, nom, test, scale)
     M = len(r_nom_te)
     ids, nb = _block_ids(test, cfg.block)
-    Wb = _boot_weights(nb, max(cfg.boot, cfg.fit.bootstrap or 0, 100), cfg.seed + 1)  # [B, nb]
+    Wb = _boot_weights(nb, max(cfg.boot, 100), cfg.seed + 1)  # [B, nb]
     blocks = lambda r: np.bincount(ids, weights=(r ** 2).sum(1), minlength=nb)
     Lb_nom = blocks(r_nom_te)
     L_nom = float(Lb_nom.sum())

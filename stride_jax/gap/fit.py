@@ -190,8 +190,9 @@ class FitConfig:
       grid: coarse grid points per scalar parameter.
       profile: 0 skips the intervals (the estimate stands for its interval); any other value
         computes them (its size no longer matters: the profile is searched, not gridded).
-      bootstrap: unused (intervals were bootstrap percentiles, which could miss the estimate);
-        kept so that saved configs still load.
+      bootstrap: unused (intervals were bootstrap percentiles, which could miss the estimate;
+        the held-out tests resample ``DiagnoseConfig.boot`` times); kept so that saved configs
+        and benchmark rows still load.
       refits: unused, for the same reason.
       max_nfev: least-squares evaluations per parameter.
       seed: of the resampling.
