@@ -282,7 +282,7 @@ def scalar_interval(obj: Objective, x: float, f: float, lo: float, hi: float, le
     quadratic the profile bends it. ``V`` is the block variance of the loss gradient (central
     differences of the per-block losses), ``H`` the curvature. Clipped to ``[lo, hi]``; contains
     ``x`` by construction. A flat or concave profile (``H <= 0``) gives the bounds. The ends are
-    bracketed by doubling steps from ``x`` and refined by bisection to 2% of the half width.
+    bracketed by doubling steps from ``x`` and refined to 5% of the sandwich half width.
     """
     span = hi - lo
     total = lambda v: float(obj.block_losses(np.array([v])).sum())
@@ -303,34 +303,44 @@ def scalar_interval(obj: Objective, x: float, f: float, lo: float, hi: float, le
             return lo, hi, {"method": "profile", "flat": True}
         half = _quantile(level, obj.nb) * np.sqrt(V) / H
         new_h = float(np.clip(half / 2, 1e-4 * span, 0.05 * span))
-        if 0.3 < new_h / h < 3:
+        if 0.2 < new_h / h < 5:
             break
         h = new_h
     c = half ** 2 * H / 2
     info = {"method": "profile", "threshold": c, "sandwich_half_width": half}
     ends = []
     for sign, bound in ((-1, lo), (1, hi)):
-        inside, step = x, half
-        while True:
+        inside, step = x, 1.2 * half  # a little past the sandwich end: brackets a quadratic profile
+        while True:  # bracket the end: doubling steps from x
             v = float(np.clip(x + sign * step, lo, hi))
-            if total(v) - f > c:
-                outside = v
+            Dv = total(v) - f
+            if Dv > c:
                 break
             inside = v
             if v == bound:
-                outside = None
                 break
             step *= 2
-        if outside is None:
+        if inside == bound:
             ends.append(bound)
             continue
-        a, b = inside, outside  # bisection: the profile need not be monotone, nor exactly repeatable
-        for _ in range(8):
-            if abs(b - a) <= 0.02 * half:
+        # refine: the root of the parabola from x through the outer point (exact for a quadratic
+        # profile), kept 10% inside the bracket (the profile need not be monotone), until the
+        # profile there is within 10% of the threshold
+        a, b, Db, end = inside, v, Dv, None
+        for _ in range(4):
+            m = x + (b - x) * np.sqrt(c / Db)
+            m = float(np.clip(m, min(a, b) + 0.1 * abs(b - a), max(a, b) - 0.1 * abs(b - a)))
+            Dm = total(m) - f
+            if abs(Dm - c) <= 0.1 * c:
+                end = m
                 break
-            m = (a + b) / 2
-            a, b = (a, m) if total(m) - f > c else (m, b)
-        ends.append(float((a + b) / 2))
+            if Dm > c:
+                b, Db = m, Dm
+            else:
+                a = m
+            if abs(b - a) <= 0.05 * half:
+                break
+        ends.append(float((a + b) / 2 if end is None else end))
     return min(ends[0], x), max(ends[1], x), info
 
 
