@@ -139,7 +139,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         expl = 1 - Lb.sum() / max(L_nom, 1e-300)
         boot = 1 - (Wb @ Lb) / boot_nom
         rows.append({"effects": list(f.names), "params": _jsonable(f.params), "param_lo": _jsonable(f.lo),
-                     "param_hi": _jsonable(f.hi), "at_bound": _at_bound(sm, f), "unstable_evals": f.unstable,
+                     "param_hi": _jsonable(f.hi), "at_bound": _at_bound(f), "unstable_evals": f.unstable,
                      "n_params": k, "train_loss": f.train_loss,
                      "heldout_loss": float(Lb.sum()), "explained": float(expl),
                      "explained_ci": np.percentile(boot, [5, 95]).tolist(),
@@ -364,8 +364,8 @@ def _num(x) -> str:
     return f"{float(x):.4g}"
 
 
-def _at_bound(sm: SimModel, f: fit.Fit) -> dict[str, list[bool]]:
-    return {n: [bool(b) for b in np.atleast_1d(f.at_bound.get(n, np.zeros(effects.ALL[n].size, bool)))]
+def _at_bound(f: fit.Fit) -> dict[str, list[bool]]:
+    return {n: [bool(b) for b in np.atleast_1d((f.at_bound or {}).get(n, np.zeros(effects.ALL[n].size, bool)))]
             for n in f.names}
 
 

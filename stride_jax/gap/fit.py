@@ -178,7 +178,7 @@ class Fit(NamedTuple):
     lo: dict
     hi: dict
     evals: int
-    at_bound: dict = {}
+    at_bound: dict | None = None
     unstable: int = 0
 
 
