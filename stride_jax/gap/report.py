@@ -181,7 +181,7 @@ def markdown(d: dict[str, Any], files: dict[str, str], command: str | None = Non
               f"Nominal held-out gap (mean squared scaled {d['config']['steps']}-step residual): {wh['gap_ms']:.4g}; "
               f"noise floor estimate {wh['noise_floor']:.4g}; linear probe on the nominal residual explains "
               f"{wh['probe_explained_nominal']:.1%}; systematic structure left after the best: {wh['structure_left']:.1%}.", "",
-              "| rank | effects | parameters | 90% interval | held-out explained | 90% CI | above floor | score | P(beats next) |",
+              f"| rank | effects | parameters | {d['config'].get('fit', {}).get('level', 0.9):.0%} interval | held-out explained | 90% CI | above floor | score | P(beats next) |",
               "|---|---|---|---|---|---|---|---|---|"]
         for i, r in enumerate(wh["ranking"]):
             flag = " (at the bound)" if any(any(v) for v in r.get("at_bound", {}).values()) else ""
@@ -189,7 +189,8 @@ def markdown(d: dict[str, Any], files: dict[str, str], command: str | None = Non
                      f"{_fmt(r['param_hi'])} | {r['explained']:.1%} | [{r['explained_ci'][0]:.1%}, "
                      f"{r['explained_ci'][1]:.1%}] | {r['explained_above_floor']:.1%} | {r['score']:.3f} | "
                      f"{r['p_beats_next']:.2f} |")
-        L += ["", "Parameter intervals: 90% profile-likelihood (scalars) or sandwich (vectors, pairs) intervals of the "
+        level = d["config"].get("fit", {}).get("level", 0.9)
+        L += ["", f"Parameter intervals: {level:.0%} profile-likelihood (scalars) or sandwich (vectors, pairs) intervals of the "
               "training loss, calibrated by the spread of its gradient over blocks of the logs, clipped to the "
               "parameter's bounds; they contain the estimate. They cover sampling noise only, not the bias that "
               "sensor noise in the replayed start states gives the estimate (docs/gap.md). \"(at the bound)\": the "
