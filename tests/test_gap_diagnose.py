@@ -88,3 +88,8 @@ def test_small_effect_in_noise_detected_and_control_is_not():
         assert 0 < det["p_value"] <= 1 and det["level"] < cfg.alpha
     assert verdicts["control"]["verdict"] == "no significant gap", verdicts["control"]
     assert verdicts["friction"]["effects"] == ["frictionloss"], verdicts["friction"]
+    # the reasons name the rule that made the call; ties are listed whatever the verdict
+    assert "does not beat the nominal model" in verdicts["control"]["reason"]
+    assert "needs <" in verdicts["control"]["reason"]
+    assert "50% rule" in verdicts["friction"]["reason"] and "15%" in verdicts["friction"]["reason"]
+    assert all(isinstance(v["indistinguishable_from"], list) for v in verdicts.values())

@@ -20,8 +20,9 @@ import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from scipy import stats
 
-from stride_jax.gap import effects, fit, linear_probe, regions
+from stride_jax.gap import effects, fit, linear_probe, regions, sim
 from stride_jax.gap.regions import noise_floor
 from stride_jax.sim.model import SimModel
 
@@ -49,10 +50,8 @@ def check_nominal(sm: SimModel, data: fit.Data, scale: np.ndarray, r_nom: np.nda
 def _block_ids(data: fit.Data, length: int) -> tuple[np.ndarray, int]:
     """``[M]`` block index of each replayed sample (consecutive ``length`` control steps of one
     trajectory) and the number of blocks."""
-    local = data.start - data.bounds[data.traj]
-    key = data.traj.astype(np.int64) * 10 ** 7 + local // max(int(length), 1)
-    _, ids = np.unique(key, return_inverse=True)
-    return ids.ravel(), int(ids.max()) + 1
+    ids, nb, _ = fit.block_ids(data, length)
+    return ids, nb
 
 
 def _lower(x: np.ndarray, level: float) -> float:
@@ -70,12 +69,13 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     bootstrap puts its held-out improvement over the single above zero at level ``alpha / pairs``
     and (b) it removes at least ``pair_min`` of what the single leaves above the noise floor.
     """
+    unstable0 = sim.unstable()
     nom = effects.build(sm)
     r_nom_tr = fit.residual(sm, nom, train, scale)
     r_nom_te = fit.residual(sm, nom, test, scale)
     M = len(r_nom_te)
     ids, nb = _block_ids(test, cfg.block)
-    Wb = _boot_weights(nb, max(cfg.boot, cfg.fit.bootstrap or 0, 100), cfg.seed + 1)  # [B, nb]
+    Wb = _boot_weights(nb, max(cfg.boot, 100), cfg.seed + 1)  # [B, nb]
     blocks = lambda r: np.bincount(ids, weights=(r ** 2).sum(1), minlength=nb)
     Lb_nom = blocks(r_nom_te)
     L_nom = float(Lb_nom.sum())
@@ -99,6 +99,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     ranked = sorted(fits, key=lambda f: held(f.names))
     best_single = ranked[0]
     exact = held(best_single.names) <= 1e-8 * L_nom
+    screen_unstable = 0
     if not exact and cfg.pairs_of >= 2:
         # pairs: the best few singles with each other, and the best single with the effects that
         # most lower the training loss on top of it (a conditional grid screen: an effect that is
@@ -113,6 +114,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
                   else np.linspace(lo, hi, cfg.fit.grid))
             obj = fit.Objective(sm, train, scale, (e.name,), base=best_single.params)
             tot = [obj.losses(np.array([float(x)])).sum() for x in xs]
+            screen_unstable += obj.unstable
             screen.append((min(tot), e.name, float(xs[int(np.argmin(tot))])))
         screen.sort()
         pairs = list(itertools.combinations([f.names[0] for f in ranked[:cfg.pairs_of]], 2))
@@ -137,7 +139,8 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         expl = 1 - Lb.sum() / max(L_nom, 1e-300)
         boot = 1 - (Wb @ Lb) / boot_nom
         rows.append({"effects": list(f.names), "params": _jsonable(f.params), "param_lo": _jsonable(f.lo),
-                     "param_hi": _jsonable(f.hi), "n_params": k, "train_loss": f.train_loss,
+                     "param_hi": _jsonable(f.hi), "at_bound": _at_bound(f), "unstable_evals": f.unstable,
+                     "n_params": k, "train_loss": f.train_loss,
                      "heldout_loss": float(Lb.sum()), "explained": float(expl),
                      "explained_ci": np.percentile(boot, [5, 95]).tolist(),
                      "p_no_better_than_nominal": float((boot <= 0).mean()),
@@ -206,8 +209,12 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     d = Lb_all_nom - Lb_all_best
     flips = np.random.default_rng(cfg.seed + 4).choice([-1.0, 1.0], size=(max(cfg.boot, 1000) * 2, len(d)))
     p_flip = float((1 + ((flips @ d) >= d.sum() - 1e-12 * np.abs(d).sum()).sum()) / (1 + len(flips)))
+    # the Monte Carlo p-value stops at 1 / (1 + flips); the normal approximation of the sign-flip
+    # distribution (mean 0, variance sum d^2) tells apart the gaps beyond that floor
+    z = float(d.sum() / np.sqrt(max(float((d ** 2).sum()), 1e-300)))
     detection = {"explained_crossfit": float(1 - Lb_all_best.sum() / max(Lb_all_nom.sum(), 1e-300)),
                  "explained_lower": detect_lower, "p_value": p_flip, "significant": bool(p_flip < cfg.alpha / n_hyp),
+                 "p_floor": 1 / (1 + len(flips)), "z": z, "p_normal": float(stats.norm.sf(z)),
                  "level": cfg.alpha / n_hyp, "hypotheses": n_hyp,
                  "blocks": int(len(Lb_all_nom)), "resamples": int(len(Wa)),
                  "swapped_fit": _jsonable(swap_params)}
@@ -231,7 +238,11 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     for row in rows:
         row["explained_above_floor"] = float(min(1.0, (g_nom - row["heldout_loss"] / M) / above))
         del row["_boot"]
-    return {"ranking": rows, "nominal_heldout_loss": L_nom, "noise_floor": floor,
+    u1 = sim.unstable()
+    unstable = {"fits": int(sum(f.unstable for f in fits)), "pair_screen": int(screen_unstable),
+                "diverged_replays": u1["diverged"] - unstable0["diverged"],
+                "mujoco_warnings": u1["warnings"] - unstable0["warnings"]}
+    return {"ranking": rows, "nominal_heldout_loss": L_nom, "noise_floor": floor, "unstable": unstable,
             "gap_ms": g_nom, "probe_explained_nominal": probe_nom, "structure_left": left,
             "detection": detection,
             "structure_hints": hints, "pair_tests": pair_tests, "best_single": S["effects"], "singles_fitted": n_single,
@@ -239,29 +250,63 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
             "r_nom_test": r_nom_te, "r_best_test": r_best_te, "plan_best": plan_best}
 
 
-def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
-    """The answer to "which": ``no significant gap``, ``explained`` (by the best hypothesis, with
-    ``confident`` True/False) or ``unexplained by the library``.
-
-    A gap is significant when the best hypothesis beats the nominal model on cross-fitted held-out
-    data in a one-sided sign-flip test of block improvements (``w["detection"]``, level
-    ``alpha`` / hypotheses) or the linear probe explains more than
-    ``cfg.significant`` of the held-out residual."""
+def _ties(w: dict[str, Any], cfg: DiagnoseConfig) -> list[str]:
+    """Hypotheses the held-out data cannot tell apart from the best: other effects (neither a
+    subset nor a superset) that match or beat it in at least ``alpha`` of the paired resamples."""
     best = w["ranking"][0]
-    det = w["detection"]
-    significant = det["significant"] or w["probe_explained_nominal"] > cfg.significant
-    if not significant:
-        return {"verdict": "no significant gap", "effects": [], "confident": False,
-                "reason": f"best candidate explains {best['explained']:.1%} of the held-out gap, cross-fitted "
-                          f"{det['explained_crossfit']:.2%} (sign-flip p = {det['p_value']:.3g}, needs < "
-                          f"{det['level']:.3g}; one-sided {1 - det['level']:.2%} bootstrap bound "
-                          f"{det['explained_lower']:.2%}); linear probe "
-                          f"{w['probe_explained_nominal']:.1%}"}
-    # hypotheses the held-out data cannot tell apart from the best (other effects, paired bootstrap)
-    ties = ["+".join(r["effects"]) for r in w["ranking"][1:]
+    return ["+".join(r["effects"]) for r in w["ranking"][1:]
             if r.get("p_matches_best", 0.0) >= cfg.alpha and set(r["effects"]) - set(best["effects"])
             and not set(best["effects"]) < set(r["effects"]) and not set(r["effects"]) < set(best["effects"])]
-    explained = best["explained_above_floor"] >= cfg.attribute_min
+
+
+def bound_note(row: dict[str, Any]) -> str:
+    """"; at the bound: ..." for the parameters of a ranking row whose estimate sits on a bound
+    (other than its nominal value), or ""."""
+    hits = [f"{n} = {_num(row['params'][n][i])}" + (f" ({effects.ALL[n].labels[i]})" if len(row["params"][n]) > 1 else "")
+            for n, flags in row.get("at_bound", {}).items() for i, f in enumerate(flags) if f]
+    return (f"; at the bound: {', '.join(hits)} (the fit stopped at the parameter's bound: the true value may lie "
+            f"beyond it, or another effect is being imitated)") if hits else ""
+
+
+def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
+    """The answer to "which": ``no significant gap``, ``explained`` (by the best hypothesis, with
+    ``confident`` True/False) or ``unexplained by the library``. The reason names the rule that
+    made the call and its numbers.
+
+    Rules, in order:
+
+    1. significant gap: the best hypothesis beats the nominal model on cross-fitted held-out data
+       in a one-sided sign-flip test of block improvements (``w["detection"]``, level ``alpha`` /
+       hypotheses), or the linear probe explains more than ``cfg.significant`` of the held-out
+       residual; otherwise "no significant gap";
+    2. "explained" needs both: the best closes at least ``cfg.attribute_min`` of the held-out gap
+       above the noise floor, and the linear probe finds at most ``cfg.structure_max`` of that gap
+       still systematic after it; otherwise "unexplained by the library", naming the rule(s) that
+       failed;
+    3. an "explained" call is confident when the explained fraction's lower bootstrap bound clears
+       the attribute rule, the best beats the runner-up in ``cfg.confident_p`` of resamples, no
+       other effect ties with it and the fit leaves no structure hint; otherwise the reason names
+       the conditions that failed.
+
+    Every verdict lists the hypotheses the held-out data cannot tell apart from the best
+    (``indistinguishable_from``)."""
+    best = w["ranking"][0]
+    det = w["detection"]
+    name = "+".join(best["effects"])
+    ties = _ties(w, cfg)
+    tie_note = f"; indistinguishable on these logs from {', '.join(ties)}" if ties else ""
+    flip = (f"sign-flip p = {det['p_value']:.3g}" + (f" (its floor; normal approximation {det['p_normal']:.2g})"
+                                                      if det["p_value"] <= det.get("p_floor", 0) * 1.0001 else "")
+            + f", needs < {det['level']:.3g} = {cfg.alpha:g} / {det['hypotheses']} hypotheses")
+    probe = f"linear probe explains {w['probe_explained_nominal']:.1%} of the held-out residual (needs > {cfg.significant:.0%})"
+    if not (det["significant"] or w["probe_explained_nominal"] > cfg.significant):
+        return {"verdict": "no significant gap", "effects": [], "confident": False, "indistinguishable_from": ties,
+                "rule": "detection",
+                "reason": f"no significant gap: the best hypothesis ({name}) does not beat the nominal model on "
+                          f"cross-fitted held-out data ({flip}; it explains {det['explained_crossfit']:.2%} cross-fitted, "
+                          f"{best['explained']:.1%} held out) and the {probe}" + tie_note}
+    why = (f"the gap is significant ({flip})" if det["significant"]
+           else f"the gap is significant by the probe only ({probe}; {flip} fails)")
     pair_note = ""
     if len(best["effects"]) == 2:
         t = best["vs_best_single"]
@@ -278,19 +323,50 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
         hint = (f"; the fit leaves structure: {h['feature']} alone explains {h['explained']:.1%} of the residual "
                 f"left after it ({h['explained'] * left_ms / above:.1%} of the gap above the noise floor; "
                 f"held-out linear probe)")
-    if explained and w["structure_left"] <= cfg.structure_max:
-        confident = (best["explained_ci"][0] >= cfg.attribute_min * (1 - w["noise_floor"] / max(w["gap_ms"], 1e-300))
-                     and best["p_beats_next"] >= cfg.confident_p and not ties and not hint)
-        return {"verdict": "explained", "effects": best["effects"], "confident": bool(confident),
-                "indistinguishable_from": ties,
-                "reason": f"{'+'.join(best['effects'])} explains {best['explained']:.1%} of the held-out gap "
-                          f"({best['explained_above_floor']:.1%} above the noise floor), beats the runner-up "
-                          f"in {best['p_beats_next']:.0%} of resamples; structure left {w['structure_left']:.1%}"
-                          + pair_note + hint
-                          + (f"; indistinguishable on these logs from {', '.join(ties)}" if ties else "")}
-    return {"verdict": "unexplained by the library", "effects": best["effects"], "confident": False,
-            "reason": f"best ({'+'.join(best['effects'])}) explains {best['explained_above_floor']:.1%} above the "
-                      f"noise floor; systematic residual left (linear probe) {w['structure_left']:.1%} of the gap" + hint}
+    closes = (f"the best hypothesis ({name}) closes {best['explained_above_floor']:.1%} of the held-out gap above "
+              f"the noise floor ({best['explained']:.1%} of the whole gap)")
+    left = f"the linear probe finds {w['structure_left']:.1%} of the gap above the floor still systematic after it"
+    failed = []
+    if best["explained_above_floor"] < cfg.attribute_min:
+        failed.append(f"{closes}, below the {cfg.attribute_min:.0%} rule"
+                      + (" (it predicts held-out data worse than the nominal model)" if best["explained"] < 0 else ""))
+    if w["structure_left"] > cfg.structure_max:
+        failed.append(f"{left}, above the {cfg.structure_max:.0%} rule")
+    bounds = bound_note(best)
+    if failed:
+        return {"verdict": "unexplained by the library", "effects": best["effects"], "confident": False,
+                "indistinguishable_from": ties, "rule": "attribute_min" if best["explained_above_floor"] < cfg.attribute_min
+                else "structure_max",
+                "reason": f"unexplained by the library: {'; and '.join(failed)}; {why}" + bounds + hint + tie_note}
+    ci_min = cfg.attribute_min * (1 - w["noise_floor"] / max(w["gap_ms"], 1e-300))
+    shortfalls = []
+    if best["explained_ci"][0] < ci_min:
+        shortfalls.append(f"the explained fraction's lower bound {best['explained_ci'][0]:.1%} is below "
+                          f"{ci_min:.1%} (the {cfg.attribute_min:.0%} rule less the noise floor)")
+    if best["p_beats_next"] < cfg.confident_p:
+        shortfalls.append(f"it beats the runner-up in {best['p_beats_next']:.0%} of resamples (needs "
+                          f"{cfg.confident_p:.0%})")
+    if ties:
+        shortfalls.append("other effects tie with it")
+    if hint:
+        shortfalls.append("the fit leaves structure (below)")
+    confident = not shortfalls
+    return {"verdict": "explained", "effects": best["effects"], "confident": confident,
+            "indistinguishable_from": ties, "rule": "attribute_min",
+            "reason": f"explained: {closes}, at least the {cfg.attribute_min:.0%} rule, and {left} (at most "
+                      f"{cfg.structure_max:.0%}); {why}; "
+                      + (f"confident: it beats the runner-up in {best['p_beats_next']:.0%} of resamples" if confident
+                         else "not confident: " + "; ".join(shortfalls))
+                      + pair_note + bounds + hint + tie_note}
+
+
+def _num(x) -> str:
+    return f"{float(x):.4g}"
+
+
+def _at_bound(f: fit.Fit) -> dict[str, list[bool]]:
+    return {n: [bool(b) for b in np.atleast_1d((f.at_bound or {}).get(n, np.zeros(effects.ALL[n].size, bool)))]
+            for n in f.names}
 
 
 def _jsonable(d: dict) -> dict:

@@ -63,7 +63,8 @@ class DiagnoseConfig:
       pairs_of: fit pairs among this many best single effects (0: no pairs).
       penalty: complexity penalty per fitted parameter, in explained fraction.
       attribute_min: explained fraction (above the noise floor) needed to name an effect.
-      significant: lower bootstrap bound of the explained fraction that counts as a real gap.
+      significant: share of the held-out residual that the linear probe must explain for a gap
+        to count as significant even when the sign-flip test does not find it.
       structure_max: systematic residual left after the best hypothesis (linear probe, fraction of
         the nominal gap above the floor) beyond which the gap is "unexplained by the library".
       confident_p: bootstrap probability that the best beats the runner-up, for a confident call.
@@ -192,6 +193,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     if _rms(r_all) < cfg.exact_nominal:
         out["nominal_check"] = {}
         out["verdict"] = {"verdict": "no significant gap", "effects": [], "confident": True,
+                          "indistinguishable_from": [], "rule": "exact_nominal",
                           "reason": f"the nominal model replays the logs to numerical precision "
                                     f"(scaled RMS {_rms(r_all):.2g})"}
         out["which"], out["how_far"], out["residual"] = None, None, None

@@ -181,13 +181,32 @@ def markdown(d: dict[str, Any], files: dict[str, str], command: str | None = Non
               f"Nominal held-out gap (mean squared scaled {d['config']['steps']}-step residual): {wh['gap_ms']:.4g}; "
               f"noise floor estimate {wh['noise_floor']:.4g}; linear probe on the nominal residual explains "
               f"{wh['probe_explained_nominal']:.1%}; systematic structure left after the best: {wh['structure_left']:.1%}.", "",
-              "| rank | effects | parameters | 90% interval | held-out explained | 90% CI | above floor | score | P(beats next) |",
+              f"| rank | effects | parameters | {d['config'].get('fit', {}).get('level', 0.9):.0%} interval | held-out explained | 90% CI | above floor | score | P(beats next) |",
               "|---|---|---|---|---|---|---|---|---|"]
         for i, r in enumerate(wh["ranking"]):
-            L.append(f"| {i + 1} | {'+'.join(r['effects'])} | {_fmt(r['params'])} | {_fmt(r['param_lo'])} – "
+            flag = " (at the bound)" if any(any(v) for v in r.get("at_bound", {}).values()) else ""
+            L.append(f"| {i + 1} | {'+'.join(r['effects'])} | {_fmt(r['params'])}{flag} | {_fmt(r['param_lo'])} – "
                      f"{_fmt(r['param_hi'])} | {r['explained']:.1%} | [{r['explained_ci'][0]:.1%}, "
                      f"{r['explained_ci'][1]:.1%}] | {r['explained_above_floor']:.1%} | {r['score']:.3f} | "
                      f"{r['p_beats_next']:.2f} |")
+        level = d["config"].get("fit", {}).get("level", 0.9)
+        L += ["", f"Parameter intervals: {level:.0%} profile-likelihood (scalars) or sandwich (vectors, pairs) intervals of the "
+              "training loss, calibrated by the spread of its gradient over blocks of the logs, clipped to the "
+              "parameter's bounds; they contain the estimate. They cover sampling noise only, not the bias that "
+              "sensor noise in the replayed start states gives the estimate (docs/gap.md). \"(at the bound)\": the "
+              "estimate sits on a bound of its parameter: the true value may lie beyond it."]
+        det = wh.get("detection") or {}
+        if det:
+            L += ["", f"Detection (cross-fitted, {det['blocks']} blocks): sign-flip p = {det['p_value']:.3g} (Monte Carlo "
+                  f"floor {det.get('p_floor', 0):.2g}, normal approximation {det.get('p_normal', float('nan')):.2g}), "
+                  f"level {det['level']:.3g}."]
+        u = wh.get("unstable") or {}
+        if u.get("diverged_replays"):
+            L += ["", f"Unstable simulation: {u['diverged_replays']} replays diverged (NaN/Inf; MuJoCo warned "
+                  f"{u['mujoco_warnings']} times, not printed) in {u['fits']} fit evaluations and {u['pair_screen']} of "
+                  "the pair screen; those parameter values scored as very bad fits."]
+        ties = d["verdict"].get("indistinguishable_from") or []
+        L += ["", "Indistinguishable from the best on these logs: " + (", ".join(ties) if ties else "none") + "."]
         L += ["", "Nominal check (max |residual change| of each candidate at its nominal value): "
               + ", ".join(f"{k} {v:.1g}" for k, v in d["nominal_check"].items()), ""]
     hf = d.get("how_far")

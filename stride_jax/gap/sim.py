@@ -12,6 +12,7 @@ only where the controller-side effects need the simulated state (dead band, drag
 from __future__ import annotations
 
 import os
+import threading
 from typing import Callable
 
 import mujoco
@@ -24,6 +25,28 @@ from stride_jax.sim.model import SimModel
 
 _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
 _CONTROL = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_QFRC_APPLIED
+
+
+# MuJoCo resets a world whose state turns NaN, Inf or huge (mjWARN_BADQACC and kin) to its
+# initial pose and goes on, printing a warning once per MjData. A reset replay looks like a finite
+# prediction, so :func:`step` starts every world at time _T0 and reads a reset off the clock; the
+# warnings are counted here instead of printed (:func:`unstable`), since a fit may probe thousands
+# of unstable parameter values.
+_T0 = 1.0
+_COUNT = {"warnings": 0, "diverged": 0}
+_LOCK = threading.Lock()
+
+
+def _count_warning(msg: str) -> None:
+    with _LOCK:
+        _COUNT["warnings"] += 1
+
+
+def unstable() -> dict[str, int]:
+    """Running totals since import: MuJoCo's instability warnings (``warnings``) and diverged
+    worlds (``diverged``, reset by MuJoCo or non-finite) over all :func:`step` calls. Read it
+    before and after a computation to count what that computation met."""
+    return dict(_COUNT)
 
 
 def nthread() -> int:
@@ -55,7 +78,8 @@ def step(sm: SimModel, plan: Plan, q: np.ndarray, qd: np.ndarray, u: np.ndarray
          ) -> tuple[np.ndarray, np.ndarray]:
     """One control period from ``B`` states under per-simulation-step controls ``u [B, n_sub, nu]``.
 
-    Returns the next ``(q [B, nq], qd [B, nv])`` (non-finite where the simulation diverged).
+    Returns the next ``(q [B, nq], qd [B, nv])``, NaN where the simulation diverged (MuJoCo's
+    reset of an unstable world is detected and undone; its warning is counted, not printed).
     """
     m, n_sub = plan.mj, sm.n_substeps
     if u.shape != (len(q), n_sub, m.nu):
@@ -63,10 +87,23 @@ def step(sm: SimModel, plan: Plan, q: np.ndarray, qd: np.ndarray, u: np.ndarray
     control = np.concatenate([u, np.repeat(_drag(sm, plan, qd)[:, None], n_sub, 1)], axis=2)
     nt = max(1, min(nthread(), len(q)))
     datas = [mujoco.MjData(m) for _ in range(nt)]
-    states, _ = mujoco.rollout.rollout(m, datas, _states(m, q, qd), control, control_spec=_CONTROL,
-                                       persistent_pool=True)
+    s0 = _states(m, q, qd)
+    s0[:, 0] = _T0
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(_count_warning)
+    try:
+        states, _ = mujoco.rollout.rollout(m, datas, s0, control, control_spec=_CONTROL, persistent_pool=True)
+    finally:
+        mujoco.set_mju_user_warning(previous)
     last = states[:, -1]
-    return last[:, 1:1 + m.nq].copy(), last[:, 1 + m.nq:1 + m.nq + m.nv].copy()
+    q1, qd1 = last[:, 1:1 + m.nq].copy(), last[:, 1 + m.nq:1 + m.nq + m.nv].copy()
+    bad = (np.abs(last[:, 0] - (_T0 + n_sub * m.opt.timestep)) > 0.5 * m.opt.timestep)
+    bad |= ~(np.isfinite(q1).all(1) & np.isfinite(qd1).all(1))
+    if bad.any():
+        with _LOCK:
+            _COUNT["diverged"] += int(bad.sum())
+        q1[bad], qd1[bad] = np.nan, np.nan
+    return q1, qd1
 
 
 def _act_q(sm: SimModel, q: np.ndarray) -> np.ndarray:
