@@ -133,8 +133,12 @@ def _manager(path: pathlib.Path, max_to_keep: int) -> ocp.CheckpointManager:
     checkpoint (no commit marker) but that blocks saving that step again after resuming.
     """
     path = path.absolute()
+    # Several processes: orbax's async saves name their cross-process barrier after the step
+    # alone, so the latest and the best checkpoint of one step (two managers) collided
+    # ("Barrier _async_write_complete.30 is already ongoing"); save synchronously there.
     options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True,
-                                           cleanup_tmp_directories=True)
+                                           cleanup_tmp_directories=True,
+                                           enable_async_checkpointing=jax.process_count() == 1)
     mngr = ocp.CheckpointManager(path, options=options)
     mngr.reload()
     finished = set(mngr.all_steps())
