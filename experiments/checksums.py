@@ -8,7 +8,6 @@ standard tool and a changed file is noticed (``tests/test_results.py`` checks th
 
 from __future__ import annotations
 
-import hashlib
 import pathlib
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -26,16 +25,10 @@ def files(results: pathlib.Path = RESULTS) -> list[pathlib.Path]:
     return sorted(out)
 
 
-def sha256(path: pathlib.Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def listing(results: pathlib.Path = RESULTS) -> str:
-    return "".join(f"{sha256(p)}  {p.relative_to(results).as_posix()}\n"
+    from stride_jax.io import file_sha256
+
+    return "".join(f"{file_sha256(p)}  {p.relative_to(results).as_posix()}\n"
                    for p in files(results))
 
 

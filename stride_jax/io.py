@@ -31,6 +31,17 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write(path, lambda f: f.write(text.encode()))
 
 
+def file_sha256(path: str | os.PathLike) -> str:
+    """The SHA-256 of a file's bytes (hex), read in 1 MiB blocks."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def code_version() -> str:
     """The code a result was made with: ``$STRIDE_COMMIT`` when set (a copy of the tree without
     ``.git``, such as a lent GPU machine's), else ``git describe --always --dirty`` of the

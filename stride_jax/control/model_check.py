@@ -40,18 +40,6 @@ def spearman(a: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.sum(ra * rb) / jnp.sqrt(jnp.sum(ra ** 2) * jnp.sum(rb ** 2))
 
 
-def weights(costs: jax.Array, temperature: float, normalize: bool = True) -> jax.Array:
-    """MPPI's softmax weights of ``costs`` ``[K]`` (:func:`stride_jax.control.mppi.make`'s rule)."""
-    costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
-    finite = jnp.isfinite(costs)
-    shifted = costs - jnp.min(costs)
-    if normalize:
-        spread = jnp.sqrt(jnp.sum(jnp.where(finite, shifted, 0.0) ** 2)
-                          / jnp.maximum(finite.sum(), 1))
-        shifted = shifted / jnp.maximum(spread, 1e-6)
-    return jax.nn.softmax(-shifted / temperature)
-
-
 def one_state(model_dynamics: Callable, true_dynamics: Callable, running_cost: Callable,
               value: Callable, candidates: jax.Array, q: jax.Array, qd: jax.Array,
               key: jax.Array, temperature: float, n_joints: int) -> dict:
@@ -65,7 +53,7 @@ def one_state(model_dynamics: Callable, true_dynamics: Callable, running_cost: C
     c_true, qs_t, qds_t = roll(true_dynamics)
     vel = jnp.linalg.norm(qds_m[..., :3] - qds_t[..., :3], axis=-1)  # [K, H] base velocity
     joints = jnp.sqrt(jnp.mean((qs_m[..., 7:7 + n_joints] - qs_t[..., 7:7 + n_joints]) ** 2, -1))
-    w_model, w_true = weights(c_model, temperature), weights(c_true, temperature)
+    w_model, w_true = mppi.weights(c_model, temperature), mppi.weights(c_true, temperature)
     plan = lambda w: jnp.einsum("k,khu->hu", w, candidates)
     cost_of = lambda a: mppi.open_loop_cost(true_dynamics, running_cost, value, q, qd, a, key)[0]
     K = candidates.shape[0]

@@ -187,6 +187,20 @@ def open_loop_cost(dynamics: Dynamics, running_cost: Callable, value: Callable, 
     return cost - value(q, qd), qs, qds
 
 
+def weights(costs: jax.Array, temperature: float, normalize: bool = True) -> jax.Array:
+    """MPPI's weights of ``costs`` ``[K]``: ``softmax(-(c - min c) / temperature)``, the shifted
+    costs divided by their RMS over the finite ones first when ``normalize``; a non-finite cost
+    gets no weight."""
+    costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
+    finite = jnp.isfinite(costs)
+    shifted = costs - jnp.min(costs)
+    if normalize:
+        spread = jnp.sqrt(jnp.sum(jnp.where(finite, shifted, 0.0) ** 2)
+                          / jnp.maximum(finite.sum(), 1))
+        shifted = shifted / jnp.maximum(spread, 1e-6)
+    return jax.nn.softmax(-shifted / temperature)
+
+
 def sample_sharding() -> NamedSharding | None:
     """The samples split over all local devices (None on one device)."""
     devices = jax.local_devices()
@@ -301,17 +315,12 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
             actions = jnp.concatenate([actions, p_actions])
         costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)  # a diverged rollout gets no weight
         finite = jnp.isfinite(costs)
-        shifted = costs - jnp.min(costs)
-        if cfg.normalize:
-            spread = jnp.sqrt(jnp.sum(jnp.where(finite, shifted, 0.0) ** 2)
-                              / jnp.maximum(finite.sum(), 1))
-            shifted = shifted / jnp.maximum(spread, 1e-6)
-        weights = jax.nn.softmax(-shifted / cfg.temperature)
-        new_plan = jnp.einsum("k,khu->hu", weights, actions)
+        w = weights(costs, cfg.temperature, cfg.normalize)
+        new_plan = jnp.einsum("k,khu->hu", w, actions)
         ok = finite.any() & jnp.all(jnp.isfinite(new_plan))
         status = jnp.where(ok, PLANNED, NO_FINITE_ROLLOUT).astype(jnp.int32)
         new_plan = jnp.where(ok, new_plan, plan)
-        return new_plan, Info(costs, weights, jnp.min(costs), new_plan, status, actions)
+        return new_plan, Info(costs, w, jnp.min(costs), new_plan, status, actions)
 
     def step(state: MPPIState, q: jax.Array, qd: jax.Array):
         key, key_step = jax.random.split(state.key)

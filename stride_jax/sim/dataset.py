@@ -12,7 +12,6 @@ then ``os.replace``), so an interrupted write never leaves a half-written datase
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import os
 import pathlib
@@ -113,14 +112,6 @@ def episode_arrays(ep: Episode) -> dict[str, np.ndarray]:
     return arrays
 
 
-def _sha256(path: pathlib.Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def save(path: str | os.PathLike, ep: Episode, meta: dict[str, Any]) -> Dataset:
     """Writes a dataset folder atomically; ``meta`` must name at least ``robot``, ``dt``, ``seed``.
 
@@ -142,7 +133,7 @@ def save(path: str | os.PathLike, ep: Episode, meta: dict[str, Any]) -> Dataset:
     arrays_path = path / "arrays.npz"
     io.atomic_write(arrays_path, lambda f: np.savez(f, **arrays))
     meta["arrays_bytes"] = arrays_path.stat().st_size
-    meta["arrays_sha256"] = _sha256(arrays_path)
+    meta["arrays_sha256"] = io.file_sha256(arrays_path)
     io.atomic_write(path / "meta.json", lambda f: f.write(json.dumps(meta, indent=1).encode()))
     return Dataset(path, arrays, meta)
 
@@ -167,7 +158,7 @@ def load(path: str | os.PathLike, robot: str | None = None, verify: bool = True)
     if size != meta["arrays_bytes"]:
         raise DatasetError(f"dataset {path}: arrays.npz has {size} bytes, meta.json recorded "
                            f"{meta['arrays_bytes']} (truncated or replaced file)")
-    if verify and _sha256(arrays_path) != meta["arrays_sha256"]:
+    if verify and io.file_sha256(arrays_path) != meta["arrays_sha256"]:
         raise DatasetError(f"dataset {path}: arrays.npz fails its SHA-256 check (corrupt file)")
     try:
         with np.load(arrays_path) as z:
