@@ -121,6 +121,8 @@ def test_training_runs_record_and_check_their_checksum(tmp_path):
 
     blobs = [p for p in (run / "best").rglob("*") if p.is_file() and p.parent.name == "d"]
     _flip_bits(max(blobs, key=lambda p: p.stat().st_size), 16)
-    with pytest.raises(dyn.CheckpointError, match=r"best/\d+ is damaged: its parameters do not "
-                                                  "match the checksum"):
+    # Flipped bits land either in the numbers (orbax reads them: the checksum refuses) or in the
+    # blob's own structure (orbax cannot read it: refused as unreadable); seen both ways.
+    with pytest.raises(dyn.CheckpointError, match=r"best/\d+ is damaged: (its parameters do not "
+                                                  "match the checksum|cannot restore it)"):
         dyn.load(run)
