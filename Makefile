@@ -16,7 +16,7 @@ ifneq ($(wildcard ../shared/menagerie),)
 export MENAGERIE_ROOT ?= $(abspath ../shared/menagerie)
 endif
 
-.PHONY: setup demo data train eval table1 reproduce report ppo closed-loop test bench-sim bench-mppi gap-bench clean
+.PHONY: setup demo data train eval table1 reproduce report ppo closed-loop test test-gpu bench-sim bench-mppi gap-bench clean
 
 $(BIN)/stride: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -90,3 +90,8 @@ gap-bench: setup
 
 clean:
 	rm -rf data/ runs/ .pytest_cache
+
+## test-gpu: on a machine with a GPU, the kernel tests compiled and in the interpreter, the
+## GPU-only checks (tests/test_gpu.py) and MJX's records on the GPU; a missing GPU fails
+test-gpu: setup
+	STRIDE_REQUIRE_GPU=1 $(BIN)/python -m pytest -q -p no:cacheprovider tests/test_gpu.py tests/test_fused.py tests/test_fused_step.py tests/test_record.py

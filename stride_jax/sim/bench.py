@@ -73,7 +73,8 @@ def _physics_fn(sm: model.SimModel, batch: int, n_steps: int):
     def one(key):
         d = mjx.make_data(mx).replace(qpos=qpos.at[7:].add(0.01 * jax.random.normal(key, (sm.mj.nq - 7,)))
                                       if sm.robot.floating_base else qpos)
-        d = jax.lax.fori_loop(0, n_steps * sm.n_substeps, lambda _, dd: mjx.step(mx, dd), d)
+        with jax.default_matmul_precision(rollout_mjx.PRECISION):  # as the data's physics
+            d = jax.lax.fori_loop(0, n_steps * sm.n_substeps, lambda _, dd: mjx.step(mx, dd), d)
         return d.qpos
 
     fn = jax.jit(jax.vmap(one))
