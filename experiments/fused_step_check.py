@@ -21,10 +21,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import stride_jax
-from stride_jax.control import bench
+from stride_jax.jobs import bench_mppi as bench
 from stride_jax.dynamics import fused_step, models, stride
-from stride_jax.sim.bench import median_time
-from stride_jax.train import job
+from stride_jax.timing import median_time
+from stride_jax.train.setup import model_config
 
 
 def main():
@@ -51,7 +51,7 @@ def main():
     else:
         act = dataclasses.replace(act, dt=act.dt * act.n_substeps / a.substeps,
                                   n_substeps=a.substeps)
-        cfg = job.model_config("stride", meta, a.hidden, 3, 2, True)
+        cfg = model_config("stride", meta, a.hidden, 3, 2, True)
         scales = stride.Scales()
         params = models.make("stride", spec, act, cfg, scales).init(jax.random.key(0))
         noise = lambda x, k: x + 0.05 * jax.random.normal(k, x.shape)

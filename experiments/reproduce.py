@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> dict:
 
 def _pretrain(cfg, preset: str, parallel: int, t0: float) -> None:
     """The pendulum runs of the selected parts, ``parallel`` ``stride train`` processes at once."""
-    from stride_jax import pool
+    from stride_jax.jobs import pool
     from stride_jax.eval import runs
     from stride_paper import figures
 

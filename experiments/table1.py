@@ -30,7 +30,8 @@ import sys
 import time
 
 import stride_jax
-from stride_jax import config, pool
+from stride_jax import config
+from stride_jax.jobs import pool
 
 PRESETS = {
     # data episodes, training preset (its steps unless ``steps`` is given), eval preset

@@ -39,7 +39,7 @@ from stride_jax.dynamics import models as models_lib
 from stride_jax.eval import allocation, contact, horizon, nfe, phase
 from stride_jax.eval import runs as runs_lib
 from stride_jax.io import atomic_write_text
-from stride_jax.train import job
+from stride_jax.jobs import train as job
 from stride_paper import layout
 
 PARTS = ("phase", "allocation", "nfe", "horizon", "forces")

@@ -6,7 +6,8 @@ import textwrap
 import numpy as np
 import pytest
 
-from stride_jax.gap import cli, importer, logs, real
+from stride_jax.gap import importer, logs, real
+from stride_jax.jobs import gap as cli
 from stride_jax.sim import model
 
 T0 = 1.7e9  # epoch seconds: the importer must not lose the milliseconds

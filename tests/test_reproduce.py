@@ -12,7 +12,7 @@ import pytest
 
 from stride_jax.eval import horizon, phase, runs
 from stride_paper import figures, layout
-from stride_jax.train import job
+from stride_jax.jobs import train as job
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from stride_jax.gap import cli, logs
+from stride_jax.gap import logs
+from stride_jax.jobs import gap as cli
 from stride_jax.robots import RobotError, get
 from stride_jax.sim import model
 
