@@ -15,7 +15,7 @@ Built only from result files on disk (paths relative to the results folder):
 The paper's numbers are the constants below, each with where it is in ``stride.tex``. Every
 verdict is computed from the numbers: ``holds`` / ``does not hold`` when measured, ``not run``
 when the input is absent, ``not measurable`` when the runs exist but give no finite number (e.g.
-every rollout diverged). Spread is the std over seeds (population std, as ``eval/table.py``).
+every rollout diverged). Spread is the std over seeds (population std, as ``jobs/eval.py``).
 """
 
 from __future__ import annotations
@@ -55,11 +55,11 @@ def find_summary(results: pathlib.Path) -> tuple[pathlib.Path | None, str | None
 
 def summary_claims(summary: dict) -> tuple[list[dict], str]:
     """The summary's claims with verdicts recomputed from its numbers (the same criteria as
-    ``figures.claims``); a note says when a stored verdict differs or recomputing failed."""
+    ``claims.claims``); a note says when a stored verdict differs or recomputing failed."""
     stored = {c.get("id"): c.get("holds") for c in summary.get("claims") or []}
     try:
-        from stride_paper import figures
-        claims = figures.claims(summary)
+        from stride_paper import claims as claims_lib
+        claims = claims_lib.claims(summary)
         note = "verdicts recomputed from the summary's numbers"
     except (KeyError, TypeError, ValueError, IndexError, AttributeError, ZeroDivisionError) as e:
         claims = [dict(c) for c in summary.get("claims") or []]
@@ -78,7 +78,7 @@ def claim_spread(summary: dict, cid: str) -> str | None:
             robot = m.group(1) or m.group(3)
             runs = summary["horizon"]["per_run"][robot]
             other = m.group(2)
-            if other is None:  # the best baseline by mean, as figures.claims
+            if other is None:  # the best baseline by mean, as claims.claims
                 t = summary["horizon"]["table"][robot]
                 cands = {k: v["cumulative_mean"] for k, v in t.items()
                          if k != "stride" and v.get("cumulative_mean")}
@@ -214,7 +214,7 @@ def summary_section(summary: dict, path: pathlib.Path, tag: str, claims: list[di
     if missing:
         lines += ["", "Runs missing from the figures: " + "; ".join(
             f"{p}: {', '.join(map(str, m))}" for p, m in missing.items())]
-    lines += ["", "Every claim of `summary.json` (criteria in `stride_paper/figures.py`):", ""]
+    lines += ["", "Every claim of `summary.json` (criteria in `stride_paper/claims.py`):", ""]
     rows = []
     for c in claims:
         spread = claim_spread(summary, c["id"])

@@ -24,7 +24,7 @@ def load_table1(results: pathlib.Path, robot: str) -> dict:
     d = _load_json(path)
     if not isinstance(d, dict) or not isinstance(d.get("runs"), list):
         raise ValueError(f"{path}: not a Table I file (expected a 'runs' list, as written by "
-                         "stride_jax.eval.table)")
+                         "stride_jax.jobs.eval)")
     d["_path"] = path
     return d
 

@@ -197,9 +197,9 @@ def test_missing_table1_names_the_file(results):
         report.build(results)
 
 
-def test_paper_constants_match_figures():
-    from stride_paper import figures
-    assert report.PAPER_TABLE1 == figures.PAPER_TABLE
+def test_paper_constants_match_claims():
+    from stride_paper import claims
+    assert report.PAPER_TABLE1 == claims.PAPER_TABLE
 
 
 def test_script(results, tmp_path):
