@@ -64,8 +64,8 @@ class ReproduceConfig:
         (steps 0: the preset's).
       pendulum_episodes, pendulum_seconds, pendulum_train_preset, pendulum_steps,
         pendulum_seeds: the same for the pendulum and bouncing-pendulum runs.
-      horizon_tables: Table I files (``results/<robot>/table.json``) to read the horizon part's
-        errors from instead of evaluating runs: the same numbers Table I shows, every seed.
+      horizon_tables: Table I files (``results/table1/<robot>/table.json``) to read the horizon
+        part's errors from instead of evaluating runs: the same numbers Table I shows, every seed.
       horizon, windows, samples: rollout evaluation (steps, test windows, latent samples).
       nfe_flow, nfe_diffusion: NFE grids of the trade-off.
       timing_repeats: timed calls per inference rate (median).
@@ -125,7 +125,8 @@ PRESETS = {
                  phase_grid=11, phase_worlds=32, phase_samples=16, alloc_steps=256),
     # GPU: legged runs from `experiments/table1.py --preset paper` under the same root; the
     # horizon part reads Table I's own numbers (every seed) from the committed tables.
-    "paper": dict(out="results/reproduce/paper", horizon_tables="results/go1/table.json,results/g1/table.json"),
+    "paper": dict(out="results/reproduce/paper",
+                  horizon_tables="results/table1/go1/table.json,results/table1/g1/table.json"),
 }
 
 

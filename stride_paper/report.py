@@ -2,14 +2,16 @@
 
 Built only from result files on disk (paths relative to the results folder):
 
-* ``go1/table.json``, ``g1/table.json`` (required): Table I, every run per seed
-  (``experiments/table1.py``);
+* ``table1/go1/table.json``, ``table1/g1/table.json`` (required): Table I, every run per seed
+  (``experiments/table1.py``), and every other ``table1/<data set>/table.json``;
 * ``reproduce/<preset>/summary.json``: the figures' numbers (``experiments/reproduce.py``); the
   ``paper`` preset is preferred (``reproduce/paper/`` or ``reproduce/summary.json`` tagged
   ``paper``), else ``tiny``, whose numbers test the pipeline and say nothing about the paper;
-* ``bench_mppi_cpu.json``, ``bench_mppi_gpu.json`` (and ``*/bench_mppi_*.json``): MPPI latency
+* ``mppi_latency/bench_mppi_cpu.json``, ``mppi_latency/bench_mppi_gpu.json`` (and
+  ``mppi_latency/*/**/bench_mppi_*.json``): MPPI latency
   (``stride bench-mppi``) against the issue-4 targets;
-* ``closed_loop*/**/*.json``: closed-loop MPPI runs (``stride_jax.control.closed_loop``);
+* ``closed_loop*/**/*.json``: closed-loop MPPI runs (``stride_jax.control.closed_loop``; the
+  committed ones in ``closed_loop/``);
 * ``gap_bench.json``: a pointer to the gap tool's benchmark.
 
 The paper's numbers are the constants below, each with where it is in ``stride.tex``. Every
@@ -25,9 +27,9 @@ import pathlib
 import re
 
 from stride_paper.report_common import (
-    FAILS, HOLDS, NAMES, NOT_MEASURABLE, NOT_RUN, PAPER_ALLOCATION, ROBOT_NAMES, ROBOTS,
-    WHERE_ALLOCATION, WHERE_NFE, WHERE_PHASE, Row, _any, _dig, _git_note, _load_json, _pm, _stats,
-    _table, verdict,
+    FAILS, FIGURES_DIR, HOLDS, NAMES, NOT_MEASURABLE, NOT_RUN, PAPER_ALLOCATION, ROBOT_NAMES,
+    ROBOTS, WHERE_ALLOCATION, WHERE_NFE, WHERE_PHASE, Row, _any, _dig, _git_note, _load_json, _pm,
+    _stats, _table, verdict,
 )
 from stride_paper.report_common import PAPER_TABLE1  # noqa: F401  (re-exported)
 from stride_paper.report_control import closed_loop_rows, gap_lines, mppi_rows
@@ -39,7 +41,7 @@ from stride_jax.io import atomic_write_text
 
 def find_summary(results: pathlib.Path) -> tuple[pathlib.Path | None, str | None]:
     """The paper preset's summary.json if present, else the tiny preset's, else (None, None)."""
-    rep = results / "reproduce"
+    rep = results / FIGURES_DIR
     found = []
     for p in [rep / "paper" / "summary.json", rep / "summary.json",
               *sorted(rep.glob("*/summary.json"))]:
@@ -276,7 +278,7 @@ def build(results: str | os.PathLike = "results", out: str | os.PathLike | None 
                   f"`{tag or 'missing'}` reproduce preset**" + (
                       ": numbers that test the pipeline, not the paper." if tag else
                       ": not run.") + " Table I comes from the paper-size runs of "
-                  "`results/<robot>/table.json`.", ""]
+                  "`results/table1/<robot>/table.json`.", ""]
     lines += ["## Claims and verdicts", ""]
     lines += _table(["#", "claim", "paper (where)", "ours", "verdict", "source"],
                     [[i + 1, r.claim, f"{r.paper} — {r.where}", r.ours, f"**{r.verdict}**",
@@ -288,7 +290,9 @@ def build(results: str | os.PathLike = "results", out: str | os.PathLike | None 
     lines += s_lines + m_lines + c_lines + gap_lines(results, rel)
     lines += ["## How to regenerate", "",
               "`R` is a data and runs folder; the GPU steps fit 10-minute calls by resuming "
-              "(`--minutes`, `--parts`; see `docs/reproduce.md`).", ""]
+              "(`--minutes`, `--parts`; see `docs/reproduce.md`). Each section's inputs are one "
+              "folder of `results/` whose `README.md` gives the exact commands (`results/README.md` "
+              "is the index).", ""]
     lines += [f"- {what}: `{cmd}`" for what, cmd in REGENERATE]
     return {"markdown": "\n".join(lines) + "\n", "rows": rows}
 

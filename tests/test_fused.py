@@ -1,5 +1,5 @@
 """The fused network kernels equal JAX's own derivatives of the Flax networks (Pallas'
-interpreter runs the kernels on a CPU; the GPU timings are in results/README.md)."""
+interpreter runs the kernels on a CPU; the GPU timings are in results/mppi_latency/README.md)."""
 
 import dataclasses
 

@@ -1,5 +1,5 @@
 """The whole model step as one kernel (``fused_step``) equals the XLA step: Pallas' interpreter
-runs the kernel on a CPU (the GPU timings are in results/README.md)."""
+runs the kernel on a CPU (the GPU timings are in results/mppi_latency/README.md)."""
 
 import dataclasses
 

@@ -75,7 +75,7 @@ class BenchConfig:
     substeps: int = 0
     unroll: int = 1
     repeats: int = 5
-    out: str = "results"
+    out: str = "results/mppi_latency"
 
 
 PRESETS = {

@@ -43,7 +43,7 @@ class BenchConfig:
     repeats: int = 3
     iterations: int = 0
     ls_iterations: int = 0
-    out: str = "results"
+    out: str = "results/throughput"
 
 
 PRESETS = {

@@ -71,9 +71,9 @@ class TrainConfig(loop.LoopConfig):
 PRESETS = {
     "tiny": dict(hidden=32, depth=2, steps=100, batch=64, eval_every=50, ckpt_every=50,
                  data_preset="tiny"),
-    # CPU-sized (``results/go1_cpu``): 128 x 3 networks, the loop's 2000 steps of 256.
+    # CPU-sized (``results/table1/go1_cpu``): 128 x 3 networks, the loop's 2000 steps of 256.
     "default": dict(hidden=128),
-    # The committed Table I (``results/go1``, ``results/g1``; H100): MLPConfig's 256 x 3, batch
+    # The committed Table I (``results/table1/go1``, ``results/table1/g1``; H100): MLPConfig's 256 x 3, batch
     # 1024, 12k steps (the Go1 tables; the G1 tables ran ``--steps 8000``), each run also under a
     # wall-clock budget (``experiments/table1.py --minutes``). The one source of these numbers:
     # ``experiments/table1.py`` and ``experiments/reproduce.py`` use this preset as it is.
