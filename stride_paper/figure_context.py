@@ -7,15 +7,13 @@ import dataclasses
 import json
 import pathlib
 import platform
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import jax
 import numpy as np
 
 from stride_jax.io import atomic_write_text
-
-if TYPE_CHECKING:
-    from stride_paper.figures import ReproduceConfig
+from stride_paper.figures_config import ReproduceConfig
 
 
 def split_ints(s: str) -> list[int]:

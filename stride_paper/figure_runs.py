@@ -5,16 +5,13 @@ here when absent) and legged runs (``experiments/table1.py``'s; trained here onl
 from __future__ import annotations
 
 import pathlib
-from typing import TYPE_CHECKING
 
 from stride_jax.eval import horizon
 from stride_jax.eval import runs as runs_lib
 from stride_jax.jobs import train as job
 from stride_paper import layout
 from stride_paper.figure_context import Context, split_ints, split_names
-
-if TYPE_CHECKING:
-    from stride_paper.figures import ReproduceConfig
+from stride_paper.figures_config import ReproduceConfig
 
 
 def pendulum_configs(cfg: ReproduceConfig, tag: str, robot: str, names) -> dict[str, list]:

@@ -291,8 +291,8 @@ def build(results: str | os.PathLike = "results", out: str | os.PathLike | None 
     lines += ["## How to regenerate", "",
               "`R` is a data and runs folder; the GPU steps fit 10-minute calls by resuming "
               "(`--minutes`, `--parts`; see `docs/reproduce.md`). Each section's inputs are one "
-              "folder of `results/` whose `README.md` gives the exact commands (`results/README.md` "
-              "is the index).", ""]
+              "folder of `results/` whose `README.md` gives the exact commands "
+              "(`results/README.md` is the index).", ""]
     lines += [f"- {what}: `{cmd}`" for what, cmd in REGENERATE]
     return {"markdown": "\n".join(lines) + "\n", "rows": rows}
 

@@ -1,4 +1,5 @@
-"""``stride eval``: the paper's Table I for trained runs -> ``results/table1/<robot>/table.{md,json}``.
+"""``stride eval``: the paper's Table I for trained runs ->
+``results/table1/<robot>/table.{md,json}``.
 
 For each run (a folder written by ``stride train``), on the test split of the dataset it was
 trained on:

@@ -73,8 +73,8 @@ PRESETS = {
                  data_preset="tiny"),
     # CPU-sized (``results/table1/go1_cpu``): 128 x 3 networks, the loop's 2000 steps of 256.
     "default": dict(hidden=128),
-    # The committed Table I (``results/table1/go1``, ``results/table1/g1``; H100): MLPConfig's 256 x 3, batch
-    # 1024, 12k steps (the Go1 tables; the G1 tables ran ``--steps 8000``), each run also under a
+    # The committed Table I (``results/table1/go1``, ``results/table1/g1``; H100): MLPConfig's
+    # 256 x 3, batch 1024, 12k steps (the Go1 tables; the G1 tables ran ``--steps 8000``), each run also under a
     # wall-clock budget (``experiments/table1.py --minutes``). The one source of these numbers:
     # ``experiments/table1.py`` and ``experiments/reproduce.py`` use this preset as it is.
     "paper": dict(steps=12_000, batch=1024, lr=1e-3, eval_every=1000, ckpt_every=2000,
