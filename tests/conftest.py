@@ -26,6 +26,7 @@ def g1():
     return model.load("g1")
 
 
+<<<<<<< HEAD
 def _kernel_modes() -> list[str]:
     """The interpreter runs everywhere (CI); on a GPU the real Triton kernels run as well."""
     import jax
@@ -53,3 +54,42 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "gpu" in item.keywords:
             item.add_marker(skip)
+=======
+_ARM_MJCF = """
+<mujoco model="arm">
+  <option timestep="0.002"/>
+  <worldbody>
+    <body name="upper" pos="0 0 1">
+      <joint name="shoulder" type="hinge" axis="0 1 0" range="-2 2" damping="0.05"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1"/>
+      <body name="fore" pos="0.3 0 0">
+        <joint name="elbow" type="hinge" axis="0 1 0" range="-2 2" damping="0.05"/>
+        <geom type="capsule" fromto="0 0 0 0.25 0 0" size="0.025" mass="0.5"/>HAND
+      </body>
+    </body>
+  </worldbody>ACTUATORS
+</mujoco>
+"""
+_HAND = """
+        <body name="hand" pos="0.25 0 0">
+          <joint name="wrist" type="hinge" axis="0 1 0"/>
+          <geom type="sphere" size="0.03" mass="0.2"/>
+        </body>"""
+
+
+def write_arm(folder: pathlib.Path, actuators: str = "", name: str = "arm.xml",
+              hand: bool = False) -> pathlib.Path:
+    """A two-link arm's MJCF (shoulder and elbow hinges, damped and limited; ``hand``: a third,
+    free wrist hinge with a payload) in ``folder/name``, with ``actuators`` (an ``<actuator>``
+    block) or none; returns its path. The robot takes its name from the file's stem."""
+    path = pathlib.Path(folder) / name
+    path.write_text(_ARM_MJCF.replace("HAND", _HAND if hand else "")
+                    .replace("ACTUATORS", "\n  " + actuators if actuators else ""))
+    return path
+
+
+@pytest.fixture(scope="session")
+def arm_mjcf():
+    """:func:`write_arm`, the one arm the robot-file and log-import tests share."""
+    return write_arm
+>>>>>>> house

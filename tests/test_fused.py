@@ -1,7 +1,7 @@
 """The fused network kernels equal JAX's own derivatives of the Flax networks: in Pallas'
 interpreter everywhere, and compiled on a GPU (the ``kernels`` fixture), within tolerances
 derived from the precision of the products (``tests/precision.py``; TF32 on a GPU). The GPU
-timings are in results/README.md."""
+timings are in results/mppi_latency/README.md."""
 
 import dataclasses
 

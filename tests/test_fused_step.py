@@ -1,6 +1,6 @@
 """The whole model step as one kernel (``fused_step``) equals the XLA step: in Pallas'
 interpreter everywhere and compiled on a GPU (the ``kernels`` fixture), within tolerances derived
-from the products' precision (``tests/precision.py``). The GPU timings are in results/README.md."""
+from the products' precision (``tests/precision.py``). The GPU timings are in results/mppi_latency/README.md."""
 
 import dataclasses
 

@@ -6,7 +6,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from stride_jax.gap import cli, diagnose, real, report, residual
+from stride_jax.gap import diagnose, real, residual
+from stride_jax.jobs import gap as cli, gap_report as report
 from stride_jax.sim import model
 
 

@@ -108,7 +108,7 @@ class Actuation:
 
 
 def spec_from_meta(meta: dict) -> ModelSpec:
-    """The model spec from a dataset's ``meta.json`` (or ``collect.robot_meta``)."""
+    """The model spec from a dataset's ``meta.json`` (or :func:`stride_jax.sim.model.robot_meta`)."""
     nq = meta.get("nq") or len(meta["stats"]["q"]["mean"])
     nv = meta.get("nv") or len(meta["stats"]["qd"]["mean"])
     return ModelSpec(nq=nq, nv=nv, floating_base=meta["floating_base"],

@@ -1,6 +1,6 @@
 """``stride gap``: ``diagnose`` a log folder, ``simulate`` "real" logs with hidden effects, ``import``
 recordings (ROS 2 bags, MCAP, CSV) as logs, ``export`` a simulated dataset as logs, ``bench`` the
-blind benchmark. Wire with ``gap.cli.main(argv)``."""
+blind benchmark (:mod:`stride_jax.jobs.gap_bench`). ``stride gap ARGS`` calls ``main(ARGS)``."""
 
 from __future__ import annotations
 
@@ -86,7 +86,7 @@ class ExportJob:
 @dataclasses.dataclass(frozen=True)
 class BenchJob:
     """``stride gap bench``: the blind benchmark (cases from ``--preset``, a name of
-    ``stride_jax.gap.bench.PRESETS``).
+    ``stride_jax.jobs.gap_bench.PRESETS``).
 
     Attributes:
       out: result folder (<name>.md/json; finished rows in <name>_cases/, which a rerun resumes).
@@ -108,7 +108,8 @@ _DIAGNOSE_ALIASES = {"residual.when": "--residual", "residual.steps": "--residua
 
 
 def _parser() -> argparse.ArgumentParser:
-    from stride_jax.gap import bench, diagnose, residual
+    from stride_jax.gap import diagnose, residual
+    from stride_jax.jobs import gap_bench as bench
 
     p = argparse.ArgumentParser(prog="stride gap", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -149,7 +150,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         if args.cmd == "diagnose":
-            from stride_jax.gap import diagnose, report
+            from stride_jax.gap import diagnose
+            from stride_jax.jobs import gap_report as report
             from stride_jax.sim import model
 
             try:
@@ -178,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.cmd == "export":
             print(logs.export_dataset(j.dataset, j.out))
         elif args.cmd == "bench":
-            from stride_jax.gap import bench
+            from stride_jax.jobs import gap_bench as bench
 
             try:
                 bench.run(bench.PRESETS[args.preset], j.out, command="stride gap " + shlex.join(argv),

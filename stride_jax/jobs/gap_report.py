@@ -1,4 +1,5 @@
-"""Writes a diagnosis as ``report.md`` with plots (matplotlib, Agg) and ``diagnosis.json``."""
+"""``stride gap diagnose``'s output: a diagnosis as ``report.md`` with plots (matplotlib, Agg) and
+``diagnosis.json``."""
 
 from __future__ import annotations
 
