@@ -26,7 +26,6 @@ def g1():
     return model.load("g1")
 
 
-<<<<<<< HEAD
 def _kernel_modes() -> list[str]:
     """The interpreter runs everywhere (CI); on a GPU the real Triton kernels run as well."""
     import jax
@@ -54,7 +53,8 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "gpu" in item.keywords:
             item.add_marker(skip)
-=======
+
+
 _ARM_MJCF = """
 <mujoco model="arm">
   <option timestep="0.002"/>
@@ -92,4 +92,3 @@ def write_arm(folder: pathlib.Path, actuators: str = "", name: str = "arm.xml",
 def arm_mjcf():
     """:func:`write_arm`, the one arm the robot-file and log-import tests share."""
     return write_arm
->>>>>>> house
