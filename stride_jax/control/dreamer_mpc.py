@@ -183,15 +183,23 @@ def run(cfg: AblationConfig, command: str = "", log=print) -> list[dict]:
                 raise ValueError("error_bound=0 is calibrated on the error model's closed-loop "
                                  "error, which the value's report lacks: give --error-bound")
             bound = cfg.error_bound_scale * e_cl * math.sqrt(cfg.short_horizon)
-    rows = []
     for variant in variants:
         t0 = time.perf_counter()
-        vcfg = variant_config(cfg, variant, learned_file, error_file, bound)
-        for r in closed_loop.run(vcfg, command, log):
-            rows.append(dict(r, variant=variant, H=vcfg.mppi.horizon if variant != "policy"
-                             else None))
+        closed_loop.run(variant_config(cfg, variant, learned_file, error_file, bound), command,
+                        log)
         log(f"variant {variant}: {time.perf_counter() - t0:.0f} s")
-        write(rows, cfg, command, out, bound, value_report)
+        write(gather(out), cfg, command, out, bound, value_report)
+    return gather(out)
+
+
+def gather(out: pathlib.Path) -> list[dict]:
+    """The rows of every variant folder under ``out`` (also those of earlier calls, e.g. the
+    rows split over two calls), each with its ``variant``, in :data:`VARIANTS` order."""
+    rows = []
+    for variant in VARIANTS:
+        path = out / variant / "closed_loop.json"
+        if path.is_file():
+            rows += [dict(r, variant=variant) for r in json.loads(path.read_text())["rows"]]
     return rows
 
 

@@ -218,6 +218,15 @@ def _per_candidate(d: learned.Trajectories) -> learned.Trajectories:
     return jax.tree.map(_flat, d)
 
 
+def targets(params: dict, d: learned.Trajectories, cfg: PlannerValueConfig) -> jax.Array:
+    """The value's lambda-return targets ``[N, T]`` of trajectories ``d`` ``[N, T, ...]`` under
+    the value ``params`` (each trajectory bootstraps ``V`` of its last next state; a fall ends
+    the return), as :func:`stride_jax.control.learned.refit_value` computes them."""
+    v = jax.vmap(jax.vmap(lambda o: learned.apply(params, o)))
+    return jax.vmap(learned.lambda_returns, in_axes=(0, 0, 0, 0, None, None))(
+        d.reward, v(d.next_obs), d.terminal, d.reset, cfg.discount, cfg.lam)
+
+
 def value_report(params: dict, data: PlannerData, cfg: PlannerValueConfig) -> dict:
     """How well a value fits its own lambda-returns on the planner's data: R^2 and the mean
     bias ``V - G`` on the closed loop's states and the candidates' states (steps while up)."""
@@ -226,9 +235,7 @@ def value_report(params: dict, data: PlannerData, cfg: PlannerValueConfig) -> di
     for name, d, idx in (("closed", data.closed, i_closed),
                          ("candidates", _per_candidate(data.cand), i_cand)):
         v = jax.vmap(jax.vmap(lambda o: learned.apply(params, o)))
-        g = jax.vmap(learned.lambda_returns, in_axes=(0, 0, 0, 0, None, None))(
-            d.reward, v(d.next_obs), d.terminal, d.reset, cfg.discount, cfg.lam)
-        pred, target = _flat(v(d.obs))[idx], _flat(g)[idx]
+        pred, target = _flat(v(d.obs))[idx], _flat(targets(params, d, cfg))[idx]
         out[f"r2_{name}"] = learned.r2(pred, target)
         out[f"bias_{name}"] = float(jnp.mean(pred - target))
     return out
