@@ -12,6 +12,8 @@ loose to test anything (M's condition number is in the hundreds while the observ
 a few ``u``). There the tolerance is measured instead: :func:`rounded` gives the reference's
 parameters rounded to the products' precision, and the reference's own change under that
 rounding, times ``SAFETY``, bounds the kernel's error (which rounds weights and activations).
+Both reference runs then compute in full float32 (:func:`exact`): on a GPU XLA's own products
+already round to TF32, which would hide the change.
 """
 
 from __future__ import annotations
@@ -33,6 +35,11 @@ def roundoff(dtype=jnp.float32) -> float:
     if jax.default_backend() == "gpu" and precision not in ("highest", "float32"):
         return 2.0 ** -11
     return 2.0 ** -24
+
+
+def exact():
+    """A context in which XLA's float32 products are full float32 on every platform."""
+    return jax.default_matmul_precision("highest")
 
 
 def rounded(tree, dtype=jnp.float32):

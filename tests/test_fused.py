@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from precision import assert_close, rounded
+from precision import assert_close, exact, rounded
 
 from stride_jax.dynamics import flow, fused, mlp, models, stride
 from stride_jax.types import ModelSpec
@@ -127,14 +127,15 @@ def test_model_steps_with_fused_kernels_equal_xla(shared, kernels):
     q = q.at[:, 7:].set(0.3 * jax.random.normal(jax.random.key(3), (n, 3)))
     qd = 0.5 * jax.random.normal(jax.random.key(4), (n, 9))
     ctrl = 0.2 * jax.random.normal(jax.random.key(5), (n, 3))
-    ref = jax.jit(jax.vmap(lambda *a: xla.step(params, *a)))(q, qd, ctrl, keys)
+    with exact():  # the float32 reference (tests/precision.py)
+        ref = jax.jit(jax.vmap(lambda *a: xla.step(params, *a)))(q, qd, ctrl, keys)
+        moved = jax.jit(jax.vmap(lambda *a: xla.step(rounded(params), *a)))(q, qd, ctrl, keys)
     with kernels():
         out = jax.jit(jax.vmap(lambda *a: fast.step(params, *a)))(q, qd, ctrl, keys)
     assert float(jnp.max(jnp.abs(ref[1] - qd))) > 1e-3  # the step moved the state
     # compare the step's change of state (the state itself is exact on both sides); a solve
     # follows the products, so the tolerance is how far XLA's step moves with its weights
     # rounded to the products' precision (tests/precision.py)
-    moved = jax.jit(jax.vmap(lambda *a: xla.step(rounded(params), *a)))(q, qd, ctrl, keys)
     for name, r, o, m, s in zip(("q", "qd"), ref, out, moved, (q, qd)):
         assert_close(o - s, r - s, sensitivity=jnp.max(jnp.abs(m - r)), floor=1e-5,
                      err_msg=name)

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from precision import assert_close, rounded
+from precision import assert_close, exact, rounded
 
 from stride_jax.dynamics import fused, mlp, models, stride
 from stride_jax.types import ModelSpec
@@ -53,7 +53,11 @@ def test_whole_step_equals_the_xla_step(kernels, kernel):
     params = tree.unflatten([noise(w, jax.random.key(i)) for i, w in enumerate(leaves)])
     q, qd, ctrl, keys = _states(spec, 20)  # not a multiple of the kernel's 16 rows
     step = lambda m: jax.jit(jax.vmap(lambda *a: m.step(params, *a)))
-    ref = step(xla)(q, qd, ctrl, keys)
+    dtype = fused.kernel_dtype(kernel)
+    with exact():  # the float32 reference and its change with rounded weights (precision.py)
+        ref = step(xla)(q, qd, ctrl, keys)
+        moved = jax.jit(jax.vmap(lambda *a: xla.step(rounded(params, dtype), *a)))(
+            q, qd, ctrl, keys)
     with kernels():
         jaxpr = jax.make_jaxpr(jax.vmap(lambda *a: fast.step(params, *a)))(q, qd, ctrl, keys)
         out = step(fast)(q, qd, ctrl, keys)
@@ -63,8 +67,6 @@ def test_whole_step_equals_the_xla_step(kernels, kernel):
     assert float(jnp.min(scale)) > 1.0  # the steps accelerate
     # the products feed M, the bias and the flow and a solve follows: the tolerance is how far
     # the XLA step itself moves when its weights are rounded to the kernel's precision
-    dtype = fused.kernel_dtype(kernel)
-    moved = jax.jit(jax.vmap(lambda *a: xla.step(rounded(params, dtype), *a)))(q, qd, ctrl, keys)
     # one number for all rows: each row's rounding is one draw of the same random error
     sens = jnp.max(jnp.abs((moved[1] - ref[1]) / act.dt) / scale)
     assert_close(acc / scale, acc_ref / scale, sensitivity=sens, dtype=dtype, floor=2e-5,
@@ -91,7 +93,22 @@ def test_whole_step_only_where_it_applies():
     fast = models.make("stride", spec, act, dataclasses.replace(cfg, kernel="pallas-step"))
     params = xla.init(jax.random.key(0))
     run = lambda m, p=params: jax.jit(jax.vmap(lambda *a: m.step(p, *a)))(q, qd, ctrl, keys)
-    ref = run(xla)
-    moved = run(xla, rounded(params))  # on a GPU the kernels' products run in TF32
+    with exact():  # on a GPU the kernels' products run in TF32: tests/precision.py
+        ref, moved = run(xla), run(xla, rounded(params))
     for name, r, o, m, s in zip(("q", "qd"), ref, run(fast), moved, (q, qd)):
         assert_close(o - s, r - s, sensitivity=jnp.max(jnp.abs(m - r)), floor=1e-6, err_msg=name)
+
+
+def test_models_too_big_for_shared_memory_take_the_per_pass_kernels():
+    """G1-sized (29 joints) at 128 wide exceeds an SM's shared memory as one kernel (measured
+    on an H100): the step is traced with the per-pass kernels instead; Go1-sized fits at 256."""
+    assert models.whole_step_fits(18, 256) and models.whole_step_fits(35, 64)
+    assert not models.whole_step_fits(35, 128)
+    spec, act = _robot(29)
+    cfg = stride.StructuredConfig(net=mlp.MLPConfig(hidden=128, depth=1), shared_lnn=True,
+                                  kernel="pallas-step")
+    model = models.make("stride", spec, act, cfg)
+    params = model.init(jax.random.key(0))
+    q, qd, ctrl, keys = _states(spec, 4)
+    jaxpr = str(jax.make_jaxpr(jax.vmap(lambda *a: model.step(params, *a)))(q, qd, ctrl, keys))
+    assert "stride_fused_step" not in jaxpr and "stride_fused_mlp" in jaxpr

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from precision import assert_close, rounded, roundoff
+from precision import assert_close, exact, rounded, roundoff
 from test_fused_step import _robot, _states
 
 from stride_jax.dynamics import flow, fused, mlp, models, stride
@@ -47,10 +47,13 @@ def test_kernels_compile_to_triton_calls(name):
     assert "triton" in hlo.lower(), f"{name}: no Triton call in the compiled program"
 
 
-def test_g1_sized_whole_step_runs_as_one_kernel_and_equals_xla():
-    """G1's 29 joints at the paper's 256 x 3: the widest weight tiles the kernel meets."""
+@pytest.mark.parametrize("hidden", [64, 256])
+def test_g1_sized_steps_run_as_kernels_and_equal_xla(hidden):
+    """G1's 29 joints: at 64 wide the whole step is one kernel; at the paper's 256 x 3 its
+    weight tiles exceed an SM's shared memory, so the step takes the per-pass kernels
+    (``models.whole_step_fits``). Both compile here and equal XLA's float32 step."""
     spec, act = _robot(29)
-    cfg = stride.StructuredConfig(net=mlp.MLPConfig(hidden=256, depth=3), shared_lnn=True,
+    cfg = stride.StructuredConfig(net=mlp.MLPConfig(hidden=hidden, depth=3), shared_lnn=True,
                                   learn_mass=True, mass_init=35.0)
     xla = models.make("stride", spec, act, cfg)
     fast = models.make("stride", spec, act, dataclasses.replace(cfg, kernel="pallas-step"))
@@ -59,10 +62,15 @@ def test_g1_sized_whole_step_runs_as_one_kernel_and_equals_xla():
                              for i, w in enumerate(leaves)])
     q, qd, ctrl, keys = _states(spec, 64)
     step = lambda m, p: jax.jit(jax.vmap(lambda *a: m.step(p, *a)))
-    ref, out = step(xla, params)(q, qd, ctrl, keys), step(fast, params)(q, qd, ctrl, keys)
+    with exact():
+        ref, moved = step(xla, params)(q, qd, ctrl, keys), step(xla, rounded(params))(q, qd, ctrl, keys)
+    out = step(fast, params)(q, qd, ctrl, keys)
+    jaxpr = str(jax.make_jaxpr(jax.vmap(lambda *a: fast.step(params, *a)))(q, qd, ctrl, keys))
+    whole = models.whole_step_fits(spec.nv, hidden)
+    assert whole == (hidden <= 64)
+    assert ("stride_fused_step" in jaxpr) == whole and "stride_fused" in jaxpr
     hlo = step(fast, params).lower(q, qd, ctrl, keys).compile().as_text()
     assert "triton" in hlo.lower()
-    moved = step(xla, rounded(params))(q, qd, ctrl, keys)
     acc_ref, acc = (ref[1] - qd) / act.dt, (out[1] - qd) / act.dt
     scale = jnp.max(jnp.abs(acc_ref), axis=1, keepdims=True)
     sens = jnp.max(jnp.abs((moved[1] - ref[1]) / act.dt) / scale)
