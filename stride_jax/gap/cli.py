@@ -26,11 +26,15 @@ class DiagnoseJob:
         (.xml) or a robot/mapping file with a [robot] table (.toml).
       logs: folder with header.json and one CSV per trajectory.
       out: report folder (report.md, diagnosis.json, plots).
+      nominal: the nominal model's form: ``shipped`` (the MJCF as shipped: its own cone,
+        contacts, time step) or ``training`` (the robot's MJX-training edits; the same model for
+        robots without them).
     """
 
     robot: str = ""
     logs: str = ""
     out: str = ""
+    nominal: str = "shipped"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,6 +48,8 @@ class SimulateJob:
       trajectories, steps: how many logged trajectories, and control steps each.
       seed: explorer and effect draws.
       noise: add a real robot's sensor noise.
+      nominal: the model the "real" robot is simulated with (``shipped`` or ``training``, as
+        for ``diagnose``).
     """
 
     robot: str = ""
@@ -53,6 +59,7 @@ class SimulateJob:
     steps: int = 250
     seed: int = 0
     noise: bool = False
+    nominal: str = "shipped"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,17 +115,17 @@ _DIAGNOSE_ALIASES = {"residual.when": "--residual", "residual.steps": "--residua
 
 
 def _parser() -> argparse.ArgumentParser:
-    from stride_jax.gap import bench, diagnose, residual
+    from stride_jax.gap import bench, diagnose, nominal, residual
 
     p = argparse.ArgumentParser(prog="stride gap", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
     d = sub.add_parser("diagnose", help="where / which / how far, from a log folder")
-    config.add_flags(d, DiagnoseJob, required=("robot", "logs", "out"))
+    config.add_flags(d, DiagnoseJob, required=("robot", "logs", "out"), choices={"nominal": nominal.FORMS})
     d.add_argument("--preset", default="default", choices=sorted(diagnose.PRESETS))
     config.add_flags(d, diagnose.DiagnoseConfig, aliases=_DIAGNOSE_ALIASES,
                      choices={"residual.when": residual.WHEN})
     s = sub.add_parser("simulate", help="'real' logs: the explorer with hidden effects")
-    config.add_flags(s, SimulateJob, required=("robot", "out"))
+    config.add_flags(s, SimulateJob, required=("robot", "out"), choices={"nominal": nominal.FORMS})
     i = sub.add_parser("import", help="recordings (ROS 2 bags, MCAP, CSV) as a log folder")
     config.add_flags(i, ImportJob, required=("mapping", "out"))
     i.add_argument("files", nargs="+", help="bag folders, .mcap, .db3 or .csv files")
@@ -149,24 +156,22 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         if args.cmd == "diagnose":
-            from stride_jax.gap import diagnose, report
-            from stride_jax.sim import model
+            from stride_jax.gap import diagnose, nominal, report
 
             try:
                 cfg = _diagnose_config(args)
             except ValueError as err:
                 print(f"error: {err}", file=sys.stderr)
                 return 2
-            sm = model.load(j.robot)
+            sm = nominal.load(j.robot, j.nominal)
             _, trajs = logs.read(j.logs, sm)
             d = diagnose.diagnose(sm, trajs, cfg)
             path = report.write(d, j.out, "stride gap " + shlex.join(argv))
             print(f"report: {path}")
         elif args.cmd == "simulate":
-            from stride_jax.gap import real
-            from stride_jax.sim import model
+            from stride_jax.gap import nominal, real
 
-            sm = model.load(j.robot)
+            sm = nominal.load(j.robot, j.nominal)
             _, logged = real.generate(sm, json.loads(j.effects), j.trajectories, j.steps,
                                       j.seed, real.SensorNoise() if j.noise else None)
             logs.write(j.out, sm, logged, notes="simulated by `stride gap " + shlex.join(argv) + "`")
