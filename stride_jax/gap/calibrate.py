@@ -62,7 +62,7 @@ class CalibrateConfig:
       integrators: comma-separated integrators to try (``euler_nodamp``: Euler without
         implicit damping).
       timestep_min, timestep_max: time steps tried (s; those in range that divide the control
-        period, at 10 us resolution).
+        period, at 0.5 ms resolution, and the model's own).
       sweeps: coordinate-descent passes over the discrete settings.
       max_nfev: least-squares evaluations per continuous setting.
       subsample: fit on every n-th replayed sample of the training split (the held-out check
@@ -150,11 +150,15 @@ def baseline_of(sm: SimModel, record: dict | None) -> SimModel:
     return nominal.apply(sm, Settings(**record["settings"]))
 
 
-def _pick(trial: list[Settings], name: str, loss, tol: float) -> Settings:
+def _pick(trial: list[Settings], name: str, loss, tol: float, own) -> Settings:
     """The best of ``trial`` (settings differing in ``name``), preferring among those within
-    ``tol`` of the lowest loss the cheapest: the largest time step, else the first listed."""
+    ``tol`` of the lowest loss the nominal model's own value ``own``, else the cheapest: the
+    largest time step, else the lowest loss."""
     L = min(loss(s) for s in trial)
     near = [s for s in trial if loss(s) <= L * (1 + tol)]
+    mine = [s for s in near if getattr(s, name) == own]
+    if mine:
+        return mine[0]
     if name == "timestep":
         return max(near, key=lambda s: s.timestep)
     return min(near, key=loss)
@@ -208,11 +212,12 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
               "integrator": _names(cfg.integrators), "cone": list(nominal.CONES) if contacts else [],
               "contacts": list(nominal.CONTACTS) if sm.nfeet else [],
               "foot_condim": [3, 6] if sm.nfeet else []}
-    values["timestep"] = [v for v in values["timestep"] if abs(v * 1e5 - round(v * 1e5)) < 1e-6]
+    values["timestep"] = [v for v in values["timestep"] if abs(v * 2e3 - round(v * 2e3)) < 1e-6]  # 0.5 ms multiples
     own = nominal.describe(sm)
     for name in values:  # the nominal model's own value is always a candidate
         if values[name] and own.get(name) is not None and own[name] not in values[name]:
             values[name].append(own[name])
+    best = dataclasses.replace(best, **{n: own[n] for n in DISCRETE if getattr(best, n) is None and own.get(n) is not None})
     path = []
     for _ in range(cfg.sweeps):
         moved = False
@@ -221,8 +226,9 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
             trial = [dataclasses.replace(best, **{name: v}) for v in values[name]]
             if not trial:
                 continue
-            cand = _pick(trial, name, loss, cfg.min_gain)
-            if loss(cand) < (1 - cfg.min_gain) * cur:
+            cand = _pick(trial, name, loss, cfg.min_gain, own.get(name))
+            back = getattr(cand, name) == own.get(name) and loss(cand) <= (1 + cfg.min_gain) * cur
+            if getattr(cand, name) != getattr(best, name) and (loss(cand) < (1 - cfg.min_gain) * cur or back):
                 path.append({"setting": name, "value": getattr(cand, name), "loss": loss(cand), "from": cur})
                 best, moved = cand, True
         if not moved:

@@ -244,18 +244,22 @@ def apply(sm: SimModel, s: Settings, base: SimModel | None = None) -> SimModel:
         m.geom_condim[:] = base.mj.geom_condim
     if s.foot_condim is not None and len(feet):
         m.geom_condim[feet] = s.foot_condim
-    m.geom_solref[:, 0] *= s.solref_timeconst
-    m.geom_solref[:, 1] *= s.solref_dampratio
-    m.pair_solref[:, 0] *= s.solref_timeconst
-    m.pair_solref[:, 1] *= s.solref_dampratio
+    # continuous settings: only where they differ from neutral (so that neutral is bit for bit)
+    for solref in (m.geom_solref, m.pair_solref):
+        if s.solref_timeconst != 1.0:
+            solref[:, 0] *= s.solref_timeconst
+        if s.solref_dampratio != 1.0:
+            solref[:, 1] *= s.solref_dampratio
     for solimp in (m.geom_solimp, m.pair_solimp):
-        solimp[:, :2] = 1 - (1 - solimp[:, :2]) * s.solimp_softness
-        solimp[:, 2] *= s.solimp_width
-    np.clip(m.geom_solimp[:, :2], 1e-4, 0.9999, out=m.geom_solimp[:, :2])
-    np.clip(m.pair_solimp[:, :2], 1e-4, 0.9999, out=m.pair_solimp[:, :2])
-    m.geom_margin[:] += s.margin
-    m.pair_margin[:] += s.margin
-    m.opt.impratio *= s.impratio
+        if s.solimp_softness != 1.0:
+            solimp[:, :2] = np.clip(1 - (1 - solimp[:, :2]) * s.solimp_softness, 1e-4, 0.9999)
+        if s.solimp_width != 1.0:
+            solimp[:, 2] *= s.solimp_width
+    if s.margin != 0.0:
+        m.geom_margin[:] += s.margin
+        m.pair_margin[:] += s.margin
+    if s.impratio != 1.0:
+        m.opt.impratio *= s.impratio
     return dataclasses.replace(sm, mj=m, n_substeps=n_sub)
 
 
