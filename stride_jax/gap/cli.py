@@ -1,6 +1,7 @@
 """``stride gap``: ``diagnose`` a log folder, ``simulate`` "real" logs with hidden effects, ``import``
 recordings (ROS 2 bags, MCAP, CSV) as logs, ``export`` a simulated dataset as logs, ``bench`` the
-blind benchmark. Wire with ``gap.cli.main(argv)``."""
+blind benchmark, ``bench-independent`` the blind benchmark on logs from independent code and
+simulator settings. Wire with ``gap.cli.main(argv)``."""
 
 from __future__ import annotations
 
@@ -115,7 +116,7 @@ _DIAGNOSE_ALIASES = {"residual.when": "--residual", "residual.steps": "--residua
 
 
 def _parser() -> argparse.ArgumentParser:
-    from stride_jax.gap import bench, diagnose, nominal, residual
+    from stride_jax.gap import bench, bench_independent, diagnose, nominal, residual
 
     p = argparse.ArgumentParser(prog="stride gap", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -134,6 +135,10 @@ def _parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="the blind benchmark")
     b.add_argument("--preset", default="tiny", choices=sorted(bench.PRESETS))
     config.add_flags(b, BenchJob)
+    bi = sub.add_parser("bench-independent", help="the blind benchmark on logs from independent code and "
+                        "simulator settings (stride_jax.gap.bench_independent)")
+    bi.add_argument("--preset", default="tiny", choices=sorted(bench_independent.PRESETS))
+    config.add_flags(bi, BenchJob)
     return p
 
 
@@ -149,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)
     job = {"diagnose": DiagnoseJob, "simulate": SimulateJob, "import": ImportJob, "export": ExportJob,
-           "bench": BenchJob}[args.cmd]
+           "bench": BenchJob, "bench-independent": BenchJob}[args.cmd]
     j = config.from_flags(job, args)
     from stride_jax.gap import logs
     from stride_jax.robots.base import RobotError
@@ -190,6 +195,17 @@ def main(argv: list[str] | None = None) -> int:
                           log=lambda line: print(line, flush=True), workers=j.workers, threads=j.threads,
                           minutes=None if math.isinf(j.minutes) else j.minutes)
             except bench.BenchError as err:  # rows on disk from another config, bad --workers/--threads
+                print(f"error: {err}", file=sys.stderr)
+                return 2
+        elif args.cmd == "bench-independent":
+            from stride_jax.gap import bench, bench_independent
+
+            try:
+                bench_independent.run(bench_independent.PRESETS[args.preset], j.out,
+                                      command="stride gap " + shlex.join(argv), log=lambda line: print(line, flush=True),
+                                      workers=j.workers, threads=j.threads,
+                                      minutes=None if math.isinf(j.minutes) else j.minutes)
+            except bench.BenchError as err:
                 print(f"error: {err}", file=sys.stderr)
                 return 2
     except (logs.LogError, RobotError) as err:  # bad logs, mapping, recordings or robot file

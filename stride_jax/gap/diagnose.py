@@ -207,6 +207,8 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     sm_nominal = sm
     cal = (calibrate.calibrate(sm, train_k, test_k, scale, cfg.calibrate, log) if cfg.calibrate.mode == "fit"
            else None)
+    if cal and cfg.calibrate.refine:
+        cal = calibrate.refine(sm, cal, train_k, test_k, scale, cfg.calibrate, cfg.fit.grid, log)
     out["calibration"] = cal.record if cal else {"mode": "off", "applied": False}
     sm = cal.model if cal else sm
     nom = effects.build(sm)
@@ -215,17 +217,6 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     if bad:
         raise RuntimeError(f"effects do not reproduce the nominal model at their nominal value: {bad}")
     w = which(sm, train_k, test_k, scale, cfg, log)
-    if cal and cfg.calibrate.refine and w["ranking"][0]["explained"] > 0:
-        # refinement: the settings again with the best hypothesis held fixed on top (a strong effect
-        # biases settings fitted without it); the effects are scored again where they moved
-        cal2 = calibrate.calibrate(sm_nominal, train_k, test_k, scale, cfg.calibrate, log,
-                                   applied=w["ranking"][0]["params"], start=cal.settings)
-        out["calibration"]["refined"] = {"settings_moved": cal2.settings != cal.settings,
-                                         "first_pass": out["calibration"]["changed"]}
-        if cal2.settings != cal.settings:
-            cal2.record["refined"] = out["calibration"]["refined"]
-            out["calibration"], sm = cal2.record, cal2.model
-            w = which(sm, train_k, test_k, scale, cfg, log)
     out["verdict"] = verdict(w, cfg)
     out["how_far"] = how_far(sm, test, scale, w, cfg)
     out["how_far"].update(calibrate.shrinks(sm_nominal, sm, w["plan_best"], test, scale))

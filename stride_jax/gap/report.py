@@ -268,9 +268,13 @@ def calibration_section(d: dict[str, Any]) -> list[str]:
               + ", ".join(f"{k} {v:.4g}" for k, v in forms.items()) + f" (calibrated: {c['heldout_gap_proposed']:.4g})."]
     if c.get("refined"):
         r = c["refined"]
-        L += ["", "Refined with the best hypothesis held fixed on top: "
-              + (f"the settings moved (first pass: {'; '.join(r['first_pass']) or 'none'}), and the effects were "
-                 "scored again." if r["settings_moved"] else "the settings did not move.")]
+        if r.get("held_fixed"):
+            L += ["", f"Refined with the best screened effect held fixed on top ({r['held_fixed']}): "
+                  + (f"the settings moved (first pass: {'; '.join(r['first_pass']) or 'none'})." if r["settings_moved"]
+                     else "the settings did not move.")]
+        else:
+            L += ["", "No library effect lowered the training loss on top of the first calibration (screen): "
+                  "not refined."]
     L += ["", f"{c['evaluations']} replays of the training split, {c['seconds']:.0f} s. What calibration can and cannot "
           "tell apart: docs/gap.md (a softer ground is a longer solref time constant; contact parameters can take up "
           "part of a payload or of ground friction).", ""]
