@@ -71,6 +71,7 @@ class CalibrateConfig:
         (continuous).
       block: control steps per block of the held-out sign-flip test.
       seed: of the sign flips.
+      screen_steps: bounded Brent steps per effect in the screen, after its grid.
       refine: screen the scalar library effects on top of the first calibration (a grid each),
         and fit the settings again with the best of them held fixed on top (a strong physical
         effect biases settings fitted without it: a planted damping pulled the Go1's integrator
@@ -89,6 +90,7 @@ class CalibrateConfig:
     min_gain: float = 0.01
     block: int = 10
     seed: int = 0
+    screen_steps: int = 6
     refine: bool = True
 
     def __post_init__(self):
@@ -332,7 +334,8 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
 def screen(base: SimModel, train: fit.Data, scale: np.ndarray, cfg: CalibrateConfig, grid: int
            ) -> tuple[dict, dict]:
     """The scalar library effect that lowers the training loss most on top of ``base`` (a grid of
-    ``grid`` values over its bounds, delays on a grid of at most 8, every ``subsample``-th replay):
+    ``grid`` values over its bounds and ``screen_steps`` Brent steps in the best cell; delays on a
+    grid of at most 8; every ``subsample``-th replay):
     ``({name: value}, record)``, or ``({}, record)`` when none lowers it by ``min_gain``."""
     sub = _sub(train, cfg.subsample)
     L0 = float((residual(base, sub, scale) ** 2).sum())
@@ -343,10 +346,18 @@ def screen(base: SimModel, train: fit.Data, scale: np.ndarray, cfg: CalibrateCon
         lo, hi = (float(b[0]) for b in e.bounds(base))
         xs = (np.unique(np.linspace(lo, hi, min(8, int(hi - lo) + 1)).round()) if e.integer
               else np.linspace(lo, hi, grid))
-        xs = [x for x in xs if abs(x - e.nominal[0]) > 1e-12]
-        ls = [float((residual(base, sub, scale, {e.name: [x]}) ** 2).sum()) for x in xs]
+        f = lambda x: float((residual(base, sub, scale, {e.name: [x]}) ** 2).sum())
+        xs = [float(x) for x in xs if abs(x - e.nominal[0]) > 1e-12]
+        ls = [f(x) for x in xs]
         k = int(np.argmin(ls))
-        rows.append({"effect": e.name, "value": float(xs[k]), "loss": ls[k]})
+        x, fx = xs[k], ls[k]
+        if not e.integer and len(xs) > 2:  # a few bounded Brent steps in the best grid cell
+            a, b = xs[max(k - 1, 0)], xs[min(k + 1, len(xs) - 1)]
+            r = optimize.minimize_scalar(f, bounds=(a, b), method="bounded",
+                                         options={"maxiter": cfg.screen_steps, "xatol": 1e-3 * (hi - lo)})
+            if r.fun < fx:
+                x, fx = float(r.x), float(r.fun)
+        rows.append({"effect": e.name, "value": x, "loss": fx})
     rows.sort(key=lambda r: r["loss"])
     rec = {"loss_without": L0, "screen": rows[:5]}
     if rows and rows[0]["loss"] < (1 - cfg.min_gain) * L0:
