@@ -215,7 +215,9 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
     values = {"timestep": nominal.timesteps(sm, cfg.timestep_min, cfg.timestep_max),
               "integrator": _names(cfg.integrators), "cone": list(nominal.CONES) if contacts else [],
               "contacts": list(nominal.CONTACTS) if sm.nfeet else [],
-              "foot_condim": [3, 6] if sm.nfeet else []}
+              "foot_condim": [3, 6] if sm.nfeet else [],
+              # the solver cap: only the training form's, where it has one (in ties the model's own)
+              "iterations": sorted({s.iterations for s in forms.values() if s.iterations is not None})}
     values["timestep"] = [v for v in values["timestep"] if abs(v * 2e3 - round(v * 2e3)) < 1e-6]  # 0.5 ms multiples
     own = nominal.describe(sm)
     for name in values:  # the nominal model's own value is always a candidate
@@ -225,7 +227,7 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
     path = []
     for _ in range(cfg.sweeps):
         moved = False
-        for name in _names(cfg.discrete):
+        for name in _names(cfg.discrete) + ["iterations"]:
             cur = loss(best)
             trial = [dataclasses.replace(best, **{name: v}) for v in values[name]]
             if not trial:
