@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from stride_jax.gap import effects, filters, fit, logs, regions, residual
+from stride_jax.gap import calibrate, effects, filters, fit, logs, regions, residual
 from stride_jax.gap.attribute import check_nominal, verdict, which
 from stride_jax.gap.localise import divergence, where
 from stride_jax.gap.regions import PHASES, dof_names, foot_phases, noise_floor  # noqa: F401 (re-exported)
@@ -80,6 +80,9 @@ class DiagnoseConfig:
         of what the single leaves above the noise floor (and significantly more than nothing).
       residual: the STRIDE residual fitted on top of the best hypothesis (by default only when
         the verdict is "unexplained by the library"; :mod:`stride_jax.gap.residual`).
+      calibrate: the simulator's own settings (time step, integrator, cone, contacts, contact
+        parameters) fitted first as the baseline the effects are scored against
+        (:mod:`stride_jax.gap.calibrate`; ``mode = "off"``: the nominal model is the baseline).
     """
 
     holdout: float = 0.34
@@ -102,6 +105,7 @@ class DiagnoseConfig:
     alpha: float = 0.05
     pair_min: float = 0.1
     residual: ResidualConfig = ResidualConfig()
+    calibrate: calibrate.CalibrateConfig = calibrate.CalibrateConfig()
 
 
 PRESETS = {
@@ -196,9 +200,18 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
                           "indistinguishable_from": [], "rule": "exact_nominal",
                           "reason": f"the nominal model replays the logs to numerical precision "
                                     f"(scaled RMS {_rms(r_all):.2g})"}
-        out["which"], out["how_far"], out["residual"] = None, None, None
+        out["which"], out["how_far"], out["residual"], out["calibration"] = None, None, None, None
         out["seconds"] = time.time() - t_start
         return out
+    # the simulator's settings first (nuisance parameters): the baseline the effects are scored against
+    sm_nominal = sm
+    cal = (calibrate.calibrate(sm, train_k, test_k, scale, cfg.calibrate, log) if cfg.calibrate.mode == "fit"
+           else None)
+    if cal and cfg.calibrate.refine:
+        cal = calibrate.refine(sm, cal, train_k, test_k, scale, cfg.calibrate, cfg.fit.grid, log)
+    out["calibration"] = cal.record if cal else {"mode": "off", "applied": False}
+    sm = cal.model if cal else sm
+    nom = effects.build(sm)
     out["nominal_check"] = check_nominal(sm, test_k, scale, fit.residual(sm, nom, test_k, scale))
     bad = {k: v for k, v in out["nominal_check"].items() if v > 1e-9}
     if bad:
@@ -206,6 +219,10 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     w = which(sm, train_k, test_k, scale, cfg, log)
     out["verdict"] = verdict(w, cfg)
     out["how_far"] = how_far(sm, test, scale, w, cfg)
+    out["how_far"].update(calibrate.shrinks(sm_nominal, sm, w["plan_best"], test, scale))
+    if calibrate.sentence(out["calibration"]):
+        out["verdict"]["model_form"] = out["calibration"]["changed"]
+        out["verdict"]["reason"] = f"{calibrate.sentence(out['calibration'])}; on top of that, {out['verdict']['reason']}"
     out["residual"] = None
     if cfg.residual.wanted(out["verdict"]["verdict"]):
         out["residual"] = residual.fit_on_top(sm, w["plan_best"], train, test, scale, cfg.residual,
