@@ -127,9 +127,10 @@ def test_model_steps_with_fused_kernels_equal_xla(shared, kernels):
     q = q.at[:, 7:].set(0.3 * jax.random.normal(jax.random.key(3), (n, 3)))
     qd = 0.5 * jax.random.normal(jax.random.key(4), (n, 9))
     ctrl = 0.2 * jax.random.normal(jax.random.key(5), (n, 3))
+    rounded_params = rounded(params)  # to the kernels' precision: outside exact()
     with exact():  # the float32 reference (tests/precision.py)
         ref = jax.jit(jax.vmap(lambda *a: xla.step(params, *a)))(q, qd, ctrl, keys)
-        moved = jax.jit(jax.vmap(lambda *a: xla.step(rounded(params), *a)))(q, qd, ctrl, keys)
+        moved = jax.jit(jax.vmap(lambda *a: xla.step(rounded_params, *a)))(q, qd, ctrl, keys)
     with kernels():
         out = jax.jit(jax.vmap(lambda *a: fast.step(params, *a)))(q, qd, ctrl, keys)
     assert float(jnp.max(jnp.abs(ref[1] - qd))) > 1e-3  # the step moved the state
@@ -169,3 +170,22 @@ def test_transposed_pass_reads_wide_weight_tiles_in_pieces(kernels):
     with kernels():
         out = jax.jit(jax.vmap(lambda x, g: fused.vjp(params, x, g)))(x, g)
     assert_close(out, ref, layers=2, floor=1e-4)
+
+
+def test_networks_too_wide_for_shared_memory_run_in_xla():
+    """G1's mass network at 128 wide (1024 padded outputs) would ask a GPU for more shared
+    memory than an SM has (measured on an H100): its passes take XLA's maths, equal results."""
+    from stride_jax.dynamics import fused_pallas
+
+    cfg = mlp.MLPConfig(hidden=128, depth=1)
+    init, apply = mlp.mlp(cfg, 627)
+    params = init(jax.random.key(0), D_IN)
+    assert not fused_pallas.fits(fused._layers(params))
+    assert fused_pallas.fits(fused._layers(mlp.mlp(mlp.MLPConfig(hidden=64, depth=1), 627)[0](
+        jax.random.key(0), D_IN)))
+    x = jax.random.normal(jax.random.key(1), (8, D_IN))
+    with fused.interpret():
+        jaxpr = str(jax.make_jaxpr(jax.vmap(lambda x: fused.jvp(params, x, x)))(x))
+        y, _ = jax.vmap(lambda x: fused.jvp(params, x, x))(x)
+    assert "stride_fused_mlp" not in jaxpr
+    np.testing.assert_allclose(y, jax.vmap(lambda x: apply(params, x))(x), rtol=1e-5, atol=1e-5)

@@ -54,10 +54,10 @@ def test_whole_step_equals_the_xla_step(kernels, kernel):
     q, qd, ctrl, keys = _states(spec, 20)  # not a multiple of the kernel's 16 rows
     step = lambda m: jax.jit(jax.vmap(lambda *a: m.step(params, *a)))
     dtype = fused.kernel_dtype(kernel)
+    rounded_params = rounded(params, dtype)  # to the kernel's precision: outside exact()
     with exact():  # the float32 reference and its change with rounded weights (precision.py)
         ref = step(xla)(q, qd, ctrl, keys)
-        moved = jax.jit(jax.vmap(lambda *a: xla.step(rounded(params, dtype), *a)))(
-            q, qd, ctrl, keys)
+        moved = jax.jit(jax.vmap(lambda *a: xla.step(rounded_params, *a)))(q, qd, ctrl, keys)
     with kernels():
         jaxpr = jax.make_jaxpr(jax.vmap(lambda *a: fast.step(params, *a)))(q, qd, ctrl, keys)
         out = step(fast)(q, qd, ctrl, keys)
@@ -93,8 +93,9 @@ def test_whole_step_only_where_it_applies():
     fast = models.make("stride", spec, act, dataclasses.replace(cfg, kernel="pallas-step"))
     params = xla.init(jax.random.key(0))
     run = lambda m, p=params: jax.jit(jax.vmap(lambda *a: m.step(p, *a)))(q, qd, ctrl, keys)
-    with exact():  # on a GPU the kernels' products run in TF32: tests/precision.py
-        ref, moved = run(xla), run(xla, rounded(params))
+    rounded_params = rounded(params)  # on a GPU the kernels' products run in TF32
+    with exact():  # the float32 reference: tests/precision.py
+        ref, moved = run(xla), run(xla, rounded_params)
     for name, r, o, m, s in zip(("q", "qd"), ref, run(fast), moved, (q, qd)):
         assert_close(o - s, r - s, sensitivity=jnp.max(jnp.abs(m - r)), floor=1e-6, err_msg=name)
 

@@ -49,9 +49,10 @@ def test_kernels_compile_to_triton_calls(name):
 
 @pytest.mark.parametrize("hidden", [64, 256])
 def test_g1_sized_steps_run_as_kernels_and_equal_xla(hidden):
-    """G1's 29 joints: at 64 wide the whole step is one kernel; at the paper's 256 x 3 its
-    weight tiles exceed an SM's shared memory, so the step takes the per-pass kernels
-    (``models.whole_step_fits``). Both compile here and equal XLA's float32 step."""
+    """G1's 29 joints: at 64 wide the whole step is one kernel; at the paper's 256 x 3 the mass
+    network's weight tiles exceed an SM's shared memory, so the step takes the per-pass kernels
+    where they fit (the flow) and XLA elsewhere (``models.whole_step_fits``,
+    ``fused_pallas.fits``). Both compile here and equal XLA's float32 step."""
     spec, act = _robot(29)
     cfg = stride.StructuredConfig(net=mlp.MLPConfig(hidden=hidden, depth=3), shared_lnn=True,
                                   learn_mass=True, mass_init=35.0)
@@ -62,15 +63,16 @@ def test_g1_sized_steps_run_as_kernels_and_equal_xla(hidden):
                              for i, w in enumerate(leaves)])
     q, qd, ctrl, keys = _states(spec, 64)
     step = lambda m, p: jax.jit(jax.vmap(lambda *a: m.step(p, *a)))
+    rounded_params = rounded(params)  # TF32, the kernels' products: outside exact()
     with exact():
-        ref, moved = step(xla, params)(q, qd, ctrl, keys), step(xla, rounded(params))(q, qd, ctrl, keys)
+        ref, moved = step(xla, params)(q, qd, ctrl, keys), step(xla, rounded_params)(q, qd, ctrl, keys)
     out = step(fast, params)(q, qd, ctrl, keys)
     jaxpr = str(jax.make_jaxpr(jax.vmap(lambda *a: fast.step(params, *a)))(q, qd, ctrl, keys))
     whole = models.whole_step_fits(spec.nv, hidden)
     assert whole == (hidden <= 64)
-    assert ("stride_fused_step" in jaxpr) == whole and "stride_fused" in jaxpr
+    assert ("stride_fused_step" in jaxpr) == whole
     hlo = step(fast, params).lower(q, qd, ctrl, keys).compile().as_text()
-    assert "triton" in hlo.lower()
+    assert "triton" in hlo.lower()  # at 256 the flow's passes still fit: fused_pallas.fits
     acc_ref, acc = (ref[1] - qd) / act.dt, (out[1] - qd) / act.dt
     scale = jnp.max(jnp.abs(acc_ref), axis=1, keepdims=True)
     sens = jnp.max(jnp.abs((moved[1] - ref[1]) / act.dt) / scale)

@@ -39,7 +39,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from stride_jax.dynamics.fused_pallas import (_INTERPRET, _silu, flow_batched, interpret,
+from stride_jax.dynamics.fused_pallas import (_INTERPRET, _silu, fits, flow_batched, interpret,
                                               jvp_batched, vjp_batched)
 from stride_jax.dynamics.time_embedding import time_embedding
 
@@ -91,7 +91,8 @@ def _batched(kernel_fn: Callable, ref_fn: Callable, n_out: int,
     """``f(layers, *xs)`` for one example; under ``vmap`` (unbatched weights) one kernel for the
     batch on GPUs (``kernel_fn``), the batched reference on CPUs (``batched_ref``; by default
     ``ref_fn`` itself, for references written for any leading batch). Weights batched with the
-    inputs (an ensemble) share no kernel: then ``ref_fn`` is vmapped."""
+    inputs (an ensemble) share no kernel: then ``ref_fn`` is vmapped. A network too wide for
+    shared memory (:func:`fused_pallas.fits`) takes the batched reference everywhere."""
     @jax.custom_batching.custom_vmap
     def f(layers, *xs):
         return ref_fn(layers, *xs)
@@ -106,6 +107,8 @@ def _batched(kernel_fn: Callable, ref_fn: Callable, n_out: int,
             return jax.vmap(ref_fn, in_axes=axes)(layers, *xs), out_batched
         xs = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape)
               for x, b in zip(xs, xs_batched)]
+        if not fits(layers):
+            return (batched_ref or ref_fn)(layers, *xs), out_batched
         if _INTERPRET.get():
             return kernel_fn(layers, *xs), out_batched
         return jax.lax.platform_dependent(layers, *xs, cpu=batched_ref or ref_fn,

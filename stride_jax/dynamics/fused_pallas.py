@@ -296,6 +296,20 @@ def _padded_layers(layers, dims, dtype):
     return out
 
 
+# Triton stages a program's weight tiles in shared memory (227 KiB a block on an H100). Measured
+# there (experiments/fused_step_smem.py, results/gpu_tests/): kernels compile while every layer's
+# padded inputs x outputs stay within 2^16 -- Go1's networks up to 256 wide, G1's mass network
+# (627 outputs, padded 1024) up to 64; G1 at 128 asks for 324 KiB. Larger layers run in XLA.
+MAX_TILE = 1 << 16
+
+
+def fits(weights) -> bool:
+    """Whether the kernels over ``weights`` (a pytree of one or more networks' layers,
+    ``W [din, dout]`` and biases) fit shared memory (:data:`MAX_TILE`)."""
+    return all(_Dim.of(w.shape[0]).padded * _Dim.of(w.shape[1]).padded <= MAX_TILE
+               for w in jax.tree.leaves(weights) if w.ndim == 2)
+
+
 def _dims(layers) -> tuple[_Dim, ...]:
     return tuple(_Dim.of(n) for n in [layers[0][0].shape[0]] + [w.shape[1] for w, _ in layers])
 

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.dynamics import (flow, fused, fused_layout, fused_step, integrate, lagrangian,
+from stride_jax.dynamics import (flow, fused, fused_layout, fused_pallas, fused_step, integrate, lagrangian,
                                   next_obs, stride)
 from stride_jax.types import InputError, ModelSpec
 
@@ -250,18 +250,13 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
                  terms, spec, act, cfg, scales, residual)
 
 
-# The whole-step kernel holds a program's weight tiles in shared memory. On an H100 (227 KiB a
-# block) it compiles while L's padded output slots times the padded hidden width stay within
-# 2^16: Go1 (256 slots) up to 256 wide, G1 (1024 slots) up to 64; G1 at 128 asks for 324 KiB
-# (experiments/fused_step_smem.py, results/gpu_tests/). Larger models take the per-pass kernels.
-WHOLE_STEP_MAX_TILE = 1 << 16
-
-
 def whole_step_fits(nv: int, hidden: int) -> bool:
     """Whether the whole-step kernel of a floating base with ``nv`` dofs and networks ``hidden``
-    wide fits a GPU's shared memory (:data:`WHOLE_STEP_MAX_TILE`)."""
+    wide fits a GPU's shared memory: its widest tile is L's padded output slots by the padded
+    hidden width (``fused_pallas.MAX_TILE``; Go1 fits up to 256 wide, G1 up to 64). Larger
+    models take the per-pass kernels where those fit, XLA elsewhere."""
     entries = fused_layout.Layout.of(nv).entries
-    return entries * max(16, 1 << (hidden - 1).bit_length()) <= WHOLE_STEP_MAX_TILE
+    return entries * max(16, 1 << (hidden - 1).bit_length()) <= fused_pallas.MAX_TILE
 
 
 def _whole_step_applies(spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig) -> bool:
