@@ -39,11 +39,12 @@ from typing import Any
 
 import numpy as np
 
-from stride_jax.gap import effects, filters, fit, logs, regions, residual
+from stride_jax.gap import effects, filters, fit, granularity, logs, progress, regions, residual, screen
 from stride_jax.gap.attribute import check_nominal, verdict, which
 from stride_jax.gap.localise import divergence, where
 from stride_jax.gap.regions import PHASES, dof_names, foot_phases, noise_floor  # noqa: F401 (re-exported)
 from stride_jax.gap.residual import ResidualConfig
+from stride_jax.gap.screen import ScreenConfig
 from stride_jax.sim.model import SimModel
 
 _rms = regions.rms
@@ -80,6 +81,9 @@ class DiagnoseConfig:
         of what the single leaves above the noise floor (and significantly more than nothing).
       residual: the STRIDE residual fitted on top of the best hypothesis (by default only when
         the verdict is "unexplained by the library"; :mod:`stride_jax.gap.residual`).
+      screen: the screen that picks the effects fitted in full, the finer effects and the finer
+        choice's margin (:mod:`stride_jax.gap.screen`; ``screen.shortlist 0``: fit every candidate).
+      progress: show a progress bar per stage (stderr).
     """
 
     holdout: float = 0.34
@@ -102,6 +106,8 @@ class DiagnoseConfig:
     alpha: float = 0.05
     pair_min: float = 0.1
     residual: ResidualConfig = ResidualConfig()
+    screen: ScreenConfig = ScreenConfig()
+    progress: bool = True
 
 
 PRESETS = {
@@ -203,9 +209,25 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     bad = {k: v for k, v in out["nominal_check"].items() if v > 1e-9}
     if bad:
         raise RuntimeError(f"effects do not reproduce the nominal model at their nominal value: {bad}")
-    w = which(sm, train_k, test_k, scale, cfg, log)
+    scr, singles, pair_screen = None, None, None
+    if cfg.screen.shortlist:
+        scr = screen.run(sm, train_k, test_k, scale, cfg.screen, cfg.penalty, cfg.progress, log)
+        C = scr.pop("_columns")
+        singles = scr["shortlist"]
+        pair_screen = lambda best, fitted: screen.pairs(sm, C, best, fitted, cfg.screen.pairs)
+    elif cfg.screen.finer:
+        singles = screen.candidate_names(sm, cfg.screen)
+    w = which(sm, train_k, test_k, scale, cfg, log, singles, pair_screen)
+    out["screen"] = scr
     out["verdict"] = verdict(w, cfg)
-    out["how_far"] = how_far(sm, test, scale, w, cfg)
+    collinear = {e: screen.collinear_with(C, e, cfg.screen.collinear) for e in w["ranking"][0]["effects"]} if scr else {}
+    sets = granularity.indistinguishable(w, collinear, cfg.alpha)
+    out["verdict"]["indistinguishable_set"] = sets
+    if sets:
+        out["verdict"]["reason"] += f"; indistinguishable set: {sets['summary']}"
+    with progress.bar(1, "how far: held-out replays and rollouts", cfg.progress) as bar:
+        out["how_far"] = how_far(sm, test, scale, w, cfg)
+        bar.update(1)
     out["residual"] = None
     if cfg.residual.wanted(out["verdict"]["verdict"]):
         out["residual"] = residual.fit_on_top(sm, w["plan_best"], train, test, scale, cfg.residual,
