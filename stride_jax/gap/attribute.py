@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy import stats
 
-from stride_jax.gap import effects, fit, granularity, linear_probe, progress, regions, sim
+from stride_jax.gap import effects, fit, granularity, linear_probe, progress, regions, replay, sim
 from stride_jax.gap.regions import noise_floor
 from stride_jax.sim.model import SimModel
 
@@ -40,11 +40,9 @@ def _boot_weights(n: int, B: int, seed: int) -> np.ndarray:
 def check_nominal(sm: SimModel, data: fit.Data, scale: np.ndarray, r_nom: np.ndarray
                   ) -> dict[str, float]:
     """Max |residual change| of each candidate at its nominal value against the nominal model."""
-    out = {}
-    for e in effects.candidates(sm):
-        r = fit.residual(sm, effects.build(sm, {e.name: np.asarray(e.nominal)}), data, scale)
-        out[e.name] = float(np.abs(r - r_nom).max())
-    return out
+    cands = effects.candidates(sm)
+    R = replay.residuals(sm, [effects.build(sm, {e.name: np.asarray(e.nominal)}) for e in cands], data, scale)
+    return {e.name: float(np.abs(r - r_nom).max()) for e, r in zip(cands, R, strict=True)}
 
 
 def _block_ids(data: fit.Data, length: int) -> tuple[np.ndarray, int]:
@@ -156,7 +154,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
                      "p_no_better_than_nominal": float((boot <= 0).mean()),
                      "score": float(expl - cfg.penalty * k), "_boot": boot})
     rows.sort(key=lambda r: -r["score"])
-    granularity.prefer_coarse(rows, cfg.screen.finer_margin, cfg.alpha)
+    granularity.prefer_coarse(rows, cfg.screen.finer_margin, cfg.alpha, lambda n: noise_floor(r_te[n], test) * M / L_nom)
     single_rows = [r for r in rows if len(r["effects"]) == 1]
     pair_rows = [r for r in rows if len(r["effects"]) == 2]
     S = single_rows[0]

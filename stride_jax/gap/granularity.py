@@ -4,9 +4,9 @@
 has as many parameters as its all-joints effect (``damping``) but fewer joints: on training data it
 can only lose to it where the effect is on every joint, yet held out it may win by chance or by a
 hair. The held-out ranking decides, with a stated margin: the variant stays above its all-joints
-effect only if (a) it explains at least ``finer_margin`` more of the held-out gap (a fraction of the
-nominal held-out gap) and (b) the paired block bootstrap of the held-out split puts its gain above
-zero at level ``alpha``; otherwise it is moved just below the all-joints effect, and each variant's
+effect only if (a) it removes at least ``finer_margin`` (10%) of what the all-joints effect leaves of
+the held-out gap above the noise floor (the pair rule's measure) and (b) the paired block bootstrap
+of the held-out split puts its gain above zero at level ``alpha``; otherwise it is moved just below the all-joints effect, and each variant's
 row records the comparison (``vs_all_joints``). Variants of several groups at once are pairs
 (``damping@calf`` + ``damping@thigh``) and pass the pair rule instead.
 
@@ -27,10 +27,12 @@ import numpy as np
 from stride_jax.gap import finer
 
 
-def prefer_coarse(rows: list[dict[str, Any]], margin: float, alpha: float) -> list[dict[str, Any]]:
+def prefer_coarse(rows: list[dict[str, Any]], margin: float, alpha: float, floor=lambda names: 0.0
+                  ) -> list[dict[str, Any]]:
     """Reorders ranking ``rows`` (sorted best first, each with ``_boot`` resamples of the held-out
     explained fraction) so that no single finer variant ranks above its all-joints effect unless it
-    passes the margin rule; returns the rows."""
+    passes the margin rule; ``floor(names)`` is the noise floor of a hypothesis's held-out residual
+    as a fraction of the nominal held-out gap. Returns the rows."""
     by_name = {r["effects"][0]: r for r in rows if len(r["effects"]) == 1}
     for name, row in list(by_name.items()):
         coarse = finer.parent(name)
@@ -38,13 +40,15 @@ def prefer_coarse(rows: list[dict[str, Any]], margin: float, alpha: float) -> li
             continue
         P = by_name[coarse]
         gain = row["explained"] - P["explained"]
+        left = max(1 - P["explained"] - floor((coarse,)), 0.0)
         lower = float(np.quantile(row["_boot"] - P["_boot"], alpha))
-        ok = bool(gain >= margin and lower > 0)
+        ok = bool(gain >= margin * left and gain > 0 and lower > 0)
         row["vs_all_joints"] = {"all_joints": coarse, "gain_explained": float(gain), "gain_lower": lower,
+                                "coarse_left_above_floor": float(left), "fraction_of_left": float(gain / max(left, 1e-300)),
                                 "margin": margin, "preferred": ok,
-                                "rule": f"a finer variant is preferred only if it explains at least {margin:.0%} more "
-                                        f"of the held-out gap than {coarse} and its paired gain's {alpha:.0%} "
-                                        f"quantile is above zero"}
+                                "rule": f"a finer variant is preferred only if it removes at least {margin:.0%} of what "
+                                        f"{coarse} leaves of the held-out gap above the noise floor and its paired "
+                                        f"gain's {alpha:.0%} bootstrap quantile is above zero"}
         if not ok and rows.index(row) < rows.index(P):
             rows.remove(row)
             rows.insert(rows.index(P) + 1, row)

@@ -21,8 +21,8 @@ compiled model, not from a list written for one robot:
   when every limb sits at least 2 cm ahead of or behind the base origin (quadrupeds, not humanoids).
 * **joint**: each actuated joint alone (encoder offsets).
 
-Families with fewer than two groups, and groups of one joint (other than the joint family), are
-dropped: such a "group" is either every joint (the plain effect) or one joint. Body groups: each
+Families with fewer than two groups, groups of one joint (other than the joint family) and groups
+with the same joints as a group of an earlier family are dropped: such a "group" is either every joint (the plain effect) or one joint. Body groups: each
 link body belongs to the nearest actuated joint at or above it; a body group is the links of a
 joint group; bodies above every actuated joint form ``base``.
 
@@ -187,9 +187,11 @@ def of(sm: SimModel) -> Groups:
             fam["end"].setdefault("front" if pos[lf[a]][0] > 0 else "rear", []).append(a)
     families: dict[str, dict[str, tuple[int, ...]]] = {}
     taken: set[str] = set()
-    for f in FAMILIES:
+    seen: set[tuple[int, ...]] = set()  # a group of an earlier family with the same joints (a
+    for f in FAMILIES:                  # two-armed robot's left limb and left side) is not repeated
         groups = {g: tuple(sorted(ix)) for g, ix in fam[f].items()
-                  if f == "joint" or 2 <= len(ix) < len(names)}
+                  if f == "joint" or (2 <= len(ix) < len(names) and tuple(sorted(ix)) not in seen)}
+        seen |= set(groups.values())
         if f != "joint" and len(groups) < 2:
             continue
         renamed = {}
@@ -203,7 +205,9 @@ def of(sm: SimModel) -> Groups:
     jbody = {int(m.jnt_bodyid[j]): a for a, j in enumerate(jnt)}
     for b in range(1, m.nbody):
         owner[b] = jbody.get(b, owner[m.body_parentid[b]])
-    bodies = {"base": tuple(int(b) for b in range(1, m.nbody) if owner[b] < 0 and m.body_mass[b] > 0)}
+    # (a fixed base's links above every joint are welded to the world: their mass does nothing)
+    bodies = {"base": tuple(int(b) for b in range(1, m.nbody) if owner[b] < 0 and m.body_mass[b] > 0
+                            and sm.robot.floating_base)}
     for f in ("type", "limb"):
         for g, ix in families.get(f, {}).items():
             bodies[g] = tuple(int(b) for b in range(1, m.nbody) if owner[b] in ix and m.body_mass[b] > 0)

@@ -18,7 +18,8 @@ batch (:mod:`stride_jax.gap.replay`), on every ``stride``-th replay window:
 3. **One-step check**: the ``check`` best are replayed once at their linear estimate (one batch);
    their actual held-out gap there ranks them, and the ``shortlist`` best go to the full fits
    (with the all-joints effect of every finer variant among them, so that the finer choice always
-   has its coarse rival).
+   has its coarse rival), skipping a candidate collinear with one already on the list (step 5: the
+   report names it with that one instead of fitting it again).
 4. **Pairs**: a second effect on top of the best single is proposed by the joint linear fit of
    both columns (``pairs`` of them), which sees an effect masked by the first.
 5. **Collinearity**: two scalar candidates whose training columns have ``|cos| >= collinear`` move
@@ -57,8 +58,9 @@ class ScreenConfig:
       collinear: ``|cos|`` of two candidates' sensitivity columns above which they are reported
         as one indistinguishable set.
       finer_margin: a finer variant (``damping@calf``) is preferred to its all-joints effect only
-        if it explains at least this much more of the held-out gap (a fraction of the nominal
-        held-out gap), and the paired bootstrap puts its gain above zero at level ``alpha``.
+        if it removes at least this fraction of what the all-joints effect leaves of the held-out
+        gap above the noise floor, and the paired bootstrap puts its gain above zero at level
+        ``alpha`` (:mod:`stride_jax.gap.granularity`).
     """
 
     shortlist: int = 5
@@ -68,7 +70,7 @@ class ScreenConfig:
     check: int = 12
     pairs: int = 2
     collinear: float = 0.98
-    finer_margin: float = 0.05
+    finer_margin: float = 0.1
 
     def __post_init__(self):
         for f in ("shortlist", "stride", "check", "pairs"):
@@ -230,7 +232,15 @@ def run(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: S
         r["checked_heldout"] = 1 - float((b ** 2).sum()) / max(g_te, 1e-300)
         r["score"] = r["checked_heldout"] - penalty * effects.ALL[r["effect"]].size
     table.sort(key=lambda r: -r["score"])
-    short = [r["effect"] for r in table[:cfg.shortlist]]
+    short = []  # the best, skipping candidates collinear with one already in (reported as its set)
+    for r in table:
+        if len(short) == cfg.shortlist:
+            break
+        twin = next((s for s in short if r["effect"] in collinear_with(C, s, cfg.collinear)), None)
+        if twin is None:
+            short.append(r["effect"])
+        else:
+            r["collinear_with"] = twin
     for n in list(short):  # the finer choice needs the coarse rival
         p = finer.parent(n)
         if p != n and p in effects.ALL and effects.ALL[p].applies(sm) and p not in short:
