@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from stride_jax.gap import diagnose, effects, finer, fit, groups, real, replay, screen
+from stride_jax.gap import diagnose, effects, filters, finer, fit, groups, real, replay, screen
 from stride_jax.sim import model
 
 # Two position-servo arms on a fixed torso: families type (shoulder, elbow) and limb (left, right).
@@ -54,10 +54,12 @@ def arms(tmp_path_factory):
 
 
 def _quiet(**kw):
-    return dataclasses.replace(diagnose.PRESETS["tiny"], progress=False, **kw)
+    # clean logs need no cleaning: the spike filter's false positives would be a gap of their own
+    return dataclasses.replace(diagnose.PRESETS["tiny"], progress=False,
+                               preprocess=filters.Preprocess(outliers=False), **kw)
 
 
-def _diagnose(sm, applied, cfg=None, seed=1, n=6, steps=120):
+def _diagnose(sm, applied, cfg=None, seed=1, n=5, steps=100):
     _, logged = real.generate(sm, applied, n, steps, seed=seed)
     return diagnose.diagnose(sm, logged, cfg or _quiet(), log=lambda s: None)
 
@@ -121,7 +123,7 @@ def test_encoder_offset_recovered(arms):
     out = _diagnose(arms, {"encoder_offset@left_elbow_joint": 0.05})
     assert out["verdict"]["effects"] == ["encoder_offset@left_elbow_joint"], out["verdict"]
     p = out["which"]["ranking"][0]["params"]["encoder_offset@left_elbow_joint"][0]
-    assert abs(p - 0.05) < 0.005
+    assert abs(p - 0.05) < 0.002
 
 
 def test_gain_and_motor_constant_are_one_indistinguishable_set(arms):
@@ -136,14 +138,19 @@ def test_gain_and_motor_constant_are_one_indistinguishable_set(arms):
     assert "indistinguishable set" in v["reason"]
 
 
-def test_speed_path_gives_the_full_paths_verdict(arms, capsys):
-    _, logged = real.generate(arms, {"damping@elbow": 0.6}, 6, 120, seed=2)
-    fast = diagnose.diagnose(arms, logged, dataclasses.replace(diagnose.PRESETS["tiny"]), log=lambda s: None)
+def test_speed_path_gives_the_full_paths_verdict(capsys):
+    # a pair, one effect masked by the other: the screen's joint linear fit proposes it, as the
+    # full path's conditional grid screen does
+    sm = model.load("pendulum")
+    _, logged = real.generate(sm, {"damping": 0.3, "delay": 2}, 6, 120, seed=1)
+    fast = diagnose.diagnose(sm, logged, diagnose.PRESETS["tiny"], log=lambda s: None)
     err = capsys.readouterr().err
     assert "screen: replay every candidate" in err and "fits: each shortlisted effect alone" in err
-    full_cfg = _quiet(screen=screen.ScreenConfig(shortlist=0))
-    full = diagnose.diagnose(arms, logged, full_cfg, log=lambda s: None)
+    assert "fits: pairs" in err and "100%" in err
+    full = diagnose.diagnose(sm, logged, _quiet(screen=screen.ScreenConfig(shortlist=0)), log=lambda s: None)
     assert capsys.readouterr().err == ""  # progress off
-    assert full["screen"] is None and len(full["which"]["ranking"]) > len(fast["which"]["ranking"])
+    assert full["screen"] is None and fast["screen"]["shortlist"]
+    assert len(full["which"]["ranking"]) > len(fast["which"]["ranking"])
+    assert set(fast["verdict"]["effects"]) == {"damping", "delay"}
     for k in ("verdict", "effects", "confident"):
         assert fast["verdict"][k] == full["verdict"][k], (fast["verdict"], full["verdict"])

@@ -196,6 +196,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
                                "'scaled' divides each dof by the spread of its logged velocity changes",
     }
     out["where"] = where(sm, data, r_all, scale, cfg)
+    stages = out["stage_seconds"] = {"where": time.time() - t_start}  # wall time of each stage
     if _rms(r_all) < cfg.exact_nominal:
         out["nominal_check"] = {}
         out["verdict"] = {"verdict": "no significant gap", "effects": [], "confident": True,
@@ -209,6 +210,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     bad = {k: v for k, v in out["nominal_check"].items() if v > 1e-9}
     if bad:
         raise RuntimeError(f"effects do not reproduce the nominal model at their nominal value: {bad}")
+    stages["nominal_check"], t0 = time.time() - t_start - stages["where"], time.time()
     scr, singles, pair_screen = None, None, None
     if cfg.screen.shortlist:
         scr = screen.run(sm, train_k, test_k, scale, cfg.screen, cfg.penalty, cfg.progress, log)
@@ -217,7 +219,9 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
         pair_screen = lambda best, fitted: screen.pairs(sm, C, best, fitted, cfg.screen.pairs)
     elif cfg.screen.finer:
         singles = screen.candidate_names(sm, cfg.screen)
-    w = which(sm, train_k, test_k, scale, cfg, log, singles, pair_screen)
+    stages["screen"], t0 = time.time() - t0, time.time()
+    w = which(sm, fit.thin(train_k, cfg.screen.fit_stride), test_k, scale, cfg, log, singles, pair_screen)
+    stages["which"], t0 = time.time() - t0, time.time()
     out["screen"] = scr
     out["verdict"] = verdict(w, cfg)
     collinear = {e: screen.collinear_with(C, e, cfg.screen.collinear) for e in w["ranking"][0]["effects"]} if scr else {}
@@ -228,6 +232,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     with progress.bar(1, "how far: held-out replays and rollouts", cfg.progress) as bar:
         out["how_far"] = how_far(sm, test, scale, w, cfg)
         bar.update(1)
+    stages["how_far"], t0 = time.time() - t0, time.time()
     out["residual"] = None
     if cfg.residual.wanted(out["verdict"]["verdict"]):
         out["residual"] = residual.fit_on_top(sm, w["plan_best"], train, test, scale, cfg.residual,
@@ -236,6 +241,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
         out["verdict"]["reason"] += residual.reason(out["residual"])
     out["which"] = {k: v for k, v in w.items() if k not in ("r_nom_test", "r_best_test", "plan_best")}
     out["where"]["divergence"] = out["how_far"]["rollout_before"]
+    stages["residual"] = time.time() - t0
     out["seconds"] = time.time() - t_start
     log(f"verdict: {out['verdict']['verdict']} {out['verdict']['effects']} — {out['verdict']['reason']}")
     return out

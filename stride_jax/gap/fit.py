@@ -95,6 +95,16 @@ def subset(data: Data, idx) -> Data:
     return make_data(trajs, data.k)
 
 
+def thin(data: Data, stride: int) -> Data:
+    """``data`` with the replays that start every ``stride``-th sample of each trajectory (the
+    ``k``-step windows of neighbouring samples overlap by ``k - 1`` periods)."""
+    if stride <= 1:
+        return data
+    keep = np.flatnonzero((data.start - data.bounds[data.traj]) % stride == 0)
+    return data._replace(start=data.start[keep], first=data.first[keep], target=data.target[keep],
+                         traj=data.traj[keep])
+
+
 def samples_before_next(data: Data) -> np.ndarray:
     """``[M]`` index into ``q``/``qd`` of each replayed sample."""
     return data.start

@@ -16,10 +16,10 @@ batch (:mod:`stride_jax.gap.replay`), on every ``stride``-th replay window:
    least squares on the training windows and scored on the held-out ones: the fraction of the
    held-out gap it removes, like the full diagnosis's "explained" but to first order.
 3. **One-step check**: the ``check`` best are replayed once at their linear estimate (one batch);
-   their actual held-out gap there ranks them, and the ``shortlist`` best go to the full fits
-   (with the all-joints effect of every finer variant among them, so that the finer choice always
-   has its coarse rival), skipping a candidate collinear with one already on the list (step 5: the
-   report names it with that one instead of fitting it again).
+   their actual held-out gap there ranks them, and the best member (all joints or one group) of
+   each of the ``shortlist`` best effects goes to the full fits, with the all-joints effect of every
+   finer variant among them, so that the finer choice always has its coarse rival, and the best
+   group variant of the leading effect (other groups of the same effect come in as pairs).
 4. **Pairs**: a second effect on top of the best single is proposed by the joint linear fit of
    both columns (``pairs`` of them), which sees an effect masked by the first.
 5. **Collinearity**: two scalar candidates whose training columns have ``|cos| >= collinear`` move
@@ -57,6 +57,8 @@ class ScreenConfig:
         grid screen is not run).
       collinear: ``|cos|`` of two candidates' sensitivity columns above which they are reported
         as one indistinguishable set.
+      fit_stride: the full fits replay from every ``fit_stride``-th sample of the training logs
+        (their ``steps``-period windows overlap; 1: every sample). Held-out scores use every one.
       finer_margin: a finer variant (``damping@calf``) is preferred to its all-joints effect only
         if it removes at least this fraction of what the all-joints effect leaves of the held-out
         gap above the noise floor, and the paired bootstrap puts its gain above zero at level
@@ -70,9 +72,12 @@ class ScreenConfig:
     check: int = 12
     pairs: int = 2
     collinear: float = 0.98
+    fit_stride: int = 2
     finer_margin: float = 0.1
 
     def __post_init__(self):
+        if self.fit_stride < 1:
+            raise ValueError(f"screen.fit_stride must be >= 1, got {self.fit_stride}")
         for f in ("shortlist", "stride", "check", "pairs"):
             if getattr(self, f) < 0:
                 raise ValueError(f"screen.{f} must be >= 0, got {getattr(self, f)}")
@@ -232,15 +237,17 @@ def run(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: S
         r["checked_heldout"] = 1 - float((b ** 2).sum()) / max(g_te, 1e-300)
         r["score"] = r["checked_heldout"] - penalty * effects.ALL[r["effect"]].size
     table.sort(key=lambda r: -r["score"])
-    short = []  # the best, skipping candidates collinear with one already in (reported as its set)
+    best_of: dict[str, str] = {}  # the best member of each effect (damping, damping@calf, ... count once)
     for r in table:
-        if len(short) == cfg.shortlist:
+        if len(best_of) == cfg.shortlist:
             break
-        twin = next((s for s in short if r["effect"] in collinear_with(C, s, cfg.collinear)), None)
-        if twin is None:
-            short.append(r["effect"])
-        else:
-            r["collinear_with"] = twin
+        best_of.setdefault(finer.parent(r["effect"]), r["effect"])
+    short = list(best_of.values())
+    if table:  # the leading effect's finer choice is always made by full fits: its best group too
+        lead = finer.parent(table[0]["effect"])
+        fin = next((r["effect"] for r in table if finer.parent(r["effect"]) == lead and r["effect"] != lead), None)
+        if fin is not None and fin not in short:
+            short.insert(1, fin)
     for n in list(short):  # the finer choice needs the coarse rival
         p = finer.parent(n)
         if p != n and p in effects.ALL and effects.ALL[p].applies(sm) and p not in short:
