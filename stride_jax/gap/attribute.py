@@ -98,9 +98,14 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         score(f)
         log(f"  fit {name:17s} {_fmt(f.params)}  train loss {f.train_loss:.4g}  ({f.evals} evals, "
             f"{time.time() - t0:.1f} s)")
+    held = lambda names: float((r_te[names] ** 2).sum())
+    lead = min(fits, key=lambda f: held(f.names)).names[0]
+    coarse = granularity.coarse_of(sm, lead)  # the finer choice needs the best's all-joints rival
+    if coarse and coarse not in [f.names[0] for f in fits]:
+        score(fit.fit(sm, train, scale, (coarse,), cfg.fit))
+        log(f"  fit {coarse:17s} {_fmt(fits[-1].params)}  (the all-joints rival of {lead})")
     n_single = len(fits)
     singles = {f.names[0]: f for f in fits}
-    held = lambda names: float((r_te[names] ** 2).sum())
     ranked = sorted(fits, key=lambda f: held(f.names))
     best_single = ranked[0]
     exact = held(best_single.names) <= 1e-8 * L_nom

@@ -24,8 +24,14 @@ from typing import Any
 
 import numpy as np
 
-from stride_jax.gap import finer
+from stride_jax.gap import effects, finer
 
+def coarse_of(sm, name: str) -> str | None:
+    """The all-joints effect that the finer variant ``name`` refines, where it applies to ``sm``
+    (None for an all-joints effect, or a finer effect without one: encoder offsets, link groups)."""
+
+    c = finer.parent(name)
+    return c if c != name and c in effects.ALL and effects.ALL[c].applies(sm) else None
 
 def prefer_coarse(rows: list[dict[str, Any]], margin: float, alpha: float, floor=lambda names: 0.0
                   ) -> list[dict[str, Any]]:
@@ -53,7 +59,6 @@ def prefer_coarse(rows: list[dict[str, Any]], margin: float, alpha: float, floor
             rows.remove(row)
             rows.insert(rows.index(P) + 1, row)
     return rows
-
 
 def indistinguishable(w: dict[str, Any], collinear: dict[str, dict[str, float]], alpha: float
                       ) -> dict[str, Any] | None:

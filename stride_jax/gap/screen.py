@@ -17,9 +17,10 @@ batch (:mod:`stride_jax.gap.replay`), on every ``stride``-th replay window:
    held-out gap it removes, like the full diagnosis's "explained" but to first order.
 3. **One-step check**: the ``check`` best are replayed once at their linear estimate (one batch);
    their actual held-out gap there ranks them, and the best member (all joints or one group) of
-   each of the ``shortlist`` best effects goes to the full fits, with the all-joints effect of every
-   finer variant among them, so that the finer choice always has its coarse rival, and the best
-   group variant of the leading effect (other groups of the same effect come in as pairs).
+   each of the ``shortlist`` best effects goes to the full fits, plus the leading effect's
+   all-joints and best group variant (the rivals of the finer choice; should another finer variant
+   come out best, :func:`~stride_jax.gap.attribute.which` fits its all-joints effect too; other
+   groups of the same effect come in as pairs).
 4. **Pairs**: a second effect on top of the best single is proposed by the joint linear fit of
    both columns (``pairs`` of them), which sees an effect masked by the first.
 5. **Collinearity**: two scalar candidates whose training columns have ``|cos| >= collinear`` move
@@ -36,7 +37,7 @@ from typing import Any
 import numpy as np
 from scipy import optimize
 
-from stride_jax.gap import effects, finer, fit, progress, replay
+from stride_jax.gap import effects, finer, fit, granularity, progress, replay
 from stride_jax.sim.model import SimModel
 
 
@@ -65,14 +66,14 @@ class ScreenConfig:
         ``alpha`` (:mod:`stride_jax.gap.granularity`).
     """
 
-    shortlist: int = 5
+    shortlist: int = 4
     finer: bool = True
     stride: int = 0
     probe: float = 0.25
     check: int = 12
     pairs: int = 2
     collinear: float = 0.98
-    fit_stride: int = 2
+    fit_stride: int = 1
     finer_margin: float = 0.1
 
     def __post_init__(self):
@@ -243,15 +244,12 @@ def run(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: S
             break
         best_of.setdefault(finer.parent(r["effect"]), r["effect"])
     short = list(best_of.values())
-    if table:  # the leading effect's finer choice is always made by full fits: its best group too
-        lead = finer.parent(table[0]["effect"])
+    if table:  # the leading effect's finer choice is made by full fits: its all-joints effect and
+        lead = finer.parent(table[0]["effect"])  # its best group variant both go in
         fin = next((r["effect"] for r in table if finer.parent(r["effect"]) == lead and r["effect"] != lead), None)
-        if fin is not None and fin not in short:
-            short.insert(1, fin)
-    for n in list(short):  # the finer choice needs the coarse rival
-        p = finer.parent(n)
-        if p != n and p in effects.ALL and effects.ALL[p].applies(sm) and p not in short:
-            short.append(p)
+        for n in (fin, granularity.coarse_of(sm, table[0]["effect"])):
+            if n is not None and n not in short:
+                short.insert(1, n)
     for r in table:
         del r["_p"]
     log(f"  screen: {len(names)} candidates ({len(C.param)} parameters) on {len(rows_tr)} + {len(rows_te)} "
