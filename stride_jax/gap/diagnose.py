@@ -216,7 +216,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
         scr = screen.run(sm, train_k, test_k, scale, cfg.screen, cfg.penalty, cfg.progress, log)
         C = scr.pop("_columns")
         singles = scr["shortlist"]
-        pair_screen = lambda best, fitted: screen.pairs(sm, C, best, fitted, cfg.screen.pairs)
+        pair_screen = lambda best, fitted: screen.pairs(sm, C, best, fitted, cfg.screen.pairs, cfg.pair_min)
     elif cfg.screen.finer:
         singles = screen.candidate_names(sm, cfg.screen)
     stages["screen"], t0 = time.time() - t0, time.time()

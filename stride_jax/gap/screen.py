@@ -22,7 +22,8 @@ batch (:mod:`stride_jax.gap.replay`), on every ``stride``-th replay window:
    come out best, :func:`~stride_jax.gap.attribute.which` fits its all-joints effect too; other
    groups of the same effect come in as pairs).
 4. **Pairs**: a second effect on top of the best single is proposed by the joint linear fit of
-   both columns (``pairs`` of them), which sees an effect masked by the first.
+   both columns (``pairs`` of them), which sees an effect masked by the first; a pair whose linear
+   fit does not remove ``pair_min`` of what the single's leaves is not fitted.
 5. **Collinearity**: two scalar candidates whose training columns have ``|cos| >= collinear`` move
    the replays the same way: to first order the logs cannot tell them apart (a position servo's gain
    and the motor constant when nothing saturates, joint and servo damping without measured torque).
@@ -258,16 +259,22 @@ def run(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: S
             "stride": int(stride), "table": table, "shortlist": short, "seconds": time.time() - t0, "_columns": C}
 
 
-def pairs(sm: SimModel, C: Columns, best: str, fitted: dict, n: int) -> list[tuple[tuple[str, str], dict]]:
+def pairs(sm: SimModel, C: Columns, best: str, fitted: dict, n: int, min_gain: float = 0.0
+          ) -> list[tuple[tuple[str, str], dict]]:
     """The ``n`` second effects whose joint linear fit with ``best`` removes most of the held-out
-    gap: ``[((best, other), start params)]`` (start: the fitted single and the linear estimate)."""
+    gap: ``[((best, other), start params)]`` (start: the fitted single and the linear estimate).
+    Only pairs whose linear fit removes at least ``min_gain`` of what ``best``'s own linear fit
+    leaves held out are proposed (the pair rule's ``pair_min``, to first order): where the single
+    leaves nothing a second effect could take, no pair is fitted."""
     if n == 0 or best not in C.names:
         return []
+    _, _, l_single = linear_fit(C, sm, (best,))
     scored = []
     for other in C.names:
         if other == best or other == finer.parent(best) or finer.parent(other) == best:
             continue  # an effect and its own finer variant: nested, not a second effect
         params, _, l_te = linear_fit(C, sm, (best, other))
-        scored.append((l_te, other, params))
+        if l_single - l_te >= min_gain * l_single:
+            scored.append((l_te, other, params))
     scored.sort(key=lambda t: t[0])
     return [((best, o), {best: np.asarray(fitted[best], float), o: p[o]}) for _, o, p in scored[:n]]
