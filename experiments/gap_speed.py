@@ -1,6 +1,6 @@
 """Times one Go1 diagnosis (issue 18, item 5): 12 trajectories x 8 s at 50 Hz, default preset.
 
-    python experiments/gap_speed.py --out /tmp/gap_speed [--effects '{"damping@calf": 0.8}'] [--repeat 2]
+    python experiments/gap_speed.py --out /tmp/gap_speed [--effects '{"damping@calf": 0.8}'] [--noise] [--repeat 2]
 
 Writes the logs (12 full-length trajectories of the Go1 explorer with the planted effect: episodes
 where the robot falls are skipped), runs ``stride_jax.gap.diagnose.diagnose`` under cProfile
@@ -32,12 +32,14 @@ def main() -> None:
     ap.add_argument("--preset", default="default")
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--noise", action="store_true", help="through a real Go1's sensors (real.SensorNoise)")
     a = ap.parse_args()
     from stride_jax.gap import diagnose, logs, real
     from stride_jax.sim import model
 
     sm = model.load("go1")
-    _, lg = real.generate(sm, json.loads(a.effects), 4 * a.trajectories, a.steps, a.seed)
+    _, lg = real.generate(sm, json.loads(a.effects), 4 * a.trajectories, a.steps, a.seed,
+                          real.SensorNoise() if a.noise else None)
     full = [t for t in lg if len(t.t) == a.steps][:a.trajectories]
     if len(full) < a.trajectories:
         raise SystemExit(f"only {len(full)} of {4 * a.trajectories} episodes ran {a.steps} steps without a fall")
@@ -59,6 +61,7 @@ def main() -> None:
                      "stages": {k: round(v, 1) for k, v in out["stage_seconds"].items()},
                      "verdict": out["verdict"]["verdict"], "effects": out["verdict"]["effects"],
                      "confident": out["verdict"]["confident"],
+                     "indistinguishable": (out["verdict"].get("indistinguishable_set") or {}).get("effects"),
                      "shortlist": (out["screen"] or {}).get("shortlist"), "profile": s.getvalue()})
         print(json.dumps({k: v for k, v in runs[-1].items() if k != "profile"}), flush=True)
     best = min(runs, key=lambda r: r["seconds"])
