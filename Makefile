@@ -16,7 +16,7 @@ ifneq ($(wildcard ../shared/menagerie),)
 export MENAGERIE_ROOT ?= $(abspath ../shared/menagerie)
 endif
 
-.PHONY: setup demo data train eval table1 reproduce report ppo closed-loop test bench-sim bench-mppi gap-bench clean
+.PHONY: setup demo data train eval table1 reproduce report ppo closed-loop test test-gpu bench-sim bench-mppi gap-bench clean
 
 $(BIN)/stride: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -43,7 +43,7 @@ data: setup
 train: setup
 	$(BIN)/stride train --robot $(or $(TRAIN_ROBOT),$(ROBOT)) --model $(MODEL) --preset $(PRESET) --make-data
 
-## eval: Table I metrics of trained runs, e.g. make eval ROBOT=go1 -> results/go1/table.md
+## eval: Table I metrics of trained runs, e.g. make eval ROBOT=go1 -> results/table1/go1/table.md
 eval: setup
 	$(BIN)/stride eval --runs 'runs/$(ROBOT)*/*'
 
@@ -55,7 +55,7 @@ table1: setup
 ppo: setup
 	$(BIN)/stride ppo --robot $(ROBOT) --preset $(PRESET) --out runs/ppo_$(ROBOT) --minutes $(or $(MINUTES),8)
 
-## closed-loop: MPPI in closed loop in MJX -> results/closed_loop*/ (PRESET=tiny on a CPU)
+## closed-loop: MPPI in closed loop in MJX -> results/closed_loop*/ (committed runs: results/closed_loop/) (PRESET=tiny on a CPU)
 closed-loop: setup
 	$(BIN)/python experiments/closed_loop.py --preset $(if $(filter default,$(PRESET)),tiny,$(PRESET))
 
@@ -73,11 +73,11 @@ report: setup
 test: setup
 	$(BIN)/python tests/run_parallel.py
 
-## bench-sim: simulation steps/s per robot, backend and batch size -> results/bench_sim_<cpu|gpu>.md
+## bench-sim: simulation steps/s per robot, backend and batch size -> results/throughput/bench_sim_<cpu|gpu>.md
 bench-sim: setup
 	$(BIN)/stride bench-sim --preset $(PRESET)
 
-## bench-mppi: jitted MPPI step latency per robot, model, K, H -> results/bench_mppi_<cpu|gpu>.md
+## bench-mppi: jitted MPPI step latency per robot, model, K, H -> results/mppi_latency/bench_mppi_<cpu|gpu>.md
 ## (on a CPU the samples are split over one XLA host device per core: STRIDE_HOST_DEVICES=auto)
 bench-mppi: setup
 	STRIDE_HOST_DEVICES=$${STRIDE_HOST_DEVICES:-auto} $(BIN)/stride bench-mppi --preset $(PRESET)
@@ -90,3 +90,8 @@ gap-bench: setup
 
 clean:
 	rm -rf data/ runs/ .pytest_cache
+
+## test-gpu: on a machine with a GPU, the kernel tests compiled and in the interpreter, the
+## GPU-only checks (tests/test_gpu.py) and MJX's records on the GPU; a missing GPU fails
+test-gpu: setup
+	STRIDE_REQUIRE_GPU=1 $(BIN)/python -m pytest -q -p no:cacheprovider tests/test_gpu.py tests/test_fused.py tests/test_fused_step.py tests/test_record.py

@@ -1,6 +1,7 @@
-"""The SHA-256 of every committed checkpoint the report and the closed-loop commands load, in
-``results/SHA256SUMS`` (the format ``sha256sum -c`` reads), so a copy can be checked with the
-standard tool and a changed file is noticed (``tests/test_results.py`` checks the list).
+"""The SHA-256 of every committed checkpoint the report, the closed-loop commands and the MPPI
+latency study load, in ``results/SHA256SUMS`` (the format ``sha256sum -c`` reads), so a copy can
+be checked with the standard tool and a changed file is noticed (``tests/test_results.py`` checks
+the list).
 
     python experiments/checksums.py            # rewrite results/SHA256SUMS
     cd results && sha256sum -c SHA256SUMS      # check a copy
@@ -12,8 +13,13 @@ import pathlib
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "results"
-# Trained parameters: dynamics models, PPO policies, learned reward/value models.
-FOLDERS = ("models", "policies", "learned_go1", "learned_g1")
+# Trained parameters: dynamics models (Table I's seed 0), PPO policies, learned reward/value
+# models, and the planning-sized STRIDE runs the MPPI latency study and the fused-kernel checks
+# load (``results/mppi_latency/README.md``).
+FOLDERS = ("models", "policies", "learned_go1", "learned_g1",
+           "mppi_latency/planning_sizes/stride-h64", "mppi_latency/planning_sizes/stride-h128",
+           "mppi_latency/planning_shared/stride-h64-shared",
+           "mppi_latency/planning_shared/stride-h128-shared")
 
 
 def files(results: pathlib.Path = RESULTS) -> list[pathlib.Path]:

@@ -7,7 +7,7 @@ MJX, and the gait MPPI settles on when it plans frequency, duty and phase offset
 
 import stride_jax
 from stride_jax import config
-from stride_jax.control import gait_study
+from stride_jax.jobs import gait_study
 
 if __name__ == "__main__":
     stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without

@@ -3,7 +3,7 @@
 # three network sizes, two and one network(s) for L and V, with the samples split over one XLA
 # host device per core (STRIDE_HOST_DEVICES). Usage (repository root): bash experiments/cpu_control_rate.sh [OUT]
 set -euo pipefail
-out=${1:-results/mppi_control_rate}
+out=${1:-results/mppi_latency/control_rate}
 export STRIDE_HOST_DEVICES=${STRIDE_HOST_DEVICES:-auto}
 stride() { python3 -m stride_jax.cli "$@" 2>&1 | grep -E "K=|rror"; }
 stride bench-mppi --preset target-coarse --repeats 20 --out "$out"

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 
 import stride_jax
 from stride_jax.dynamics import fused, fused_pallas, mlp
-from stride_jax.sim import bench as sim_bench
+from stride_jax.timing import median_time
 
 stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
 hidden, depth, K = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
@@ -28,5 +28,5 @@ t = x * 0.5
 const = jax.jit(jax.vmap(lambda x, t: fused.jvp(params, x, t, dtype)))
 arg = jax.jit(lambda p, x, t: jax.vmap(lambda x, t: fused.jvp(p, x, t, dtype))(x, t))
 for name, fn, args in [("const", const, (x, t)), ("arg", arg, (params, x, t))]:
-    median = sim_bench.median_time(lambda: jax.block_until_ready(fn(*args)), 20)
+    median = median_time(lambda: jax.block_until_ready(fn(*args)), 20)
     print(sys.argv[4:], hidden, depth, K, name, f"{1e6 * median:.1f} us", flush=True)

@@ -18,11 +18,11 @@ import jax.numpy as jnp
 
 import stride_jax
 from stride_jax.dynamics import flow, fused, fused_pallas, mlp
-from stride_jax.sim import bench as sim_bench
+from stride_jax.timing import median_time
 
 
 def median_ms(f, *args, repeats: int = 50) -> float:
-    return 1e3 * sim_bench.median_time(lambda: jax.block_until_ready(f(*args)), repeats)
+    return 1e3 * median_time(lambda: jax.block_until_ready(f(*args)), repeats)
 
 
 def main():

@@ -3,7 +3,7 @@ default device: agreement of one model step over a batch of states (the step's a
 and the time of one vmapped step and of a vmapped 30-step rollout for each kernel choice. Go1
 STRIDE, one network for L and V:
 
-    python experiments/fused_step_check.py [--run results/planning_shared/stride-h64-shared]
+    python experiments/fused_step_check.py [--run results/mppi_latency/planning_shared/stride-h64-shared]
         [--samples 1024] [--kernels xla,pallas-bf16,pallas-step,pallas-step-bf16]
 
 Without ``--run`` the model is at initialisation with its weights perturbed (the flow's last
@@ -21,10 +21,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import stride_jax
-from stride_jax.control import bench
+from stride_jax.jobs import bench_mppi as bench
 from stride_jax.dynamics import fused_step, models, stride
-from stride_jax.sim.bench import median_time
-from stride_jax.train import job
+from stride_jax.timing import median_time
+from stride_jax.train.setup import model_config
 
 
 def main():
@@ -51,7 +51,7 @@ def main():
     else:
         act = dataclasses.replace(act, dt=act.dt * act.n_substeps / a.substeps,
                                   n_substeps=a.substeps)
-        cfg = job.model_config("stride", meta, a.hidden, 3, 2, True)
+        cfg = model_config("stride", meta, a.hidden, 3, 2, True)
         scales = stride.Scales()
         params = models.make("stride", spec, act, cfg, scales).init(jax.random.key(0))
         noise = lambda x, k: x + 0.05 * jax.random.normal(k, x.shape)

@@ -15,9 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import mppi_hlo_ops  # experiments/, beside this script
-from stride_jax.control import bench
+from stride_jax.jobs import bench_mppi as bench
 from stride_jax.dynamics import models, stride
-from stride_jax.train import job
+from stride_jax.train.setup import model_config
 
 
 def main():
@@ -33,7 +33,7 @@ def main():
     act = dataclasses.replace(act, dt=act.dt * act.n_substeps, n_substeps=1)
     B = a.batch
     for name in a.models.split(","):
-        cfg = job.model_config(name, meta, a.hidden, a.depth, 0, a.shared_lnn)
+        cfg = model_config(name, meta, a.hidden, a.depth, 0, a.shared_lnn)
         model = models.make(name, spec, act, cfg, stride.Scales())
         params = model.init(jax.random.key(0))
         f = jax.jit(jax.vmap(lambda q, qd, u, k: model.step(params, q, qd, u, k)))

@@ -17,7 +17,7 @@ import re
 import jax
 
 import stride_jax
-from stride_jax.control import bench
+from stride_jax.jobs import bench_mppi as bench
 
 
 def entry_ops(hlo: str) -> tuple[collections.Counter, collections.Counter]:

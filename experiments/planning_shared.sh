@@ -23,7 +23,7 @@ for h in 64 128; do
       >"$out/train-h$h-shared.log" 2>&1 &
   fi
 done
-if [ ! -d "$out/stride-h64" ]; then cp -r results/planning_sizes/stride-h64 "$out/"; fi
+if [ ! -d "$out/stride-h64" ]; then cp -r results/mppi_latency/planning_sizes/stride-h64 "$out/"; fi
 wait
 for spec in stride-h64-shared:2 stride-h64-shared:1 stride-h128-shared:2 stride-h128-shared:1 \
             stride-h64:1; do

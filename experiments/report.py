@@ -3,7 +3,7 @@
     python experiments/report.py                      # reads results/, writes results/REPORT.md
     python experiments/report.py --results R --out R/REPORT.md
 
-Reads only result files (Table I's results/<robot>/table.json, required; reproduce summaries,
+Reads only result files (Table I's results/table1/<robot>/table.json, required; reproduce summaries,
 MPPI benchmarks, closed-loop runs and the gap benchmark when present); see
 ``stride_paper.report``.
 """

@@ -66,15 +66,15 @@ def main(argv: list[str] | None = None) -> dict:
 
 def _pretrain(cfg, preset: str, parallel: int, t0: float) -> None:
     """The pendulum runs of the selected parts, ``parallel`` ``stride train`` processes at once."""
-    from stride_jax import pool
+    from stride_jax.jobs import pool
     from stride_jax.eval import runs
-    from stride_paper import figures
+    from stride_paper import figure_runs
 
     tag = cfg.tag or preset
-    jobs = [tc for tc in figures.pendulum_jobs(cfg, tag)
+    jobs = [tc for tc in figure_runs.pendulum_jobs(cfg, tag)
             if not runs.is_finished(pathlib.Path(tc.out))]
     for robot in sorted({tc.robot for tc in jobs}):
-        figures.ensure_pendulum_data(cfg, tag, robot)
+        figure_runs.ensure_pendulum_data(cfg, tag, robot)
     env = pool.shared_env(cfg.root)
     cmds = {tc.out: pool.stride_command("train", *pool.config_flags(tc)) for tc in jobs}
     failed = pool.run(cmds, {n: pathlib.Path(n) / "train.log" for n in cmds}, parallel, env,

@@ -15,8 +15,8 @@ import jax
 import stride_jax
 from stride_jax.dynamics import models, stride
 from stride_jax.io import atomic_write_text
-from stride_jax.sim import collect, model as sim_model
-from stride_jax.train import job
+from stride_jax.sim import model as sim_model
+from stride_jax.train.setup import model_config
 
 NETWORKS = {
     "stride": "L(q) Cholesky net, V(q) net, flow field v(z, t; q, qd, tau)",
@@ -40,8 +40,8 @@ def main(argv=None) -> None:
     for name in models.MODELS:
         counts = []
         for robot in robots:
-            meta = collect.robot_meta(sim_model.load(robot))
-            cfg = job.model_config(name, meta, args.hidden, args.depth)
+            meta = sim_model.robot_meta(sim_model.load(robot))
+            cfg = model_config(name, meta, args.hidden, args.depth)
             model = models.make(name, models.spec_from_meta(meta), models.Actuation.from_meta(meta),
                                 cfg, stride.Scales())
             params = model.init(jax.random.key(0))
@@ -54,7 +54,7 @@ def main(argv=None) -> None:
         "# Model sizes", "",
         f"Made by `{command.strip()}`. Every network: {args.hidden} hidden units x {args.depth} "
         "layers, SiLU, the same for all models (the paper's \"same size\"); every model trains "
-        "for the same steps with the same optimiser (`stride_jax/train/job.py` presets).", "",
+        "for the same steps with the same optimiser (`stride_jax/jobs/train.py` presets).", "",
         "| model | networks | default NFE | " + " | ".join(f"params ({r})" for r in robots)
         + " |", "|---|---|---|" + "---|" * len(robots), *rows, ""])
     path = pathlib.Path(args.out)

@@ -1,4 +1,4 @@
-"""The paper's Table I: data, every model x seeds, evaluation -> results/<robot>/table.{md,json}.
+"""The paper's Table I: data, every model x seeds, evaluation -> results/table1/<robot>/table.{md,json}.
 
     python experiments/table1.py --robot go1,g1                    # full size (use a GPU)
     python experiments/table1.py --robot go1 --preset tiny          # minutes on a CPU
@@ -9,7 +9,7 @@
 the datasets of the first Table I) or ``walk`` (the trained PPO policy of ``results/policies/``
 walking under velocity commands with noise on its actions, on ground patches of varying friction
 and softness with several pushes: a contact residual that is stochastic given the state). The
-walk variant's folders and results carry ``_walk`` (``results/go1_walk/``).
+walk variant's folders and results carry ``_walk`` (``results/table1/go1_walk/``).
 
 Runs train side by side (``--parallel`` processes share the device: the models are small, so one
 process leaves a GPU idle between kernel launches). Seeds of one model compile to the same
@@ -30,7 +30,8 @@ import sys
 import time
 
 import stride_jax
-from stride_jax import config, pool
+from stride_jax import config
+from stride_jax.jobs import pool
 
 PRESETS = {
     # data episodes, training preset (its steps unless ``steps`` is given), eval preset
@@ -66,7 +67,7 @@ class Table1Config:
         cleanly at it.
       eval_only: evaluate and tabulate the runs already trained (no data, no training).
       root: data and runs folder (default: ``data/``, ``runs/``).
-      out: results folder (default: ``results/<robot>``).
+      out: results folder (default: ``results/table1/<robot>``).
     """
 
     robot: str = "go1"
@@ -157,7 +158,7 @@ def main(argv: list[str] | None = None) -> None:
         mine = [str(folders[n]) for n in ok if n.startswith(f"{r}/") and n not in failed]
         if not mine:
             continue
-        out = args.out or f"results/{r}{suffix}"
+        out = args.out or f"results/table1/{r}{suffix}"
         subprocess.run(pool.stride_command("eval", "--preset", preset["eval"], "--runs",
                                            ",".join(mine), "--out", out, "--label", command),
                        check=True, env=env)

@@ -17,8 +17,7 @@ import pathlib
 from typing import Callable
 
 from stride_jax.eval.runs import is_finished, is_trained
-from stride_jax.sim import collect
-from stride_jax.train import job
+from stride_jax.jobs import data as data_job, train as job
 
 
 def data_dir(root: str | pathlib.Path, robot: str, tag: str) -> pathlib.Path:
@@ -35,7 +34,7 @@ def ensure_data(path: pathlib.Path, robot: str, episodes: int, seconds: float, s
     """The dataset at ``path``, generated (``stride data``, backend ``auto``) if absent."""
     if not (path / "meta.json").is_file():
         log(f"generating {path} ({robot}, {episodes} episodes x {seconds} s)")
-        collect.generate(collect.DataConfig(robot=robot, episodes=episodes, seconds=seconds,
+        data_job.generate(data_job.DataConfig(robot=robot, episodes=episodes, seconds=seconds,
                                             seed=seed, out=str(path)))
     return path
 

@@ -2,20 +2,22 @@
 
 Built only from result files on disk (paths relative to the results folder):
 
-* ``go1/table.json``, ``g1/table.json`` (required): Table I, every run per seed
-  (``experiments/table1.py``);
+* ``table1/go1/table.json``, ``table1/g1/table.json`` (required): Table I, every run per seed
+  (``experiments/table1.py``), and every other ``table1/<data set>/table.json``;
 * ``reproduce/<preset>/summary.json``: the figures' numbers (``experiments/reproduce.py``); the
   ``paper`` preset is preferred (``reproduce/paper/`` or ``reproduce/summary.json`` tagged
   ``paper``), else ``tiny``, whose numbers test the pipeline and say nothing about the paper;
-* ``bench_mppi_cpu.json``, ``bench_mppi_gpu.json`` (and ``*/bench_mppi_*.json``): MPPI latency
+* ``mppi_latency/bench_mppi_cpu.json``, ``mppi_latency/bench_mppi_gpu.json`` (and
+  ``mppi_latency/*/**/bench_mppi_*.json``): MPPI latency
   (``stride bench-mppi``) against the issue-4 targets;
-* ``closed_loop*/**/*.json``: closed-loop MPPI runs (``stride_jax.control.closed_loop``);
+* ``closed_loop*/**/*.json``: closed-loop MPPI runs (``stride_jax.control.closed_loop``; the
+  committed ones in ``closed_loop/``);
 * ``gap_bench.json``: a pointer to the gap tool's benchmark.
 
 The paper's numbers are the constants below, each with where it is in ``stride.tex``. Every
 verdict is computed from the numbers: ``holds`` / ``does not hold`` when measured, ``not run``
 when the input is absent, ``not measurable`` when the runs exist but give no finite number (e.g.
-every rollout diverged). Spread is the std over seeds (population std, as ``eval/table.py``).
+every rollout diverged). Spread is the std over seeds (population std, as ``jobs/eval.py``).
 """
 
 from __future__ import annotations
@@ -25,9 +27,9 @@ import pathlib
 import re
 
 from stride_paper.report_common import (
-    FAILS, HOLDS, NAMES, NOT_MEASURABLE, NOT_RUN, PAPER_ALLOCATION, ROBOT_NAMES, ROBOTS,
-    WHERE_ALLOCATION, WHERE_NFE, WHERE_PHASE, Row, _any, _dig, _git_note, _load_json, _pm, _stats,
-    _table, verdict,
+    FAILS, FIGURES_DIR, HOLDS, NAMES, NOT_MEASURABLE, NOT_RUN, PAPER_ALLOCATION, ROBOT_NAMES,
+    ROBOTS, WHERE_ALLOCATION, WHERE_NFE, WHERE_PHASE, Row, _any, _dig, _git_note, _load_json, _pm,
+    _stats, _table, verdict,
 )
 from stride_paper.report_common import PAPER_TABLE1  # noqa: F401  (re-exported)
 from stride_paper.report_control import closed_loop_rows, gap_lines, mppi_rows
@@ -39,7 +41,7 @@ from stride_jax.io import atomic_write_text
 
 def find_summary(results: pathlib.Path) -> tuple[pathlib.Path | None, str | None]:
     """The paper preset's summary.json if present, else the tiny preset's, else (None, None)."""
-    rep = results / "reproduce"
+    rep = results / FIGURES_DIR
     found = []
     for p in [rep / "paper" / "summary.json", rep / "summary.json",
               *sorted(rep.glob("*/summary.json"))]:
@@ -55,11 +57,11 @@ def find_summary(results: pathlib.Path) -> tuple[pathlib.Path | None, str | None
 
 def summary_claims(summary: dict) -> tuple[list[dict], str]:
     """The summary's claims with verdicts recomputed from its numbers (the same criteria as
-    ``figures.claims``); a note says when a stored verdict differs or recomputing failed."""
+    ``claims.claims``); a note says when a stored verdict differs or recomputing failed."""
     stored = {c.get("id"): c.get("holds") for c in summary.get("claims") or []}
     try:
-        from stride_paper import figures
-        claims = figures.claims(summary)
+        from stride_paper import claims as claims_lib
+        claims = claims_lib.claims(summary)
         note = "verdicts recomputed from the summary's numbers"
     except (KeyError, TypeError, ValueError, IndexError, AttributeError, ZeroDivisionError) as e:
         claims = [dict(c) for c in summary.get("claims") or []]
@@ -78,7 +80,7 @@ def claim_spread(summary: dict, cid: str) -> str | None:
             robot = m.group(1) or m.group(3)
             runs = summary["horizon"]["per_run"][robot]
             other = m.group(2)
-            if other is None:  # the best baseline by mean, as figures.claims
+            if other is None:  # the best baseline by mean, as claims.claims
                 t = summary["horizon"]["table"][robot]
                 cands = {k: v["cumulative_mean"] for k, v in t.items()
                          if k != "stride" and v.get("cumulative_mean")}
@@ -214,7 +216,7 @@ def summary_section(summary: dict, path: pathlib.Path, tag: str, claims: list[di
     if missing:
         lines += ["", "Runs missing from the figures: " + "; ".join(
             f"{p}: {', '.join(map(str, m))}" for p, m in missing.items())]
-    lines += ["", "Every claim of `summary.json` (criteria in `stride_paper/figures.py`):", ""]
+    lines += ["", "Every claim of `summary.json` (criteria in `stride_paper/claims.py`):", ""]
     rows = []
     for c in claims:
         spread = claim_spread(summary, c["id"])
@@ -276,7 +278,7 @@ def build(results: str | os.PathLike = "results", out: str | os.PathLike | None 
                   f"`{tag or 'missing'}` reproduce preset**" + (
                       ": numbers that test the pipeline, not the paper." if tag else
                       ": not run.") + " Table I comes from the paper-size runs of "
-                  "`results/<robot>/table.json`.", ""]
+                  "`results/table1/<robot>/table.json`.", ""]
     lines += ["## Claims and verdicts", ""]
     lines += _table(["#", "claim", "paper (where)", "ours", "verdict", "source"],
                     [[i + 1, r.claim, f"{r.paper} — {r.where}", r.ours, f"**{r.verdict}**",
@@ -288,7 +290,9 @@ def build(results: str | os.PathLike = "results", out: str | os.PathLike | None 
     lines += s_lines + m_lines + c_lines + gap_lines(results, rel)
     lines += ["## How to regenerate", "",
               "`R` is a data and runs folder; the GPU steps fit 10-minute calls by resuming "
-              "(`--minutes`, `--parts`; see `docs/reproduce.md`).", ""]
+              "(`--minutes`, `--parts`; see `docs/reproduce.md`). Each section's inputs are one "
+              "folder of `results/` whose `README.md` gives the exact commands "
+              "(`results/README.md` is the index).", ""]
     lines += [f"- {what}: `{cmd}`" for what, cmd in REGENERATE]
     return {"markdown": "\n".join(lines) + "\n", "rows": rows}
 

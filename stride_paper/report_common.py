@@ -12,6 +12,13 @@ from typing import Any, Iterable
 
 HOLDS, FAILS, NOT_RUN, NOT_MEASURABLE = "holds", "does not hold", "not run", "not measurable"
 
+# Where each section's inputs live under the results folder (one folder per table or figure;
+# ``results/README.md`` is the index). Closed-loop runs are every ``closed_loop*/**/*.json``
+# (the committed ones under ``closed_loop/``); the gap benchmark is ``gap_bench.json``.
+TABLE1 = "table1"        # <data set>/table.json per data set; go1/ and g1/ required
+FIGURES_DIR = "reproduce"  # <preset>/summary.json
+MPPI = "mppi_latency"    # bench_mppi_<cpu|gpu>.json and */**/bench_mppi_<cpu|gpu>.json
+
 # ------------------------------------------------------------------------- the paper's numbers
 # Locations: section and line numbers of /work/shared/paper/stride.tex (../shared/paper/).
 TEX = "stride.tex"
@@ -139,9 +146,11 @@ def _load_json(path: pathlib.Path) -> Any:
 
 
 def _git_note(path: pathlib.Path) -> str:
-    """When the file was last committed (best effort; '' outside a git checkout)."""
+    """When the file's content was last committed, through renames (best effort; '' outside a
+    git checkout)."""
     try:
-        r = subprocess.run(["git", "log", "-1", "--format=%h %cs", "--", path.name],
+        r = subprocess.run(["git", "log", "-1", "--follow", "--diff-filter=AM", "--format=%h %cs",
+                            "--", path.name],
                            cwd=path.parent, capture_output=True, text=True, timeout=10)
     except (OSError, subprocess.SubprocessError):
         return ""

@@ -9,7 +9,8 @@ import pathlib
 import re
 
 from stride_paper.report_common import (
-    CPU_TARGET, GPU_TARGET, NAMES, NOT_RUN, PAPER_MPPI_HZ, PAPER_MPPI_MS, WHERE_CLOSED, WHERE_MPPI,
+    CPU_TARGET, GPU_TARGET, MPPI, NAMES, NOT_RUN, PAPER_MPPI_HZ, PAPER_MPPI_MS, WHERE_CLOSED,
+    WHERE_MPPI,
     Row, _dig, _finite, _git_note, _load_json, _num, _stats, _table, verdict,
 )
 
@@ -17,8 +18,9 @@ from stride_paper.report_common import (
 
 def load_bench(results: pathlib.Path, kind: str) -> list[tuple[pathlib.Path, dict]]:
     out = []
-    for p in [results / f"bench_mppi_{kind}.json", *sorted(results.glob(
-            f"*/**/bench_mppi_{kind}.json"))]:
+    folder = results / MPPI
+    main = folder / f"bench_mppi_{kind}.json"
+    for p in [main, *sorted(q for q in folder.glob(f"*/**/bench_mppi_{kind}.json") if q != main)]:
         if p.is_file():
             out.append((p, _load_json(p)))
     return out

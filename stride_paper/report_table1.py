@@ -8,7 +8,8 @@ import pathlib
 
 from stride_paper.report_common import (
     ABSTRACT_FORCE_MAX_RATIO, ABSTRACT_STATE_MAX_RATIO, LEARNED, NAMES, NOT_MEASURABLE, NOT_RUN,
-    PAPER_FORCE_RELATIVE, PAPER_TABLE1, PAPER_TEXT_REDUCTION, ROBOT_NAMES, ROBOTS, WHERE_ABSTRACT,
+    PAPER_FORCE_RELATIVE, PAPER_TABLE1, PAPER_TEXT_REDUCTION, ROBOT_NAMES, ROBOTS, TABLE1,
+    WHERE_ABSTRACT,
     WHERE_FORCE_30, WHERE_FORCE_REL, WHERE_GROWTH, WHERE_TABLE1, Row, _dig, _finite, _git_note,
     _load_json, _num, _pm, _stats, _table, verdict,
 )
@@ -16,15 +17,15 @@ from stride_paper.report_common import (
 # ---------------------------------------------------------------------------------- Table I
 
 def load_table1(results: pathlib.Path, robot: str) -> dict:
-    path = results / robot / "table.json"
+    path = results / TABLE1 / robot / "table.json"
     if not path.is_file():
         raise FileNotFoundError(
             f"Table I input missing: {path} (make it with `python experiments/table1.py "
-            f"--robot {robot} --preset paper`, which writes results/{robot}/table.json)")
+            f"--robot {robot} --preset paper`, which writes results/table1/{robot}/table.json)")
     d = _load_json(path)
     if not isinstance(d, dict) or not isinstance(d.get("runs"), list):
         raise ValueError(f"{path}: not a Table I file (expected a 'runs' list, as written by "
-                         "stride_jax.eval.table)")
+                         "stride_jax.jobs.eval)")
     d["_path"] = path
     return d
 
@@ -236,10 +237,10 @@ TARGET_STATE, TARGET_FORCE = 0.80, 0.75
 
 
 def further_tables(results: pathlib.Path) -> dict[str, dict]:
-    """Every ``results/<name>/table.json``, the robots' own first (``go1``, ``g1``), then Table I
-    on other data sets or at other sizes (``go1_walk``, ``go1_cpu`` ...)."""
+    """Every ``results/table1/<name>/table.json``, the robots' own first (``go1``, ``g1``), then
+    Table I on other data sets or at other sizes (``go1_walk``, ``go1_cpu`` ...)."""
     out = {}
-    paths = sorted(results.glob("*/table.json"),
+    paths = sorted((results / TABLE1).glob("*/table.json"),
                    key=lambda p: (p.parent.name not in ROBOTS, p.parent.name))
     for path in paths:
         name = path.parent.name

@@ -24,3 +24,71 @@ def go1():
 def g1():
     from stride_jax.sim import model
     return model.load("g1")
+
+
+def _kernel_modes() -> list[str]:
+    """The interpreter runs everywhere (CI); on a GPU the real Triton kernels run as well."""
+    import jax
+    return ["interpret"] + (["gpu"] if jax.default_backend() == "gpu" else [])
+
+
+@pytest.fixture(params=_kernel_modes())
+def kernels(request):
+    """A context in which the fused kernels run as this test's mode asks: Pallas' interpreter,
+    or (on a GPU) the compiled kernels."""
+    import contextlib
+    from stride_jax.dynamics import fused
+    return fused.interpret if request.param == "interpret" else contextlib.nullcontext
+
+
+def pytest_collection_modifyitems(config, items):
+    """``gpu``-marked tests skip without a GPU, unless ``STRIDE_REQUIRE_GPU=1`` (``make
+    test-gpu``), where a missing GPU is a failure rather than a skip."""
+    import jax
+    if jax.default_backend() == "gpu":
+        return
+    if os.environ.get("STRIDE_REQUIRE_GPU") == "1":
+        raise pytest.UsageError(f"STRIDE_REQUIRE_GPU=1 but JAX runs on {jax.default_backend()}")
+    skip = pytest.mark.skip(reason="needs a GPU (make test-gpu)")
+    for item in items:
+        if "gpu" in item.keywords:
+            item.add_marker(skip)
+
+
+_ARM_MJCF = """
+<mujoco model="arm">
+  <option timestep="0.002"/>
+  <worldbody>
+    <body name="upper" pos="0 0 1">
+      <joint name="shoulder" type="hinge" axis="0 1 0" range="-2 2" damping="0.05"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1"/>
+      <body name="fore" pos="0.3 0 0">
+        <joint name="elbow" type="hinge" axis="0 1 0" range="-2 2" damping="0.05"/>
+        <geom type="capsule" fromto="0 0 0 0.25 0 0" size="0.025" mass="0.5"/>HAND
+      </body>
+    </body>
+  </worldbody>ACTUATORS
+</mujoco>
+"""
+_HAND = """
+        <body name="hand" pos="0.25 0 0">
+          <joint name="wrist" type="hinge" axis="0 1 0"/>
+          <geom type="sphere" size="0.03" mass="0.2"/>
+        </body>"""
+
+
+def write_arm(folder: pathlib.Path, actuators: str = "", name: str = "arm.xml",
+              hand: bool = False) -> pathlib.Path:
+    """A two-link arm's MJCF (shoulder and elbow hinges, damped and limited; ``hand``: a third,
+    free wrist hinge with a payload) in ``folder/name``, with ``actuators`` (an ``<actuator>``
+    block) or none; returns its path. The robot takes its name from the file's stem."""
+    path = pathlib.Path(folder) / name
+    path.write_text(_ARM_MJCF.replace("HAND", _HAND if hand else "")
+                    .replace("ACTUATORS", "\n  " + actuators if actuators else ""))
+    return path
+
+
+@pytest.fixture(scope="session")
+def arm_mjcf():
+    """:func:`write_arm`, the one arm the robot-file and log-import tests share."""
+    return write_arm

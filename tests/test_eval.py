@@ -124,7 +124,7 @@ def test_true_residual_maps_to_the_measured_foot_forces(robot, tmp_path):
 
 
 def test_training_variants_get_rows_of_their_own():
-    from stride_jax.eval import table
+    from stride_jax.jobs import eval as table
     assert table._label("stride", {}) == "stride"
     assert table._label("stride", {"acc_through": "mean"}) == "stride[acc_through=mean]"
     assert table._label("stride", {"acc_through": "prior", "learn_mass": True}) == \

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from stride_jax.gap import bench, cli
+from stride_jax.jobs import gap as cli, gap_bench as bench
 
 # 2 cases (control, damping) x clean/noisy = 4 rows of a few seconds each on the pendulum
 CFG = bench.BenchConfig(robot="pendulum", trajectories=4, steps=60, magnitudes={"damping": (0.5,)}, pairs=(),

@@ -5,7 +5,8 @@ import json
 
 import pytest
 
-from stride_jax.gap import cli, diagnose, fit, logs, real
+from stride_jax.gap import diagnose, fit, logs, real
+from stride_jax.jobs import gap as cli
 from stride_jax.sim import model
 
 

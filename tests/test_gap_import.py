@@ -6,25 +6,11 @@ import textwrap
 import numpy as np
 import pytest
 
-from stride_jax.gap import cli, importer, logs, real
+from stride_jax.gap import importer, logs, real
+from stride_jax.jobs import gap as cli
 from stride_jax.sim import model
 
 T0 = 1.7e9  # epoch seconds: the importer must not lose the milliseconds
-ARM_XML = """
-<mujoco model="arm2">
-  <option timestep="0.002"/>
-  <worldbody>
-    <body name="upper" pos="0 0 1">
-      <joint name="shoulder" type="hinge" axis="0 1 0" range="-2 2" damping="0.05"/>
-      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1"/>
-      <body name="fore" pos="0.3 0 0">
-        <joint name="elbow" type="hinge" axis="0 1 0" range="-2 2" damping="0.05"/>
-        <geom type="capsule" fromto="0 0 0 0.25 0 0" size="0.025" mass="0.5"/>
-      </body>
-    </body>
-  </worldbody>
-</mujoco>
-"""
 # A Unitree-like command message (the bag embeds its definition) beside sensor_msgs/JointState.
 MOTOR_CMD = "string name\nfloat64 q\nfloat64 kp\n"
 LOW_CMD = "uint32 tick\ntest_msgs/MotorCmd[] motor_cmd\n"
@@ -56,9 +42,9 @@ qd_elbow = {topic = "/joint_states", field = "velocity[name=j_el]", scale = -1.0
 
 
 @pytest.fixture(scope="module")
-def arm(tmp_path_factory):
+def arm(tmp_path_factory, arm_mjcf):
     d = tmp_path_factory.mktemp("arm")
-    (d / "arm.xml").write_text(ARM_XML)
+    arm_mjcf(d)
     (d / "map.toml").write_text(MAPPING)
     sm = model.load(str(d / "map.toml"))
     clean, _ = real.generate(sm, None, 2, 40, seed=3)

@@ -6,7 +6,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from stride_jax.gap import cli, diagnose, real, report, residual
+from stride_jax.gap import calibrate, diagnose, real, residual
+from stride_jax.jobs import gap as cli, gap_report as report
 from stride_jax.sim import model
 
 
@@ -47,7 +48,10 @@ def test_residual_always_fits_the_quadratic_drag_that_damping_leaves_and_points_
     # residual.when = "always" the residual fits what is left: -c v|v| + d v, at the extreme speeds
     sm = model.load("pendulum")
     _, logged = real.generate(sm, {"quadratic_drag": 0.05}, 8, 150, seed=1)
-    cfg = dataclasses.replace(diagnose.PRESETS["tiny"], residual=residual.ResidualConfig(when="always"))
+    # against the nominal model: calibration would take part of this drag as an integrator change
+    # (Euler -> RK4 closes 15.7% of the held-out gap; docs/gap.md, what calibration cannot tell apart)
+    cfg = dataclasses.replace(diagnose.PRESETS["tiny"], residual=residual.ResidualConfig(when="always"),
+                              calibrate=calibrate.CalibrateConfig(mode="off"))
     out = diagnose.diagnose(sm, logged, cfg, log=lambda s: None)
     assert out["verdict"]["effects"] == ["damping"], out["verdict"]
     res = out["residual"]

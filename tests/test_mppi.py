@@ -110,11 +110,11 @@ def test_bench_counts_every_model_evaluation(tmp_path):
     once): doubling the substeps or adding residual evaluations adds FLOPs."""
     import dataclasses
 
-    from stride_jax.control import bench
-    from stride_jax.train import job
+    from stride_jax.jobs import bench_mppi as bench
+    from stride_jax.train.setup import model_config
 
     _, meta, spec, act = bench._robot("pendulum")
-    cfg = job.model_config("stride", meta, 16, 1, 2)
+    cfg = model_config("stride", meta, 16, 1, 2)
     params = models.make("stride", spec, act, cfg).init(jax.random.key(0))
     base = bench.control_step_flops("stride", spec, act, cfg, params)
     twice = bench.control_step_flops("stride", spec, dataclasses.replace(
@@ -229,7 +229,7 @@ def test_bench_oracle_row_plans_through_mjx(tmp_path):
     and the table says how many times faster the learned model plans."""
     import dataclasses
 
-    from stride_jax.control import bench
+    from stride_jax.jobs import bench_mppi as bench
 
     cfg = dataclasses.replace(bench.BenchConfig(**bench.PRESETS["tiny"]), out=str(tmp_path))
     rows = bench.run(cfg, "test")

@@ -84,15 +84,15 @@ def _write(path: pathlib.Path, d):
 def results(tmp_path):
     r = tmp_path / "results"
     for robot in ("go1", "g1"):
-        _write(r / robot / "table.json", _table(robot))
+        _write(r / "table1" / robot / "table.json", _table(robot))
     return r
 
 
 def _full(r):
     _write(r / "reproduce" / "tiny" / "summary.json", _summary())
     (r / "reproduce" / "tiny" / "phase_portrait.png").write_bytes(b"png")
-    _write(r / "bench_mppi_cpu.json", _bench("cpu", 10.0))
-    _write(r / "bench_mppi_gpu.json", _bench("gpu", 2.0))
+    _write(r / "mppi_latency" / "bench_mppi_cpu.json", _bench("cpu", 10.0))
+    _write(r / "mppi_latency" / "bench_mppi_gpu.json", _bench("gpu", 2.0))
     _write(r / "closed_loop_test" / "closed_loop.json", _closed())
     _write(r / "gap_bench.json", {"command": "stride gap bench", "summary": {}})
 
@@ -128,11 +128,12 @@ def test_verdicts_follow_numbers(results):
 
     # Flip the numbers: the verdicts flip.
     for robot in ("go1", "g1"):
-        _write(results / robot / "table.json", _table(robot, stride_state=9.0, stride_force=9.5))
+        _write(results / "table1" / robot / "table.json",
+               _table(robot, stride_state=9.0, stride_force=9.5))
     _write(results / "reproduce" / "tiny" / "summary.json",
            _summary(free=0.5, w1_stride=1.5))
-    _write(results / "bench_mppi_cpu.json", _bench("cpu", 30.0))
-    _write(results / "bench_mppi_gpu.json", _bench("gpu", 12.0))
+    _write(results / "mppi_latency" / "bench_mppi_cpu.json", _bench("cpu", 30.0))
+    _write(results / "mppi_latency" / "bench_mppi_gpu.json", _bench("gpu", 12.0))
     _write(results / "closed_loop_test" / "closed_loop.json", _closed(0.05, fell=True))
     v = _verdicts(results)
     assert _find(v, "Go1", "state error >= 20% below DeLaN") == report.FAILS  # 0.9
@@ -177,7 +178,7 @@ def test_missing_optional_inputs_are_not_run(results):
     # Closed-loop files without STRIDE rows: still "not yet run".
     c = _closed()
     c["rows"] = [r for r in c["rows"] if r["model"] != "stride"]
-    _write(results / "closed_loop_cpu" / "closed_loop.json", c)
+    _write(results / "closed_loop" / "closed_loop_cpu" / "closed_loop.json", c)
     assert _find(_verdicts(results), "without falling") == report.NOT_RUN
 
 
@@ -186,20 +187,20 @@ def test_all_seeds_diverged_is_not_measurable(results):
     for r in t["runs"]:
         if r["model"] == "delan":
             r["state"]["mean"] = float("nan")
-    _write(results / "go1" / "table.json", t)
+    _write(results / "table1" / "go1" / "table.json", t)
     v = _verdicts(results)
     assert _find(v, "Go1", "state error >= 20% below DeLaN") == report.NOT_MEASURABLE
 
 
 def test_missing_table1_names_the_file(results):
-    (results / "g1" / "table.json").unlink()
+    (results / "table1" / "g1" / "table.json").unlink()
     with pytest.raises(FileNotFoundError, match=r"g1/table\.json"):
         report.build(results)
 
 
-def test_paper_constants_match_figures():
-    from stride_paper import figures
-    assert report.PAPER_TABLE1 == figures.PAPER_TABLE
+def test_paper_constants_match_claims():
+    from stride_paper import claims
+    assert report.PAPER_TABLE1 == claims.PAPER_TABLE
 
 
 def test_script(results, tmp_path):
@@ -220,7 +221,7 @@ def test_further_data_sets_get_their_own_ratios_and_targets(results):
                  _run("stride[acc_through=mean]", s, 9.5, 9.0)]
         runs[-3]["distribution"] = {"energy": 0.3, "crps": 0.2}
         runs[-2]["distribution"] = {"energy": 0.5, "crps": 0.25}
-    _write(results / "go1_walk" / "table.json",
+    _write(results / "table1" / "go1_walk" / "table.json",
            {"command": "python experiments/table1.py --data walk", "runs": runs})
     md = report.build(results)["markdown"]
     assert "## STRIDE against DeLaN, per data set" in md

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from stride_jax.eval import horizon, phase, runs
-from stride_paper import figures, layout
-from stride_jax.train import job
+from stride_paper import claims, figures, layout
+from stride_jax.jobs import train as job
 
 
 @pytest.fixture(scope="module")
@@ -117,7 +117,7 @@ def test_claims_compare_ratios_with_the_paper():
                                "per_horizon_mean": [0.0] * 30}
     summary = {"horizon": {"table": {"go1": {"stride": row(1.0, 2.0), "delan": row(2.0, 2.0),
                                              "onn": row(0.5, 5.0)}}}}
-    c = {x["id"]: x for x in figures.claims(summary)}
+    c = {x["id"]: x for x in claims.claims(summary)}
     assert c["state_go1_vs_delan"]["ours"] == pytest.approx(0.5)
     assert c["state_go1_vs_delan"]["holds"] is True
     assert c["state_go1_vs_delan"]["paper"]["table"] == pytest.approx(0.932 / 1.326)

@@ -5,61 +5,35 @@ import json
 import numpy as np
 import pytest
 
-from stride_jax.gap import cli, logs
+from stride_jax.gap import logs
+from stride_jax.jobs import gap as cli
 from stride_jax.robots import RobotError, get
 from stride_jax.sim import model
 
-ARM = """
-<mujoco model="arm3">
-  <option timestep="0.002"/>
-  <worldbody>
-    <body name="upper" pos="0 0 1">
-      <joint name="shoulder" type="hinge" axis="0 1 0" range="-2 2" damping="0.05"/>
-      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1"/>
-      <body name="fore" pos="0.3 0 0">
-        <joint name="elbow" type="hinge" axis="0 1 0" range="-2 2" damping="0.05"/>
-        <geom type="capsule" fromto="0 0 0 0.25 0 0" size="0.025" mass="0.5"/>
-        <body name="hand" pos="0.25 0 0">
-          <joint name="wrist" type="hinge" axis="0 1 0"/>
-          <geom type="sphere" size="0.03" mass="0.2"/>
-        </body>
-      </body>
-    </body>
-  </worldbody>
-  ACTUATORS
-</mujoco>
-"""
 
-
-def _write(tmp_path, actuators="", name="arm.xml"):
-    p = tmp_path / name
-    p.write_text(ARM.replace("ACTUATORS", actuators))
-    return p
-
-
-def test_mjcf_with_its_own_actuators(tmp_path):
-    servos = _write(tmp_path, """<actuator>
+def test_mjcf_with_its_own_actuators(tmp_path, arm_mjcf):
+    servos = arm_mjcf(tmp_path, """<actuator>
       <position joint="shoulder" kp="30" kv="2" ctrlrange="-2 2"/>
       <position joint="elbow" kp="20" kv="1" ctrlrange="-2 2"/>
-      <position joint="wrist" kp="5" ctrlrange="-2 2"/></actuator>""", "servos.xml")
+      <position joint="wrist" kp="5" ctrlrange="-2 2"/></actuator>""", "servos.xml", hand=True)
     r = get(str(servos))
     assert r.name == "servos" and r.joints == ("shoulder", "elbow", "wrist")
     assert r.kp == (30.0, 20.0, 5.0) and r.kd == (2.0, 1.0, 0.0) and not r.floating_base
     assert r.base_body == "hand" and r.ctrl_dt == pytest.approx(0.02)  # payload at the tool
-    motors = _write(tmp_path, """<actuator><motor joint="elbow" ctrlrange="-5 5"/>
-      <motor joint="shoulder" ctrlrange="-5 5"/></actuator>""", "motors.xml")
+    motors = arm_mjcf(tmp_path, """<actuator><motor joint="elbow" ctrlrange="-5 5"/>
+      <motor joint="shoulder" ctrlrange="-5 5"/></actuator>""", "motors.xml", hand=True)
     r = get(str(motors))
     assert r.kp is None and r.joints == ("elbow", "shoulder")
     with pytest.raises(RobotError, match="no actuators; write a robot file"):
-        get(str(_write(tmp_path)))
-    mixed = _write(tmp_path, """<actuator><motor joint="elbow" ctrlrange="-5 5"/>
-      <position joint="shoulder" kp="3"/></actuator>""", "mixed.xml")
+        get(str(arm_mjcf(tmp_path, hand=True)))
+    mixed = arm_mjcf(tmp_path, """<actuator><motor joint="elbow" ctrlrange="-5 5"/>
+      <position joint="shoulder" kp="3"/></actuator>""", "mixed.xml", hand=True)
     with pytest.raises(RobotError, match="all position servos or all motors"):
         get(str(mixed))
 
 
-def test_robot_file_adds_actuators_and_welds(tmp_path):
-    _write(tmp_path)
+def test_robot_file_adds_actuators_and_welds(tmp_path, arm_mjcf):
+    arm_mjcf(tmp_path, hand=True)
     f = tmp_path / "arm.toml"
     f.write_text('[robot]\nmjcf = "arm.xml"\nactuators = "motor"\ntorque_limit = {shoulder = 8, elbow = 4}\n'
                  'joints = ["shoulder", "elbow"]\nweld = ["wrist"]\ncontrol_period_s = 0.01\n')
@@ -78,10 +52,10 @@ def test_robot_file_adds_actuators_and_welds(tmp_path):
         model.load(str(f))
 
 
-def test_gap_simulate_and_diagnose_a_robot_file(tmp_path, capsys):
+def test_gap_simulate_and_diagnose_a_robot_file(tmp_path, capsys, arm_mjcf):
     """A 2-joint arm with position servos, only known as an MJCF plus a robot file: a planted
     joint damping is named (tiny preset, noise-free logs)."""
-    _write(tmp_path)
+    arm_mjcf(tmp_path, hand=True)
     f = tmp_path / "arm.toml"
     f.write_text('[robot]\nname = "arm"\nmjcf = "arm.xml"\nactuators = "position"\nkp = 20.0\n'
                  'kd = 1.0\nweld = ["wrist"]\ncontrol_period_s = 0.01\n')

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from stride_jax.robots import stochastic
-from stride_jax.sim import collect, dataset, model, randomize, rollout_cpu, rollout_mjx
+from stride_jax.jobs import data as collect
+from stride_jax.sim import dataset, model, randomize, rollout_cpu, rollout_mjx
 from stride_jax.train import loop
 
 

@@ -19,7 +19,7 @@ PPO run can add ``policy_samples`` candidates.
 
 Scenarios (:mod:`stride_jax.control.scenarios`): velocity step 0 -> 2 m/s, sudden command
 changes, a 20 degree slope, low friction, soft contacts, rough terrain. The gait study lives in
-:mod:`stride_jax.control.gait_study`. Reported per (scenario, model): tracking RMSE of the
+:mod:`stride_jax.jobs.gait_study`. Reported per (scenario, model): tracking RMSE of the
 base-frame velocity (xy) and yaw rate while
 upright, falls, and planning time per step.
 """
@@ -66,19 +66,27 @@ class Trace(NamedTuple):
     contact: jax.Array  # [T, nfeet] bool, measured
     action: jax.Array  # [T, nu_plan] the applied planner action
     status: jax.Array  # [T] int32 the planner's mppi status (PLANNED, or why it fell back)
+    cut: jax.Array  # [T] share of the planner's rollouts cut for predicted model error
 
 
 def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Planning,
                 planner: mppi.Planner | None, n_steps: int, starts: jax.Array,
-                values: jax.Array, key: jax.Array) -> Trace:
+                values: jax.Array, key: jax.Array, record: Callable | None = None
+                ) -> Trace | tuple[Trace, object]:
     """A closed-loop episode of ``n_steps`` control steps from the home pose (heading +x) under
     the command :func:`schedule` ``(starts, values)``. ``planner=None`` lets ``planning.policy``
-    act alone. Pure; jit it."""
+    act alone. Pure; jit it.
+
+    ``record(q_aug, qd, u, info, q_aug_next, qd_next, down, key) -> pytree`` (with a planner)
+    adds what it returns per step, stacked ``[T, ...]``: the episode then returns ``(trace,
+    recorded)``. ``q_aug_next`` is the state reached under the step's command, ``down`` whether
+    the robot was down before the step."""
     nu = sm.info.nu
     gait = len(planning.lo) > nu
     qpos0 = jnp.asarray(sm.info.qpos0).at[2].add(0.02)
     d0 = mjx.make_data(mx_sim).replace(qpos=qpos0, ctrl=jnp.asarray(sm.info.qpos0[7:]))
     dt = sm.robot.ctrl_dt
+    horizon = 0
     if planner is not None:
         horizon = planner.init(key).plan.shape[0]
         ps0 = planner.init(key, jnp.broadcast_to(jnp.asarray(planning.nominal_u),
@@ -87,16 +95,19 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
         ps0 = ()
     if planner is None and planning.policy is None:
         raise ValueError("the policy-only model needs a PPO policy (--policy)")
+    if record is not None and planner is None:
+        raise ValueError("record needs a planner (it records the planner's candidates)")
 
     def body(carry, step):
         d, ps, clock, down = carry
         t = step * dt
         command = command_at(starts, values, t)
         q_aug = augment(d.qpos, command, clock)
-        status = jnp.zeros((), jnp.int32)
+        status, cut, info = jnp.zeros((), jnp.int32), jnp.zeros(()), None
         if planner is not None:
             u, ps, info = planner.step(ps, q_aug, d.qvel)
             status = info.status
+            cut = jnp.mean(info.kept < horizon)
             if gait:  # gait parameters are per rollout: hold the chosen ones over the plan
                 ps = ps._replace(plan=ps.plan.at[:, nu:].set(ps.plan[0, nu:]))
         else:
@@ -107,11 +118,14 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
         clock = jnp.mod(clock + freq * dt, 1.0)
         finite = jnp.all(jnp.isfinite(d2.qpos)) & jnp.all(jnp.isfinite(d2.qvel))
         d2 = jax.tree.map(lambda a, b: jnp.where(finite, a, b), d2, d)  # freeze a diverged sim
-        down = down | rollout_mjx.fallen(sm, d2.qpos) | ~finite
+        down2 = down | rollout_mjx.fallen(sm, d2.qpos) | ~finite
         v, w, _ = envs.base_signals(d2.qpos, d2.qvel)
-        rec = Trace(t + dt, command, v, w, d2.qpos[2], down, envs.foot_contact(sm, slots, d2), u,
-                    status)
-        return (d2, ps, clock, down), rec
+        rec = Trace(t + dt, command, v, w, d2.qpos[2], down2, envs.foot_contact(sm, slots, d2),
+                    u, status, cut)
+        if record is not None:
+            rec = (rec, record(q_aug, d.qvel, u, info, augment(d2.qpos, command, clock),
+                               d2.qvel, down, jax.random.fold_in(key, step)))
+        return (d2, ps, clock, down2), rec
 
     init = (d0, ps0, jnp.zeros(()), jnp.zeros((), bool))
     _, trace = jax.lax.scan(body, init, jnp.arange(n_steps))
@@ -137,7 +151,8 @@ def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
                fall_s=float(tr.t[np.argmax(tr.fallen)]) if fell else None,
                mean_vx=float(tr.v_base[up, 0].mean()) if up.any() else float("nan"),
                upright_s=float(up.sum() * (tr.t[1] - tr.t[0]) if len(tr.t) > 1 else 0.0),
-               fallbacks=int((tr.status != mppi.PLANNED).sum()))
+               fallbacks=int((tr.status != mppi.PLANNED).sum()),
+               cut_share=float(tr.cut.mean()))
     if up.sum() >= 10 and tr.contact.shape[1] == 4:  # the quadruped gait the feet showed
         out["contact_gait"], out["contact_gait_score"] = gait_lib.classify_contacts(
             tr.contact[up])
@@ -200,6 +215,10 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         if env_cfg.robot != cfg.robot:
             raise ValueError(f"the policy {cfg.policy} drives {env_cfg.robot}, not {cfg.robot}")
     learned_params = learned_lib.load(cfg.learned) if cfg.learned else None
+    error_params = None
+    if cfg.error_model:
+        from stride_jax.control import planner_value
+        error_params = planner_value.load_error_model(cfg.error_model)
     out = pathlib.Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "closed_loop.json"
@@ -215,7 +234,9 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     def episode_fn(name, n_steps, slots):
         def episode(mx_sim, mx_plan, starts, values, key):
             step_fn = learned_steps.get(name) or mjx_step_fn(sm, mx_plan)
-            planning = make_planning(cfg, env_cfg, sm, step_fn, ppo_policy, learned_params)
+            planning = make_planning(cfg, env_cfg, sm, step_fn, ppo_policy, learned_params,
+                                     error_params=error_params if name in learned_steps
+                                     else None)  # the simulator has no model error
             planner = None
             if name != "policy":
                 with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly

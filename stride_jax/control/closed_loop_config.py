@@ -27,12 +27,18 @@ class ClosedLoopConfig:
         ``noise_std`` is set from ``noise_std`` below (and ``gait_noise``), its
         ``policy_samples`` dropped to 0 without a policy.
       noise_std: exploration std of the joint offsets (rad).
+      prior_noise_std: noise std of the policy-prior candidates (``--mppi.prior-fraction``), rad:
+        the PPO policy's own action spread (0.079-0.087 rad over its Go1 episodes,
+        ``results/planning_diagnosis/``).
       plan_range: bound of the planner's joint offsets around home (rad).
       gait: plan gait parameters jointly with joint residuals (Go1 gait reference).
       gait_noise: exploration std of the gait frequency (Hz); duty 0.15x, offsets 0.25x this.
       policy: PPO run folder supplying candidates (and the ``policy`` model); "" for none.
       learned: learned reward/value file (``reward_value.msgpack``); "" for the analytic cost.
       value_weight: weight of the learned terminal value.
+      error_model: a learned one-step error model of the planner's dynamics model
+        (``error_model.msgpack`` of :mod:`stride_jax.control.planner_value`), used with
+        ``--mppi.error-bound``/``--mppi.error-weight``; "" for none.
       fall_cost: planner cost per step spent fallen (reward units per step).
       track_weight: weight of a quadratic velocity-tracking cost added to the reward terms (per
         (m/s)^2, times dt): the reward's exp-kernels are flat far from the command (at 2 m/s
@@ -51,12 +57,14 @@ class ClosedLoopConfig:
     seconds: float = 0.0
     mppi: MPPIConfig = MPPIConfig()
     noise_std: float = 0.15
+    prior_noise_std: float = 0.08
     plan_range: float = 0.6
     gait: bool = False
     gait_noise: float = 0.2
     policy: str = ""
     learned: str = ""
     value_weight: float = 1.0
+    error_model: str = ""
     fall_cost: float = 1.0
     track_weight: float = 1.0
     kernel: str = "xla"

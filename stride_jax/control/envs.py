@@ -351,9 +351,11 @@ class VelocityEnv(brax_base.Env):
 
 
 def physics_step(mx: mjx.Model, n_substeps: int, d: mjx.Data, ctrl: jax.Array) -> mjx.Data:
-    """Holds ``ctrl`` for ``n_substeps`` MJX steps."""
-    d = d.replace(ctrl=ctrl)
-    return jax.lax.fori_loop(0, n_substeps, lambda _, dd: mjx.step(mx, dd), d)
+    """Holds ``ctrl`` for ``n_substeps`` MJX steps (full float32 products, as the data's:
+    ``rollout_mjx.PRECISION``)."""
+    with jax.default_matmul_precision(rollout_mjx.PRECISION):
+        d = d.replace(ctrl=ctrl)
+        return jax.lax.fori_loop(0, n_substeps, lambda _, dd: mjx.step(mx, dd), d)
 
 
 def mjx_step_fn(n_substeps: int, mx: mjx.Model) -> Callable:

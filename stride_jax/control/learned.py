@@ -158,13 +158,18 @@ def _check(data: Trajectories) -> None:
             raise ValueError(f"{name} must be [N={n}, T={t}], got {getattr(data, name).shape}")
 
 
+def fit_scalar(key: jax.Array, cfg: LearnedConfig, x: jax.Array, y: jax.Array
+               ) -> tuple[dict, jax.Array]:
+    """A scalar model of examples ``x [M, D]``, ``y [M]`` (its normalisation from them);
+    returns its parameters and training losses."""
+    key_init, key_fit = jax.random.split(key)
+    return _regress(key_fit, cfg, init(key_init, cfg, x, y), x, y)
+
+
 def fit_reward(key: jax.Array, cfg: LearnedConfig, data: Trajectories) -> tuple[dict, jax.Array]:
     """A reward model of ``data``; returns its parameters and training losses."""
     _check(data)
-    x = _flat(reward_input(data.obs, data.action))
-    y = _flat(data.reward)
-    key_init, key_fit = jax.random.split(key)
-    return _regress(key_fit, cfg, init(key_init, cfg, x, y), x, y)
+    return fit_scalar(key, cfg, _flat(reward_input(data.obs, data.action)), _flat(data.reward))
 
 
 def lambda_returns(reward: jax.Array, next_value: jax.Array, terminal: jax.Array,
@@ -203,6 +208,29 @@ def fit_value(key: jax.Array, cfg: LearnedConfig, data: Trajectories
         return params, losses
 
     return jax.lax.scan(round_, params, jax.random.split(key_fit, cfg.rounds))
+
+
+def refit_value(key: jax.Array, cfg: LearnedConfig, params: dict,
+                sets: list[tuple[Trajectories, jax.Array]]) -> tuple[dict, jax.Array]:
+    """``cfg.rounds`` rounds of fitted value iteration from ``params`` (kept normalisation) on
+    the union of ``sets``: each a :class:`Trajectories` ``[N, T, ...]`` and the indices of its
+    flattened ``N * T`` steps to use (a numpy array: steps after a fall left out). Each round's
+    targets are the lambda-returns under the previous round's value (bootstrapped at each
+    trajectory's end). Returns the parameters and the losses ``[rounds, steps]``."""
+    for data, _ in sets:
+        _check(data)
+    x = jnp.concatenate([_flat(d.obs)[idx] for d, idx in sets])
+    returns = jax.vmap(lambda_returns, in_axes=(0, 0, 0, 0, None, None))
+
+    def round_(params, k):
+        y = []
+        for d, idx in sets:
+            v_next = jax.vmap(jax.vmap(lambda o: apply(params, o)))(d.next_obs)
+            g = returns(d.reward, v_next, d.terminal, d.reset, cfg.discount, cfg.lam)
+            y.append(_flat(g)[idx])
+        return _regress(k, cfg, params, x, jnp.concatenate(y))
+
+    return jax.lax.scan(round_, params, jax.random.split(key, cfg.rounds))
 
 
 # ---------------------------------------------------------------------------------------------

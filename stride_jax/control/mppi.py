@@ -19,6 +19,23 @@ Sec. IV-B):
    temperature is relative to the cost spread of the batch when ``normalize`` is set, which makes
    one temperature work across tasks); the first action is applied.
 
+Dreamer-MPC switches (issue 19, item 2; each off by default, so the classic planner is
+unchanged):
+
+* **policy-prior sampling** (``prior_fraction``): that share of the noise candidates follows the
+  policy in closed loop through the model, ``u_t = policy(x_t) + e_t``, with the AR(1) noise at
+  ``prior_noise_std`` (the policy's own action spread), the rest stays around the shifted plan;
+* **discount** (``discount`` = gamma): the cost is ``sum_t gamma^t c_t - gamma^H V(x_H)``, the
+  return a value trained with that gamma estimates (a short horizon then leans on the value);
+* **the model's error where the planner goes** (``error_draws``, ``error_bound``,
+  ``error_weight``): each rollout step is predicted under ``error_draws`` keys (a stochastic
+  model's residual draws); their spread (``disagreement``, or a caller's learned
+  ``step_error``) accumulates in quadrature into the rollout's predicted error
+  ``e_t = sqrt(sum_{s<=t} sigma_s^2)``. A rollout whose ``e_t`` exceeds ``error_bound`` is cut:
+  its costs from step ``t`` on are replaced by the discounted terminal value at the last trusted
+  state, ``- gamma^t V(x_t)``; ``error_weight`` adds ``gamma^t error_weight e_(t+1)`` per kept
+  step, down-weighting candidates the model is unsure of.
+
 ``make`` returns ``init`` and ``step``, pure functions of an immutable :class:`MPPIState`; jit
 ``step`` once per (samples, horizon, model) and call it every control period.
 
@@ -76,6 +93,21 @@ class MPPIConfig:
         states of their own draw; the actions of their first draw stand for the candidate.
       risk_alpha: CVaR level in [0, 1): 0 is the mean, 0.9 the worst 10% of draws.
       risk_weight: the standard deviation's weight of ``risk="std"``.
+      prior_fraction: share of the noise candidates (``samples - policy_samples``) drawn around
+        the policy's own closed-loop rollout through the model (``u_t = policy(x_t) + e_t``,
+        noise at ``prior_noise_std``) instead of around the shifted plan; 0: none. Needs a
+        policy. ``policy_noise`` is the older spelling of 1 with ``noise_std`` as the noise.
+      prior_noise_std: the policy-prior candidates' noise std, in action units (scalar or per
+        action): the policy's own action spread (Go1's PPO policy: 0.08 rad).
+      discount: gamma of the running costs and the terminal value, in (0, 1]; 1: undiscounted
+        (the classic planner). Set it to the learned value's gamma.
+      error_draws: model evaluations per rollout step under independent keys whose spread is
+        the step's predicted error (>= 2; 1: none). The rollout continues with the first draw.
+      error_bound: a rollout whose accumulated predicted error exceeds this (in the
+        ``disagreement``'s units: m/s of base velocity in the closed loop) is cut there, its
+        remaining cost replaced by the terminal value; 0: never cut.
+      error_weight: cost per unit predicted error per kept step (down-weights rollouts the
+        model is unsure of); 0: none.
       unroll: horizon steps per loop iteration of the rollouts (``True``: the whole horizon,
         no loop, one CUDA graph on a GPU). Measured: Go1 STRIDE, K=1024, H=30 on an H100, 9.0 ms
         unrolled against 9.5 ms looped (within run-to-run noise); on a 2-core CPU no faster,
@@ -95,6 +127,12 @@ class MPPIConfig:
     risk: str = "mean"
     risk_alpha: float = 0.9
     risk_weight: float = 1.0
+    prior_fraction: float = 0.0
+    prior_noise_std: float | tuple[float, ...] = 0.08
+    discount: float = 1.0
+    error_draws: int = 1
+    error_bound: float = 0.0
+    error_weight: float = 0.0
     unroll: int | bool = 1
 
     def __post_init__(self):
@@ -119,6 +157,20 @@ class MPPIConfig:
             problems.append(f"risk={self.risk!r} must be one of {', '.join(RISKS)}")
         if not 0 <= self.risk_alpha < 1:
             problems.append(f"risk_alpha={self.risk_alpha} must be in [0, 1)")
+        if not 0 <= self.prior_fraction <= 1:
+            problems.append(f"prior_fraction={self.prior_fraction} must be in [0, 1]")
+        if self.prior_fraction and self.policy_noise:
+            problems.append("policy_noise and prior_fraction are two spellings of the policy "
+                            "prior: set one (policy_noise = prior_fraction 1 at noise_std)")
+        if np.any(np.asarray(self.prior_noise_std) < 0):
+            problems.append(f"prior_noise_std={self.prior_noise_std} must be >= 0")
+        if not 0 < self.discount <= 1:
+            problems.append(f"discount={self.discount} must be in (0, 1]")
+        if self.error_draws < 1:
+            problems.append(f"error_draws={self.error_draws} must be >= 1")
+        if self.error_bound < 0 or self.error_weight < 0:
+            problems.append(f"error_bound={self.error_bound} and error_weight="
+                            f"{self.error_weight} must be >= 0")
         if not isinstance(self.unroll, bool) and self.unroll < 1:
             problems.append(f"unroll={self.unroll} must be >= 1 or True")
         if problems:
@@ -157,6 +209,8 @@ class Info(NamedTuple):
     plan: jax.Array  # [H, nu] after the update
     status: jax.Array  # [] int32: PLANNED, or why the step fell back to the shifted plan
     candidates: jax.Array  # [K, H, nu] the action sequences of the last iteration (costs' order)
+    error: jax.Array  # [K] predicted model error at the rollout's end or cut (0 if unmeasured)
+    kept: jax.Array  # [K] horizon steps each rollout kept before a cut (H: not cut)
 
 
 class Planner(NamedTuple):
@@ -210,17 +264,28 @@ def sample_sharding() -> NamedSharding | None:
                          PartitionSpec("samples"))
 
 
+def velocity_spread(qs: jax.Array, qds: jax.Array) -> jax.Array:
+    """The default ``disagreement`` of ``E`` draws of a step, ``qs [E, nq]``, ``qds [E, nv]``:
+    the norm of the per-entry standard deviation of the velocities (the error of one draw
+    against their mean, in ``qd``'s units)."""
+    return jnp.sqrt(jnp.sum(jnp.var(qds, axis=0)))
+
+
 def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo, action_hi,
          terminal_value: Callable | None = None, policy: Callable | None = None,
-         sharding: NamedSharding | None = None) -> Planner:
+         sharding: NamedSharding | None = None, disagreement: Callable | None = None,
+         step_error: Callable | None = None) -> Planner:
     """An MPPI planner for ``dynamics(q, qd, action, key) -> (q', qd')``.
 
     ``running_cost(q, qd, action, t) -> []`` is the cost of taking ``action`` at ``(q, qd)`` at
-    horizon step ``t``; ``terminal_value(q, qd) -> []`` is subtracted at the end of the horizon;
-    ``policy(q, qd) -> action`` proposes ``cfg.policy_samples`` sequences. Model parameters are
-    closed over: ``dynamics = partial(model.step, params)``. ``sharding`` (of a leading sample
-    axis, :func:`sample_sharding`) spreads the rollouts over devices; the number of noise and of
-    policy samples must each split evenly over them.
+    horizon step ``t``; ``terminal_value(q, qd) -> []`` is subtracted at the end of the horizon
+    (or at a cut); ``policy(q, qd) -> action`` proposes ``cfg.policy_samples`` sequences and the
+    policy-prior candidates. Model parameters are closed over: ``dynamics = partial(model.step,
+    params)``. ``sharding`` (of a leading sample axis, :func:`sample_sharding`) spreads the
+    rollouts over devices; the plan-noise, policy-prior and policy groups must each split evenly
+    over them. The model's predicted error per step: ``disagreement(qs [E, nq], qds [E, nv]) ->
+    []`` of ``cfg.error_draws`` draws (default :func:`velocity_spread`), and/or a learned
+    ``step_error(q, qd, action) -> []`` (both: added in quadrature).
     """
     lo, hi = jnp.asarray(action_lo, jnp.float32), jnp.asarray(action_hi, jnp.float32)
     if lo.ndim != 1 or lo.shape != hi.shape:
@@ -231,16 +296,34 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
         raise ValueError(f"policy_samples={cfg.policy_samples} needs a policy")
     if cfg.policy_noise and policy is None:
         raise ValueError("policy_noise needs a policy (the noise perturbs its actions)")
+    if cfg.prior_fraction and policy is None:
+        raise ValueError(f"prior_fraction={cfg.prior_fraction} needs a policy (its candidates "
+                         f"follow the policy through the model)")
+    E = cfg.error_draws
+    measured = E > 1 or step_error is not None
+    if (cfg.error_bound > 0 or cfg.error_weight > 0) and not measured:
+        raise ValueError("error_bound and error_weight need the model's predicted error: "
+                         "error_draws >= 2 (a stochastic model's draws) or a step_error")
     nu, H, K = lo.shape[0], cfg.horizon, cfg.samples
+    n_pol = cfg.policy_samples
+    n_prior = (K - n_pol if cfg.policy_noise
+               else int(round(cfg.prior_fraction * (K - n_pol))))
+    n_plan = K - n_pol - n_prior
     if sharding is not None:
         n_dev = sharding.mesh.size
-        if (K - cfg.policy_samples) % n_dev or cfg.policy_samples % n_dev:
-            raise ValueError(f"samples={K} with policy_samples={cfg.policy_samples}: both groups "
-                             f"must split evenly over the sharding's {n_dev} devices")
+        if n_plan % n_dev or n_prior % n_dev or n_pol % n_dev:
+            raise ValueError(f"samples={K} with policy_samples={n_pol} and {n_prior} policy-"
+                             f"prior candidates: each group must split evenly over the "
+                             f"sharding's {n_dev} devices")
     shard = (lambda x: x) if sharding is None else (
         lambda x: jax.lax.with_sharding_constraint(x, sharding))
     std = jnp.broadcast_to(jnp.asarray(cfg.noise_std, jnp.float32), (nu,))
+    prior_std = std if cfg.policy_noise else jnp.broadcast_to(
+        jnp.asarray(cfg.prior_noise_std, jnp.float32), (nu,))
     value = terminal_value or (lambda q, qd: jnp.zeros(()))
+    spread = disagreement or velocity_spread
+    discounts = jnp.asarray(cfg.discount ** np.arange(H + 1), jnp.float32)  # gamma^t, t <= H
+    cut_on, bound = cfg.error_bound > 0, cfg.error_bound
 
     def init(key: jax.Array, plan: jax.Array | None = None) -> MPPIState:
         if plan is None:
@@ -249,25 +332,45 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
             raise ValueError(f"plan must have shape ({H}, {nu}), got {plan.shape}")
         return MPPIState(jnp.asarray(plan, jnp.float32), key)
 
-    def rollout(q, qd, actions, key):
-        """Cost of an open-loop action sequence."""
-        return open_loop_cost(dynamics, running_cost, value, q, qd, actions, key,
-                              cfg.unroll)[0], actions
+    def model_step(q, qd, u, key):
+        """``(q', qd', sigma^2)``: the next state and the squared predicted one-step error."""
+        if E > 1:
+            qs, qds = jax.vmap(lambda k: dynamics(q, qd, u, k))(jax.random.split(key, E))
+            q2, qd2, var = qs[0], qds[0], spread(qs, qds) ** 2
+        else:
+            (q2, qd2), var = dynamics(q, qd, u, key), jnp.zeros(())
+        if step_error is not None:
+            var = var + step_error(q, qd, u) ** 2
+        return q2, qd2, var
 
-    def policy_rollout(q, qd, key, offsets=None):
-        """Cost and actions of the policy acting inside the model (plus ``offsets`` [H, nu])."""
+    def rollout(q, qd, key, base, closed: bool):
+        """``(cost, actions [H, nu], error, kept)`` of one candidate: ``base`` is its action
+        sequence (open loop) or the offsets on the policy acting in closed loop."""
         def body(carry, inp):
-            q, qd, cost = carry
-            t, k, e = inp
-            u = jnp.clip(policy(q, qd) + e, lo, hi)
-            q2, qd2 = dynamics(q, qd, u, k)
-            return (q2, qd2, cost + running_cost(q, qd, u, t)), u
+            q, qd, cost, err2, alive, err_kept, kept = carry
+            t, k, b = inp
+            u = jnp.clip(policy(q, qd) + b, lo, hi) if closed else b
+            q2, qd2, var = model_step(q, qd, u, k)
+            err2 = err2 + var
+            w = discounts[t]
+            cut = alive & (jnp.sqrt(err2) > bound) if cut_on else jnp.zeros((), bool)
+            stay = alive & ~cut
+            step_cost = running_cost(q, qd, u, t)
+            if cfg.error_weight:
+                step_cost = step_cost + cfg.error_weight * jnp.sqrt(err2)
+            cost = cost + jnp.where(stay, w * step_cost, 0.0)
+            if cut_on:  # the last trusted state's value stands for the rest of the rollout
+                cost = cost - jnp.where(cut, w * value(q, qd), 0.0)
+            err_kept = jnp.where(stay, jnp.sqrt(err2), err_kept)
+            return (q2, qd2, cost, err2, stay, err_kept, kept + stay), u
 
-        offsets = jnp.zeros((H, nu)) if offsets is None else offsets
-        (q, qd, cost), actions = jax.lax.scan(body, (q, qd, jnp.zeros(())),
-                                              (jnp.arange(H), jax.random.split(key, H), offsets),
-                                              unroll=cfg.unroll)
-        return cost - value(q, qd), actions
+        zero = jnp.zeros(())
+        init_carry = (q, qd, zero, zero, jnp.ones((), bool), zero, jnp.zeros((), jnp.int32))
+        (qH, qdH, cost, _, alive, err, kept), actions = jax.lax.scan(
+            body, init_carry, (jnp.arange(H), jax.random.split(key, H), base), unroll=cfg.unroll)
+        terminal = discounts[H] * value(qH, qdH)
+        cost = cost - (jnp.where(alive, terminal, 0.0) if cut_on else terminal)
+        return cost, actions, err, kept
 
     # AR(1) noise along the horizon, e_0 = w_0, e_t = rho e_(t-1) + sqrt(1 - rho^2) w_t (unit
     # variance at every step), as one matrix product e = A w with A[t, s] = rho^(t-s) c_s: no
@@ -277,42 +380,50 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
     gain = np.where(np.arange(H) == 0, 1.0, np.sqrt(1.0 - rho ** 2))[None, :]
     ar1 = jnp.asarray(np.where(lag >= 0, rho ** np.maximum(lag, 0) * gain, 0.0), jnp.float32)
 
-    def noise(key):
+    def noise(key, scale=std):
         white = jax.random.normal(key, (K, H, nu))
-        return jnp.einsum("ts,ksu->ktu", ar1, white) * std
+        return jnp.einsum("ts,ksu->ktu", ar1, white) * scale
 
     R = cfg.risk_draws
 
-    def drawn(fn):
-        """``fn(q, qd, key, *args) -> (cost, actions)`` over R draws: the risk statistic of the
-        costs and the first draw's actions (an open-loop candidate's are the same in all)."""
+    def drawn(closed: bool):
+        """A candidate's ``(cost, actions, error, kept)`` over R draws: the risk statistic of
+        the costs, the first draw's actions (an open-loop candidate's are the same in all), the
+        mean error and kept steps."""
+        one = lambda q, qd, key, base: rollout(q, qd, key, base, closed)
         if R == 1:
-            return fn
+            return one
 
-        def over_draws(q, qd, key, *args):
-            costs, actions = jax.vmap(lambda k: fn(q, qd, k, *args))(jax.random.split(key, R))
-            return risk_cost(costs, cfg.risk, cfg.risk_alpha, cfg.risk_weight), actions[0]
+        def over_draws(q, qd, key, base):
+            costs, actions, err, kept = jax.vmap(lambda k: one(q, qd, k, base))(
+                jax.random.split(key, R))
+            return (risk_cost(costs, cfg.risk, cfg.risk_alpha, cfg.risk_weight), actions[0],
+                    jnp.mean(err), jnp.mean(kept.astype(jnp.float32)))
         return over_draws
 
-    open_loop = drawn(lambda q, qd, key, actions: rollout(q, qd, actions, key))
-    closed_loop = drawn(policy_rollout)
+    open_loop, closed_loop = drawn(False), drawn(True)
+    batch = lambda fn, q, qd, keys, bases: jax.vmap(fn, in_axes=(None, None, 0, 0))(
+        q, qd, shard(keys), shard(bases))
 
     def iterate(plan, q, qd, key):
         key_noise, key_roll, key_pol = jax.random.split(key, 3)
-        n_noise = K - cfg.policy_samples
-        if cfg.policy_noise:
-            costs, actions = jax.vmap(closed_loop, in_axes=(None, None, 0, 0))(
-                q, qd, shard(jax.random.split(key_roll, n_noise)),
-                shard(noise(key_noise)[:n_noise]))
+        groups = []
+        if cfg.policy_noise:  # the older spelling: every noise candidate around the policy
+            groups.append(batch(closed_loop, q, qd, jax.random.split(key_roll, n_prior),
+                                noise(key_noise)[:n_prior]))
         else:
-            candidates = jnp.clip(plan[None] + noise(key_noise), lo, hi)
-            costs, actions = jax.vmap(open_loop, in_axes=(None, None, 0, 0))(
-                q, qd, shard(jax.random.split(key_roll, n_noise)), shard(candidates[:n_noise]))
-        if cfg.policy_samples:
-            p_costs, p_actions = jax.vmap(closed_loop, in_axes=(None, None, 0))(
-                q, qd, shard(jax.random.split(key_pol, cfg.policy_samples)))
-            costs = jnp.concatenate([costs, p_costs])
-            actions = jnp.concatenate([actions, p_actions])
+            if n_plan:
+                candidates = jnp.clip(plan[None] + noise(key_noise), lo, hi)
+                groups.append(batch(open_loop, q, qd, jax.random.split(key_roll, n_plan),
+                                    candidates[:n_plan]))
+            if n_prior:
+                key_prior_noise, key_prior = jax.random.split(jax.random.fold_in(key, 7))
+                groups.append(batch(closed_loop, q, qd, jax.random.split(key_prior, n_prior),
+                                    noise(key_prior_noise, prior_std)[:n_prior]))
+        if n_pol:
+            groups.append(batch(closed_loop, q, qd, jax.random.split(key_pol, n_pol),
+                                jnp.zeros((n_pol, H, nu))))
+        costs, actions, err, kept = (jnp.concatenate(x) for x in zip(*groups))
         costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)  # a diverged rollout gets no weight
         finite = jnp.isfinite(costs)
         w = weights(costs, cfg.temperature, cfg.normalize)
@@ -320,7 +431,8 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
         ok = finite.any() & jnp.all(jnp.isfinite(new_plan))
         status = jnp.where(ok, PLANNED, NO_FINITE_ROLLOUT).astype(jnp.int32)
         new_plan = jnp.where(ok, new_plan, plan)
-        return new_plan, Info(costs, w, jnp.min(costs), new_plan, status, actions)
+        return new_plan, Info(costs, w, jnp.min(costs), new_plan, status, actions, err,
+                              kept.astype(jnp.float32))
 
     def step(state: MPPIState, q: jax.Array, qd: jax.Array):
         key, key_step = jax.random.split(state.key)

@@ -40,6 +40,10 @@ class Planning(NamedTuple):
     noise: tuple  # per action entry
     nominal_u: np.ndarray  # [nu_plan] initial plan
     clock_hz: float = 0.0  # the task's gait clock (G1's policy observes it), without planned gaits
+    obs: Callable | None = None  # (q_aug, qd) -> the learned reward's and value's observation
+    disagreement: Callable | None = None  # (qs [E, nq+11], qds [E, nv]) -> [] m/s, of E draws
+    step_error: Callable | None = None  # (q_aug, qd, u) -> [] learned one-step error (m/s)
+    reward_action: Callable | None = None  # (q_aug, u) -> the policy's normalised action [nu]
 
 
 class Aug(NamedTuple):
@@ -82,8 +86,10 @@ def servo_torque(sm: sim_model.SimModel, q: jax.Array, qd: jax.Array, ctrl: jax.
 def make_planning(cfg: ClosedLoopConfig, env_cfg: envs.EnvConfig, sm: sim_model.SimModel,
                   model_step: Callable, ppo_policy: Callable | None = None,
                   learned_params: tuple | None = None,
-                  gait_cfg: gait_lib.GaitConfig = gait_lib.GaitConfig()) -> Planning:
-    """Planner functions around ``model_step(q, qd, ctrl, key) -> (q', qd')``."""
+                  gait_cfg: gait_lib.GaitConfig = gait_lib.GaitConfig(),
+                  error_params: dict | None = None) -> Planning:
+    """Planner functions around ``model_step(q, qd, ctrl, key) -> (q', qd')``; ``error_params``:
+    a learned one-step error model (:mod:`stride_jax.control.planner_value`) of this model."""
     nq, nu = sm.mj.nq, sm.info.nu
     home = jnp.asarray(sm.info.qpos0[7:])
     c_lo, c_hi = jnp.asarray(sm.info.ctrl_lo), jnp.asarray(sm.info.ctrl_hi)
@@ -124,20 +130,32 @@ def make_planning(cfg: ClosedLoopConfig, env_cfg: envs.EnvConfig, sm: sim_model.
         track = jnp.sum((command[:2] - v[:2]) ** 2) + 0.5 * (command[2] - w[2]) ** 2
         return -sum(parts.values()) + cfg.track_weight * dt * track + cfg.fall_cost * fallen
 
+    def obs_aug(q_aug, qd):
+        a = split(q_aug, nq)
+        return obs_of(a.q, qd, a.command, a.clock)
+
+    def reward_action(q_aug, u):  # the learned models score the normalised policy action
+        return (ctrl(q_aug, u) - home) / env_cfg.action_scale
+
+    def disagreement(qs, qds):  # the spread of the draws' base linear velocity (m/s)
+        return jnp.sqrt(jnp.sum(jnp.var(qds[:, :3], axis=0)))
+
+    from stride_jax.control import learned as learned_lib
+    step_error = None
+    if error_params is not None:
+        def step_error(q_aug, qd, u):
+            x = learned_lib.reward_input(obs_aug(q_aug, qd), reward_action(q_aug, u))
+            return jnp.maximum(learned_lib.apply(error_params, x), 0.0)
+
     value = None
     cost = analytic_cost
     if learned_params is not None:
-        from stride_jax.control import learned as learned_lib
-        def obs_aug(q_aug, qd):
-            a = split(q_aug, nq)
-            return obs_of(a.q, qd, a.command, a.clock)
-
         r_cost, value = learned_lib.planner_terms(*learned_params, obs_aug, cfg.value_weight)
 
-        def cost(q_aug, qd, u, t):  # the learned reward scores the normalised policy action
+        def cost(q_aug, qd, u, t):
             q = split(q_aug, nq).q
-            a = (ctrl(q_aug, u) - home) / env_cfg.action_scale
-            return r_cost(q_aug, qd, a, t) + cfg.fall_cost * rollout_mjx.fallen(sm, q)
+            return (r_cost(q_aug, qd, reward_action(q_aug, u), t)
+                    + cfg.fall_cost * rollout_mjx.fallen(sm, q))
 
     policy = None
     if ppo_policy is not None and not cfg.gait:
@@ -158,17 +176,22 @@ def make_planning(cfg: ClosedLoopConfig, env_cfg: envs.EnvConfig, sm: sim_model.
         trot = gait_lib.named("trot")
         nominal = np.asarray(gait_lib.join_action(jnp.asarray(nominal), trot), np.float32)
     return Planning(dynamics, cost, value, policy, ctrl, lo, hi, noise, nominal,
-                    0.0 if cfg.gait else env_cfg.gait_hz)
+                    0.0 if cfg.gait else env_cfg.gait_hz, obs_aug, disagreement, step_error,
+                    reward_action)
 
 
 def mppi_config(cfg: ClosedLoopConfig, planning: Planning) -> mppi.MPPIConfig:
-    """The run's MPPI settings with the task's exploration noise per action entry (and no policy
-    candidates without a policy)."""
+    """The run's MPPI settings with the task's exploration noise per action entry and the policy
+    prior's noise (and no policy candidates or prior without a policy)."""
+    nu = len(planning.lo)
     return dataclasses.replace(cfg.mppi, noise_std=planning.noise,
-                               policy_samples=cfg.mppi.policy_samples if planning.policy else 0)
+                               prior_noise_std=(cfg.prior_noise_std,) * nu,
+                               policy_samples=cfg.mppi.policy_samples if planning.policy else 0,
+                               prior_fraction=cfg.mppi.prior_fraction if planning.policy else 0.0)
 
 
 def make_planner(planning: Planning, mppi_cfg: mppi.MPPIConfig) -> mppi.Planner:
     """MPPI over the planning functions (build outside jit: it checks its bounds)."""
     return mppi.make(mppi_cfg, planning.dynamics, planning.cost, planning.lo, planning.hi,
-                     planning.value, planning.policy)
+                     planning.value, planning.policy, disagreement=planning.disagreement,
+                     step_error=planning.step_error)

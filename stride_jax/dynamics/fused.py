@@ -1,7 +1,7 @@
 """Fused network passes for planners on GPUs: one Pallas (Triton) kernel per pass of an MLP.
 
 A planner's model step on a GPU is bound by the number of kernels it launches, not by arithmetic
-(``results/README.md``: ~70 kernels of ~3.5 us per horizon step, 13x above the FLOP floor). XLA
+(``results/mppi_latency/README.md``: ~70 kernels of ~3.5 us per horizon step, 13x above the FLOP floor). XLA
 runs each of an MLP's matrix products as its own kernel, and a tangent or a transposed pass as
 more of them. Here every pass is one kernel over blocks of rows (samples):
 
@@ -20,7 +20,7 @@ The kernels and their layout are in :mod:`stride_jax.dynamics.fused_pallas`; the
 ``pallas-step`` choices of :data:`KERNELS` go further and run a STRIDE model's whole step as one
 kernel (:mod:`stride_jax.dynamics.fused_step`, 2.5 ms for the MPPI step below at 64 x 3).
 
-Status (one H100, Go1, 1024 samples; commands and numbers in ``results/README.md``): at the
+Status (one H100, Go1, 1024 samples; commands and numbers in ``results/mppi_latency/README.md``): at the
 paper's 256 x 3 a program streams ~0.7 MB of weights for only 16 rows, and the kernels are no
 faster than XLA per pass (jvp 74 vs 47 us, vjp 64 vs 51 us, a flow sample 59 vs 60 us, 45 us
 with bfloat16 products). At planning sizes they are: 64 x 3 per pass 18-24 us against XLA's

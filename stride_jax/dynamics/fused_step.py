@@ -1,5 +1,5 @@
 """A STRIDE model step as one Pallas (Triton) kernel: a planner's horizon step on a GPU in ~10
-launches where XLA makes ~57 and the per-pass kernels ~32 (``results/README.md``, sessions 7-8).
+launches where XLA makes ~57 and the per-pass kernels ~32 (``results/mppi_latency/README.md``, sessions 7-8).
 
 For a floating-base robot with position servos integrated implicitly, one network for L and V
 (``StructuredConfig.shared_lnn``) and a flow residual sampled with Euler steps, one kernel
@@ -29,7 +29,7 @@ gathered from it through static index tables; L's entries stay in the network's 
 a buffer, and L's rows and columns are gathered from it (``Layout.index``) inside short loops.
 
 Measured (one H100, Go1 STRIDE NFE 2, K = 1024, H = 30, MPPI step; commands in
-``results/README.md``): 64 x 3 networks 2.80 ms (2.47 ms with bfloat16 products) against 6.27 ms
+``results/mppi_latency/README.md``): 64 x 3 networks 2.80 ms (2.47 ms with bfloat16 products) against 6.27 ms
 in XLA; 128 x 3 3.94 / 3.24 ms against 6.52; 256 x 3 8.19 / 4.21 against 7.57. In the version
 before the prologue and integration moved in (64 x 3, leaving parts out: ``SKIP``) the solve
 took ~24 us per step, the products and transposed pass ~22 us, the flow ~6 us. Unrolling the

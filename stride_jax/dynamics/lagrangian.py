@@ -87,7 +87,7 @@ class LNNConfig:
     ``shared``: L's entries and V from one network (shared hidden layers, one more output), as in
     the original DeLaN (Lutter et al., 2019), instead of two. Each pass through the prior is then
     one network pass where it was two: the planner's model step costs less (measured in
-    ``results/README.md``), at the accuracy ``experiments/planning_shared.sh`` measures.
+    ``results/mppi_latency/README.md``), at the accuracy ``experiments/planning_shared.sh`` measures.
     """
 
     net: mlp.MLPConfig = mlp.MLPConfig()

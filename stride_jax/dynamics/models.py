@@ -108,7 +108,7 @@ class Actuation:
 
 
 def spec_from_meta(meta: dict) -> ModelSpec:
-    """The model spec from a dataset's ``meta.json`` (or ``collect.robot_meta``)."""
+    """The model spec from a dataset's ``meta.json`` (or :func:`stride_jax.sim.model.robot_meta`)."""
     nq = meta.get("nq") or len(meta["stats"]["q"]["mean"])
     nv = meta.get("nv") or len(meta["stats"]["qd"]["mean"])
     return ModelSpec(nq=nq, nv=nv, floating_base=meta["floating_base"],
@@ -250,14 +250,30 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
                  terms, spec, act, cfg, scales, residual)
 
 
+# The whole-step kernel holds a program's weight tiles in shared memory. On an H100 (227 KiB a
+# block) it compiles while L's padded output slots times the padded hidden width stay within
+# 2^16: Go1 (256 slots) up to 256 wide, G1 (1024 slots) up to 64; G1 at 128 asks for 324 KiB
+# (experiments/fused_step_smem.py, results/gpu_tests/). Larger models take the per-pass kernels.
+WHOLE_STEP_MAX_TILE = 1 << 16
+
+
+def whole_step_fits(nv: int, hidden: int) -> bool:
+    """Whether the whole-step kernel of a floating base with ``nv`` dofs and networks ``hidden``
+    wide fits a GPU's shared memory (:data:`WHOLE_STEP_MAX_TILE`)."""
+    entries = fused_layout.Layout.of(nv).entries
+    return entries * max(16, 1 << (hidden - 1).bit_length()) <= WHOLE_STEP_MAX_TILE
+
+
 def _whole_step_applies(spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig) -> bool:
     """Whether a STRIDE model's substep runs as one kernel (``fused_step``): a ``-step`` kernel
     choice, a floating base without periodic joints, position servos integrated implicitly,
-    one network for L and V and Euler flow steps (the planning configuration), and no mean head
-    (the kernel holds the flow alone)."""
+    one network for L and V and Euler flow steps (the planning configuration), no mean head
+    (the kernel holds the flow alone), and a size that fits shared memory
+    (:func:`whole_step_fits`)."""
     return (fused.whole_step(cfg.kernel) and spec.floating_base and not any(spec.periodic)
             and act.kp is not None and cfg.implicit_servo and cfg.shared_lnn
-            and cfg.integrator == "euler" and cfg.acc_through != "mean")
+            and cfg.integrator == "euler" and cfg.acc_through != "mean"
+            and whole_step_fits(spec.nv, cfg.net.hidden))
 
 
 def _fused_substep(xla_substep: Callable, spec: ModelSpec, act: Actuation,

@@ -27,7 +27,7 @@ import numpy as np
 from stride_jax.dynamics import mlp, models, stride
 from stride_jax.eval import horizon
 from stride_jax.eval.runs import LoadedRun
-from stride_jax.sim import bench
+from stride_jax.timing import median_time
 
 
 def _states(run: LoadedRun, batch: int):
@@ -66,8 +66,7 @@ def inference_time(run: LoadedRun, nfe: int | None, repeats: int, batch: int = 1
     fn = jax.jit(jax.vmap(one, in_axes=(None, 0, 0, 0, 0)))
     q, qd, tau = _states(run, batch)
     keys = jax.random.split(jax.random.key(0), batch)
-    return bench.median_time(lambda: fn(run.params, q, qd, tau, keys).block_until_ready(),
-                             repeats)
+    return median_time(lambda: fn(run.params, q, qd, tau, keys).block_until_ready(), repeats)
 
 
 def rates(run: LoadedRun, nfe: int | None, repeats: int, batch: int) -> dict:

@@ -1,1 +1,4 @@
-"""Sim-to-real gap diagnosis: logs, effects, replay, diagnosis, report and a blind benchmark."""
+"""Sim-to-real gap diagnosis: logs, effects, replay, diagnosis (where, which, how far) and what
+the library of effects leaves. The ``stride gap`` command, its report and the blind benchmark are
+jobs: :mod:`stride_jax.jobs.gap`, :mod:`~stride_jax.jobs.gap_report`,
+:mod:`~stride_jax.jobs.gap_bench`."""

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from stride_jax.gap import effects, filters, fit, granularity, logs, progress, regions, residual, screen
+from stride_jax.gap import calibrate, effects, filters, fit, granularity, logs, progress, regions, residual, screen
 from stride_jax.gap.attribute import check_nominal, verdict, which
 from stride_jax.gap.localise import divergence, where
 from stride_jax.gap.regions import PHASES, dof_names, foot_phases, noise_floor  # noqa: F401 (re-exported)
@@ -81,6 +81,9 @@ class DiagnoseConfig:
         of what the single leaves above the noise floor (and significantly more than nothing).
       residual: the STRIDE residual fitted on top of the best hypothesis (by default only when
         the verdict is "unexplained by the library"; :mod:`stride_jax.gap.residual`).
+      calibrate: the simulator's own settings (time step, integrator, cone, contacts, contact
+        parameters) fitted first as the baseline the effects are scored against
+        (:mod:`stride_jax.gap.calibrate`; ``mode = "off"``: the nominal model is the baseline).
       screen: the screen that picks the effects fitted in full, the finer effects and the finer
         choice's margin (:mod:`stride_jax.gap.screen`; ``screen.shortlist 0``: fit every candidate).
       progress: show a progress bar per stage (stderr).
@@ -106,6 +109,7 @@ class DiagnoseConfig:
     alpha: float = 0.05
     pair_min: float = 0.1
     residual: ResidualConfig = ResidualConfig()
+    calibrate: calibrate.CalibrateConfig = calibrate.CalibrateConfig()
     screen: ScreenConfig = ScreenConfig()
     progress: bool = True
 
@@ -203,14 +207,25 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
                           "indistinguishable_from": [], "rule": "exact_nominal",
                           "reason": f"the nominal model replays the logs to numerical precision "
                                     f"(scaled RMS {_rms(r_all):.2g})"}
-        out["which"], out["how_far"], out["residual"] = None, None, None
+        out["which"], out["how_far"], out["residual"], out["calibration"] = None, None, None, None
         out["seconds"] = time.time() - t_start
         return out
+    # the simulator's settings first (nuisance parameters): the baseline the effects are scored against
+    t0 = time.time()
+    sm_nominal = sm
+    cal = (calibrate.calibrate(sm, train_k, test_k, scale, cfg.calibrate, log) if cfg.calibrate.mode == "fit"
+           else None)
+    if cal and cfg.calibrate.refine:
+        cal = calibrate.refine(sm, cal, train_k, test_k, scale, cfg.calibrate, cfg.fit.grid, log)
+    out["calibration"] = cal.record if cal else {"mode": "off", "applied": False}
+    sm = cal.model if cal else sm
+    stages["calibration"], t0 = time.time() - t0, time.time()
+    nom = effects.build(sm)
     out["nominal_check"] = check_nominal(sm, test_k, scale, fit.residual(sm, nom, test_k, scale))
     bad = {k: v for k, v in out["nominal_check"].items() if v > 1e-9}
     if bad:
         raise RuntimeError(f"effects do not reproduce the nominal model at their nominal value: {bad}")
-    stages["nominal_check"], t0 = time.time() - t_start - stages["where"], time.time()
+    stages["nominal_check"], t0 = time.time() - t0, time.time()
     scr, singles, pair_screen = None, None, None
     if cfg.screen.shortlist:
         scr = screen.run(sm, train_k, test_k, scale, cfg.screen, cfg.penalty, cfg.progress, log)
@@ -231,8 +246,12 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
         out["verdict"]["reason"] += f"; indistinguishable set: {sets['summary']}"
     with progress.bar(1, "how far: held-out replays and rollouts", cfg.progress) as bar:
         out["how_far"] = how_far(sm, test, scale, w, cfg)
+        out["how_far"].update(calibrate.shrinks(sm_nominal, sm, w["plan_best"], test, scale))
         bar.update(1)
     stages["how_far"], t0 = time.time() - t0, time.time()
+    if calibrate.sentence(out["calibration"]):
+        out["verdict"]["model_form"] = out["calibration"]["changed"]
+        out["verdict"]["reason"] = f"{calibrate.sentence(out['calibration'])}; on top of that, {out['verdict']['reason']}"
     out["residual"] = None
     if cfg.residual.wanted(out["verdict"]["verdict"]):
         out["residual"] = residual.fit_on_top(sm, w["plan_best"], train, test, scale, cfg.residual,

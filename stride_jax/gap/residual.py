@@ -41,10 +41,10 @@ import mujoco
 import numpy as np
 
 from stride_jax.dynamics import flow, mlp, stride
+from stride_jax.dynamics.models import spec_from_meta
 from stride_jax.gap import concentration, effects, fit, regions, sim
-from stride_jax.sim.collect import robot_meta
-from stride_jax.sim.model import SimModel
-from stride_jax.train import job, loop
+from stride_jax.sim.model import SimModel, robot_meta
+from stride_jax.train import loop
 from stride_jax.types import ModelSpec
 
 WHEN = ("unexplained", "always", "never")
@@ -131,7 +131,7 @@ class ResidualConfig:
 
 def spec_of(sm: SimModel) -> ModelSpec:
     """The robot's coordinates as the dynamics models see them (wrapping hinges -> sin/cos)."""
-    return job.spec_from_meta(robot_meta(sm))
+    return spec_from_meta(robot_meta(sm))
 
 
 def mass_matrices(m: mujoco.MjModel, q: np.ndarray) -> np.ndarray:

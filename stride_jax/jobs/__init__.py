@@ -1,4 +1,20 @@
-"""Jobs: the ``stride`` subcommands that are applications of the library rather than parts of it
-(each a frozen config nesting the library's own, named presets, and ``run``). The library
-imports none of them. Older subcommands still keep their job beside their library package
-(``sim/collect.py``, ``train/job.py``, ``eval/table.py``, ``control/closed_loop.py`` ...)."""
+"""Jobs: the applications of the library, one module per ``stride`` subcommand, each a frozen
+config that nests the library's own configs, its named presets, and ``run(cfg, command)``.
+
+    data         ``stride data``        simulate a robot, write a dataset folder
+    train        ``stride train``       dataset -> trained, checkpointed model
+    eval         ``stride eval``        Table I metrics of trained runs
+    show         ``stride show``        the pendulum's phase portrait (``make demo``'s figure)
+    bench_sim    ``stride bench-sim``   simulation throughput
+    bench_mppi   ``stride bench-mppi``  MPPI step latency
+    bench_table  the benchmarks' one table writer (JSON + Markdown)
+    gap          ``stride gap ...``     the gap tool's subcommands; gap_report (its report),
+                 gap_bench (``stride gap bench``, the blind benchmark)
+    gait_study   the closed-loop gait study (``experiments/closed_loop_gait.py``)
+    pool         side-by-side ``stride`` processes for the experiment drivers
+
+The library (``robots``, ``sim``, ``dynamics``, ``train``, ``control``, ``gap``, ``eval``) imports
+none of them (``tests/test_layers.py``). Still in ``stride_jax.control``, to move here: the
+closed-loop job (``closed_loop``), ``stride ppo`` (``ppo``) and ``stride fit-reward-value``
+(``learned.fit_from_policy``).
+"""

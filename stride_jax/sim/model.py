@@ -153,3 +153,23 @@ def check_open_loop(sm: SimModel, qpos, qvel, ctrl) -> tuple[np.ndarray, np.ndar
             bad = np.argwhere(~np.isfinite(x))[0].tolist()
             raise ValueError(f"{name}: {label} contains NaN or inf (first at index {bad})")
     return qpos, qvel, ctrl
+
+
+def robot_meta(sm: SimModel) -> dict:
+    """What a dynamics model needs to know about a robot (coordinates, servos, timing): the part
+    of a dataset's ``meta.json`` that describes the robot rather than the data."""
+    m = sm.mj
+    return dict(
+        robot=sm.robot.name, source=sm.robot.source, nq=m.nq, nv=m.nv,
+        sim_dt=float(m.opt.timestep), ctrl_dt=sm.robot.ctrl_dt, n_substeps=sm.n_substeps,
+        joints=list(sm.robot.joints), feet=[f.name for f in sm.robot.feet],
+        floating_base=sm.robot.floating_base,
+        kp=list(sm.robot.kp) if sm.robot.kp else None,
+        kd=list(sm.robot.kd) if sm.robot.kd else None,
+        actuator_force_range=m.actuator_forcerange.tolist(),
+        act_dof=sm.act_dof.tolist(),
+        periodic=[bool(m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE and not m.jnt_limited[j])
+                  for j in range(m.njnt) if m.jnt_type[j] != mujoco.mjtJoint.mjJNT_FREE],
+        ctrl_range=m.actuator_ctrlrange.tolist(),
+        total_mass=float(m.body_mass.sum()),
+    )

@@ -1,5 +1,6 @@
-"""Training: the optax loop with resumable orbax checkpoints, the ``stride train`` job, and
-:func:`fit` for a robot given as arrays."""
+"""Training: the optax loop with resumable orbax checkpoints (:mod:`~stride_jax.train.loop`),
+what a model of a dataset starts from (:mod:`~stride_jax.train.setup`), and :func:`fit` for a
+robot given as arrays. The ``stride train`` job is :mod:`stride_jax.jobs.train`."""
 
 from stride_jax.train.fit import fit
 

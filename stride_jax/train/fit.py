@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 from stride_jax.dynamics import checkpoint, models, stride
-from stride_jax.train import loop
+from stride_jax.train import loop, setup
 from stride_jax.types import ModelSpec
 
 
@@ -60,10 +60,7 @@ def fit(q, qd, tau, qdd, out: str | pathlib.Path, model: str = "delan_prior",
     train = {k: x[perm[n_val:]] for k, x in arrays.items()}
     val = {k: x[perm[:n_val]] for k, x in arrays.items()}
 
-    def std(x):  # per-joint, floored at 1% of the largest (as for simulated datasets)
-        s = x.std(0)
-        return np.maximum(s, 1e-2 * max(float(s.max()), 1e-3)).astype(dtype)
-
+    std = lambda x: setup.floored_std(x, dtype)  # noqa: E731  (as for simulated datasets)
     scales = stride.Scales(qd=std(train["qd"]), tau=std(train["tau"]), force=std(train["tau"]),
                            qdd=std(train["qdd"]))
     m = models.make(model, spec, models.motors(nq, dt), config, scales)

@@ -1,4 +1,4 @@
-"""The blind benchmark: plant an effect the diagnosis is not told, diagnose, score.
+"""``stride gap bench``, the blind benchmark: plant an effect the diagnosis is not told, diagnose, score.
 
 Cases per robot: every library effect that applies at two magnitudes, pairs of effects, effects
 outside the library, and a control with no effect; each on noise-free logs and on logs through a
@@ -33,8 +33,9 @@ from typing import Any
 
 import numpy as np
 
-from stride_jax import io, pool
+from stride_jax import io
 from stride_jax.gap import diagnose, effects, fit, real
+from stride_jax.jobs import pool
 from stride_jax.sim import model
 
 
@@ -316,7 +317,7 @@ def _compute(cfg: BenchConfig, todo: list[tuple[int, bool]], workers: int, threa
     """Diagnoses ``todo`` (``(index, noisy)`` pairs) and ``save``s each row as it finishes, starting
     none after ``deadline`` (``time.time()``). ``workers > 1``: a pool of spawned processes (JAX is
     not fork-safe) with ``threads`` rollout threads and one thread otherwise each
-    (:func:`stride_jax.pool.worker_env`), sharing a compilation cache under ``cache_root``. A failed row stops new submissions; the rows running
+    (:func:`stride_jax.jobs.pool.worker_env`), sharing a compilation cache under ``cache_root``. A failed row stops new submissions; the rows running
     then still finish and are saved before the error is raised."""
     if workers <= 1:
         for index, noisy in todo:

@@ -1,4 +1,4 @@
-"""Simulation throughput benchmark (``make bench-sim``): simulation steps per second.
+"""``stride bench-sim`` / ``make bench-sim``: simulation steps per second.
 
 Two MJX measurements per robot and batch size: ``physics`` is a jitted, vmapped ``lax.scan`` of
 ``mjx.step`` (the number MuJoCo Playground quotes), ``collect`` is the full data pipeline
@@ -10,19 +10,17 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import json
 import os
 import pathlib
 import platform
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
 from mujoco import mjx
 
+from stride_jax.jobs import bench_table
 from stride_jax.sim import model, rollout_cpu, rollout_mjx
-from stride_jax.io import atomic_write_text
+from stride_jax.timing import median_time
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,7 +43,7 @@ class BenchConfig:
     repeats: int = 3
     iterations: int = 0
     ls_iterations: int = 0
-    out: str = "results"
+    out: str = "results/throughput"
 
 
 PRESETS = {
@@ -55,17 +53,6 @@ PRESETS = {
 }
 
 
-def median_time(fn, repeats: int) -> float:
-    """Median wall time (s) of ``repeats`` calls of ``fn`` after one warm-up call."""
-    fn()  # compile and warm up
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
-
-
 def _physics_fn(sm: model.SimModel, batch: int, n_steps: int):
     mx = mjx.put_model(sm.mj)
     qpos = jnp.asarray(sm.info.qpos0)
@@ -73,7 +60,8 @@ def _physics_fn(sm: model.SimModel, batch: int, n_steps: int):
     def one(key):
         d = mjx.make_data(mx).replace(qpos=qpos.at[7:].add(0.01 * jax.random.normal(key, (sm.mj.nq - 7,)))
                                       if sm.robot.floating_base else qpos)
-        d = jax.lax.fori_loop(0, n_steps * sm.n_substeps, lambda _, dd: mjx.step(mx, dd), d)
+        with jax.default_matmul_precision(rollout_mjx.PRECISION):  # as the data's physics
+            d = jax.lax.fori_loop(0, n_steps * sm.n_substeps, lambda _, dd: mjx.step(mx, dd), d)
         return d.qpos
 
     fn = jax.jit(jax.vmap(one))
@@ -93,7 +81,8 @@ def _with_solver(sm: model.SimModel, cfg: BenchConfig) -> model.SimModel:
     return dataclasses.replace(sm, mj=mj)
 
 
-def run(cfg: BenchConfig, on_row=None) -> list[dict]:
+def measure(cfg: BenchConfig, on_row=None) -> list[dict]:
+    """Every (robot, backend, batch) row of ``cfg``; ``on_row(rows)`` after each."""
     rows = []
     for name in cfg.robots.split(","):
         sm = _with_solver(model.load(name), cfg)
@@ -124,19 +113,22 @@ def run(cfg: BenchConfig, on_row=None) -> list[dict]:
 
 
 def write(rows: list[dict], cfg: BenchConfig, command: str) -> pathlib.Path:
-    out = pathlib.Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
+    """``<out>/bench_sim_<cpu|gpu>.{json,md}`` (:mod:`stride_jax.jobs.bench_table`)."""
     devices = [f"{d.platform}:{d.device_kind}" for d in jax.local_devices()]
     env = dict(command=command, devices=devices, cpu_count=os.cpu_count(),
                machine=platform.machine(), jax=jax.__version__, config=dataclasses.asdict(cfg))
-    tag = "gpu" if jax.default_backend() != "cpu" else "cpu"
-    atomic_write_text(out / f"bench_sim_{tag}.json", json.dumps(dict(env=env, rows=rows), indent=1))
-    lines = [f"# Simulation throughput ({tag})", "", f"Command: `{command}`", "",
-             f"Devices: {', '.join(devices)}; {os.cpu_count()} CPU cores; jax {jax.__version__}",
-             "", "| robot | backend | mode | solver iters (ls) | worlds | sim steps/s |",
-             "|---|---|---|---|---:|---:|"]
-    lines += [f"| {r['robot']} | {r['backend']} | {r['mode']} | {r['iterations']} "
-              f"({r['ls_iterations']}) | {r['batch']} | {r['steps_per_s']:,.0f} |" for r in rows]
-    path = out / f"bench_sim_{tag}.md"
-    atomic_write_text(path, "\n".join(lines) + "\n")
+    about = f"Devices: {', '.join(devices)}; {os.cpu_count()} CPU cores; jax {jax.__version__}"
+    return bench_table.write(
+        cfg.out, "bench_sim", "Simulation throughput", command, env, about,
+        ["robot", "backend", "mode", "solver iters (ls)", "worlds:", "sim steps/s:"], rows,
+        lambda r: [r["robot"], r["backend"], r["mode"],
+                   f"{r['iterations']} ({r['ls_iterations']})", str(r["batch"]),
+                   f"{r['steps_per_s']:,.0f}"])
+
+
+def run(cfg: BenchConfig, command: str = "stride bench-sim") -> pathlib.Path:
+    """``stride bench-sim``: measures every row, rewriting the table after each."""
+    rows = measure(cfg, on_row=lambda rows: write(rows, cfg, command))
+    path = write(rows, cfg, command)
+    print(f"wrote {path}")
     return path

@@ -1,4 +1,5 @@
-"""Writes a diagnosis as ``report.md`` with plots (matplotlib, Agg) and ``diagnosis.json``."""
+"""``stride gap diagnose``'s output: a diagnosis as ``report.md`` with plots (matplotlib, Agg) and
+``diagnosis.json``."""
 
 from __future__ import annotations
 
@@ -159,6 +160,7 @@ def markdown(d: dict[str, Any], files: dict[str, str], command: str | None = Non
           f"replaced; smoothing bandwidth: {_fmt(d['preprocess']['smoothing_bandwidth_hz'])} Hz "
           f"(None = no smoothing). Took {d['seconds']:.1f} s.", "",
           f"Residual: {d['residual_definition']}.", ""]
+    L += calibration_section(d)
     w = d["where"]
     L += ["## Where", "", f"![per dof]({files.get('per_dof')})", "",
           "| dof | RMS (rad/s² or m/s²) | scaled |", "|---|---|---|"]
@@ -221,6 +223,12 @@ def markdown(d: dict[str, Any], files: dict[str, str], command: str | None = Non
               "| dof | one-step acc RMSE before | after |", "|---|---|---|"]
         for n in hf["one_step_acc_rmse_before"]:
             L.append(f"| {n} | {hf['one_step_acc_rmse_before'][n]:.4g} | {hf['one_step_acc_rmse_after'][n]:.4g} |")
+        if "gap_nominal" in hf:
+            L += ["", f"Against the nominal model and the calibrated baseline (held-out one-step gap): nominal "
+                  f"{hf['gap_nominal']:.4g} → baseline {hf['gap_baseline']:.4g} (the settings alone: shrink "
+                  f"{hf['calibration_shrink']:.1%}) → with the effect {hf['gap_final']:.4g}: **shrink "
+                  f"{hf['shrink_vs_nominal']:.1%} against the nominal model, {hf['shrink_vs_baseline']:.1%} against the "
+                  f"calibrated baseline**."]
         if "divergence" in files:
             L += ["", f"![divergence]({files['divergence']})"]
         L += ["", "Per-foot force error: not available (the logs carry no contact forces)."]
@@ -243,6 +251,53 @@ def screen_lines(d: dict[str, Any]) -> list[str]:
         for r in scr["table"][:10]:
             chk = r.get("checked_heldout")
             L.append(f"| {r['effect']} | {r['linear_heldout']:.1%} | {'' if chk is None else f'{chk:.1%}'} |")
+    return L
+
+
+def calibration_section(d: dict[str, Any]) -> list[str]:
+    """The simulator's settings, calibrated before the effects (:mod:`stride_jax.gap.calibrate`):
+    what the nominal model uses, what the logs call for, and how much of the gap that closes."""
+    c = d.get("calibration")
+    L = ["## Model form: the simulator's settings (calibrated first)", ""]
+    if not c or c.get("mode") == "off":
+        return L + ["Not calibrated (`calibrate.mode = off`, or the nominal model replays the logs exactly): the "
+                    "effects are scored against the nominal model.", ""]
+    ns = c["nominal_settings"]
+    L += [f"Nominal model: time step {ns['timestep'] * 1e3:g} ms, integrator {ns['integrator']}, {ns['cone']} cone, "
+          f"impratio {ns['impratio']:g}, contacts: {ns['contacts']} ({ns['colliding_geoms']} colliding geoms"
+          + (f", foot condim {ns['foot_condim']}" if ns.get("foot_condim") else "") + f"), solref {ns['solref']}, "
+          f"solimp {ns['solimp']}, margin {ns['margin']}.", ""]
+    if c["applied"]:
+        L += ["**The simulator's settings differ from the nominal model:**", ""]
+        L += [f"- {line}" for line in c["changed"]]
+        L += ["", f"Held-out {c['k']}-step gap: nominal {c['heldout_gap_nominal']:.4g} → calibrated "
+              f"{c['heldout_gap_calibrated']:.4g} (shrink {c['shrink']:.1%}; one-sided sign-flip p = {c['p_value']:.2g} "
+              "over held-out blocks). The physical effects below are fitted and scored on top of this baseline."]
+    else:
+        L += ["The settings stay as the nominal model has them: "
+              + (f"the proposal ({'; '.join(c['proposed'])}) did not lower the held-out gap "
+                 f"({c['heldout_gap_nominal']:.4g} → {c['heldout_gap_proposed']:.4g})." if c["proposed"]
+                 else "no setting lowered the training loss by the required margin.")]
+    ties = c.get("discrete_ties") or {}
+    if ties:
+        L += ["", "Indistinguishable on these logs (within the margin of the chosen value): "
+              + "; ".join(f"{k}: {v}" for k, v in ties.items()) + "."]
+    forms = c.get("forms_heldout") or {}
+    if len(forms) > 1:
+        L += ["", "Model-form hypotheses, held-out gap without any effect: "
+              + ", ".join(f"{k} {v:.4g}" for k, v in forms.items()) + f" (calibrated: {c['heldout_gap_proposed']:.4g})."]
+    if c.get("refined"):
+        r = c["refined"]
+        if r.get("held_fixed"):
+            L += ["", f"Refined with the best screened effect held fixed on top ({r['held_fixed']}): "
+                  + (f"the settings moved (first pass: {'; '.join(r['first_pass']) or 'none'})." if r["settings_moved"]
+                     else "the settings did not move.")]
+        else:
+            L += ["", "No library effect lowered the training loss on top of the first calibration (screen): "
+                  "not refined."]
+    L += ["", f"{c['evaluations']} replays of the training split, {c['seconds']:.0f} s. What calibration can and cannot "
+          "tell apart: docs/gap.md (a softer ground is a longer solref time constant; contact parameters can take up "
+          "part of a payload or of ground friction).", ""]
     return L
 
 

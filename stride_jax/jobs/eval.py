@@ -1,4 +1,5 @@
-"""``stride eval``: the paper's Table I for trained runs -> ``results/<robot>/table.{md,json}``.
+"""``stride eval``: the paper's Table I for trained runs ->
+``results/table1/<robot>/table.{md,json}``.
 
 For each run (a folder written by ``stride train``), on the test split of the dataset it was
 trained on:
@@ -56,7 +57,7 @@ class EvalConfig:
         logged one only).
       force_steps: test steps used for the force error and the residual share.
       nfe: evaluations per residual sample; 0 means each model's trained default.
-      out: output folder; empty means ``results/<robot>``.
+      out: output folder; empty means ``results/table1/<robot>``.
       seed: windows, steps and latents.
       label: the command to record as having made the table (default: this ``stride eval``).
     """
@@ -364,7 +365,7 @@ def run(cfg: EvalConfig, command: str = "stride eval", log=print) -> pathlib.Pat
     if len(robots) != 1:
         raise ValueError(f"runs mix robots {sorted(robots)}; evaluate one robot at a time")
     robot = robots.pop()
-    out = pathlib.Path(cfg.out or f"results/{robot}")
+    out = pathlib.Path(cfg.out or f"results/table1/{robot}")
     out.mkdir(parents=True, exist_ok=True)
     table = aggregate(results)
     command = cfg.label or command

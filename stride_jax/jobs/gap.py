@@ -1,6 +1,8 @@
 """``stride gap``: ``diagnose`` a log folder, ``simulate`` "real" logs with hidden effects, ``import``
 recordings (ROS 2 bags, MCAP, CSV) as logs, ``export`` a simulated dataset as logs, ``bench`` the
-blind benchmark. Wire with ``gap.cli.main(argv)``."""
+blind benchmark (:mod:`stride_jax.jobs.gap_bench`), ``bench-independent`` the blind benchmark on
+logs from independent code and simulator settings (:mod:`stride_jax.jobs.gap_bench_independent`).
+``stride gap ARGS`` calls ``main(ARGS)``."""
 
 from __future__ import annotations
 
@@ -26,11 +28,15 @@ class DiagnoseJob:
         (.xml) or a robot/mapping file with a [robot] table (.toml).
       logs: folder with header.json and one CSV per trajectory.
       out: report folder (report.md, diagnosis.json, plots).
+      nominal: the nominal model's form: ``shipped`` (the MJCF as shipped: its own cone,
+        contacts, time step) or ``training`` (the robot's MJX-training edits; the same model for
+        robots without them).
     """
 
     robot: str = ""
     logs: str = ""
     out: str = ""
+    nominal: str = "shipped"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,6 +50,8 @@ class SimulateJob:
       trajectories, steps: how many logged trajectories, and control steps each.
       seed: explorer and effect draws.
       noise: add a real robot's sensor noise.
+      nominal: the model the "real" robot is simulated with (``shipped`` or ``training``, as
+        for ``diagnose``).
     """
 
     robot: str = ""
@@ -53,6 +61,7 @@ class SimulateJob:
     steps: int = 250
     seed: int = 0
     noise: bool = False
+    nominal: str = "shipped"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,7 +95,7 @@ class ExportJob:
 @dataclasses.dataclass(frozen=True)
 class BenchJob:
     """``stride gap bench``: the blind benchmark (cases from ``--preset``, a name of
-    ``stride_jax.gap.bench.PRESETS``).
+    ``stride_jax.jobs.gap_bench.PRESETS``).
 
     Attributes:
       out: result folder (<name>.md/json; finished rows in <name>_cases/, which a rerun resumes).
@@ -108,17 +117,19 @@ _DIAGNOSE_ALIASES = {"residual.when": "--residual", "residual.steps": "--residua
 
 
 def _parser() -> argparse.ArgumentParser:
-    from stride_jax.gap import bench, diagnose, residual
+    from stride_jax.gap import diagnose, nominal, residual
+    from stride_jax.jobs import gap_bench_independent as bench_independent
+    from stride_jax.jobs import gap_bench as bench
 
     p = argparse.ArgumentParser(prog="stride gap", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
     d = sub.add_parser("diagnose", help="where / which / how far, from a log folder")
-    config.add_flags(d, DiagnoseJob, required=("robot", "logs", "out"))
+    config.add_flags(d, DiagnoseJob, required=("robot", "logs", "out"), choices={"nominal": nominal.FORMS})
     d.add_argument("--preset", default="default", choices=sorted(diagnose.PRESETS))
     config.add_flags(d, diagnose.DiagnoseConfig, aliases=_DIAGNOSE_ALIASES,
                      choices={"residual.when": residual.WHEN})
     s = sub.add_parser("simulate", help="'real' logs: the explorer with hidden effects")
-    config.add_flags(s, SimulateJob, required=("robot", "out"))
+    config.add_flags(s, SimulateJob, required=("robot", "out"), choices={"nominal": nominal.FORMS})
     i = sub.add_parser("import", help="recordings (ROS 2 bags, MCAP, CSV) as a log folder")
     config.add_flags(i, ImportJob, required=("mapping", "out"))
     i.add_argument("files", nargs="+", help="bag folders, .mcap, .db3 or .csv files")
@@ -127,6 +138,10 @@ def _parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="the blind benchmark")
     b.add_argument("--preset", default="tiny", choices=sorted(bench.PRESETS))
     config.add_flags(b, BenchJob)
+    bi = sub.add_parser("bench-independent", help="the blind benchmark on logs from independent code and "
+                        "simulator settings (stride_jax.jobs.gap_bench_independent)")
+    bi.add_argument("--preset", default="tiny", choices=sorted(bench_independent.PRESETS))
+    config.add_flags(bi, BenchJob)
     return p
 
 
@@ -142,14 +157,15 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)
     job = {"diagnose": DiagnoseJob, "simulate": SimulateJob, "import": ImportJob, "export": ExportJob,
-           "bench": BenchJob}[args.cmd]
+           "bench": BenchJob, "bench-independent": BenchJob}[args.cmd]
     j = config.from_flags(job, args)
     from stride_jax.gap import logs
     from stride_jax.robots.base import RobotError
 
     try:
         if args.cmd == "diagnose":
-            from stride_jax.gap import diagnose, report
+            from stride_jax.gap import diagnose, nominal
+            from stride_jax.jobs import gap_report as report
             from stride_jax.sim import model
 
             try:
@@ -157,16 +173,15 @@ def main(argv: list[str] | None = None) -> int:
             except ValueError as err:
                 print(f"error: {err}", file=sys.stderr)
                 return 2
-            sm = model.load(j.robot)
+            sm = nominal.load(j.robot, j.nominal)
             _, trajs = logs.read(j.logs, sm)
             d = diagnose.diagnose(sm, trajs, cfg)
             path = report.write(d, j.out, "stride gap " + shlex.join(argv))
             print(f"report: {path}")
         elif args.cmd == "simulate":
-            from stride_jax.gap import real
-            from stride_jax.sim import model
+            from stride_jax.gap import nominal, real
 
-            sm = model.load(j.robot)
+            sm = nominal.load(j.robot, j.nominal)
             _, logged = real.generate(sm, json.loads(j.effects), j.trajectories, j.steps,
                                       j.seed, real.SensorNoise() if j.noise else None)
             logs.write(j.out, sm, logged, notes="simulated by `stride gap " + shlex.join(argv) + "`")
@@ -178,13 +193,24 @@ def main(argv: list[str] | None = None) -> int:
         elif args.cmd == "export":
             print(logs.export_dataset(j.dataset, j.out))
         elif args.cmd == "bench":
-            from stride_jax.gap import bench
+            from stride_jax.jobs import gap_bench as bench
 
             try:
                 bench.run(bench.PRESETS[args.preset], j.out, command="stride gap " + shlex.join(argv),
                           log=lambda line: print(line, flush=True), workers=j.workers, threads=j.threads,
                           minutes=None if math.isinf(j.minutes) else j.minutes)
             except bench.BenchError as err:  # rows on disk from another config, bad --workers/--threads
+                print(f"error: {err}", file=sys.stderr)
+                return 2
+        elif args.cmd == "bench-independent":
+            from stride_jax.jobs import gap_bench as bench, gap_bench_independent as bench_independent
+
+            try:
+                bench_independent.run(bench_independent.PRESETS[args.preset], j.out,
+                                      command="stride gap " + shlex.join(argv), log=lambda line: print(line, flush=True),
+                                      workers=j.workers, threads=j.threads,
+                                      minutes=None if math.isinf(j.minutes) else j.minutes)
+            except bench.BenchError as err:
                 print(f"error: {err}", file=sys.stderr)
                 return 2
     except (logs.LogError, RobotError) as err:  # bad logs, mapping, recordings or robot file

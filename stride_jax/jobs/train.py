@@ -1,4 +1,9 @@
-"""``stride train`` / ``make train``: dataset -> model -> trained, checkpointed params."""
+"""``stride train`` / ``make train``: dataset -> model -> trained, checkpointed params.
+
+The job's config nests the loop's (:class:`~stride_jax.train.loop.LoopConfig`); the model's
+config and normalisers come from :mod:`stride_jax.train.setup`, the loop from
+:mod:`stride_jax.train.loop`.
+"""
 
 from __future__ import annotations
 
@@ -6,17 +11,17 @@ import dataclasses
 import json
 import pathlib
 
-import numpy as np
-
 from stride_jax import distributed
 from stride_jax.distributed import DistributedConfig
-from stride_jax.dynamics import mlp, models, stride
-from stride_jax.dynamics.models import spec_from_meta  # noqa: F401  (its old home; re-exported)
-from stride_jax.eval import forces, rollout
-from stride_jax.sim import collect, dataset
+from stride_jax.dynamics import mlp, models
+from stride_jax.dynamics.models import spec_from_meta
+from stride_jax.eval import forces
+from stride_jax.io import atomic_write_text, code_version
+from stride_jax.jobs import data as data_job
+from stride_jax.sim import dataset
 from stride_jax.sim import model as sim_model
 from stride_jax.train import loop
-from stride_jax.io import atomic_write_text, code_version
+from stride_jax.train.setup import model_config, scales
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,10 +71,10 @@ class TrainConfig(loop.LoopConfig):
 PRESETS = {
     "tiny": dict(hidden=32, depth=2, steps=100, batch=64, eval_every=50, ckpt_every=50,
                  data_preset="tiny"),
-    # CPU-sized (``results/go1_cpu``): 128 x 3 networks, the loop's 2000 steps of 256.
+    # CPU-sized (``results/table1/go1_cpu``): 128 x 3 networks, the loop's 2000 steps of 256.
     "default": dict(hidden=128),
-    # The committed Table I (``results/go1``, ``results/g1``; H100): MLPConfig's 256 x 3, batch
-    # 1024, 12k steps (the Go1 tables; the G1 tables ran ``--steps 8000``), each run also under a
+    # The committed Table I (``results/table1/go1``, ``results/table1/g1``; H100): MLPConfig's
+    # 256 x 3, batch 1024, 12k steps (the Go1 tables; the G1 tables ran ``--steps 8000``), each run also under a
     # wall-clock budget (``experiments/table1.py --minutes``). The one source of these numbers:
     # ``experiments/table1.py`` and ``experiments/reproduce.py`` use this preset as it is.
     "paper": dict(steps=12_000, batch=1024, lr=1e-3, eval_every=1000, ckpt_every=2000,
@@ -77,40 +82,9 @@ PRESETS = {
 }
 
 
-def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0,
-                 shared_lnn: bool = False, acc_through: str = "central",
-                 learn_mass: bool = False, activation: str = "silu",
-                 weight_init: str = "lecun_normal") -> stride.StructuredConfig:
-    """Sizes for ``model``; ``nfe=0`` takes its default. Floating bases start the learned total
-    mass at the nominal model's (a spec-sheet number)."""
-    if model not in models.MODELS:
-        raise ValueError(f"unknown model {model!r}; available: {', '.join(models.MODELS)}")
-    nfe = nfe or models.DEFAULT_NFE.get(models.MODELS[model][1], 2)
-    mass = meta.get("total_mass") or float(sim_model.load(meta["robot"]).mj.body_mass.sum())
-    return stride.StructuredConfig(net=mlp.MLPConfig(hidden, depth, activation, weight_init),
-                                   nfe=nfe,
-                                   mass_init=mass if meta["floating_base"] else 1.0,
-                                   shared_lnn=shared_lnn, acc_through=acc_through,
-                                   learn_mass=learn_mass)
-
-
-def scales(ds: dataset.Dataset) -> stride.Scales:
-    """Per-dof normalisers from the training split (stds floored at 1% of the largest)."""
-    train = ds.split("train")
-    v = train["valid"]
-    force = (train["qfrc_passive"] + train["qfrc_constraint"] + train["qfrc_external"])[v]
-
-    def std(x):
-        s = x.std(0)
-        return np.maximum(s, 1e-2 * max(float(s.max()), 1e-3)).astype(np.float32)
-
-    dq, dqd = rollout.one_step_changes(train, ds.meta["floating_base"])
-    return stride.Scales(qd=std(train["qd"][v]), tau=std(train["tau"][v]), force=std(force),
-                         qdd=std(train["qdd"][v]), dq=std(dq), dqd=std(dqd),
-                         ctrl=std(train["ctrl"][v]))
-
-
-def run(cfg: TrainConfig, log=print) -> pathlib.Path:
+def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.Path:
+    """Trains ``cfg.model`` on ``cfg.data`` into ``cfg.out`` (resuming a killed run); returns
+    the run folder. ``command`` is accepted for the uniform job signature."""
     distributed.initialize(cfg.distributed)
     data_dir = pathlib.Path(cfg.data or f"data/{cfg.robot}")
     if not (data_dir / "meta.json").exists():
@@ -119,9 +93,9 @@ def run(cfg: TrainConfig, log=print) -> pathlib.Path:
                 f"no dataset at {data_dir}: make it first with `stride data --robot {cfg.robot} "
                 f"--preset {cfg.data_preset} --out {data_dir}`, or train with --make-data")
         log(f"no dataset at {data_dir}: generating one (preset {cfg.data_preset})")
-        preset = dict(collect.PRESETS[cfg.data_preset], robot=cfg.robot, out=str(data_dir),
+        preset = dict(data_job.PRESETS[cfg.data_preset], robot=cfg.robot, out=str(data_dir),
                       distributed=cfg.distributed)
-        collect.generate(collect.DataConfig(**preset))
+        data_job.generate(data_job.DataConfig(**preset))
     ds = dataset.load(data_dir, robot=cfg.robot)
     if "act_dof" not in ds.meta:
         raise dataset.DatasetError(f"{data_dir} predates actuator metadata; regenerate it")

@@ -1,4 +1,5 @@
-"""MPPI latency benchmark (``make bench-mppi``): one jitted planning step per robot, model, K, H.
+"""``stride bench-mppi`` / ``make bench-mppi``: one jitted MPPI planning step per robot, model,
+K and H.
 
 Each measurement builds a model of the given size for the robot (parameters at initialisation:
 latency does not depend on training), an MPPI planner with a velocity-tracking cost, jits its
@@ -20,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import itertools
-import json
 import os
 import pathlib
 import platform
@@ -35,9 +35,10 @@ from mujoco import mjx
 
 from stride_jax.control import envs, mppi
 from stride_jax.dynamics import fused, models, stride
-from stride_jax.io import atomic_write_text
-from stride_jax.sim import bench as sim_bench, collect, model as sim_model
-from stride_jax.train import job
+from stride_jax.jobs import bench_table
+from stride_jax.sim import model as sim_model
+from stride_jax.timing import median_time, peak_flops
+from stride_jax.train.setup import model_config
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,7 +75,7 @@ class BenchConfig:
     substeps: int = 0
     unroll: int = 1
     repeats: int = 5
-    out: str = "results"
+    out: str = "results/mppi_latency"
 
 
 PRESETS = {
@@ -95,19 +96,6 @@ PRESETS = {
 }
 
 
-def peak_flops(n: int = 2048, repeats: int = 5) -> float:
-    """Measured float32 matmul throughput of the default device (FLOP/s)."""
-    a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32)
-    f = jax.jit(lambda x: x @ x)
-    f(a).block_until_ready()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        f(a).block_until_ready()
-        times.append(time.perf_counter() - t0)
-    return 2 * n ** 3 / min(times)
-
-
 def tracking_cost(spec, target_speed: float = 1.0):
     """Base forward-velocity tracking, upright posture, small actions (cheap next to the model)."""
     def cost(q, qd, u, t):
@@ -121,8 +109,8 @@ def tracking_cost(spec, target_speed: float = 1.0):
 @functools.lru_cache(maxsize=None)
 def _robot(name: str):
     sm = sim_model.load(name)
-    meta = collect.robot_meta(sm)
-    return sm, meta, job.spec_from_meta(meta), models.Actuation.from_meta(meta)
+    meta = sim_model.robot_meta(sm)
+    return sm, meta, models.spec_from_meta(meta), models.Actuation.from_meta(meta)
 
 
 def _flops(compiled) -> float:
@@ -182,8 +170,8 @@ def setup(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig) -> Setu
         act = dataclasses.replace(act, dt=act.dt * act.n_substeps / cfg.substeps,
                                   n_substeps=cfg.substeps)
     if model_name != "oracle":
-        model_cfg = dataclasses.replace(job.model_config(model_name, meta, cfg.hidden,
-                                                         cfg.depth, cfg.nfe, cfg.shared_lnn),
+        model_cfg = dataclasses.replace(model_config(model_name, meta, cfg.hidden, cfg.depth,
+                                                     cfg.nfe, cfg.shared_lnn),
                                         kernel=cfg.kernel)
         model = models.make(model_name, spec, act, model_cfg, stride.Scales())
         params = model.init(jax.random.key(0))
@@ -205,8 +193,7 @@ def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
     compiled = jax.jit(b.step).lower(*args).compile()
     compile_s = time.perf_counter() - t0
     xla_flops = _flops(compiled)
-    ms = 1e3 * sim_bench.median_time(lambda: jax.block_until_ready(compiled(*args)),
-                                      cfg.repeats)
+    ms = 1e3 * median_time(lambda: jax.block_until_ready(compiled(*args)), cfg.repeats)
     oracle = b.model is None
     flops = float("nan") if oracle else K * H * control_step_flops(
         model_name, b.spec, b.act, b.model_cfg, b.params)
@@ -220,7 +207,9 @@ def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
                 ratio=ms / floor_ms if floor_ms > 0 else float("nan"), compile_s=compile_s)
 
 
-def run(cfg: BenchConfig, command: str) -> list[dict]:
+def run(cfg: BenchConfig, command: str = "stride bench-mppi") -> list[dict]:
+    """``stride bench-mppi``: measures every (robot, model, K, H), rewriting the table after
+    each; returns the rows."""
     peak = peak_flops()
     rows = []
     split = lambda s: [x for x in s.split(",") if x]
@@ -232,7 +221,9 @@ def run(cfg: BenchConfig, command: str) -> list[dict]:
         print(f"{robot} {name} K={K} H={H}: {r['ms']:.2f} ms ({r['hz']:.0f} Hz)"
               + ("" if name == "oracle" else
                  f", {r['gflop']:.2f} GFLOP, {r['ratio']:.0f}x the FLOP floor"), flush=True)
-        write(rows, cfg, command, peak)
+        path = write(rows, cfg, command, peak)
+    if rows:
+        print(f"wrote {path} ({len(rows)} rows)")
     return rows
 
 
@@ -245,18 +236,14 @@ def _kernel_note(kernel: str) -> str:
 
 
 def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> pathlib.Path:
-    tag = "cpu" if jax.default_backend() == "cpu" else "gpu"
-    out = pathlib.Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
+    """``<out>/bench_mppi_<cpu|gpu>.{json,md}`` (:mod:`stride_jax.jobs.bench_table`); the
+    ``x oracle`` column is the oracle's time over the model's at the same robot, K and H."""
     device = jax.devices()[0]
     env = dict(command=command, backend=jax.default_backend(), device=device.device_kind,
                n_devices=jax.device_count(), cpu=platform.processor() or platform.machine(),
                peak_gflops=peak / 1e9, jax=jax.__version__, config=dataclasses.asdict(cfg),
                xla_flags=os.environ.get("XLA_FLAGS", ""))
-    atomic_write_text(out / f"bench_mppi_{tag}.json", json.dumps(dict(env=env, rows=rows),
-                                                                 indent=1))
-    lines = [f"# MPPI step latency ({tag})", "", f"Command: `{command}`", "",
-             f"Device: {env['device']} ({env['backend']}), measured float32 matmul peak "
+    about = (f"Device: {env['device']} ({env['backend']}), measured float32 matmul peak "
              f"{env['peak_gflops']:.0f} GFLOP/s; "
              + (f"{env['n_devices']} devices, the samples split over them; "
                 if env["n_devices"] > 1 else "")
@@ -265,24 +252,23 @@ def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> path
              f"Networks {cfg.hidden} x {cfg.depth}"
              f"{' (L and V from one network)' if cfg.shared_lnn else ''} at initialisation"
              + _kernel_note(cfg.kernel)
-             + "; "
-             "one jitted planning step (K rollouts of H control "
-             "steps, each the robot's simulation substeps) with block_until_ready; median of "
+             + "; one jitted planning step (K rollouts of H control steps, each the robot's "
+             "simulation substeps) with block_until_ready; median of "
              f"{cfg.repeats}. FLOP floor = K x H x the FLOPs of one model control step "
              "(`control_step_flops`: counted without loops) / peak; the planner's own work "
-             "(noise, costs, weights) is left out, so the floor is a lower bound.", "",
-             "| robot | model | NFE | substeps | unroll | K | H | median ms | Hz | GFLOP | "
-             "FLOP floor ms | ratio | x oracle |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "(noise, costs, weights) is left out, so the floor is a lower bound.")
     oracle_ms = {(r["robot"], r["K"], r["H"]): r["ms"] for r in rows if r["model"] == "oracle"}
-    num = lambda x, f: "-" if not np.isfinite(x) else format(x, f)
-    for r in rows:
+    num = lambda x, f: "-" if not np.isfinite(x) else format(x, f)  # noqa: E731
+
+    def cells(r: dict) -> list[str]:
         vs = oracle_ms.get((r["robot"], r["K"], r["H"]))
         speedup = "-" if vs is None or r["model"] == "oracle" else f"{vs / r['ms']:.1f}"
-        lines.append(f"| {r['robot']} | {r['model']} | {r['nfe'] or '-'} | "
-                     f"{r.get('substeps', '-')} | {r.get('unroll', 1) or 'all'} | {r['K']} | "
-                     f"{r['H']} | {r['ms']:.2f} | {r['hz']:.0f} | {num(r['gflop'], '.2f')} | "
-                     f"{num(r['floor_ms'], '.3f')} | {num(r['ratio'], '.0f')} | {speedup} |")
-    path = out / f"bench_mppi_{tag}.md"
-    atomic_write_text(path, "\n".join(lines) + "\n")
-    return path
+        return [r["robot"], r["model"], str(r["nfe"] or "-"), str(r.get("substeps", "-")),
+                str(r.get("unroll", 1) or "all"), str(r["K"]), str(r["H"]), f"{r['ms']:.2f}",
+                f"{r['hz']:.0f}", num(r["gflop"], ".2f"), num(r["floor_ms"], ".3f"),
+                num(r["ratio"], ".0f"), speedup]
+
+    return bench_table.write(
+        cfg.out, "bench_mppi", "MPPI step latency", command, env, about,
+        ["robot", "model", "NFE", "substeps", "unroll", "K:", "H:", "median ms:", "Hz:",
+         "GFLOP:", "FLOP floor ms:", "ratio:", "x oracle:"], rows, cells)

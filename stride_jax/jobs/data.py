@@ -1,4 +1,10 @@
-"""Dataset generation: the config, its presets, and the job that writes a dataset folder."""
+"""``stride data``: the config, its presets, and the job that simulates a robot and writes a
+dataset folder (``arrays.npz``, ``meta.json`` and a summary plot).
+
+The library parts it composes: the rollouts (:mod:`stride_jax.sim.rollout_cpu`,
+:mod:`~stride_jax.sim.rollout_mjx`), the dataset format (:mod:`stride_jax.sim.dataset`) and the
+robot's description (:func:`stride_jax.sim.model.robot_meta`).
+"""
 
 from __future__ import annotations
 
@@ -7,7 +13,6 @@ import pathlib
 import time
 
 import jax
-import mujoco
 from tqdm import tqdm
 
 from stride_jax import distributed
@@ -112,7 +117,7 @@ def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Datas
         distributed.barrier("dataset written")
         return dataset.load(out)
     meta = dict(
-        robot_meta(sm), backend=backend, seed=cfg.seed,
+        model.robot_meta(sm), backend=backend, seed=cfg.seed,
         exploration=type(sm.robot.explorer).__name__,
         explorer=repr(explorer) if explorer is not None else None,
         randomization=dataclasses.asdict(sm.robot.randomization) if randomized else None,
@@ -123,21 +128,19 @@ def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Datas
     return ds
 
 
-def robot_meta(sm: model.SimModel) -> dict:
-    """What a dynamics model needs to know about a robot (coordinates, servos, timing): the part
-    of a dataset's ``meta.json`` that describes the robot rather than the data."""
-    m = sm.mj
-    return dict(
-        robot=sm.robot.name, source=sm.robot.source, nq=m.nq, nv=m.nv,
-        sim_dt=float(m.opt.timestep), ctrl_dt=sm.robot.ctrl_dt, n_substeps=sm.n_substeps,
-        joints=list(sm.robot.joints), feet=[f.name for f in sm.robot.feet],
-        floating_base=sm.robot.floating_base,
-        kp=list(sm.robot.kp) if sm.robot.kp else None,
-        kd=list(sm.robot.kd) if sm.robot.kd else None,
-        actuator_force_range=m.actuator_forcerange.tolist(),
-        act_dof=sm.act_dof.tolist(),
-        periodic=[bool(m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE and not m.jnt_limited[j])
-                  for j in range(m.njnt) if m.jnt_type[j] != mujoco.mjtJoint.mjJNT_FREE],
-        ctrl_range=m.actuator_ctrlrange.tolist(),
-        total_mass=float(m.body_mass.sum()),
-    )
+def run(cfg: DataConfig, command: str = "stride data", log=print) -> dataset.Dataset:
+    """``stride data``: builds the policy's explorer when ``cfg.policy`` is set, generates the
+    dataset, draws its summary plot and says what it wrote."""
+    from stride_jax.sim import plots
+    explorer = None
+    if cfg.policy:
+        from stride_jax.control import walk
+        explorer = walk.PolicyExplorer(cfg.policy, cfg.action_noise,
+                                       max_seconds=cfg.seconds or 60.0)
+    ds = generate(cfg, explorer)
+    png = plots.dataset_summary(ds)
+    m = ds.meta
+    log(f"wrote {ds.path}: {m['n_episodes']} episodes x {m['n_steps']} steps of {m['robot']} "
+        f"({m['backend']}, {m['generation_seconds']:.1f} s), valid fraction "
+        f"{m['valid_fraction']:.2f}; summary plot {png}")
+    return ds

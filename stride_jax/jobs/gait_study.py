@@ -41,17 +41,17 @@ class GaitStudyConfig:
     horizon: int = 25
     noise_std: float = 0.05
     gait_noise: float = 0.2
-    out: str = "results/closed_loop_gait"
+    out: str = "results/closed_loop/closed_loop_gait"
     seed: int = 0
 
 
 GAIT_PRESETS = {
     "tiny": dict(speeds="1.0", starts=1, seconds=0.3, samples=8, horizon=4,
-                 out="results/closed_loop_gait_tiny"),
+                 out="results/closed_loop/closed_loop_gait_tiny"),
     "cpu": dict(speeds="0.5,1.5", starts=1, seconds=2.0, samples=32, horizon=15,
-                out="results/closed_loop_gait_cpu"),
+                out="results/closed_loop/closed_loop_gait_cpu"),
     "default": dict(samples=256),
-    "gpu": dict(samples=1024, horizon=30, starts=3, out="results/closed_loop_gait_gpu"),
+    "gpu": dict(samples=1024, horizon=30, starts=3, out="results/closed_loop/closed_loop_gait_gpu"),
 }
 
 

@@ -1,0 +1,155 @@
+"""Data generation and training throughput on 1, 2, ... devices of one host, in one run
+-> results/scale/scale.{md,json}.
+
+    python experiments/scale.py --robot go1 --devices 1,2 --out results/scale            # GPUs
+    python experiments/scale.py --robot go1 --devices 1,2 --platform cpu --out /tmp/s    # forced host devices
+
+Each device count runs in its own process (JAX fixes its devices when it starts): on GPUs it
+sees the first ``d`` of them (``CUDA_VISIBLE_DEVICES``), on a CPU ``d`` forced host devices
+(``--xla_force_host_platform_device_count``). In it:
+
+- **data**: the MJX collection of ``stride data`` (``rollout_mjx.collect``: worlds sharded over
+  the devices), timed on its second call (the first compiles); simulator steps per second.
+- **training**: ``stride train`` on one shared dataset (the minibatch split over the devices,
+  XLA all-reducing the gradients), steps per second read from ``metrics.csv`` between its first
+  and last validation (compilation excluded). ``--per-device-batch`` keeps each device's share
+  fixed (weak scaling); otherwise the global batch is fixed (strong scaling).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import tempfile
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def child(args) -> None:
+    import stride_jax
+
+    stride_jax.set_xla_flags()
+    import csv
+
+    import jax
+
+    from stride_jax import cli
+    from stride_jax.sim import model, rollout_mjx
+
+    n = len(jax.local_devices())
+    assert n == args.d, f"asked for {args.d} devices, JAX sees {n}"
+    sm = model.load(args.robot)
+    n_steps = max(1, int(round(args.seconds / sm.robot.ctrl_dt)))
+    worlds = args.worlds
+    times = []
+    for _ in range(2):  # the first call compiles
+        t = time.perf_counter()
+        ep = rollout_mjx.collect(sm, jax.random.key(0), worlds, n_steps, worlds)
+        jax.block_until_ready(ep.records.q)
+        times.append(time.perf_counter() - t)
+    sim_steps = worlds * n_steps * sm.n_substeps
+    row = dict(devices=n, platform=jax.default_backend(), device_kind=jax.devices()[0].device_kind,
+               robot=args.robot, worlds=worlds, control_steps=n_steps,
+               data_seconds=times[1], data_sim_steps_per_s=sim_steps / times[1])
+    batch = args.batch * (n if args.per_device_batch else 1)
+    with tempfile.TemporaryDirectory() as tmp:
+        cli.main(["train", "--robot", args.robot, "--model", args.model, "--preset", "paper",
+                  "--data", args.data, "--steps", str(args.train_steps), "--batch", str(batch),
+                  "--eval-every", str(args.train_steps // 4),
+                  "--ckpt-every", str(args.train_steps), "--out", f"{tmp}/run"])
+        rows = list(csv.DictReader(open(f"{tmp}/run/metrics.csv")))
+    first, last = rows[0], rows[-1]
+    steps = int(last["step"]) - int(first["step"])
+    row.update(model=args.model, batch=batch, train_steps_timed=steps,
+               train_steps_per_s=steps / (float(last["time"]) - float(first["time"])))
+    row["train_examples_per_s"] = row["train_steps_per_s"] * batch
+    pathlib.Path(args.result).write_text(json.dumps(row))
+    print(json.dumps(row), flush=True)
+
+
+def _env(platform: str, d: int) -> dict:
+    env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    if platform == "cpu":
+        env["JAX_PLATFORMS"] = "cpu"
+        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") +
+                            f" --xla_force_host_platform_device_count={d}").strip()
+    else:
+        env["CUDA_VISIBLE_DEVICES"] = ",".join(str(i) for i in range(d))
+    return env
+
+
+def write(rows: list[dict], out: pathlib.Path, command: str) -> None:
+    from stride_jax.io import atomic_write_text
+
+    base = rows[0]
+    lines = [f"# Throughput against device count ({base['robot']}, {base['platform']}: "
+             f"{base['device_kind']})", "",
+             f"Command: `{command}`", "",
+             "| devices | data sim steps/s | speed-up | train steps/s | examples/s | speed-up |",
+             "|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['devices']} | {r['data_sim_steps_per_s']:,.0f} | "
+                     f"{r['data_sim_steps_per_s'] / base['data_sim_steps_per_s']:.2f}x | "
+                     f"{r['train_steps_per_s']:,.1f} | {r['train_examples_per_s']:,.0f} | "
+                     f"{r['train_examples_per_s'] / base['train_examples_per_s']:.2f}x |")
+    lines += ["", f"Data: {base['worlds']} worlds x {base['control_steps']} control steps per call "
+              f"(MJX, sharded over the devices). Training: `{base['model']}` at the paper preset's "
+              f"256 x 3, batch per row as in the json, {base['train_steps_timed']} timed steps."]
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "scale.json", json.dumps(rows, indent=1))
+    atomic_write_text(out / "scale.md", "\n".join(lines) + "\n")
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--robot", default="go1")
+    p.add_argument("--model", default="stride")
+    p.add_argument("--devices", default="1,2", help="device counts, e.g. 1,2")
+    p.add_argument("--platform", default="gpu", choices=("gpu", "cpu"))
+    p.add_argument("--worlds", type=int, default=4096)
+    p.add_argument("--seconds", type=float, default=2.0, help="episode length of the data probe")
+    p.add_argument("--data", default="", help="dataset for training (default: made first)")
+    p.add_argument("--data-episodes", type=int, default=512)
+    p.add_argument("--train-steps", type=int, default=2000)
+    p.add_argument("--batch", type=int, default=1024)
+    p.add_argument("--per-device-batch", action="store_true")
+    p.add_argument("--out", default="results/scale")
+    p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--d", type=int, default=1, help=argparse.SUPPRESS)
+    p.add_argument("--result", default="", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.child:
+        return child(args)
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    counts = [int(d) for d in args.devices.split(",")]
+    data = args.data
+    if not data:
+        data = str(out / f"data_{args.robot}")
+        if not (pathlib.Path(data) / "meta.json").exists():
+            subprocess.run([sys.executable, "-m", "stride_jax.cli", "data", "--robot", args.robot,
+                            "--backend", "mjx", "--episodes", str(args.data_episodes),
+                            "--out", data], env=_env(args.platform, 1), check=True)
+    rows = []
+    for d in counts:
+        result = out / f"devices_{d}.json"
+        cmd = [sys.executable, __file__, "--child", "--d", str(d), "--result", str(result),
+               "--robot", args.robot, "--model", args.model, "--worlds", str(args.worlds),
+               "--seconds", str(args.seconds), "--data", data,
+               "--train-steps", str(args.train_steps), "--batch", str(args.batch)]
+        if args.per_device_batch:
+            cmd.append("--per-device-batch")
+        print(f"--- {d} device(s)", flush=True)
+        subprocess.run(cmd, env=_env(args.platform, d), check=True)
+        rows.append(json.loads(result.read_text()))
+        write(rows, out, "python experiments/scale.py " + " ".join(argv or sys.argv[1:]))
+    print((out / "scale.md").read_text())
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,267 @@
+"""Dreamer-MPC ablation (issue 19, item 2): the PPO policy alone, MPPI through a learned model as
+today, and the Dreamer-MPC switches added one at a time, in closed loop in MJX.
+
+Rows (``variants``, cumulative, each one switch more than the one before):
+
+* ``policy``: the PPO policy alone;
+* ``mppi``: today's planner: noise around the shifted plan (``noise_std``), ``policy_samples``
+  policy candidates, horizon ``mppi.horizon``, the learned reward and the value fitted on the
+  policy's rollouts, undiscounted;
+* ``prior``: + policy-prior sampling, ``prior_fraction`` of the noise candidates around the
+  policy's own closed-loop rollout through the model at the policy's action spread
+  (``prior_noise_std``);
+* ``short``: + a short horizon (``short_horizon``) with the terminal value, discounted
+  (``discount``, the value's gamma);
+* ``value``: + the value refitted on the planner's own rollouts
+  (:mod:`stride_jax.control.planner_value`: collected by the ``short`` planner through the same
+  model on the nominal ground under random commands, never on the scenarios);
+* ``error``: + the model's error where the planner goes: ``error_draws`` residual draws per step
+  (their spread) and the learned one-step error model (``error_model``), rollouts cut at
+  ``error_bound`` (0: calibrated, ``error_bound_scale`` x the model's mean one-step error in the
+  closed loop x sqrt(horizon)) and down-weighted by ``error_weight``: every switch on.
+
+Each variant is a :func:`stride_jax.control.closed_loop.run` into ``out/<variant>`` (resumable:
+finished pairs are skipped, a trained value is reused); ``out/ablation.{json,md}`` gather the
+rows (``scenario``, ``model``, ``variant``, ``vel_rmse``, ``fell``, ``ms_per_step``, ...).
+
+    python experiments/dreamer_mpc.py --preset tiny          # CPU, about 5 minutes on 2 cores
+    python experiments/dreamer_mpc.py --preset gpu           # one H100
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pathlib
+import time
+
+import numpy as np
+
+import stride_jax
+from stride_jax import config
+from stride_jax.control import planner_value
+from stride_jax.control.closed_loop_config import ClosedLoopConfig
+from stride_jax.control.mppi import MPPIConfig
+from stride_jax.io import atomic_write_text, code_version
+
+VARIANTS = ("policy", "mppi", "prior", "short", "value", "error")
+
+
+@dataclasses.dataclass(frozen=True)
+class AblationConfig:
+    """The ablation's rows and the Dreamer-MPC settings.
+
+    Attributes:
+      robot: ``go1`` or ``g1``.
+      model: the learned dynamics model the planner variants use, ``NAME=RUN``.
+      policy: PPO run folder (the ``policy`` row, candidates and the prior).
+      learned: the learned reward and value fitted on the policy's rollouts.
+      scenarios: comma-separated closed-loop scenarios.
+      seconds: each scenario's duration (s).
+      variants: comma-separated rows of :data:`VARIANTS`, cumulative.
+      mppi: today's planner settings (``--mppi.samples``, ``--mppi.horizon`` ...).
+      noise_std: plan-centred exploration std (rad).
+      prior_fraction: share of the noise candidates drawn around the policy (``prior`` on).
+      prior_noise_std: their noise std (rad), the policy's own action spread.
+      short_horizon: the horizon from ``short`` on (control steps).
+      discount: gamma of the running costs and terminal value from ``short`` on (the value's).
+      error_draws: residual draws per rollout step whose spread is the predicted error.
+      error_model: add the learned one-step error model (fitted with the planner's value).
+      error_bound: cut rollouts whose accumulated predicted error exceeds this (m/s); 0:
+        calibrated as ``error_bound_scale`` x the model's mean one-step error in the
+        collection's closed loop x sqrt(short_horizon).
+      error_bound_scale: see ``error_bound``.
+      error_weight: cost per m/s of predicted error per kept step.
+      value: collecting the planner's data and refitting the value (``--value.worlds`` ...).
+      kernel: how structured models run their networks (``xla``, ``pallas-step`` ...).
+      settle_s: tracking errors count from this long after each command change (s).
+      out: results folder.
+      seed: planner key and terrain seed.
+    """
+
+    robot: str = "go1"
+    model: str = "stride=results/models/go1/stride-s0"
+    policy: str = "results/policies/ppo_go1"
+    learned: str = "results/learned_go1/reward_value.msgpack"
+    scenarios: str = "slope,rough,soft,changes"
+    seconds: float = 6.0
+    variants: str = ",".join(VARIANTS)
+    mppi: MPPIConfig = MPPIConfig(samples=1024, horizon=20, policy_samples=64)
+    noise_std: float = 0.15
+    prior_fraction: float = 0.5
+    prior_noise_std: float = 0.08
+    short_horizon: int = 5
+    discount: float = 0.97
+    error_draws: int = 4
+    error_model: bool = True
+    error_bound: float = 0.0
+    error_bound_scale: float = 2.0
+    error_weight: float = 0.0
+    value: planner_value.PlannerValueConfig = planner_value.PlannerValueConfig()
+    kernel: str = "xla"
+    settle_s: float = 0.5
+    out: str = "results/dreamer_mpc_go1"
+    seed: int = 0
+
+    def __post_init__(self):
+        unknown = [v for v in self.variants.split(",") if v and v not in VARIANTS]
+        if unknown:
+            raise ValueError(f"unknown variants {unknown}; known: {', '.join(VARIANTS)}")
+        name, _, run = self.model.partition("=")
+        if not (name and run):
+            raise ValueError(f"model must be NAME=RUN (a trained dynamics model), got "
+                             f"{self.model!r}")
+        if not (self.policy and self.learned):
+            raise ValueError("the ablation needs a policy and a learned reward/value")
+        if self.short_horizon < 1:
+            raise ValueError(f"short_horizon={self.short_horizon} must be >= 1")
+
+
+PRESETS = {
+    "tiny": dict(scenarios="changes", seconds=0.1, variants=",".join(VARIANTS),
+                 mppi=MPPIConfig(samples=8, horizon=4, policy_samples=2), short_horizon=2,
+                 error_draws=2, settle_s=0.0,
+                 value=planner_value.PlannerValueConfig(**planner_value.PRESETS["tiny"]),
+                 out="results/dreamer_mpc_tiny"),
+    "default": {},
+    "gpu": {},
+}
+
+
+def variant_config(cfg: AblationConfig, variant: str, learned: str | None = None,
+                   error_model: str = "", error_bound: float = 0.0) -> ClosedLoopConfig:
+    """The closed-loop configuration of one row (``learned``/``error_model``: the files the
+    ``value`` and ``error`` rows use, ``error_bound``: the bound in m/s)."""
+    level = VARIANTS.index(variant)
+    name, _, run = cfg.model.partition("=")
+    m = cfg.mppi
+    if level >= VARIANTS.index("prior"):
+        m = dataclasses.replace(m, prior_fraction=cfg.prior_fraction)
+    if level >= VARIANTS.index("short"):
+        m = dataclasses.replace(m, horizon=cfg.short_horizon, discount=cfg.discount)
+    if level >= VARIANTS.index("error"):
+        m = dataclasses.replace(m, error_draws=cfg.error_draws, error_bound=error_bound,
+                                error_weight=cfg.error_weight)
+    return ClosedLoopConfig(
+        robot=cfg.robot, models="policy" if variant == "policy" else cfg.model,
+        scenarios=cfg.scenarios, seconds=cfg.seconds, mppi=m, noise_std=cfg.noise_std,
+        prior_noise_std=cfg.prior_noise_std, policy=cfg.policy,
+        learned=learned if learned and level >= VARIANTS.index("value") else cfg.learned,
+        error_model=error_model if level >= VARIANTS.index("error") else "",
+        kernel=cfg.kernel, settle_s=cfg.settle_s,
+        out=str(pathlib.Path(cfg.out) / variant), seed=cfg.seed)
+
+
+def run(cfg: AblationConfig, command: str = "", log=print) -> list[dict]:
+    """Every variant of ``cfg`` (training the planner's value first where a row needs it);
+    writes ``ablation.{json,md}`` to ``cfg.out`` after each variant."""
+    from stride_jax.control import closed_loop
+
+    out = pathlib.Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    variants = [v for v in cfg.variants.split(",") if v]
+    name, _, run_dir = cfg.model.partition("=")
+    value_dir = out / "value"
+    learned_file, error_file, bound = None, "", cfg.error_bound
+    value_report = None
+    if any(VARIANTS.index(v) >= VARIANTS.index("value") for v in variants):
+        if not (value_dir / "report.json").is_file():
+            log("training the value on the planner's own rollouts (the 'short' planner)")
+            collector = dataclasses.replace(variant_config(cfg, "short"),
+                                            out=str(value_dir))
+            vcfg = dataclasses.replace(cfg.value, discount=cfg.discount,
+                                       error_model=cfg.value.error_model or cfg.error_model)
+            planner_value.train(collector, vcfg, name, run_dir, value_dir, command, log)
+        value_report = json.loads((value_dir / "report.json").read_text())
+        learned_file = str(value_dir / "reward_value.msgpack")
+        if cfg.error_model and (value_dir / "error_model.msgpack").is_file():
+            error_file = str(value_dir / "error_model.msgpack")
+        if not bound:
+            e_cl = (value_report.get("error_model") or {}).get("mean_error_closed_loop")
+            if e_cl is None or not math.isfinite(e_cl) or e_cl <= 0:
+                raise ValueError("error_bound=0 is calibrated on the error model's closed-loop "
+                                 "error, which the value's report lacks: give --error-bound")
+            bound = cfg.error_bound_scale * e_cl * math.sqrt(cfg.short_horizon)
+    for variant in variants:
+        t0 = time.perf_counter()
+        closed_loop.run(variant_config(cfg, variant, learned_file, error_file, bound), command,
+                        log)
+        log(f"variant {variant}: {time.perf_counter() - t0:.0f} s")
+        write(gather(out), cfg, command, out, bound, value_report)
+    return gather(out)
+
+
+def gather(out: pathlib.Path) -> list[dict]:
+    """The rows of every variant folder under ``out`` (also those of earlier calls, e.g. the
+    rows split over two calls), each with its ``variant``, in :data:`VARIANTS` order."""
+    rows = []
+    for variant in VARIANTS:
+        path = out / variant / "closed_loop.json"
+        if path.is_file():
+            rows += [dict(r, variant=variant) for r in json.loads(path.read_text())["rows"]]
+    return rows
+
+
+def write(rows: list[dict], cfg: AblationConfig, command: str, out: pathlib.Path,
+          bound: float, value_report: dict | None) -> None:
+    import jax
+
+    env = dict(command=command, backend=jax.default_backend(),
+               device=jax.devices()[0].device_kind, jax=jax.__version__, code=code_version(),
+               config=dataclasses.asdict(cfg), error_bound_used=bound)
+    atomic_write_text(out / "ablation.json", json.dumps(
+        dict(env=env, value=value_report, rows=rows), indent=1))
+    variants = list(dict.fromkeys(r["variant"] for r in rows))
+    scenarios = list(dict.fromkeys(r["scenario"] for r in rows))
+    by = {(r["scenario"], r["variant"]): r for r in rows}
+
+    def cell(r):
+        if r is None:
+            return "-"
+        v = "-" if r["vel_rmse"] is None or np.isnan(r["vel_rmse"]) else f"{r['vel_rmse']:.3f}"
+        return v + (f", fell at {r['fall_s']:.2f} s" if r["fell"] else "")
+
+    lines = [f"# Dreamer-MPC ablation, {cfg.robot}, planner model {cfg.model}", "",
+             f"Command: `{command}`", "",
+             f"Device: {env['device']} ({env['backend']}), jax {env['jax']}, code {env['code']}. "
+             f"K={cfg.mppi.samples}, {cfg.mppi.policy_samples} policy candidates; today's "
+             f"planner H={cfg.mppi.horizon}, noise {cfg.noise_std} rad around the plan; prior "
+             f"{cfg.prior_fraction:.0%} of the noise candidates at {cfg.prior_noise_std} rad; "
+             f"short H={cfg.short_horizon}, gamma {cfg.discount}; error: {cfg.error_draws} "
+             f"draws{' + learned one-step error' if cfg.error_model else ''}, cut at "
+             f"{bound:.3f} m/s, weight {cfg.error_weight}. Variants are cumulative.", "",
+             "Velocity RMSE (m/s) while upright:", "",
+             "| scenario | " + " | ".join(variants) + " |",
+             "|---|" + "---:|" * len(variants)]
+    for sc in scenarios:
+        lines.append(f"| {sc} | " + " | ".join(cell(by.get((sc, v))) for v in variants) + " |")
+    lines += ["", "ms per control step / share of rollouts cut:", "",
+              "| scenario | " + " | ".join(variants) + " |", "|---|" + "---:|" * len(variants)]
+    for sc in scenarios:
+        lines.append(f"| {sc} | " + " | ".join(
+            f"{by[(sc, v)]['ms_per_step']:.1f} / {by[(sc, v)].get('cut_share', 0.0):.2f}"
+            if (sc, v) in by else "-" for v in variants) + " |")
+    if value_report:
+        b, a = value_report["value_before"], value_report["value_after"]
+        lines += ["", f"Value on the planner's held-out data ({value_report['worlds']} worlds, "
+                  f"{value_report['held_out_worlds']} held out), policy-trained -> refitted: "
+                  f"R^2 on candidates {b['r2_candidates']:.3f} -> {a['r2_candidates']:.3f}, on "
+                  f"the closed loop {b['r2_closed']:.3f} -> {a['r2_closed']:.3f}; bias V - G on "
+                  f"candidates {b['bias_candidates']:+.3f} -> {a['bias_candidates']:+.3f}."]
+        if "error_model" in value_report:
+            e = value_report["error_model"]
+            lines.append(f"One-step base-velocity error of the model: {e['mean_error_closed_loop']:.3f}"
+                         f" m/s where the robot is, {e['mean_error_candidates']:.3f} m/s along the "
+                         f"candidates; the error model's held-out R^2 {e['r2_held_out']:.3f}.")
+    atomic_write_text(out / "ablation.md", "\n".join(lines) + "\n")
+
+
+def main(argv: list[str] | None = None) -> None:
+    config.config_main("python -m stride_jax.control.dreamer_mpc", AblationConfig, PRESETS, run,
+                       argv, __doc__.split("\n")[0])
+
+
+if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
+    main()

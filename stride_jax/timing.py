@@ -1,0 +1,39 @@
+"""Wall-clock measurements shared by the benchmarks and the NFE figure: the median time of a
+call after a warm-up call, and the device's measured matmul peak."""
+
+from __future__ import annotations
+
+import statistics
+import time
+from typing import Callable
+
+
+def median_time(fn: Callable[[], object], repeats: int) -> float:
+    """Median wall time (s) of ``repeats`` calls of ``fn`` after one warm-up call (which
+    compiles). ``fn`` must block until its result is ready (``jax.block_until_ready``)."""
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}")
+    fn()  # compile and warm up
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def peak_flops(n: int = 2048, repeats: int = 5) -> float:
+    """Measured float32 matmul throughput of the default device (FLOP/s): the best of
+    ``repeats`` ``[n, n] @ [n, n]`` products."""
+    import jax
+    import jax.numpy as jnp
+
+    a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32)
+    f = jax.jit(lambda x: x @ x)
+    f(a).block_until_ready()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        f(a).block_until_ready()
+        times.append(time.perf_counter() - t0)
+    return 2 * n ** 3 / min(times)

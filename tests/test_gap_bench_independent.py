@@ -1,0 +1,69 @@
+"""The independent benchmark: its "real" robot is written apart from the diagnosis's effect code,
+with simulator settings that differ from the nominal model; the tiny preset runs end to end."""
+
+import ast
+import copy
+import json
+import pathlib
+
+import mujoco
+import numpy as np
+
+from stride_jax import robots
+from stride_jax.jobs import gap_bench_independent as bi
+from stride_jax.jobs import gap as cli
+
+
+def test_the_generator_does_not_import_the_effect_code_the_diagnosis_fits():
+    tree = ast.parse(pathlib.Path(bi.__file__).read_text())
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            names |= {f"{node.module}.{a.name}" for a in node.names} | {node.module}
+        elif isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+    for banned in ("stride_jax.gap.effects", "stride_jax.gap.sim", "stride_jax.gap.real"):
+        assert banned not in names, banned
+    src = pathlib.Path(bi.__file__).read_text()
+    assert "effects." not in src and "real.generate" not in src
+
+
+def test_drawn_settings_differ_from_the_model_and_planting_edits_what_it_says():
+    robot = robots.get("go1")
+    m0 = bi.robot_spec("go1").compile()
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        s = bi.draw_settings(m0, rng, robot.ctrl_dt)
+        assert s, "at least one setting differs"
+        m = copy.copy(m0)
+        bi.set_simulator(m, s, [g for f in robot.feet for g in f.geoms])
+        n = robot.ctrl_dt / m.opt.timestep
+        assert abs(n - round(n)) < 1e-9
+        if s.get("feet_only"):
+            assert ((m.geom_contype != 0) | (m.geom_conaffinity != 0)).sum() == 5
+    m = copy.copy(m0)
+    ctl = bi.plant(m, {"calf_damping": 2.0, "delay": 0.01, "payload": 1.0}, robot.joints, robot.base_body)
+    calf = [m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j)] for j in robot.joints if "calf" in j]
+    hip = [m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j)] for j in robot.joints if "hip" in j]
+    assert np.allclose(m.dof_damping[calf] - m0.dof_damping[calf], 2.0)
+    assert np.allclose(m.dof_damping[hip], m0.dof_damping[hip])
+    assert ctl.delay_steps == 5 and ctl.deadband == 0.0  # 10 ms at the shipped 2 ms step
+    trunk = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "trunk")
+    assert m.body_mass[trunk] - m0.body_mass[trunk] == 1.0
+
+
+def test_tiny_preset_end_to_end(tmp_path):
+    assert cli.main(["bench-independent", "--preset", "tiny", "--out", str(tmp_path)]) == 0
+    name = bi.PRESETS["tiny"].name
+    res = json.loads((tmp_path / f"{name}.json").read_text())
+    for key in ("top1_single", "top1_pairs", "median_shrink_single", "confident_false", "control_verdict"):
+        assert key in res and "noise_free" in res[key]
+    assert res["confident_false"]["noise_free"] == 0
+    assert res["top1_single"]["noise_free"] == 1.0
+    # the control names the drawn model-form difference
+    (ctrl,) = [r for r in res["cases"] if r["kind"] == "control"]
+    assert ctrl["calibration"] and ctrl["verdict"] == "no significant gap"
+    assert "simulator settings found" in res["control_verdict"]["noise_free"][0]
+    (single,) = [r for r in res["cases"] if r["kind"] == "single"]
+    assert single["shrink_ratio"] > 0.8 and single["clean"]["shrink_vs_nominal"] > 0.9
+    assert (tmp_path / f"{name}.md").read_text().startswith("# Sim-to-real gap: independent benchmark")

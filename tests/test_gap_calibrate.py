@@ -1,0 +1,118 @@
+"""The nominal model as shipped, simulator settings as model-form hypotheses, and their calibration
+(synthetic logs whose simulator settings are known)."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from stride_jax.gap import calibrate, diagnose, fit, nominal, real
+from stride_jax.jobs import gap_report as report
+from stride_jax.gap.nominal import Settings
+
+QUIET = lambda s: None
+
+
+def _split_data(sm, trajs, k):
+    tr, te = diagnose.split(len(trajs), 0.34, 0)
+    train = fit.make_data([trajs[i] for i in tr], k)
+    test = fit.make_data([trajs[i] for i in te], k)
+    return train, test, diagnose.scale_of(sm, fit.make_data([trajs[i] for i in tr]))
+
+
+def test_go1_nominal_is_the_shipped_mjcf_and_the_training_edit_is_a_settings_point():
+    shipped, training = nominal.load("go1"), nominal.load("go1", "training")
+    a, b = nominal.describe(shipped), nominal.describe(training)
+    assert (a["cone"], a["timestep"], a["contacts"], a["foot_condim"]) == ("elliptic", 0.002, "model", 6)
+    assert (b["cone"], b["timestep"], b["contacts"], b["foot_condim"]) == ("pyramidal", 0.004, "feet_only", 3)
+    assert a["colliding_geoms"] > b["colliding_geoms"] == 5
+    # the MJX-training form as settings on the shipped model replays exactly as the training model
+    s = nominal.training_settings(shipped, training)
+    _, logged = real.generate(training, {}, 2, 30, seed=0)
+    data = fit.make_data(logged)
+    scale = diagnose.scale_of(training, data)
+    as_settings = nominal.apply(shipped, s)
+    assert as_settings.n_substeps == training.n_substeps == 5
+    assert calibrate.gap_of(as_settings, logged, scale) < 1e-20
+    assert calibrate.gap_of(shipped, logged, scale) > 1.0  # the model-form difference is large
+    # neutral settings reproduce the model bit for bit
+    assert calibrate.gap_of(nominal.apply(shipped, Settings()), logged, scale) == calibrate.gap_of(shipped, logged, scale)
+
+
+def test_bad_settings_and_config_are_clear_errors():
+    with pytest.raises(ValueError, match="cone 'round'"):
+        Settings(cone="round")
+    with pytest.raises(ValueError, match="does not divide the control period"):
+        nominal.apply(nominal.load("pendulum"), Settings(timestep=0.003))
+    with pytest.raises(ValueError, match="unknown setting"):
+        calibrate.CalibrateConfig(continuous="solref,friction")
+    with pytest.raises(ValueError, match="calibrate.mode"):
+        calibrate.CalibrateConfig(mode="maybe")
+    with pytest.raises(ValueError, match="nominal model form"):
+        nominal.load("go1", "mjx")
+
+
+def test_timestep_and_integrator_calibrated_back_to_the_truth():
+    sm = nominal.load("pendulum")
+    truth = Settings(timestep=0.005, integrator="rk4")
+    _, logged = real.generate(nominal.apply(sm, truth), {}, 6, 120, seed=3)
+    train, test, scale = _split_data(sm, logged, 3)
+    cal = calibrate.calibrate(sm, train, test, scale, calibrate.CalibrateConfig(), QUIET)
+    rec = cal.record
+    assert rec["applied"], rec
+    ok_dt = cal.settings.timestep == 0.005 or 0.005 in rec["discrete_ties"].get("timestep", [])
+    assert ok_dt and cal.settings.integrator == "rk4", rec
+    assert rec["heldout_gap_calibrated"] < 1e-3 * rec["heldout_gap_nominal"]
+    assert any("rk4" in line for line in rec["changed"])
+
+
+def test_solref_calibrated_back_near_the_truth():
+    sm = nominal.load("pendulum_bouncing")
+    truth = Settings(solref_timeconst=2.0)
+    _, logged = real.generate(nominal.apply(sm, truth), {}, 6, 150, seed=1)
+    train, test, scale = _split_data(sm, logged, 3)
+    cfg = calibrate.CalibrateConfig(discrete="", continuous="solref_timeconst,solref_dampratio", max_nfev=8)
+    cal = calibrate.calibrate(sm, train, test, scale, cfg, QUIET)
+    assert cal.record["applied"], cal.record
+    assert abs(cal.settings.solref_timeconst - 2.0) < 0.2, cal.settings
+    assert cal.record["shrink"] > 0.9
+
+
+def test_matching_settings_stay_nominal_in_noisy_logs():
+    sm = nominal.load("pendulum")
+    _, logged = real.generate(sm, {}, 6, 120, seed=4, noise=real.SensorNoise())
+    train, test, scale = _split_data(sm, logged, 3)
+    cal = calibrate.calibrate(sm, train, test, scale, calibrate.CalibrateConfig(), QUIET)
+    assert not cal.record["applied"] and cal.model is sm and cal.record["changed"] == []
+    assert "match the nominal model" in calibrate.sentence(cal.record)
+
+
+def test_effect_on_top_of_a_model_form_difference_is_named_and_both_shrinks_reported(tmp_path):
+    sm = nominal.load("pendulum")
+    truth = Settings(timestep=0.005, integrator="rk4")
+    _, logged = real.generate(nominal.apply(sm, truth), {"damping": 0.3}, 5, 120, seed=1)
+    cfg = dataclasses.replace(diagnose.PRESETS["tiny"], pairs_of=0)
+    out = diagnose.diagnose(sm, logged, cfg, log=QUIET)
+    v, cal, hf = out["verdict"], out["calibration"], out["how_far"]
+    assert v["verdict"] == "explained" and v["effects"] == ["damping"], v["reason"]
+    assert abs(out["which"]["ranking"][0]["params"]["damping"][0] - 0.3) < 0.03
+    assert cal["applied"] and cal["settings"]["integrator"] == "rk4", cal
+    assert v["reason"].startswith("the simulator's settings are off: ") and "on top of that, explained" in v["reason"]
+    assert v["model_form"] == cal["changed"]
+    # the shrink against the nominal model and against the calibrated baseline
+    assert hf["gap_final"] < hf["gap_baseline"] < hf["gap_nominal"]
+    assert hf["shrink_vs_nominal"] > hf["shrink_vs_baseline"] > 0.9
+    assert hf["calibration_shrink"] == pytest.approx(1 - hf["gap_baseline"] / hf["gap_nominal"])
+    path = report.write(out, tmp_path / "rep")
+    md = path.read_text()
+    assert "## Model form: the simulator's settings (calibrated first)" in md
+    assert "against the nominal model" in md and "against the calibrated baseline" in md
+    d = json.loads((tmp_path / "rep" / "diagnosis.json").read_text())
+    assert d["calibration"]["changed"] == cal["changed"] and "shrink_vs_baseline" in d["how_far"]
+    # calibration off: the nominal model is the baseline, the effect is still named
+    off = diagnose.diagnose(sm, logged, dataclasses.replace(cfg, calibrate=calibrate.CalibrateConfig(mode="off")),
+                            log=QUIET)
+    assert off["calibration"] == {"mode": "off", "applied": False}
+    assert off["how_far"]["gap_baseline"] == off["how_far"]["gap_nominal"]
+    assert np.isfinite(off["how_far"]["shrink_vs_nominal"])

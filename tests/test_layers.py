@@ -1,0 +1,79 @@
+"""The library imports no job, report or command line: every module of ``robots``, ``sim``,
+``dynamics``, ``train``, ``control``, ``gap`` and ``eval`` (and the top-level helpers) is read as
+an AST, and none of its imports -- at the top, inside a function, or relative -- names
+``stride_jax.jobs``, ``stride_jax.cli``, ``stride_paper`` or ``experiments``."""
+
+import ast
+import pathlib
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "stride_jax"
+LIBRARY = ("robots", "sim", "dynamics", "train", "control", "gap", "eval")
+TOP_LEVEL = ("__init__.py", "_env.py", "config.py", "distributed.py", "io.py", "timing.py",
+             "types.py")
+FORBIDDEN = ("stride_jax.jobs", "stride_jax.cli", "stride_paper", "experiments")
+
+
+def _module_name(path: pathlib.Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imported_names(source: str, module: str, is_package: bool = False) -> list[str]:
+    """Every module name ``source`` (the text of ``module``) imports, relative imports resolved;
+    for ``from X import Y`` both ``X`` and ``X.Y`` (``Y`` may be a submodule)."""
+    package = module if is_package else module.rpartition(".")[0]
+    names = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            names += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - (node.level - 1)]
+                origin = ".".join(base + ([node.module] if node.module else []))
+            else:
+                origin = node.module
+            names.append(origin)
+            names += [f"{origin}.{a.name}" for a in node.names]
+    return names
+
+
+def forbidden_imports(source: str, module: str, is_package: bool = False) -> list[str]:
+    return sorted({n for n in imported_names(source, module, is_package)
+                   for f in FORBIDDEN if n == f or n.startswith(f + ".")})
+
+
+def library_files() -> list[pathlib.Path]:
+    files = [p for pkg in LIBRARY for p in sorted((PACKAGE / pkg).rglob("*.py"))]
+    return files + [PACKAGE / name for name in TOP_LEVEL]
+
+
+def test_every_library_package_and_helper_is_checked():
+    """The list above covers every package of stride_jax but the jobs (a new package must be
+    placed on one side or the other)."""
+    packages = {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").exists()}
+    assert packages == set(LIBRARY) | {"jobs"}
+    helpers = {p.name for p in PACKAGE.glob("*.py")}
+    assert helpers == set(TOP_LEVEL) | {"cli.py"}
+
+
+@pytest.mark.parametrize("path", library_files(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_library_module_imports_no_job_report_or_cli(path):
+    found = forbidden_imports(path.read_text(), _module_name(path), path.name == "__init__.py")
+    assert not found, f"{path.relative_to(ROOT)} imports {found}: move it to stride_jax.jobs"
+
+
+def test_the_check_sees_every_spelling():
+    """Absolute, from-, aliased, nested and relative imports of a job are all caught."""
+    mod = "stride_jax.sim.x"
+    for src in ("import stride_jax.jobs.data", "from stride_jax.jobs import data",
+                "from stride_jax import jobs", "from stride_jax import cli as c",
+                "def f():\n    from stride_paper import figures",
+                "import experiments.table1", "from ..jobs import train", "from .. import cli"):
+        assert forbidden_imports(src, mod), src
+    for src in ("from stride_jax import config, io", "from stride_jax.sim import dataset",
+                "from . import model", "import stride_jax", "from stride_jax.jobsite import x"):
+        assert not forbidden_imports(src, mod), src
