@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from stride_jax.gap import diagnose, effects, filters, finer, fit, groups, real, replay, screen
+from stride_jax.gap import calibrate, diagnose, effects, filters, finer, fit, groups, real, replay, screen
 from stride_jax.sim import model
 
 # Two position-servo arms on a fixed torso: families type (shoulder, elbow) and limb (left, right).
@@ -46,6 +46,9 @@ ARMS = """
 """
 
 
+_NO_CAL = calibrate.CalibrateConfig(mode="off")
+
+
 @pytest.fixture(scope="module")
 def arms(tmp_path_factory):
     path = tmp_path_factory.mktemp("arms") / "arms.xml"
@@ -54,8 +57,10 @@ def arms(tmp_path_factory):
 
 
 def _quiet(**kw):
-    # clean logs need no cleaning: the spike filter's false positives would be a gap of their own
-    return dataclasses.replace(diagnose.PRESETS["tiny"], progress=False,
+    # clean logs need no cleaning: the spike filter's false positives would be a gap of their own;
+    # the logs come from the nominal simulator, so the simulator's settings are not calibrated
+    # (calibration can take part of a damping as an integrator change: tests/test_gap_calibrate.py)
+    return dataclasses.replace(diagnose.PRESETS["tiny"], progress=False, calibrate=_NO_CAL,
                                preprocess=filters.Preprocess(outliers=False), **kw)
 
 
@@ -143,7 +148,8 @@ def test_speed_path_gives_the_full_paths_verdict(capsys):
     # full path's conditional grid screen does
     sm = model.load("pendulum")
     _, logged = real.generate(sm, {"damping": 0.3, "delay": 2}, 6, 120, seed=1)
-    fast = diagnose.diagnose(sm, logged, diagnose.PRESETS["tiny"], log=lambda s: None)
+    fast = diagnose.diagnose(sm, logged, dataclasses.replace(diagnose.PRESETS["tiny"], calibrate=_NO_CAL),
+                             log=lambda s: None)
     err = capsys.readouterr().err
     assert "screen: replay every candidate" in err and "fits: each shortlisted effect alone" in err
     assert "fits: pairs" in err and "100%" in err
