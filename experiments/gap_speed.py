@@ -2,8 +2,8 @@
 
     python experiments/gap_speed.py --out /tmp/gap_speed [--effects '{"damping@calf": 0.8}'] [--noise] [--repeat 2]
 
-Writes the logs (12 full-length trajectories of the Go1 explorer with the planted effect: episodes
-where the robot falls are skipped), runs ``stride_jax.gap.diagnose.diagnose`` under cProfile
+Writes the logs (12 full-length trajectories of the Go1 explorer on the nominal model with the planted
+effect: episodes where the robot falls are skipped), runs ``stride_jax.gap.diagnose.diagnose`` under cProfile
 ``--repeat`` times, and prints the wall time of each run, its stages and the profile's top lines
 (of the fastest run). The machine's load is printed before and after each run: other jobs on a
 small machine inflate the time.
@@ -33,11 +33,12 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--noise", action="store_true", help="through a real Go1's sensors (real.SensorNoise)")
+    ap.add_argument("--nominal", default="shipped", help="the nominal model: shipped (the MJCF as shipped, "
+                    "what `stride gap diagnose` uses) or training (the MJX-training edit)")
     a = ap.parse_args()
-    from stride_jax.gap import diagnose, logs, real
-    from stride_jax.sim import model
+    from stride_jax.gap import diagnose, logs, nominal, real
 
-    sm = model.load("go1")
+    sm = nominal.load("go1", a.nominal)
     _, lg = real.generate(sm, json.loads(a.effects), 4 * a.trajectories, a.steps, a.seed,
                           real.SensorNoise() if a.noise else None)
     full = [t for t in lg if len(t.t) == a.steps][:a.trajectories]
