@@ -1,7 +1,7 @@
 """Progress bars for the stages of a diagnosis (tqdm, on stderr).
 
-A diagnosis of a dozen Go1 logs takes minutes: each stage (the screen, the full fits, the pairs,
-detection, how far) shows a bar with its count and rate. ``show=False`` (``--progress false``, the
+A diagnosis of a dozen Go1 logs takes minutes: each stage (the screen, its one-step check, the single
+fits, the pairs, how far) shows a bar with its count and rate. ``show=False`` (``--no-progress``, the
 benchmark's workers) turns them off.
 """
 
