@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy import stats
 
-from stride_jax.gap import effects, fit, linear_probe, regions, sim
+from stride_jax.gap import effects, fit, granularity, linear_probe, progress, regions, replay, sim
 from stride_jax.gap.regions import noise_floor
 from stride_jax.sim.model import SimModel
 
@@ -40,11 +40,9 @@ def _boot_weights(n: int, B: int, seed: int) -> np.ndarray:
 def check_nominal(sm: SimModel, data: fit.Data, scale: np.ndarray, r_nom: np.ndarray
                   ) -> dict[str, float]:
     """Max |residual change| of each candidate at its nominal value against the nominal model."""
-    out = {}
-    for e in effects.candidates(sm):
-        r = fit.residual(sm, effects.build(sm, {e.name: np.asarray(e.nominal)}), data, scale)
-        out[e.name] = float(np.abs(r - r_nom).max())
-    return out
+    cands = effects.candidates(sm)
+    R = replay.residuals(sm, [effects.build(sm, {e.name: np.asarray(e.nominal)}) for e in cands], data, scale)
+    return {e.name: float(np.abs(r - r_nom).max()) for e, r in zip(cands, R, strict=True)}
 
 
 def _block_ids(data: fit.Data, length: int) -> tuple[np.ndarray, int]:
@@ -59,7 +57,7 @@ def _lower(x: np.ndarray, level: float) -> float:
 
 
 def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: DiagnoseConfig,
-          log=print) -> dict[str, Any]:
+          log=print, singles: list[str] | None = None, pair_screen=None) -> dict[str, Any]:
     """Fits every candidate on ``train``, then pairs of the best (unless the best single is exact),
     and scores all on ``test``.
 
@@ -68,6 +66,12 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     between hypotheses are paired). A pair replaces the best single only if (a) the paired
     bootstrap puts its held-out improvement over the single above zero at level ``alpha / pairs``
     and (b) it removes at least ``pair_min`` of what the single leaves above the noise floor.
+
+    ``singles``: the effects to fit alone (default: every library candidate; the screen's
+    shortlist, :mod:`stride_jax.gap.screen`). ``pair_screen(best_single_name, fits_by_name) ->
+    [((a, b), start)]``: the pairs to fit (default: the best ``pairs_of`` singles with each other
+    and a conditional grid screen on top of the best). A finer variant ranks above its all-joints
+    effect only by the margin rule of :func:`stride_jax.gap.granularity.prefer_coarse`.
     """
     unstable0 = sim.unstable()
     nom = effects.build(sm)
@@ -87,20 +91,29 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         fits.append(f)
         r_te[f.names] = fit.residual(sm, effects.build(sm, f.params), test, scale)
 
-    for e in effects.candidates(sm):
+    names = [e.name for e in effects.candidates(sm)] if singles is None else list(singles)
+    for name in progress.track(names, "fits: each shortlisted effect alone", cfg.progress):
         t0 = time.time()
-        f = fit.fit(sm, train, scale, (e.name,), cfg.fit)
+        f = fit.fit(sm, train, scale, (name,), cfg.fit)
         score(f)
-        log(f"  fit {e.name:17s} {_fmt(f.params)}  train loss {f.train_loss:.4g}  ({f.evals} evals, "
+        log(f"  fit {name:17s} {_fmt(f.params)}  train loss {f.train_loss:.4g}  ({f.evals} evals, "
             f"{time.time() - t0:.1f} s)")
+    held = lambda names: float((r_te[names] ** 2).sum())
+    lead = min(fits, key=lambda f: held(f.names)).names[0]
+    coarse = granularity.coarse_of(sm, lead)  # the finer choice needs the best's all-joints rival
+    if coarse and coarse not in [f.names[0] for f in fits]:
+        score(fit.fit(sm, train, scale, (coarse,), cfg.fit))
+        log(f"  fit {coarse:17s} {_fmt(fits[-1].params)}  (the all-joints rival of {lead})")
     n_single = len(fits)
     singles = {f.names[0]: f for f in fits}
-    held = lambda names: float((r_te[names] ** 2).sum())
     ranked = sorted(fits, key=lambda f: held(f.names))
     best_single = ranked[0]
     exact = held(best_single.names) <= 1e-8 * L_nom
     screen_unstable = 0
-    if not exact and cfg.pairs_of >= 2:
+    proposals = []  # ((a, b), start)
+    if not exact and cfg.pairs_of >= 2 and pair_screen is not None:
+        proposals = pair_screen(best_single.names[0], {k: v.params[k] for k, v in singles.items()})
+    elif not exact and cfg.pairs_of >= 2:
         # pairs: the best few singles with each other, and the best single with the effects that
         # most lower the training loss on top of it (a conditional grid screen: an effect that is
         # weak alone, e.g. a delay masked by damping, can still be the missing second one)
@@ -119,19 +132,19 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         screen.sort()
         pairs = list(itertools.combinations([f.names[0] for f in ranked[:cfg.pairs_of]], 2))
         pairs += [(S0, n) for _, n, _ in screen[:cfg.pairs_of - 1]]
-        seen = set()
         for a, b in pairs:
-            if frozenset((a, b)) in seen:
-                continue
-            seen.add(frozenset((a, b)))
             start = singles[a].params | singles[b].params
             for _, n, x in screen:
                 if (a, b) == (S0, n):
                     start[n] = np.array([x])
-            t0 = time.time()
-            f = fit.fit(sm, train, scale, (a, b), cfg.fit, start)
-            score(f)
-            log(f"  fit {a}+{b}: {_fmt(f.params)}  ({f.evals} evals, {time.time() - t0:.1f} s)")
+            proposals.append(((a, b), start))
+    seen = set()
+    proposals = [(ab, st) for ab, st in proposals if not (frozenset(ab) in seen or seen.add(frozenset(ab)))]
+    for (a, b), start in progress.track(proposals, "fits: pairs", cfg.progress):
+        t0 = time.time()
+        f = fit.fit(sm, train, scale, (a, b), cfg.fit, start)
+        score(f)
+        log(f"  fit {a}+{b}: {_fmt(f.params)}  ({f.evals} evals, {time.time() - t0:.1f} s)")
     rows = []
     for f in fits:
         Lb = blocks(r_te[f.names])
@@ -146,6 +159,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
                      "p_no_better_than_nominal": float((boot <= 0).mean()),
                      "score": float(expl - cfg.penalty * k), "_boot": boot})
     rows.sort(key=lambda r: -r["score"])
+    granularity.prefer_coarse(rows, cfg.screen.finer_margin, cfg.alpha, lambda n: noise_floor(r_te[n], test) * M / L_nom)
     single_rows = [r for r in rows if len(r["effects"]) == 1]
     pair_rows = [r for r in rows if len(r["effects"]) == 2]
     S = single_rows[0]

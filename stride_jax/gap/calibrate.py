@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 from scipy import optimize
 
-from stride_jax.gap import effects, fit, nominal
+from stride_jax.gap import effects, fit, nominal, replay
 from stride_jax.gap.nominal import CONTINUOUS, Settings
 from stride_jax.sim.model import SimModel
 
@@ -342,15 +342,25 @@ def screen(base: SimModel, train: fit.Data, scale: np.ndarray, cfg: CalibrateCon
     sub = _sub(train, cfg.subsample)
     L0 = float((residual(base, sub, scale) ** 2).sum())
     rows = []
+    grids = {}
     for e in effects.candidates(base):
         if e.size != 1:
             continue
         lo, hi = (float(b[0]) for b in e.bounds(base))
         xs = (np.unique(np.linspace(lo, hi, min(8, int(hi - lo) + 1)).round()) if e.integer
               else np.linspace(lo, hi, grid))
+        grids[e.name] = [float(x) for x in xs if abs(x - e.nominal[0]) > 1e-12]
+    # every grid point of every effect in one batched replay (the same numbers as one at a time)
+    flat = [(n, x) for n, xs in grids.items() for x in xs]
+    R = replay.residuals(base, [effects.build(base, {n: [x]}) for n, x in flat], sub, scale)
+    L = {nx: float((r ** 2).sum()) for nx, r in zip(flat, R, strict=True)}
+    for e in effects.candidates(base):
+        if e.name not in grids:
+            continue
+        lo, hi = (float(b[0]) for b in e.bounds(base))
         f = lambda x: float((residual(base, sub, scale, {e.name: [x]}) ** 2).sum())
-        xs = [float(x) for x in xs if abs(x - e.nominal[0]) > 1e-12]
-        ls = [f(x) for x in xs]
+        xs = grids[e.name]
+        ls = [L[(e.name, x)] for x in xs]
         k = int(np.argmin(ls))
         x, fx = xs[k], ls[k]
         if not e.integer and len(xs) > 2:  # a few bounded Brent steps in the best grid cell

@@ -39,11 +39,12 @@ from typing import Any
 
 import numpy as np
 
-from stride_jax.gap import calibrate, effects, filters, fit, logs, regions, residual
+from stride_jax.gap import calibrate, effects, filters, fit, granularity, logs, progress, regions, residual, screen
 from stride_jax.gap.attribute import check_nominal, verdict, which
 from stride_jax.gap.localise import divergence, where
 from stride_jax.gap.regions import PHASES, dof_names, foot_phases, noise_floor  # noqa: F401 (re-exported)
 from stride_jax.gap.residual import ResidualConfig
+from stride_jax.gap.screen import ScreenConfig
 from stride_jax.sim.model import SimModel
 
 _rms = regions.rms
@@ -83,6 +84,9 @@ class DiagnoseConfig:
       calibrate: the simulator's own settings (time step, integrator, cone, contacts, contact
         parameters) fitted first as the baseline the effects are scored against
         (:mod:`stride_jax.gap.calibrate`; ``mode = "off"``: the nominal model is the baseline).
+      screen: the screen that picks the effects fitted in full, the finer effects and the finer
+        choice's margin (:mod:`stride_jax.gap.screen`; ``screen.shortlist 0``: fit every candidate).
+      progress: show a progress bar per stage (stderr).
     """
 
     holdout: float = 0.34
@@ -106,6 +110,8 @@ class DiagnoseConfig:
     pair_min: float = 0.1
     residual: ResidualConfig = ResidualConfig()
     calibrate: calibrate.CalibrateConfig = calibrate.CalibrateConfig()
+    screen: ScreenConfig = ScreenConfig()
+    progress: bool = True
 
 
 PRESETS = {
@@ -194,6 +200,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
                                "'scaled' divides each dof by the spread of its logged velocity changes",
     }
     out["where"] = where(sm, data, r_all, scale, cfg)
+    stages = out["stage_seconds"] = {"where": time.time() - t_start}  # wall time of each stage
     if _rms(r_all) < cfg.exact_nominal:
         out["nominal_check"] = {}
         out["verdict"] = {"verdict": "no significant gap", "effects": [], "confident": True,
@@ -204,6 +211,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
         out["seconds"] = time.time() - t_start
         return out
     # the simulator's settings first (nuisance parameters): the baseline the effects are scored against
+    t0 = time.time()
     sm_nominal = sm
     cal = (calibrate.calibrate(sm, train_k, test_k, scale, cfg.calibrate, log) if cfg.calibrate.mode == "fit"
            else None)
@@ -211,15 +219,36 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
         cal = calibrate.refine(sm, cal, train_k, test_k, scale, cfg.calibrate, cfg.fit.grid, log)
     out["calibration"] = cal.record if cal else {"mode": "off", "applied": False}
     sm = cal.model if cal else sm
+    stages["calibration"], t0 = time.time() - t0, time.time()
     nom = effects.build(sm)
     out["nominal_check"] = check_nominal(sm, test_k, scale, fit.residual(sm, nom, test_k, scale))
     bad = {k: v for k, v in out["nominal_check"].items() if v > 1e-9}
     if bad:
         raise RuntimeError(f"effects do not reproduce the nominal model at their nominal value: {bad}")
-    w = which(sm, train_k, test_k, scale, cfg, log)
+    stages["nominal_check"], t0 = time.time() - t0, time.time()
+    scr, singles, pair_screen = None, None, None
+    if cfg.screen.shortlist:
+        scr = screen.run(sm, train_k, test_k, scale, cfg.screen, cfg.penalty, cfg.progress, log)
+        C = scr.pop("_columns")
+        singles = scr["shortlist"]
+        pair_screen = lambda best, fitted: screen.pairs(sm, C, best, fitted, cfg.screen.pairs, cfg.pair_min)
+    elif cfg.screen.finer:
+        singles = screen.candidate_names(sm, cfg.screen)
+    stages["screen"], t0 = time.time() - t0, time.time()
+    w = which(sm, fit.thin(train_k, cfg.screen.fit_stride), test_k, scale, cfg, log, singles, pair_screen)
+    stages["which"], t0 = time.time() - t0, time.time()
+    out["screen"] = scr
     out["verdict"] = verdict(w, cfg)
-    out["how_far"] = how_far(sm, test, scale, w, cfg)
-    out["how_far"].update(calibrate.shrinks(sm_nominal, sm, w["plan_best"], test, scale))
+    collinear = {e: screen.collinear_with(C, e, cfg.screen.collinear) for e in w["ranking"][0]["effects"]} if scr else {}
+    sets = granularity.indistinguishable(w, collinear, cfg.alpha)
+    out["verdict"]["indistinguishable_set"] = sets
+    if sets:
+        out["verdict"]["reason"] += f"; indistinguishable set: {sets['summary']}"
+    with progress.bar(1, "how far: held-out replays and rollouts", cfg.progress) as bar:
+        out["how_far"] = how_far(sm, test, scale, w, cfg)
+        out["how_far"].update(calibrate.shrinks(sm_nominal, sm, w["plan_best"], test, scale))
+        bar.update(1)
+    stages["how_far"], t0 = time.time() - t0, time.time()
     if calibrate.sentence(out["calibration"]):
         out["verdict"]["model_form"] = out["calibration"]["changed"]
         out["verdict"]["reason"] = f"{calibrate.sentence(out['calibration'])}; on top of that, {out['verdict']['reason']}"
@@ -231,6 +260,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
         out["verdict"]["reason"] += residual.reason(out["residual"])
     out["which"] = {k: v for k, v in w.items() if k not in ("r_nom_test", "r_best_test", "plan_best")}
     out["where"]["divergence"] = out["how_far"]["rollout_before"]
+    stages["residual"] = time.time() - t0
     out["seconds"] = time.time() - t_start
     log(f"verdict: {out['verdict']['verdict']} {out['verdict']['effects']} — {out['verdict']['reason']}")
     return out

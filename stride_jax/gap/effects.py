@@ -57,12 +57,18 @@ class Plan:
       delay: actuator delay in simulation steps.
       deadzone: servo position-error (or motor torque) dead band, applied at each control update.
       drag: coefficient of the hidden quadratic joint drag (N m s^2/rad^2); out of library.
+      q_offset: ``[nq]`` what the encoders add to the true joint positions (rad; None: nothing):
+        replays start from ``q_log - q_offset`` (:mod:`stride_jax.gap.finer`, encoder offsets).
+      wrench: ``[6]`` constant external wrench on the base (world-frame force in N at its centre
+        of mass, torque in N m; None: none).
     """
 
     mj: mujoco.MjModel
     delay: int = 0
     deadzone: float = 0.0
     drag: float = 0.0
+    q_offset: np.ndarray | None = None
+    wrench: np.ndarray | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -251,7 +257,28 @@ OUT_OF_LIBRARY: dict[str, Effect] = {e.name: e for e in [
            _const_bounds(0.0, 1.0), _drag, in_library=False),
 ]}
 
-ALL: dict[str, Effect] = LIBRARY | OUT_OF_LIBRARY
+class _Registry(dict):
+    """``ALL``: the effects above, and the finer ones (``damping@calf``, ``encoder_offset@FR_hip_joint``,
+    ``base_wrench``, ...) resolved by name on first use (:mod:`stride_jax.gap.finer`)."""
+
+    def __missing__(self, name):
+        from stride_jax.gap import finer
+
+        e = finer.resolve(name)
+        if e is None:
+            raise KeyError(name)
+        self[name] = e
+        return e
+
+    def __contains__(self, name):
+        try:
+            self[name]
+        except KeyError:
+            return False
+        return True
+
+
+ALL: dict[str, Effect] = _Registry(LIBRARY | OUT_OF_LIBRARY)
 
 Applied = Mapping[str, "np.ndarray | float | list"]
 

@@ -95,6 +95,16 @@ def subset(data: Data, idx) -> Data:
     return make_data(trajs, data.k)
 
 
+def thin(data: Data, stride: int) -> Data:
+    """``data`` with the replays that start every ``stride``-th sample of each trajectory (the
+    ``k``-step windows of neighbouring samples overlap by ``k - 1`` periods)."""
+    if stride <= 1:
+        return data
+    keep = np.flatnonzero((data.start - data.bounds[data.traj]) % stride == 0)
+    return data._replace(start=data.start[keep], first=data.first[keep], target=data.target[keep],
+                         traj=data.traj[keep])
+
+
 def samples_before_next(data: Data) -> np.ndarray:
     """``[M]`` index into ``q``/``qd`` of each replayed sample."""
     return data.start
@@ -163,6 +173,27 @@ class Objective:
     def block_losses(self, p: np.ndarray) -> np.ndarray:
         """``[nb]`` sum of squared residuals of each block."""
         return np.bincount(self.ids, weights=(self.residual(p) ** 2).sum(1), minlength=self.nb)
+
+    def residual_many(self, ps) -> np.ndarray:
+        """``[P, M, nv]`` :meth:`residual` of every parameter vector of ``ps``, in one batched replay
+        (:mod:`stride_jax.gap.replay`; the same numbers as one at a time)."""
+        from stride_jax.gap import replay
+
+        ps = [np.atleast_1d(np.asarray(p, np.float64)) for p in ps]
+        self.evals += len(ps)
+        before = sim.unstable()["diverged"]
+        R = replay.residuals(self.sm, [effects.build(self.sm, self.applied(p)) for p in ps], self.data, self.scale)
+        self.unstable += int(sim.unstable()["diverged"] > before)
+        return R
+
+    def losses_many(self, ps) -> np.ndarray:
+        """``[P, n]`` :meth:`losses` of every parameter vector of ``ps`` (one batched replay)."""
+        return np.stack([per_traj(r, self.data) for r in self.residual_many(ps)])
+
+    def block_losses_many(self, ps) -> np.ndarray:
+        """``[P, nb]`` :meth:`block_losses` of every parameter vector of ``ps`` (one batched replay)."""
+        return np.stack([np.bincount(self.ids, weights=(r ** 2).sum(1), minlength=self.nb)
+                         for r in self.residual_many(ps)])
 
 
 class Fit(NamedTuple):
@@ -294,7 +325,9 @@ def scalar_interval(obj: Objective, x: float, f: float, lo: float, hi: float, le
             t = np.array([x, x + h, x + 2 * h])
         elif t[2] > hi:
             t = np.array([x - 2 * h, x - h, x])
-        B = np.stack([Lx if v == x else obj.block_losses(np.array([v])) for v in t])  # [3, nb]
+        others = [v for v in t if v != x]
+        Bo = iter(obj.block_losses_many([[v] for v in others]))
+        B = np.stack([Lx if v == x else next(Bo) for v in t])  # [3, nb]
         d1, d2 = _lagrange(t, x)
         g = d1 @ B  # [nb] per-block gradient
         H = float(d2 @ B.sum(1))
@@ -400,13 +433,13 @@ def fit_scalar(obj: Objective, cfg: FitConfig, integer: bool, lo: float, hi: flo
     level ``cfg.level``; ``x`` itself when ``cfg.profile == 0``)."""
     if integer:
         xs = np.arange(int(lo), int(hi) + 1, dtype=float)
-        B = np.stack([obj.block_losses(np.array([x])) for x in xs])
+        B = obj.block_losses_many([[x] for x in xs])
         k = int(np.argmin(B.sum(1)))
         xl, xh = integer_set(B, xs, k, obj.nxt, cfg.level) if cfg.profile else (xs[k], xs[k])
         return float(xs[k]), float(B[k].sum()), xl, xh
     nom = float(effects.ALL[obj.names[-1]].nominal[0])
     xs = np.unique(np.concatenate([np.linspace(lo, hi, cfg.grid), [nom]]))
-    L = np.stack([obj.losses(np.array([x])) for x in xs])
+    L = obj.losses_many([[x] for x in xs])
     k = int(np.argmin(L.sum(1)))
     a, b = xs[max(k - 1, 0)], xs[min(k + 1, len(xs) - 1)]
     res = optimize.minimize_scalar(lambda x: obj.losses(np.array([x])).sum(), bounds=(a, b),

@@ -85,6 +85,12 @@ def step(sm: SimModel, plan: Plan, q: np.ndarray, qd: np.ndarray, u: np.ndarray
     if u.shape != (len(q), n_sub, m.nu):
         raise ValueError(f"controls have shape {list(u.shape)}, expected [{len(q)}, {n_sub}, {m.nu}]")
     control = np.concatenate([u, np.repeat(_drag(sm, plan, qd)[:, None], n_sub, 1)], axis=2)
+    spec = _CONTROL
+    if plan.wrench is not None:  # a constant wrench on the base: xfrc_applied of every body
+        x = np.zeros((m.nbody, 6))
+        x[sm.base_body] = plan.wrench
+        control = np.concatenate([control, np.broadcast_to(x.ravel(), control.shape[:2] + (x.size,))], axis=2)
+        spec = _CONTROL | mujoco.mjtState.mjSTATE_XFRC_APPLIED
     nt = max(1, min(nthread(), len(q)))
     datas = [mujoco.MjData(m) for _ in range(nt)]
     s0 = _states(m, q, qd)
@@ -92,7 +98,7 @@ def step(sm: SimModel, plan: Plan, q: np.ndarray, qd: np.ndarray, u: np.ndarray
     previous = mujoco.get_mju_user_warning()
     mujoco.set_mju_user_warning(_count_warning)
     try:
-        states, _ = mujoco.rollout.rollout(m, datas, s0, control, control_spec=_CONTROL, persistent_pool=True)
+        states, _ = mujoco.rollout.rollout(m, datas, s0, control, control_spec=spec, persistent_pool=True)
     finally:
         mujoco.set_mju_user_warning(previous)
     last = states[:, -1]
@@ -110,6 +116,17 @@ def _act_q(sm: SimModel, q: np.ndarray) -> np.ndarray:
     return q[..., sm.mj.jnt_qposadr[sm.mj.actuator_trnid[:, 0]]]
 
 
+def true_q(plan: Plan, q: np.ndarray) -> np.ndarray:
+    """Logged (encoder) positions ``q [..., nq]`` as the simulator's configuration: less the plan's
+    encoder offsets."""
+    return q if plan.q_offset is None else q - plan.q_offset
+
+
+def logged_q(plan: Plan, q: np.ndarray) -> np.ndarray:
+    """The simulator's configuration ``q [..., nq]`` as the encoders log it."""
+    return q if plan.q_offset is None else q + plan.q_offset
+
+
 def k_step(sm: SimModel, plan: Plan, q: np.ndarray, qd: np.ndarray, cmd: np.ndarray,
            start: np.ndarray, first: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Replays logged states ``k`` control periods ahead under the logged commands (multiple
@@ -121,13 +138,13 @@ def k_step(sm: SimModel, plan: Plan, q: np.ndarray, qd: np.ndarray, cmd: np.ndar
     Returns the predicted state after ``k`` periods, ``(q [M, nq], qd [M, nv])``.
     """
     n_sub, servo = sm.n_substeps, sm.robot.kp is not None
-    x, v = q[start], qd[start]
+    x, v = true_q(plan, q[start]), qd[start]
     for h in range(k):
         i = (start + h)[:, None] * n_sub + np.arange(n_sub)[None, :] - plan.delay
         src = np.maximum(np.floor_divide(i, n_sub), first[:, None])
-        u = effects.dead_band(cmd[src], _act_q(sm, x)[:, None], plan.deadzone, servo)
+        u = effects.dead_band(cmd[src], _act_q(sm, logged_q(plan, x))[:, None], plan.deadzone, servo)
         x, v = step(sm, plan, x, v, u)
-    return x, v
+    return logged_q(plan, x), v
 
 
 def one_step(sm: SimModel, plan: Plan, q: np.ndarray, qd: np.ndarray, cmd: np.ndarray,
@@ -147,14 +164,14 @@ def rollout(sm: SimModel, plan: Plan, q0: np.ndarray, qd0: np.ndarray, cmd: np.n
     trajectory's commands (``start + horizon <= T``). Returns ``q [W, horizon, nq]``,
     ``qd [W, horizon, nv]``: the states after 1..horizon control periods.
     """
-    q, qd = np.asarray(q0, np.float64), np.asarray(qd0, np.float64)
+    q, qd = true_q(plan, np.asarray(q0, np.float64)), np.asarray(qd0, np.float64)
     qs, qds = [], []
     for h in range(horizon):
         u = np.stack([effects.substep_commands(cmd, np.array([s + h]), plan.delay, sm.n_substeps)[0]
                       for s in start])
-        u = effects.dead_band(u, _act_q(sm, q)[:, None], plan.deadzone, sm.robot.kp is not None)
+        u = effects.dead_band(u, _act_q(sm, logged_q(plan, q))[:, None], plan.deadzone, sm.robot.kp is not None)
         q, qd = step(sm, plan, q, qd, u)
-        qs.append(q)
+        qs.append(logged_q(plan, q))
         qds.append(qd)
     return np.stack(qs, 1), np.stack(qds, 1)
 
@@ -191,11 +208,11 @@ def closed_loop(sm: SimModel, plan: Plan, q0: np.ndarray, qd0: np.ndarray,
             ok &= ~fallen(np.where(np.isfinite(q), q, 0.0))
         alive &= ok
         q, qd = np.where(alive[:, None], q, q0), np.where(alive[:, None], qd, qd0)  # park dead worlds
-        hist[:, t] = np.asarray(policy(t, q, qd), np.float64)
+        hist[:, t] = np.asarray(policy(t, logged_q(plan, q), qd), np.float64)  # the robot sees its encoders
         u = np.stack([effects.substep_commands(hist[b, :t + 1], np.array([t]), plan.delay, n_sub)[0]
                       for b in range(B)])
-        u = effects.dead_band(u, _act_q(sm, q)[:, None], plan.deadzone, servo)
-        out["q"].append(q)
+        u = effects.dead_band(u, _act_q(sm, logged_q(plan, q))[:, None], plan.deadzone, servo)
+        out["q"].append(logged_q(plan, q))
         out["qd"].append(qd)
         out["tau"].append(actuator_force(sm, plan.mj, u[:, 0], q, qd))
         out["valid"].append(alive.copy())

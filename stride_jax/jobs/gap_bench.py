@@ -257,7 +257,8 @@ def diagnose_row(cfg: BenchConfig, index: int, noisy: bool) -> dict[str, Any]:
     t0 = time.time()
     clean, logged = real.generate(sm, case["applied"], cfg.trajectories, cfg.steps, cfg.seed,
                                   real.SensorNoise() if noisy else None)
-    res = diagnose.diagnose(sm, logged, diagnose.PRESETS[cfg.diagnose], log=lambda s: None)
+    res = diagnose.diagnose(sm, logged, dataclasses.replace(diagnose.PRESETS[cfg.diagnose], progress=False),
+                            log=lambda s: None)
     held = [t for t in clean if t.name in set(res["heldout"])]
     row = score_case(sm, case, res, held, diagnose.PRESETS[cfg.diagnose])
     return row | {"noisy": noisy, "case": index, "row_seconds": time.time() - t0}

@@ -209,6 +209,7 @@ def markdown(d: dict[str, Any], files: dict[str, str], command: str | None = Non
                   "the pair screen; those parameter values scored as very bad fits."]
         ties = d["verdict"].get("indistinguishable_from") or []
         L += ["", "Indistinguishable from the best on these logs: " + (", ".join(ties) if ties else "none") + "."]
+        L += screen_lines(d)
         L += ["", "Nominal check (max |residual change| of each candidate at its nominal value): "
               + ", ".join(f"{k} {v:.1g}" for k, v in d["nominal_check"].items()), ""]
     hf = d.get("how_far")
@@ -233,6 +234,24 @@ def markdown(d: dict[str, Any], files: dict[str, str], command: str | None = Non
         L += ["", "Per-foot force error: not available (the logs carry no contact forces)."]
     L += residual_section(d, files)
     return "\n".join(L)
+
+
+def screen_lines(d: dict[str, Any]) -> list[str]:
+    """The indistinguishable set with its reasons, and the screen's top candidates."""
+    L = []
+    st = d["verdict"].get("indistinguishable_set")
+    if st:
+        L += ["", "Indistinguishable set: " + ", ".join(st["effects"]) + "."]
+        L += [f"- {k}: {v}" for k, v in st["reasons"].items()]
+    scr = d.get("screen")
+    if scr:
+        L += ["", f"Screen ({scr['candidates']} candidates, {scr['parameters']} parameters, {scr['windows'][0]} + "
+              f"{scr['windows'][1]} windows, {scr['seconds']:.0f} s): fitted in full: {', '.join(scr['shortlist'])}.", "",
+              "| candidate | linearised held-out explained | at the linear estimate |", "|---|---|---|"]
+        for r in scr["table"][:10]:
+            chk = r.get("checked_heldout")
+            L.append(f"| {r['effect']} | {r['linear_heldout']:.1%} | {'' if chk is None else f'{chk:.1%}'} |")
+    return L
 
 
 def calibration_section(d: dict[str, Any]) -> list[str]:

@@ -1,0 +1,162 @@
+"""Finer effects: groups from the kinematic tree, per-group effects, encoder offsets, the finer
+choice by held-out margin, indistinguishable sets, the screen against the full path, progress."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from stride_jax.gap import calibrate, diagnose, effects, filters, finer, fit, groups, real, replay, screen
+from stride_jax.sim import model
+
+# Two position-servo arms on a fixed torso: families type (shoulder, elbow) and limb (left, right).
+ARMS = """
+<mujoco model="arms">
+  <compiler angle="radian"/>
+  <option timestep="0.002"/>
+  <default><joint type="hinge" axis="1 0 0" range="-1.5 1.5" damping="1" armature="0.02"/></default>
+  <worldbody>
+    <body name="torso" pos="0 0 1">
+      <geom type="box" size="0.1 0.1 0.2" mass="5"/>
+      <body name="left_upper" pos="0 0.12 0.15">
+        <joint name="left_shoulder_joint"/>
+        <geom type="capsule" fromto="0 0 0 0 0.3 0" size="0.03" mass="1"/>
+        <body name="left_fore" pos="0 0.3 0">
+          <joint name="left_elbow_joint"/>
+          <geom type="capsule" fromto="0 0 0 0 0.25 0" size="0.025" mass="0.6"/>
+        </body>
+      </body>
+      <body name="right_upper" pos="0 -0.12 0.15">
+        <joint name="right_shoulder_joint"/>
+        <geom type="capsule" fromto="0 0 0 0 -0.3 0" size="0.03" mass="1"/>
+        <body name="right_fore" pos="0 -0.3 0">
+          <joint name="right_elbow_joint"/>
+          <geom type="capsule" fromto="0 0 0 0 -0.25 0" size="0.025" mass="0.6"/>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <position joint="left_shoulder_joint" kp="40" ctrlrange="-1.5 1.5"/>
+    <position joint="left_elbow_joint" kp="20" ctrlrange="-1.5 1.5"/>
+    <position joint="right_shoulder_joint" kp="40" ctrlrange="-1.5 1.5"/>
+    <position joint="right_elbow_joint" kp="20" ctrlrange="-1.5 1.5"/>
+  </actuator>
+</mujoco>
+"""
+
+
+_NO_CAL = calibrate.CalibrateConfig(mode="off")
+
+
+@pytest.fixture(scope="module")
+def arms(tmp_path_factory):
+    path = tmp_path_factory.mktemp("arms") / "arms.xml"
+    path.write_text(ARMS)
+    return model.load(str(path))
+
+
+def _quiet(**kw):
+    # clean logs need no cleaning: the spike filter's false positives would be a gap of their own;
+    # the logs come from the nominal simulator, so the simulator's settings are not calibrated
+    # (calibration can take part of a damping as an integrator change: tests/test_gap_calibrate.py)
+    return dataclasses.replace(diagnose.PRESETS["tiny"], progress=False, calibrate=_NO_CAL,
+                               preprocess=filters.Preprocess(outliers=False), **kw)
+
+
+def _diagnose(sm, applied, cfg=None, seed=1, n=5, steps=100):
+    _, logged = real.generate(sm, applied, n, steps, seed=seed)
+    return diagnose.diagnose(sm, logged, cfg or _quiet(), log=lambda s: None)
+
+
+def test_groups_from_the_tree_and_names(arms, go1, g1):
+    g = groups.of(go1)
+    assert g.families["type"] == {"hip": (0, 3, 6, 9), "thigh": (1, 4, 7, 10), "calf": (2, 5, 8, 11)}
+    assert set(g.families["limb"]) == {"FR", "FL", "RR", "RL"}
+    assert g.families["side"]["left"] == (3, 4, 5, 9, 10, 11) and g.families["end"]["front"] == (0, 1, 2, 3, 4, 5)
+    assert [go1.mj.body(b).name for b in g.bodies["calf"]] == ["FR_calf", "FL_calf", "RR_calf", "RL_calf"]
+    h = groups.of(g1)  # a humanoid: legs, waist and arms; no front/rear; the waist has no side
+    assert set(h.families["limb"]) == {"left_leg", "right_leg", "waist", "left_arm", "right_arm"}
+    assert "end" not in h.families and "knee" in h.families["type"]
+    assert not {12, 13, 14} & set(h.families["side"]["left"] + h.families["side"]["right"])
+    a = groups.of(arms)  # an MJCF the project has never seen; the left limb is also the left side
+    assert a.families["type"] == {"shoulder": (0, 2), "elbow": (1, 3)}
+    assert a.families["limb"] == {"left": (0, 1), "right": (2, 3)} and "side" not in a.families
+    assert a.bodies["base"] == ()  # a fixed torso's mass does nothing
+    with pytest.raises(KeyError, match="no joint group 'calf'"):
+        a.joint_index("calf")
+
+
+def test_finer_effects_nominal_exact_and_active(go1):
+    _, tr = real.generate(go1, {}, 2, 25, seed=0)
+    data, scale = fit.make_data(tr, 2), np.ones(go1.mj.nv)
+    names = finer.candidates(go1)
+    assert {"damping@calf", "kp_scale@FR", "encoder_offset@RL_calf_joint", "mass@thigh", "base_wrench",
+            "servo_damping", "torque_limit@rear"} <= set(names)
+    nominal = [effects.build(go1, {n: np.asarray(effects.ALL[n].nominal)}) for n in names]
+    moved = []
+    for n in names:
+        e = effects.ALL[n]
+        lo, hi = e.bounds(go1)
+        nom = np.asarray(e.nominal, float)
+        moved.append(effects.build(go1, {n: np.where(hi - nom > nom - lo, nom + 0.5 * (hi - nom), nom - 0.5 * (nom - lo))}))
+    r0 = fit.residual(go1, effects.build(go1), data, scale)
+    R = replay.residuals(go1, [effects.build(go1)] + nominal + moved, data, scale)
+    assert np.array_equal(R[0], r0)  # the batched replay is the one-plan replay, bit for bit
+    assert np.array_equal(replay.residuals(go1, [moved[0]], data, scale)[0], fit.residual(go1, moved[0], data, scale))
+    for i, n in enumerate(names):
+        assert np.array_equal(R[1 + i], r0), n
+        assert np.abs(R[1 + len(names) + i] - r0).max() > 1e-3, n
+    assert "stiffness@calf" not in effects.ALL and "damping@" not in effects.ALL
+    with pytest.raises(ValueError, match="does not apply to robot"):
+        effects.build(go1, {"damping@nowhere": [0.1]})
+
+
+def test_finer_variant_only_when_the_effect_is_on_one_group(arms):
+    one = _diagnose(arms, {"damping@elbow": 0.6})
+    assert one["verdict"]["effects"] == ["damping@elbow"], one["verdict"]
+    row = one["which"]["ranking"][0]
+    assert row["vs_all_joints"]["preferred"] and row["vs_all_joints"]["fraction_of_left"] >= 0.1
+    assert abs(row["params"]["damping@elbow"][0] - 0.6) < 0.06
+    every = _diagnose(arms, {"damping": 0.6})
+    assert every["verdict"]["effects"] == ["damping"], every["verdict"]
+    finer_rows = [r for r in every["which"]["ranking"] if "vs_all_joints" in r]
+    assert finer_rows and not any(r["vs_all_joints"]["preferred"] for r in finer_rows)
+
+
+def test_encoder_offset_recovered(arms):
+    out = _diagnose(arms, {"encoder_offset@left_elbow_joint": 0.05})
+    assert out["verdict"]["effects"] == ["encoder_offset@left_elbow_joint"], out["verdict"]
+    p = out["which"]["ranking"][0]["params"]["encoder_offset@left_elbow_joint"][0]
+    assert abs(p - 0.05) < 0.002
+
+
+def test_gain_and_motor_constant_are_one_indistinguishable_set(arms):
+    # no servo damping and no force limit: a servo gain error and a motor-constant error are the
+    # same dynamics, so the report names both as one set, with the reason
+    out = _diagnose(arms, {"kp_scale": 0.8})
+    v = out["verdict"]
+    s = v["indistinguishable_set"]
+    assert s is not None and {"kp_scale", "torque_scale"} <= set(s["effects"]), v
+    assert set(v["effects"]) <= {"kp_scale", "torque_scale"}
+    assert "collinear sensitivity" in s["reasons"][({"kp_scale", "torque_scale"} - set(v["effects"])).pop()]
+    assert "indistinguishable set" in v["reason"]
+
+
+def test_speed_path_gives_the_full_paths_verdict(capsys):
+    # a pair, one effect masked by the other: the screen's joint linear fit proposes it, as the
+    # full path's conditional grid screen does
+    sm = model.load("pendulum")
+    _, logged = real.generate(sm, {"damping": 0.3, "delay": 2}, 6, 120, seed=1)
+    fast = diagnose.diagnose(sm, logged, dataclasses.replace(diagnose.PRESETS["tiny"], calibrate=_NO_CAL),
+                             log=lambda s: None)
+    err = capsys.readouterr().err
+    assert "screen: replay every candidate" in err and "fits: each shortlisted effect alone" in err
+    assert "fits: pairs" in err and "100%" in err
+    full = diagnose.diagnose(sm, logged, _quiet(screen=screen.ScreenConfig(shortlist=0)), log=lambda s: None)
+    assert capsys.readouterr().err == ""  # progress off
+    assert full["screen"] is None and fast["screen"]["shortlist"]
+    assert len(full["which"]["ranking"]) > len(fast["which"]["ranking"])
+    assert set(fast["verdict"]["effects"]) == {"damping", "delay"}
+    for k in ("verdict", "effects", "confident"):
+        assert fast["verdict"][k] == full["verdict"][k], (fast["verdict"], full["verdict"])
