@@ -19,7 +19,8 @@ RESULTS = ROOT / "results"
 FOLDERS = ("models", "policies", "learned_go1", "learned_g1",
            "mppi_latency/planning_sizes/stride-h64", "mppi_latency/planning_sizes/stride-h128",
            "mppi_latency/planning_shared/stride-h64-shared",
-           "mppi_latency/planning_shared/stride-h128-shared")
+           "mppi_latency/planning_shared/stride-h128-shared",
+           "dreamer_mpc_go1/value")  # the value and error model fitted on the planner's rollouts
 
 
 def files(results: pathlib.Path = RESULTS) -> list[pathlib.Path]:
