@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from stride_jax.control import envs, learned, mppi, planning as planning_lib
+from stride_jax.control import envs, episode as episode_lib, learned, mppi, planning as planning_lib
 from stride_jax.io import atomic_write, atomic_write_text, code_version
 from stride_jax.sim import model as sim_model, rollout_mjx
 
@@ -122,7 +122,7 @@ def transition(planning: planning_lib.Planning, nq: int, sm: sim_model.SimModel,
 
 def make_record(planning: planning_lib.Planning, sm: sim_model.SimModel, true_step: Callable,
                 n_record: int, with_error: bool = True) -> Callable:
-    """The closed loop's ``record`` hook (:func:`stride_jax.control.closed_loop.run_episode`):
+    """The closed loop's ``record`` hook (:func:`stride_jax.control.episode.run_episode`):
     the real transition, ``n_record`` candidates rolled out again through the model (each step
     with the model's one-step base-velocity error against ``true_step(q, qd, ctrl, key)``, the
     simulator, from the model's own state), and the model's one-step error where the robot
@@ -166,8 +166,6 @@ def collect(planning: planning_lib.Planning, planner: mppi.Planner, sm: sim_mode
     """``cfg.worlds`` closed-loop episodes of the planner with random command schedules (every
     ``change_s`` a draw from ``env_cfg.commands``), recording what :func:`make_record` does.
     Pure; jit it."""
-    from stride_jax.control import closed_loop
-
     slots = envs.contact_slots(mx_sim)
     n_steps = max(1, int(round(cfg.seconds / sm.robot.ctrl_dt)))
     pieces = 8
@@ -178,8 +176,8 @@ def collect(planning: planning_lib.Planning, planner: mppi.Planner, sm: sim_mode
         jax.random.split(k, pieces)))(jax.random.split(key_cmd, cfg.worlds))
 
     def episode(vals, k):
-        return closed_loop.run_episode(sm, mx_sim, slots, planning, planner, n_steps, starts,
-                                       vals, k, record=record)[1]
+        return episode_lib.run_episode(sm, mx_sim, slots, planning, planner, n_steps, starts,
+                                        vals, k, record=record)[1]
 
     closed, cand, up, err_real = jax.vmap(episode)(values, jax.random.split(key_run,
                                                                            cfg.worlds))
@@ -303,11 +301,11 @@ def train(cl_cfg, cfg: PlannerValueConfig, name: str, run: str, out: str | pathl
     """Collects the planner's data with ``cl_cfg``'s planner through the dynamics model ``run``
     (on the nominal ground), refits the value of ``cl_cfg.learned`` and fits the one-step
     error model; writes ``reward_value.msgpack``, ``error_model.msgpack`` and ``report.json``
-    to ``out``. ``cl_cfg`` is a :class:`~stride_jax.control.closed_loop_config.ClosedLoopConfig`
+    to ``out``. ``cl_cfg`` is a :class:`~stride_jax.jobs.closed_loop.ClosedLoopConfig`
     with a policy and a learned reward and value."""
     from mujoco import mjx
 
-    from stride_jax.control import closed_loop, ppo
+    from stride_jax.control import ppo
 
     if not (cl_cfg.policy and cl_cfg.learned):
         raise ValueError("the planner's value needs a policy and a learned reward/value "
@@ -317,8 +315,8 @@ def train(cl_cfg, cfg: PlannerValueConfig, name: str, run: str, out: str | pathl
     ppo_policy, _, env_cfg = ppo.load_policy(cl_cfg.policy)
     reward_params, value_params = learned.load(cl_cfg.learned)
     mx = mjx.put_model(sm.mj)
-    true_step = closed_loop.mjx_step_fn(sm, mx)
-    step_fn = closed_loop.learned_step_fn(run, sm, cl_cfg.kernel) if run else true_step
+    true_step = episode_lib.mjx_step_fn(sm, mx)
+    step_fn = episode_lib.learned_step_fn(run, sm, cl_cfg.kernel) if run else true_step
     planning = planning_lib.make_planning(cl_cfg, env_cfg, sm, step_fn, ppo_policy,
                                           (reward_params, value_params))
     planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cl_cfg, planning))

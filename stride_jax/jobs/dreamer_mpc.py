@@ -20,7 +20,7 @@ Rows (``variants``, cumulative, each one switch more than the one before):
   ``error_bound`` (0: calibrated, ``error_bound_scale`` x the model's mean one-step error in the
   closed loop x sqrt(horizon)) and down-weighted by ``error_weight``: every switch on.
 
-Each variant is a :func:`stride_jax.control.closed_loop.run` into ``out/<variant>`` (resumable:
+Each variant is a :func:`stride_jax.jobs.closed_loop.run` into ``out/<variant>`` (resumable:
 finished pairs are skipped, a trained value is reused); ``out/ablation.{json,md}`` gather the
 rows (``scenario``, ``model``, ``variant``, ``vel_rmse``, ``fell``, ``ms_per_step``, ...).
 
@@ -41,9 +41,10 @@ import numpy as np
 import stride_jax
 from stride_jax import config
 from stride_jax.control import planner_value
-from stride_jax.control.closed_loop_config import ClosedLoopConfig
 from stride_jax.control.mppi import MPPIConfig
 from stride_jax.io import atomic_write_text, code_version
+from stride_jax.jobs import closed_loop
+from stride_jax.jobs.closed_loop import ClosedLoopConfig
 
 VARIANTS = ("policy", "mppi", "prior", "short", "value", "error")
 
@@ -156,8 +157,6 @@ def variant_config(cfg: AblationConfig, variant: str, learned: str | None = None
 def run(cfg: AblationConfig, command: str = "", log=print) -> list[dict]:
     """Every variant of ``cfg`` (training the planner's value first where a row needs it);
     writes ``ablation.{json,md}`` to ``cfg.out`` after each variant."""
-    from stride_jax.control import closed_loop
-
     out = pathlib.Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     variants = [v for v in cfg.variants.split(",") if v]
@@ -258,7 +257,7 @@ def write(rows: list[dict], cfg: AblationConfig, command: str, out: pathlib.Path
 
 
 def main(argv: list[str] | None = None) -> None:
-    config.config_main("python -m stride_jax.control.dreamer_mpc", AblationConfig, PRESETS, run,
+    config.config_main("python -m stride_jax.jobs.dreamer_mpc", AblationConfig, PRESETS, run,
                        argv, __doc__.split("\n")[0])
 
 
