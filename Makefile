@@ -55,7 +55,7 @@ table1: setup
 ppo: setup
 	$(BIN)/stride ppo --robot $(ROBOT) --preset $(PRESET) --out runs/ppo_$(ROBOT) --minutes $(or $(MINUTES),8)
 
-## closed-loop: MPPI in closed loop in MJX -> results/closed_loop*/ (committed runs: results/closed_loop/) (PRESET=tiny on a CPU)
+## closed-loop: MPPI in closed loop in MJX -> results/closed_loop/tiny/ (PRESET=gpu: results/closed_loop/gpu/; committed runs: results/closed_loop/closed_loop_*/)
 closed-loop: setup
 	$(BIN)/python experiments/closed_loop.py --preset $(if $(filter default,$(PRESET)),tiny,$(PRESET))
 

@@ -10,7 +10,7 @@ with the same ``--out`` skips the (scenario, model) pairs already there.
 """
 
 import stride_jax
-from stride_jax.control import closed_loop
+from stride_jax.jobs import closed_loop
 
 if __name__ == "__main__":
     stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without

@@ -1,6 +1,6 @@
 """Dreamer-MPC ablation in closed loop (issue 19, item 2): the policy alone, MPPI through a
 learned model as today, and the Dreamer-MPC switches one at a time
-(:mod:`stride_jax.control.dreamer_mpc`).
+(:mod:`stride_jax.jobs.dreamer_mpc`).
 
     python experiments/dreamer_mpc.py --preset tiny      # CPU
     python experiments/dreamer_mpc.py --preset gpu       # one H100
@@ -10,7 +10,7 @@ variant to ``--out``; a second call with the same ``--out`` skips what is done.
 """
 
 import stride_jax
-from stride_jax.control import dreamer_mpc
+from stride_jax.jobs import dreamer_mpc
 
 if __name__ == "__main__":
     stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without

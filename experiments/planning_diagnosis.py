@@ -65,10 +65,11 @@ def run(args, preset: dict, command: str) -> dict:
     from mujoco import mjx
 
     from stride_jax.control import envs, learned as learned_lib, model_check, mppi, ppo
-    from stride_jax.control.closed_loop import ClosedLoopConfig, learned_step_fn
+    from stride_jax.control.episode import learned_step_fn
     from stride_jax.control.planning import augment, make_planner, make_planning, mppi_config
     from stride_jax.control.scenarios import SCENARIOS, command_at, scenario_model, schedule
     from stride_jax.io import atomic_write_text, code_version
+    from stride_jax.jobs.closed_loop import ClosedLoopConfig
     from stride_jax.sim import model as sim_model
 
     out = pathlib.Path(args.out)

@@ -26,8 +26,8 @@ from stride_jax import config
 
 def _commands():
     """name -> (config class, presets, help, run(cfg, command))."""
-    from stride_jax.control import closed_loop, learned, ppo
-    from stride_jax.jobs import bench_mppi, bench_sim, data, eval as eval_job, show, train
+    from stride_jax.jobs import (bench_mppi, bench_sim, closed_loop, data, eval as eval_job,
+                                 fit_reward_value, ppo, show, train)
     return {
         "data": (data.DataConfig, data.PRESETS, "generate a dataset", data.run),
         "train": (train.TrainConfig, train.PRESETS, "train a dynamics model", train.run),
@@ -37,12 +37,11 @@ def _commands():
                       bench_sim.run),
         "bench-mppi": (bench_mppi.BenchConfig, bench_mppi.PRESETS, "MPPI step latency",
                        bench_mppi.run),
-        # the closed-loop family still lives in stride_jax.control (to move to stride_jax.jobs)
         "ppo": (ppo.PPOConfig, ppo.PRESETS, "one PPO chunk of a warm-start policy (resumes)",
                 lambda cfg, command: ppo.run(cfg)),
-        "fit-reward-value": (learned.FitConfig, learned.FIT_PRESETS,
+        "fit-reward-value": (fit_reward_value.FitConfig, fit_reward_value.FIT_PRESETS,
                              "learned reward and value models from a PPO run",
-                             learned.fit_from_policy),
+                             fit_reward_value.fit_from_policy),
         "closed-loop": (closed_loop.ClosedLoopConfig, closed_loop.PRESETS,
                         "closed-loop MPPI in MJX per model and scenario", closed_loop.run),
         "show": (show.ShowConfig, show.PRESETS,

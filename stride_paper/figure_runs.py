@@ -4,6 +4,7 @@ here when absent) and legged runs (``experiments/table1.py``'s; trained here onl
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 
 from stride_jax.eval import horizon
@@ -17,11 +18,11 @@ from stride_paper.figures_config import ReproduceConfig
 def pendulum_configs(cfg: ReproduceConfig, tag: str, robot: str, names) -> dict[str, list]:
     """The pendulum runs a part needs, ``{model: [TrainConfig per seed]}``."""
     data = layout.data_dir(cfg.root, robot, tag)
-    return {name: [job.TrainConfig(**dict(job.PRESETS[cfg.pendulum_train_preset], robot=robot,
-                                          model=name, seed=seed, steps=cfg.pendulum_steps,
-                                          data=str(data),
-                                          out=str(layout.run_dir(cfg.root, robot, tag, name,
-                                                                   seed))))
+    preset = job.PRESETS[cfg.pendulum_train_preset]
+    return {name: [dataclasses.replace(
+                       preset, robot=robot, model=name, data=str(data),
+                       loop=dataclasses.replace(preset.loop, seed=seed, steps=cfg.pendulum_steps),
+                       out=str(layout.run_dir(cfg.root, robot, tag, name, seed)))
                    for seed in split_ints(cfg.pendulum_seeds)]
             for name in names}
 
@@ -56,11 +57,12 @@ def legged_runs(ctx: Context, robot: str, names: list[str]) -> tuple[dict[str, l
     for name in names:
         for seed in split_ints(c.seeds):
             path = layout.run_dir(c.root, robot, ctx.tag, name, seed)
-            preset = dict(job.PRESETS[c.legged_train_preset])
-            if c.legged_steps:
-                preset["steps"] = c.legged_steps
-            tc = job.TrainConfig(**dict(preset, robot=robot, model=name, seed=seed,
-                                        data=str(data), out=str(path)))
+            preset = job.PRESETS[c.legged_train_preset]
+            steps = c.legged_steps or preset.loop.steps
+            tc = dataclasses.replace(preset, robot=robot, model=name, data=str(data),
+                                     loop=dataclasses.replace(preset.loop, seed=seed,
+                                                              steps=steps),
+                                     out=str(path))
             run = layout.ensure_run(tc, c.train_legged, ctx.log)
             if run is None:
                 missing.append(str(path))

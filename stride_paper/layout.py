@@ -47,6 +47,7 @@ def ensure_run(cfg: job.TrainConfig, train: bool, log: Callable[[str], None] = p
     if is_finished(run):
         return run
     if train:
-        log(f"training {cfg.model} on {cfg.robot} (seed {cfg.seed}, {cfg.steps} steps) -> {run}")
+        log(f"training {cfg.model} on {cfg.robot} (seed {cfg.loop.seed}, {cfg.loop.steps} "
+            f"steps) -> {run}")
         return job.run(cfg, log=log)
     return run if is_trained(run) else None

@@ -10,7 +10,7 @@ Built only from result files on disk (paths relative to the results folder):
 * ``mppi_latency/bench_mppi_cpu.json``, ``mppi_latency/bench_mppi_gpu.json`` (and
   ``mppi_latency/*/**/bench_mppi_*.json``): MPPI latency
   (``stride bench-mppi``) against the issue-4 targets;
-* ``closed_loop*/**/*.json``: closed-loop MPPI runs (``stride_jax.control.closed_loop``; the
+* ``closed_loop*/**/*.json``: closed-loop MPPI runs (``stride_jax.jobs.closed_loop``; the
   committed ones in ``closed_loop/``);
 * ``gap_bench.json``: a pointer to the gap tool's benchmark.
 

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from stride_jax.control import closed_loop as cl, envs, gait, learned, mppi
+from stride_jax.control import envs, gait, learned, mppi
 from stride_jax.control import planning as planning_lib
+from stride_jax.jobs import closed_loop as cl
 
 
 def test_oracle_closed_loop_runs_jitted_and_deterministically(go1):

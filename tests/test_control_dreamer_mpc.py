@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from stride_jax.control import closed_loop as cl, dreamer_mpc, envs, learned, mppi
+from stride_jax.control import envs, learned, mppi
 from stride_jax.control import planner_value, planning as planning_lib
+from stride_jax.jobs import closed_loop as cl, dreamer_mpc
 from stride_jax.sim import rollout_mjx
 
 DT, U_MAX = 0.05, 5.0

@@ -71,3 +71,20 @@ def test_bad_inputs_are_clear_errors():
     params = learned.init(jax.random.key(0), CFG, jnp.zeros((5, 3)), jnp.zeros(5))
     with pytest.raises(ValueError, match="input must have shape"):
         learned.apply(params, jnp.zeros(4))
+
+
+def test_fit_reward_value_flags_nest_the_learned_config_with_the_flat_flags_kept():
+    import argparse
+
+    from stride_jax import config
+    from stride_jax.jobs import fit_reward_value as job
+
+    parser = argparse.ArgumentParser()
+    config.add_flags(parser, job.FitConfig)
+    new = config.from_flags(job.FitConfig, parser.parse_args(
+        ["--learned.steps", "5", "--learned.width", "8", "--envs", "4"]), job.FIT_PRESETS["tiny"])
+    old = config.from_flags(job.FitConfig, parser.parse_args(
+        ["--steps", "5", "--width", "8", "--envs", "4"]), job.FIT_PRESETS["tiny"])
+    assert new == old and new.learned == learned.LearnedConfig(
+        **dict(learned.PRESETS["tiny"], steps=5, width=8))
+    assert job.FitConfig().learned == learned.LearnedConfig()  # one source of the defaults

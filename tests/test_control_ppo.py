@@ -88,3 +88,23 @@ def test_loading_into_other_networks_is_refused(tmp_path):
     wider = dataclasses.replace(CFG, policy_width=32)
     with pytest.raises(ValueError, match="networks|shapes"):
         ppo.load(tmp_path, wider, 2, 1)
+
+
+def test_the_ppo_and_fit_reward_value_jobs_at_tiny_size(tmp_path, capsys):
+    """`stride ppo` writes a run folder (config, checkpoint, progress) and refuses another
+    network on it; `stride fit-reward-value` fits the learned models from that run."""
+    from stride_jax import cli
+    from stride_jax.control import learned
+
+    run = tmp_path / "ppo"
+    cli.main(["ppo", "--robot", "go1", "--preset", "tiny", "--out", str(run)])
+    assert {"config.json", "checkpoint.msgpack", "progress.jsonl"} <= {
+        p.name for p in run.iterdir()}
+    policy, _, env_cfg = ppo.load_policy(run)
+    assert env_cfg.robot == "go1"
+    with pytest.raises(SystemExit, match="another robot, network or environment"):
+        cli.main(["ppo", "--preset", "tiny", "--policy-width", "32", "--out", str(run)])
+    out = tmp_path / "learned"
+    cli.main(["fit-reward-value", "--preset", "tiny", "--policy", str(run), "--out", str(out)])
+    reward, value = learned.load(out / "reward_value.msgpack")
+    assert (out / "report.json").is_file() and jax.tree.leaves(reward) and jax.tree.leaves(value)

@@ -59,7 +59,8 @@ def test_the_command_line_sets_the_flags():
 
 def test_importing_any_module_leaves_jax_unstarted():
     """XLA reads its flags when its backend starts: no module may start it at import (a
-    module-level jnp array did, so `python -m stride_jax.control.closed_loop` set them too late)."""
+    module-level jnp array did, so `python -m stride_jax.control.closed_loop` -- now
+    `stride_jax.jobs.closed_loop` -- set them too late)."""
     code = ("import importlib, pkgutil, stride_jax, stride_paper\n"
             "from jax._src import xla_bridge\n"
             "for pkg in (stride_jax, stride_paper):\n"

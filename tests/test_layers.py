@@ -77,3 +77,13 @@ def test_the_check_sees_every_spelling():
     for src in ("from stride_jax import config, io", "from stride_jax.sim import dataset",
                 "from . import model", "import stride_jax", "from stride_jax.jobsite import x"):
         assert not forbidden_imports(src, mod), src
+
+
+@pytest.mark.parametrize("path", sorted((PACKAGE / "train").rglob("*.py")),
+                         ids=lambda p: str(p.relative_to(ROOT)))
+def test_training_imports_no_evaluation(path):
+    """Training comes before evaluation: ``train`` uses ``dynamics`` and ``sim`` helpers, never
+    ``eval`` (which may load trained runs)."""
+    names = imported_names(path.read_text(), _module_name(path), path.name == "__init__.py")
+    found = sorted({n for n in names if n == "stride_jax.eval" or n.startswith("stride_jax.eval.")})
+    assert not found, f"{path.relative_to(ROOT)} imports {found}"

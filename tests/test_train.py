@@ -111,3 +111,33 @@ def test_missing_dataset_says_how_to_make_it(tmp_path):
         cli.main(["train", "--robot", "pendulum", "--preset", "tiny",
                   "--data", str(tmp_path / "none"), "--out", str(tmp_path / "run")])
     assert not (tmp_path / "none").exists()
+
+
+def test_train_flags_nest_the_library_configs_with_the_flat_flags_kept():
+    """`stride train` derives `--net.*` from MLPConfig and `--loop.*` from LoopConfig; the flat
+    flags of earlier commands set the same fields; presets are instances; to_flags round-trips."""
+    import argparse
+    import dataclasses
+
+    from stride_jax import config
+    from stride_jax.dynamics.mlp import MLPConfig
+    from stride_jax.jobs import train as job
+
+    parser = argparse.ArgumentParser()
+    config.add_flags(parser, job.TrainConfig)
+    new = config.from_flags(job.TrainConfig, parser.parse_args(
+        ["--net.hidden", "64", "--net.init", "orthogonal", "--loop.steps", "30", "--loop.lr", "3e-3",
+         "--loop.eval-every", "10", "--loop.seed", "2"]), job.PRESETS["tiny"])
+    old = config.from_flags(job.TrainConfig, parser.parse_args(
+        ["--hidden", "64", "--weight-init", "orthogonal", "--steps", "30", "--lr", "3e-3",
+         "--eval-every", "10", "--seed", "2"]), job.PRESETS["tiny"])
+    assert new == old
+    assert new.net == MLPConfig(hidden=64, depth=2, init="orthogonal")
+    assert (new.loop.steps, new.loop.batch, new.loop.lr, new.loop.eval_every, new.loop.seed) == (
+        30, 64, 3e-3, 10, 2)
+    assert job.TrainConfig().net == MLPConfig()  # one source of the networks' defaults
+    assert job.PRESETS["default"].net.hidden == 128
+    assert job.PRESETS["paper"].loop == dataclasses.replace(
+        loop.LoopConfig(), steps=12_000, batch=1024, eval_every=1000, ckpt_every=2000)
+    flags = config.to_flags(new)
+    assert config.from_flags(job.TrainConfig, parser.parse_args(flags)) == new

@@ -14,7 +14,7 @@ For planning (:func:`make_gait_dynamics`), the gait parameters are appended to t
 so MPPI samples them per rollout and per step and optimises them jointly with the joint actions:
 the joint targets are a gait reference (a stance sweep proportional to the commanded speed and a
 swing lift, as in ``robots.go1.GaitExplorer``) plus the planner's residual. The clock lives in the
-planner's augmented state (see :mod:`stride_jax.control.closed_loop`). Offsets are unbounded reals
+planner's augmented state (see :mod:`stride_jax.control.planning`). Offsets are unbounded reals
 (only their fractional part matters): averaging 0.95 and 1.05 gives 1.0, where averaging the
 wrapped 0.95 and 0.05 would give a wrong 0.5.
 """

@@ -14,19 +14,15 @@ over a params pytree that carries its own input and output normalisation:
 Both are trained from rollouts of the environment (:func:`rollouts`; a PPO policy or any other),
 and turn into MPPI's running cost (``-r``) and terminal value (:func:`planner_terms`).
 
-Command line (a trained PPO run supplies the policy; writes ``reward_value.msgpack`` and
-``report.json`` to ``--out``):
-
-    python -m stride_jax.control.learned --policy runs/ppo_go1 --out runs/learned_go1 \\
-        --envs 1024 --steps 400
+Fitted from a trained PPO run's rollouts by ``stride fit-reward-value``
+(:mod:`stride_jax.jobs.fit_reward_value`), which writes ``reward_value.msgpack`` (:func:`save`,
+:func:`load`) and a held-out report.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import pathlib
-import time
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -34,9 +30,8 @@ import jax.numpy as jnp
 import optax
 from flax import serialization
 
-import stride_jax
 from stride_jax.dynamics import mlp as mlp_lib
-from stride_jax.io import atomic_write, atomic_write_text, code_version
+from stride_jax.io import atomic_write
 from stride_jax.train import loop
 
 
@@ -291,77 +286,3 @@ def load(path: str | pathlib.Path) -> tuple[dict, dict]:
     d = serialization.msgpack_restore(path.read_bytes())
     as_jnp = lambda t: jax.tree.map(jnp.asarray, t)
     return as_jnp(d["reward"]), as_jnp(d["value"])
-
-
-# ---------------------------------------------------------------------------------------------
-# Command line.
-
-
-@dataclasses.dataclass(frozen=True)
-class FitConfig(LearnedConfig):
-    """Rollouts of a PPO run's policy, then both models. Attributes beyond
-    :class:`LearnedConfig`: policy (PPO run folder), out (folder), envs, rollout_steps,
-    holdout (fraction of worlds held out for the report), seed."""
-
-    policy: str = "runs/ppo_go1"
-    out: str = "runs/learned_go1"
-    envs: int = 1024
-    rollout_steps: int = 400
-    holdout: float = 0.1
-    seed: int = 0
-
-
-FIT_PRESETS = {"tiny": dict(PRESETS["tiny"], envs=8, rollout_steps=40, holdout=0.25),
-               "default": {}}
-
-
-def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
-    """Collects rollouts with the (stochastic) PPO policy, fits both models, writes them with a
-    held-out report."""
-    from stride_jax.control import envs as envs_lib
-    from stride_jax.control import ppo
-
-    t0 = time.monotonic()
-    policy, _, env_cfg = ppo.load_policy(cfg.policy, deterministic=False)
-    env = envs_lib.VelocityEnv(env_cfg)
-    key_roll, key_r, key_v = jax.random.split(jax.random.key(cfg.seed), 3)
-    data = jax.jit(lambda k: rollouts(env, policy, k, cfg.envs, cfg.rollout_steps))(key_roll)
-    n_test = max(1, int(round(cfg.holdout * cfg.envs)))
-    train = jax.tree.map(lambda x: x[n_test:], data)
-    test = jax.tree.map(lambda x: x[:n_test], data)
-    log(f"{cfg.envs} x {cfg.rollout_steps} steps of {env_cfg.robot} ({time.monotonic() - t0:.0f}"
-        f" s); mean reward {float(data.reward.mean()):.4f}, falls {float(data.terminal.sum())}")
-    lc = LearnedConfig(**{f.name: getattr(cfg, f.name)
-                          for f in dataclasses.fields(LearnedConfig)})
-    r_params, r_loss = jax.jit(lambda k, d: fit_reward(k, lc, d))(key_r, train)
-    v_params, v_loss = jax.jit(lambda k, d: fit_value(k, lc, d))(key_v, train)
-    r_pred = jax.vmap(jax.vmap(lambda o, a: apply(r_params, reward_input(o, a))))(
-        test.obs, test.action)
-    v_obs = jax.vmap(jax.vmap(lambda o: apply(v_params, o)))
-    v_next = v_obs(test.next_obs)
-    g = jax.vmap(lambda_returns, in_axes=(0, 0, 0, 0, None, None))(
-        test.reward, v_next, test.terminal, test.reset, lc.discount, lc.lam)
-    report = {"command": command, "code": code_version(), "robot": env_cfg.robot,
-              "envs": cfg.envs,
-              "rollout_steps": cfg.rollout_steps, "held_out_worlds": n_test,
-              "reward_r2_held_out": r2(r_pred, test.reward),
-              "value_r2_held_out": r2(v_obs(test.obs), g),
-              "reward_loss_last": float(r_loss[-1]), "value_loss_last": float(v_loss[-1, -1]),
-              "seconds": time.monotonic() - t0, "config": dataclasses.asdict(cfg)}
-    out = pathlib.Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
-    save(out / "reward_value.msgpack", r_params, v_params)
-    atomic_write_text(out / "report.json", json.dumps(report, indent=1))
-    log(f"reward R^2 (held out) {report['reward_r2_held_out']:.3f}, value R^2 against its "
-        f"lambda-returns {report['value_r2_held_out']:.3f}; wrote {out}")
-    return report
-
-
-def main(argv: list[str] | None = None) -> None:
-    from stride_jax import config as cli  # config_main: flags without the `stride` command
-    cli.config_main("python -m stride_jax.control.learned", FitConfig, FIT_PRESETS,
-                    fit_from_policy, argv, __doc__.split("\n")[0])
-
-if __name__ == "__main__":
-    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
-    main()

@@ -22,18 +22,17 @@ terminal value is queried exactly there. Here the planner itself collects the da
    model's base-velocity error (m/s), for :attr:`MPPIConfig.error_bound` on a deterministic model
    (``--error-model``), where residual draws cannot disagree.
 
-``collect`` and ``fit`` are pure up to the host-side masks; :func:`train` runs them and writes
-``reward_value.msgpack`` (the same reward, the new value: a drop-in ``--learned`` file),
-``error_model.msgpack`` and ``report.json`` (held-out fit, and the old and new value's bias on
-the planner's candidates).
+``collect`` and ``fit`` are pure up to the host-side masks; the Dreamer-MPC ablation
+(``stride_jax.jobs.dreamer_mpc.train_value``) runs them and writes ``reward_value.msgpack`` (the
+same reward, the new value: a drop-in ``--learned`` file, :func:`stride_jax.control.learned.save`),
+``error_model.msgpack`` (:func:`save_error_model`) and ``report.json`` (held-out fit, and the old
+and new value's bias on the planner's candidates).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import pathlib
-import time
 from typing import Callable, NamedTuple
 
 import jax
@@ -41,8 +40,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from stride_jax.control import envs, learned, mppi, planning as planning_lib
-from stride_jax.io import atomic_write, atomic_write_text, code_version
+from stride_jax.control import envs, episode as episode_lib, learned, mppi, planning as planning_lib
+from stride_jax.io import atomic_write
 from stride_jax.sim import model as sim_model, rollout_mjx
 
 
@@ -122,7 +121,7 @@ def transition(planning: planning_lib.Planning, nq: int, sm: sim_model.SimModel,
 
 def make_record(planning: planning_lib.Planning, sm: sim_model.SimModel, true_step: Callable,
                 n_record: int, with_error: bool = True) -> Callable:
-    """The closed loop's ``record`` hook (:func:`stride_jax.control.closed_loop.run_episode`):
+    """The closed loop's ``record`` hook (:func:`stride_jax.control.episode.run_episode`):
     the real transition, ``n_record`` candidates rolled out again through the model (each step
     with the model's one-step base-velocity error against ``true_step(q, qd, ctrl, key)``, the
     simulator, from the model's own state), and the model's one-step error where the robot
@@ -166,8 +165,6 @@ def collect(planning: planning_lib.Planning, planner: mppi.Planner, sm: sim_mode
     """``cfg.worlds`` closed-loop episodes of the planner with random command schedules (every
     ``change_s`` a draw from ``env_cfg.commands``), recording what :func:`make_record` does.
     Pure; jit it."""
-    from stride_jax.control import closed_loop
-
     slots = envs.contact_slots(mx_sim)
     n_steps = max(1, int(round(cfg.seconds / sm.robot.ctrl_dt)))
     pieces = 8
@@ -178,8 +175,8 @@ def collect(planning: planning_lib.Planning, planner: mppi.Planner, sm: sim_mode
         jax.random.split(k, pieces)))(jax.random.split(key_cmd, cfg.worlds))
 
     def episode(vals, k):
-        return closed_loop.run_episode(sm, mx_sim, slots, planning, planner, n_steps, starts,
-                                       vals, k, record=record)[1]
+        return episode_lib.run_episode(sm, mx_sim, slots, planning, planner, n_steps, starts,
+                                        vals, k, record=record)[1]
 
     closed, cand, up, err_real = jax.vmap(episode)(values, jax.random.split(key_run,
                                                                            cfg.worlds))
@@ -291,58 +288,8 @@ def save_error_model(path: pathlib.Path, params: dict) -> None:
 
 
 def load_error_model(path: str | pathlib.Path) -> dict:
-    """The one-step error model written by :func:`train`."""
+    """The one-step error model written by :func:`save_error_model`."""
     path = pathlib.Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no one-step error model at {path}")
     return jax.tree.map(jnp.asarray, serialization.msgpack_restore(path.read_bytes()))
-
-
-def train(cl_cfg, cfg: PlannerValueConfig, name: str, run: str, out: str | pathlib.Path,
-          command: str = "", log=print) -> dict:
-    """Collects the planner's data with ``cl_cfg``'s planner through the dynamics model ``run``
-    (on the nominal ground), refits the value of ``cl_cfg.learned`` and fits the one-step
-    error model; writes ``reward_value.msgpack``, ``error_model.msgpack`` and ``report.json``
-    to ``out``. ``cl_cfg`` is a :class:`~stride_jax.control.closed_loop_config.ClosedLoopConfig`
-    with a policy and a learned reward and value."""
-    from mujoco import mjx
-
-    from stride_jax.control import closed_loop, ppo
-
-    if not (cl_cfg.policy and cl_cfg.learned):
-        raise ValueError("the planner's value needs a policy and a learned reward/value "
-                         "(--policy, --learned) to start from")
-    t0 = time.monotonic()
-    sm = sim_model.load(cl_cfg.robot)
-    ppo_policy, _, env_cfg = ppo.load_policy(cl_cfg.policy)
-    reward_params, value_params = learned.load(cl_cfg.learned)
-    mx = mjx.put_model(sm.mj)
-    true_step = closed_loop.mjx_step_fn(sm, mx)
-    step_fn = closed_loop.learned_step_fn(run, sm, cl_cfg.kernel) if run else true_step
-    planning = planning_lib.make_planning(cl_cfg, env_cfg, sm, step_fn, ppo_policy,
-                                          (reward_params, value_params))
-    planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cl_cfg, planning))
-    data = jax.jit(lambda k: collect(planning, planner, sm, mx, true_step, env_cfg, cfg, k))(
-        jax.random.key(cfg.seed))
-    data = jax.block_until_ready(data)
-    t_collect = time.monotonic() - t0
-    up = np.asarray(data.up)
-    log(f"planner data: {cfg.worlds} worlds x {up.shape[1]} steps through {name} "
-        f"({t_collect:.0f} s), up {up.mean():.0%} of steps, mean planner reward "
-        f"{float(jnp.mean(data.closed.reward)):.4f}")
-    new_value, err_params, report = fit(jax.random.key(cfg.seed + 1), cfg, value_params, data)
-    report.update(command=command, code=code_version(), model=name, run=run,
-                  seconds_collect=t_collect, seconds=time.monotonic() - t0,
-                  config=dataclasses.asdict(cfg), planner=dataclasses.asdict(cl_cfg.mppi))
-    out = pathlib.Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    learned.save(out / "reward_value.msgpack", reward_params, new_value)
-    if err_params is not None:
-        save_error_model(out / "error_model.msgpack", err_params)
-    atomic_write_text(out / "report.json", json.dumps(report, indent=1))
-    b, a = report["value_before"], report["value_after"]
-    log(f"value on held-out planner data, before -> after: R^2 candidates "
-        f"{b['r2_candidates']:.3f} -> {a['r2_candidates']:.3f}, closed loop {b['r2_closed']:.3f}"
-        f" -> {a['r2_closed']:.3f}; bias on candidates {b['bias_candidates']:+.3f} -> "
-        f"{a['bias_candidates']:+.3f}; wrote {out}")
-    return report

@@ -5,16 +5,19 @@ dynamics carry the command unchanged and advance the clock), so one jitted plann
 command changes. Its action is a joint-target offset from the home pose (rad); with ``gait`` it is
 a residual on a gait reference plus the gait parameters (:mod:`stride_jax.control.gait`), which
 MPPI optimises jointly. The cost is the environment's reward terms that a state determines,
-negated, plus a tracking term and a fall cost; or the learned reward and value. Used by
-:mod:`stride_jax.control.closed_loop` (whose ``ClosedLoopConfig`` configures it) and the gait
-study.
+negated, plus a tracking term and a fall cost; or the learned reward and value.
+
+Its settings are any object with the fields of :class:`PlanningSettings` (the closed-loop job's
+``ClosedLoopConfig`` is one); one episode in MJX is :func:`stride_jax.control.episode.run_episode`.
+Used by the closed-loop job, the gait study and the planner's value
+(:mod:`stride_jax.control.planner_value`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import TYPE_CHECKING, Callable, NamedTuple
+from typing import Callable, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -23,8 +26,19 @@ import numpy as np
 from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.sim import model as sim_model, rollout_mjx
 
-if TYPE_CHECKING:
-    from stride_jax.control.closed_loop_config import ClosedLoopConfig
+class PlanningSettings(Protocol):
+    """What :func:`make_planning` and :func:`mppi_config` read (the closed-loop job's
+    ``ClosedLoopConfig`` documents each field and holds their defaults)."""
+
+    mppi: mppi.MPPIConfig  # the planner's settings (noise and policy candidates set per task)
+    noise_std: float  # exploration std of the joint offsets (rad)
+    prior_noise_std: float  # noise std of the policy-prior candidates (rad)
+    plan_range: float  # bound of the joint offsets around home (rad)
+    gait: bool  # plan Go1 gait parameters jointly with joint residuals
+    gait_noise: float  # exploration std of the gait frequency (Hz)
+    value_weight: float  # weight of the learned terminal value
+    fall_cost: float  # cost per step spent fallen
+    track_weight: float  # weight of the quadratic velocity-tracking cost
 
 
 class Planning(NamedTuple):
@@ -83,7 +97,7 @@ def servo_torque(sm: sim_model.SimModel, q: jax.Array, qd: jax.Array, ctrl: jax.
     return jnp.where(hi > lo, jnp.clip(tau, lo, hi), tau)
 
 
-def make_planning(cfg: ClosedLoopConfig, env_cfg: envs.EnvConfig, sm: sim_model.SimModel,
+def make_planning(cfg: PlanningSettings, env_cfg: envs.EnvConfig, sm: sim_model.SimModel,
                   model_step: Callable, ppo_policy: Callable | None = None,
                   learned_params: tuple | None = None,
                   gait_cfg: gait_lib.GaitConfig = gait_lib.GaitConfig(),
@@ -180,7 +194,7 @@ def make_planning(cfg: ClosedLoopConfig, env_cfg: envs.EnvConfig, sm: sim_model.
                     reward_action)
 
 
-def mppi_config(cfg: ClosedLoopConfig, planning: Planning) -> mppi.MPPIConfig:
+def mppi_config(cfg: PlanningSettings, planning: Planning) -> mppi.MPPIConfig:
     """The run's MPPI settings with the task's exploration noise per action entry and the policy
     prior's noise (and no policy candidates or prior without a policy)."""
     nu = len(planning.lo)

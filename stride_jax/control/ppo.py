@@ -22,13 +22,14 @@ more before the deadline (compilation included), so a chunk fits a time-boxed jo
 disk continues exactly as the in-memory run would (tested).
 
 The learner (networks, training state, one jitted epoch, the policy of its parameters) is
-:mod:`stride_jax.control.ppo_learner`; this module runs it: configuration, chunks, checkpoints and
-the command line. ``policy(obs, key) -> action`` of a run is :func:`load_policy`; a planner that holds
+:mod:`stride_jax.control.ppo_learner`; this module runs it: configuration, chunks and checkpoints.
+``policy(obs, key) -> action`` of a run is :func:`load_policy`; a planner that holds
 ``(q, qd, command)`` builds the observation with the environment's ``observation_fn``.
 
-Command line (resumes when ``--out`` holds a checkpoint):
+The job that runs one chunk into a run folder (writing ``config.json`` and ``progress.jsonl``,
+resuming when ``--out`` holds a checkpoint) is ``stride ppo`` (:mod:`stride_jax.jobs.ppo`):
 
-    python -m stride_jax.control.ppo --robot go1 --preset gpu --out runs/ppo_go1 --minutes 8
+    stride ppo --robot go1 --preset gpu --out runs/ppo_go1 --minutes 8
 """
 
 from __future__ import annotations
@@ -43,7 +44,6 @@ import jax
 import jax.numpy as jnp
 from flax import serialization
 
-import stride_jax
 from stride_jax.control import envs
 from stride_jax.control.ppo_learner import (  # noqa: F401 (the learner's names, re-exported)
     Trainer,
@@ -53,7 +53,7 @@ from stride_jax.control.ppo_learner import (  # noqa: F401 (the learner's names,
     make_trainer,
     network_factory,
 )
-from stride_jax.io import atomic_write, atomic_write_text, code_version
+from stride_jax.io import atomic_write
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,21 +184,6 @@ def load(out: pathlib.Path, cfg: PPOConfig, obs_size: int, action_size: int) -> 
     return RunState(train, int(raw["env_steps"]), int(raw["chunks"]))
 
 
-def _write_config(out: pathlib.Path, cfg: PPOConfig, env_cfg: envs.EnvConfig) -> None:
-    """Writes ``config.json`` on the first chunk; later chunks must match its networks."""
-    path = out / "config.json"
-    mine = {"ppo": dataclasses.asdict(cfg), "env": dataclasses.asdict(env_cfg)}
-    if not path.is_file():
-        atomic_write_text(path, json.dumps(mine, indent=1))
-        return
-    old = json.loads(path.read_text())
-    fixed = ("robot", "policy_width", "policy_depth", "value_width", "value_depth")
-    diff = [k for k in fixed if old["ppo"][k] != mine["ppo"][k]]
-    if diff or old["env"] != json.loads(json.dumps(mine["env"])):
-        raise ValueError(f"{out} was started with another robot, network or environment "
-                         f"({', '.join(diff) or 'env'}); use a new --out")
-
-
 def train_chunk(cfg: PPOConfig, env: Any, restore: RunState | None = None,
                 on_checkpoint: Callable[[RunState, dict], None] | None = None,
                 deadline: float | None = None, trainer: Trainer | None = None) -> RunState:
@@ -234,44 +219,6 @@ def train_chunk(cfg: PPOConfig, env: Any, restore: RunState | None = None,
     return state
 
 
-def run(cfg: PPOConfig, env_cfg: envs.EnvConfig | None = None, log=print) -> RunState:
-    """One chunk into ``cfg.out``: resumes from its checkpoint, saves at every checkpoint."""
-    t0 = time.monotonic()
-    deadline = t0 + 60 * cfg.minutes if cfg.minutes else None
-    env_cfg = env_cfg or envs.config(cfg.robot)
-    if env_cfg.robot != cfg.robot:
-        raise ValueError(f"environment robot {env_cfg.robot!r} != PPO robot {cfg.robot!r}")
-    out = pathlib.Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
-    _write_config(out, cfg, env_cfg)
-    env = envs.VelocityEnv(env_cfg)
-    restore = load(out, cfg, env.observation_size, env.action_size)
-    if restore and restore.env_steps >= cfg.total_steps:
-        log(f"{out}: complete ({restore.env_steps} >= total_steps {cfg.total_steps} env steps)")
-        return restore
-    log(f"{out}: chunk {restore.chunks + 1 if restore else 1}, from "
-        f"{restore.env_steps if restore else 0} env steps, {jax.default_backend()}")
-
-    code = code_version()
-
-    def checkpoint(state, metrics):
-        save(out, state)
-        line = json.dumps({"env_steps": state.env_steps, "chunk": state.chunks,
-                           "wall_s": time.monotonic() - t0, "code": code, **metrics})
-        with open(out / "progress.jsonl", "a") as f:
-            f.write(line + "\n")
-        log(f"  {state.env_steps} env steps ({time.monotonic() - t0:.0f} s, "
-            f"{metrics['sps']:.0f} steps/s): episode reward "
-            f"{metrics.get('episode/sum_reward', float('nan')):.3f} over "
-            f"{metrics.get('episode/count', 0):.0f} episodes, length "
-            f"{metrics.get('episode/length', float('nan')):.0f}; checkpoint saved")
-
-    state = train_chunk(cfg, env, restore, checkpoint, deadline)
-    log(f"{out}: {state.env_steps} env steps after {state.chunks} chunks "
-        f"({time.monotonic() - t0:.0f} s this chunk)")
-    return state
-
-
 # ---------------------------------------------------------------------------------------------
 # Using a trained policy.
 
@@ -280,7 +227,7 @@ def read_config(out: str | pathlib.Path) -> tuple[PPOConfig, envs.EnvConfig]:
     path = pathlib.Path(out) / "config.json"
     if not path.is_file():
         raise FileNotFoundError(f"{out} is not a PPO run (no config.json); train one with "
-                                "`python -m stride_jax.control.ppo --out ...`")
+                                "`stride ppo --out ...`")
     d = json.loads(path.read_text())
     e = d["env"]
     env_cfg = envs.EnvConfig(**{**e, "commands": envs.Commands(**{
@@ -301,18 +248,3 @@ def load_policy(out: str | pathlib.Path, deterministic: bool = True
     if state is None:
         raise FileNotFoundError(f"{out} holds no checkpoint yet")
     return make_policy(cfg, state.train.params, n_obs, nu, deterministic) + (env_cfg,)
-
-
-def main(argv: list[str] | None = None) -> None:
-    from stride_jax import config as cli  # config_main: flags without the `stride` command
-
-    def run_chunk(cfg, command, log):
-        log(f"command: {command}")
-        run(cfg, log=log)
-
-    cli.config_main("python -m stride_jax.control.ppo", PPOConfig, PRESETS, run_chunk, argv,
-                    __doc__.split("\n")[0])
-
-if __name__ == "__main__":
-    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
-    main()

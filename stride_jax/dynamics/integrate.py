@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def quat_mul(a: jax.Array, b: jax.Array) -> jax.Array:
@@ -74,3 +75,13 @@ def semi_implicit_euler(q: jax.Array, v: jax.Array, qdd: jax.Array, dt: float,
     """One step: ``v' = v + dt * qdd``, then ``q' = retract(q, dt * v')`` (MuJoCo's Euler)."""
     v_next = v + dt * qdd
     return retract(q, dt * v_next, floating_base), v_next
+
+
+def one_step_changes(split: dict, floating_base: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Tangent configuration and velocity changes ``[N, nv]`` between consecutive valid steps of
+    a dataset split (``q [E, T, nq]``, ``qd [E, T, nv]``, ``valid [E, T]``): the training
+    normalisers' and the rollout error's scales."""
+    v = split["valid"][:, :-1] & split["valid"][:, 1:]
+    q0, q1 = split["q"][:, :-1][v], split["q"][:, 1:][v]
+    dq = np.asarray(jax.vmap(lambda a, b: difference(a, b, floating_base))(q1, q0))
+    return dq, split["qd"][:, 1:][v] - split["qd"][:, :-1][v]

@@ -28,6 +28,12 @@ class MLPConfig:
     (:data:`ACTIVATIONS`) and the weights' ``init`` (:data:`INITS`; biases start at zero).
 
     The fused inference kernels (``StructuredConfig.kernel``) implement SiLU only.
+
+    Attributes:
+      hidden: width of every hidden layer.
+      depth: number of hidden layers.
+      activation: the hidden layers' activation (``ACTIVATIONS``).
+      init: the weights' initialisation (``INITS``; biases start at zero).
     """
 
     hidden: int = 256

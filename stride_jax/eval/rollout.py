@@ -35,17 +35,9 @@ def windows(valid: np.ndarray, horizon: int, max_windows: int, seed: int = 0) ->
     return starts[rng.permutation(len(starts))[:max_windows]]
 
 
-def one_step_changes(split: dict, floating_base: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Tangent configuration and velocity changes ``[N, nv]`` between consecutive valid steps."""
-    v = split["valid"][:, :-1] & split["valid"][:, 1:]
-    q0, q1 = split["q"][:, :-1][v], split["q"][:, 1:][v]
-    dq = np.asarray(jax.vmap(lambda a, b: integrate.difference(a, b, floating_base))(q1, q0))
-    return dq, split["qd"][:, 1:][v] - split["qd"][:, :-1][v]
-
-
 def observation_scales(split: dict, spec: ModelSpec, horizon: int) -> tuple[np.ndarray, np.ndarray]:
     """``(sigma_dq [nv], sigma_qd [nv])`` from a split (see the module docstring)."""
-    dq, _ = one_step_changes(split, spec.floating_base)
+    dq, _ = integrate.one_step_changes(split, spec.floating_base)
     floor = lambda s: np.maximum(s, 1e-3 * max(float(s.max()), 1e-6))
     return floor(dq.std(0) * horizon), floor(split["qd"][split["valid"]].std(0))
 

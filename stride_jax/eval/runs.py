@@ -67,6 +67,12 @@ class LoadedRun:
         return self.ds.meta["robot"]
 
 
+def train_seed(train: dict) -> int:
+    """The training seed in a run's ``config.json`` ``train`` entry: ``loop.seed``, or the flat
+    ``seed`` of runs trained before ``stride train`` nested the loop's settings."""
+    return int(train["loop"]["seed"] if "loop" in train else train["seed"])
+
+
 def load_run(run: str | pathlib.Path) -> LoadedRun:
     run = pathlib.Path(run)
     model, params = models.load(run)
@@ -75,8 +81,9 @@ def load_run(run: str | pathlib.Path) -> LoadedRun:
     ds = load_dataset(str(pathlib.Path(cfg["dataset"]).absolute()))
     nfe = json.loads((run / "model.json").read_text())["config"]["nfe"] if model.stochastic \
         else None
-    return LoadedRun(run, model, params, ds, models.spec_from_meta(ds.meta), cfg["train"]["seed"],
-                     nfe, summary.get("best_step"), summary.get("steps_done"),
+    return LoadedRun(run, model, params, ds, models.spec_from_meta(ds.meta),
+                     train_seed(cfg["train"]), nfe, summary.get("best_step"),
+                     summary.get("steps_done"),
                      bool(summary.get("finished")))
 
 

@@ -10,11 +10,14 @@ config that nests the library's own configs, its named presets, and ``run(cfg, c
     bench_table  the benchmarks' one table writer (JSON + Markdown)
     gap          ``stride gap ...``     the gap tool's subcommands; gap_report (its report),
                  gap_bench (``stride gap bench``, the blind benchmark)
+    closed_loop  ``stride closed-loop`` MPPI in closed loop per model and scenario (its config,
+                 ``ClosedLoopConfig``, nests ``MPPIConfig``)
+    dreamer_mpc  the Dreamer-MPC ablation (``experiments/dreamer_mpc.py``)
     gait_study   the closed-loop gait study (``experiments/closed_loop_gait.py``)
+    ppo          ``stride ppo``         one resumable chunk of a PPO policy into a run folder
+    fit_reward_value  ``stride fit-reward-value``  learned reward and value from a PPO run
     pool         side-by-side ``stride`` processes for the experiment drivers
 
 The library (``robots``, ``sim``, ``dynamics``, ``train``, ``control``, ``gap``, ``eval``) imports
-none of them (``tests/test_layers.py``). Still in ``stride_jax.control``, to move here: the
-closed-loop job (``closed_loop``), ``stride ppo`` (``ppo``) and ``stride fit-reward-value``
-(``learned.fit_from_policy``).
+none of them (``tests/test_layers.py``).
 """

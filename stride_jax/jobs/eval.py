@@ -39,7 +39,7 @@ import numpy as np
 from tqdm import tqdm
 
 from stride_jax.dynamics import models
-from stride_jax.eval import distribution, forces, rollout
+from stride_jax.eval import distribution, forces, rollout, runs as runs_lib
 from stride_jax.sim import continuations, dataset, model as sim_model
 from stride_jax.io import atomic_write, atomic_write_text, code_version
 
@@ -110,7 +110,7 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     key = jax.random.key(cfg.seed)
     n_samples = cfg.samples if model.stochastic else 1
     out = {"run": str(run), "model": _label(model.name, run_cfg["train"]),
-           "seed": run_cfg["train"]["seed"],
+           "seed": runs_lib.train_seed(run_cfg["train"]),
            "robot": ds.meta["robot"], "params": int(sum(x.size for x in jax.tree.leaves(params))),
            "stochastic": model.stochastic, "nfe": (nfe or trained_nfe) if model.stochastic else None,
            "steps_done": json.loads((run / "summary.json").read_text()).get("steps_done")}

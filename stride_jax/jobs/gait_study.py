@@ -1,5 +1,5 @@
 """The gait study: the named gaits as parameter settings of the Go1 gait reference, and what
-MPPI picks when the gait parameters are free (:mod:`stride_jax.control.closed_loop`)."""
+MPPI picks when the gait parameters are free (in closed loop: :mod:`stride_jax.jobs.closed_loop`)."""
 
 from __future__ import annotations
 
@@ -13,11 +13,11 @@ import numpy as np
 from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
-from stride_jax.control.closed_loop import (ClosedLoopConfig, metrics, mjx_step_fn,
-                                            run_episode)
+from stride_jax.control.episode import metrics, mjx_step_fn, run_episode
 from stride_jax.control.planning import make_planner, make_planning, mppi_config
 from stride_jax.control.scenarios import schedule, Scenario
 from stride_jax.io import atomic_write_text, code_version
+from stride_jax.jobs.closed_loop import ClosedLoopConfig
 from stride_jax.sim import model as sim_model
 
 

@@ -1,8 +1,9 @@
 """``stride train`` / ``make train``: dataset -> model -> trained, checkpointed params.
 
-The job's config nests the loop's (:class:`~stride_jax.train.loop.LoopConfig`); the model's
+The job's config nests the library's: the networks' (:class:`~stride_jax.dynamics.mlp.MLPConfig`,
+``net``) and the loop's (:class:`~stride_jax.train.loop.LoopConfig`, ``loop``); the model's
 config and normalisers come from :mod:`stride_jax.train.setup`, the loop from
-:mod:`stride_jax.train.loop`.
+:mod:`stride_jax.train.loop`. Presets are named instances (:data:`PRESETS`).
 """
 
 from __future__ import annotations
@@ -10,10 +11,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import pathlib
+from typing import ClassVar
 
 from stride_jax import distributed
 from stride_jax.distributed import DistributedConfig
-from stride_jax.dynamics import mlp, models
+from stride_jax.dynamics import models
+from stride_jax.dynamics.mlp import MLPConfig
 from stride_jax.dynamics.models import spec_from_meta
 from stride_jax.eval import forces
 from stride_jax.io import atomic_write_text, code_version
@@ -21,13 +24,13 @@ from stride_jax.jobs import data as data_job
 from stride_jax.sim import dataset
 from stride_jax.sim import model as sim_model
 from stride_jax.train import loop
+from stride_jax.train.loop import LoopConfig
 from stride_jax.train.setup import model_config, scales
 
 
 @dataclasses.dataclass(frozen=True)
-class TrainConfig(loop.LoopConfig):
-    """What ``stride train`` trains: the loop's settings (steps, batch, lr, eval_every,
-    ckpt_every, seed; see :class:`~stride_jax.train.loop.LoopConfig`) and
+class TrainConfig:
+    """What ``stride train`` trains.
 
     Attributes:
       robot: pendulum, pendulum_bouncing, go1 or g1.
@@ -36,10 +39,14 @@ class TrainConfig(loop.LoopConfig):
       make_data: generate a missing dataset first (``stride data`` with ``data_preset``);
         without it a missing dataset is an error that says how to make it.
       data_preset: the ``stride data`` preset ``make_data`` uses.
-      hidden, depth: width and depth of every network of the model (defaults: ``MLPConfig``'s,
-        256 x 3, the paper's; the ``default`` preset is CPU-sized, 128 x 3).
-      activation, weight_init: the networks' hidden activation and weight initialisation
-        (``mlp.ACTIVATIONS``, ``mlp.INITS``; defaults: ``MLPConfig``'s).
+      net: every network of the model (:class:`~stride_jax.dynamics.mlp.MLPConfig`:
+        ``--net.hidden``, ``--net.depth``, ``--net.activation``, ``--net.init``; the older flags
+        ``--hidden``, ``--depth``, ``--activation``, ``--weight-init`` still answer). Defaults:
+        ``MLPConfig``'s, 256 x 3, the paper's; the ``default`` preset is CPU-sized, 128 x 3.
+      loop: the optimisation (:class:`~stride_jax.train.loop.LoopConfig`: ``--loop.steps``,
+        ``--loop.batch``, ``--loop.lr``, ``--loop.eval-every``, ``--loop.ckpt-every``,
+        ``--loop.seed``, ``--loop.deadline``; the older ``--steps``, ``--batch``, ``--lr``,
+        ``--eval-every``, ``--ckpt-every``, ``--seed``, ``--deadline`` still answer).
       nfe: network evaluations per sample of a generative model; 0 means the model's default
         (``models.DEFAULT_NFE``: 2 for the flow, 10 for diffusion).
       shared_lnn: structured models: L and V from one network (``LNNConfig.shared``).
@@ -56,10 +63,8 @@ class TrainConfig(loop.LoopConfig):
     data: str = ""
     make_data: bool = False
     data_preset: str = "default"
-    hidden: int = mlp.MLPConfig.hidden
-    depth: int = mlp.MLPConfig.depth
-    activation: str = mlp.MLPConfig.activation
-    weight_init: str = mlp.MLPConfig.init
+    net: MLPConfig = MLPConfig()
+    loop: LoopConfig = LoopConfig()
     nfe: int = 0
     shared_lnn: bool = False
     acc_through: str = "central"
@@ -67,18 +72,28 @@ class TrainConfig(loop.LoopConfig):
     out: str = ""
     distributed: DistributedConfig = DistributedConfig()
 
+    # The flat flags of earlier commands (README, Makefile, recorded runs) still answer.
+    FLAG_ALIASES: ClassVar[dict[str, str]] = {
+        **{f"net.{name}": f"--{name}" for name in ("hidden", "depth", "activation")},
+        "net.init": "--weight-init",
+        **{f"loop.{f.name}": "--" + f.name.replace("_", "-")
+           for f in dataclasses.fields(LoopConfig)}}
+
 
 PRESETS = {
-    "tiny": dict(hidden=32, depth=2, steps=100, batch=64, eval_every=50, ckpt_every=50,
-                 data_preset="tiny"),
+    "tiny": TrainConfig(net=MLPConfig(hidden=32, depth=2),
+                        loop=LoopConfig(steps=100, batch=64, eval_every=50, ckpt_every=50),
+                        data_preset="tiny"),
     # CPU-sized (``results/table1/go1_cpu``): 128 x 3 networks, the loop's 2000 steps of 256.
-    "default": dict(hidden=128),
+    "default": TrainConfig(net=MLPConfig(hidden=128)),
     # The committed Table I (``results/table1/go1``, ``results/table1/g1``; H100): MLPConfig's
-    # 256 x 3, batch 1024, 12k steps (the Go1 tables; the G1 tables ran ``--steps 8000``), each run also under a
-    # wall-clock budget (``experiments/table1.py --minutes``). The one source of these numbers:
-    # ``experiments/table1.py`` and ``experiments/reproduce.py`` use this preset as it is.
-    "paper": dict(steps=12_000, batch=1024, lr=1e-3, eval_every=1000, ckpt_every=2000,
-                  data_preset="paper"),
+    # 256 x 3, batch 1024, 12k steps (the Go1 tables; the G1 tables ran ``--steps 8000``), each
+    # run also under a wall-clock budget (``experiments/table1.py --minutes``). The one source of
+    # these numbers: ``experiments/table1.py`` and ``experiments/reproduce.py`` use this preset
+    # as it is.
+    "paper": TrainConfig(loop=LoopConfig(steps=12_000, batch=1024, lr=1e-3, eval_every=1000,
+                                         ckpt_every=2000),
+                         data_preset="paper"),
 }
 
 
@@ -100,8 +115,9 @@ def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.P
     if "act_dof" not in ds.meta:
         raise dataset.DatasetError(f"{data_dir} predates actuator metadata; regenerate it")
     spec = spec_from_meta(ds.meta)
-    model_cfg = model_config(cfg.model, ds.meta, cfg.hidden, cfg.depth, cfg.nfe, cfg.shared_lnn,
-                             cfg.acc_through, cfg.learn_mass, cfg.activation, cfg.weight_init)
+    model_cfg = model_config(cfg.model, ds.meta, cfg.net.hidden, cfg.net.depth, cfg.nfe,
+                             cfg.shared_lnn, cfg.acc_through, cfg.learn_mass, cfg.net.activation,
+                             cfg.net.init)
     act = models.Actuation.from_meta(ds.meta)
     sc = scales(ds)
     model = models.make(cfg.model, spec, act, model_cfg, sc)
@@ -116,7 +132,7 @@ def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.P
     if ds.meta["feet"]:
         sm = sim_model.load(ds.meta["robot"])
         jacobians = lambda q: forces.foot_jacobians(sm, q)  # noqa: E731
-    loop.train(model.loss, model.init, ds.split("train"), ds.split("val"), cfg, out, log,
+    loop.train(model.loss, model.init, ds.split("train"), ds.split("val"), cfg.loop, out, log,
                jacobians=jacobians)
     log(f"trained {cfg.model} on {cfg.robot}: best params in {out / 'best'}, "
         f"log in {out / 'metrics.csv'}")

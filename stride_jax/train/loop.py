@@ -53,8 +53,17 @@ class TrainingError(RuntimeError):
 class LoopConfig:
     """Optimisation: Adam with cosine decay from ``lr`` over ``steps`` minibatches of ``batch``
     examples; validation every ``eval_every`` steps, a checkpoint every ``ckpt_every``.
-    ``deadline`` (Unix time, 0 for none): stop cleanly at the first validation after it, with a
-    checkpoint to resume from (for machines lent by the hour)."""
+
+    Attributes:
+      steps: optimiser steps.
+      batch: examples per minibatch.
+      lr: peak learning rate (cosine decay to 0.05 lr over ``steps``).
+      eval_every: validate (and keep the best parameters) every this many steps.
+      ckpt_every: write a checkpoint to resume from every this many steps.
+      seed: minibatch draws and initialisation.
+      deadline: Unix time (0 for none): stop cleanly at the first validation after it, with a
+        checkpoint to resume from (for machines lent by the hour).
+    """
 
     steps: int = 2000
     batch: int = 256

@@ -9,8 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stride_jax.dynamics import mlp, models, stride
-from stride_jax.eval import rollout
+from stride_jax.dynamics import integrate, mlp, models, stride
 from stride_jax.sim import dataset
 from stride_jax.sim import model as sim_model
 
@@ -45,7 +44,7 @@ def scales(ds: dataset.Dataset) -> stride.Scales:
     train = ds.split("train")
     v = train["valid"]
     force = (train["qfrc_passive"] + train["qfrc_constraint"] + train["qfrc_external"])[v]
-    dq, dqd = rollout.one_step_changes(train, ds.meta["floating_base"])
+    dq, dqd = integrate.one_step_changes(train, ds.meta["floating_base"])
     std = floored_std
     return stride.Scales(qd=std(train["qd"][v]), tau=std(train["tau"][v]), force=std(force),
                          qdd=std(train["qdd"][v]), dq=std(dq), dqd=std(dqd),

@@ -13,14 +13,15 @@ Rows (``variants``, cumulative, each one switch more than the one before):
 * ``short``: + a short horizon (``short_horizon``) with the terminal value, discounted
   (``discount``, the value's gamma);
 * ``value``: + the value refitted on the planner's own rollouts
-  (:mod:`stride_jax.control.planner_value`: collected by the ``short`` planner through the same
-  model on the nominal ground under random commands, never on the scenarios);
+  (:mod:`stride_jax.control.planner_value`, :func:`train_value`: collected by the ``short``
+  planner through the same model on the nominal ground under random commands, never on the
+  scenarios);
 * ``error``: + the model's error where the planner goes: ``error_draws`` residual draws per step
   (their spread) and the learned one-step error model (``error_model``), rollouts cut at
   ``error_bound`` (0: calibrated, ``error_bound_scale`` x the model's mean one-step error in the
   closed loop x sqrt(horizon)) and down-weighted by ``error_weight``: every switch on.
 
-Each variant is a :func:`stride_jax.control.closed_loop.run` into ``out/<variant>`` (resumable:
+Each variant is a :func:`stride_jax.jobs.closed_loop.run` into ``out/<variant>`` (resumable:
 finished pairs are skipped, a trained value is reused); ``out/ablation.{json,md}`` gather the
 rows (``scenario``, ``model``, ``variant``, ``vel_rmse``, ``fell``, ``ms_per_step``, ...).
 
@@ -36,14 +37,20 @@ import math
 import pathlib
 import time
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+from mujoco import mjx
 
 import stride_jax
 from stride_jax import config
-from stride_jax.control import planner_value
-from stride_jax.control.closed_loop_config import ClosedLoopConfig
+from stride_jax.control import episode as episode_lib, learned, planner_value, ppo
+from stride_jax.control import planning as planning_lib
 from stride_jax.control.mppi import MPPIConfig
 from stride_jax.io import atomic_write_text, code_version
+from stride_jax.jobs import closed_loop
+from stride_jax.jobs.closed_loop import ClosedLoopConfig
+from stride_jax.sim import model as sim_model
 
 VARIANTS = ("policy", "mppi", "prior", "short", "value", "error")
 
@@ -153,11 +160,56 @@ def variant_config(cfg: AblationConfig, variant: str, learned: str | None = None
         out=str(pathlib.Path(cfg.out) / variant), seed=cfg.seed)
 
 
+def train_value(cl_cfg: ClosedLoopConfig, cfg: planner_value.PlannerValueConfig, name: str,
+                run: str, out: str | pathlib.Path, command: str = "", log=print) -> dict:
+    """Collects the planner's data with ``cl_cfg``'s planner through the dynamics model ``run``
+    (on the nominal ground), refits the value of ``cl_cfg.learned`` and fits the one-step
+    error model; writes ``reward_value.msgpack``, ``error_model.msgpack`` and ``report.json``
+    to ``out`` (:mod:`stride_jax.control.planner_value`). ``cl_cfg`` needs a policy and a
+    learned reward and value."""
+    if not (cl_cfg.policy and cl_cfg.learned):
+        raise ValueError("the planner's value needs a policy and a learned reward/value "
+                         "(--policy, --learned) to start from")
+    t0 = time.monotonic()
+    sm = sim_model.load(cl_cfg.robot)
+    ppo_policy, _, env_cfg = ppo.load_policy(cl_cfg.policy)
+    reward_params, value_params = learned.load(cl_cfg.learned)
+    mx = mjx.put_model(sm.mj)
+    true_step = episode_lib.mjx_step_fn(sm, mx)
+    step_fn = episode_lib.learned_step_fn(run, sm, cl_cfg.kernel) if run else true_step
+    planning = planning_lib.make_planning(cl_cfg, env_cfg, sm, step_fn, ppo_policy,
+                                          (reward_params, value_params))
+    planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cl_cfg, planning))
+    data = jax.jit(lambda k: planner_value.collect(planning, planner, sm, mx, true_step, env_cfg,
+                                                   cfg, k))(jax.random.key(cfg.seed))
+    data = jax.block_until_ready(data)
+    t_collect = time.monotonic() - t0
+    up = np.asarray(data.up)
+    log(f"planner data: {cfg.worlds} worlds x {up.shape[1]} steps through {name} "
+        f"({t_collect:.0f} s), up {up.mean():.0%} of steps, mean planner reward "
+        f"{float(jnp.mean(data.closed.reward)):.4f}")
+    new_value, err_params, report = planner_value.fit(jax.random.key(cfg.seed + 1), cfg,
+                                                      value_params, data)
+    report.update(command=command, code=code_version(), model=name, run=run,
+                  seconds_collect=t_collect, seconds=time.monotonic() - t0,
+                  config=dataclasses.asdict(cfg), planner=dataclasses.asdict(cl_cfg.mppi))
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    learned.save(out / "reward_value.msgpack", reward_params, new_value)
+    if err_params is not None:
+        planner_value.save_error_model(out / "error_model.msgpack", err_params)
+    atomic_write_text(out / "report.json", json.dumps(report, indent=1))
+    b, a = report["value_before"], report["value_after"]
+    log(f"value on held-out planner data, before -> after: R^2 candidates "
+        f"{b['r2_candidates']:.3f} -> {a['r2_candidates']:.3f}, closed loop {b['r2_closed']:.3f}"
+        f" -> {a['r2_closed']:.3f}; bias on candidates {b['bias_candidates']:+.3f} -> "
+        f"{a['bias_candidates']:+.3f}; wrote {out}")
+    return report
+
+
 def run(cfg: AblationConfig, command: str = "", log=print) -> list[dict]:
     """Every variant of ``cfg`` (training the planner's value first where a row needs it);
     writes ``ablation.{json,md}`` to ``cfg.out`` after each variant."""
-    from stride_jax.control import closed_loop
-
     out = pathlib.Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     variants = [v for v in cfg.variants.split(",") if v]
@@ -172,7 +224,7 @@ def run(cfg: AblationConfig, command: str = "", log=print) -> list[dict]:
                                             out=str(value_dir))
             vcfg = dataclasses.replace(cfg.value, discount=cfg.discount,
                                        error_model=cfg.value.error_model or cfg.error_model)
-            planner_value.train(collector, vcfg, name, run_dir, value_dir, command, log)
+            train_value(collector, vcfg, name, run_dir, value_dir, command, log)
         value_report = json.loads((value_dir / "report.json").read_text())
         learned_file = str(value_dir / "reward_value.msgpack")
         if cfg.error_model and (value_dir / "error_model.msgpack").is_file():
@@ -205,8 +257,6 @@ def gather(out: pathlib.Path) -> list[dict]:
 
 def write(rows: list[dict], cfg: AblationConfig, command: str, out: pathlib.Path,
           bound: float, value_report: dict | None) -> None:
-    import jax
-
     env = dict(command=command, backend=jax.default_backend(),
                device=jax.devices()[0].device_kind, jax=jax.__version__, code=code_version(),
                config=dataclasses.asdict(cfg), error_bound_used=bound)
@@ -258,7 +308,7 @@ def write(rows: list[dict], cfg: AblationConfig, command: str, out: pathlib.Path
 
 
 def main(argv: list[str] | None = None) -> None:
-    config.config_main("python -m stride_jax.control.dreamer_mpc", AblationConfig, PRESETS, run,
+    config.config_main("python -m stride_jax.jobs.dreamer_mpc", AblationConfig, PRESETS, run,
                        argv, __doc__.split("\n")[0])
 
 

@@ -10,6 +10,11 @@ with the scenario's ground. Planner models:
 * ``NAME=RUN``: a trained dynamics model of the one interface (``stride_jax.dynamics.models.load``;
   STRIDE, DeLaN, ONN ...), e.g. ``stride=runs/go1/stride``.
 
+One episode (:func:`stride_jax.control.episode.run_episode`), its metrics and the planner's
+models are the library's; this job runs every (scenario, model) pair of a
+:class:`ClosedLoopConfig` and writes the table, traces and plots (``stride closed-loop``,
+``python -m stride_jax.jobs.closed_loop``, ``experiments/closed_loop.py``).
+
 The planner's view of the task (:mod:`stride_jax.control.planning`): its state is ``(q, command,
 gait clock, latched gait)``, so one jitted planner follows command changes; its action is a
 joint-target offset from home (with ``gait``, a residual on the Go1 gait reference plus the gait
@@ -30,7 +35,7 @@ import dataclasses
 import json
 import pathlib
 import time
-from typing import Callable, NamedTuple
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -39,152 +44,101 @@ from mujoco import mjx
 
 import stride_jax
 from stride_jax import config
-from stride_jax.control import envs, gait as gait_lib, mppi
-# The configuration (re-exported); the planner's view of the task is in ``planning``.
-from stride_jax.control.closed_loop_config import PRESETS, ClosedLoopConfig  # noqa: F401
-from stride_jax.control.planning import (Planning, augment, make_planner, make_planning,
-                                         mppi_config)
+from stride_jax.control import envs
+# The library's episode, metrics and planner models, and the scenarios (re-exported: the job's
+# callers and tests take them from here).
+from stride_jax.control.episode import (Trace, learned_step_fn, metrics,  # noqa: F401
+                                        mjx_step_fn, run_episode)
+from stride_jax.control.mppi import MPPIConfig
+from stride_jax.control.planning import make_planner, make_planning, mppi_config
 from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,  # noqa: F401
                                           scenario_model, schedule)
 from stride_jax.io import atomic_write_text, code_version
-from stride_jax.sim import model as sim_model, rollout_mjx
+from stride_jax.sim import model as sim_model
 
 
 # ---------------------------------------------------------------------------------------------
-# One closed-loop episode.
+# The configuration.
 
 
-class Trace(NamedTuple):
-    """Per control step of a closed-loop episode (``[T, ...]``)."""
+@dataclasses.dataclass(frozen=True)
+class ClosedLoopConfig:
+    """Closed-loop runs.
 
-    t: jax.Array  # [T] s
-    command: jax.Array  # [T, 3]
-    v_base: jax.Array  # [T, 3] base-frame linear velocity (m/s)
-    w_base: jax.Array  # [T, 3] base-frame angular velocity (rad/s)
-    height: jax.Array  # [T] base height (m)
-    fallen: jax.Array  # [T] bool
-    contact: jax.Array  # [T, nfeet] bool, measured
-    action: jax.Array  # [T, nu_plan] the applied planner action
-    status: jax.Array  # [T] int32 the planner's mppi status (PLANNED, or why it fell back)
-    cut: jax.Array  # [T] share of the planner's rollouts cut for predicted model error
+    Attributes:
+      robot: ``go1`` or ``g1`` (the policy and the learned models must be of it).
+      models: comma-separated planner models (``oracle``, ``nominal``, ``policy``, ``NAME=RUN``).
+      scenarios: comma-separated names of :data:`SCENARIOS`.
+      seconds: override every scenario's duration (0: keep).
+      mppi: the planner's settings (``--mppi.samples``, ``--mppi.horizon``, ...; the older flat
+        flags ``--samples``, ``--horizon``, ``--policy-samples`` ... still answer). Its
+        ``noise_std`` is set from ``noise_std`` below (and ``gait_noise``), its
+        ``policy_samples`` dropped to 0 without a policy.
+      noise_std: exploration std of the joint offsets (rad).
+      prior_noise_std: noise std of the policy-prior candidates (``--mppi.prior-fraction``), rad:
+        the PPO policy's own action spread (0.079-0.087 rad over its Go1 episodes,
+        ``results/planning_diagnosis/``).
+      plan_range: bound of the planner's joint offsets around home (rad).
+      gait: plan gait parameters jointly with joint residuals (Go1 gait reference).
+      gait_noise: exploration std of the gait frequency (Hz); duty 0.15x, offsets 0.25x this.
+      policy: PPO run folder supplying candidates (and the ``policy`` model); "" for none.
+      learned: learned reward/value file (``reward_value.msgpack``); "" for the analytic cost.
+      value_weight: weight of the learned terminal value.
+      error_model: a learned one-step error model of the planner's dynamics model
+        (``error_model.msgpack`` of :mod:`stride_jax.control.planner_value`), used with
+        ``--mppi.error-bound``/``--mppi.error-weight``; "" for none.
+      fall_cost: planner cost per step spent fallen (reward units per step).
+      track_weight: weight of a quadratic velocity-tracking cost added to the reward terms (per
+        (m/s)^2, times dt): the reward's exp-kernels are flat far from the command (at 2 m/s
+        below it, exp(-16)), which leaves a planner starting from rest without a direction.
+      kernel: how learned structured models run their networks (``xla``; ``pallas`` or
+        ``pallas-bf16``: fused kernels on GPUs, ``stride_jax.dynamics.fused``;
+        ``pallas-step[-bf16]``: STRIDE's whole step as one kernel where it applies).
+      settle_s: tracking errors are counted from this long after each command change (s).
+      out: results folder (``closed_loop.json``/``.md`` and plots).
+      seed: planner key and terrain seed.
+    """
 
+    robot: str = "go1"
+    models: str = "oracle,nominal"
+    scenarios: str = "step,changes,slope,low_friction,soft,rough"
+    seconds: float = 0.0
+    mppi: MPPIConfig = MPPIConfig()
+    noise_std: float = 0.15
+    prior_noise_std: float = 0.08
+    plan_range: float = 0.6
+    gait: bool = False
+    gait_noise: float = 0.2
+    policy: str = ""
+    learned: str = ""
+    value_weight: float = 1.0
+    error_model: str = ""
+    fall_cost: float = 1.0
+    track_weight: float = 1.0
+    kernel: str = "xla"
+    settle_s: float = 0.5
+    out: str = "results/closed_loop"
+    seed: int = 0
 
-def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Planning,
-                planner: mppi.Planner | None, n_steps: int, starts: jax.Array,
-                values: jax.Array, key: jax.Array, record: Callable | None = None
-                ) -> Trace | tuple[Trace, object]:
-    """A closed-loop episode of ``n_steps`` control steps from the home pose (heading +x) under
-    the command :func:`schedule` ``(starts, values)``. ``planner=None`` lets ``planning.policy``
-    act alone. Pure; jit it.
-
-    ``record(q_aug, qd, u, info, q_aug_next, qd_next, down, key) -> pytree`` (with a planner)
-    adds what it returns per step, stacked ``[T, ...]``: the episode then returns ``(trace,
-    recorded)``. ``q_aug_next`` is the state reached under the step's command, ``down`` whether
-    the robot was down before the step."""
-    nu = sm.info.nu
-    gait = len(planning.lo) > nu
-    qpos0 = jnp.asarray(sm.info.qpos0).at[2].add(0.02)
-    d0 = mjx.make_data(mx_sim).replace(qpos=qpos0, ctrl=jnp.asarray(sm.info.qpos0[7:]))
-    dt = sm.robot.ctrl_dt
-    horizon = 0
-    if planner is not None:
-        horizon = planner.init(key).plan.shape[0]
-        ps0 = planner.init(key, jnp.broadcast_to(jnp.asarray(planning.nominal_u),
-                                                 (horizon, len(planning.lo))))
-    else:
-        ps0 = ()
-    if planner is None and planning.policy is None:
-        raise ValueError("the policy-only model needs a PPO policy (--policy)")
-    if record is not None and planner is None:
-        raise ValueError("record needs a planner (it records the planner's candidates)")
-
-    def body(carry, step):
-        d, ps, clock, down = carry
-        t = step * dt
-        command = command_at(starts, values, t)
-        q_aug = augment(d.qpos, command, clock)
-        status, cut, info = jnp.zeros((), jnp.int32), jnp.zeros(()), None
-        if planner is not None:
-            u, ps, info = planner.step(ps, q_aug, d.qvel)
-            status = info.status
-            cut = jnp.mean(info.kept < horizon)
-            if gait:  # gait parameters are per rollout: hold the chosen ones over the plan
-                ps = ps._replace(plan=ps.plan.at[:, nu:].set(ps.plan[0, nu:]))
-        else:
-            u = planning.policy(q_aug, d.qvel)
-        u = jnp.where(down, jnp.asarray(planning.nominal_u), u)  # fallen: stop planning effort
-        d2 = envs.physics_step(mx_sim, sm.n_substeps, d, planning.ctrl(q_aug, u))
-        freq = u[nu] if gait else planning.clock_hz
-        clock = jnp.mod(clock + freq * dt, 1.0)
-        finite = jnp.all(jnp.isfinite(d2.qpos)) & jnp.all(jnp.isfinite(d2.qvel))
-        d2 = jax.tree.map(lambda a, b: jnp.where(finite, a, b), d2, d)  # freeze a diverged sim
-        down2 = down | rollout_mjx.fallen(sm, d2.qpos) | ~finite
-        v, w, _ = envs.base_signals(d2.qpos, d2.qvel)
-        rec = Trace(t + dt, command, v, w, d2.qpos[2], down2, envs.foot_contact(sm, slots, d2),
-                    u, status, cut)
-        if record is not None:
-            rec = (rec, record(q_aug, d.qvel, u, info, augment(d2.qpos, command, clock),
-                               d2.qvel, down, jax.random.fold_in(key, step)))
-        return (d2, ps, clock, down2), rec
-
-    init = (d0, ps0, jnp.zeros(()), jnp.zeros((), bool))
-    _, trace = jax.lax.scan(body, init, jnp.arange(n_steps))
-    return trace
+    # The flat flags of earlier commands (recorded in results/) still answer.
+    FLAG_ALIASES: ClassVar[dict[str, str]] = {
+        f"mppi.{name}": "--" + name.replace("_", "-")
+        for name in ("samples", "horizon", "iterations", "temperature", "smoothing",
+                     "policy_samples", "policy_noise", "risk_draws", "risk", "risk_alpha",
+                     "risk_weight")}
 
 
-def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
-    """Tracking RMSE while upright (after ``settle_s`` from each command change), fall, speed."""
-    tr = jax.tree.map(np.asarray, trace)
-    up = ~tr.fallen
-    changed = np.r_[True, np.any(np.diff(tr.command, axis=0) != 0, axis=1)]
-    since = np.zeros(len(tr.t))
-    last = 0.0
-    for i, (t, c) in enumerate(zip(tr.t, changed)):
-        last = t if c else last
-        since[i] = t - last
-    use = up & (since >= settle_s)
-    v_err = np.linalg.norm(tr.v_base[:, :2] - tr.command[:, :2], axis=1)
-    w_err = np.abs(tr.w_base[:, 2] - tr.command[:, 2])
-    rmse = lambda e: float(np.sqrt(np.mean(e[use] ** 2))) if use.any() else float("nan")
-    fell = bool(tr.fallen.any())
-    out = dict(vel_rmse=rmse(v_err), yaw_rmse=rmse(w_err), fell=fell,
-               fall_s=float(tr.t[np.argmax(tr.fallen)]) if fell else None,
-               mean_vx=float(tr.v_base[up, 0].mean()) if up.any() else float("nan"),
-               upright_s=float(up.sum() * (tr.t[1] - tr.t[0]) if len(tr.t) > 1 else 0.0),
-               fallbacks=int((tr.status != mppi.PLANNED).sum()),
-               cut_share=float(tr.cut.mean()))
-    if up.sum() >= 10 and tr.contact.shape[1] == 4:  # the quadruped gait the feet showed
-        out["contact_gait"], out["contact_gait_score"] = gait_lib.classify_contacts(
-            tr.contact[up])
-    n_joint = tr.contact.shape[1] * 3
-    if tr.contact.shape[1] == 4 and tr.action.shape[1] > n_joint and up.any():  # planned gait
-        g = np.median(tr.action[up, n_joint:], axis=0)
-        out["plan_freq"], out["plan_duty"] = float(g[0]), float(g[1])
-        out["plan_gait"], out["plan_gait_dist"] = gait_lib.classify(g[2:])
-    return out
+PRESETS = {
+    "tiny": dict(models="oracle", scenarios="step", seconds=0.2,
+                 mppi=MPPIConfig(samples=8, horizon=3), settle_s=0.0,
+                 out="results/closed_loop/tiny"),
+    "default": {},
+    "gpu": dict(mppi=MPPIConfig(samples=1024, horizon=20), out="results/closed_loop/gpu"),
+}
 
 
 # ---------------------------------------------------------------------------------------------
-# Models, the driver, the table and the plots.
-
-
-def mjx_step_fn(sm: sim_model.SimModel, mx: mjx.Model) -> Callable:
-    """``step(q, qd, ctrl, key) -> (q', qd')`` of an MJX model (the oracle's dynamics)."""
-    return envs.mjx_step_fn(sm.n_substeps, mx)
-
-
-def learned_step_fn(run: str, sm: sim_model.SimModel, kernel: str = "xla") -> Callable:
-    """``step(q, qd, ctrl, key)`` of a trained dynamics model (``stride train`` run folder),
-    its networks run as ``kernel`` (``StructuredConfig.kernel``)."""
-    from stride_jax.dynamics import models
-    model, params = models.load(run, kernel=kernel)
-    q0 = jnp.asarray(sm.info.qpos0)
-    try:  # shape check at the boundary: the run must model this robot
-        jax.eval_shape(lambda: model.step(params, q0, jnp.zeros(sm.mj.nv),
-                                          q0[7:], jax.random.key(0)))
-    except ValueError as e:
-        raise ValueError(f"{run} does not model robot {sm.robot.name}: {e}") from e
-    return lambda q, qd, ctrl, key: model.step(params, q, qd, ctrl, key)
+# The job: every (scenario, model) pair, the table and the plots.
 
 
 def _parse_models(spec: str) -> list[tuple[str, str]]:
@@ -352,7 +306,7 @@ def plot(out: pathlib.Path, rows: list[dict]) -> list[pathlib.Path]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    config.config_main("python -m stride_jax.control.closed_loop", ClosedLoopConfig, PRESETS, run,
+    config.config_main("python -m stride_jax.jobs.closed_loop", ClosedLoopConfig, PRESETS, run,
                       argv, __doc__.split("\n")[0])
 
 

@@ -1,0 +1,111 @@
+"""``stride fit-reward-value``: the learned reward and value models fitted on rollouts of a
+trained PPO run's policy (:mod:`stride_jax.control.learned`), with a held-out report.
+
+Writes ``reward_value.msgpack`` (:func:`stride_jax.control.learned.load` reads it; the closed
+loop's ``--learned``) and ``report.json`` to ``--out``:
+
+    stride fit-reward-value --policy runs/ppo_go1 --out runs/learned_go1 --envs 1024 --steps 400
+    python -m stride_jax.jobs.fit_reward_value --policy runs/ppo_go1 --out runs/learned_go1
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+import time
+from typing import ClassVar
+
+import jax
+
+import stride_jax
+from stride_jax import config
+from stride_jax.control import envs as envs_lib, learned as learned_lib, ppo
+from stride_jax.io import atomic_write_text, code_version
+
+
+@dataclasses.dataclass(frozen=True)
+class FitConfig:
+    """Rollouts of a PPO run's policy, then both models.
+
+    Attributes:
+      policy: PPO run folder.
+      out: folder for ``reward_value.msgpack`` and ``report.json``.
+      envs: worlds rolled out side by side.
+      rollout_steps: control steps per world.
+      holdout: fraction of the worlds held out for the report.
+      seed: rollouts' and fits' key.
+      learned: the models' sizes and training
+        (:class:`~stride_jax.control.learned.LearnedConfig`: ``--learned.width``,
+        ``--learned.steps`` ...; the older flat ``--width``, ``--steps`` ... still answer).
+    """
+
+    policy: str = "runs/ppo_go1"
+    out: str = "runs/learned_go1"
+    envs: int = 1024
+    rollout_steps: int = 400
+    holdout: float = 0.1
+    seed: int = 0
+    learned: learned_lib.LearnedConfig = learned_lib.LearnedConfig()
+
+    # The flat flags of earlier commands still answer.
+    FLAG_ALIASES: ClassVar[dict[str, str]] = {
+        f"learned.{f.name}": "--" + f.name.replace("_", "-")
+        for f in dataclasses.fields(learned_lib.LearnedConfig)}
+
+
+FIT_PRESETS = {
+    "tiny": FitConfig(envs=8, rollout_steps=40, holdout=0.25,
+                      learned=learned_lib.LearnedConfig(**learned_lib.PRESETS["tiny"])),
+    "default": FitConfig(),
+}
+
+
+def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
+    """Collects rollouts with the (stochastic) PPO policy, fits both models, writes them with a
+    held-out report."""
+    t0 = time.monotonic()
+    policy, _, env_cfg = ppo.load_policy(cfg.policy, deterministic=False)
+    env = envs_lib.VelocityEnv(env_cfg)
+    key_roll, key_r, key_v = jax.random.split(jax.random.key(cfg.seed), 3)
+    data = jax.jit(lambda k: learned_lib.rollouts(env, policy, k, cfg.envs, cfg.rollout_steps))(
+        key_roll)
+    n_test = max(1, int(round(cfg.holdout * cfg.envs)))
+    train = jax.tree.map(lambda x: x[n_test:], data)
+    test = jax.tree.map(lambda x: x[:n_test], data)
+    log(f"{cfg.envs} x {cfg.rollout_steps} steps of {env_cfg.robot} ({time.monotonic() - t0:.0f}"
+        f" s); mean reward {float(data.reward.mean()):.4f}, falls {float(data.terminal.sum())}")
+    lc = cfg.learned
+    r_params, r_loss = jax.jit(lambda k, d: learned_lib.fit_reward(k, lc, d))(key_r, train)
+    v_params, v_loss = jax.jit(lambda k, d: learned_lib.fit_value(k, lc, d))(key_v, train)
+    r_pred = jax.vmap(jax.vmap(
+        lambda o, a: learned_lib.apply(r_params, learned_lib.reward_input(o, a))))(
+        test.obs, test.action)
+    v_obs = jax.vmap(jax.vmap(lambda o: learned_lib.apply(v_params, o)))
+    v_next = v_obs(test.next_obs)
+    g = jax.vmap(learned_lib.lambda_returns, in_axes=(0, 0, 0, 0, None, None))(
+        test.reward, v_next, test.terminal, test.reset, lc.discount, lc.lam)
+    report = {"command": command, "code": code_version(), "robot": env_cfg.robot,
+              "envs": cfg.envs,
+              "rollout_steps": cfg.rollout_steps, "held_out_worlds": n_test,
+              "reward_r2_held_out": learned_lib.r2(r_pred, test.reward),
+              "value_r2_held_out": learned_lib.r2(v_obs(test.obs), g),
+              "reward_loss_last": float(r_loss[-1]), "value_loss_last": float(v_loss[-1, -1]),
+              "seconds": time.monotonic() - t0, "config": dataclasses.asdict(cfg)}
+    out = pathlib.Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    learned_lib.save(out / "reward_value.msgpack", r_params, v_params)
+    atomic_write_text(out / "report.json", json.dumps(report, indent=1))
+    log(f"reward R^2 (held out) {report['reward_r2_held_out']:.3f}, value R^2 against its "
+        f"lambda-returns {report['value_r2_held_out']:.3f}; wrote {out}")
+    return report
+
+
+def main(argv: list[str] | None = None) -> None:
+    config.config_main("python -m stride_jax.jobs.fit_reward_value", FitConfig, FIT_PRESETS,
+                       fit_from_policy, argv, __doc__.split("\n")[0])
+
+
+if __name__ == "__main__":
+    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
+    main()
