@@ -33,6 +33,9 @@ def test_stochastic_turns_rough_ground_on_and_nothing_else_does():
     assert stochastic(base).rough_m == (0.0, 0.03)
     sm = model.load("go1")
     assert terrain.rough_model(sm, base) is sm and sm.mj.nhfield == 0
+    # off: the flat floor and the records' old foot-force path (data byte-identical to before)
+    assert record.mjx_contact_layout(sm, mjx.put_model(sm.mj)).sign is None
+    assert terrain.rough_model(sm, stochastic(base)).mj.nhfield == 1
     with pytest.raises(ValueError, match="rough_m"):
         Randomization(rough_m=(0.02, 0.01))
     with pytest.raises(ValueError, match="rough_cell_m"):
