@@ -2,8 +2,8 @@
 equation of motion and foot forces that carry the robot."""
 
 import dataclasses
-import sys
 import pathlib
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -13,7 +13,7 @@ import pytest
 from mujoco import mjx
 
 from stride_jax.robots import Randomization, stochastic
-from stride_jax.sim import model, randomize, record, rollout_cpu, rollout_mjx, terrain
+from stride_jax.sim import model, record, rollout_cpu, rollout_mjx, terrain
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 from test_record import _eom_residual  # noqa: E402
@@ -70,8 +70,8 @@ def test_a_bump_under_one_foot_lifts_that_foot_in_both_backends(name):
     mujoco.mj_kinematics(m, d)
     # lowest point of a sphere or capsule: centre - radius - half-length * |axis_z|
     low = [min(d.geom_xpos[g, 2] - m.geom_size[g, 0] - (
-        m.geom_size[g, 1] * abs(d.geom_xmat[g, 8]) if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE
-        else 0.0) for g in geoms[geoms >= 0]) for geoms in rs.foot_geoms]
+        m.geom_size[g, 1] * abs(d.geom_xmat[g, 8])
+        if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE else 0.0) for g in geoms[geoms >= 0]) for geoms in rs.foot_geoms]
     d.qpos[2] += 0.005 - min(low)  # the lowest foot 5 mm above z = 0
     x, y = terrain.grid_points(r)
     flat = np.zeros((len(y), len(x)), np.float32)
@@ -88,7 +88,8 @@ def test_a_bump_under_one_foot_lifts_that_foot_in_both_backends(name):
         mujoco.mj_forward(m, d)
         cpu = record.from_mujoco(rs, m, d)
         mx = mjx.put_model(m).replace(hfield_data=jnp.asarray(data, jnp.float32))
-        dx = jax.jit(mjx.forward)(mx, mjx.make_data(mx).replace(qpos=jnp.asarray(d.qpos, jnp.float32)))
+        qpos = jnp.asarray(d.qpos, jnp.float32)
+        dx = jax.jit(mjx.forward)(mx, mjx.make_data(mx).replace(qpos=qpos))
         gpu = record.from_mjx(rs, dx, record.mjx_contact_layout(rs, mx))
         forces[label] = (cpu.foot_contact, np.asarray(gpu.foot_contact))
     for contact in forces["flat"]:

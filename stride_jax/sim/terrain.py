@@ -42,7 +42,7 @@ _SALT = 0x52_6F_75_67  # "Roug": the field's key, apart from the patches' keys
 
 def grid_size(r: Randomization) -> int:
     """Points along each side of the field."""
-    return int(round(2 * r.rough_extent_m / r.rough_cell_m)) + 1
+    return round(2 * r.rough_extent_m / r.rough_cell_m) + 1
 
 
 def add_heightfield(spec: mujoco.MjSpec, r: Randomization) -> None:
