@@ -105,8 +105,16 @@ def test_stochastic_data_reproducible_and_backends_agree(go1_stochastic):
     np.testing.assert_array_equal(a.records.q, b.records.q)
     c = rollout_cpu.collect(go1_stochastic, jax.random.key(12), 3, 40)
     assert not np.allclose(a.records.q, c.records.q)
-    m = rollout_mjx.collect(go1_stochastic, key, 3, 40)
-    # Same worlds, patches and pushes: the trajectories stay close over 0.8 s (float32 MJX).
+    # Same worlds, patches and pushes: the trajectories stay close over 0.8 s (float32 MJX). On
+    # flat ground only: on rough ground (a heightfield) MuJoCo's collider gives a foot one
+    # contact per prism it touches, MJX four manifold points with the top faces' normals, and
+    # the backends part within a few steps (tests/test_rough_ground.py checks each on its own).
+    r = go1_stochastic.robot.randomization
+    assert r.rough
+    flat = dataclasses.replace(go1_stochastic, robot=dataclasses.replace(
+        go1_stochastic.robot, randomization=dataclasses.replace(r, rough_m=(0.0, 0.0))))
+    a = rollout_cpu.collect(flat, key, 3, 40)
+    m = rollout_mjx.collect(flat, key, 3, 40)
     err = np.abs(m.records.q[:, :20] - a.records.q[:, :20]).max()
     assert err < 0.05, err
 

@@ -35,8 +35,9 @@ class DataConfig:
       seed: PRNG seed of randomisation, exploration and the split.
       randomized: apply the hidden randomisation.
       stochastic: a contact residual that is stochastic given the state: ground patches of
-        varying friction and softness along the path, several pushes per episode
-        (:func:`stride_jax.robots.stochastic`; implies ``randomized``).
+        varying friction and softness along the path, several pushes per episode, rough ground
+        (a heightfield drawn per episode; :func:`stride_jax.robots.stochastic`; implies
+        ``randomized``).
       policy: a PPO run folder whose policy explores (walking under velocity commands,
         :class:`stride_jax.control.walk.PolicyExplorer`); empty: the robot's own explorer.
       action_noise: with ``policy``, the largest per-episode std of the noise on its actions.

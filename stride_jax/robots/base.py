@@ -55,6 +55,13 @@ class Randomization:
         of one stance can stand on different ground. 0: the ground is uniform.
       patch_friction: scale of a patch's sliding friction on top of ``friction``, (lo, hi).
       patch_softness: scale of a patch's contact time constant on top of ``softness``, (lo, hi).
+      rough_m: amplitude of the rough ground (m), (lo, hi), drawn per episode: the robot walks on
+        a heightfield of smooth random bumps (height std amplitude / 2, clipped at +-amplitude;
+        :mod:`stride_jax.sim.terrain`). (0, 0): the flat floor.
+      rough_scale_m: length scale of the bumps (m), (lo, hi), drawn per episode.
+      rough_extent_m: half side of the square heightfield (m), centred on the start; a robot
+        that leaves it falls.
+      rough_cell_m: spacing of the heightfield's samples (m).
     """
 
     friction: tuple[float, float] = (1.0, 1.0)
@@ -71,6 +78,10 @@ class Randomization:
     patch_m: float = 0.0
     patch_friction: tuple[float, float] = (1.0, 1.0)
     patch_softness: tuple[float, float] = (1.0, 1.0)
+    rough_m: tuple[float, float] = (0.0, 0.0)
+    rough_scale_m: tuple[float, float] = (0.2, 0.5)
+    rough_extent_m: float = 10.0
+    rough_cell_m: float = 0.05
 
     def __post_init__(self):
         if self.pushes < 0 or self.patch_m < 0:
@@ -81,19 +92,37 @@ class Randomization:
             if not 0 < lo <= hi:
                 raise ValueError(f"randomisation: {name} range ({lo}, {hi}) must satisfy "
                                  "0 < lo <= hi")
+        lo, hi = self.rough_m
+        if not 0 <= lo <= hi:
+            raise ValueError(f"randomisation: rough_m range ({lo}, {hi}) must satisfy "
+                             "0 <= lo <= hi")
+        if self.rough:
+            if not 0 < self.rough_scale_m[0] <= self.rough_scale_m[1]:
+                raise ValueError(f"randomisation: rough_scale_m {self.rough_scale_m} must "
+                                 "satisfy 0 < lo <= hi")
+            if not 0 < self.rough_cell_m < self.rough_extent_m:
+                raise ValueError(f"randomisation: rough_cell_m ({self.rough_cell_m}) must be "
+                                 f"in (0, rough_extent_m = {self.rough_extent_m})")
 
     @property
     def patches(self) -> bool:
         """Whether the ground varies along the path."""
         return self.patch_m > 0
 
+    @property
+    def rough(self) -> bool:
+        """Whether the robot walks on rough ground (a heightfield) instead of the flat floor."""
+        return self.rough_m[1] > 0
+
 
 def stochastic(r: Randomization) -> Randomization:
     """``r`` with a contact residual that is stochastic given the state: ground patches of 0.3 m
-    whose friction (x0.3-1.5, so feet slip on some) and softness (x0.5-3) vary per patch, and
-    three pushes per episode instead of one. The per-episode ranges of ``r`` stay."""
+    whose friction (x0.3-1.5, so feet slip on some) and softness (x0.5-3) vary per patch, three
+    pushes per episode instead of one, and rough ground (bumps of 0-3 cm amplitude and
+    0.2-0.5 m length scale, drawn per episode). The per-episode ranges of ``r`` stay."""
     return dataclasses.replace(r, pushes=max(r.pushes, 3), patch_m=0.3,
-                               patch_friction=(0.3, 1.5), patch_softness=(0.5, 3.0))
+                               patch_friction=(0.3, 1.5), patch_softness=(0.5, 3.0),
+                               rough_m=(0.0, 0.03), rough_scale_m=(0.2, 0.5))
 
 
 class ModelInfo(NamedTuple):

@@ -55,6 +55,9 @@ def simulate(sm: SimModel, r: Randomization | None, q0: np.ndarray, qd0: np.ndar
     futures.
     """
     n, h = ctrls.shape[:2]
+    if r is not None and r.rough:  # new draws of the ground too: the heightfield's model
+        from stride_jax.sim import terrain
+        sm = terrain.rough_model(sm, r)
     if q0.shape != (n, sm.mj.nq) or qd0.shape != (n, sm.mj.nv) or t0.shape != (n,):
         raise ValueError(f"continuations: q0 {q0.shape}, qd0 {qd0.shape} and t0 {t0.shape} must "
                          f"be [N, nq], [N, nv] and [N] for N = {n} windows")

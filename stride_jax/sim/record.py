@@ -58,6 +58,19 @@ class ContactLayout(NamedTuple):
     owner: np.ndarray  # [ncon] foot index or -1
     efc_address: np.ndarray  # [ncon] first constraint row, -1 if the slot is disabled
     n_rows: np.ndarray  # [ncon] rows per slot (pyramidal: 2 (condim - 1); condim 1: 1)
+    # Rough ground (a heightfield): a foot's force is the vertical part of its net contact force
+    # (see vertical_force); ``sign`` [ncon] is +1 where the foot is the contact's second geom.
+    sign: np.ndarray | None = None
+
+
+def uneven(m) -> bool:
+    """Whether the ground is a heightfield (:mod:`stride_jax.sim.terrain`): a foot's contacts
+    then have tilted normals and :func:`from_mjx` and :func:`from_mujoco` record the vertical
+    component of its net contact force instead of the sum of the contacts' normal forces (equal
+    on flat ground). MuJoCo's heightfield gives a sphere several contacts, one per prism it
+    touches, with normals tilted up to horizontal when it sinks deep (soft ground), whose normal
+    forces partly cancel: their sum would overstate the load."""
+    return m.nhfield > 0
 
 
 def mjx_contact_layout(sm: SimModel, mx) -> ContactLayout:
@@ -66,18 +79,27 @@ def mjx_contact_layout(sm: SimModel, mx) -> ContactLayout:
 
     con = mjx.forward(mx, mjx.make_data(mx))._impl.contact
     dim = np.asarray(con.dim)
-    return ContactLayout(owner=_foot_slots(sm, np.asarray(con.geom)),
-                         efc_address=np.asarray(con.efc_address),
-                         n_rows=np.where(dim == 1, 1, 2 * (dim - 1)))
+    geom = np.asarray(con.geom)
+    sign = np.where(sm.geom_foot[geom[:, 1]] >= 0, 1.0, -1.0) if uneven(mx) else None
+    return ContactLayout(owner=_foot_slots(sm, geom), efc_address=np.asarray(con.efc_address),
+                         n_rows=np.where(dim == 1, 1, 2 * (dim - 1)), sign=sign)
 
 
 def from_mjx(sm: SimModel, d, layout: ContactLayout) -> Record:
     """Extracts a record from MJX data after ``mjx.forward``."""
     efc_force = d._impl.efc_force
     foot_force = [jnp.zeros(())] * sm.nfeet
-    for f, adr, n in zip(layout.owner, layout.efc_address, layout.n_rows):
+    for c, (f, adr, n) in enumerate(zip(layout.owner, layout.efc_address, layout.n_rows)):
         if f >= 0 and adr >= 0:  # pyramidal cone: the normal force is the sum of the edge forces
-            foot_force[f] = foot_force[f] + efc_force[adr:adr + n].sum()
+            if layout.sign is None:
+                foot_force[f] = foot_force[f] + efc_force[adr:adr + n].sum()
+            else:  # the vertical part of the contact's force on the foot (world frame)
+                pyr, con = efc_force[adr:adr + n], d._impl.contact
+                k = np.arange(n // 2)
+                local = jnp.concatenate([pyr.sum()[None],
+                                         (pyr[2 * k] - pyr[2 * k + 1]) * con.friction[c, k]])
+                up = local @ con.frame[c, :len(local), 2]
+                foot_force[f] = foot_force[f] + layout.sign[c] * up
     foot_force = jnp.stack(foot_force) if sm.nfeet else jnp.zeros((0,))
     b = sm.base_body
     floating = sm.robot.floating_base
@@ -99,9 +121,15 @@ def from_mujoco(sm: SimModel, m: mujoco.MjModel, d: mujoco.MjData) -> Record:
     if sm.nfeet and d.ncon:
         owner = _foot_slots(sm, np.asarray(d.contact.geom))
         wrench = np.zeros(6)
+        rough = uneven(m)
         for c in np.flatnonzero(owner >= 0):
             mujoco.mj_contactForce(m, d, int(c), wrench)
-            foot_force[owner[c]] += wrench[0]  # contact frame: x is the normal
+            if rough:  # the vertical part of the contact's force on the foot (world frame)
+                con = d.contact[int(c)]
+                sign = 1.0 if sm.geom_foot[con.geom2] >= 0 else -1.0
+                foot_force[owner[c]] += sign * (wrench[:3] @ con.frame.reshape(3, 3)[:, 2])
+            else:
+                foot_force[owner[c]] += wrench[0]  # contact frame: x is the normal
     b = sm.base_body
     floating = sm.robot.floating_base
     qfrc_external = d.qfrc_smooth - d.qfrc_actuator - d.qfrc_passive + d.qfrc_bias

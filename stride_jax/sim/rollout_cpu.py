@@ -21,7 +21,7 @@ import mujoco.rollout
 import numpy as np
 from mujoco import mjx
 
-from stride_jax.sim import randomize, record
+from stride_jax.sim import randomize, record, terrain
 from stride_jax.sim.model import SimModel, check_open_loop
 from stride_jax.sim.rollout_mjx import Episode, _keys_to_data, fallen
 
@@ -206,17 +206,31 @@ def ground_fn(sm: SimModel, r, rand: randomize.RandValues) -> Callable:
     return lambda q: patches(rand, jnp.asarray(q, jnp.float32))
 
 
+@functools.lru_cache(maxsize=None)
+def _heights(r) -> Callable:
+    return jax.jit(jax.vmap(lambda seed: terrain.heights(seed, r)))
+
+
 def randomized_worlds(sm: SimModel, r, rand: randomize.RandValues
                       ) -> tuple[list[mujoco.MjModel], Callable | None]:
     """``(models, ground)``: one randomised copy of the robot's model per world of ``rand``
     (batched hidden values, ``r`` their ranges) and, where the ground varies along the path, the
-    :func:`ground_fn` that :func:`run` and :func:`states` take (``None`` otherwise)."""
+    :func:`ground_fn` that :func:`run` and :func:`states` take (``None`` otherwise).
+    With rough ground (``r.rough``), ``sm`` must be :func:`stride_jax.sim.terrain.rough_model`'s
+    (the one to roll the worlds with): each world gets its episode's heights."""
+    if r.rough and mujoco.mj_name2id(sm.mj, mujoco.mjtObj.mjOBJ_HFIELD, terrain.NAME) < 0:
+        raise ValueError("rough ground: pass the model with the heightfield, "
+                         "stride_jax.sim.terrain.rough_model(sm, r), and roll the worlds with it")
     mj = randomize.ground_ready(sm.mj, sm.geom_foot) if r.patches else sm.mj
     fields = randomize.nominal_fields(mj)
     rand_np = jax.tree.map(np.asarray, rand)
     n = len(rand_np.friction)
     models = [randomize.apply_mujoco(mj, fields, jax.tree.map(lambda a: a[i], rand_np),
                                      sm.base_body) for i in range(n)]
+    if r.rough:
+        data = np.asarray(_heights(r)(jnp.asarray(rand_np.terrain_seed)), np.float64)
+        for m, h in zip(models, data):
+            m.hfield_data[...] = h
     return models, (ground_fn(sm, r, rand_np) if r.patches else None)
 
 
@@ -229,6 +243,8 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, randomi
     Per-episode draws (randomisation, explorer parameters, initial state) use the same keys and
     code as the MJX backend, so both backends simulate the same worlds from the same seed.
     """
+    if randomized and sm.robot.randomization.rough:
+        sm = terrain.rough_model(sm, sm.robot.randomization)
     draw, act, disturb_fn = _jitted(sm)
     episode_s = n_steps * sm.robot.ctrl_dt
     keys = jax.random.split(key, n_episodes)[part]

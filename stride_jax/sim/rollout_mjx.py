@@ -17,7 +17,7 @@ import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 from mujoco import mjx
 
-from stride_jax.sim import randomize, record
+from stride_jax.sim import randomize, record, terrain
 from stride_jax.sim.model import SimModel, check_open_loop
 
 
@@ -100,6 +100,9 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True) -> Call
     explorer, info, robot = sm.robot.explorer, sm.info, sm.robot
     r = robot.randomization
     patches = randomized and r.patches
+    rough = randomized and r.rough
+    if rough:  # the heightfield in place of the floor; its heights are set per world below
+        sm = terrain.rough_model(sm, r)
     mj = randomize.ground_ready(sm.mj, sm.geom_foot) if patches else sm.mj
     mx0 = mjx.put_model(mj)
     layout = record.mjx_contact_layout(sm, mx0)
@@ -111,6 +114,9 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True) -> Call
         key_rand, key_explore = jax.random.split(key)
         rand = randomize.sample(key_rand, robot.randomization, episode_s)
         mx = randomize.apply_mjx(mx0, fields, rand, sm.base_body) if randomized else mx0
+        if rough:
+            mx = mx.replace(hfield_data=terrain.heights(rand.terrain_seed, r).astype(
+                mx0.hfield_data.dtype))
         params = explorer.sample(key_explore, info)
         qpos, qvel = explorer.reset(params, info)
         policy = lambda step, q, qd: explorer.act(params, info, step, q, qd)
