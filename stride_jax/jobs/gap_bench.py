@@ -312,18 +312,20 @@ def load_rows(folder: pathlib.Path, cfg: BenchConfig) -> dict[tuple[int, bool], 
     return done
 
 
-def _compute(cfg: BenchConfig, todo: list[tuple[int, bool]], workers: int, threads: int, deadline: float,
-             save, cache_root: pathlib.Path) -> None:
-    """Diagnoses ``todo`` (``(index, noisy)`` pairs) and ``save``s each row as it finishes, starting
+def _compute(cfg, todo: list[tuple[int, bool]], workers: int, threads: int, deadline: float,
+             save, cache_root: pathlib.Path, row_fn=None) -> None:
+    """Diagnoses ``todo`` (``(index, noisy)`` pairs) with ``row_fn(cfg, index, noisy)`` (by default
+    this benchmark's :func:`diagnose_row`; a picklable module-level function) and ``save``s each row as it finishes, starting
     none after ``deadline`` (``time.time()``). ``workers > 1``: a pool of spawned processes (JAX is
     not fork-safe) with ``threads`` rollout threads and one thread otherwise each
     (:func:`stride_jax.jobs.pool.worker_env`), sharing a compilation cache under ``cache_root``. A failed row stops new submissions; the rows running
     then still finish and are saved before the error is raised."""
+    row_fn = row_fn or diagnose_row
     if workers <= 1:
         for index, noisy in todo:
             if time.time() >= deadline:
                 return
-            save(diagnose_row(cfg, index, noisy))
+            save(row_fn(cfg, index, noisy))
         return
     from concurrent import futures
 
@@ -333,7 +335,7 @@ def _compute(cfg: BenchConfig, todo: list[tuple[int, bool]], workers: int, threa
     with futures.ProcessPoolExecutor(workers, mp_context=ctx, initializer=pool.set_env, initargs=(env,)) as ex:
         while True:
             while queue and len(running) < workers and error is None and time.time() < deadline:
-                running.add(ex.submit(diagnose_row, cfg, *queue.pop(0)))
+                running.add(ex.submit(row_fn, cfg, *queue.pop(0)))
             if not running:
                 break
             finished, running = futures.wait(running, return_when=futures.FIRST_COMPLETED)

@@ -33,7 +33,6 @@ import copy
 import dataclasses
 import json
 import math
-import multiprocessing
 import os
 import pathlib
 import tempfile
@@ -44,7 +43,6 @@ import mujoco
 import numpy as np
 
 from stride_jax import io
-from stride_jax.jobs import pool
 from stride_jax.gap import calibrate, diagnose, fit, logs, nominal
 from stride_jax.jobs import gap_bench as bench
 from stride_jax.sim import model as sim_model
@@ -586,31 +584,8 @@ def run(cfg: IndependentConfig, out_dir: str | os.PathLike = "results", command:
             f"{row['calibration']} ratio={row.get('shrink_ratio')} ({row['row_seconds']:.0f} s)")
 
     deadline = t0 + 60 * minutes if minutes is not None else math.inf
-    if workers <= 1:
-        for i, nz in todo:
-            if time.time() >= deadline:
-                break
-            save(diagnose_row(cfg, i, nz))
-    else:
-        from concurrent import futures
-
-        env = pool.worker_env(pool.shared_env(pathlib.Path(tempfile.gettempdir()) / "stride_jax"), threads)
-        ctx = multiprocessing.get_context("spawn")
-        queue, running, error = list(todo), set(), None
-        with futures.ProcessPoolExecutor(workers, mp_context=ctx, initializer=pool.set_env, initargs=(env,)) as ex:
-            while True:
-                while queue and len(running) < workers and error is None and time.time() < deadline:
-                    running.add(ex.submit(diagnose_row, cfg, *queue.pop(0)))
-                if not running:
-                    break
-                finished, running = futures.wait(running, return_when=futures.FIRST_COMPLETED)
-                for fu in finished:
-                    if fu.exception() is not None:
-                        error = error or fu.exception()
-                    else:
-                        save(fu.result())
-        if error is not None:
-            raise error
+    bench._compute(cfg, todo, workers, threads, deadline, save,
+                   pathlib.Path(tempfile.gettempdir()) / "stride_jax", row_fn=diagnose_row)
     if len(done) < total:
         log(f"stopped after {(time.time() - t0) / 60:.1f} min: {len(done)} of {total} rows done (in {folder}); "
             "rerun the same command to continue")
