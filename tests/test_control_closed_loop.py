@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from stride_jax.control import envs, gait, learned, mppi
+from stride_jax.control import envs, gait, learned, mppi, scenarios
 from stride_jax.control import planning as planning_lib
 from stride_jax.jobs import closed_loop as cl
 
@@ -151,3 +151,27 @@ def test_mppi_settings_are_one_nested_config_with_the_old_flags_kept():
     got = planning_lib.mppi_config(dataclasses.replace(
         new, mppi=dataclasses.replace(new.mppi, policy_samples=8)), planning)
     assert got.policy_samples == 0 and got.noise_std == (0.1, 0.2) and got.samples == 64
+
+
+def test_pushes_move_the_base_sideways_by_the_impulse(go1):
+    sc = dataclasses.replace(cl.SCENARIOS["push"], pushes=((0.02, 0.06, 0.0, 0.4),))
+    mass = float(go1.mj.body_mass.sum())
+    pushes = cl.push_schedule(sc, mass)
+    np.testing.assert_allclose(pushes[0], [0.02, 0.08, 0.0, mass * 0.4 / 0.06], rtol=1e-6)
+    assert not pushes[1:].any()
+    np.testing.assert_allclose(scenarios.push_at(pushes, 0.05), [0.0, mass * 0.4 / 0.06], rtol=1e-6)
+    assert not np.asarray(scenarios.push_at(pushes, 0.08)).any()
+    with pytest.raises(ValueError, match="more than 4 pushes"):
+        cl.push_schedule(dataclasses.replace(sc, pushes=sc.pushes * 5), mass)
+    # A robot holding its home pose (a "policy" that always returns it): the push's impulse shows
+    # as sideways base velocity, which the unpushed episode lacks.
+    cfg = cl.ClosedLoopConfig(**cl.PRESETS["tiny"])
+    mx = mjx.put_model(cl.scenario_model(go1, sc))
+    planning = planning_lib.make_planning(cfg, envs.config("go1"), go1, cl.mjx_step_fn(go1, mx))
+    planning = planning._replace(policy=lambda q, qd: jnp.asarray(planning.nominal_u))
+    starts, values = cl.schedule(dataclasses.replace(sc, commands=((0.0, 0.0, 0.0, 0.0),)))
+    episode = jax.jit(lambda p: cl.run_episode(go1, mx, envs.contact_slots(mx), planning, None, 5,
+                                               starts, values, jax.random.key(0), pushes=p))
+    pushed, still = episode(jnp.asarray(pushes)), episode(jnp.zeros_like(pushes))
+    vy_world = float(pushed.v_base[3, 1] - still.v_base[3, 1])  # base frame ~ world frame here
+    assert 0.1 < vy_world < 0.45, vy_world  # at most the free-body 0.4 m/s, less what the feet hold

@@ -23,7 +23,7 @@ from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.control.planning import Planning, augment
-from stride_jax.control.scenarios import command_at
+from stride_jax.control.scenarios import command_at, push_at
 from stride_jax.sim import model as sim_model, rollout_mjx
 
 
@@ -44,8 +44,8 @@ class Trace(NamedTuple):
 
 def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Planning,
                 planner: mppi.Planner | None, n_steps: int, starts: jax.Array,
-                values: jax.Array, key: jax.Array, record: Callable | None = None
-                ) -> Trace | tuple[Trace, object]:
+                values: jax.Array, key: jax.Array, record: Callable | None = None,
+                pushes: jax.Array | None = None) -> Trace | tuple[Trace, object]:
     """A closed-loop episode of ``n_steps`` control steps from the home pose (heading +x) under
     the command :func:`schedule` ``(starts, values)``. ``planner=None`` lets ``planning.policy``
     act alone. Pure; jit it.
@@ -53,12 +53,14 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     ``record(q_aug, qd, u, info, q_aug_next, qd_next, down, key) -> pytree`` (with a planner)
     adds what it returns per step, stacked ``[T, ...]``: the episode then returns ``(trace,
     recorded)``. ``q_aug_next`` is the state reached under the step's command, ``down`` whether
-    the robot was down before the step."""
+    the robot was down before the step. ``pushes`` (:func:`stride_jax.control.scenarios.
+    push_schedule`) applies horizontal forces to the base body (unknown to the planner's model)."""
     nu = sm.info.nu
     gait = len(planning.lo) > nu
     qpos0 = jnp.asarray(sm.info.qpos0).at[2].add(0.02)
     d0 = mjx.make_data(mx_sim).replace(qpos=qpos0, ctrl=jnp.asarray(sm.info.qpos0[7:]))
     dt = sm.robot.ctrl_dt
+    base = int(sm.mj.jnt_bodyid[0])  # the floating base's body
     horizon = 0
     if planner is not None:
         horizon = planner.init(key).plan.shape[0]
@@ -86,6 +88,8 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
         else:
             u = planning.policy(q_aug, d.qvel)
         u = jnp.where(down, jnp.asarray(planning.nominal_u), u)  # fallen: stop planning effort
+        if pushes is not None:
+            d = d.replace(xfrc_applied=d.xfrc_applied.at[base, :2].set(push_at(pushes, t)))
         d2 = envs.physics_step(mx_sim, sm.n_substeps, d, planning.ctrl(q_aug, u))
         freq = u[nu] if gait else planning.clock_hz
         clock = jnp.mod(clock + freq * dt, 1.0)

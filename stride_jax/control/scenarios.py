@@ -2,7 +2,8 @@
 
 Scenarios: velocity step 0 -> 2 m/s, sudden command changes, a 20 degree slope (gravity tilted by
 20 degrees about the y axis: on a plane this is the same physics as a tilted floor, walking +x is
-uphill), and ground unseen in training: low friction, soft contacts, rough terrain (a heightfield).
+uphill), ground unseen in training: low friction, soft contacts, rough terrain (a heightfield),
+and lateral pushes on the base while walking.
 """
 
 from __future__ import annotations
@@ -30,6 +31,9 @@ class Scenario:
       friction: scale of every geom's sliding friction.
       softness: scale of the contact time constant (solref[0]); > 1 is softer.
       rough_m: peak-to-peak height of a random heightfield replacing the floor (m); 0: flat.
+      pushes: ``(t_start s, duration s, dvx m/s, dvy m/s)`` horizontal pushes on the base body,
+        given as the velocity change they would give the whole robot (force = total mass x dv /
+        duration), so that one scenario pushes a 12 kg quadruped and a 35 kg humanoid alike.
     """
 
     name: str
@@ -39,6 +43,7 @@ class Scenario:
     friction: float = 1.0
     softness: float = 1.0
     rough_m: float = 0.0
+    pushes: tuple[tuple[float, float, float, float], ...] = ()
 
 
 WALK = ((0.0, 1.0, 0.0, 0.0),)
@@ -51,6 +56,7 @@ SCENARIOS = {
     "low_friction": Scenario("low_friction", WALK, friction=0.3),
     "soft": Scenario("soft", WALK, softness=4.0),
     "rough": Scenario("rough", WALK, rough_m=0.04),
+    "push": Scenario("push", WALK, pushes=((2.0, 0.1, 0.0, 0.5), (4.0, 0.1, 0.0, -0.5))),
 }
 
 
@@ -92,6 +98,24 @@ def schedule(sc: Scenario, pieces: int = 8) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"scenario {sc.name!r} has more than {pieces} command pieces")
     c = list(sc.commands) + [sc.commands[-1]] * (pieces - len(sc.commands))
     return (np.array([x[0] for x in c], np.float32), np.array([x[1:] for x in c], np.float32))
+
+
+def push_schedule(sc: Scenario, total_mass: float, slots: int = 4) -> np.ndarray:
+    """The scenario's pushes as ``[slots, 4]`` rows ``(t_start, t_end, fx N, fy N)``, padded with
+    zero-force rows, so that scenarios share one compiled episode."""
+    if len(sc.pushes) > slots:
+        raise ValueError(f"scenario {sc.name!r} has more than {slots} pushes")
+    rows = [(t, t + dur, total_mass * dvx / dur, total_mass * dvy / dur)
+            for t, dur, dvx, dvy in sc.pushes]
+    rows += [(0.0, 0.0, 0.0, 0.0)] * (slots - len(rows))
+    return np.array(rows, np.float32)
+
+
+def push_at(pushes: jax.Array, t: jax.Array) -> jax.Array:
+    """The horizontal force ``[2]`` (N) on the base at time ``t`` (s) of a :func:`push_schedule`."""
+    pushes = jnp.asarray(pushes)
+    on = (t >= pushes[:, 0]) & (t < pushes[:, 1])
+    return jnp.sum(jnp.where(on[:, None], pushes[:, 2:4], 0.0), axis=0)
 
 
 def command_at(starts: jax.Array, values: jax.Array, t: jax.Array) -> jax.Array:

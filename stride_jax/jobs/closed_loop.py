@@ -52,7 +52,7 @@ from stride_jax.control.episode import (Trace, learned_step_fn, metrics,  # noqa
 from stride_jax.control.mppi import MPPIConfig
 from stride_jax.control.planning import make_planner, make_planning, mppi_config
 from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,  # noqa: F401
-                                          scenario_model, schedule)
+                                          push_schedule, scenario_model, schedule)
 from stride_jax.io import atomic_write_text, code_version
 from stride_jax.sim import model as sim_model
 
@@ -186,7 +186,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     compiled = {}  # one executable per (model, episode length, model structures)
 
     def episode_fn(name, n_steps, slots):
-        def episode(mx_sim, mx_plan, starts, values, key):
+        def episode(mx_sim, mx_plan, starts, values, pushes, key):
             step_fn = learned_steps.get(name) or mjx_step_fn(sm, mx_plan)
             planning = make_planning(cfg, env_cfg, sm, step_fn, ppo_policy, learned_params,
                                      error_params=error_params if name in learned_steps
@@ -195,7 +195,8 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             if name != "policy":
                 with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
                     planner = make_planner(planning, mppi_config(cfg, planning))
-            return run_episode(sm, mx_sim, slots, planning, planner, n_steps, starts, values, key)
+            return run_episode(sm, mx_sim, slots, planning, planner, n_steps, starts, values, key,
+                               pushes=pushes)
         return jax.jit(episode)
 
     for sc_name in [s for s in cfg.scenarios.split(",") if s]:
@@ -211,6 +212,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                 continue
             mx_plan = mx_sim if name == "oracle" else mx_nominal
             args = (mx_sim, mx_plan, jnp.asarray(starts), jnp.asarray(values),
+                    jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum()))),
                     jax.random.key(cfg.seed))
             sig = (name, n_steps, tuple(slots[0]), jax.tree.structure(args[:2]))
             t0 = time.perf_counter()
