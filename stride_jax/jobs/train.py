@@ -108,9 +108,8 @@ def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.P
                 f"no dataset at {data_dir}: make it first with `stride data --robot {cfg.robot} "
                 f"--preset {cfg.data_preset} --out {data_dir}`, or train with --make-data")
         log(f"no dataset at {data_dir}: generating one (preset {cfg.data_preset})")
-        preset = dict(data_job.PRESETS[cfg.data_preset], robot=cfg.robot, out=str(data_dir),
-                      distributed=cfg.distributed)
-        data_job.generate(data_job.DataConfig(**preset))
+        data_job.generate(dataclasses.replace(data_job.PRESETS[cfg.data_preset], robot=cfg.robot,
+                                              out=str(data_dir), distributed=cfg.distributed))
     ds = dataset.load(data_dir, robot=cfg.robot)
     if "act_dof" not in ds.meta:
         raise dataset.DatasetError(f"{data_dir} predates actuator metadata; regenerate it")
