@@ -127,7 +127,7 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
     dt = sm.robot.ctrl_dt
     obs_of = functools.partial(envs.observe, env_cfg, home)
     if cfg.gait and sm.robot.name != "go1":
-        raise ValueError("the gait reference is the Go1's: --gait needs robot go1")
+        raise ValueError("the gait reference is the Go1's: --planning.gait needs robot go1")
 
     def gait_of(q_aug, u):
         """Gait parameters in force: a rollout's first sample, held (per-rollout sampling)."""
