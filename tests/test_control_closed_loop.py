@@ -88,6 +88,10 @@ def test_gait_parameters_are_held_per_rollout(go1):
     np.testing.assert_array_equal(planning.ctrl(q1, u2), planning.ctrl(q1, u1))
     with pytest.raises(ValueError, match="planner state"):
         planning_lib.split(jnp.zeros(5), go1.mj.nq)
+    # the job builds its planning inside the jitted episode: the gait's nominal plan is a constant
+    traced = jax.eval_shape(lambda: jnp.asarray(planning_lib.make_planning(
+        cfg, envs.config("go1"), go1, _fake_step).nominal_u))
+    assert traced.shape == (12 + gait.N_GAIT,)
 
 
 def test_learned_reward_and_value_drive_the_planner(go1):

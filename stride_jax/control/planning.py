@@ -205,7 +205,8 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
         lo, hi = np.concatenate([lo, g_lo]), np.concatenate([hi, g_hi])
         noise = noise + (cfg.gait_noise, 0.15 * cfg.gait_noise) + (0.25 * cfg.gait_noise,) * 4
         trot = gait_lib.named("trot")
-        nominal = np.asarray(gait_lib.join_action(jnp.asarray(nominal), trot), np.float32)
+        with jax.ensure_compile_time_eval():  # a constant, also where this is traced (the job)
+            nominal = np.asarray(gait_lib.join_action(jnp.asarray(nominal), trot), np.float32)
     return Planning(dynamics, cost, value, policy, ctrl, lo, hi, noise, nominal,
                     0.0 if cfg.gait else env_cfg.gait_hz, obs_aug, disagreement, step_error,
                     reward_action)
