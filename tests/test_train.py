@@ -14,7 +14,8 @@ import orbax.checkpoint as ocp
 import pytest
 
 from stride_jax import cli
-from stride_jax.train import dynamics as train_dynamics, loop
+from stride_jax.train import dynamics as train_dynamics
+from stride_jax.train import loop
 
 ARGS = ["train", "--robot", "pendulum", "--preset", "tiny", "--hidden", "16", "--steps", "60",
         "--ckpt-every", "10", "--eval-every", "10"]

@@ -39,8 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from stride_jax.gap import (baseline, calibrate, effects, filters, fit, granularity, logs, progress, regions,
-                            residual, screen)
+from stride_jax.gap import (baseline, calibrate, effects, filters, fit, granularity, logs, progress,
+                            regions, residual, screen)
 from stride_jax.gap.attribute import check_nominal, verdict, which
 from stride_jax.gap.localise import divergence, where
 from stride_jax.gap.regions import PHASES, dof_names, foot_phases, noise_floor  # noqa: F401 (re-exported)
