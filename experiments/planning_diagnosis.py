@@ -22,15 +22,47 @@ import sys
 import time
 
 import stride_jax
+from stride_jax import config
 
-PRESETS = {
-    "tiny": dict(samples=16, horizon=4, policy_samples=4, seconds=0.6, every=10,
-                 scenarios="slope"),
-    "cpu": dict(samples=128, horizon=20, policy_samples=16, seconds=3.0, every=15),
-    "gpu": dict(samples=1024, horizon=20, policy_samples=64, seconds=6.0, every=10),
-}
 MODELS = "stride=results/models/go1/stride-s0,delan=results/models/go1/delan-s0," \
          "onn=results/models/go1/onn-s0"
+
+
+@dataclasses.dataclass(frozen=True)
+class DiagnosisConfig:
+    """What the diagnosis replays (the defaults are the ``cpu`` preset).
+
+    Attributes:
+      robot: the robot.
+      models: NAME=RUN,... (trained dynamics models).
+      scenarios: comma-separated closed-loop scenarios.
+      policy: the PPO run whose closed loop is diagnosed (and whose candidates are planned).
+      learned: learned reward/value ('' for the analytic cost).
+      samples, horizon, policy_samples: the planner (``MPPIConfig``'s).
+      seconds: the policy's episode per scenario (s).
+      every: diagnose every this many control steps.
+      out: results folder.
+    """
+
+    robot: str = "go1"
+    models: str = MODELS
+    scenarios: str = "slope,rough,changes"
+    policy: str = "results/policies/ppo_go1"
+    learned: str = "results/learned_go1/reward_value.msgpack"
+    samples: int = 128
+    horizon: int = 20
+    policy_samples: int = 16
+    seconds: float = 3.0
+    every: int = 15
+    out: str = "results/planning_diagnosis"
+
+
+PRESETS = {
+    "tiny": DiagnosisConfig(samples=16, horizon=4, policy_samples=4, seconds=0.6, every=10,
+                            scenarios="slope"),
+    "cpu": DiagnosisConfig(),
+    "gpu": DiagnosisConfig(samples=1024, horizon=20, policy_samples=64, seconds=6.0, every=10),
+}
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -38,27 +70,14 @@ def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--preset", default="cpu", choices=list(PRESETS))
-    p.add_argument("--robot", default="go1")
-    p.add_argument("--models", default=MODELS, help="NAME=RUN,... (trained dynamics models)")
-    p.add_argument("--scenarios", default=None, help="default: slope,rough,changes (tiny: slope)")
-    p.add_argument("--policy", default="results/policies/ppo_go1")
-    p.add_argument("--learned", default="results/learned_go1/reward_value.msgpack",
-                   help="learned reward/value ('' for the analytic cost)")
-    for k in ("samples", "horizon", "policy_samples", "every"):
-        p.add_argument(f"--{k.replace('_', '-')}", type=int, default=None)
-    p.add_argument("--seconds", type=float, default=None)
-    p.add_argument("--out", default="results/planning_diagnosis")
+    config.add_flags(p, DiagnosisConfig)
     args = p.parse_args(argv)
-    preset = dict(PRESETS[args.preset])
-    for k in ("samples", "horizon", "policy_samples", "every", "seconds"):
-        if getattr(args, k) is not None:
-            preset[k] = getattr(args, k)
-    preset["scenarios"] = args.scenarios or preset.get("scenarios", "slope,rough,changes")
+    cfg = config.from_flags(DiagnosisConfig, args, PRESETS[args.preset])
     command = "python " + " ".join(map(shlex.quote, [sys.argv[0], *(argv or sys.argv[1:])]))
-    return run(args, preset, command)
+    return run(cfg, command)
 
 
-def run(args, preset: dict, command: str) -> dict:
+def run(cfg: DiagnosisConfig, command: str) -> dict:
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -66,23 +85,22 @@ def run(args, preset: dict, command: str) -> dict:
 
     from stride_jax.control import envs, learned as learned_lib, model_check, mppi, ppo
     from stride_jax.control.episode import learned_step_fn
-    from stride_jax.control.planning import augment, make_planner, make_planning, mppi_config
+    from stride_jax.control.planning import (PlanningConfig, augment, make_planner,
+                                             make_planning, mppi_config)
     from stride_jax.control.scenarios import SCENARIOS, command_at, scenario_model, schedule
     from stride_jax.io import atomic_write_text, code_version
-    from stride_jax.jobs.closed_loop import ClosedLoopConfig
     from stride_jax.sim import model as sim_model
 
-    out = pathlib.Path(args.out)
+    out = pathlib.Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    sm = sim_model.load(args.robot)
+    sm = sim_model.load(cfg.robot)
     nu = sm.info.nu
-    policy, _, env_cfg = ppo.load_policy(args.policy)
-    learned = learned_lib.load(args.learned) if args.learned else None
-    cfg = ClosedLoopConfig(robot=args.robot, policy=args.policy, learned=args.learned,
-                           mppi=mppi.MPPIConfig(samples=preset["samples"],
-                                                horizon=preset["horizon"],
-                                                policy_samples=preset["policy_samples"]))
-    models = [tuple(m.split("=", 1)) for m in args.models.split(",") if m]
+    policy, _, env_cfg = ppo.load_policy(cfg.policy)
+    learned = learned_lib.load(cfg.learned) if cfg.learned else None
+    mppi_cfg = mppi.MPPIConfig(samples=cfg.samples, horizon=cfg.horizon,
+                               policy_samples=cfg.policy_samples)
+    planning_cfg, seed = PlanningConfig(), 0  # the closed loop's defaults
+    models = [tuple(m.split("=", 1)) for m in cfg.models.split(",") if m]
     steps = {name: learned_step_fn(run_dir, sm) for name, run_dir in models}
     rows, t_start = [], time.time()
     jitted = {}  # one program per model and scenario structure (the MJX model is an argument)
@@ -91,29 +109,29 @@ def run(args, preset: dict, command: str) -> dict:
         """``(mx, q_aug [S, ...], qd [S, nv], keys [S]) -> per-state comparison`` for ``name``."""
         if (name, slots_sig) in jitted:
             return jitted[name, slots_sig]
-        planning = make_planning(cfg, env_cfg, sm, steps[name], policy, learned)
+        planning = make_planning(planning_cfg, env_cfg, sm, steps[name], policy, learned)
         with jax.ensure_compile_time_eval():
-            planner = make_planner(planning, mppi_config(cfg, planning))
-        H = cfg.mppi.horizon
+            planner = make_planner(planning, mppi_config(mppi_cfg, planning_cfg, planning))
+        H = mppi_cfg.horizon
 
         def at(mx, q, v, key):
-            truth = make_planning(cfg, env_cfg, sm, envs.mjx_step_fn(sm.n_substeps, mx), policy,
-                                  learned)
+            truth = make_planning(planning_cfg, env_cfg, sm, envs.mjx_step_fn(sm.n_substeps, mx),
+                                  policy, learned)
             st = planner.init(key, jnp.broadcast_to(jnp.asarray(planning.nominal_u),
                                                     (H, len(planning.lo))))
             _, _, info = planner.step(st, q, v)
             return model_check.one_state(planning.dynamics, truth.dynamics, planning.cost,
                                          planning.value or (lambda q, qd: jnp.zeros(())),
-                                         info.candidates, q, v, key, cfg.mppi.temperature, nu)
+                                         info.candidates, q, v, key, mppi_cfg.temperature, nu)
 
         jitted[name, slots_sig] = jax.jit(jax.vmap(at, in_axes=(None, 0, 0, 0)))
         return jitted[name, slots_sig]
 
-    for sc_name in [s for s in preset["scenarios"].split(",") if s]:
-        sc = dataclasses.replace(SCENARIOS[sc_name], seconds=preset["seconds"])
-        mx = mjx.put_model(scenario_model(sm, sc, cfg.seed))
-        truth = make_planning(cfg, env_cfg, sm, envs.mjx_step_fn(sm.n_substeps, mx), policy,
-                              learned)
+    for sc_name in [s for s in cfg.scenarios.split(",") if s]:
+        sc = dataclasses.replace(SCENARIOS[sc_name], seconds=cfg.seconds)
+        mx = mjx.put_model(scenario_model(sm, sc, seed))
+        truth = make_planning(planning_cfg, env_cfg, sm, envs.mjx_step_fn(sm.n_substeps, mx),
+                              policy, learned)
         starts, values = map(jnp.asarray, schedule(sc))
         n_steps = max(1, int(round(sc.seconds / sm.robot.ctrl_dt)))
 
@@ -133,18 +151,18 @@ def run(args, preset: dict, command: str) -> dict:
             return jax.lax.scan(body, (d0, jnp.zeros(())), jnp.arange(n_steps))[1]
 
         q_aug, qd, actions = policy_episode()
-        pick = np.arange(preset["every"], n_steps, preset["every"])
+        pick = np.arange(cfg.every, n_steps, cfg.every)
         spread = float(np.asarray(actions).std(axis=0).mean())
         sig = (tuple(envs.contact_slots(mx)[0]), mx.opt.timestep.shape,
                jax.tree.structure(mx))
         for name, _ in models:
             t0 = time.time()
             per = checker(name, sig)(mx, q_aug[pick], qd[pick],
-                                     jax.random.split(jax.random.key(cfg.seed), len(pick)))
+                                     jax.random.split(jax.random.key(seed), len(pick)))
             per = jax.device_get(per)
             row = dict(scenario=sc_name, model=name, seconds=time.time() - t0,
-                       policy_action_std=spread, noise_std=cfg.noise_std,
-                       **model_check.summarise(per, cfg.mppi.policy_samples))
+                       policy_action_std=spread, noise_std=planning_cfg.noise_std,
+                       **model_check.summarise(per, mppi_cfg.policy_samples))
             rows.append(row)
             print(f"{sc_name:>8} {name:>6}: rank corr {row['spearman']:.2f}, top-10% overlap "
                   f"{row['top10_overlap']:.2f}, regret {row['regret']:.3f}, cost bias "
@@ -153,24 +171,24 @@ def run(args, preset: dict, command: str) -> dict:
                   flush=True)
             env = dict(command=command, backend=jax.default_backend(),
                        device=jax.devices()[0].device_kind, code=code_version(),
-                       preset=preset, models=dict(models), policy=args.policy,
-                       learned=args.learned)
+                       config=dataclasses.asdict(cfg), models=dict(models), policy=cfg.policy,
+                       learned=cfg.learned)
             atomic_write_text(out / "diagnosis.json", json.dumps(dict(env=env, rows=rows),
                                                                  indent=1))
-    write_md(out, rows, command, preset)
+    write_md(out, rows, command, cfg)
     plot(out, rows)
     print(f"wrote {out / 'diagnosis.md'} ({time.time() - t_start:.0f} s)")
     return dict(rows=rows)
 
 
-def write_md(out: pathlib.Path, rows: list[dict], command: str, preset: dict) -> None:
+def write_md(out: pathlib.Path, rows: list[dict], command: str, cfg: DiagnosisConfig) -> None:
     from stride_jax.io import atomic_write_text
 
     lines = ["# Planning through learned models: candidates replayed in the simulator", "",
              f"Command: `{command}`", "",
-             f"K={preset['samples']}, H={preset['horizon']}, {preset['policy_samples']} policy "
-             f"candidates; states every {preset['every']} control steps of the policy's own "
-             f"{preset['seconds']} s episode per scenario (`stride_jax/control/model_check.py`).",
+             f"K={cfg.samples}, H={cfg.horizon}, {cfg.policy_samples} policy "
+             f"candidates; states every {cfg.every} control steps of the policy's own "
+             f"{cfg.seconds} s episode per scenario (`stride_jax/control/model_check.py`).",
              "", "| scenario | model | rank corr | top-10% overlap | regret | cost bias (noise "
              "/ policy cand.) | true cost spread | vel err at H, noise / policy cand. (m/s) | "
              "joint err at H (rad) | policy action std / noise std (rad) |",

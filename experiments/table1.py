@@ -33,13 +33,32 @@ import stride_jax
 from stride_jax import config
 from stride_jax.jobs import pool
 
+
+@dataclasses.dataclass(frozen=True)
+class Table1Preset:
+    """The jobs' presets one table size runs.
+
+    Attributes:
+      episodes: data episodes (``stride data --episodes``).
+      train: the ``stride train`` preset (its steps unless ``steps`` is given).
+      eval: the ``stride eval`` preset.
+      data: the ``stride data`` preset.
+      steps: training steps (0: the training preset's).
+    """
+
+    episodes: int
+    train: str
+    eval: str = "default"
+    data: str = "default"
+    steps: int = 0
+
+
 PRESETS = {
-    # data episodes, training preset (its steps unless ``steps`` is given), eval preset
-    "tiny": dict(episodes=8, train="tiny", eval="tiny", data="default"),
+    "tiny": Table1Preset(episodes=8, train="tiny", eval="tiny"),
     # CPU-sized: the training default (128 x 3, batch 256) on 96 episodes, tens of minutes
-    "cpu": dict(episodes=96, train="default", steps=4000, eval="default", data="default"),
+    "cpu": Table1Preset(episodes=96, train="default", steps=4000),
     # the training preset `paper` is the committed tables' (12k steps; the G1's ran --steps 8000)
-    "paper": dict(episodes=1024, train="paper", eval="default", data="paper"),
+    "paper": Table1Preset(episodes=1024, train="paper", data="paper"),
 }
 MODELS = ("stride", "delan", "delan_prior", "lnn_diffusion", "onn", "diffusion")
 DATA = {"explore": [], "walk": ["--stochastic", "--policy", "results/policies/ppo_{robot}",
@@ -91,7 +110,7 @@ def main(argv: list[str] | None = None) -> None:
     config.add_flags(p, Table1Config, choices={"preset": tuple(PRESETS), "data": tuple(DATA)})
     args = config.from_flags(Table1Config, p.parse_args(argv))
     preset = PRESETS[args.preset]
-    steps = args.steps or preset.get("steps", 0)
+    steps = args.steps or preset.steps
     root = pathlib.Path(args.root or ".")
     robots = [r for r in args.robot.split(",") if r]
     command = "python experiments/table1.py " + shlex.join(sys.argv[1:] if argv is None else argv)
@@ -101,8 +120,8 @@ def main(argv: list[str] | None = None) -> None:
     data = {r: root / "data" / f"{r}{suffix}-{args.preset}" for r in robots}
     runs = {r: root / "runs" / f"{r}{suffix}-{args.preset}" for r in robots}
 
-    gen = {f"data-{r}": pool.stride_command("data", "--robot", r, "--preset", preset["data"],
-                                            "--episodes", str(preset["episodes"]),
+    gen = {f"data-{r}": pool.stride_command("data", "--robot", r, "--preset", preset.data,
+                                            "--episodes", str(preset.episodes),
                                             *[a.format(robot=r, noise=WALK_NOISE.get(r, 0.3))
                                               for a in DATA[args.data]],
                                             "--out", str(data[r]))
@@ -128,7 +147,7 @@ def main(argv: list[str] | None = None) -> None:
     run_dir = lambda r, m, s, v: runs[r] / f"{tag(m, v)}-s{s}"
     leader = {name(*j): run_dir(j[0], j[1], first_seed, "") for j in jobs}
     train = {name(r, m, s, v): pool.stride_command(
-        "train", "--robot", r, "--model", m, "--preset", preset["train"],
+        "train", "--robot", r, "--model", m, "--preset", preset.train,
         *(["--steps", str(steps)] if steps else []),
         "--seed", str(s), "--data", str(data[r]), "--out", str(run_dir(r, m, s, v)),
         "--deadline", str(deadline), *(["--acc-through", v] if v else []))
@@ -146,7 +165,7 @@ def main(argv: list[str] | None = None) -> None:
     # Evaluate runs side by side (each caches its eval.json), then tabulate per robot. The first
     # evaluation of a robot goes alone: it re-simulates the true continuations every other
     # evaluation of that dataset reuses.
-    evals = {n: pool.stride_command("eval", "--preset", preset["eval"], "--runs",
+    evals = {n: pool.stride_command("eval", "--preset", preset.eval, "--runs",
                                     str(folders[n]), "--out", str(folders[n] / "eval_out"))
              for n in ok}
     first = {r: next((folders[n] for n in evals if n.startswith(f"{r}/")), None) for r in robots}
@@ -159,7 +178,7 @@ def main(argv: list[str] | None = None) -> None:
         if not mine:
             continue
         out = args.out or f"results/table1/{r}{suffix}"
-        subprocess.run(pool.stride_command("eval", "--preset", preset["eval"], "--runs",
+        subprocess.run(pool.stride_command("eval", "--preset", preset.eval, "--runs",
                                            ",".join(mine), "--out", out, "--label", command),
                        check=True, env=env)
         print(f"[{time.time() - t0:.0f} s] wrote {out}/table.md", flush=True)

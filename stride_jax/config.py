@@ -3,8 +3,8 @@
 Every field of a config becomes one flag; a field that is itself a config dataclass becomes a
 group of dotted flags (``--residual.steps``, ``--mppi.samples``). ``bool`` fields are
 ``--x``/``--no-x``; ``int``, ``float`` and ``str`` fields take a value; other types (tuples,
-unions) stay at their preset's value. A preset is a named instance (or a dict of field values)
-and the flags given go on top of it:
+unions) stay at their preset's value. A preset is a named instance of the config (a module's
+``PRESETS = {"tiny": Config(...), ...}``) and the flags given go on top of it:
 
     parser = argparse.ArgumentParser()
     add_flags(parser, DiagnoseConfig)
@@ -138,21 +138,21 @@ def replace(cfg, values: Mapping[str, Any]):
 
 
 def from_flags(cls, args: argparse.Namespace, base=None):
-    """``base`` (an instance of ``cls``, a dict of field values, or None for the defaults)
-    with the flags that were given on top."""
-    if base is None:
-        base = cls()
-    elif isinstance(base, Mapping):
-        base = cls(**base)
-    return replace(base, {dest: getattr(args, dest, None) for dest in flag_names(cls)})
+    """``base`` (an instance of ``cls``, or None for the defaults) with the flags that were
+    given on top."""
+    return replace(cls() if base is None else base,
+                   {dest: getattr(args, dest, None) for dest in flag_names(cls)})
 
 
 def preset(cls, presets: Mapping[str, Any], name: str):
-    """The named preset as an instance of ``cls`` (``SystemExit`` for an unknown name)."""
+    """The named preset, an instance of ``cls`` (``SystemExit`` for an unknown name)."""
     if name not in presets:
         raise SystemExit(f"unknown preset {name!r}; choose from {', '.join(presets)}")
     p = presets[name]
-    return cls(**p) if isinstance(p, Mapping) else p
+    if not isinstance(p, cls):
+        raise TypeError(f"preset {name!r} is a {type(p).__name__}, not a {cls.__name__}: "
+                        f"presets are named instances of their config")
+    return p
 
 
 def to_flags(cfg, prefix: str = "") -> list[str]:

@@ -82,15 +82,16 @@ class ReproduceConfig:
 
 PRESETS = {
     # CPU, CI-sized: every part end to end on tiny data and models (numbers are not the paper's).
-    "tiny": dict(out="results/reproduce/tiny", seeds="0,1", train_legged=True,
-                 legged_episodes=8, legged_seconds=2.0, legged_train_preset="tiny",
-                 legged_steps=100, pendulum_episodes=24, pendulum_seconds=4.0,
-                 pendulum_train_preset="tiny", pendulum_steps=600, pendulum_seeds="0",
-                 windows=16, samples=2, nfe_flow="1,4", nfe_diffusion="1,4,10",
-                 timing_repeats=20, force_steps=64, force_window=40, force_samples=2,
-                 phase_grid=11, phase_worlds=32, phase_samples=16, alloc_steps=256),
+    "tiny": ReproduceConfig(
+        out="results/reproduce/tiny", seeds="0,1", train_legged=True, legged_episodes=8,
+        legged_seconds=2.0, legged_train_preset="tiny", legged_steps=100, pendulum_episodes=24,
+        pendulum_seconds=4.0, pendulum_train_preset="tiny", pendulum_steps=600,
+        pendulum_seeds="0", windows=16, samples=2, nfe_flow="1,4", nfe_diffusion="1,4,10",
+        timing_repeats=20, force_steps=64, force_window=40, force_samples=2, phase_grid=11,
+        phase_worlds=32, phase_samples=16, alloc_steps=256),
     # GPU: legged runs from `experiments/table1.py --preset paper` under the same root; the
     # horizon part reads Table I's own numbers (every seed) from the committed tables.
-    "paper": dict(out="results/reproduce/paper",
-                  horizon_tables="results/table1/go1/table.json,results/table1/g1/table.json"),
+    "paper": ReproduceConfig(
+        out="results/reproduce/paper",
+        horizon_tables="results/table1/go1/table.json,results/table1/g1/table.json"),
 }

@@ -39,7 +39,7 @@ def test_given_flags_go_on_top_of_the_preset():
     base = Outer(rate=0.1, inner=Inner(steps=3))
     cfg = _parse(["--inner.when", "always", "--no-fast", "--name", "b"], base)
     assert cfg == Outer(name="b", rate=0.1, fast=False, inner=Inner(steps=3, when="always"))
-    assert _parse([], {"rate": 2.0}) == Outer(rate=2.0)
+    assert _parse([], Outer(rate=2.0)) == Outer(rate=2.0)
 
 
 def test_to_flags_inverts_from_flags():
@@ -48,8 +48,37 @@ def test_to_flags_inverts_from_flags():
 
 
 def test_unknown_preset_names_the_choices():
+    presets = {"tiny": Outer(rate=0.1), "default": Outer(), "old": {"rate": 0.1}}
+    assert config.preset(Outer, presets, "tiny") is presets["tiny"]
     with pytest.raises(SystemExit, match="tiny, default"):
-        config.preset(Outer, {"tiny": {}, "default": {}}, "huge")
+        config.preset(Outer, presets, "huge")
+    with pytest.raises(TypeError, match="named instances"):
+        config.preset(Outer, presets, "old")
+
+
+def test_every_preset_table_holds_named_instances():
+    """No ``PRESETS`` table of the library, its jobs, experiments or the paper holds a dict of
+    overrides (``dict(...)`` or ``{...}``): each preset is an instance of its config."""
+    import ast
+    import pathlib
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    tables = 0
+    for path in [p for d in ("stride_jax", "experiments", "stride_paper")
+                 for p in sorted((root / d).rglob("*.py"))]:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(node, ast.Assign) and isinstance(node.value, ast.Dict)
+                    and any(isinstance(t, ast.Name) and t.id.endswith("PRESETS")
+                            for t in node.targets)):
+                continue
+            tables += 1
+            for key, value in zip(node.value.keys, node.value.values):
+                is_dict = isinstance(value, ast.Dict) or (
+                    isinstance(value, ast.Call) and isinstance(value.func, ast.Name)
+                    and value.func.id == "dict")
+                assert not is_dict, f"{path.relative_to(root)}:{value.lineno}: preset " \
+                                    f"{ast.literal_eval(key)!r} is a dict of overrides"
+    assert tables >= 15
 
 
 def test_help_comes_from_the_attributes_docstring():

@@ -15,12 +15,14 @@ from stride_jax.jobs import closed_loop as cl
 
 
 def test_oracle_closed_loop_runs_jitted_and_deterministically(go1):
-    cfg = dataclasses.replace(cl.ClosedLoopConfig(**cl.PRESETS["tiny"]), gait=True,
-                              noise_std=0.05)
+    cfg = dataclasses.replace(cl.PRESETS["tiny"], planning=planning_lib.PlanningConfig(
+        gait=True, noise_std=0.05))
     sc = cl.SCENARIOS["walk"]
     mx = mjx.put_model(cl.scenario_model(go1, sc))
-    planning = planning_lib.make_planning(cfg, envs.config("go1"), go1, cl.mjx_step_fn(go1, mx))
-    planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cfg, planning))
+    planning = planning_lib.make_planning(cfg.planning, envs.config("go1"), go1,
+                                          cl.mjx_step_fn(go1, mx))
+    planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cfg.mppi, cfg.planning,
+                                                                           planning))
     starts, values = cl.schedule(sc)
     n = 6
     episode = jax.jit(lambda key: cl.run_episode(go1, mx, envs.contact_slots(mx), planning,
@@ -71,7 +73,7 @@ def _fake_step(q, qd, ctrl, key):  # the robot stands still: planner plumbing on
 
 
 def test_gait_parameters_are_held_per_rollout(go1):
-    cfg = cl.ClosedLoopConfig(gait=True)
+    cfg = planning_lib.PlanningConfig(gait=True)
     planning = planning_lib.make_planning(cfg, envs.config("go1"), go1, _fake_step)
     q0 = planning_lib.augment(jnp.asarray(go1.info.qpos0), jnp.array([1.0, 0, 0]))
     qd0 = jnp.zeros(go1.mj.nv)
@@ -86,6 +88,10 @@ def test_gait_parameters_are_held_per_rollout(go1):
     np.testing.assert_array_equal(planning.ctrl(q1, u2), planning.ctrl(q1, u1))
     with pytest.raises(ValueError, match="planner state"):
         planning_lib.split(jnp.zeros(5), go1.mj.nq)
+    # the job builds its planning inside the jitted episode: the gait's nominal plan is a constant
+    traced = jax.eval_shape(lambda: jnp.asarray(planning_lib.make_planning(
+        cfg, envs.config("go1"), go1, _fake_step).nominal_u))
+    assert traced.shape == (12 + gait.N_GAIT,)
 
 
 def test_learned_reward_and_value_drive_the_planner(go1):
@@ -95,9 +101,10 @@ def test_learned_reward_and_value_drive_the_planner(go1):
     r_params = learned.init(jax.random.key(0), lc, jnp.ones((4, obs_n + 12)), jnp.ones(4))
     v_params = learned.init(jax.random.key(1), lc, jnp.ones((4, obs_n)), jnp.ones(4))
     cfg = cl.ClosedLoopConfig(mppi=mppi.MPPIConfig(samples=8, horizon=3))
-    planning = planning_lib.make_planning(cfg, env_cfg, go1, _fake_step, learned_params=(r_params,
-                                                                              v_params))
-    planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cfg, planning))
+    planning = planning_lib.make_planning(cfg.planning, env_cfg, go1, _fake_step,
+                                          learned_params=(r_params, v_params))
+    planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cfg.mppi, cfg.planning,
+                                                                           planning))
     q0 = planning_lib.augment(jnp.asarray(go1.info.qpos0), jnp.array([1.0, 0, 0]))
     u, _, info = jax.jit(planner.step)(planner.init(jax.random.key(0)), q0, jnp.zeros(18))
     assert u.shape == (12,) and np.isfinite(info.costs).all()
@@ -112,8 +119,7 @@ def test_the_task_clock_runs_inside_rollouts_for_a_clocked_policy(go1):
     hold = lambda q, qd, ctrl, key: (q, qd)
     for sm in (sim_model.load("g1"), go1):
         env_cfg = envs.config(sm.robot.name)
-        cfg = cl.ClosedLoopConfig(robot=sm.robot.name)
-        planning = planning_lib.make_planning(cfg, env_cfg, sm, hold)
+        planning = planning_lib.make_planning(planning_lib.PlanningConfig(), env_cfg, sm, hold)
         q_aug = planning_lib.augment(jnp.asarray(sm.info.qpos0), jnp.zeros(3), 0.25)
         q2, _ = planning.dynamics(q_aug, jnp.zeros(sm.mj.nv), jnp.zeros(sm.info.nu),
                                   jax.random.key(0))
@@ -148,8 +154,8 @@ def test_mppi_settings_are_one_nested_config_with_the_old_flags_kept():
     assert cl.ClosedLoopConfig().mppi == mppi.MPPIConfig()  # one source of MPPI's defaults
     planning = planning_lib.Planning(None, None, None, None, None, np.zeros(2), np.ones(2),
                                      (0.1, 0.2), np.zeros(2))
-    got = planning_lib.mppi_config(dataclasses.replace(
-        new, mppi=dataclasses.replace(new.mppi, policy_samples=8)), planning)
+    got = planning_lib.mppi_config(dataclasses.replace(new.mppi, policy_samples=8),
+                                   new.planning, planning)
     assert got.policy_samples == 0 and got.noise_std == (0.1, 0.2) and got.samples == 64
 
 
@@ -165,9 +171,9 @@ def test_pushes_move_the_base_sideways_by_the_impulse(go1):
         cl.push_schedule(dataclasses.replace(sc, pushes=sc.pushes * 5), mass)
     # A robot holding its home pose (a "policy" that always returns it): the push's impulse shows
     # as sideways base velocity, which the unpushed episode lacks.
-    cfg = cl.ClosedLoopConfig(**cl.PRESETS["tiny"])
+    cfg = cl.PRESETS["tiny"]
     mx = mjx.put_model(cl.scenario_model(go1, sc))
-    planning = planning_lib.make_planning(cfg, envs.config("go1"), go1, cl.mjx_step_fn(go1, mx))
+    planning = planning_lib.make_planning(cfg.planning, envs.config("go1"), go1, cl.mjx_step_fn(go1, mx))
     planning = planning._replace(policy=lambda q, qd: jnp.asarray(planning.nominal_u))
     starts, values = cl.schedule(dataclasses.replace(sc, commands=((0.0, 0.0, 0.0, 0.0),)))
     episode = jax.jit(lambda p: cl.run_episode(go1, mx, envs.contact_slots(mx), planning, None, 5,
@@ -175,3 +181,38 @@ def test_pushes_move_the_base_sideways_by_the_impulse(go1):
     pushed, still = episode(jnp.asarray(pushes)), episode(jnp.zeros_like(pushes))
     vy_world = float(pushed.v_base[3, 1] - still.v_base[3, 1])  # base frame ~ world frame here
     assert 0.1 < vy_world < 0.45, vy_world  # at most the free-body 0.4 m/s, less what the feet hold
+
+
+def test_planning_settings_are_one_nested_config_with_the_old_flags_kept():
+    """`--planning.noise-std` and the rest of the planner's task settings are one nested
+    `PlanningConfig`; the flat flags of recorded commands (`--noise-std`, `--gait` ...) give the
+    same config, in the closed loop and in the Dreamer-MPC ablation that shares it."""
+    import argparse
+
+    from stride_jax import config
+    from stride_jax.jobs import dreamer_mpc
+
+    values = dict(noise_std="0.05", prior_noise_std="0.1", plan_range="0.4", gait_noise="0.3",
+                  value_weight="0.5", fall_cost="2.0", track_weight="3.0")
+    parser = argparse.ArgumentParser()
+    config.add_flags(parser, cl.ClosedLoopConfig)
+    new = config.from_flags(cl.ClosedLoopConfig, parser.parse_args(
+        [a for k, v in values.items() for a in ("--planning." + k.replace("_", "-"), v)]
+        + ["--planning.gait"]), cl.PRESETS["tiny"])
+    old = config.from_flags(cl.ClosedLoopConfig, parser.parse_args(
+        [a for k, v in values.items() for a in ("--" + k.replace("_", "-"), v)] + ["--gait"]),
+        cl.PRESETS["tiny"])
+    want = planning_lib.PlanningConfig(gait=True, **{k: float(v) for k, v in values.items()})
+    assert new == old == dataclasses.replace(cl.PRESETS["tiny"], planning=want)
+    assert cl.ClosedLoopConfig().planning == planning_lib.PlanningConfig()  # one source
+    assert "--planning.noise-std" in config.to_flags(new)
+
+    parser = argparse.ArgumentParser()
+    config.add_flags(parser, dreamer_mpc.AblationConfig)
+    new = config.from_flags(dreamer_mpc.AblationConfig, parser.parse_args(
+        ["--planning.noise-std", "0.1", "--planning.prior-noise-std", "0.05"]))
+    old = config.from_flags(dreamer_mpc.AblationConfig, parser.parse_args(
+        ["--noise-std", "0.1", "--prior-noise-std", "0.05"]))
+    assert new == old and new.planning == planning_lib.PlanningConfig(noise_std=0.1,
+                                                                      prior_noise_std=0.05)
+    assert dreamer_mpc.variant_config(new, "prior").planning == new.planning

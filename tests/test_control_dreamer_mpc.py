@@ -171,9 +171,10 @@ def test_value_targets_from_planner_rollouts_match_a_hand_recursion(go1):
     env_cfg, r_params, v_params = _learned_params(go1, value_const=2.0)
     sink = lambda q, qd, ctrl, key: (q.at[2].add(-0.1), qd)
     cfg = cl.ClosedLoopConfig(mppi=mppi.MPPIConfig(samples=8, horizon=4))
-    planning = planning_lib.make_planning(cfg, env_cfg, go1, sink,
+    planning = planning_lib.make_planning(cfg.planning, env_cfg, go1, sink,
                                           learned_params=(r_params, v_params))
-    planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cfg, planning))
+    planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cfg.mppi, cfg.planning,
+                                                                           planning))
     q0 = planning_lib.augment(jnp.asarray(go1.info.qpos0), jnp.array([1.0, 0, 0]))
     qd0 = jnp.zeros(go1.mj.nv)
     u, _, info = planner.step(planner.init(jax.random.key(0)), q0, qd0)
@@ -221,12 +222,12 @@ def test_a_tiny_closed_loop_with_every_switch_on(go1):
                         discount=0.97, error_draws=2, error_bound=0.15, error_weight=0.1)
     cfg = cl.ClosedLoopConfig(mppi=m)
     ppo_policy = lambda obs, key: 0.1 * jnp.tanh(obs[:12])
-    planning = planning_lib.make_planning(cfg, env_cfg, go1, jitter, ppo_policy,
+    planning = planning_lib.make_planning(cfg.planning, env_cfg, go1, jitter, ppo_policy,
                                           (r_params, v_params), error_params=err_params)
-    planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cfg, planning))
+    planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cfg.mppi, cfg.planning,
+                                                                           planning))
     mx = mjx.put_model(go1.mj)
-    pcfg = planner_value.PlannerValueConfig(**{**planner_value.PRESETS["tiny"],
-                                               "seconds": 0.06})
+    pcfg = dataclasses.replace(planner_value.PRESETS["tiny"], seconds=0.06)
     data = jax.jit(lambda k: planner_value.collect(planning, planner, go1, mx,
                                                    cl.mjx_step_fn(go1, mx), env_cfg, pcfg, k)
                    ).lower(jax.random.key(0)).compile(

@@ -1,5 +1,7 @@
 """Learned reward and value models fit known functions; lambda-returns match their definition."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -85,6 +87,6 @@ def test_fit_reward_value_flags_nest_the_learned_config_with_the_flat_flags_kept
         ["--learned.steps", "5", "--learned.width", "8", "--envs", "4"]), job.FIT_PRESETS["tiny"])
     old = config.from_flags(job.FitConfig, parser.parse_args(
         ["--steps", "5", "--width", "8", "--envs", "4"]), job.FIT_PRESETS["tiny"])
-    assert new == old and new.learned == learned.LearnedConfig(
-        **dict(learned.PRESETS["tiny"], steps=5, width=8))
+    assert new == old and new.learned == dataclasses.replace(learned.PRESETS["tiny"], steps=5,
+                                                             width=8)
     assert job.FitConfig().learned == learned.LearnedConfig()  # one source of the defaults

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from stride_jax.gap import calibrate, diagnose, fit, nominal, real
+from stride_jax.gap import baseline, calibrate, diagnose, fit, nominal, real
 from stride_jax.jobs import gap_report as report
 from stride_jax.gap.nominal import Settings
 
@@ -34,10 +34,10 @@ def test_go1_nominal_is_the_shipped_mjcf_and_the_training_edit_is_a_settings_poi
     scale = diagnose.scale_of(training, data)
     as_settings = nominal.apply(shipped, s)
     assert as_settings.n_substeps == training.n_substeps == 5
-    assert calibrate.gap_of(as_settings, logged, scale) < 1e-20
-    assert calibrate.gap_of(shipped, logged, scale) > 1.0  # the model-form difference is large
+    assert baseline.gap_of(as_settings, logged, scale) < 1e-20
+    assert baseline.gap_of(shipped, logged, scale) > 1.0  # the model-form difference is large
     # neutral settings reproduce the model bit for bit
-    assert calibrate.gap_of(nominal.apply(shipped, Settings()), logged, scale) == calibrate.gap_of(shipped, logged, scale)
+    assert baseline.gap_of(nominal.apply(shipped, Settings()), logged, scale) == baseline.gap_of(shipped, logged, scale)
 
 
 def test_bad_settings_and_config_are_clear_errors():
@@ -85,7 +85,7 @@ def test_matching_settings_stay_nominal_in_noisy_logs():
     train, test, scale = _split_data(sm, logged, 3)
     cal = calibrate.calibrate(sm, train, test, scale, calibrate.CalibrateConfig(), QUIET)
     assert not cal.record["applied"] and cal.model is sm and cal.record["changed"] == []
-    assert "match the nominal model" in calibrate.sentence(cal.record)
+    assert "match the nominal model" in baseline.sentence(cal.record)
 
 
 def test_effect_on_top_of_a_model_form_difference_is_named_and_both_shrinks_reported(tmp_path):

@@ -231,7 +231,7 @@ def test_bench_oracle_row_plans_through_mjx(tmp_path):
 
     from stride_jax.jobs import bench_mppi as bench
 
-    cfg = dataclasses.replace(bench.BenchConfig(**bench.PRESETS["tiny"]), out=str(tmp_path))
+    cfg = dataclasses.replace(bench.PRESETS["tiny"], out=str(tmp_path))
     rows = bench.run(cfg, "test")
     by = {r["model"]: r for r in rows}
     assert set(by) == {"delan", "oracle"}

@@ -18,11 +18,11 @@ from stride_jax.jobs import train as job
 @pytest.fixture(scope="module")
 def made(tmp_path_factory):
     root = tmp_path_factory.mktemp("repro")
-    cfg = figures.ReproduceConfig(**dict(
+    cfg = dataclasses.replace(
         figures.PRESETS["tiny"], root=str(root), out=str(root / "out"),
         parts="phase,allocation", pendulum_episodes=16, pendulum_seconds=3.0,
         pendulum_steps=100, phase_models="delan,stride", phase_grid=7, phase_worlds=16,
-        phase_samples=8, alloc_steps=128))
+        phase_samples=8, alloc_steps=128)
     summary = figures.run(cfg, "tiny", "pytest", log=lambda s: None)
     return cfg, summary
 

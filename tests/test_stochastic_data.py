@@ -11,7 +11,7 @@ import pytest
 from stride_jax.robots import stochastic
 from stride_jax.jobs import data as collect
 from stride_jax.sim import dataset, model, randomize, rollout_cpu, rollout_mjx
-from stride_jax.train import loop
+from stride_jax.train import dynamics as train_dynamics
 
 
 @pytest.fixture(scope="module")
@@ -125,10 +125,10 @@ def test_hidden_values_do_not_reach_the_training_examples(tmp_path):
     ds = collect.generate(cfg)
     assert ds.meta["randomization"]["patch_m"] > 0 and ds.meta["randomization"]["pushes"] == 3
     split = ds.split("train")
-    ex = loop._examples(split)
+    ex = train_dynamics.examples(split)
     altered = {k: (np.random.default_rng(0).permutation(v) if k.startswith("rand/") else v)
                for k, v in split.items()}
-    for k, v in loop._examples(altered).items():
+    for k, v in train_dynamics.examples(altered).items():
         np.testing.assert_array_equal(v, ex[k])
     assert not any(k.startswith(("rand", "explore")) for k in ex)
     assert isinstance(dataset.load(ds.path), dataset.Dataset)

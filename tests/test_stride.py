@@ -93,7 +93,7 @@ def test_residual_penalty_spares_exactly_what_stance_feet_can_produce(robot, req
     stance feet produce through their Jacobians, and sees a pure force on the base or a load on a
     swing leg, which no contact can produce."""
     from stride_jax.eval import forces
-    from stride_jax.train import loop
+    from stride_jax.train import dynamics as train_dynamics
 
     sm = request.getfixturevalue(robot)
     nv, nfeet = sm.mj.nv, sm.nfeet
@@ -104,7 +104,7 @@ def test_residual_penalty_spares_exactly_what_stance_feet_can_produce(robot, req
     split = {k: np.zeros((1, 3, n), np.float32) for k, n in
              (("qd", nv), ("tau", nv), ("qdd", nv), ("ctrl", sm.mj.nu))}
     split.update(q=q[None].astype(np.float32), valid=np.ones((1, 3), bool), foot_contact=contact)
-    ex = loop._examples(split, lambda q: forces.foot_jacobians(sm, q))
+    ex = train_dynamics.examples(split, lambda q: forces.foot_jacobians(sm, q))
     jac = ex["contact_jac"]  # [2, nfeet * k, nv]
     k = jac.shape[1] // nfeet
     assert np.abs(jac[0, :k]).sum() > 0 and np.abs(jac[0, k:]).sum() == 0 and not jac[1].any()

@@ -14,6 +14,7 @@ import orbax.checkpoint as ocp
 import pytest
 
 from stride_jax import cli
+from stride_jax.train import dynamics as train_dynamics
 from stride_jax.train import loop
 
 ARGS = ["train", "--robot", "pendulum", "--preset", "tiny", "--hidden", "16", "--steps", "60",
@@ -82,7 +83,7 @@ def test_nan_loss_stops_with_a_clear_message(tmp_path):
     loss = lambda p, ex, key: (jnp.sum(p["w"]) * jnp.log(-ex["q"][0]), {})
     cfg = loop.LoopConfig(steps=4, batch=4, eval_every=2, ckpt_every=2)
     with pytest.raises(loop.TrainingError, match="loss became nan by step 2.*learning rate"):
-        loop.train(loss, init, split, split, cfg, tmp_path / "nan")
+        train_dynamics.train(loss, init, split, split, cfg, tmp_path / "nan")
 
 
 def test_chunked_steps_take_the_same_draws_as_one_scan():

@@ -67,8 +67,8 @@ class LearnedConfig:
 
 
 PRESETS = {
-    "tiny": dict(width=32, depth=2, steps=200, rounds=3, batch=256),
-    "default": {},
+    "tiny": LearnedConfig(width=32, depth=2, steps=200, rounds=3, batch=256),
+    "default": LearnedConfig(),
 }
 
 

@@ -94,9 +94,9 @@ class PlannerValueConfig:
                                      discount=self.discount, lam=self.lam)
 
 
-PRESETS = {"tiny": dict(worlds=2, seconds=0.1, record=2, rounds=1, steps=20, batch=32,
-                        error_width=8),
-           "default": {}}
+PRESETS = {"tiny": PlannerValueConfig(worlds=2, seconds=0.1, record=2, rounds=1, steps=20,
+                                      batch=32, error_width=8),
+           "default": PlannerValueConfig()}
 
 
 class PlannerData(NamedTuple):

@@ -7,8 +7,9 @@ a residual on a gait reference plus the gait parameters (:mod:`stride_jax.contro
 MPPI optimises jointly. The cost is the environment's reward terms that a state determines,
 negated, plus a tracking term and a fall cost; or the learned reward and value.
 
-Its settings are any object with the fields of :class:`PlanningSettings` (the closed-loop job's
-``ClosedLoopConfig`` is one); one episode in MJX is :func:`stride_jax.control.episode.run_episode`.
+Its settings are a :class:`PlanningConfig` (the closed-loop job's ``ClosedLoopConfig`` nests one
+beside the planner's :class:`~stride_jax.control.mppi.MPPIConfig`); one episode in MJX is
+:func:`stride_jax.control.episode.run_episode`.
 Used by the closed-loop job, the gait study and the planner's value
 (:mod:`stride_jax.control.planner_value`).
 """
@@ -17,7 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable, NamedTuple, Protocol
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -26,19 +27,35 @@ import numpy as np
 from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.sim import model as sim_model, rollout_mjx
 
-class PlanningSettings(Protocol):
-    """What :func:`make_planning` and :func:`mppi_config` read (the closed-loop job's
-    ``ClosedLoopConfig`` documents each field and holds their defaults)."""
 
-    mppi: mppi.MPPIConfig  # the planner's settings (noise and policy candidates set per task)
-    noise_std: float  # exploration std of the joint offsets (rad)
-    prior_noise_std: float  # noise std of the policy-prior candidates (rad)
-    plan_range: float  # bound of the joint offsets around home (rad)
-    gait: bool  # plan Go1 gait parameters jointly with joint residuals
-    gait_noise: float  # exploration std of the gait frequency (Hz)
-    value_weight: float  # weight of the learned terminal value
-    fall_cost: float  # cost per step spent fallen
-    track_weight: float  # weight of the quadratic velocity-tracking cost
+@dataclasses.dataclass(frozen=True)
+class PlanningConfig:
+    """The task side of the planner: its action space, exploration and cost (the closed-loop
+    job nests it as ``planning``: ``--planning.noise-std`` ...).
+
+    Attributes:
+      noise_std: exploration std of the joint offsets (rad).
+      prior_noise_std: noise std of the policy-prior candidates (``--mppi.prior-fraction``), rad:
+        the PPO policy's own action spread (0.079-0.087 rad over its Go1 episodes,
+        ``results/planning_diagnosis/``).
+      plan_range: bound of the planner's joint offsets around home (rad).
+      gait: plan gait parameters jointly with joint residuals (Go1 gait reference).
+      gait_noise: exploration std of the gait frequency (Hz); duty 0.15x, offsets 0.25x this.
+      value_weight: weight of the learned terminal value.
+      fall_cost: planner cost per step spent fallen (reward units per step).
+      track_weight: weight of a quadratic velocity-tracking cost added to the reward terms (per
+        (m/s)^2, times dt): the reward's exp-kernels are flat far from the command (at 2 m/s
+        below it, exp(-16)), which leaves a planner starting from rest without a direction.
+    """
+
+    noise_std: float = 0.15
+    prior_noise_std: float = 0.08
+    plan_range: float = 0.6
+    gait: bool = False
+    gait_noise: float = 0.2
+    value_weight: float = 1.0
+    fall_cost: float = 1.0
+    track_weight: float = 1.0
 
 
 class Planning(NamedTuple):
@@ -97,7 +114,7 @@ def servo_torque(sm: sim_model.SimModel, q: jax.Array, qd: jax.Array, ctrl: jax.
     return jnp.where(hi > lo, jnp.clip(tau, lo, hi), tau)
 
 
-def make_planning(cfg: PlanningSettings, env_cfg: envs.EnvConfig, sm: sim_model.SimModel,
+def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.SimModel,
                   model_step: Callable, ppo_policy: Callable | None = None,
                   learned_params: tuple | None = None,
                   gait_cfg: gait_lib.GaitConfig = gait_lib.GaitConfig(),
@@ -110,7 +127,7 @@ def make_planning(cfg: PlanningSettings, env_cfg: envs.EnvConfig, sm: sim_model.
     dt = sm.robot.ctrl_dt
     obs_of = functools.partial(envs.observe, env_cfg, home)
     if cfg.gait and sm.robot.name != "go1":
-        raise ValueError("the gait reference is the Go1's: --gait needs robot go1")
+        raise ValueError("the gait reference is the Go1's: --planning.gait needs robot go1")
 
     def gait_of(q_aug, u):
         """Gait parameters in force: a rollout's first sample, held (per-rollout sampling)."""
@@ -188,20 +205,22 @@ def make_planning(cfg: PlanningSettings, env_cfg: envs.EnvConfig, sm: sim_model.
         lo, hi = np.concatenate([lo, g_lo]), np.concatenate([hi, g_hi])
         noise = noise + (cfg.gait_noise, 0.15 * cfg.gait_noise) + (0.25 * cfg.gait_noise,) * 4
         trot = gait_lib.named("trot")
-        nominal = np.asarray(gait_lib.join_action(jnp.asarray(nominal), trot), np.float32)
+        with jax.ensure_compile_time_eval():  # a constant, also where this is traced (the job)
+            nominal = np.asarray(gait_lib.join_action(jnp.asarray(nominal), trot), np.float32)
     return Planning(dynamics, cost, value, policy, ctrl, lo, hi, noise, nominal,
                     0.0 if cfg.gait else env_cfg.gait_hz, obs_aug, disagreement, step_error,
                     reward_action)
 
 
-def mppi_config(cfg: PlanningSettings, planning: Planning) -> mppi.MPPIConfig:
-    """The run's MPPI settings with the task's exploration noise per action entry and the policy
-    prior's noise (and no policy candidates or prior without a policy)."""
+def mppi_config(mppi_cfg: mppi.MPPIConfig, cfg: PlanningConfig,
+                planning: Planning) -> mppi.MPPIConfig:
+    """The run's MPPI settings ``mppi_cfg`` with the task's exploration noise per action entry
+    and the policy prior's noise (and no policy candidates or prior without a policy)."""
     nu = len(planning.lo)
-    return dataclasses.replace(cfg.mppi, noise_std=planning.noise,
+    return dataclasses.replace(mppi_cfg, noise_std=planning.noise,
                                prior_noise_std=(cfg.prior_noise_std,) * nu,
-                               policy_samples=cfg.mppi.policy_samples if planning.policy else 0,
-                               prior_fraction=cfg.mppi.prior_fraction if planning.policy else 0.0)
+                               policy_samples=mppi_cfg.policy_samples if planning.policy else 0,
+                               prior_fraction=mppi_cfg.prior_fraction if planning.policy else 0.0)
 
 
 def make_planner(planning: Planning, mppi_cfg: mppi.MPPIConfig) -> mppi.Planner:

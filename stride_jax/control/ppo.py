@@ -126,24 +126,25 @@ class PPOConfig:
 
 PRESETS = {
     # Seconds on a CPU (plus compilation): the machinery, not a walking policy.
-    "tiny": dict(num_envs=4, episode_length=20, unroll_length=5, batch_size=4, num_minibatches=2,
-                 num_updates_per_batch=1, chunk_steps=80, checkpoints=2, total_steps=160,
-                 policy_width=16, policy_depth=2, value_width=16, value_depth=2),
+    "tiny": PPOConfig(num_envs=4, episode_length=20, unroll_length=5, batch_size=4,
+                      num_minibatches=2, num_updates_per_batch=1, chunk_steps=80, checkpoints=2,
+                      total_steps=160, policy_width=16, policy_depth=2, value_width=16,
+                      value_depth=2),
     # A CPU sanity run (minutes): the policy starts to track the forward command.
-    "cpu": dict(num_envs=32, episode_length=200, unroll_length=10, batch_size=32,
-                num_minibatches=4, num_updates_per_batch=2, chunk_steps=200_000, checkpoints=10,
-                total_steps=1_000_000, policy_width=64, policy_depth=3, value_width=64,
-                value_depth=3),
+    "cpu": PPOConfig(num_envs=32, episode_length=200, unroll_length=10, batch_size=32,
+                     num_minibatches=4, num_updates_per_batch=2, chunk_steps=200_000,
+                     checkpoints=10, total_steps=1_000_000, policy_width=64, policy_depth=3,
+                     value_width=64, value_depth=3),
     # One H100/H200: MuJoCo Playground's Go1 joystick settings.
-    "gpu": {},
-    "default": {},
+    "gpu": PPOConfig(),
+    "default": PPOConfig(),
 }
 
 
 def preset(name: str, **overrides) -> PPOConfig:
     if name not in PRESETS:
         raise ValueError(f"unknown PPO preset {name!r}; choose from {', '.join(PRESETS)}")
-    return PPOConfig(**{**PRESETS[name], **overrides})
+    return dataclasses.replace(PRESETS[name], **overrides)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -28,7 +28,9 @@ Search (k-step replay loss on the training split, every ``subsample``-th replay)
 
 What calibration can and cannot tell apart is in ``docs/gap.md``: a softer ground and a longer
 solref time constant are the same dynamics (the library's ``contact_softness`` is that knob), and
-contact parameters can take up part of a payload or of ground friction.
+contact parameters can take up part of a payload or of ground friction. How the baseline is
+scored and described (its residual and gaps, the verdict's clause) is
+:mod:`stride_jax.gap.baseline`'s.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ import numpy as np
 from scipy import optimize
 
 from stride_jax.gap import effects, fit, nominal, replay
+from stride_jax.gap.baseline import residual
 from stride_jax.gap.nominal import CONTINUOUS, Settings
 from stride_jax.sim.model import SimModel
 
@@ -130,28 +133,6 @@ def _sub(data: fit.Data, n: int) -> fit.Data:
     keep = np.arange(len(data.start)) % n == 0
     return data._replace(start=data.start[keep], first=data.first[keep], target=data.target[keep],
                          traj=data.traj[keep])
-
-
-def residual(model: SimModel, data: fit.Data, scale: np.ndarray, applied: dict | None = None) -> np.ndarray:
-    """``[M, nv]`` scaled k-step residual of ``model`` with the library effects ``applied``
-    (name -> parameters; none by default) on top."""
-    plan = effects.build(model, {n: np.atleast_1d(np.asarray(v, float)) for n, v in (applied or {}).items()})
-    return fit.residual(model, plan, data, scale)
-
-
-def gap_of(model: SimModel, trajs: list, scale: np.ndarray, k: int = 1, applied: dict | None = None) -> float:
-    """The gap (:func:`stride_jax.gap.fit.gap`) of ``model`` with the library effects ``applied``
-    (name -> parameters) on trajectories ``trajs`` (``k``-step replays)."""
-    data = fit.make_data(trajs, k)
-    plan = effects.build(model, {n: np.atleast_1d(np.asarray(v, float)) for n, v in (applied or {}).items()})
-    return fit.gap(fit.residual(model, plan, data, scale))
-
-
-def baseline_of(sm: SimModel, record: dict | None) -> SimModel:
-    """The baseline a diagnosis scored effects against, rebuilt from its ``calibration`` record."""
-    if not record or not record.get("applied"):
-        return sm
-    return nominal.apply(sm, Settings(**record["settings"]))
 
 
 def _pick(trial: list[Settings], name: str, loss, tol: float, own) -> Settings:
@@ -389,31 +370,3 @@ def refine(sm: SimModel, cal: Calibration, train: fit.Data, test: fit.Data, scal
     cal2 = calibrate(sm, train, test, scale, cfg, log, applied=held, start=cal.settings)
     info["settings_moved"] = cal2.settings != cal.settings
     return dataclasses.replace(cal2, record=cal2.record | {"refined": info})
-
-
-def sentence(record: dict | None) -> str:
-    """The calibration in one clause for the verdict, e.g. "the simulator's settings are off:
-    cone: elliptic -> pyramidal; time step: 2 ms -> 4 ms (calibrated first: 93.1% of the
-    held-out gap)"; empty when calibration was off."""
-    if not record or record.get("mode") == "off":
-        return ""
-    if not record["applied"]:
-        return ("the simulator's settings match the nominal model (calibration of time step, integrator, cone, "
-                "contacts and contact parameters did not lower the held-out gap)")
-    return (f"the simulator's settings are off: {'; '.join(record['changed'])} (calibrated first: they close "
-            f"{record['shrink']:.1%} of the held-out {record['k']}-step gap, sign-flip p = {record['p_value']:.2g})")
-
-
-def shrinks(sm: SimModel, base: SimModel, plan_best: effects.Plan, test: fit.Data, scale: np.ndarray
-            ) -> dict[str, float]:
-    """Held-out one-step gaps of the nominal model, the calibrated baseline and the best hypothesis
-    on top of it; the shrink of the final model against the nominal model and against the
-    baseline, and the calibration's own share."""
-    g_nom = fit.gap(residual(sm, test, scale))
-    g_base = g_nom if base is sm else fit.gap(residual(base, test, scale))
-    g_best = fit.gap(fit.residual(base, plan_best, test, scale))
-    tiny = 1e-300
-    return {"gap_nominal": g_nom, "gap_baseline": g_base, "gap_final": g_best,
-            "shrink_vs_nominal": 1 - g_best / max(g_nom, tiny),
-            "shrink_vs_baseline": 1 - g_best / max(g_base, tiny),
-            "calibration_shrink": 1 - g_base / max(g_nom, tiny)}

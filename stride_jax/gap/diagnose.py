@@ -39,7 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from stride_jax.gap import calibrate, effects, filters, fit, granularity, logs, progress, regions, residual, screen
+from stride_jax.gap import (baseline, calibrate, effects, filters, fit, granularity, logs, progress,
+                            regions, residual, screen)
 from stride_jax.gap.attribute import check_nominal, verdict, which
 from stride_jax.gap.localise import divergence, where
 from stride_jax.gap.regions import PHASES, dof_names, foot_phases, noise_floor  # noqa: F401 (re-exported)
@@ -246,12 +247,12 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
         out["verdict"]["reason"] += f"; indistinguishable set: {sets['summary']}"
     with progress.bar(1, "how far: held-out replays and rollouts", cfg.progress) as bar:
         out["how_far"] = how_far(sm, test, scale, w, cfg)
-        out["how_far"].update(calibrate.shrinks(sm_nominal, sm, w["plan_best"], test, scale))
+        out["how_far"].update(baseline.shrinks(sm_nominal, sm, w["plan_best"], test, scale))
         bar.update(1)
     stages["how_far"], t0 = time.time() - t0, time.time()
-    if calibrate.sentence(out["calibration"]):
+    if baseline.sentence(out["calibration"]):
         out["verdict"]["model_form"] = out["calibration"]["changed"]
-        out["verdict"]["reason"] = f"{calibrate.sentence(out['calibration'])}; on top of that, {out['verdict']['reason']}"
+        out["verdict"]["reason"] = f"{baseline.sentence(out['calibration'])}; on top of that, {out['verdict']['reason']}"
     out["residual"] = None
     if cfg.residual.wanted(out["verdict"]["verdict"]):
         out["residual"] = residual.fit_on_top(sm, w["plan_best"], train, test, scale, cfg.residual,

@@ -1,5 +1,6 @@
 """Jobs: the applications of the library, one module per ``stride`` subcommand, each a frozen
-config that nests the library's own configs, its named presets, and ``run(cfg, command)``.
+config that nests the library's own configs, its named presets (instances of that config),
+and ``run(cfg, command)``.
 
     data         ``stride data``        simulate a robot, write a dataset folder
     train        ``stride train``       dataset -> trained, checkpointed model
@@ -11,7 +12,7 @@ config that nests the library's own configs, its named presets, and ``run(cfg, c
     gap          ``stride gap ...``     the gap tool's subcommands; gap_report (its report),
                  gap_bench (``stride gap bench``, the blind benchmark)
     closed_loop  ``stride closed-loop`` MPPI in closed loop per model and scenario (its config,
-                 ``ClosedLoopConfig``, nests ``MPPIConfig``)
+                 ``ClosedLoopConfig``, nests ``MPPIConfig`` and ``PlanningConfig``)
     dreamer_mpc  the Dreamer-MPC ablation (``experiments/dreamer_mpc.py``)
     gait_study   the closed-loop gait study (``experiments/closed_loop_gait.py``)
     ppo          ``stride ppo``         one resumable chunk of a PPO policy into a run folder

@@ -79,20 +79,20 @@ class BenchConfig:
 
 
 PRESETS = {
-    "tiny": dict(robots="go1", models="delan,oracle", samples="8", horizons="4", hidden=32,
-                 depth=1, repeats=1),
-    "target": dict(robots="go1", models="stride,delan,onn", samples="128", horizons="16"),
-    "target-coarse": dict(robots="go1", models="stride,delan", samples="128", horizons="16",
-                          substeps=1),
+    "tiny": BenchConfig(robots="go1", models="delan,oracle", samples="8", horizons="4",
+                        hidden=32, depth=1, repeats=1),
+    "target": BenchConfig(robots="go1", models="stride,delan,onn", samples="128", horizons="16"),
+    "target-coarse": BenchConfig(robots="go1", models="stride,delan", samples="128",
+                                 horizons="16", substeps=1),
     # The 50 Hz CPU target with planning-sized networks (the paper's 256 x 3 is below its FLOP
     # floor on 2 cores; `experiments/planning_sizes.sh` measures what the smaller sizes cost in
     # accuracy): run with --hidden 64 or 128.
-    "target-small": dict(robots="go1", models="stride,delan", samples="128", horizons="16",
-                         hidden=64, substeps=1),
-    "default": {},
+    "target-small": BenchConfig(robots="go1", models="stride,delan", samples="128",
+                                horizons="16", hidden=64, substeps=1),
+    "default": BenchConfig(),
     # One device call's worth (the full default grid compiles ~54 planners): both robots, the
     # issue's largest K and H and a small one, at the control rate.
-    "gpu": dict(samples="256,1024", horizons="10,30", substeps=1),
+    "gpu": BenchConfig(samples="256,1024", horizons="10,30", substeps=1),
 }
 
 

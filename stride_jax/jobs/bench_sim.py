@@ -47,9 +47,9 @@ class BenchConfig:
 
 
 PRESETS = {
-    "tiny": dict(robots="pendulum", batches="16", steps=5, repeats=1),
-    "default": {},
-    "gpu": dict(backends="mjx", batches="1024,8192", steps=20, repeats=3),
+    "tiny": BenchConfig(robots="pendulum", batches="16", steps=5, repeats=1),
+    "default": BenchConfig(),
+    "gpu": BenchConfig(backends="mjx", batches="1024,8192", steps=20, repeats=3),
 }
 
 

@@ -19,7 +19,7 @@ The planner's view of the task (:mod:`stride_jax.control.planning`): its state i
 gait clock, latched gait)``, so one jitted planner follows command changes; its action is a
 joint-target offset from home (with ``gait``, a residual on the Go1 gait reference plus the gait
 parameters, optimised jointly); its cost is the environment's state reward terms, negated, plus a
-tracking term and ``fall_cost`` per step fallen, or (``learned``) the learned reward and value. A
+tracking term and ``planning.fall_cost`` per step fallen, or (``learned``) the learned reward and value. A
 PPO run can add ``policy_samples`` candidates.
 
 Scenarios (:mod:`stride_jax.control.scenarios`): velocity step 0 -> 2 m/s, sudden command
@@ -50,7 +50,7 @@ from stride_jax.control import envs
 from stride_jax.control.episode import (Trace, learned_step_fn, metrics,  # noqa: F401
                                         mjx_step_fn, run_episode)
 from stride_jax.control.mppi import MPPIConfig
-from stride_jax.control.planning import make_planner, make_planning, mppi_config
+from stride_jax.control.planning import PlanningConfig, make_planner, make_planning, mppi_config
 from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,  # noqa: F401
                                           push_schedule, scenario_model, schedule)
 from stride_jax.io import atomic_write_text, code_version
@@ -72,25 +72,18 @@ class ClosedLoopConfig:
       seconds: override every scenario's duration (0: keep).
       mppi: the planner's settings (``--mppi.samples``, ``--mppi.horizon``, ...; the older flat
         flags ``--samples``, ``--horizon``, ``--policy-samples`` ... still answer). Its
-        ``noise_std`` is set from ``noise_std`` below (and ``gait_noise``), its
+        ``noise_std`` is set from ``planning.noise_std`` (and ``planning.gait_noise``), its
         ``policy_samples`` dropped to 0 without a policy.
-      noise_std: exploration std of the joint offsets (rad).
-      prior_noise_std: noise std of the policy-prior candidates (``--mppi.prior-fraction``), rad:
-        the PPO policy's own action spread (0.079-0.087 rad over its Go1 episodes,
-        ``results/planning_diagnosis/``).
-      plan_range: bound of the planner's joint offsets around home (rad).
-      gait: plan gait parameters jointly with joint residuals (Go1 gait reference).
-      gait_noise: exploration std of the gait frequency (Hz); duty 0.15x, offsets 0.25x this.
+      planning: the task side of the planner (:class:`~stride_jax.control.planning.PlanningConfig`:
+        ``--planning.noise-std``, ``--planning.prior-noise-std``, ``--planning.plan-range``,
+        ``--planning.gait``, ``--planning.gait-noise``, ``--planning.value-weight``,
+        ``--planning.fall-cost``, ``--planning.track-weight``; the older flat flags
+        ``--noise-std``, ``--gait`` ... still answer).
       policy: PPO run folder supplying candidates (and the ``policy`` model); "" for none.
       learned: learned reward/value file (``reward_value.msgpack``); "" for the analytic cost.
-      value_weight: weight of the learned terminal value.
       error_model: a learned one-step error model of the planner's dynamics model
         (``error_model.msgpack`` of :mod:`stride_jax.control.planner_value`), used with
         ``--mppi.error-bound``/``--mppi.error-weight``; "" for none.
-      fall_cost: planner cost per step spent fallen (reward units per step).
-      track_weight: weight of a quadratic velocity-tracking cost added to the reward terms (per
-        (m/s)^2, times dt): the reward's exp-kernels are flat far from the command (at 2 m/s
-        below it, exp(-16)), which leaves a planner starting from rest without a direction.
       kernel: how learned structured models run their networks (``xla``; ``pallas`` or
         ``pallas-bf16``: fused kernels on GPUs, ``stride_jax.dynamics.fused``;
         ``pallas-step[-bf16]``: STRIDE's whole step as one kernel where it applies).
@@ -104,17 +97,10 @@ class ClosedLoopConfig:
     scenarios: str = "step,changes,slope,low_friction,soft,rough"
     seconds: float = 0.0
     mppi: MPPIConfig = MPPIConfig()
-    noise_std: float = 0.15
-    prior_noise_std: float = 0.08
-    plan_range: float = 0.6
-    gait: bool = False
-    gait_noise: float = 0.2
+    planning: PlanningConfig = PlanningConfig()
     policy: str = ""
     learned: str = ""
-    value_weight: float = 1.0
     error_model: str = ""
-    fall_cost: float = 1.0
-    track_weight: float = 1.0
     kernel: str = "xla"
     settle_s: float = 0.5
     out: str = "results/closed_loop"
@@ -122,18 +108,21 @@ class ClosedLoopConfig:
 
     # The flat flags of earlier commands (recorded in results/) still answer.
     FLAG_ALIASES: ClassVar[dict[str, str]] = {
-        f"mppi.{name}": "--" + name.replace("_", "-")
-        for name in ("samples", "horizon", "iterations", "temperature", "smoothing",
-                     "policy_samples", "policy_noise", "risk_draws", "risk", "risk_alpha",
-                     "risk_weight")}
+        **{f"mppi.{name}": "--" + name.replace("_", "-")
+           for name in ("samples", "horizon", "iterations", "temperature", "smoothing",
+                        "policy_samples", "policy_noise", "risk_draws", "risk", "risk_alpha",
+                        "risk_weight")},
+        **{f"planning.{f.name}": "--" + f.name.replace("_", "-")
+           for f in dataclasses.fields(PlanningConfig)}}
 
 
 PRESETS = {
-    "tiny": dict(models="oracle", scenarios="step", seconds=0.2,
-                 mppi=MPPIConfig(samples=8, horizon=3), settle_s=0.0,
-                 out="results/closed_loop/tiny"),
-    "default": {},
-    "gpu": dict(mppi=MPPIConfig(samples=1024, horizon=20), out="results/closed_loop/gpu"),
+    "tiny": ClosedLoopConfig(models="oracle", scenarios="step", seconds=0.2,
+                             mppi=MPPIConfig(samples=8, horizon=3), settle_s=0.0,
+                             out="results/closed_loop/tiny"),
+    "default": ClosedLoopConfig(),
+    "gpu": ClosedLoopConfig(mppi=MPPIConfig(samples=1024, horizon=20),
+                            out="results/closed_loop/gpu"),
 }
 
 
@@ -188,13 +177,13 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     def episode_fn(name, n_steps, slots):
         def episode(mx_sim, mx_plan, starts, values, pushes, key):
             step_fn = learned_steps.get(name) or mjx_step_fn(sm, mx_plan)
-            planning = make_planning(cfg, env_cfg, sm, step_fn, ppo_policy, learned_params,
+            planning = make_planning(cfg.planning, env_cfg, sm, step_fn, ppo_policy, learned_params,
                                      error_params=error_params if name in learned_steps
                                      else None)  # the simulator has no model error
             planner = None
             if name != "policy":
                 with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
-                    planner = make_planner(planning, mppi_config(cfg, planning))
+                    planner = make_planner(planning, mppi_config(cfg.mppi, cfg.planning, planning))
             return run_episode(sm, mx_sim, slots, planning, planner, n_steps, starts, values, key,
                                pushes=pushes)
         return jax.jit(episode)
@@ -250,7 +239,7 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
              f"Device: {env['device']} ({env['backend']}), jax {env['jax']}. MPPI K={cfg.mppi.samples}, "
              f"H={cfg.mppi.horizon}, {cfg.mppi.iterations} iteration(s); cost: "
              f"{'learned reward/value ' + cfg.learned if cfg.learned else 'analytic reward terms'}"
-             f"{', gait parameters planned' if cfg.gait else ''}"
+             f"{', gait parameters planned' if cfg.planning.gait else ''}"
              f"{', PPO candidates from ' + cfg.policy if cfg.policy and cfg.mppi.policy_samples else ''}"
              ". Tracking RMSE of the base-frame velocity (xy) and yaw rate while upright, "
              f"{cfg.settle_s} s after each command change.", "",

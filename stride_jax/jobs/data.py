@@ -60,9 +60,9 @@ class DataConfig:
 
 
 PRESETS = {
-    "tiny": dict(episodes=8, seconds=1.0),
-    "default": {},
-    "paper": dict(episodes=4096, backend="mjx", batch=1024),
+    "tiny": DataConfig(episodes=8, seconds=1.0),
+    "default": DataConfig(),
+    "paper": DataConfig(episodes=4096, backend="mjx", batch=1024),
 }
 
 

@@ -4,12 +4,12 @@ today, and the Dreamer-MPC switches added one at a time, in closed loop in MJX.
 Rows (``variants``, cumulative, each one switch more than the one before):
 
 * ``policy``: the PPO policy alone;
-* ``mppi``: today's planner: noise around the shifted plan (``noise_std``), ``policy_samples``
+* ``mppi``: today's planner: noise around the shifted plan (``planning.noise_std``), ``policy_samples``
   policy candidates, horizon ``mppi.horizon``, the learned reward and the value fitted on the
   policy's rollouts, undiscounted;
 * ``prior``: + policy-prior sampling, ``prior_fraction`` of the noise candidates around the
   policy's own closed-loop rollout through the model at the policy's action spread
-  (``prior_noise_std``);
+  (``planning.prior_noise_std``);
 * ``short``: + a short horizon (``short_horizon``) with the terminal value, discounted
   (``discount``, the value's gamma);
 * ``value``: + the value refitted on the planner's own rollouts
@@ -36,6 +36,7 @@ import json
 import math
 import pathlib
 import time
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -47,6 +48,7 @@ from stride_jax import config
 from stride_jax.control import episode as episode_lib, learned, planner_value, ppo
 from stride_jax.control import planning as planning_lib
 from stride_jax.control.mppi import MPPIConfig
+from stride_jax.control.planning import PlanningConfig
 from stride_jax.io import atomic_write_text, code_version
 from stride_jax.jobs import closed_loop
 from stride_jax.jobs.closed_loop import ClosedLoopConfig
@@ -68,9 +70,12 @@ class AblationConfig:
       seconds: each scenario's duration (s).
       variants: comma-separated rows of :data:`VARIANTS`, cumulative.
       mppi: today's planner settings (``--mppi.samples``, ``--mppi.horizon`` ...).
-      noise_std: plan-centred exploration std (rad).
+      planning: the task side of the planner, as in the closed loop
+        (:class:`~stride_jax.control.planning.PlanningConfig`): ``--planning.noise-std``, the
+        plan-centred exploration std (rad), ``--planning.prior-noise-std``, the prior
+        candidates' noise std (rad, the policy's own action spread), ...; the older
+        ``--noise-std`` and ``--prior-noise-std`` still answer.
       prior_fraction: share of the noise candidates drawn around the policy (``prior`` on).
-      prior_noise_std: their noise std (rad), the policy's own action spread.
       short_horizon: the horizon from ``short`` on (control steps).
       discount: gamma of the running costs and terminal value from ``short`` on (the value's).
       error_draws: residual draws per rollout step whose spread is the predicted error.
@@ -95,9 +100,8 @@ class AblationConfig:
     seconds: float = 6.0
     variants: str = ",".join(VARIANTS)
     mppi: MPPIConfig = MPPIConfig(samples=1024, horizon=20, policy_samples=64)
-    noise_std: float = 0.15
+    planning: PlanningConfig = PlanningConfig()
     prior_fraction: float = 0.5
-    prior_noise_std: float = 0.08
     short_horizon: int = 5
     discount: float = 0.97
     error_draws: int = 4
@@ -110,6 +114,10 @@ class AblationConfig:
     settle_s: float = 0.5
     out: str = "results/dreamer_mpc_go1"
     seed: int = 0
+
+    # The flat flags of earlier commands (recorded in results/) still answer.
+    FLAG_ALIASES: ClassVar[dict[str, str]] = {"planning.noise_std": "--noise-std",
+                                              "planning.prior_noise_std": "--prior-noise-std"}
 
     def __post_init__(self):
         unknown = [v for v in self.variants.split(",") if v and v not in VARIANTS]
@@ -126,13 +134,12 @@ class AblationConfig:
 
 
 PRESETS = {
-    "tiny": dict(scenarios="changes", seconds=0.1, variants=",".join(VARIANTS),
-                 mppi=MPPIConfig(samples=8, horizon=4, policy_samples=2), short_horizon=2,
-                 error_draws=2, settle_s=0.0,
-                 value=planner_value.PlannerValueConfig(**planner_value.PRESETS["tiny"]),
-                 out="results/dreamer_mpc_tiny"),
-    "default": {},
-    "gpu": {},
+    "tiny": AblationConfig(scenarios="changes", seconds=0.1, variants=",".join(VARIANTS),
+                           mppi=MPPIConfig(samples=8, horizon=4, policy_samples=2),
+                           short_horizon=2, error_draws=2, settle_s=0.0,
+                           value=planner_value.PRESETS["tiny"], out="results/dreamer_mpc_tiny"),
+    "default": AblationConfig(),
+    "gpu": AblationConfig(),  # the defaults are the GPU run's (``results/dreamer_mpc_go1``)
 }
 
 
@@ -152,8 +159,8 @@ def variant_config(cfg: AblationConfig, variant: str, learned: str | None = None
                                 error_weight=cfg.error_weight)
     return ClosedLoopConfig(
         robot=cfg.robot, models="policy" if variant == "policy" else cfg.model,
-        scenarios=cfg.scenarios, seconds=cfg.seconds, mppi=m, noise_std=cfg.noise_std,
-        prior_noise_std=cfg.prior_noise_std, policy=cfg.policy,
+        scenarios=cfg.scenarios, seconds=cfg.seconds, mppi=m, planning=cfg.planning,
+        policy=cfg.policy,
         learned=learned if learned and level >= VARIANTS.index("value") else cfg.learned,
         error_model=error_model if level >= VARIANTS.index("error") else "",
         kernel=cfg.kernel, settle_s=cfg.settle_s,
@@ -177,9 +184,10 @@ def train_value(cl_cfg: ClosedLoopConfig, cfg: planner_value.PlannerValueConfig,
     mx = mjx.put_model(sm.mj)
     true_step = episode_lib.mjx_step_fn(sm, mx)
     step_fn = episode_lib.learned_step_fn(run, sm, cl_cfg.kernel) if run else true_step
-    planning = planning_lib.make_planning(cl_cfg, env_cfg, sm, step_fn, ppo_policy,
+    planning = planning_lib.make_planning(cl_cfg.planning, env_cfg, sm, step_fn, ppo_policy,
                                           (reward_params, value_params))
-    planner = planning_lib.make_planner(planning, planning_lib.mppi_config(cl_cfg, planning))
+    planner = planning_lib.make_planner(
+        planning, planning_lib.mppi_config(cl_cfg.mppi, cl_cfg.planning, planning))
     data = jax.jit(lambda k: planner_value.collect(planning, planner, sm, mx, true_step, env_cfg,
                                                    cfg, k))(jax.random.key(cfg.seed))
     data = jax.block_until_ready(data)
@@ -276,8 +284,8 @@ def write(rows: list[dict], cfg: AblationConfig, command: str, out: pathlib.Path
              f"Command: `{command}`", "",
              f"Device: {env['device']} ({env['backend']}), jax {env['jax']}, code {env['code']}. "
              f"K={cfg.mppi.samples}, {cfg.mppi.policy_samples} policy candidates; today's "
-             f"planner H={cfg.mppi.horizon}, noise {cfg.noise_std} rad around the plan; prior "
-             f"{cfg.prior_fraction:.0%} of the noise candidates at {cfg.prior_noise_std} rad; "
+             f"planner H={cfg.mppi.horizon}, noise {cfg.planning.noise_std} rad around the plan; prior "
+             f"{cfg.prior_fraction:.0%} of the noise candidates at {cfg.planning.prior_noise_std} rad; "
              f"short H={cfg.short_horizon}, gamma {cfg.discount}; error: {cfg.error_draws} "
              f"draws{' + learned one-step error' if cfg.error_model else ''}, cut at "
              f"{bound:.3f} m/s, weight {cfg.error_weight}. Variants are cumulative.", "",

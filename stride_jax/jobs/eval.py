@@ -74,8 +74,9 @@ class EvalConfig:
     label: str = ""
 
 
-PRESETS = {"tiny": dict(horizon=10, windows=32, samples=3, force_steps=128, continuations=2),
-           "default": {}}
+PRESETS = {"tiny": EvalConfig(horizon=10, windows=32, samples=3, force_steps=128,
+                           continuations=2),
+           "default": EvalConfig()}
 
 
 def find_runs(pattern: str) -> list[pathlib.Path]:

@@ -56,7 +56,7 @@ class FitConfig:
 
 FIT_PRESETS = {
     "tiny": FitConfig(envs=8, rollout_steps=40, holdout=0.25,
-                      learned=learned_lib.LearnedConfig(**learned_lib.PRESETS["tiny"])),
+                      learned=learned_lib.PRESETS["tiny"]),
     "default": FitConfig(),
 }
 

@@ -14,10 +14,9 @@ from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.control.episode import metrics, mjx_step_fn, run_episode
-from stride_jax.control.planning import make_planner, make_planning, mppi_config
+from stride_jax.control.planning import PlanningConfig, make_planner, make_planning, mppi_config
 from stride_jax.control.scenarios import schedule, Scenario
 from stride_jax.io import atomic_write_text, code_version
-from stride_jax.jobs.closed_loop import ClosedLoopConfig
 from stride_jax.sim import model as sim_model
 
 
@@ -46,12 +45,13 @@ class GaitStudyConfig:
 
 
 GAIT_PRESETS = {
-    "tiny": dict(speeds="1.0", starts=1, seconds=0.3, samples=8, horizon=4,
-                 out="results/closed_loop/closed_loop_gait_tiny"),
-    "cpu": dict(speeds="0.5,1.5", starts=1, seconds=2.0, samples=32, horizon=15,
-                out="results/closed_loop/closed_loop_gait_cpu"),
-    "default": dict(samples=256),
-    "gpu": dict(samples=1024, horizon=30, starts=3, out="results/closed_loop/closed_loop_gait_gpu"),
+    "tiny": GaitStudyConfig(speeds="1.0", starts=1, seconds=0.3, samples=8, horizon=4,
+                            out="results/closed_loop/closed_loop_gait_tiny"),
+    "cpu": GaitStudyConfig(speeds="0.5,1.5", starts=1, seconds=2.0, samples=32, horizon=15,
+                           out="results/closed_loop/closed_loop_gait_cpu"),
+    "default": GaitStudyConfig(samples=256),
+    "gpu": GaitStudyConfig(samples=1024, horizon=30, starts=3,
+                           out="results/closed_loop/closed_loop_gait_gpu"),
 }
 
 
@@ -63,11 +63,10 @@ def gait_study(cfg: GaitStudyConfig, command: str = "", log=print) -> dict:
     mx = mjx.put_model(sm.mj)
     slots = envs.contact_slots(mx)
     n_steps = max(1, int(round(cfg.seconds / sm.robot.ctrl_dt)))
-    cl_cfg = ClosedLoopConfig(mppi=mppi.MPPIConfig(samples=cfg.samples, horizon=cfg.horizon),
-                              gait=True,
-                              noise_std=cfg.noise_std, gait_noise=cfg.gait_noise)
-    planning = make_planning(cl_cfg, envs.config("go1"), sm, mjx_step_fn(sm, mx))
-    planner = make_planner(planning, mppi_config(cl_cfg, planning))
+    mppi_cfg = mppi.MPPIConfig(samples=cfg.samples, horizon=cfg.horizon)
+    planning_cfg = PlanningConfig(gait=True, noise_std=cfg.noise_std, gait_noise=cfg.gait_noise)
+    planning = make_planning(planning_cfg, envs.config("go1"), sm, mjx_step_fn(sm, mx))
+    planner = make_planner(planning, mppi_config(mppi_cfg, planning_cfg, planning))
     nu = sm.info.nu
 
     def open_loop(gait_u, starts, values):

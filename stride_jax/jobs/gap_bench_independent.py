@@ -43,7 +43,7 @@ import mujoco
 import numpy as np
 
 from stride_jax import io
-from stride_jax.gap import calibrate, diagnose, fit, logs, nominal
+from stride_jax.gap import baseline, diagnose, fit, logs, nominal
 from stride_jax.jobs import gap_bench as bench
 from stride_jax.sim import model as sim_model
 from stride_jax.sim.model import SimModel
@@ -467,11 +467,11 @@ def score(sm: SimModel, case: dict, res: dict, clean_held: list, settings: dict,
                                                "shrink_vs_baseline", "calibration_shrink")}
         data1 = list(clean_held)
         scale = diagnose.scale_of(sm, fit.make_data(data1))
-        base = calibrate.baseline_of(sm, cal)
-        g_nom = calibrate.gap_of(sm, data1, scale)
-        g_base = calibrate.gap_of(base, data1, scale)
-        g_final = calibrate.gap_of(base, data1, scale, applied=best["params"])
-        g_form = calibrate.gap_of(_form_model(sm, form), data1, scale)
+        base = baseline.baseline_of(sm, cal)
+        g_nom = baseline.gap_of(sm, data1, scale)
+        g_base = baseline.gap_of(base, data1, scale)
+        g_final = baseline.gap_of(base, data1, scale, applied=best["params"])
+        g_form = baseline.gap_of(_form_model(sm, form), data1, scale)
         row["clean"] = {"gap_nominal": g_nom, "gap_baseline": g_base, "gap_final": g_final, "gap_true_form": g_form,
                         "shrink_vs_nominal": 1 - g_final / max(g_nom, 1e-300),
                         "shrink_vs_baseline": 1 - g_final / max(g_base, 1e-300),

@@ -2,8 +2,8 @@
 
 The job's config nests the library's: the networks' (:class:`~stride_jax.dynamics.mlp.MLPConfig`,
 ``net``) and the loop's (:class:`~stride_jax.train.loop.LoopConfig`, ``loop``); the model's
-config and normalisers come from :mod:`stride_jax.train.setup`, the loop from
-:mod:`stride_jax.train.loop`. Presets are named instances (:data:`PRESETS`).
+config and normalisers come from :mod:`stride_jax.train.setup`, the training from
+:mod:`stride_jax.train.dynamics` (around :mod:`stride_jax.train.loop`). Presets are named instances (:data:`PRESETS`).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from stride_jax.io import atomic_write_text, code_version
 from stride_jax.jobs import data as data_job
 from stride_jax.sim import dataset
 from stride_jax.sim import model as sim_model
-from stride_jax.train import loop
+from stride_jax.train import dynamics as train_dynamics
 from stride_jax.train.loop import LoopConfig
 from stride_jax.train.setup import model_config, scales
 
@@ -108,9 +108,8 @@ def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.P
                 f"no dataset at {data_dir}: make it first with `stride data --robot {cfg.robot} "
                 f"--preset {cfg.data_preset} --out {data_dir}`, or train with --make-data")
         log(f"no dataset at {data_dir}: generating one (preset {cfg.data_preset})")
-        preset = dict(data_job.PRESETS[cfg.data_preset], robot=cfg.robot, out=str(data_dir),
-                      distributed=cfg.distributed)
-        data_job.generate(data_job.DataConfig(**preset))
+        data_job.generate(dataclasses.replace(data_job.PRESETS[cfg.data_preset], robot=cfg.robot,
+                                              out=str(data_dir), distributed=cfg.distributed))
     ds = dataset.load(data_dir, robot=cfg.robot)
     if "act_dof" not in ds.meta:
         raise dataset.DatasetError(f"{data_dir} predates actuator metadata; regenerate it")
@@ -132,8 +131,8 @@ def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.P
     if ds.meta["feet"]:
         sm = sim_model.load(ds.meta["robot"])
         jacobians = lambda q: forces.foot_jacobians(sm, q)  # noqa: E731
-    loop.train(model.loss, model.init, ds.split("train"), ds.split("val"), cfg.loop, out, log,
-               jacobians=jacobians)
+    train_dynamics.train(model.loss, model.init, ds.split("train"), ds.split("val"), cfg.loop,
+                         out, log, jacobians=jacobians)
     log(f"trained {cfg.model} on {cfg.robot}: best params in {out / 'best'}, "
         f"log in {out / 'metrics.csv'}")
     return out

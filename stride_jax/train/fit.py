@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 from stride_jax.dynamics import checkpoint, models, stride
-from stride_jax.train import loop, setup
+from stride_jax.train import dynamics, loop, setup
 from stride_jax.types import ModelSpec
 
 
@@ -67,5 +67,5 @@ def fit(q, qd, tau, qdd, out: str | pathlib.Path, model: str = "delan_prior",
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     checkpoint.save_definition(out, m)
-    params = loop.train_examples(m.loss, m.init, train, val, loop_cfg, out, log)
+    params = dynamics.train_examples(m.loss, m.init, train, val, loop_cfg, out, log)
     return m, params

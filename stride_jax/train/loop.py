@@ -2,8 +2,9 @@
 with validation and best-parameter selection, resumable orbax checkpoints, a NaN guard, progress
 and a CSV log.
 
-Two layers, both used by every model trained with optax here (the dynamics models, the gap
-tool's STRIDE residual, the learned reward and value; PPO keeps Brax's own loop):
+Two layers, both used by every model trained with optax here (the dynamics models through
+:mod:`stride_jax.train.dynamics`, the gap tool's STRIDE residual, the learned reward and value;
+PPO keeps Brax's own loop):
 
 * :func:`scan_steps` -- ``n`` optimiser steps as one ``lax.scan``: pure, jit-able, usable inside
   another ``scan`` (the value model's fitted-value-iteration rounds).
@@ -21,7 +22,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import functools
-import json
 import pathlib
 import shutil
 import time
@@ -36,8 +36,6 @@ from jax.sharding import NamedSharding, PartitionSpec
 from tqdm import tqdm
 
 from stride_jax import distributed
-from stride_jax.dynamics.checkpoint import params_sha256
-from stride_jax.io import atomic_write_text
 from stride_jax.sim import rollout_mjx
 
 # ``loss_fn(params, batch, key) -> (loss [], parts {name: []})``: the mean loss of a minibatch
@@ -312,94 +310,3 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
                                 args=ocp.args.StandardRestore(host(state["params"])))
     return Result(host(kept), np.concatenate(losses) if losses else np.zeros(0), checked_at, scores,
                   best_step, best_score, step)
-
-
-# ----------------------------------------------------------------------------- dynamics models
-
-
-def _examples(split: dict, jacobians: Callable | None = None) -> dict:
-    """Transitions between consecutive valid steps as flat examples [N, ...]: the step's
-    ``q, qd, tau, qdd, ctrl``, the next step's ``q_next, qd_next``, and ``contact_jac``
-    ``[N, nfeet * k, nv]``, the sole Jacobians of the feet in contact (zero rows for feet in
-    swing; training-time supervision only, see ``stride.loss``).
-
-    ``jacobians(q [N, nq]) -> [N, nfeet, k, nv]`` (``eval.forces.foot_jacobians``); without it
-    (robots without feet) ``contact_jac`` has no rows.
-    """
-    v = split["valid"][:, :-1] & split["valid"][:, 1:]
-    ex = {k: split[k][:, :-1][v] for k in ("q", "qd", "tau", "qdd", "ctrl")}
-    n, nv = len(ex["q"]), split["qd"].shape[-1]
-    feet = split.get("foot_contact")
-    if jacobians is None or feet is None or feet.shape[-1] == 0:
-        jac = np.zeros((n, 0, nv), np.float32)
-    else:
-        stance = feet[:, :-1][v] > 0.5  # [N, nfeet]
-        jac = np.zeros((n, feet.shape[-1], 0, nv), np.float32)
-        if stance.any():
-            some = stance.any(-1)
-            j = np.asarray(jacobians(ex["q"][some]), np.float32)
-            jac = np.zeros((n,) + j.shape[1:], np.float32)
-            jac[some] = j * stance[some][:, :, None, None]
-        jac = jac.reshape(n, -1, nv)
-    ex.update(q_next=split["q"][:, 1:][v], qd_next=split["qd"][:, 1:][v], contact_jac=jac)
-    ex = {k: np.asarray(a, np.float32) for k, a in ex.items()}
-    bad = {k: int((~np.isfinite(a.reshape(len(a), -1))).any(-1).sum()) for k, a in ex.items()}
-    if any(bad.values()):
-        raise TrainingError(f"non-finite values in valid dataset steps ({bad}); regenerate the "
-                            "dataset with this version, which marks such steps invalid")
-    return ex
-
-
-def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: dict,
-          cfg: LoopConfig, out: pathlib.Path, log: Callable[[str], None] = print,
-          jacobians: Callable | None = None) -> dict:
-    """Trains ``init_fn(key)`` params on ``loss_fn(params, example, key)``; returns the best params.
-
-    Writes ``out/ckpt`` (latest, resumable), ``out/best`` (lowest validation ``select`` part of
-    the loss where it has one, else the lowest validation loss) and
-    ``out/metrics.csv``; resumes from ``out/ckpt`` when it exists. ``jacobians``: see
-    ``_examples``.
-    """
-    data, val = _examples(train_split, jacobians), _examples(val_split, jacobians)
-    return train_examples(loss_fn, init_fn, data, val, cfg, out, log)
-
-
-def train_examples(loss_fn: Callable, init_fn: Callable, data: dict, val: dict,
-                   cfg: LoopConfig, out: pathlib.Path, log: Callable[[str], None] = print
-                   ) -> dict:
-    """:func:`train` on flat examples ``{name: [N, ...]}`` (``q, qd, tau, qdd``, and whatever
-    else ``loss_fn`` reads) for training and validation: :func:`run` with :func:`optimizer`.
-    ``loss_fn(params, example, key) -> (loss, parts)`` is for one example. ``out/summary.json``
-    records the best step and the SHA-256 of its parameters (``checkpoint.params_sha256``)."""
-    out = pathlib.Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    if len(data["q"]) == 0 or len(val["q"]) == 0:
-        raise TrainingError("no valid training or validation steps in the dataset")
-    key_init, key_loop = jax.random.split(jax.random.key(cfg.seed))
-
-    def mean_loss(params, ex, key):
-        keys = jax.random.split(key, len(ex["q"]))
-        total, parts = jax.vmap(loss_fn, in_axes=(None, 0, 0))(params, ex, keys)
-        return jnp.mean(total), jax.tree.map(jnp.mean, parts)
-
-    eval_fn = jax.jit(mean_loss)
-    val_ex = jax.tree.map(lambda a: a[: min(len(a), 4096)], val)
-
-    def validate(params):
-        val_loss, parts = eval_fn(params, val_ex, jax.random.key(0))
-        # The best checkpoint: the lowest validation "select" part where the loss names one
-        # (structured models: acceleration error plus the allocation term, not a total
-        # dominated by the generator's loss), else the lowest total.
-        return float(parts.get("select", val_loss)), {
-            "val_loss": float(val_loss), **{f"val_{k}": float(v) for k, v in parts.items()}}
-
-    res = run(mean_loss, init_fn(key_init), data, cfg, optimizer(cfg.lr, cfg.steps), key_loop,
-              validate, out, log)
-    if not distributed.is_main():
-        return res.params
-    atomic_write_text(out / "summary.json", json.dumps(
-        {"best_val": res.best_score, "best_step": res.best_step,
-         "params_sha256": params_sha256(res.params),
-         "steps": cfg.steps, "steps_done": res.steps_done,
-         "finished": res.steps_done >= cfg.steps}, indent=1))
-    return res.params
