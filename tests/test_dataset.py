@@ -99,3 +99,17 @@ def test_cli_writes_a_dataset(tmp_path, capsys):
 def test_cli_rejects_unknown_robot():
     with pytest.raises(SystemExit, match="unknown robot 'spot'"):
         cli.main(["data", "--robot", "spot"])
+
+
+def test_repeated_mjx_collections_reuse_one_compilation():
+    """A second collection of the same model and length (data in chunks, a benchmark timing its
+    second call) runs the compiled function of the first instead of tracing and compiling again."""
+    from stride_jax.sim import rollout_mjx
+
+    sm = model.load("pendulum")
+    a = rollout_mjx.collect(sm, jax.random.key(0), 2, 5)
+    b = rollout_mjx.collect(sm, jax.random.key(1), 2, 5)
+    fn = rollout_mjx.collect_fn(sm, 5)
+    assert fn is rollout_mjx.collect_fn(sm, 5) and fn._cache_size() == 1
+    assert rollout_mjx.collect_fn(sm, 6) is not fn
+    assert not np.array_equal(a.records.q, b.records.q)  # new keys, new episodes

@@ -160,6 +160,22 @@ def world_sharding(n_worlds: int) -> NamedSharding | None:
     return NamedSharding(mesh, PartitionSpec("worlds"))
 
 
+_COLLECT_FNS: dict = {}
+
+
+def collect_fn(sm: SimModel, n_steps: int, randomized: bool = True) -> Callable:
+    """The jitted, vmapped ``episodes(keys [B]) -> Episode`` of :func:`make_collect_fn`, built once
+    per (model, episode length, randomization), so that repeated collections in one process (data
+    in chunks, benchmarks timing a second call) reuse its compilation instead of tracing anew."""
+    k = (id(sm), n_steps, randomized)
+    hit = _COLLECT_FNS.get(k)
+    if hit is None or hit[0] is not sm:  # the model kept beside its id: an id is never reused
+        if len(_COLLECT_FNS) >= 8:
+            _COLLECT_FNS.clear()
+        hit = _COLLECT_FNS[k] = (sm, jax.jit(jax.vmap(make_collect_fn(sm, n_steps, randomized))))
+    return hit[1]
+
+
 def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, batch: int | None = None,
             randomized: bool = True, progress: Callable[[int], None] | None = None,
             part: slice = slice(None)) -> Episode:
@@ -173,7 +189,7 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, batch: 
     keys = jax.random.split(key, n_episodes)[part]
     n_episodes = keys.shape[0]
     batch = min(batch or n_episodes, n_episodes)
-    fn = jax.jit(jax.vmap(make_collect_fn(sm, n_steps, randomized)))
+    fn = collect_fn(sm, n_steps, randomized)
     sharding = world_sharding(batch)
     out = []
     for start in range(0, n_episodes, batch):
