@@ -49,7 +49,7 @@ state plans as usual.
 Several devices: ``make(..., sharding=sample_sharding())`` splits the rollouts over all local
 devices. On a CPU this is how a planner uses more than one core: XLA runs one device's small
 operations one after another (a model step at K=128 compiles to ~220 of them, each too small to
-split; ``experiments/model_step_time.py``), so ``STRIDE_HOST_DEVICES=2`` (two host devices, see
+split; ``experiments/probes/model_step_time.py``), so ``STRIDE_HOST_DEVICES=2`` (two host devices, see
 ``stride_jax/_env.py``) runs two halves of the samples side by side: the same plan to float
 rounding (tested). Measured on a 2-core CPU, Go1 STRIDE 64 x 3 with one network for L and V,
 K=128, H=16 (``STRIDE_HOST_DEVICES=1|2 stride bench-mppi --preset target-small --models stride

@@ -85,7 +85,7 @@ PRESETS = {
     "target-coarse": BenchConfig(robots="go1", models="stride,delan", samples="128",
                                  horizons="16", substeps=1),
     # The 50 Hz CPU target with planning-sized networks (the paper's 256 x 3 is below its FLOP
-    # floor on 2 cores; `experiments/planning_sizes.sh` measures what the smaller sizes cost in
+    # floor on 2 cores; `experiments/probes/planning_sizes.sh` measures what the smaller sizes cost in
     # accuracy): run with --hidden 64 or 128.
     "target-small": BenchConfig(robots="go1", models="stride,delan", samples="128",
                                 horizons="16", hidden=64, substeps=1),
@@ -158,7 +158,7 @@ class Setup(NamedTuple):
 
 
 def setup(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig) -> Setup:
-    """The planner :func:`measure` times (also read by ``experiments/mppi_hlo_ops.py``): a model
+    """The planner :func:`measure` times (also read by ``experiments/probes/mppi_hlo_ops.py``): a model
     of ``cfg``'s size at initialisation, MPPI with ``K`` samples and horizon ``H`` and the
     tracking cost, from the robot's home pose."""
     sm, meta, spec, act = _robot(robot)

@@ -3,7 +3,7 @@ LAPACK's Cholesky (``cho_solve``, what the models used before), by Gauss-Jordan 
 vmapped (batch first) and by :func:`stride_jax.dynamics.linalg.spd_solve` (Gauss-Jordan with the
 batch last on a CPU); jitted, median of 300 calls, with the largest difference to Cholesky.
 
-    python experiments/spd_solve_time.py --batch 128 --n 18
+    python experiments/probes/spd_solve_time.py --batch 128 --n 18
 """
 
 import argparse

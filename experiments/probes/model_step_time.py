@@ -2,7 +2,7 @@
 machine: Go1, a batch of rollouts, integrating once per control step, networks at
 initialisation; median of 50 calls, and the number of operations in the compiled step.
 
-    python experiments/model_step_time.py --hidden 64 --batch 128
+    python experiments/probes/model_step_time.py --hidden 64 --batch 128
 """
 
 import argparse

@@ -4,8 +4,8 @@ The planner's rollouts are unrolled (no loops), so the ENTRY computation of the 
 lists everything one planning step launches: fusions, library calls (cuBLAS, cuSOLVER) and the
 command buffers (CUDA graphs) XLA grouped some of them into. Usage:
 
-    python experiments/mppi_hlo_ops.py --robot go1 --model stride --samples 1024 --horizon 30
-    python experiments/mppi_hlo_ops.py --shared-lnn --hidden 64 --kernel pallas-bf16 --horizon 4
+    python experiments/probes/mppi_hlo_ops.py --robot go1 --model stride --samples 1024 --horizon 30
+    python experiments/probes/mppi_hlo_ops.py --shared-lnn --hidden 64 --kernel pallas-bf16 --horizon 4
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """One fused jvp kernel (``stride_jax.dynamics.fused``) timed as a single jitted call, for one
 kernel layout: how its time depends on the batch, the network and the layout (GPU study).
 
-    python experiments/fused_jvp_time.py HIDDEN DEPTH SAMPLES CHUNK,ROWS,WARPS DTYPE
-    python experiments/fused_jvp_time.py 256 3 1024 64,16,4 bfloat16
+    python experiments/probes/fused_jvp_time.py HIDDEN DEPTH SAMPLES CHUNK,ROWS,WARPS DTYPE
+    python experiments/probes/fused_jvp_time.py 256 3 1024 64,16,4 bfloat16
 
 Prints the median of 20 calls (dispatch included) with the weights as constants of the compiled
 call ("const") and as arguments ("arg"). ``SAMPLES`` = 16 is one kernel program.

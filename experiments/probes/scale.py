@@ -1,8 +1,8 @@
 """Data generation and training throughput on 1, 2, ... devices of one host, in one run
 -> results/scale/scale.{md,json}.
 
-    python experiments/scale.py --robot go1 --devices 1,2 --out results/scale            # GPUs
-    python experiments/scale.py --robot go1 --devices 1,2 --platform cpu --out /tmp/s    # forced host devices
+    python experiments/probes/scale.py --robot go1 --devices 1,2 --out results/scale            # GPUs
+    python experiments/probes/scale.py --robot go1 --devices 1,2 --platform cpu --out /tmp/s    # forced host devices
 
 Each device count runs in its own process (JAX fixes its devices when it starts): on GPUs it
 sees the first ``d`` of them (``CUDA_VISIBLE_DEVICES``), on a CPU ``d`` forced host devices
@@ -27,7 +27,7 @@ import sys
 import tempfile
 import time
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 
 def child(args) -> None:
@@ -147,7 +147,7 @@ def main(argv=None) -> None:
         print(f"--- {d} device(s)", flush=True)
         subprocess.run(cmd, env=_env(args.platform, d), check=True)
         rows.append(json.loads(result.read_text()))
-        write(rows, out, "python experiments/scale.py " + " ".join(argv or sys.argv[1:]))
+        write(rows, out, "python experiments/probes/scale.py " + " ".join(argv or sys.argv[1:]))
     print((out / "scale.md").read_text())
 
 

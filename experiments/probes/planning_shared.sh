@@ -2,9 +2,9 @@
 # What one network for L and V (LNNConfig.shared) and one flow evaluation (NFE 1) cost a
 # planning-sized STRIDE in accuracy (issue 4: 50 Hz on a 2-core CPU at K=128, H=16). Trains Go1
 # STRIDE 64 x 3 and 128 x 3 with the shared network on the Table I data with Table I's settings
-# (as experiments/planning_sizes.sh, whose two-network 64 x 3 run is evaluated again at NFE 1),
+# (as experiments/probes/planning_sizes.sh, whose two-network 64 x 3 run is evaluated again at NFE 1),
 # then evaluates each at NFE 2 and 1 with Table I's evaluation preset. Resumable: finished
-# steps are skipped. Usage (repository root, one GPU): bash experiments/planning_shared.sh [OUT]
+# steps are skipped. Usage (repository root, one GPU): bash experiments/probes/planning_shared.sh [OUT]
 set -euo pipefail
 out=${1:-runs/planning_shared}
 steps=12000
@@ -30,7 +30,7 @@ for spec in stride-h64-shared:2 stride-h64-shared:1 stride-h128-shared:2 stride-
   run=${spec%:*} nfe=${spec#*:}
   [ -f "$out/eval-$run-nfe$nfe/table.md" ] && continue
   python3 -m stride_jax.cli eval --preset default --runs "$out/$run" --nfe "$nfe" \
-    --out "$out/eval-$run-nfe$nfe" --label "bash experiments/planning_shared.sh $out" \
+    --out "$out/eval-$run-nfe$nfe" --label "bash experiments/probes/planning_shared.sh $out" \
     >"$out/eval-$run-nfe$nfe.log" 2>&1 &
 done
 wait

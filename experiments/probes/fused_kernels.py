@@ -6,7 +6,7 @@ prints each pass's median time in XLA (the vmapped Flax network, differentiated 
 one fused kernel, and the largest difference between the two. On a CPU the fused path is the
 same batched maths in plain JAX (no kernel), so the numbers only mean something on a GPU:
 
-    python experiments/fused_kernels.py --samples 1024 --hidden 256
+    python experiments/probes/fused_kernels.py --samples 1024 --hidden 256
 """
 
 from __future__ import annotations

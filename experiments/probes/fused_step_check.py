@@ -3,7 +3,7 @@ default device: agreement of one model step over a batch of states (the step's a
 and the time of one vmapped step and of a vmapped 30-step rollout for each kernel choice. Go1
 STRIDE, one network for L and V:
 
-    python experiments/fused_step_check.py [--run results/mppi_latency/planning_shared/stride-h64-shared]
+    python experiments/probes/fused_step_check.py [--run results/mppi_latency/planning_shared/stride-h64-shared]
         [--samples 1024] [--kernels xla,pallas-bf16,pallas-step,pallas-step-bf16]
 
 Without ``--run`` the model is at initialisation with its weights perturbed (the flow's last

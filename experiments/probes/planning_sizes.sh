@@ -4,7 +4,7 @@
 # 128 x 3 and 64 x 3 networks on the Table I data with Table I's settings (seed 0, 12000 steps,
 # the paper training preset) and evaluates them beside the committed 256 x 3 STRIDE and DeLaN
 # (results/models/go1/*-s0) on the same regenerated data, with Table I's evaluation preset.
-# Usage (repository root, one GPU): bash experiments/planning_sizes.sh [OUT] [STEPS]
+# Usage (repository root, one GPU): bash experiments/probes/planning_sizes.sh [OUT] [STEPS]
 set -euo pipefail
 out=${1:-runs/planning_sizes}
 steps=${2:-12000}
@@ -31,7 +31,7 @@ tail -n 2 "$out"/train-h*.log
 # one evaluation per run (the table merges runs of one model name as seeds), side by side
 for run in stride-h256 stride-h128 stride-h64 delan-h256; do
   python3 -m stride_jax.cli eval --preset default --runs "$out/$run" --out "$out/eval-$run" \
-    --label "bash experiments/planning_sizes.sh $out $steps" >"$out/eval-$run.log" 2>&1 &
+    --label "bash experiments/probes/planning_sizes.sh $out $steps" >"$out/eval-$run.log" 2>&1 &
 done
 wait
 grep -h "^| stride\|^| delan" "$out"/eval-*/table.md

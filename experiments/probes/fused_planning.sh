@@ -2,7 +2,7 @@
 # The planner with fused kernels (stride_jax/dynamics/fused.py, fused_step.py) against XLA on one
 # GPU: Go1 STRIDE (NFE 2, one network for L and V), K=1024, H=30, at the control rate, for each
 # network size and kernel choice in its own run. Usage (repository root, on the GPU machine):
-#   [KERNELS="xla pallas-step pallas-step-bf16"] bash experiments/fused_planning.sh OUT [HIDDEN...]
+#   [KERNELS="xla pallas-step pallas-step-bf16"] bash experiments/probes/fused_planning.sh OUT [HIDDEN...]
 set -uo pipefail
 out=${1:-runs/fused_planning}
 shift || true

@@ -4,7 +4,7 @@ as fused float32 kernels and as fused kernels with bfloat16 products, on the sam
 latents. On a CPU the kernels run in Pallas' interpreter, which computes their arithmetic
 (bfloat16 rounding included) exactly as written:
 
-    python experiments/fused_accuracy.py --run results/mppi_latency/planning_shared/stride-h64-shared \\
+    python experiments/probes/fused_accuracy.py --run results/mppi_latency/planning_shared/stride-h64-shared \\
         --data data/go1 --windows 64
 """
 
