@@ -16,13 +16,10 @@ that they conform.
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Annotated, Any, Protocol, runtime_checkable
+from typing import Annotated, Any, NamedTuple, Protocol, runtime_checkable
 
 import jax
 import numpy as np
-
-if TYPE_CHECKING:
-    from stride_jax.robots.base import ModelInfo
 
 # ----------------------------------------------------------------------------- shaped arrays
 
@@ -82,6 +79,20 @@ class ModelSpec:
             raise ValueError(f"fixed base needs nv = nq, got nq={self.nq}, nv={self.nv}")
         if self.periodic and len(self.periodic) != n_hinge:
             raise ValueError(f"periodic has {len(self.periodic)} entries for {n_hinge} hinges")
+
+
+class ModelInfo(NamedTuple):
+    """Static facts an explorer needs about the compiled model (numpy / Python values only;
+    ``stride_jax.sim.model.load`` fills it in)."""
+
+    nq: int
+    nv: int
+    nu: int
+    qpos0: Any  # [nq] nominal qpos (the robot's home pose)
+    ctrl_lo: Any  # [nu]
+    ctrl_hi: Any  # [nu]
+    ctrl_dt: float
+    base_body: int  # body id of the floating base (or the moving body for fixed-base robots)
 
 
 # ----------------------------------------------------------------------------- protocols

@@ -21,8 +21,9 @@ runs ``checkpoints`` jitted epochs of PPO updates, saving after each. It ends af
 more before the deadline (compilation included), so a chunk fits a time-boxed job. Resuming from
 disk continues exactly as the in-memory run would (tested).
 
-The learner (networks, training state, one jitted epoch, the policy of its parameters) is
-:mod:`stride_jax.control.ppo_learner`; this module runs it: configuration, chunks and checkpoints.
+The learner (its config :class:`PPOConfig`, networks, training state, one jitted epoch, the
+policy of its parameters) is :mod:`stride_jax.control.ppo_learner`; this module runs it: named
+presets, chunks and checkpoints.
 ``policy(obs, key) -> action`` of a run is :func:`load_policy`; a planner that holds
 ``(q, qd, command)`` builds the observation with the environment's ``observation_fn``.
 
@@ -46,6 +47,7 @@ from flax import serialization
 
 from stride_jax.control import envs
 from stride_jax.control.ppo_learner import (  # noqa: F401 (the learner's names, re-exported)
+    PPOConfig,
     Trainer,
     TrainState,
     init_state,
@@ -54,74 +56,6 @@ from stride_jax.control.ppo_learner import (  # noqa: F401 (the learner's names,
     network_factory,
 )
 from stride_jax.io import atomic_write
-
-
-@dataclasses.dataclass(frozen=True)
-class PPOConfig:
-    """A PPO run (Brax ``ppo.train`` hyper-parameters plus chunking).
-
-    Attributes:
-      robot: ``go1`` or ``g1`` (the environment preset of :mod:`stride_jax.control.envs`).
-      out: run folder.
-      chunk_steps: env steps per chunk (an upper bound when ``minutes`` is set).
-      minutes: wall-clock budget of a chunk, compilation included (0: none).
-      checkpoints: checkpoints per chunk (Brax "evals"; each is a sync point).
-      total_steps: the run is complete at this many env steps; a further chunk does nothing.
-      num_envs, episode_length, unroll_length, batch_size, num_minibatches, num_updates_per_batch,
-      learning_rate, entropy_cost, discounting, gae_lambda, clipping_epsilon, max_grad_norm,
-      reward_scaling: as in ``brax.training.agents.ppo.train``.
-      policy_width, policy_depth, value_width, value_depth: MLP sizes (swish).
-      seed: base seed (chunk ``i`` trains with ``seed + i``).
-    """
-
-    robot: str = "go1"
-    out: str = "runs/ppo_go1"
-    chunk_steps: int = 100_000_000
-    minutes: float = 0.0
-    checkpoints: int = 40
-    total_steps: int = 200_000_000
-    num_envs: int = 8192
-    episode_length: int = 1000
-    unroll_length: int = 20
-    batch_size: int = 256
-    num_minibatches: int = 32
-    num_updates_per_batch: int = 4
-    learning_rate: float = 3e-4
-    entropy_cost: float = 1e-2
-    discounting: float = 0.97
-    gae_lambda: float = 0.95
-    clipping_epsilon: float = 0.3
-    max_grad_norm: float = 1.0
-    reward_scaling: float = 1.0
-    policy_width: int = 128
-    policy_depth: int = 4
-    value_width: int = 256
-    value_depth: int = 5
-    seed: int = 0
-
-    @property
-    def steps_per_update(self) -> int:
-        """Env steps per PPO update (one batch of unrolls)."""
-        return self.batch_size * self.unroll_length * self.num_minibatches
-
-    def __post_init__(self):
-        problems = []
-        if self.batch_size * self.num_minibatches % self.num_envs:
-            problems.append(f"batch_size * num_minibatches = "
-                            f"{self.batch_size * self.num_minibatches} must be a multiple of "
-                            f"num_envs = {self.num_envs}")
-        if self.chunk_steps < self.checkpoints * self.steps_per_update:
-            problems.append(f"chunk_steps={self.chunk_steps} is below one update "
-                            f"({self.steps_per_update} env steps) per checkpoint "
-                            f"({self.checkpoints})")
-        for name in ("checkpoints", "num_envs", "episode_length", "unroll_length",
-                     "policy_depth", "value_depth"):
-            if getattr(self, name) < 1:
-                problems.append(f"{name} must be >= 1")
-        if self.minutes < 0:
-            problems.append("minutes must be >= 0")
-        if problems:
-            raise ValueError("bad PPO config: " + "; ".join(problems))
 
 
 PRESETS = {

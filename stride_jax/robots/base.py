@@ -12,11 +12,11 @@ from __future__ import annotations
 import dataclasses
 import os
 import pathlib
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable
 
 import mujoco
 
-from stride_jax.types import Explorer  # the contract lives with the others; re-exported
+from stride_jax.types import Explorer, ModelInfo  # the explorer's contract; re-exported
 
 ASSETS = pathlib.Path(__file__).parent / "assets"
 
@@ -123,19 +123,6 @@ def stochastic(r: Randomization) -> Randomization:
     return dataclasses.replace(r, pushes=max(r.pushes, 3), patch_m=0.3,
                                patch_friction=(0.3, 1.5), patch_softness=(0.5, 3.0),
                                rough_m=(0.0, 0.03), rough_scale_m=(0.2, 0.5))
-
-
-class ModelInfo(NamedTuple):
-    """Static facts an explorer needs about the compiled model (numpy / Python values only)."""
-
-    nq: int
-    nv: int
-    nu: int
-    qpos0: Any  # [nq] nominal qpos (the robot's home pose)
-    ctrl_lo: Any  # [nu]
-    ctrl_hi: Any  # [nu]
-    ctrl_dt: float
-    base_body: int  # body id of the floating base (or the moving body for fixed-base robots)
 
 
 @dataclasses.dataclass(frozen=True)
