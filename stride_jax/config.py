@@ -71,17 +71,20 @@ def field_docs(cls) -> dict[str, str]:
     return docs
 
 
-def flag_names(cls, prefix: str = "") -> dict[str, tuple[str, Any, Any]]:
+def flag_names(cls, prefix: str = "", defaults=None) -> dict[str, tuple[str, Any, Any]]:
     """``{dest: (flag, type, default)}`` for every field of ``cls`` a flag can set (nested
-    configs recursively; ``dest`` is the dotted path with ``.`` as the separator)."""
+    configs recursively; ``dest`` is the dotted path with ``.`` as the separator). A nested
+    field's default is the one its outer config holds (``defaults``: an instance of ``cls``),
+    not its own class's."""
     out = {}
     for f, kind in _fields(cls):
         dest = prefix + f.name
+        default = _default(f) if defaults is None else getattr(defaults, f.name)
         if _nested(kind):
-            out.update(flag_names(kind, dest + _SEP))
+            out.update(flag_names(kind, dest + _SEP, default))
         elif kind is bool or kind in _SCALARS:
             flag = "--" + _SEP.join(p.replace("_", "-") for p in dest.split(_SEP))
-            out[dest] = (flag, kind, _default(f))
+            out[dest] = (flag, kind, default)
     return out
 
 

@@ -35,6 +35,21 @@ def test_flags_cover_nested_bool_and_str_fields():
     assert names == {"--name", "--rate", "--fast", "--inner.steps", "--inner.when", "--inner.on"}
 
 
+def test_a_nested_default_is_the_outer_configs():
+    """Help shows the default the outer config holds for a nested field, not the nested class's
+    own (a job that nests ``MPPIConfig(horizon=25)`` says 25)."""
+
+    @dataclasses.dataclass(frozen=True)
+    class Job:
+        inner: Inner = Inner(steps=3, on=True)
+
+    defaults = {dest: d for dest, (_, _, d) in config.flag_names(Job).items()}
+    assert defaults == {"inner.steps": 3, "inner.when": "never", "inner.on": True}
+    p = argparse.ArgumentParser()
+    config.add_flags(p, Job)
+    assert "(default 3)" in p.format_help()
+
+
 def test_given_flags_go_on_top_of_the_preset():
     base = Outer(rate=0.1, inner=Inner(steps=3))
     cfg = _parse(["--inner.when", "always", "--no-fast", "--name", "b"], base)

@@ -6,15 +6,18 @@ from __future__ import annotations
 import dataclasses
 import json
 import pathlib
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 
-from stride_jax.control import envs, gait as gait_lib, mppi
+from stride_jax.control import envs, gait as gait_lib
 from stride_jax.control.episode import metrics, mjx_step_fn, run_episode
-from stride_jax.control.planning import PlanningConfig, make_planner, make_planning, mppi_config
+from stride_jax.control.mppi import MPPIConfig
+from stride_jax.control.planning import (PlanningConfig, make_planner, make_planning,
+                                         mppi_config)
 from stride_jax.control.scenarios import schedule, Scenario
 from stride_jax.io import atomic_write_text, code_version
 from stride_jax.sim import model as sim_model
@@ -27,7 +30,8 @@ class GaitStudyConfig:
       starts: random initial gaits per speed for the planner.
       seconds: episode length (s).
       freq: frequency of the open-loop named gaits (Hz).
-      samples, horizon, noise_std, gait_noise: the planner (oracle dynamics, gait mode).
+      mppi: the planner (oracle dynamics): samples, horizon, ... (``--mppi.samples``).
+      planning: its task side, in gait mode (``--planning.noise-std``, ``--planning.gait-noise``).
       out: results folder (``closed_loop_gait.json``/``.md``).
       seed: initial gaits and planner keys.
     """
@@ -36,21 +40,32 @@ class GaitStudyConfig:
     starts: int = 2
     seconds: float = 4.0
     freq: float = 2.0
-    samples: int = mppi.MPPIConfig.samples
-    horizon: int = 25
-    noise_std: float = 0.05
-    gait_noise: float = 0.2
+    mppi: MPPIConfig = MPPIConfig(horizon=25)
+    planning: PlanningConfig = PlanningConfig(gait=True, noise_std=0.05)
     out: str = "results/closed_loop/closed_loop_gait"
     seed: int = 0
 
+    # the flat flags of before still answer
+    FLAG_ALIASES: ClassVar[dict[str, str]] = {
+        "mppi.samples": "--samples", "mppi.horizon": "--horizon",
+        "planning.noise_std": "--noise-std", "planning.gait_noise": "--gait-noise"}
+
+    def __post_init__(self):
+        if not self.planning.gait:
+            raise ValueError("the gait study plans gait parameters: planning.gait must be on")
+
+
+def _planner(samples: int, horizon: int) -> MPPIConfig:
+    return MPPIConfig(samples=samples, horizon=horizon)
+
 
 GAIT_PRESETS = {
-    "tiny": GaitStudyConfig(speeds="1.0", starts=1, seconds=0.3, samples=8, horizon=4,
+    "tiny": GaitStudyConfig(speeds="1.0", starts=1, seconds=0.3, mppi=_planner(8, 4),
                             out="results/closed_loop/closed_loop_gait_tiny"),
-    "cpu": GaitStudyConfig(speeds="0.5,1.5", starts=1, seconds=2.0, samples=32, horizon=15,
+    "cpu": GaitStudyConfig(speeds="0.5,1.5", starts=1, seconds=2.0, mppi=_planner(32, 15),
                            out="results/closed_loop/closed_loop_gait_cpu"),
-    "default": GaitStudyConfig(samples=256),
-    "gpu": GaitStudyConfig(samples=1024, horizon=30, starts=3,
+    "default": GaitStudyConfig(mppi=_planner(256, 25)),
+    "gpu": GaitStudyConfig(mppi=_planner(1024, 30), starts=3,
                            out="results/closed_loop/closed_loop_gait_gpu"),
 }
 
@@ -63,10 +78,8 @@ def gait_study(cfg: GaitStudyConfig, command: str = "", log=print) -> dict:
     mx = mjx.put_model(sm.mj)
     slots = envs.contact_slots(mx)
     n_steps = max(1, int(round(cfg.seconds / sm.robot.ctrl_dt)))
-    mppi_cfg = mppi.MPPIConfig(samples=cfg.samples, horizon=cfg.horizon)
-    planning_cfg = PlanningConfig(gait=True, noise_std=cfg.noise_std, gait_noise=cfg.gait_noise)
-    planning = make_planning(planning_cfg, envs.config("go1"), sm, mjx_step_fn(sm, mx))
-    planner = make_planner(planning, mppi_config(mppi_cfg, planning_cfg, planning))
+    planning = make_planning(cfg.planning, envs.config("go1"), sm, mjx_step_fn(sm, mx))
+    planner = make_planner(planning, mppi_config(cfg.mppi, cfg.planning, planning))
     nu = sm.info.nu
 
     def open_loop(gait_u, starts, values):
@@ -111,7 +124,8 @@ def gait_study(cfg: GaitStudyConfig, command: str = "", log=print) -> dict:
     lines = ["# Gaits as parameter settings (Go1, MJX)", "", f"Command: `{command}`", "",
              f"Device: {result['device']} ({result['backend']}). Open loop: the gait reference "
              f"of each named gait at {cfg.freq} Hz, duty 0.5, no planner. MPPI: oracle dynamics, "
-             f"K={cfg.samples}, H={cfg.horizon}, gait parameters (frequency, duty, four offsets) "
+             f"K={cfg.mppi.samples}, H={cfg.mppi.horizon}, gait parameters (frequency, duty, "
+             "four offsets) "
              "planned per rollout from a random initial gait; statistics of the second half. "
              "'feet show': the named pattern the measured contacts fit best (score: in-phase "
              "minus anti-phase contact correlation, 1 is a clean pattern).", "",
