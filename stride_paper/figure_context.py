@@ -1,5 +1,6 @@
 """What the parts of ``experiments/reproduce.py`` share: the context each part runs in (its
-title line, its JSON writer), the device it ran on, and list parsing of the config's strings."""
+title line, its JSON writer), the device it ran on, list parsing of the config's strings, and
+matplotlib for the figures (files only: the Agg backend)."""
 
 from __future__ import annotations
 
@@ -56,3 +57,23 @@ def json_default(x):
     if isinstance(x, np.ndarray):
         return x.tolist()
     raise TypeError(f"not JSON serialisable: {type(x)}")
+
+
+def pyplot():
+    """``matplotlib.pyplot`` on the Agg backend (figures go to files; no display needed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save(fig, path: pathlib.Path, title: str = "", dpi: int = 110) -> pathlib.Path:
+    """Writes ``fig`` to ``path`` under ``title`` (small, above the panels) and closes it."""
+    if title:
+        fig.suptitle(title, fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    pyplot().close(fig)
+    return path

@@ -17,13 +17,12 @@ say which.
 from __future__ import annotations
 
 import dataclasses
-import pathlib
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.eval import forces, horizon
+from stride_jax.eval import forces
 from stride_jax.eval.runs import LoadedRun, valid_steps
 from stride_jax.robots import go1
 from stride_jax.sim import model as sim_model
@@ -160,50 +159,3 @@ def over_seeds(per_seed: list[dict], names: tuple[str, ...]) -> dict:
                 out[name]["relative_mean"] = float(np.mean(
                     [p[name]["relative_error"] for p in per_seed if p.get(name)]))
     return out
-
-
-def plot(robot: str, arrays: dict[str, dict], numbers: dict[str, dict], path: pathlib.Path,
-         title: str = "") -> pathlib.Path:
-    """Rows: behaviours (Go1: the four gaits; G1: stepping); columns: feet. The truth in black,
-    each model's force from its residual (mean over samples, with their range)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    models = list(arrays)
-    first = arrays[models[0]]
-    rows = list(first) if robot == "go1" else [b for b in ("step in place", "weight shift",
-                                                            "stand") if b in first][:1]
-    feet = numbers[models[0]]["feet"]
-    fig, ax = plt.subplots(len(rows), len(feet), figsize=(max(3.6 * len(feet), 9.0),
-                                                          2.4 * len(rows) + 0.8),
-                           squeeze=False, sharex="row")
-    for i, b in enumerate(rows):
-        for j, foot in enumerate(feet):
-            a = ax[i, j]
-            w = first[b]
-            a.plot(w["t"], w["true"][:, j], "k", lw=1.4, label="truth")
-            for name in models:
-                p = arrays[name][b]["pred"][:, :, j]  # [S, T]
-                color = horizon.COLORS.get(name)
-                err = numbers[name].get(b, {}) or {}
-                label = (f"{horizon.LABELS.get(name, name)} "
-                         f"({err.get('per_foot', {}).get(foot, float('nan')):.0f} N)")
-                a.plot(w["t"], p.mean(0), color=color, lw=1, label=label)
-                if len(p) > 1:
-                    a.fill_between(w["t"], p.min(0), p.max(0), color=color, alpha=0.15, lw=0)
-            top = max(float(w["true"].max()), 1.0)  # wild samples must not hide the truth
-            a.set_ylim(-0.4 * top, 1.6 * top)
-            a.set_title(f"{b}: {foot} (episode {w['episode']}, {w['split']})", fontsize=8)
-            if j == 0:
-                a.set_ylabel("vertical GRF (N)")
-            if i == len(rows) - 1:
-                a.set_xlabel("t (s)")
-            a.legend(fontsize=6)
-    if title:
-        fig.suptitle(title, fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path

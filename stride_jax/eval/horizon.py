@@ -124,48 +124,7 @@ def over_seeds(results: list[dict]) -> dict:
             "steps_done": sorted({r["steps_done"] for r in results}, key=str)}
 
 
-def plot(table: dict[str, dict[str, dict]], path: pathlib.Path, title: str = "") -> pathlib.Path:
-    """One panel per robot: error vs horizon per model, mean over seeds with a +-1 std band.
-    ``table[robot][model]`` is :func:`over_seeds` output."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    robots = list(table)
-    fig, axes = plt.subplots(1, max(len(robots), 1), figsize=(5.5 * max(len(robots), 1), 4),
-                             squeeze=False)
-    for ax, robot in zip(axes[0], robots):
-        peaks = {n: float(np.nanmax(np.asarray(r["per_horizon_mean"], float)))
-                 for n, r in table[robot].items()}
-        finite = [p for p in peaks.values() if np.isfinite(p)]
-        top = OFF_SCALE * float(np.median(finite)) if finite else np.inf
-        for name, row in table[robot].items():
-            m, s = np.asarray(row["per_horizon_mean"]), np.asarray(row["per_horizon_std"])
-            h = np.arange(1, len(m) + 1)
-            off = not np.isfinite(peaks[name]) or peaks[name] > top
-            label = f"{LABELS.get(name, name)} ({len(row['seeds'])} seeds)"
-            label += ", leaves the scale (diverging rollouts)" if off else ""
-            ax.plot(h, np.minimum(m, top) if off else m, label=label, color=COLORS.get(name),
-                    ls="--" if off else "-")
-            if not off:
-                ax.fill_between(h, m - s, m + s, alpha=0.2, color=COLORS.get(name))
-        ax.set(title=robot, xlabel="horizon (control steps)",
-               ylabel="normalised observation RMSE", yscale="log")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    if title:
-        fig.suptitle(title, fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
-
-
 LABELS = {"stride": "STRIDE", "delan": "DeLaN + MLP residual", "delan_prior": "DeLaN (prior only)",
           "lnn_diffusion": "LNN + Diffusion", "onn": "ONN (MLP)", "diffusion": "Pure Diffusion"}
 COLORS = {"stride": "C3", "delan": "C0", "delan_prior": "C1", "lnn_diffusion": "C2", "onn": "C7",
           "diffusion": "C4"}
-# A curve whose error passes this many times the median model's largest error is drawn clipped at
-# that level, dashed (rollouts that diverge would otherwise squash every other curve).
-OFF_SCALE = 30.0

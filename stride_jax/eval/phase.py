@@ -29,13 +29,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import pathlib
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.eval import horizon
 from stride_jax.eval.runs import LoadedRun
 from stride_jax.sim import model as sim_model
 from stride_jax.sim import randomize, rollout_cpu
@@ -191,7 +189,8 @@ def wasserstein1(a: np.ndarray, b: np.ndarray, levels: int = 256) -> np.ndarray:
 
 def evaluate(runs: dict[str, LoadedRun], cfg: PhaseConfig) -> tuple[dict, dict]:
     """``(numbers, arrays)``: per model the field error and the near-upright distribution match
-    (see the module docstring), and everything :func:`plot` draws."""
+    (see the module docstring), and everything the portrait draws
+    (:func:`stride_jax.jobs.show.plot_phase`)."""
     sm = sim_model.load("pendulum")
     key = jax.random.key(cfg.seed)
     k_true, k_model, k_traj = jax.random.split(key, 3)
@@ -233,79 +232,3 @@ def evaluate(runs: dict[str, LoadedRun], cfg: PhaseConfig) -> tuple[dict, dict]:
         arrays["traj"][name] = model_trajectories(run, np.asarray(STARTS), cfg.traj_steps,
                                                   cfg.traj_samples, k_traj)
     return numbers, arrays
-
-
-def plot(arrays: dict, numbers: dict, path: pathlib.Path, title: str = "") -> pathlib.Path:
-    """Row 1: vector fields (streamlines of ``(qd, mean a)``) and trajectories, truth then each
-    model; row 2: the one-step acceleration distribution at the probe states, and the
-    near-upright distribution match per model."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    names = [n for n in arrays["field"]]
-    cols = max(len(names), len(arrays["probes"]) + 1)
-    fig, ax = plt.subplots(2, cols, figsize=(4.2 * cols, 8.0), squeeze=False)
-    Q, QD = arrays["Q"], arrays["QD"]
-    colors = [f"C{i}" for i in range(len(arrays["starts"]))]
-    for j, name in enumerate(names):
-        a = ax[0, j]
-        field = arrays["field"][name]
-        speed = np.hypot(QD / np.abs(QD).max(), field / max(np.abs(field).max(), 1e-9))
-        a.streamplot(Q[0], QD[:, 0], QD, field, color=speed, cmap="Greys", density=1.0,
-                     linewidth=0.7, arrowsize=0.8)
-        tq, tqd = arrays["traj"][name]  # [2 or S, K, T]
-        for k, c in enumerate(colors):
-            for s in range(tq.shape[0]):
-                style = ("-" if s == 0 else "--") if name == "truth" else "-"
-                a.plot(tq[s, k], tqd[s, k], style, color=c, lw=1.2 if name == "truth" else 0.8,
-                       alpha=1.0 if name == "truth" or tq.shape[0] == 1 else 0.6)
-            a.plot(*arrays["starts"][k], "o", color=c, ms=4)
-        a.axvline(math.pi, color="k", lw=0.4, alpha=0.4)
-        sub = ("MuJoCo, field: mean over hidden draws;\ntrajectories: bump + (solid) / - (dashed)"
-               if name == "truth" else
-               f"W1 near upright {numbers[name]['w1_near']:.2f} rad/s² "
-               f"({numbers[name]['w1_near_over_floor']:.2f} x det. floor)")
-        a.set(xlim=(Q.min(), Q.max()), ylim=(QD.min(), QD.max()), xlabel="q (rad)",
-              ylabel="qd (rad/s)", title=f"{horizon.LABELS.get(name, name.title())}\n{sub}")
-        a.title.set_fontsize(8)
-    for j in range(len(names), cols):
-        ax[0, j].axis("off")
-    for i, (pq, pqd) in enumerate(arrays["probes"]):
-        a = ax[1, i]
-        t = arrays["probe_samples"]["truth"][:, i]
-        lo, hi = np.percentile(t, [0.5, 99.5])
-        pad = 0.3 * (hi - lo + 1e-3)
-        bins = np.linspace(lo - pad, hi + pad, int(np.clip(len(t) // 4, 15, 50)))
-        a.hist(t, bins=bins, density=True, color="k", alpha=0.35, label="truth")
-        for name in names[1:]:
-            smp = arrays["probe_samples"][name][:, i]
-            color = horizon.COLORS.get(name)
-            if smp.shape[0] > 1:
-                a.hist(np.clip(smp, bins[0], bins[-1]), bins=bins, density=True,
-                       histtype="step", lw=1.5, color=color, label=horizon.LABELS.get(name))
-            else:
-                a.axvline(smp[0], color=color, lw=1.5, label=horizon.LABELS.get(name))
-        a.set(title=f"one-step acceleration at q = pi{pq - math.pi:+.2f}, qd = {pqd:+.2f}",
-              xlabel="a (rad/s²)", ylabel="density")
-        a.title.set_fontsize(8)
-        a.legend(fontsize=7)
-    a = ax[1, len(arrays["probes"])]
-    models = names[1:]
-    a.bar(range(len(models)), [numbers[n]["w1_near"] for n in models],
-          color=[horizon.COLORS.get(n) for n in models])
-    a.axhline(numbers["truth"]["w1_near_deterministic_floor"], color="k", ls="--",
-              label="best deterministic model")
-    a.set_xticks(range(len(models)), [horizon.LABELS.get(n, n) for n in models], fontsize=8)
-    a.set(ylabel="W1 to truth near upright (rad/s²)", title="distribution match near upright")
-    a.title.set_fontsize(8)
-    a.legend(fontsize=7)
-    for j in range(len(arrays["probes"]) + 1, cols):
-        ax[1, j].axis("off")
-    if title:
-        fig.suptitle(title, fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
