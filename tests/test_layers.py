@@ -87,3 +87,18 @@ def test_training_imports_no_evaluation(path):
     names = imported_names(path.read_text(), _module_name(path), path.name == "__init__.py")
     found = sorted({n for n in names if n == "stride_jax.eval" or n.startswith("stride_jax.eval.")})
     assert not found, f"{path.relative_to(ROOT)} imports {found}"
+
+
+@pytest.mark.parametrize("path", sorted(p for d in ("experiments", "stride_paper", "stride_jax")
+                                        for p in (ROOT / d).rglob("*.py")),
+                         ids=lambda p: str(p.relative_to(ROOT)))
+def test_no_script_or_module_reaches_into_the_tests(path):
+    """Drivers, probes and the library import nothing from ``tests/`` (a helper both need lives
+    in the library or beside the script), nor put ``tests`` on ``sys.path``."""
+    source = path.read_text()
+    names = imported_names(source, _module_name(path), path.name == "__init__.py")
+    found = sorted({n for n in names if n.split(".")[0].startswith(("test_", "tests", "conftest",
+                                                                    "precision"))})
+    assert not found, f"{path.relative_to(ROOT)} imports {found} from the tests"
+    on_path = [line for line in source.splitlines() if "sys.path" in line and "tests" in line]
+    assert not on_path, f"{path.relative_to(ROOT)} puts the tests on sys.path: {on_path}"
