@@ -138,8 +138,9 @@ class Model(Protocol):
         """One control period under command ``ctrl`` (the servo model at every substep)."""
 
     def rollout(self, params: Params, q: Q, qd: Qd, ctrls: Ctrls, key: Key,
-                nfe: int | None = None) -> tuple[Qs, Qds]:
-        """``H`` steps under ``ctrls``."""
+                nfe: int | None = None, latents: str = "step") -> tuple[Qs, Qds]:
+        """``H`` steps under ``ctrls``; a stochastic model's latents fresh at every step
+        (``"step"``) or held for the rollout (``"rollout"``: ``dynamics.models.rollout_keys``)."""
 
 
 @runtime_checkable

@@ -95,3 +95,32 @@ def test_implicit_servo_is_the_pd_law_at_the_next_state():
     # A saturated servo stays explicit.
     tau0, extra = act.implicit(q, qd, jnp.array([10.0]), SPEC)
     assert float(extra[6]) == 0.0 and float(tau0[6]) == 100.0
+
+
+@pytest.mark.parametrize("name", ["stride", "diffusion"])
+def test_latents_per_step_or_held_for_the_rollout(name):
+    """``latents="step"`` steps with a fresh key each control step; ``"rollout"`` with the one
+    key at every step (so what the residual draws persists); anything else is refused."""
+    model = models.make(name, SPEC, ACT, CFG)
+    params = jax.tree.map(lambda w: w + 0.05 * jax.random.normal(jax.random.key(1), w.shape),
+                          model.init(jax.random.key(0)))
+    ctrls, key = 0.1 * jnp.ones((4, 1)), jax.random.key(3)
+
+    step = jax.jit(model.step)
+
+    def stepped(keys):
+        q, qd, out = Q0, jnp.zeros(7), []
+        for u, k in zip(ctrls, keys):
+            q, qd = step(params, q, qd, u, k)
+            out.append(qd)
+        return np.stack(out)
+
+    for latents, keys in (("step", jax.random.split(key, 4)), ("rollout", [key] * 4)):
+        _, qds = jax.jit(model.rollout, static_argnames="latents")(params, Q0, jnp.zeros(7), ctrls,
+                                                                   key, latents=latents)
+        np.testing.assert_allclose(qds, stepped(keys), rtol=1e-4, atol=1e-6)
+    held = models.rollout_keys(key, 3, "rollout")
+    assert all(np.array_equal(jax.random.key_data(k), jax.random.key_data(key)) for k in held)
+    assert len({tuple(np.asarray(jax.random.key_data(k))) for k in models.rollout_keys(key, 3)}) == 3
+    with pytest.raises(ValueError, match="latents must be one of"):
+        model.rollout(params, Q0, jnp.zeros(7), ctrls, key, latents="episode")

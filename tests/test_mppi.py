@@ -210,6 +210,31 @@ def test_risk_aware_cost_prefers_the_safe_action_that_the_mean_rejects():
     assert _gamble_plan()[0] > 0.3
 
 
+def _drift(q, qd, u, key):
+    """Exposure ``u`` in [0, 1] to a wind of +-1 drawn from the key: ``x' = x + u w``."""
+    return q + u * jnp.where(jax.random.bernoulli(key, 0.5), 1.0, -1.0), qd
+
+
+def _drift_plan(latents):
+    """Eight steps; exposure earns ``u`` a step, ending at ``x`` costs ``x^2 / 2``."""
+    cfg = mppi.MPPIConfig(samples=256, horizon=8, noise_std=1.0, smoothing=0.9, temperature=0.05,
+                          risk_draws=32, latents=latents)
+    planner = mppi.make(cfg, _drift, lambda q, qd, u, t: -u[0], [0.0], [1.0],
+                        terminal_value=lambda q, qd: -0.5 * q[0] ** 2)
+    u, _, _ = jax.jit(planner.step)(planner.init(jax.random.key(4)), jnp.zeros(1), jnp.zeros(1))
+    return float(u[0])
+
+
+def test_latents_held_for_the_rollout_make_each_draw_one_world():
+    """At a steady exposure ``u``: fresh draws every step average the wind out (E x^2 = 8 u^2:
+    the best exposure is full, u = 1); held for the rollout each draw is one steady wind
+    (E x^2 = 64 u^2: the best is u = 1/8)."""
+    assert _drift_plan("step") > 0.7
+    assert _drift_plan("rollout") < 0.35
+    with pytest.raises(ValueError, match="latents"):
+        mppi.MPPIConfig(latents="world")
+
+
 def test_risk_cost_statistics():
     c = jnp.array([1.0, 2.0, 3.0, 10.0])
     assert float(mppi.risk_cost(c)) == pytest.approx(4.0)

@@ -68,6 +68,7 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from stride_jax.control.costs import (RISKS, Dynamics, open_loop_cost, risk_cost,  # noqa: F401
                                      velocity_spread, weights)
+from stride_jax.dynamics.models import LATENTS, rollout_keys
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,6 +97,12 @@ class MPPIConfig:
         states of their own draw; the actions of their first draw stand for the candidate.
       risk_alpha: CVaR level in [0, 1): 0 is the mean, 0.9 the worst 10% of draws.
       risk_weight: the standard deviation's weight of ``risk="std"``.
+      latents: a stochastic model's latents along a rollout: drawn afresh at every step
+        (``step``) or held for the whole rollout (``rollout``,
+        :func:`stride_jax.dynamics.models.rollout_keys`): then each of the ``risk_draws`` is
+        one consistent world in which what the model does not know (friction, payload)
+        persists, and the risk statistic is taken over worlds rather than over per-step noise
+        that averages out along the horizon.
       prior_fraction: share of the noise candidates (``samples - policy_samples``) drawn around
         the policy's own closed-loop rollout through the model (``u_t = policy(x_t) + e_t``,
         noise at ``prior_noise_std``) instead of around the shifted plan; 0: none. Needs a
@@ -130,6 +137,7 @@ class MPPIConfig:
     risk: str = "mean"
     risk_alpha: float = 0.9
     risk_weight: float = 1.0
+    latents: str = "step"
     prior_fraction: float = 0.0
     prior_noise_std: float | tuple[float, ...] = 0.08
     discount: float = 1.0
@@ -158,6 +166,8 @@ class MPPIConfig:
             problems.append(f"risk_draws={self.risk_draws} must be >= 1")
         if self.risk not in RISKS:
             problems.append(f"risk={self.risk!r} must be one of {', '.join(RISKS)}")
+        if self.latents not in LATENTS:
+            problems.append(f"latents={self.latents!r} must be one of {', '.join(LATENTS)}")
         if not 0 <= self.risk_alpha < 1:
             problems.append(f"risk_alpha={self.risk_alpha} must be in [0, 1)")
         if not 0 <= self.prior_fraction <= 1:
@@ -312,7 +322,8 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
         zero = jnp.zeros(())
         init_carry = (q, qd, zero, zero, jnp.ones((), bool), zero, jnp.zeros((), jnp.int32))
         (qH, qdH, cost, _, alive, err, kept), actions = jax.lax.scan(
-            body, init_carry, (jnp.arange(H), jax.random.split(key, H), base), unroll=cfg.unroll)
+            body, init_carry, (jnp.arange(H), rollout_keys(key, H, cfg.latents), base),
+            unroll=cfg.unroll)
         terminal = discounts[H] * value(qH, qdH)
         cost = cost - (jnp.where(alive, terminal, 0.0) if cut_on else terminal)
         return cost, actions, err, kept

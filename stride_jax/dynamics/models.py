@@ -13,7 +13,9 @@ batch with ``vmap``):
 * every sampling function takes an optional ``nfe`` (residual or generator evaluations)
 * ``step(params, q, qd, ctrl, key) -> (q', qd')``: one control period from a command, with the
   robot's servo model turning commands into joint torques at every substep, as the simulator does
-* ``rollout(params, q, qd, ctrls [H, nu], key) -> (qs [H, nq], qds [H, nv])``
+* ``rollout(params, q, qd, ctrls [H, nu], key, latents="step") -> (qs [H, nq], qds [H, nv])``:
+  a stochastic model's latents drawn afresh at every control step (``"step"``) or once for
+  the whole rollout (``"rollout"``; :func:`rollout_keys` says why both)
 
 and carries what it was made from (``spec``, ``actuation``, ``config``, ``scales``,
 ``residual``), so that :func:`stride_jax.dynamics.save` needs nothing else and the physics
@@ -36,8 +38,9 @@ from stride_jax.dynamics import (flow, fused, fused_layout, fused_pallas, fused_
                                   next_obs, stride)
 from stride_jax.types import InputError, ModelSpec
 
-__all__ = ["Actuation", "DEFAULT_NFE", "InputError", "MODELS", "Model", "load", "make",
-           "motors", "next_observation", "save_definition", "spec_from_meta", "structured"]
+__all__ = ["Actuation", "DEFAULT_NFE", "InputError", "LATENTS", "MODELS", "Model", "load", "make",
+           "motors", "next_observation", "rollout_keys", "save_definition", "spec_from_meta",
+           "structured"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,6 +175,29 @@ DESCRIPTIONS = {
 DEFAULT_NFE = {"flow": 2, "diffusion": 10}
 
 
+LATENTS = ("step", "rollout")
+
+
+def rollout_keys(key: jax.Array, horizon: int, latents: str = "step") -> jax.Array:
+    """The keys ``[horizon]`` of a rollout's control steps.
+
+    ``"step"``: a fresh draw at every step. The residual is learned from single transitions,
+    ``p(eps | q, qd, tau)``, and i.i.d. draws treat what it does not know as noise that is new
+    at every step, so over a rollout its effect averages out (the spread grows like the square
+    root of the horizon). ``"rollout"``: one draw held for the whole rollout, each step mapping
+    the same latent ``z`` through the flow at the current state (the same quantile of the
+    residual's distribution at every step). That is the other limit: what the model does not
+    know persists -- a payload, the ground's friction under the feet, a servo's offset -- as
+    hidden parameters of a real robot mostly do, and the spread grows like the horizon.
+    Deterministic models ignore the key either way.
+    """
+    if latents == "step":
+        return jax.random.split(key, horizon)
+    if latents == "rollout":
+        return jax.vmap(lambda _: key)(jnp.arange(horizon))
+    raise ValueError(f"latents must be one of {LATENTS}, got {latents!r}")
+
+
 def _check_inputs(name: str, spec: ModelSpec, nu: int, **arrays) -> None:
     """Shape checks (always, at trace time) and finiteness checks (on concrete values only: under
     ``jit`` values are unknown; wrap with ``jax.experimental.checkify`` to check them there)."""
@@ -231,7 +257,7 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         _check_inputs(name, spec, nu, q=q, qd=qd, ctrl=ctrl)
         return _step(params, q, qd, ctrl, key, nfe)
 
-    def rollout(params, q, qd, ctrls, key, nfe=None):
+    def rollout(params, q, qd, ctrls, key, nfe=None, latents="step"):
         _check_inputs(name, spec, nu, q=q, qd=qd, ctrls=ctrls)
 
         def body(carry, inp):
@@ -239,7 +265,7 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
             nxt = _step(params, *carry, ctrl, k, nfe)
             return nxt, nxt
 
-        _, (qs, qds) = jax.lax.scan(body, (q, qd), (ctrls, jax.random.split(key, len(ctrls))))
+        _, (qs, qds) = jax.lax.scan(body, (q, qd), (ctrls, rollout_keys(key, len(ctrls), latents)))
         return qs, qds
 
     def terms(params, q, qd, tau, key, nfe=None):
@@ -314,9 +340,9 @@ def next_observation(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Str
         _check_inputs(name, spec, nu, q=q, qd=qd, ctrl=ctrl)
         return _step(params, q, qd, ctrl, key, nfe)
 
-    def rollout(params, q, qd, ctrls, key=None, nfe=None):
+    def rollout(params, q, qd, ctrls, key=None, nfe=None, latents="step"):
         _check_inputs(name, spec, nu, q=q, qd=qd, ctrls=ctrls)
-        keys = jax.random.split(key if key is not None else jax.random.key(0), len(ctrls))
+        keys = rollout_keys(key if key is not None else jax.random.key(0), len(ctrls), latents)
 
         def body(carry, inp):
             nxt = _step(params, *carry, *inp, nfe)

@@ -57,6 +57,9 @@ class EvalConfig:
         logged one only).
       force_steps: test steps used for the force error and the residual share.
       nfe: evaluations per residual sample; 0 means each model's trained default.
+      latents: a stochastic model's latents in a rollout: drawn afresh at every control step
+        (``step``, as trained) or once per rollout (``rollout``: what the model does not know
+        persists; ``dynamics.models.rollout_keys``). Rows of ``rollout`` get their own label.
       out: output folder; empty means ``results/table1/<robot>``.
       seed: windows, steps and latents.
       label: the command to record as having made the table (default: this ``stride eval``).
@@ -69,6 +72,7 @@ class EvalConfig:
     continuations: int = 8
     force_steps: int = 1024
     nfe: int = 0
+    latents: str = "step"
     out: str = ""
     seed: int = 0
     label: str = ""
@@ -110,7 +114,13 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     nfe = cfg.nfe or None
     key = jax.random.key(cfg.seed)
     n_samples = cfg.samples if model.stochastic else 1
-    out = {"run": str(run), "model": _label(model.name, run_cfg["train"]),
+    if cfg.latents not in models.LATENTS:
+        raise ValueError(f"latents must be one of {models.LATENTS}, got {cfg.latents!r}")
+    label = _label(model.name, run_cfg["train"])
+    if model.stochastic and cfg.latents != "step":
+        label = f"{label[:-1]},latents={cfg.latents}]" if label.endswith("]") \
+            else f"{label}[latents={cfg.latents}]"
+    out = {"run": str(run), "model": label, "latents": cfg.latents if model.stochastic else None,
            "seed": runs_lib.train_seed(run_cfg["train"]),
            "robot": ds.meta["robot"], "params": int(sum(x.size for x in jax.tree.leaves(params))),
            "stochastic": model.stochastic, "nfe": (nfe or trained_nfe) if model.stochastic else None,
@@ -119,7 +129,7 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     # State: cumulative open-loop RMSE, per sample.
     starts = rollout.windows(test["valid"], cfg.horizon, cfg.windows, cfg.seed)
     obs_scales = rollout.observation_scales(train, spec, cfg.horizon)
-    rollout_fn = lambda p, q, qd, u, k: model.rollout(p, q, qd, u, k, nfe)
+    rollout_fn = lambda p, q, qd, u, k: model.rollout(p, q, qd, u, k, nfe, cfg.latents)
     sample_keys = jax.vmap(lambda s: jax.random.fold_in(key, s))(jnp.arange(n_samples))
     vectors = rollout.rollout_error_vectors(rollout_fn, params, test, spec, cfg.horizon, starts,
                                             obs_scales, sample_keys)  # [S, N, H, D]
@@ -231,7 +241,9 @@ def _cached(run: pathlib.Path, cfg: EvalConfig) -> dict:
     the same best checkpoint (so runs can be evaluated in parallel, then tabulated)."""
     key = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("runs", "out", "label")}
     key["best_step"] = json.loads((run / "summary.json").read_text()).get("best_step")
-    cache = run / "eval.json"
+    if cfg.latents == "step":  # the caches written before the choice existed stay valid
+        del key["latents"]
+    cache = run / ("eval.json" if cfg.latents == "step" else f"eval-latents-{cfg.latents}.json")
     if cache.is_file():
         saved = json.loads(cache.read_text())
         if saved.get("key") == key:
