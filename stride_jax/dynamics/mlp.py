@@ -17,6 +17,7 @@ import jax.numpy as jnp
 # Names a config may give (a saved model's ``model.json`` holds the name, not the function).
 ACTIVATIONS = {"silu": nn.silu, "tanh": nn.tanh, "relu": nn.relu, "gelu": nn.gelu,
                "softplus": nn.softplus, "elu": nn.elu}
+PRODUCTS = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}
 INITS = {"lecun_normal": nn.initializers.lecun_normal, "glorot_normal":
          nn.initializers.glorot_normal, "glorot_uniform": nn.initializers.glorot_uniform,
          "he_normal": nn.initializers.he_normal, "orthogonal": nn.initializers.orthogonal}
@@ -34,12 +35,17 @@ class MLPConfig:
       depth: number of hidden layers.
       activation: the hidden layers' activation (``ACTIVATIONS``).
       init: the weights' initialisation (``INITS``; biases start at zero).
+      products: the matrix products' input type, ``float32`` or ``bfloat16`` (rounded
+        operands, float32 accumulation, biases and activations in float32). An inference
+        choice (``StructuredConfig.kernel = "xla-bf16"`` sets it for every network): on a CPU
+        with bfloat16 dot instructions (AVX512-BF16, AMX) the products run up to ~2x faster.
     """
 
     hidden: int = 256
     depth: int = 3
     activation: str = "silu"
     init: str = "lecun_normal"
+    products: str = "float32"
 
     def __post_init__(self):
         for name in ("hidden", "depth"):
@@ -51,6 +57,9 @@ class MLPConfig:
                              f"{', '.join(ACTIVATIONS)}")
         if self.init not in INITS:
             raise ValueError(f"MLPConfig.init {self.init!r} is not one of {', '.join(INITS)}")
+        if self.products not in PRODUCTS:
+            raise ValueError(f"MLPConfig.products {self.products!r} is not one of "
+                             f"{', '.join(PRODUCTS)}")
 
 
 class _MLP(nn.Module):
@@ -80,4 +89,19 @@ def mlp(cfg: MLPConfig, out: int, zero_last: bool = False) -> tuple[Callable, Ca
     def init(key: jax.Array, in_dim: int) -> Any:
         return module.init(key, jnp.zeros((in_dim,)))
 
-    return init, module.apply
+    if cfg.products == "float32":
+        return init, module.apply
+    dtype, activation = PRODUCTS[cfg.products], ACTIVATIONS[cfg.activation]
+
+    def apply(params: Any, x: jax.Array) -> jax.Array:
+        """``module.apply`` with the products' operands rounded to ``dtype`` (same parameters)."""
+        layers = params["params"]
+        for i in range(cfg.depth + 1):
+            dense = layers[f"Dense_{i}"]
+            x = jnp.dot(x.astype(dtype), dense["kernel"].astype(dtype),
+                        preferred_element_type=jnp.float32) + dense["bias"]
+            if i < cfg.depth:
+                x = activation(x)
+        return x
+
+    return init, apply
