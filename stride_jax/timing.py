@@ -22,14 +22,15 @@ def median_time(fn: Callable[[], object], repeats: int) -> float:
     return statistics.median(times)
 
 
-def peak_flops(n: int = 2048, repeats: int = 5) -> float:
-    """Measured float32 matmul throughput of the default device (FLOP/s): the best of
-    ``repeats`` ``[n, n] @ [n, n]`` products."""
+def peak_flops(n: int = 2048, repeats: int = 5, dtype: str = "float32") -> float:
+    """Measured matmul throughput of the default device (FLOP/s): the best of ``repeats``
+    ``[n, n] @ [n, n]`` products with operands of ``dtype`` (``float32`` or ``bfloat16``,
+    accumulated in float32)."""
     import jax
     import jax.numpy as jnp
 
-    a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32)
-    f = jax.jit(lambda x: x @ x)
+    a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32).astype(dtype)
+    f = jax.jit(lambda x: jnp.dot(x, x, preferred_element_type=jnp.float32))
     f(a).block_until_ready()
     times = []
     for _ in range(repeats):

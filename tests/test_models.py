@@ -124,3 +124,23 @@ def test_latents_per_step_or_held_for_the_rollout(name):
     assert len({tuple(np.asarray(jax.random.key_data(k))) for k in models.rollout_keys(key, 3)}) == 3
     with pytest.raises(ValueError, match="latents must be one of"):
         model.rollout(params, Q0, jnp.zeros(7), ctrls, key, latents="episode")
+
+
+@pytest.mark.parametrize("name", ["stride", "delan", "onn"])
+def test_xla_bf16_kernel_is_the_same_model_with_bfloat16_products(name):
+    """``kernel="xla-bf16"``: the same parameters, every network's products in bfloat16 at
+    inference -- steps agree with float32 to bfloat16 precision and differ from it -- while the
+    training loss stays float32 (equal to the plain model's)."""
+    plain = models.make(name, SPEC, ACT, CFG)
+    bf16 = models.make(name, SPEC, ACT, dataclasses.replace(CFG, kernel="xla-bf16"))
+    params = jax.tree.map(lambda w: w + 0.05 * jax.random.normal(jax.random.key(1), w.shape),
+                          plain.init(jax.random.key(0)))
+    qd, u, key = 0.3 * jnp.ones(7), 0.1 * jnp.ones(1), jax.random.key(2)
+    q1, qd1 = jax.jit(plain.step)(params, Q0, qd, u, key)
+    q2, qd2 = jax.jit(bf16.step)(params, Q0, qd, u, key)
+    change = float(jnp.linalg.norm(qd1 - qd))
+    gap = float(jnp.linalg.norm(qd2 - qd1))
+    assert 0 < gap < 0.05 * change, (gap, change)
+    ex = dict(q=Q0, qd=qd, tau=jnp.zeros(7), qdd=jnp.ones(7), ctrl=u, q_next=q1, qd_next=qd1)
+    np.testing.assert_array_equal(plain.loss(params, ex, key)[0], bf16.loss(params, ex, key)[0])
+    assert bf16.config.inference_net.products == "bfloat16" and bf16.config.net.products == "float32"

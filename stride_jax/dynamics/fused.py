@@ -144,8 +144,11 @@ def flow_euler(params: dict, z0: jax.Array, context: jax.Array, nfe: int,
 
 # name -> the kernels' matrix-product type (None: XLA's own ops). The ``-step`` choices run a
 # floating-base STRIDE model's whole step as one kernel (``fused_step``) where the model allows
-# it (``models._whole_step_applies``); other models take the per-pass kernels.
-KERNELS = {"xla": None, "pallas": jnp.float32, "pallas-bf16": jnp.bfloat16,
+# it (``models._whole_step_applies``); other models take the per-pass kernels. ``xla-bf16`` is
+# XLA's own ops with every network's products in bfloat16 (``MLPConfig.products``): on a CPU
+# with bfloat16 dot instructions the paper's 256 x 3 planner runs ~1.65x faster
+# (``results/mppi_latency/README.md``).
+KERNELS = {"xla": None, "xla-bf16": None, "pallas": jnp.float32, "pallas-bf16": jnp.bfloat16,
            "pallas-step": jnp.float32, "pallas-step-bf16": jnp.bfloat16}
 
 
@@ -156,10 +159,23 @@ def kernel_dtype(kernel: str):
     return KERNELS[kernel]
 
 
+def fused(kernel: str) -> bool:
+    """Whether a kernel choice runs the networks as fused (Pallas) kernels."""
+    return kernel_dtype(kernel) is not None
+
+
+def products(kernel: str) -> str | None:
+    """The networks' product type a kernel choice imposes on XLA's ops (``MLPConfig.products``):
+    ``"bfloat16"`` for ``xla-bf16``, None (the network's own) otherwise."""
+    kernel_dtype(kernel)
+    return "bfloat16" if kernel == "xla-bf16" else None
+
+
 def whole_step(kernel: str) -> bool:
     """Whether a kernel choice asks for the whole-step kernel (``fused_step``)."""
     kernel_dtype(kernel)
     return kernel.startswith("pallas-step")
 
 
-__all__ = ["KERNELS", "flow_euler", "interpret", "jvp", "kernel_dtype", "vjp", "whole_step"]
+__all__ = ["KERNELS", "flow_euler", "fused", "interpret", "jvp", "kernel_dtype", "products", "vjp",
+           "whole_step"]

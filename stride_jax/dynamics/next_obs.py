@@ -9,6 +9,8 @@ Diffusion learns its conditional distribution with the denoising loss and sample
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 
@@ -42,7 +44,7 @@ def step(params: dict, spec: ModelSpec, cfg: StructuredConfig, scales: Scales, q
     """Next ``(q', qd')`` after one control period under ``ctrl``."""
     c = _context(spec, q, qd, ctrl, scales)
     if generative_kind is None:
-        out = mlp.mlp(cfg.net, 2 * spec.nv, zero_last=True)[1](params, c)
+        out = mlp.mlp(cfg.inference_net, 2 * spec.nv, zero_last=True)[1](params, c)
     else:
         out = cfg.generator(generative_kind).sample(params, c, key, 2 * spec.nv, nfe)
     dq, dqd = out[:spec.nv] * scales.dq, out[spec.nv:] * scales.dqd
@@ -51,6 +53,7 @@ def step(params: dict, spec: ModelSpec, cfg: StructuredConfig, scales: Scales, q
 
 def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, scales: Scales, ex: dict,
          key=None, generative_kind: str | None = None):
+    cfg = dataclasses.replace(cfg, kernel="xla")  # training differentiates in float32 XLA
     c = _context(spec, ex["q"], ex["qd"], ex["ctrl"], scales)
     target = _target(spec, scales, ex)
     if generative_kind is None:

@@ -123,7 +123,7 @@ class StructuredConfig:
     def __post_init__(self):
         fused.kernel_dtype(self.kernel)  # a clear error for an unknown choice
         lagrangian.check_diag_floor(self.diag_floor)
-        if self.kernel != "xla" and self.net.activation != "silu":
+        if fused.fused(self.kernel) and self.net.activation != "silu":
             raise ValueError(f"kernel {self.kernel!r} implements SiLU networks only, not "
                              f"{self.net.activation!r}; use kernel='xla'")
         if self.acc_through not in ACC_THROUGH:
@@ -131,21 +131,29 @@ class StructuredConfig:
         self.diffusion  # likewise for the diffusion's settings
 
     @property
+    def inference_net(self) -> mlp.MLPConfig:
+        """``net`` with the products ``kernel`` imposes (``xla-bf16``: bfloat16): what every
+        network runs as; the parameters are ``net``'s either way."""
+        products = fused.products(self.kernel)
+        return self.net if products in (None, self.net.products) else dataclasses.replace(
+            self.net, products=products)
+
+    @property
     def lnn(self) -> lagrangian.LNNConfig:
-        return lagrangian.LNNConfig(net=self.net, diag_floor=self.diag_floor,
+        return lagrangian.LNNConfig(net=self.inference_net, diag_floor=self.diag_floor,
                                     mass_init=self.mass_init, learn_mass=self.learn_mass,
                                     shared=self.shared_lnn)
 
     @property
     def diffusion(self) -> diffusion.DiffusionConfig:
-        return diffusion.DiffusionConfig(net=self.net, steps=self.diffusion_steps, eta=self.eta,
+        return diffusion.DiffusionConfig(net=self.inference_net, steps=self.diffusion_steps, eta=self.eta,
                                          clip=self.diffusion_clip, target=self.diffusion_target,
                                          abar_min=self.abar_min)
 
     def generator(self, kind: str) -> generative.Generator:
-        gen = generative.make(kind, self.net, self.nfe, self.integrator, self.kernel,
+        gen = generative.make(kind, self.inference_net, self.nfe, self.integrator, self.kernel,
                               self.diffusion)
-        return generative.with_mean(gen, self.net) if self.acc_through == "mean" else gen
+        return generative.with_mean(gen, self.inference_net) if self.acc_through == "mean" else gen
 
 
 class Scales(NamedTuple):
@@ -200,7 +208,7 @@ def _residual(res_params, spec, cfg, residual, c, key, nfe=None):
     """Normalised residual: a sample (generative kinds; ``key=None``: the central sample) or
     the MLP's prediction."""
     if residual == "mlp":
-        return mlp.mlp(cfg.net, spec.nv, zero_last=True)[1](res_params, c)
+        return mlp.mlp(cfg.inference_net, spec.nv, zero_last=True)[1](res_params, c)
     if residual == "none":
         return jnp.zeros(spec.nv, c.dtype)
     if key is None:

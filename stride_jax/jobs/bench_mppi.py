@@ -52,7 +52,8 @@ class BenchConfig:
       hidden, depth: network size (the paper's: 256 x 3).
       nfe: residual evaluations for generative models (0: each model's default).
       shared_lnn: structured models with one network for L and V (``LNNConfig.shared``).
-      kernel: how the models' networks run: ``xla``, or fused kernels (``pallas``,
+      kernel: how the models' networks run: ``xla``, ``xla-bf16`` (XLA with the networks'
+        products in bfloat16: CPUs with bfloat16 dot instructions), or fused kernels (``pallas``,
         ``pallas-bf16``; ``stride_jax.dynamics.fused``, GPUs; ``pallas-step[-bf16]``: STRIDE's
         whole model step as one kernel where it applies, ``stride_jax.dynamics.fused_step``).
       substeps: model evaluations per control step in the planner's rollouts (0: the robot's
@@ -207,10 +208,17 @@ def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
                 ratio=ms / floor_ms if floor_ms > 0 else float("nan"), compile_s=compile_s)
 
 
+def _products(kernel: str) -> str:
+    """The products' type whose matmul peak gives the floor: bfloat16 where the kernel choice
+    runs the networks' products in it."""
+    bf16 = fused.kernel_dtype(kernel) == jnp.bfloat16 or fused.products(kernel) == "bfloat16"
+    return "bfloat16" if bf16 else "float32"
+
+
 def run(cfg: BenchConfig, command: str = "stride bench-mppi") -> list[dict]:
     """``stride bench-mppi``: measures every (robot, model, K, H), rewriting the table after
     each; returns the rows."""
-    peak = peak_flops()
+    peak = peak_flops(dtype=_products(cfg.kernel))
     rows = []
     split = lambda s: [x for x in s.split(",") if x]
     for robot, name, K, H in itertools.product(split(cfg.robots), split(cfg.models),
@@ -230,6 +238,8 @@ def run(cfg: BenchConfig, command: str = "stride bench-mppi") -> list[dict]:
 def _kernel_note(kernel: str) -> str:
     if kernel == "xla":
         return ""
+    if not fused.fused(kernel):
+        return f", XLA's ops with the networks' products in bfloat16 ({kernel})"
     if fused.whole_step(kernel):
         return f", STRIDE's model step as one fused kernel where it applies ({kernel})"
     return f", network passes as fused kernels ({kernel})"
@@ -243,7 +253,7 @@ def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> path
                n_devices=jax.device_count(), cpu=platform.processor() or platform.machine(),
                peak_gflops=peak / 1e9, jax=jax.__version__, config=dataclasses.asdict(cfg),
                xla_flags=os.environ.get("XLA_FLAGS", ""))
-    about = (f"Device: {env['device']} ({env['backend']}), measured float32 matmul peak "
+    about = (f"Device: {env['device']} ({env['backend']}), measured {_products(cfg.kernel)} matmul peak "
              f"{env['peak_gflops']:.0f} GFLOP/s; "
              + (f"{env['n_devices']} devices, the samples split over them; "
                 if env["n_devices"] > 1 else "")
