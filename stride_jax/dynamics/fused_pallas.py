@@ -6,7 +6,7 @@ columns and rows are zero and stay zero; row inputs narrower than their block ar
 masks). A program holds its rows' activations whole and walks each layer's weights one tile of
 ``CHUNK`` columns at a time in a loop (``fori_loop``, software-pipelined by Triton, ``STAGES``
 deep), writing the layer's output through a per-program buffer. The layout constants are module
-attributes so that ``experiments/fused_kernels.py`` can time other layouts.
+attributes so that ``experiments/probes/fused_kernels.py`` can time other layouts.
 """
 
 from __future__ import annotations
@@ -297,7 +297,7 @@ def _padded_layers(layers, dims, dtype):
 
 
 # Triton stages a program's weight tiles in shared memory (227 KiB a block on an H100). Measured
-# there (experiments/fused_step_smem.py, results/gpu_tests/): kernels compile while every layer's
+# there (experiments/probes/fused_step_smem.py, results/gpu_tests/): kernels compile while every layer's
 # padded inputs x outputs stay within 2^16 -- Go1's networks up to 256 wide, G1's mass network
 # (627 outputs, padded 1024) up to 64; G1 at 128 asks for 324 KiB. Larger layers run in XLA.
 MAX_TILE = 1 << 16

@@ -50,7 +50,7 @@ from stride_jax.dynamics.fused_layout import PREP, Layout
 from stride_jax.dynamics.time_embedding import time_embedding
 
 WARPS = 8  # warps per program of the step kernel (the reduced mass matrix in registers)
-# Parts left out, to time the others (``experiments/fused_step_check.py --skip``; wrong results):
+# Parts left out, to time the others (``experiments/probes/fused_step_check.py --skip``; wrong results):
 # "products" (L's products and the transposed pass), "flow", "solve".
 SKIP: frozenset = frozenset()
 # The small loops unrolled, by name ("products", "gram", "factor", "backward"). Unrolled, a loop's

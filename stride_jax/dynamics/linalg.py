@@ -7,8 +7,8 @@ time (plus two triangular solves), which cost a 2-core MPPI step about a fifth o
 axis so each of its ``n`` steps is one vectorised update of the whole batch: no pivoting is needed
 for a symmetric positive definite matrix (its pivots are its Schur complements' diagonals, all
 positive). Measured on this 2-core CPU (a batch of 128 18 x 18 systems,
-``python experiments/spd_solve_time.py``): LAPACK 0.37 ms, the same elimination vmapped (batch
-first) 0.33 ms, batch last 0.17 ms; ``experiments/model_step_time.py`` times the whole step.
+``python experiments/probes/spd_solve_time.py``): LAPACK 0.37 ms, the same elimination vmapped (batch
+first) 0.33 ms, batch last 0.17 ms; ``experiments/probes/model_step_time.py`` times the whole step.
 GPUs keep cuSOLVER's batched Cholesky: ``n`` dependent steps would be ``n`` kernels there, where
 the planner's time is bound by the number of kernels.
 
