@@ -96,6 +96,23 @@ def test_eval_writes_the_table(runs, tmp_path):
     assert "energy score" in md
 
 
+def test_eval_latents_and_the_divergence_bound(runs, tmp_path):
+    """``--latents rollout`` labels the stochastic rows (their own cache file beside
+    ``eval.json``); a rollout beyond ``--diverged-above`` counts as diverged (here all)."""
+    if len(list(runs.iterdir())) < 3:
+        pytest.skip("needs the runs trained above")
+    out = tmp_path / "res"
+    cli.main(["eval", "--runs", f"{runs}/*", "--preset", "tiny", "--latents", "rollout",
+              "--diverged-above", "1e-9", "--out", str(out)])
+    d = json.loads((out / "table.json").read_text())
+    assert set(d["table"]) == {"stride[latents=rollout]", "delan", "onn"}
+    assert all(r["state"]["diverged"] == 1.0 for r in d["runs"])
+    assert (runs / "stride" / "eval-latents-rollout.json").is_file()
+    with pytest.raises(SystemExit, match="latents must be one of"):
+        cli.main(["eval", "--runs", f"{runs}/*", "--preset", "tiny", "--latents", "world",
+                  "--out", str(out)])
+
+
 def test_eval_without_runs_is_a_clear_error(tmp_path):
     with pytest.raises(SystemExit, match="no training runs"):
         cli.main(["eval", "--runs", str(tmp_path / "nothing*")])

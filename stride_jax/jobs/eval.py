@@ -57,6 +57,9 @@ class EvalConfig:
         logged one only).
       force_steps: test steps used for the force error and the residual share.
       nfe: evaluations per residual sample; 0 means each model's trained default.
+      diverged_above: a rollout whose normalised error exceeds this anywhere (a thousand times
+        the data's spread by default) has diverged, as one that left the floating-point range:
+        counted, not averaged (a finite 1e13 would otherwise swamp every mean).
       latents: a stochastic model's latents in a rollout: drawn afresh at every control step
         (``step``, as trained) or once per rollout (``rollout``: what the model does not know
         persists; ``dynamics.models.rollout_keys``). Rows of ``rollout`` get their own label.
@@ -72,10 +75,17 @@ class EvalConfig:
     continuations: int = 8
     force_steps: int = 1024
     nfe: int = 0
+    diverged_above: float = 1e3
     latents: str = "step"
     out: str = ""
     seed: int = 0
     label: str = ""
+
+    def __post_init__(self):
+        if self.latents not in models.LATENTS:
+            raise ValueError(f"latents must be one of {models.LATENTS}, got {self.latents!r}")
+        if not self.diverged_above > 0:
+            raise ValueError(f"diverged_above must be > 0, got {self.diverged_above!r}")
 
 
 PRESETS = {"tiny": EvalConfig(horizon=10, windows=32, samples=3, force_steps=128,
@@ -114,8 +124,6 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     nfe = cfg.nfe or None
     key = jax.random.key(cfg.seed)
     n_samples = cfg.samples if model.stochastic else 1
-    if cfg.latents not in models.LATENTS:
-        raise ValueError(f"latents must be one of {models.LATENTS}, got {cfg.latents!r}")
     label = _label(model.name, run_cfg["train"])
     if model.stochastic and cfg.latents != "step":
         label = f"{label[:-1]},latents={cfg.latents}]" if label.endswith("]") \
@@ -133,10 +141,12 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     sample_keys = jax.vmap(lambda s: jax.random.fold_in(key, s))(jnp.arange(n_samples))
     vectors = rollout.rollout_error_vectors(rollout_fn, params, test, spec, cfg.horizon, starts,
                                             obs_scales, sample_keys)  # [S, N, H, D]
+    runaway = ~(np.abs(vectors) <= cfg.diverged_above).all((-2, -1), keepdims=True)
+    vectors = np.where(runaway, np.nan, vectors)  # diverged: non-finite or beyond the bound
     errs = rollout.per_horizon_rmse(vectors)  # [S, N, H]
     truths = true_futures(ds, test, spec, starts, cfg, obs_scales)
     out["distribution"] = distribution.scores(vectors, truths)
-    # A rollout that leaves the floating-point range has diverged: it is counted, not averaged.
+    # A diverged rollout (above) is counted, not averaged.
     finite = np.isfinite(errs).all(-1)  # [S, N]
     cum = np.array([errs[s][finite[s]].sum(-1).mean() if finite[s].any() else np.nan
                     for s in range(n_samples)])
@@ -313,7 +323,7 @@ def markdown(table: dict, robot: str, command: str, cfg: EvalConfig) -> str:
              "from the residual through the contact Jacobians; oracle = the same map applied to "
              "the true residual; 'of sample mean': the force read from the mean residual over "
              "samples. Share: residual's share of the predicted acceleration (%). "
-             "Diverged: rollouts that left the floating-point range (%), excluded from the RMSE. "
+             "Diverged: rollouts that left the floating-point range or exceeded `diverged_above` (%), excluded from the RMSE. "
              "Values: mean ± std over seeds.", "",
              "| model | params | seeds | steps | state RMSE | diverged (%) | force error (N) | "
              "of sample mean (N) | force oracle (N) | share free (%) | share contact (%) |",
