@@ -63,5 +63,8 @@ def sentence(record: dict | None) -> str:
     if not record["applied"]:
         return ("the simulator's settings match the nominal model (calibration of time step, integrator, cone, "
                 "contacts and contact parameters did not lower the held-out gap)")
+    refit = (f"; the contact settings were fitted again after the effects, as {record['refit']['why']}"
+             if record.get("refit") else "")
     return (f"the simulator's settings are off: {'; '.join(record['changed'])} (calibrated first: they close "
-            f"{record['shrink']:.1%} of the held-out {record['k']}-step gap, sign-flip p = {record['p_value']:.2g})")
+            f"{record['shrink']:.1%} of the held-out {record['k']}-step gap, sign-flip p = {record['p_value']:.2g}"
+            f"{refit})")
