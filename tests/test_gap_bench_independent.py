@@ -11,11 +11,12 @@ import numpy as np
 
 from stride_jax import robots
 from stride_jax.jobs import gap_bench_independent as bi
+from stride_jax.jobs import gap_bench_real as gen
 from stride_jax.jobs import gap as cli
 
 
 def test_the_generator_does_not_import_the_effect_code_the_diagnosis_fits():
-    tree = ast.parse(pathlib.Path(bi.__file__).read_text())
+    tree = ast.parse(pathlib.Path(gen.__file__).read_text())
     names = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
@@ -24,25 +25,25 @@ def test_the_generator_does_not_import_the_effect_code_the_diagnosis_fits():
             names |= {a.name for a in node.names}
     for banned in ("stride_jax.gap.effects", "stride_jax.gap.sim", "stride_jax.gap.real"):
         assert banned not in names, banned
-    src = pathlib.Path(bi.__file__).read_text()
+    src = pathlib.Path(gen.__file__).read_text()
     assert "effects." not in src and "real.generate" not in src
 
 
 def test_drawn_settings_differ_from_the_model_and_planting_edits_what_it_says():
     robot = robots.get("go1")
-    m0 = bi.robot_spec("go1").compile()
+    m0 = gen.robot_spec("go1").compile()
     rng = np.random.default_rng(0)
     for _ in range(20):
-        s = bi.draw_settings(m0, rng, robot.ctrl_dt)
+        s = gen.draw_settings(m0, rng, robot.ctrl_dt)
         assert s, "at least one setting differs"
         m = copy.copy(m0)
-        bi.set_simulator(m, s, [g for f in robot.feet for g in f.geoms])
+        gen.set_simulator(m, s, [g for f in robot.feet for g in f.geoms])
         n = robot.ctrl_dt / m.opt.timestep
         assert abs(n - round(n)) < 1e-9
         if s.get("feet_only"):
             assert ((m.geom_contype != 0) | (m.geom_conaffinity != 0)).sum() == 5
     m = copy.copy(m0)
-    ctl = bi.plant(m, {"calf_damping": 2.0, "delay": 0.01, "payload": 1.0}, robot.joints, robot.base_body)
+    ctl = gen.plant(m, {"damping@calf": 2.0, "delay": 0.01, "payload": 1.0}, robot.joints, robot.base_body)
     calf = [m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j)] for j in robot.joints if "calf" in j]
     hip = [m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j)] for j in robot.joints if "hip" in j]
     assert np.allclose(m.dof_damping[calf] - m0.dof_damping[calf], 2.0)

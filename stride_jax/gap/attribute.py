@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy import stats
 
-from stride_jax.gap import effects, fit, granularity, linear_probe, progress, regions, replay, sim
+from stride_jax.gap import admit, effects, fit, granularity, linear_probe, progress, regions, replay, sim
 from stride_jax.gap.regions import noise_floor
 from stride_jax.sim.model import SimModel
 
@@ -57,7 +57,7 @@ def _lower(x: np.ndarray, level: float) -> float:
 
 
 def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: DiagnoseConfig,
-          log=print, singles: list[str] | None = None, pair_screen=None) -> dict[str, Any]:
+          log=print, singles: list[str] | None = None, pair_screen=None, nuisance=None) -> dict[str, Any]:
     """Fits every candidate on ``train``, then pairs of the best (unless the best single is exact),
     and scores all on ``test``.
 
@@ -65,7 +65,10 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     trajectories (``cfg.boot`` times, the same resamples for every hypothesis, so differences
     between hypotheses are paired). A pair replaces the best single only if (a) the paired
     bootstrap puts its held-out improvement over the single above zero at level ``alpha / pairs``
-    and (b) it removes at least ``pair_min`` of what the single leaves above the noise floor.
+    and (b) it removes at least ``pair_min`` of what the single leaves above the noise floor and
+    (c) at least ``pair_material`` of the whole held-out gap above the floor; a hypothesis holding an
+    effect that overlaps the simulator's contact settings must beat re-fitting them instead
+    (``nuisance``: a :class:`stride_jax.gap.nuisance.Null`, or None; :mod:`stride_jax.gap.admit`).
 
     ``singles``: the effects to fit alone (default: every library candidate; the screen's
     shortlist, :mod:`stride_jax.gap.screen`). ``pair_screen(best_single_name, fits_by_name) ->
@@ -133,7 +136,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         pairs = list(itertools.combinations([f.names[0] for f in ranked[:cfg.pairs_of]], 2))
         pairs += [(S0, n) for _, n, _ in screen[:cfg.pairs_of - 1]]
         for a, b in pairs:
-            start = singles[a].params | singles[b].params
+            start = {k: v for n in (a, b) if n in singles for k, v in singles[n].params.items()}
             for _, n, x in screen:
                 if (a, b) == (S0, n):
                     start[n] = np.array([x])
@@ -160,26 +163,8 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
                      "score": float(expl - cfg.penalty * k), "_boot": boot})
     rows.sort(key=lambda r: -r["score"])
     granularity.prefer_coarse(rows, cfg.screen.finer_margin, cfg.alpha, lambda n: noise_floor(r_te[n], test) * M / L_nom)
-    single_rows = [r for r in rows if len(r["effects"]) == 1]
-    pair_rows = [r for r in rows if len(r["effects"]) == 2]
-    S = single_rows[0]
-    r_S = r_te[tuple(S["effects"])]
-    floor_S = noise_floor(r_S, test)
-    left_S = max(S["heldout_loss"] / M - floor_S, 0.0)  # mean squared residual above the floor
-    pair_tests = []
-    for P in pair_rows:
-        gain = (S["heldout_loss"] - P["heldout_loss"]) / M
-        d = P["_boot"] - S["_boot"]  # paired: explained(pair) - explained(single)
-        lo = _lower(d, cfg.alpha / max(len(pair_rows), 1))
-        ok = bool(lo > 0 and gain >= cfg.pair_min * left_S and gain > 1e-6 * L_nom / M)
-        pair_tests.append({"pair": P["effects"], "single": S["effects"], "gain_explained": float(gain * M / L_nom),
-                           "gain_lower": lo, "fraction_of_left": float(gain / max(left_S, 1e-300)),
-                           "preferred": ok})
-        P["vs_best_single"] = pair_tests[-1]
-    chosen = max((P for P, t in zip(pair_rows, pair_tests, strict=True) if t["preferred"]),
-                 key=lambda r: r["explained"], default=S)
-    rows.remove(chosen)
-    rows.insert(0, chosen)
+    _, S, pair_tests, nuisance_tests = admit.choose(rows, r_te, test, M, L_nom, blocks, Wb, boot_nom, cfg,
+                                                    nuisance)
     # bootstrap probability that the chosen hypothesis beats the runner-up (for a chosen single:
     # by penalised score, against the best hypothesis that is not a superset of it; for a chosen
     # pair: unpenalised, against the best single)
@@ -259,7 +244,8 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     return {"ranking": rows, "nominal_heldout_loss": L_nom, "noise_floor": floor, "unstable": unstable,
             "gap_ms": g_nom, "probe_explained_nominal": probe_nom, "structure_left": left,
             "detection": detection,
-            "structure_hints": hints, "pair_tests": pair_tests, "best_single": S["effects"], "singles_fitted": n_single,
+            "structure_hints": hints, "pair_tests": pair_tests, "nuisance_tests": nuisance_tests,
+            "best_single": S["effects"], "singles_fitted": n_single,
             "residual_after_best": {"per_dof_rms_scaled": _rms(r_best_te, 0).tolist()},
             "r_nom_test": r_nom_te, "r_best_test": r_best_te, "plan_best": plan_best}
 
@@ -280,6 +266,27 @@ def bound_note(row: dict[str, Any]) -> str:
             for n, flags in row.get("at_bound", {}).items() for i, f in enumerate(flags) if f]
     return (f"; at the bound: {', '.join(hits)} (the fit stopped at the parameter's bound: the true value may lie "
             f"beyond it, or another effect is being imitated)") if hits else ""
+
+
+def admission_note(w: dict[str, Any], cfg: DiagnoseConfig) -> str:
+    """What the pair and nuisance rules (:mod:`stride_jax.gap.admit`) decided about the hypotheses
+    ranked above or on top of the named one, as clauses of the reason ("" when nothing)."""
+    best = w["ranking"][0]
+    out = []
+    for t in w.get("pair_tests", []):
+        if t["significant"] and not t["material"] and set(t["single"]) == set(best["effects"]):
+            extra = "+".join(e for e in t["pair"] if e not in t["single"])
+            out.append(f"{extra} on top would close a further {t['gain_explained']:.2%} of the held-out gap (lower "
+                       f"bound {t['gain_lower']:.2%}): below the {cfg.pair_material:.0%} materiality rule for a second "
+                       f"effect, so not named (a share this small cannot be told from the model-form difference the "
+                       f"simulator's settings leave)")
+    for t in w.get("nuisance_tests", []):
+        if t["admitted"] and t["effect"] in best["effects"]:
+            out.append(t["summary"])
+        elif not t["admitted"]:
+            out.append(f"not named: {'+'.join(t['hypothesis'])} ({t['summary']}: read as the simulator's contact "
+                       f"model being off, not as a physical effect)")
+    return "".join(f"; {c}" for c in out)
 
 
 def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
@@ -303,7 +310,8 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
        the conditions that failed.
 
     Every verdict lists the hypotheses the held-out data cannot tell apart from the best
-    (``indistinguishable_from``)."""
+    (``indistinguishable_from``). Which hypothesis is the best is the pair and nuisance rules'
+    (:mod:`stride_jax.gap.admit`); the reason says what they set aside."""
     best = w["ranking"][0]
     det = w["detection"]
     name = "+".join(best["effects"])
@@ -346,7 +354,7 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
                       + (" (it predicts held-out data worse than the nominal model)" if best["explained"] < 0 else ""))
     if w["structure_left"] > cfg.structure_max:
         failed.append(f"{left}, above the {cfg.structure_max:.0%} rule")
-    bounds = bound_note(best)
+    bounds = bound_note(best) + admission_note(w, cfg)
     if failed:
         return {"verdict": "unexplained by the library", "effects": best["effects"], "confident": False,
                 "indistinguishable_from": ties, "rule": "attribute_min" if best["explained_above_floor"] < cfg.attribute_min

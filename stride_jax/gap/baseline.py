@@ -63,5 +63,12 @@ def sentence(record: dict | None) -> str:
     if not record["applied"]:
         return ("the simulator's settings match the nominal model (calibration of time step, integrator, cone, "
                 "contacts and contact parameters did not lower the held-out gap)")
-    return (f"the simulator's settings are off: {'; '.join(record['changed'])} (calibrated first: they close "
-            f"{record['shrink']:.1%} of the held-out {record['k']}-step gap, sign-flip p = {record['p_value']:.2g})")
+    refit = (f"; the contact settings were fitted again after the effects, as {record['refit']['why']}"
+             if record.get("refit") else "")
+    held = list(record.get("effects_held_fixed") or {})
+    share = (f"they close {record['shrink']:.1%} of the held-out {record['k']}-step gap, sign-flip p = "
+             f"{record['p_value']:.2g}")
+    if held and record["shrink"] <= 0:  # kept because they lower the gap with the held effect on top
+        share = (f"fitted with {', '.join(held)} held fixed on top, with which they lower the held-out gap; "
+                 f"without it {share}")
+    return f"the simulator's settings are off: {'; '.join(record['changed'])} (calibrated first: {share}{refit})"

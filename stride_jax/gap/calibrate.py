@@ -162,6 +162,54 @@ def _signflip(d: np.ndarray, n: int, seed: int) -> float:
     return float((1 + ((flips @ d) >= d.sum() - 1e-12 * np.abs(d).sum()).sum()) / (1 + n))
 
 
+def _z(name: str, v: float) -> float:
+    """Setting ``name``'s value ``v`` in coordinates normalised to its (log) range: 0 at the low
+    bound, 1 at the high one."""
+    lo, hi, log = CONTINUOUS[name][:3]
+    f = np.log if log else (lambda x: x)
+    return float((f(v) - f(lo)) / (f(hi) - f(lo)))
+
+
+def _from_z(name: str, z: float) -> float:
+    lo, hi, log = CONTINUOUS[name][:3]
+    z = min(max(float(z), 0.0), 1.0)
+    v = float(np.exp(np.log(lo) + z * (np.log(hi) - np.log(lo)))) if log else lo + z * (hi - lo)
+    return CONTINUOUS[name][3] if abs(v - CONTINUOUS[name][3]) < 1e-9 else v
+
+
+def fit_continuous(sm: SimModel, start: Settings, data: fit.Data, scale: np.ndarray, names: list[str],
+                   max_nfev: int, applied: dict | None = None, cache: dict | None = None,
+                   evals: dict | None = None) -> tuple[Settings, float, np.ndarray]:
+    """The continuous settings ``names`` fitted jointly from ``start`` (the others as ``start`` has
+    them) by box-constrained least squares of the ``k``-step residual on ``data``, in coordinates
+    normalised to each setting's (log) range with 2%-of-range finite-difference steps, at most
+    ``max_nfev`` evaluations per setting; ``applied``: library effects held fixed on top. Returns
+    ``(settings, loss, z)``: ``start`` itself where the fit does not lower its loss."""
+    cache = {} if cache is None else cache
+    evals = {"n": 0} if evals is None else evals
+
+    def settings_at(z):
+        return dataclasses.replace(start, **{n: _from_z(n, v) for n, v in zip(names, z)})
+
+    def resid(z):
+        s = settings_at(z)
+        evals["n"] += 1
+        r = residual(nominal.apply(sm, s), data, scale, applied)
+        cache[s] = float((r ** 2).sum())
+        return r.ravel()
+
+    z0 = np.array([_z(n, getattr(start, n)) for n in names]).clip(0, 1)
+    if start not in cache:
+        resid(z0)
+    L0 = cache[start]
+    res = optimize.least_squares(resid, z0, bounds=(0, 1), diff_step=0.02, method="trf",
+                                 max_nfev=max_nfev * len(names), x_scale=1.0)
+    if 2 * res.cost < L0:
+        s = settings_at(res.x)
+        return s, cache.get(s, float(2 * res.cost)), res.x
+    return start, L0, z0
+
+
 def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: CalibrateConfig,
               log=print, applied: dict | None = None, start: Settings | None = None) -> Calibration:
     """Fits the simulator's settings on ``train`` (k-step replays), checks them on ``test``; returns
@@ -229,47 +277,19 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
         if alt:
             ties[name] = alt
     # continuous: joint least squares in normalised (log) coordinates
-    cont = _names(cfg.continuous)
-    if not contacts:
-        cont = []  # nothing collides: contact parameters change nothing
+    cont = _names(cfg.continuous) if contacts else []  # nothing collides: contact parameters change nothing
     cont_fit: dict[str, Any] = {}
     if cont:
-        lo = np.array([np.log(CONTINUOUS[n][0]) if CONTINUOUS[n][2] else CONTINUOUS[n][0] for n in cont])
-        hi = np.array([np.log(CONTINUOUS[n][1]) if CONTINUOUS[n][2] else CONTINUOUS[n][1] for n in cont])
-        neutral = np.array([np.log(CONTINUOUS[n][3]) if CONTINUOUS[n][2] else CONTINUOUS[n][3] for n in cont])
-
-        def settings_at(z):
-            x = lo + np.clip(z, 0, 1) * (hi - lo)
-            vals = {n: float(np.exp(v) if CONTINUOUS[n][2] else v) for n, v in zip(cont, x)}
-            vals = {n: (CONTINUOUS[n][3] if abs(v - CONTINUOUS[n][3]) < 1e-9 else v) for n, v in vals.items()}
-            return dataclasses.replace(best, **vals)
-
-        def resid(z):
-            s = settings_at(z)
-            evals["n"] += 1
-            r = residual(nominal.apply(sm, s), sub, scale, applied)
-            cache[s] = float((r ** 2).sum())
-            return r.ravel()
-
-        zn = (neutral - lo) / (hi - lo)
-        cur = np.array([np.log(getattr(best, n)) if CONTINUOUS[n][2] else getattr(best, n) for n in cont])
-        z0 = np.clip((cur - lo) / (hi - lo), 0, 1)
         L0 = loss(best)
-        res = optimize.least_squares(resid, z0, bounds=(0, 1), diff_step=0.02, method="trf",
-                                     max_nfev=cfg.max_nfev * len(cont), x_scale=1.0)
-        zb = res.x if 2 * res.cost < L0 else z0
-        s_fit = settings_at(zb)
-        L_fit = loss(s_fit)
+        s_fit, L_fit, _ = fit_continuous(sm, best, sub, scale, cont, cfg.max_nfev, applied, cache, evals)
         if L_fit < (1 - cfg.min_gain) * L0:
             # parsimony: a setting goes back to neutral where that costs less than min_gain
-            for i, n in sorted(enumerate(cont), key=lambda t: abs(zb[t[0]] - zn[t[0]])):
-                z_try = zb.copy()
-                z_try[i] = zn[i]
-                if loss(settings_at(z_try)) <= L_fit * (1 + cfg.min_gain):
-                    zb = z_try
-                    L_fit = loss(settings_at(zb))
-            best = settings_at(zb)
-        cont_fit = {"start_loss": L0, "fitted_loss": float(2 * res.cost), "kept": {n: getattr(best, n) for n in cont}}
+            for n in sorted(cont, key=lambda n: abs(_z(n, getattr(s_fit, n)) - _z(n, CONTINUOUS[n][3]))):
+                trial = dataclasses.replace(s_fit, **{n: CONTINUOUS[n][3]})
+                if loss(trial) <= L_fit * (1 + cfg.min_gain):
+                    s_fit, L_fit = trial, loss(trial)
+            best = s_fit
+        cont_fit = {"start_loss": L0, "fitted_loss": L_fit, "kept": {n: getattr(best, n) for n in cont}}
     # held-out check
     base = nominal.apply(sm, best)
     best = _neutral(best, own)
@@ -352,7 +372,7 @@ def screen(base: SimModel, train: fit.Data, scale: np.ndarray, cfg: CalibrateCon
                 x, fx = float(r.x), float(r.fun)
         rows.append({"effect": e.name, "value": x, "loss": fx})
     rows.sort(key=lambda r: r["loss"])
-    rec = {"loss_without": L0, "screen": rows[:5]}
+    rec = {"loss_without": L0, "screen": rows}
     if rows and rows[0]["loss"] < (1 - cfg.min_gain) * L0:
         return {rows[0]["effect"]: [rows[0]["value"]]}, rec
     return {}, rec
@@ -361,12 +381,24 @@ def screen(base: SimModel, train: fit.Data, scale: np.ndarray, cfg: CalibrateCon
 def refine(sm: SimModel, cal: Calibration, train: fit.Data, test: fit.Data, scale: np.ndarray,
            cfg: CalibrateConfig, grid: int, log=print) -> Calibration:
     """The settings fitted again with the best screened effect (:func:`screen`) held fixed on top,
-    starting from the first calibration ``cal``; ``cal`` itself where no effect helps."""
-    held, rec = screen(cal.model, train, scale, cfg, grid)
-    info = {"first_pass": cal.record["changed"], "screen": rec, "held_fixed": held}
-    if not held:
+    starting from the first calibration ``cal``; ``cal`` itself where no effect helps.
+
+    An effect that *is* a calibrated setting (``contact_softness``: the solref time constant;
+    :data:`stride_jax.gap.nuisance.OVERLAPS`) is not held fixed but folded into the start of the
+    search (the screen's 1-D search can find a time constant that the joint least squares missed);
+    the best of the other effects is held fixed."""
+    from stride_jax.gap import nuisance
+
+    _, rec = screen(cal.model, train, scale, cfg, grid)
+    gains = [r for r in rec["screen"] if r["loss"] < (1 - cfg.min_gain) * rec["loss_without"]]
+    equiv = {n for n, setting in nuisance.OVERLAPS.items() if setting in _names(cfg.continuous)}
+    held = next(({r["effect"]: [r["value"]]} for r in gains if r["effect"] not in equiv), {})
+    fold = {r["effect"]: [r["value"]] for r in gains if r["effect"] in equiv}
+    start = nuisance.fold_into(cal.settings, fold, _names(cfg.continuous))
+    info = {"first_pass": cal.record["changed"], "screen": rec, "held_fixed": held, "folded": fold}
+    if not held and not fold:
         return dataclasses.replace(cal, record=cal.record | {"refined": info | {"settings_moved": False}})
-    log(f"  calibration refined with {held} held fixed on top (screened)")
-    cal2 = calibrate(sm, train, test, scale, cfg, log, applied=held, start=cal.settings)
+    log(f"  calibration refined with {held} held fixed on top and {fold} folded into the settings (screened)")
+    cal2 = calibrate(sm, train, test, scale, cfg, log, applied=held or None, start=start)
     info["settings_moved"] = cal2.settings != cal.settings
     return dataclasses.replace(cal2, record=cal2.record | {"refined": info})

@@ -288,8 +288,10 @@ def calibration_section(d: dict[str, Any]) -> list[str]:
               + ", ".join(f"{k} {v:.4g}" for k, v in forms.items()) + f" (calibrated: {c['heldout_gap_proposed']:.4g})."]
     if c.get("refined"):
         r = c["refined"]
-        if r.get("held_fixed"):
-            L += ["", f"Refined with the best screened effect held fixed on top ({r['held_fixed']}): "
+        if r.get("held_fixed") or r.get("folded"):
+            L += ["", f"Refined with the best screened effect held fixed on top ({r['held_fixed'] or 'none'})"
+                  + (f" and the screened contact_softness folded into the solref time constant ({r['folded']})"
+                     if r.get("folded") else "") + ": "
                   + (f"the settings moved (first pass: {'; '.join(r['first_pass']) or 'none'})." if r["settings_moved"]
                      else "the settings did not move.")]
         else:
