@@ -118,6 +118,7 @@ def model_from_definition(d: dict, kernel: str | None = None) -> Model:
     act = Actuation.from_dict(d["actuation"])
     c = dict(d["config"])
     c.setdefault("learn_mass", True)  # runs defined before the option learned their mass
+    c.setdefault("base_structure", True)  # runs defined before the switch had the structure
     # Runs defined before v-prediction: noise prediction on a schedule ending at 1e-5, clipped
     # at 10; their acceleration loss trained the prior only.
     for k, v in dict(diffusion_target="eps", abar_min=1e-5, diffusion_clip=10.0,

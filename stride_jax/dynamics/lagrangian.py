@@ -88,6 +88,14 @@ class LNNConfig:
     the original DeLaN (Lutter et al., 2019), instead of two. Each pass through the prior is then
     one network pass where it was two: the planner's model step costs less (measured in
     ``results/mppi_latency/README.md``), at the accuracy ``experiments/planning_shared.sh`` measures.
+
+    ``base_structure`` (floating bases; the default): what rigid-body physics fixes is built in --
+    M's translational block is exactly ``m I`` (L's first three rows ``sqrt(m) I``), neither
+    network sees the base's position, and ``V = m g z_base + V_net(orientation, joints)``. Off
+    (an ablation, :func:`structured_base`): a generic Lagrangian over the floating base's
+    coordinates -- every entry of L learned, M and V see the base height besides the orientation
+    and joints, and V is the network alone (no mass, no exact gravity term; ``mass_init`` and
+    ``learn_mass`` do not apply).
     """
 
     net: mlp.MLPConfig = mlp.MLPConfig()
@@ -96,9 +104,26 @@ class LNNConfig:
     mass_init: float = 1.0
     learn_mass: bool = False
     shared: bool = False
+    base_structure: bool = True
 
     def __post_init__(self):
         check_diag_floor(self.diag_floor)
+        check_base_structure(self.base_structure, self.learn_mass)
+
+
+def check_base_structure(base_structure: bool, learn_mass: bool) -> None:
+    """``learn_mass`` needs the floating-base structure: without it there is no total mass."""
+    if not base_structure and learn_mass:
+        raise ValueError("learn_mass needs base_structure: without the floating-base structure "
+                         "(M's translational block m I, V = m g z + V_net) the prior has no total "
+                         "mass to learn")
+
+
+def structured_base(spec: ModelSpec, cfg: LNNConfig) -> bool:
+    """Whether the prior has the floating-base structure (``LNNConfig.base_structure`` on a
+    floating base): M's translational block ``m I``, ``V = m g z + V_net``, no base position
+    among the networks' inputs."""
+    return spec.floating_base and cfg.base_structure
 
 
 def check_diag_floor(floor) -> None:
@@ -129,27 +154,34 @@ def q_features(spec: ModelSpec, q: jax.Array, height: bool = True) -> jax.Array:
     return jnp.concatenate(head + [joints])
 
 
-def _n_features(spec: ModelSpec) -> int:
+def _prior_features(spec: ModelSpec, q: jax.Array, cfg: LNNConfig) -> jax.Array:
+    """The prior networks' input: :func:`q_features` without the base height where the
+    floating-base structure holds (M and V_net do not depend on where the robot is), with it
+    where it does not (a generic Lagrangian of the base's coordinates)."""
+    return q_features(spec, q, height=not structured_base(spec, cfg))
+
+
+def _n_features(spec: ModelSpec, cfg: LNNConfig) -> int:
     q0 = jnp.zeros(spec.nq).at[3].set(1.0) if spec.floating_base else jnp.zeros(spec.nq)
-    return q_features(spec, q0, height=False).shape[0]
+    return _prior_features(spec, q0, cfg).shape[0]
 
 
-def _n_mass_outputs(spec: ModelSpec) -> int:
+def _n_mass_outputs(spec: ModelSpec, cfg: LNNConfig) -> int:
     n = spec.nv * (spec.nv + 1) // 2
-    return n - 6 if spec.floating_base else n  # the translational block is m I (see below)
+    return n - 6 if structured_base(spec, cfg) else n  # the translational block is m I (below)
 
 
 def lnn_init(key: jax.Array, spec: ModelSpec, cfg: LNNConfig = LNNConfig()) -> dict:
     """Parameters of the Cholesky-factor network and of V(q) (``shared``: of the one network
     with both) and, for a floating base with ``learn_mass``, the log of the total mass."""
     key_m, key_v = jax.random.split(key)
-    n_out = _n_mass_outputs(spec)
+    n_out, n_in = _n_mass_outputs(spec, cfg), _n_features(spec, cfg)
     if cfg.shared:
-        params = {"shared": mlp.mlp(cfg.net, n_out + 1)[0](key_m, _n_features(spec))}
+        params = {"shared": mlp.mlp(cfg.net, n_out + 1)[0](key_m, n_in)}
     else:
-        params = {"mass": mlp.mlp(cfg.net, n_out)[0](key_m, _n_features(spec)),
-                  "potential": mlp.mlp(cfg.net, 1)[0](key_v, _n_features(spec))}
-    if spec.floating_base and cfg.learn_mass:
+        params = {"mass": mlp.mlp(cfg.net, n_out)[0](key_m, n_in),
+                  "potential": mlp.mlp(cfg.net, 1)[0](key_v, n_in)}
+    if structured_base(spec, cfg) and cfg.learn_mass:
         params["log_mass"] = jnp.log(jnp.asarray(cfg.mass_init, jnp.float32))
     return params
 
@@ -159,21 +191,22 @@ def total_mass(params: dict, cfg: LNNConfig) -> jax.Array | float:
     return jnp.exp(params["log_mass"]) if cfg.learn_mass else cfg.mass_init
 
 
-def _factor_layout(spec: ModelSpec) -> tuple[np.ndarray, np.ndarray]:
+def _factor_layout(spec: ModelSpec, structured: bool) -> tuple[np.ndarray, np.ndarray]:
     """Where L's entries come from (static): ``(index [nv, nv], diag [n_diag])``. ``index``
     points into ``concat([raw, softplus(raw[diag]), [sqrt(m)], [0]])``: the mass network's
     ``n_out`` outputs (learned entries), the softplus of its diagonal outputs, the floating base's
-    fixed translational diagonal (rows 0-2 of L are ``sqrt(m) I``) and zero (above the diagonal)."""
+    fixed translational diagonal (``structured``: rows 0-2 of L are ``sqrt(m) I``) and zero
+    (above the diagonal)."""
     nv = spec.nv
     rows, cols = np.tril_indices(nv)
-    learned = rows >= 3 if spec.floating_base else np.ones(rows.shape, bool)
+    learned = rows >= 3 if structured else np.ones(rows.shape, bool)
     rows, cols = rows[learned], cols[learned]
     n_out = len(rows)
     diag = np.flatnonzero(rows == cols)
     index = np.full((nv, nv), n_out + len(diag) + 1)  # zero
     index[rows, cols] = np.arange(n_out)
     index[rows[diag], cols[diag]] = n_out + np.arange(len(diag))
-    if spec.floating_base:
+    if structured:
         index[np.arange(3), np.arange(3)] = n_out + len(diag)
     return index, diag
 
@@ -186,18 +219,20 @@ def mass_matrix(params: dict, spec: ModelSpec, q: jax.Array,
     bounds its smallest eigenvalue away from zero, which a positive diagonal alone does not (large
     off-diagonal entries can make ``L L^T`` numerically singular).
 
-    Floating base: M does not depend on where the robot is (no base position among the inputs),
-    and its translational block is exactly ``m I`` as for any rigid multibody with world-frame
-    linear velocity: the first three rows of L are ``sqrt(m) I``, the rest is learned.
+    Floating base with ``base_structure`` (the default): M does not depend on where the robot is
+    (no base position among the inputs), and its translational block is exactly ``m I`` as for
+    any rigid multibody with world-frame linear velocity: the first three rows of L are
+    ``sqrt(m) I``, the rest is learned. Without it every entry of L is learned from the base
+    height, orientation and joints.
     """
-    return _mass_from_features(params, spec, q_features(spec, q, height=False), cfg)
+    return _mass_from_features(params, spec, _prior_features(spec, q, cfg), cfg)
 
 
 def _networks(params: dict, spec: ModelSpec, x: jax.Array, cfg: LNNConfig
               ) -> tuple[jax.Array, jax.Array]:
     """``(raw [n_out], V_net [])`` from the input features ``x``: the factor network's outputs
     and the learned part of V."""
-    n_out = _n_mass_outputs(spec)
+    n_out = _n_mass_outputs(spec, cfg)
     if cfg.shared:
         out = mlp.mlp(cfg.net, n_out + 1)[1](params["shared"], x)
         return out[:n_out], out[n_out]
@@ -212,18 +247,19 @@ def _factor_from_features(params: dict, spec: ModelSpec, x: jax.Array, cfg: LNNC
     if cfg.shared:
         raw = _networks(params, spec, x, cfg)[0]
     else:
-        raw = mlp.mlp(cfg.net, _n_mass_outputs(spec))[1](params["mass"], x)
+        raw = mlp.mlp(cfg.net, _n_mass_outputs(spec, cfg))[1](params["mass"], x)
     return _factor_from_raw(params, spec, raw, cfg)
 
 
 def _factor_from_raw(params: dict, spec: ModelSpec, raw: jax.Array, cfg: LNNConfig
                      ) -> jax.Array:
     """L from the factor network's outputs ``raw``."""
-    index, diag = _factor_layout(spec)
+    structured = structured_base(spec, cfg)
+    index, diag = _factor_layout(spec, structured)
     # One gather from the outputs, the softplus of the diagonal ones, sqrt(m) and zero: no
     # scatters, and transcendentals on the diagonal only (a softplus over all of L, masked,
     # cost a CPU planner as much as the mass network itself).
-    fixed = jnp.sqrt(total_mass(params, cfg)) if spec.floating_base else 1.0
+    fixed = jnp.sqrt(total_mass(params, cfg)) if structured else 1.0
     return jnp.concatenate([raw, jax.nn.softplus(raw[diag]),
                             jnp.asarray([fixed, 0.0], raw.dtype)])[index]
 
@@ -243,17 +279,18 @@ def potential_energy(params: dict, spec: ModelSpec, q: jax.Array,
                      cfg: LNNConfig = LNNConfig()) -> jax.Array:
     """Scalar ``V(q)`` (J).
 
-    Floating base: ``V = m g z_base + V_net(orientation, joints)``, the exact form of uniform
-    gravity on a multibody (``g sum_i m_i z_i``, the network holding the centre of mass offset),
-    with the same ``m`` as M's translational block. Without this tie the prior can fold the mean
-    contact force of standing into a weaker "gravity" and leave the feet unloaded.
+    Floating base with ``base_structure``: ``V = m g z_base + V_net(orientation, joints)``, the
+    exact form of uniform gravity on a multibody (``g sum_i m_i z_i``, the network holding the
+    centre of mass offset), with the same ``m`` as M's translational block. Without this tie the
+    prior can fold the mean contact force of standing into a weaker "gravity" and leave the feet
+    unloaded. Without the structure: ``V = V_net(height, orientation, joints)``.
     """
-    x = q_features(spec, q, height=False)
+    x = _prior_features(spec, q, cfg)
     if cfg.shared:
         v = _networks(params, spec, x, cfg)[1]
     else:
         v = mlp.mlp(cfg.net, 1)[1](params["potential"], x)[0]
-    if spec.floating_base:
+    if structured_base(spec, cfg):
         v = v + total_mass(params, cfg) * cfg.gravity * q[2]
     return v
 
@@ -288,7 +325,7 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
     """
     fb = spec.floating_base
     zero = jnp.zeros(spec.nv, v.dtype)
-    features = lambda delta: q_features(spec, retract(q, delta, fb), height=False)
+    features = lambda delta: _prior_features(spec, retract(q, delta, fb), cfg)
     x0, dx = jax.linearize(features, zero)  # dx(delta) = T delta
     dtype = fused.kernel_dtype(kernel)
     if dtype is None:
@@ -311,11 +348,12 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
     dl_dx = transpose(jnp.outer(v, u))  # the cotangent of 1/2 |L^T v|^2 on L is v u^T
     (dl_dq,) = jax.linear_transpose(dx, zero)(dl_dx)  # T^T dl_dx
     b = mdot_v - dl_dq
-    if fb:
+    if structured_base(spec, cfg):
         # V's exact gravity term m g z (world z: the first three tangents translate the base)
         up = np.zeros(spec.nv, v.dtype)
         up[2] = 1.0
         b = b + total_mass(params, cfg) * cfg.gravity * up
+    if fb:
         b = b.at[3:6].add(jnp.cross(v[3:6], p[3:6]))
     return M, b
 
@@ -324,7 +362,7 @@ def _fused_passes(params: dict, spec: ModelSpec, cfg: LNNConfig, x: jax.Array, t
                   dtype) -> tuple[jax.Array, jax.Array, Callable]:
     """``(L, dL, transpose)`` of :func:`lnn_terms` by the fused kernels: L and its derivative
     along the features' tangent ``t``, and ``g_L -> d(<g_L, L> - V)/dx``."""
-    n_out = _n_mass_outputs(spec)
+    n_out = _n_mass_outputs(spec, cfg)
     factor = lambda raw: _factor_from_raw(params, spec, raw, cfg)
     if cfg.shared:
         out, out_t = fused.jvp(params["shared"], x, t, dtype)

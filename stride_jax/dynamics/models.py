@@ -289,9 +289,11 @@ def _whole_step_applies(spec: ModelSpec, act: Actuation, cfg: stride.StructuredC
     """Whether a STRIDE model's substep runs as one kernel (``fused_step``): a ``-step`` kernel
     choice, a floating base without periodic joints, position servos integrated implicitly,
     one network for L and V and Euler flow steps (the planning configuration), no mean head
-    (the kernel holds the flow alone), and a size that fits shared memory
-    (:func:`whole_step_fits`)."""
+    (the kernel holds the flow alone), the floating-base structure (the kernel's layout fixes
+    L's first rows to ``sqrt(m) I`` and adds ``m g z``; without it the per-pass kernels or XLA
+    run the step) and a size that fits shared memory (:func:`whole_step_fits`)."""
     return (fused.whole_step(cfg.kernel) and spec.floating_base and not any(spec.periodic)
+            and cfg.base_structure
             and act.kp is not None and cfg.implicit_servo and cfg.shared_lnn
             and cfg.integrator == "euler" and cfg.acc_through != "mean"
             and whole_step_fits(spec.nv, cfg.net.hidden))

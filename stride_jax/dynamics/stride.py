@@ -113,6 +113,9 @@ class StructuredConfig:
     mass_init: float = 1.0  # floating bases: total mass (kg), see LNNConfig
     learn_mass: bool = False
     shared_lnn: bool = False  # one network for L and V (LNNConfig.shared)
+    # floating bases: M's translational block m I, V = m g z + V_net, no base position among
+    # the prior's inputs (LNNConfig.base_structure); off: a generic Lagrangian (an ablation)
+    base_structure: bool = True
     implicit_servo: bool = True  # rollouts: servo PD at the next state (Actuation.implicit)
     fm_weight: float = 1.0
     residual_weight: float = 0.1
@@ -123,6 +126,7 @@ class StructuredConfig:
     def __post_init__(self):
         fused.kernel_dtype(self.kernel)  # a clear error for an unknown choice
         lagrangian.check_diag_floor(self.diag_floor)
+        lagrangian.check_base_structure(self.base_structure, self.learn_mass)
         if fused.fused(self.kernel) and self.net.activation != "silu":
             raise ValueError(f"kernel {self.kernel!r} implements SiLU networks only, not "
                              f"{self.net.activation!r}; use kernel='xla'")
@@ -142,7 +146,7 @@ class StructuredConfig:
     def lnn(self) -> lagrangian.LNNConfig:
         return lagrangian.LNNConfig(net=self.inference_net, diag_floor=self.diag_floor,
                                     mass_init=self.mass_init, learn_mass=self.learn_mass,
-                                    shared=self.shared_lnn)
+                                    shared=self.shared_lnn, base_structure=self.base_structure)
 
     @property
     def diffusion(self) -> diffusion.DiffusionConfig:

@@ -110,6 +110,8 @@ def _label(name: str, train: dict) -> str:
     variant = [f"acc_through={through}"] if structured and generative and through != "central" \
         else []
     variant += ["learn_mass"] if structured and train.get("learn_mass") else []
+    variant += ["no_base_structure"] if structured and not train.get("base_structure", True) \
+        else []
     return f"{name}[{','.join(variant)}]" if variant else name
 
 

@@ -54,6 +54,10 @@ class TrainConfig:
         prior (``stride.ACC_THROUGH``: prior, central, sample, mean).
       learn_mass: structured models on a floating base: learn the total mass (starting at the
         spec sheet's) instead of holding it there (an ablation of the fixed mass).
+      base_structure: structured models on a floating base: M's translational block ``m I``,
+        ``V = m g z + V_net`` and no base position among the prior's inputs
+        (``LNNConfig.base_structure``); ``--no-base-structure`` learns a generic Lagrangian of
+        the base's coordinates instead (an ablation of the structure).
       out: run folder; empty means ``runs/<robot>/<model>``.
       distributed: train data-parallel over several processes (:mod:`stride_jax.distributed`).
     """
@@ -69,6 +73,7 @@ class TrainConfig:
     shared_lnn: bool = False
     acc_through: str = "central"
     learn_mass: bool = False
+    base_structure: bool = True
     out: str = ""
     distributed: DistributedConfig = DistributedConfig()
 
@@ -116,7 +121,7 @@ def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.P
     spec = spec_from_meta(ds.meta)
     model_cfg = model_config(cfg.model, ds.meta, cfg.net.hidden, cfg.net.depth, cfg.nfe,
                              cfg.shared_lnn, cfg.acc_through, cfg.learn_mass, cfg.net.activation,
-                             cfg.net.init)
+                             cfg.net.init, cfg.base_structure)
     act = models.Actuation.from_meta(ds.meta)
     sc = scales(ds)
     model = models.make(cfg.model, spec, act, model_cfg, sc)
