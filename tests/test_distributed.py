@@ -23,13 +23,16 @@ def _port() -> int:
         return s.getsockname()[1]
 
 
-def _stride(args: list[str], log: pathlib.Path) -> subprocess.Popen:
+def _stride(args: list[str], log: pathlib.Path, devices: int = 1) -> subprocess.Popen:
     # Output to a file, not a pipe: a process blocked on a full pipe would stall the other's
     # collectives.
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    if devices > 1:  # forced host devices: one process, several local devices
+        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") +
+                            f" --xla_force_host_platform_device_count={devices}").strip()
     with open(log, "w") as f:
         return subprocess.Popen([sys.executable, "-m", "stride_jax.cli", *args], stdout=f,
-                                stderr=subprocess.STDOUT,
-                                env={**os.environ, "JAX_PLATFORMS": "cpu"})
+                                stderr=subprocess.STDOUT, env=env)
 
 
 def _wait(procs: list[subprocess.Popen], logs: list[pathlib.Path]) -> None:
@@ -47,8 +50,9 @@ def _together(args: list[str], tmp: pathlib.Path) -> None:
                    log) for i, log in enumerate(logs)], logs)
 
 
-def _alone(args: list[str], tmp: pathlib.Path) -> None:
-    _wait([_stride(args, tmp / f"{args[0]}.log")], [tmp / f"{args[0]}.log"])
+def _alone(args: list[str], tmp: pathlib.Path, devices: int = 1) -> None:
+    log = tmp / f"{args[0]}-{devices}dev.log"
+    _wait([_stride(args, log, devices)], [log])
 
 
 def test_two_processes_make_the_same_dataset_and_model(tmp_path):
@@ -82,3 +86,19 @@ def test_settings_come_from_flags_or_the_environment():
         distributed.resolve(distributed.DistributedConfig("node0:1", 2, 2), {})
     with pytest.raises(ValueError, match="num_processes"):
         distributed.resolve(distributed.DistributedConfig("node0:1"), {})
+
+
+def test_one_process_with_two_devices_trains_the_same_model(tmp_path):
+    """Two local devices of one process (the minibatch split over them, data and parameters
+    replicated on each): the model one device trains, up to the order of the gradients'
+    summation, and a checkpoint that restores in a one-device process."""
+    data = ["data", "--robot", "pendulum", "--preset", "tiny", "--out", str(tmp_path / "d")]
+    _alone(data, tmp_path)
+    train = ["train", "--robot", "pendulum", "--model", "delan", "--preset", "tiny", "--steps",
+             "30", "--data", str(tmp_path / "d")]
+    _alone([*train, "--out", str(tmp_path / "r1")], tmp_path)
+    _alone([*train, "--out", str(tmp_path / "r2")], tmp_path, devices=2)
+    (_, p1), (_, p2) = models.load(tmp_path / "r1"), models.load(tmp_path / "r2")
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5), p1, p2)
+    s1, s2 = (json.loads((tmp_path / r / "summary.json").read_text()) for r in ("r1", "r2"))
+    assert s2["best_val"] == pytest.approx(s1["best_val"], rel=1e-4)

@@ -13,7 +13,8 @@ sees the first ``d`` of them (``CUDA_VISIBLE_DEVICES``), on a CPU ``d`` forced h
 - **training**: ``stride train`` on one shared dataset (the minibatch split over the devices,
   XLA all-reducing the gradients), steps per second read from ``metrics.csv`` between its first
   and last validation (compilation excluded). ``--per-device-batch`` keeps each device's share
-  fixed (weak scaling); otherwise the global batch is fixed (strong scaling).
+  fixed, of the minibatch and of the data probe's worlds (weak scaling); otherwise the global
+  batch and worlds are fixed (strong scaling).
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ def child(args) -> None:
     assert n == args.d, f"asked for {args.d} devices, JAX sees {n}"
     sm = model.load(args.robot)
     n_steps = max(1, int(round(args.seconds / sm.robot.ctrl_dt)))
-    worlds = args.worlds
+    worlds = args.worlds * (n if args.per_device_batch else 1)  # weak scaling: a share per device
     times = []
     for _ in range(2):  # the first call compiles
         t = time.perf_counter()
@@ -90,16 +91,18 @@ def write(rows: list[dict], out: pathlib.Path, command: str) -> None:
     lines = [f"# Throughput against device count ({base['robot']}, {base['platform']}: "
              f"{base['device_kind']})", "",
              f"Command: `{command}`", "",
-             "| devices | data sim steps/s | speed-up | train steps/s | examples/s | speed-up |",
-             "|---:|---:|---:|---:|---:|---:|"]
+             "| devices | worlds | data sim steps/s | speed-up | batch | train steps/s | examples/s "
+             "| speed-up |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
-        lines.append(f"| {r['devices']} | {r['data_sim_steps_per_s']:,.0f} | "
+        lines.append(f"| {r['devices']} | {r['worlds']} | {r['data_sim_steps_per_s']:,.0f} | "
                      f"{r['data_sim_steps_per_s'] / base['data_sim_steps_per_s']:.2f}x | "
-                     f"{r['train_steps_per_s']:,.1f} | {r['train_examples_per_s']:,.0f} | "
+                     f"{r['batch']} | {r['train_steps_per_s']:,.1f} | {r['train_examples_per_s']:,.0f} | "
                      f"{r['train_examples_per_s'] / base['train_examples_per_s']:.2f}x |")
-    lines += ["", f"Data: {base['worlds']} worlds x {base['control_steps']} control steps per call "
-              f"(MJX, sharded over the devices). Training: `{base['model']}` at the paper preset's "
-              f"256 x 3, batch per row as in the json, {base['train_steps_timed']} timed steps."]
+    lines += ["", f"Data: the worlds of each row x {base['control_steps']} control steps per call "
+              f"(MJX, sharded over the devices; the time includes copying the records to the "
+              f"host). Training: `{base['model']}` at the paper preset's 256 x 3, the row's batch "
+              f"split over the devices, {base['train_steps_timed']} timed steps."]
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "scale.json", json.dumps(rows, indent=1))
     atomic_write_text(out / "scale.md", "\n".join(lines) + "\n")
