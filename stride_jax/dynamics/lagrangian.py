@@ -87,7 +87,7 @@ class LNNConfig:
     ``shared``: L's entries and V from one network (shared hidden layers, one more output), as in
     the original DeLaN (Lutter et al., 2019), instead of two. Each pass through the prior is then
     one network pass where it was two: the planner's model step costs less (measured in
-    ``results/mppi_latency/README.md``), at the accuracy ``experiments/planning_shared.sh`` measures.
+    ``results/mppi_latency/README.md``), at the accuracy ``experiments/probes/planning_shared.sh`` measures.
 
     ``base_structure`` (floating bases; the default): what rigid-body physics fixes is built in --
     M's translational block is exactly ``m I`` (L's first three rows ``sqrt(m) I``), neither
@@ -316,7 +316,7 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
     in ``x``. The networks then run one forward pass, one tangent pass (along ``T v``) and one
     transposed pass, with none of the quaternion arithmetic of the retraction differentiated
     through them. Measured with the products on ``L`` below (Go1, 64 x 3 networks, a batch of
-    128 on a 2-core CPU; ``experiments/model_step_time.py``): the model step 3.0 -> 2.1 ms.
+    128 on a 2-core CPU; ``experiments/probes/model_step_time.py``): the model step 3.0 -> 2.1 ms.
     Equal to :func:`bias_force` to rounding (tested).
 
     ``kernel``: ``"xla"`` (JAX's own differentiation, differentiable again: training uses it)
