@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from stride_jax import distributed
-from stride_jax.dynamics import models
+from stride_jax import dynamics
 
 
 def _port() -> int:
@@ -66,7 +66,7 @@ def test_two_processes_make_the_same_dataset_and_model(tmp_path):
              "30", "--data", str(tmp_path / "d1")]
     _alone([*train, "--out", str(tmp_path / "r1")], tmp_path)
     _together([*train, "--out", str(tmp_path / "r2")], tmp_path)
-    (_, p1), (_, p2) = models.load(tmp_path / "r1"), models.load(tmp_path / "r2")
+    (_, p1), (_, p2) = dynamics.load(tmp_path / "r1"), dynamics.load(tmp_path / "r2")
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5), p1, p2)
     s1, s2 = (json.loads((tmp_path / r / "summary.json").read_text()) for r in ("r1", "r2"))
     assert s1["best_step"] == s2["best_step"] == 30
@@ -98,7 +98,7 @@ def test_one_process_with_two_devices_trains_the_same_model(tmp_path):
              "30", "--data", str(tmp_path / "d")]
     _alone([*train, "--out", str(tmp_path / "r1")], tmp_path)
     _alone([*train, "--out", str(tmp_path / "r2")], tmp_path, devices=2)
-    (_, p1), (_, p2) = models.load(tmp_path / "r1"), models.load(tmp_path / "r2")
+    (_, p1), (_, p2) = dynamics.load(tmp_path / "r1"), dynamics.load(tmp_path / "r2")
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5), p1, p2)
     s1, s2 = (json.loads((tmp_path / r / "summary.json").read_text()) for r in ("r1", "r2"))
     assert s2["best_val"] == pytest.approx(s1["best_val"], rel=1e-4)

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from stride_jax import cli
+from stride_jax import cli, dynamics
 from stride_jax.dynamics import integrate, models
 from stride_jax.eval import forces, rollout
 from stride_jax.sim import dataset
@@ -54,7 +54,7 @@ def test_training_lowers_the_rollout_error(name, data, runs):
     cli.main(["train", "--robot", "pendulum", "--model", name, "--preset", "tiny",
               "--steps", "150", "--lr", "3e-3", "--data", str(data), "--out", str(run)])
     ds = dataset.load(data)
-    model, params = models.load(run)
+    model, params = dynamics.load(run)
     spec = models.spec_from_meta(ds.meta)
     test = ds.split("val")
     starts = rollout.windows(test["valid"], 10, 64)

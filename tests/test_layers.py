@@ -102,3 +102,68 @@ def test_no_script_or_module_reaches_into_the_tests(path):
     assert not found, f"{path.relative_to(ROOT)} imports {found} from the tests"
     on_path = [line for line in source.splitlines() if "sys.path" in line and "tests" in line]
     assert not on_path, f"{path.relative_to(ROOT)} puts the tests on sys.path: {on_path}"
+
+
+def _runtime_imports(path: pathlib.Path) -> set[str]:
+    """The library modules ``path`` imports at run time (anywhere in the file, functions
+    included), not those under ``if TYPE_CHECKING:`` (annotations only)."""
+    tree = ast.parse(path.read_text())
+    typing_only = {id(n) for node in ast.walk(tree)
+                   if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
+                   for n in ast.walk(node)}
+    module = _module_name(path)
+    kept = ast.Module([n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))
+                       and id(n) not in typing_only], [])
+    return set(imported_names(ast.unparse(kept), module, path.name == "__init__.py"))
+
+
+def import_cycles() -> list[list[str]]:
+    """The strongly connected groups of two or more modules in the graph of ``stride_jax``'s
+    module-to-module imports (Tarjan). Edges into a package's ``__init__`` are left out: ``from
+    stride_jax.gap import effects`` names the package only on the way to its module."""
+    files = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
+    graph = {m: sorted(n for n in _runtime_imports(p) if n in files and n != m
+                       and not files[n].name == "__init__.py") for m, p in files.items()}
+    index, low, stack, on, groups = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while not group or group[-1] != v:
+                group.append(stack.pop())
+                on.discard(group[-1])
+            if len(group) > 1:
+                groups.append(sorted(group))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    return groups
+
+
+def test_no_import_cycles():
+    """No two modules of the package import each other, directly or around a circle, even from
+    inside a function (a deferred import is a cycle all the same); type-only imports aside."""
+    assert import_cycles() == []
+
+
+def test_the_cycle_check_sees_a_deferred_cycle(tmp_path, monkeypatch):
+    pkg = tmp_path / "stride_jax"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from stride_jax import b\n")
+    (pkg / "b.py").write_text("def f():\n    from stride_jax import a\n")
+    (pkg / "c.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                              "    from stride_jax import a\n")
+    monkeypatch.setitem(globals(), "PACKAGE", pkg)
+    monkeypatch.setitem(globals(), "ROOT", tmp_path)
+    assert import_cycles() == [["stride_jax.a", "stride_jax.b"]]

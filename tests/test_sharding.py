@@ -12,7 +12,7 @@ import numpy as np
 SCRIPT = """
 import stride_jax, jax, numpy as np, sys
 from stride_jax import cli
-from stride_jax.dynamics import models
+from stride_jax import dynamics
 from stride_jax.sim import model, rollout_mjx
 out, data, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
 assert len(jax.local_devices()) == n
@@ -20,7 +20,7 @@ ep = rollout_mjx.collect(model.load('pendulum'), jax.random.key(0), 4, 20)
 np.save(out + "/q.npy", ep.records.q)
 cli.main(["train", "--robot", "pendulum", "--preset", "tiny", "--steps", "20", "--batch", "64",
           "--eval-every", "10", "--data", data, "--out", out + "/run"])
-_, params = models.load(out + "/run")
+_, params = dynamics.load(out + "/run")
 np.save(out + "/params.npy", np.concatenate([np.ravel(x) for x in jax.tree.leaves(params)]))
 # MPPI with a stochastic double integrator, its samples split over the devices.
 import jax.numpy as jnp

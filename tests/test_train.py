@@ -44,13 +44,13 @@ def test_training_runs_and_improves(data_dir, tmp_path):
     # model, here the optimiser-state checkpoint) still loads the best the summary names.
     import shutil
 
-    from stride_jax.dynamics import models
+    from stride_jax import dynamics
 
     copy = tmp_path / "copy"
     shutil.copytree(run, copy)
     stale = max(int(p.name) for p in (run / "ckpt").iterdir() if p.name.isdigit())
     shutil.copytree(run / "ckpt" / str(stale), copy / "best" / "99999")
-    (_, want), (_, got) = models.load(run), models.load(copy)
+    (_, want), (_, got) = dynamics.load(run), dynamics.load(copy)
     jax.tree.map(np.testing.assert_array_equal, want, got)
 
 

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stride_jax import io
+from stride_jax import dynamics
 from stride_jax.dynamics import models
 from stride_jax.eval import rollout, runs as runs_lib
 
@@ -34,7 +35,7 @@ def compare(run: pathlib.Path, horizon: int, windows: int, samples: int, seed: i
     out = {"run": str(run)}
     preds = {}
     for kernel in ("xla", "xla-bf16"):
-        model, params = models.load(run, kernel=kernel)
+        model, params = dynamics.load(run, kernel=kernel)
         keys = jax.vmap(lambda s: jax.random.fold_in(jax.random.key(seed), s))(
             jnp.arange(samples if model.stochastic else 1))
         q, qd, ctrl = rollout.window_arrays(test, starts, horizon)

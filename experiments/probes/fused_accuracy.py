@@ -16,6 +16,7 @@ import jax
 import numpy as np
 
 import stride_jax
+from stride_jax import dynamics
 from stride_jax.dynamics import fused, models
 from stride_jax.eval import rollout
 from stride_jax.sim import dataset
@@ -37,7 +38,7 @@ def main():
     scales = rollout.observation_scales(train, spec, a.horizon)
     keys = jax.random.split(jax.random.key(0), a.samples)
     for kernel in fused.KERNELS:
-        model, params = models.load(a.run, kernel=kernel)
+        model, params = dynamics.load(a.run, kernel=kernel)
         if kernel == "xla":
             errors[kernel] = rollout.rollout_errors(model.rollout, params, test, spec, a.horizon,
                                                     starts, scales, keys)

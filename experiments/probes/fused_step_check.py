@@ -22,6 +22,7 @@ import numpy as np
 
 import stride_jax
 from stride_jax.jobs import bench_mppi as bench
+from stride_jax import dynamics
 from stride_jax.dynamics import fused_step, models, stride
 from stride_jax.timing import median_time
 from stride_jax.train.setup import model_config
@@ -46,8 +47,8 @@ def main():
     fused_step.SKIP = frozenset(x for x in a.skip.split(",") if x)
     sm, meta, spec, act = bench._robot("go1")
     if a.run:
-        params = models.load(a.run)[1]
-        model_of = lambda kernel: models.load(a.run, kernel=kernel)[0]
+        params = dynamics.load(a.run)[1]
+        model_of = lambda kernel: dynamics.load(a.run, kernel=kernel)[0]
     else:
         act = dataclasses.replace(act, dt=act.dt * act.n_substeps / a.substeps,
                                   n_substeps=a.substeps)

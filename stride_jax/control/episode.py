@@ -6,7 +6,7 @@ state and the current command, plans through its model (:mod:`stride_jax.control
 planner's view of the task), and the first action is simulated in MJX with the scenario's ground
 (:mod:`stride_jax.control.scenarios`). The planner's model is any ``step(q, qd, ctrl, key)``:
 :func:`mjx_step_fn` (an MJX model: the oracle or the nominal ground) or :func:`learned_step_fn`
-(a trained dynamics model of the one interface, ``stride_jax.dynamics.models.load``).
+(a trained dynamics model of the one interface, ``stride_jax.dynamics.load``).
 
 The job that runs every (scenario, model) pair and writes the table and plots is
 ``stride closed-loop`` (``stride_jax.jobs.closed_loop``).
@@ -153,8 +153,8 @@ def mjx_step_fn(sm: sim_model.SimModel, mx: mjx.Model) -> Callable:
 def learned_step_fn(run: str, sm: sim_model.SimModel, kernel: str = "xla") -> Callable:
     """``step(q, qd, ctrl, key)`` of a trained dynamics model (``stride train`` run folder),
     its networks run as ``kernel`` (``StructuredConfig.kernel``)."""
-    from stride_jax.dynamics import models
-    model, params = models.load(run, kernel=kernel)
+    from stride_jax.dynamics import checkpoint
+    model, params = checkpoint.load(run, kernel=kernel)
     q0 = jnp.asarray(sm.info.qpos0)
     try:  # shape check at the boundary: the run must model this robot
         jax.eval_shape(lambda: model.step(params, q0, jnp.zeros(sm.mj.nv),

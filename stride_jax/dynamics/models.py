@@ -27,7 +27,6 @@ The training loop, the evaluation, the MPPI planner and a user's controller all 
 from __future__ import annotations
 
 import dataclasses
-import pathlib
 from typing import Callable, NamedTuple
 
 import jax
@@ -376,20 +375,3 @@ def make(name: str, spec: ModelSpec, act: Actuation | None = None,
     if MODELS[name][0] == "next_obs":
         return next_observation(name, spec, act, cfg, scales)
     return structured(name, spec, act, cfg, scales)
-
-
-def save_definition(run: pathlib.Path, name: str, spec: ModelSpec, act: Actuation,
-                    cfg: stride.StructuredConfig, scales: stride.Scales) -> None:
-    """Writes ``run/model.json``: everything :func:`load` needs besides the parameters
-    (:func:`stride_jax.dynamics.checkpoint.save_definition`)."""
-    from stride_jax.dynamics import checkpoint
-
-    checkpoint.save_definition(run, make(name, spec, act, cfg, scales))
-
-
-def load(run: str | pathlib.Path, kernel: str | None = None) -> tuple[Model, dict]:
-    """``(model, params)`` of a saved model or training run
-    (:func:`stride_jax.dynamics.checkpoint.load`)."""
-    from stride_jax.dynamics import checkpoint
-
-    return checkpoint.load(run, kernel)

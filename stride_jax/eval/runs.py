@@ -15,7 +15,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from stride_jax.dynamics import models
+from stride_jax.dynamics import checkpoint, models
 from stride_jax.io import atomic_write_text
 from stride_jax.sim import dataset
 from stride_jax.types import ModelSpec
@@ -43,7 +43,7 @@ class LoadedRun:
 
     Attributes:
       path: the run folder.
-      model, params: the model and its best parameters (``models.load``).
+      model, params: the model and its best parameters (``stride_jax.dynamics.load``).
       ds: the dataset it was trained on.
       spec: the model spec.
       seed: training seed.
@@ -75,7 +75,7 @@ def train_seed(train: dict) -> int:
 
 def load_run(run: str | pathlib.Path) -> LoadedRun:
     run = pathlib.Path(run)
-    model, params = models.load(run)
+    model, params = checkpoint.load(run)
     cfg = json.loads((run / "config.json").read_text())
     summary = json.loads((run / "summary.json").read_text())
     ds = load_dataset(str(pathlib.Path(cfg["dataset"]).absolute()))

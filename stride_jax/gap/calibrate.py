@@ -384,17 +384,15 @@ def refine(sm: SimModel, cal: Calibration, train: fit.Data, test: fit.Data, scal
     starting from the first calibration ``cal``; ``cal`` itself where no effect helps.
 
     An effect that *is* a calibrated setting (``contact_softness``: the solref time constant;
-    :data:`stride_jax.gap.nuisance.OVERLAPS`) is not held fixed but folded into the start of the
+    :data:`stride_jax.gap.nominal.OVERLAPS`) is not held fixed but folded into the start of the
     search (the screen's 1-D search can find a time constant that the joint least squares missed);
     the best of the other effects is held fixed."""
-    from stride_jax.gap import nuisance
-
     _, rec = screen(cal.model, train, scale, cfg, grid)
     gains = [r for r in rec["screen"] if r["loss"] < (1 - cfg.min_gain) * rec["loss_without"]]
-    equiv = {n for n, setting in nuisance.OVERLAPS.items() if setting in _names(cfg.continuous)}
+    equiv = {n for n, setting in nominal.OVERLAPS.items() if setting in _names(cfg.continuous)}
     held = next(({r["effect"]: [r["value"]]} for r in gains if r["effect"] not in equiv), {})
     fold = {r["effect"]: [r["value"]] for r in gains if r["effect"] in equiv}
-    start = nuisance.fold_into(cal.settings, fold, _names(cfg.continuous))
+    start = nominal.fold_into(cal.settings, fold, _names(cfg.continuous))
     info = {"first_pass": cal.record["changed"], "screen": rec, "held_fixed": held, "folded": fold}
     if not held and not fold:
         return dataclasses.replace(cal, record=cal.record | {"refined": info | {"settings_moved": False}})

@@ -257,14 +257,24 @@ OUT_OF_LIBRARY: dict[str, Effect] = {e.name: e for e in [
            _const_bounds(0.0, 1.0), _drag, in_library=False),
 ]}
 
+# Functions ``name -> Effect | None`` that name effects beyond the table above; the finer
+# effects register theirs when :mod:`stride_jax.gap.finer` is imported (by the package).
+_RESOLVERS: list[Callable[[str], "Effect | None"]] = []
+
+
+def register_resolver(resolve: Callable[[str], "Effect | None"]) -> None:
+    """Adds ``resolve`` to the lookup of :data:`ALL` by name (once)."""
+    if resolve not in _RESOLVERS:
+        _RESOLVERS.append(resolve)
+
+
 class _Registry(dict):
     """``ALL``: the effects above, and the finer ones (``damping@calf``, ``encoder_offset@FR_hip_joint``,
-    ``base_wrench``, ...) resolved by name on first use (:mod:`stride_jax.gap.finer`)."""
+    ``base_wrench``, ...) resolved by name on first use (:mod:`stride_jax.gap.finer` registers
+    its resolver)."""
 
     def __missing__(self, name):
-        from stride_jax.gap import finer
-
-        e = finer.resolve(name)
+        e = next((e for e in (r(name) for r in _RESOLVERS) if e is not None), None)
         if e is None:
             raise KeyError(name)
         self[name] = e

@@ -222,3 +222,6 @@ def candidates(sm: SimModel) -> list[str]:
     out += [f"{b}@{grp}" for grp in g.bodies if grp != "base" for b in BODY_EFFECTS]
     out += ["inertia@base"]
     return [n for n in out if effects.ALL[n].applies(sm)]
+
+
+effects.register_resolver(resolve)  # effects.ALL names the finer effects

@@ -38,7 +38,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import optimize
 
-from stride_jax.gap import effects, logs, sim
+from stride_jax.gap import effects, logs, replay, sim
 from stride_jax.gap.intervals import _at_bound, integer_set, sandwich, scalar_interval
 from stride_jax.sim.model import SimModel
 
@@ -178,8 +178,6 @@ class Objective:
     def residual_many(self, ps) -> np.ndarray:
         """``[P, M, nv]`` :meth:`residual` of every parameter vector of ``ps``, in one batched replay
         (:mod:`stride_jax.gap.replay`; the same numbers as one at a time)."""
-        from stride_jax.gap import replay
-
         ps = [np.atleast_1d(np.asarray(p, np.float64)) for p in ps]
         self.evals += len(ps)
         before = sim.unstable()["diverged"]

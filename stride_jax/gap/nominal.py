@@ -113,6 +113,28 @@ class Settings:
 # ----------------------------------------------------------------------------- loading
 
 
+# library effects that overlap the calibrated contact settings -> the setting each one is exactly
+# (a factor on it), or None where no setting reproduces it
+OVERLAPS: dict[str, str | None] = {"contact_softness": "solref_timeconst", "ground_friction": None}
+
+
+def overlapping(names) -> list[str]:
+    """The effects of ``names`` that overlap the simulator's contact settings."""
+    return [n for n in names if n in OVERLAPS]
+
+
+def fold_into(s: Settings, fold: dict, names: list[str]) -> Settings:
+    """Settings ``s`` with the effects of ``fold`` (name -> parameters) that are one of the
+    continuous settings ``names`` turned into it (a factor on it, clipped to its range)."""
+    for name, p in fold.items():
+        setting = OVERLAPS.get(name)
+        if setting is None or setting not in names:
+            continue
+        lo, hi = CONTINUOUS[setting][:2]
+        s = dataclasses.replace(s, **{setting: float(np.clip(getattr(s, setting) * float(np.ravel(p)[0]), lo, hi))})
+    return s
+
+
 def _shipped_edit(robot):
     """The edit that the shipped form keeps: none of the MJX-training edits, but what defines the
     robot (G1: the data-collection servo gains its definition's kp/kd describe)."""

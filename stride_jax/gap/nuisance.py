@@ -29,30 +29,8 @@ from typing import Any
 import numpy as np
 
 from stride_jax.gap import baseline, calibrate, fit, nominal
-from stride_jax.gap.nominal import CONTINUOUS, Settings
+from stride_jax.gap.nominal import CONTINUOUS, OVERLAPS, Settings, fold_into, overlapping  # noqa: F401
 from stride_jax.sim.model import SimModel
-
-# library effects that overlap the calibrated contact settings -> the setting each one is exactly
-# (a factor on it), or None where no setting reproduces it
-OVERLAPS: dict[str, str | None] = {"contact_softness": "solref_timeconst", "ground_friction": None}
-
-
-def overlapping(names) -> list[str]:
-    """The effects of ``names`` that overlap the simulator's contact settings."""
-    return [n for n in names if n in OVERLAPS]
-
-
-def fold_into(s: Settings, fold: dict, names: list[str]) -> Settings:
-    """Settings ``s`` with the effects of ``fold`` (name -> parameters) that are one of the
-    continuous settings ``names`` turned into it (a factor on it, clipped to its range)."""
-    for name, p in fold.items():
-        setting = OVERLAPS.get(name)
-        if setting is None or setting not in names:
-            continue
-        lo, hi = CONTINUOUS[setting][:2]
-        s = dataclasses.replace(s, **{setting: float(np.clip(getattr(s, setting) * float(np.ravel(p)[0]), lo, hi))})
-    return s
-
 
 class Null:
     """The null of an overlapping effect: the continuous contact settings re-fitted from the

@@ -13,13 +13,18 @@ alone (tested bit for bit).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import mujoco
 import mujoco.rollout
 import numpy as np
 
-from stride_jax.gap import effects, fit, sim
+from stride_jax.gap import effects, sim
 from stride_jax.gap.effects import Plan
 from stride_jax.sim.model import SimModel
+
+if TYPE_CHECKING:
+    from stride_jax.gap import fit
 
 CHUNK = 40_000  # worlds per rollout call: ~40 MB of states for the Go1
 

@@ -7,7 +7,7 @@ with the scenario's ground. Planner models:
 * ``oracle``: the scenario's own MJX model (slope, friction, softness, terrain included);
 * ``nominal``: MJX with the nominal flat ground the robot was designed and trained on;
 * ``policy``: no planner -- the PPO policy acting alone (a baseline);
-* ``NAME=RUN``: a trained dynamics model of the one interface (``stride_jax.dynamics.models.load``;
+* ``NAME=RUN``: a trained dynamics model of the one interface (``stride_jax.dynamics.load``;
   STRIDE, DeLaN, ONN ...), e.g. ``stride=runs/go1/stride``.
 
 One episode (:func:`stride_jax.control.episode.run_episode`), its metrics and the planner's

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from stride_jax.dynamics import models
+from stride_jax.dynamics import checkpoint, models
 from stride_jax.eval import distribution, forces, rollout, runs as runs_lib
 from stride_jax.sim import continuations, dataset, model as sim_model
 from stride_jax.io import atomic_write, atomic_write_text, code_version
@@ -117,7 +117,7 @@ def _label(name: str, train: dict) -> str:
 
 def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     """One run's metrics (see the module docstring)."""
-    model, params = models.load(run)
+    model, params = checkpoint.load(run)
     run_cfg = json.loads((run / "config.json").read_text())
     trained_nfe = json.loads((run / "model.json").read_text())["config"]["nfe"]
     ds = dataset.load(run_cfg["dataset"])

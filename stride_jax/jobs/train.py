@@ -15,7 +15,7 @@ from typing import ClassVar
 
 from stride_jax import distributed
 from stride_jax.distributed import DistributedConfig
-from stride_jax.dynamics import models
+from stride_jax.dynamics import checkpoint, models
 from stride_jax.dynamics.mlp import MLPConfig
 from stride_jax.dynamics.models import spec_from_meta
 from stride_jax.eval import forces
@@ -128,7 +128,7 @@ def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.P
     out = pathlib.Path(cfg.out or f"runs/{cfg.robot}/{cfg.model}")
     out.mkdir(parents=True, exist_ok=True)
     if distributed.is_main():
-        models.save_definition(out, cfg.model, spec, act, model_cfg, sc)
+        checkpoint.save_definition(out, model)
         atomic_write_text(out / "config.json", json.dumps(
             {"train": dataclasses.asdict(cfg), "dataset": str(data_dir), "code": code_version(),
              "dataset_sha256": ds.meta["arrays_sha256"]}, indent=1))
