@@ -288,8 +288,10 @@ def further_section(tables: dict[str, dict], rel) -> list[str]:
         variants = sorted((m for m in models if m.startswith("stride")),
                           key=lambda m: (m != "stride", m))
         for m in variants if "delan" in models else ():
+            # a tagged variant (stride[no_base_structure]) against DeLaN with the same tag, if run
+            den = "delan" + m[len("stride"):] if "delan" + m[len("stride"):] in models else "delan"
             for label, fn, target in metrics:
-                r = seed_ratio(_per_seed(t, m, fn), _per_seed(t, "delan", fn))
+                r = seed_ratio(_per_seed(t, m, fn), _per_seed(t, den, fn))
                 if not r["seeds"]:
                     continue
                 if target is not None:
@@ -297,7 +299,8 @@ def further_section(tables: dict[str, dict], rel) -> list[str]:
                 else:
                     better = _ratio_verdict(r, 1.0, True) == verdict(True)
                     v = "(better)" if better else "(not better)"
-                rows.append([m, label, _ratio_text(r, None, "DeLaN"), v])
+                rows.append([m if den == "delan" else f"{m} / {den}", label,
+                             _ratio_text(r, None, "DeLaN"), v])
         lines += _table(["model", "metric", "/ DeLaN", "target / direction"], rows)
         if "delan_prior" in models:
             div = _model_mean(t, "delan_prior", lambda r: _dig(r, "state", "diverged"))
