@@ -10,13 +10,8 @@ the diagnosis's JSON-able result). Run it under the CPU lock: one Go1 row takes 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import pathlib
-import tempfile
-import time
-
-import numpy as np
 
 
 def main() -> None:
@@ -26,40 +21,18 @@ def main() -> None:
     ap.add_argument("--preset", default="default")
     ap.add_argument("--out", default="/tmp/gap_rows")
     a = ap.parse_args()
-    from stride_jax.gap import diagnose, logs, nominal
     from stride_jax.jobs import gap_bench_independent as bi
-    from stride_jax.jobs import gap_bench_score as scoring
+    from stride_jax.io import atomic_write_text
+    from stride_jax.jobs.gap_report import json_default
 
-    cfg = bi.PRESETS[a.preset]
-    t0 = time.time()
-    sm = nominal.load(cfg.robot, "shipped")
-    clean, logged, settings, form = bi.real_logs(cfg, a.case, a.noisy)
-    with tempfile.TemporaryDirectory() as tmp:
-        logs.write(tmp, sm, logged, notes=f"independent benchmark case {a.case}")
-        _, trajs = logs.read(tmp, sm)
-    dcfg = diagnose.PRESETS[cfg.diagnose]
-    if cfg.pairs_of >= 0:
-        dcfg = dataclasses.replace(dcfg, pairs_of=cfg.pairs_of)
-    dcfg = dataclasses.replace(dcfg, progress=False)
-    res = diagnose.diagnose(sm, trajs, dcfg)
-    held = [t for t in clean if t.name in set(res["heldout"])]
-    row = scoring.score(sm, bi.cases(cfg)[a.case], res, held, settings, form, dcfg.attribute_min)
-    row |= {"noisy": a.noisy, "case": a.case, "row_seconds": time.time() - t0}
+    row, res = bi.diagnose_case(bi.PRESETS[a.preset], a.case, a.noisy)
     out = pathlib.Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     keep = {k: v for k, v in res.items() if not k.startswith("_")}
     path = out / f"{a.case:02d}-{'noisy' if a.noisy else 'clean'}.json"
-    path.write_text(json.dumps({"row": row, "diagnosis": keep}, indent=1, default=_js))
+    atomic_write_text(path, json.dumps({"row": row, "diagnosis": keep}, indent=1, default=json_default))
     print(f"{path}: {row['verdict']} {row['named']} confident={row['confident']} ratio={row.get('shrink_ratio')} "
           f"({row['row_seconds']:.0f} s; stages {res.get('stage_seconds')})")
-
-
-def _js(x):
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, (np.floating, np.integer, np.bool_)):
-        return x.item()
-    return str(x)
 
 
 if __name__ == "__main__":

@@ -182,20 +182,33 @@ def score_case(sm, case: dict, result: dict, clean_heldout: list, cfg_d: diagnos
     return row
 
 
-def summary(rows: list[dict]) -> dict[str, Any]:
-    out = {}
+def by_noise(rows: list[dict]):
+    """``(label, rows, {kind: rows})`` for the noise-free and then the noisy rows of a benchmark
+    (labels ``noise_free``, ``noisy``; kinds ``single``, ``pair``, ``out_of_library``,
+    ``control``), skipping a label without rows."""
     for noisy in (False, True):
         rs = [r for r in rows if r["noisy"] == noisy]
-        if not rs:
-            continue
-        singles = [r for r in rs if r["kind"] == "single"]
-        pairs = [r for r in rs if r["kind"] == "pair"]
-        ool = [r for r in rs if r["kind"] == "out_of_library"]
-        ctrl = [r for r in rs if r["kind"] == "control"]
-        med = lambda xs: float(np.median(xs)) if xs else None
-        out["noisy" if noisy else "noise_free"] = {
-            "top1_single": float(np.mean([r["correct"] for r in singles])) if singles else None,
-            "top1_pairs": float(np.mean([r["correct"] for r in pairs])) if pairs else None,
+        if rs:
+            kinds = {k: [r for r in rs if r["kind"] == k]
+                     for k in ("single", "pair", "out_of_library", "control")}
+            yield ("noisy" if noisy else "noise_free"), rs, kinds
+
+
+def mean(xs) -> float | None:
+    return float(np.mean(xs)) if xs else None
+
+
+def med(xs) -> float | None:
+    return float(np.median(xs)) if xs else None
+
+
+def summary(rows: list[dict]) -> dict[str, Any]:
+    out = {}
+    for label, rs, kind in by_noise(rows):
+        singles, pairs, ool, ctrl = (kind[k] for k in ("single", "pair", "out_of_library", "control"))
+        out[label] = {
+            "top1_single": mean([r["correct"] for r in singles]),
+            "top1_pairs": mean([r["correct"] for r in pairs]),
             "median_param_error_single": med([r["param_error"] for r in singles if "param_error" in r]),
             "median_clean_shrink_single": med([r["clean_shrink"] for r in singles if "clean_shrink" in r]),
             "min_clean_shrink_single": min([r["clean_shrink"] for r in singles if "clean_shrink" in r], default=None),

@@ -103,6 +103,13 @@ def real_logs(cfg: IndependentConfig, index: int, noisy: bool):
 def diagnose_row(cfg: IndependentConfig, index: int, noisy: bool) -> dict[str, Any]:
     """Generates case ``index`` independently, writes and reads it as a log folder, diagnoses it
     with the shipped nominal model and scores it (a pure function of its arguments)."""
+    return diagnose_case(cfg, index, noisy)[0]
+
+
+def diagnose_case(cfg: IndependentConfig, index: int, noisy: bool
+                  ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """:func:`diagnose_row`'s scored row and the whole diagnosis it scored
+    (``experiments/gap_one_row.py`` keeps both, to read a verdict without the benchmark)."""
     t0 = time.time()
     sm = nominal.load(cfg.robot, "shipped")
     clean, logged, settings, form = real_logs(cfg, index, noisy)
@@ -115,7 +122,7 @@ def diagnose_row(cfg: IndependentConfig, index: int, noisy: bool) -> dict[str, A
     res = diagnose.diagnose(sm, trajs, dcfg, log=lambda s: None)
     held = [t for t in clean if t.name in set(res["heldout"])]
     row = scoring.score(sm, cases(cfg)[index], res, held, settings, form, dcfg.attribute_min)
-    return row | {"noisy": noisy, "case": index, "row_seconds": time.time() - t0}
+    return row | {"noisy": noisy, "case": index, "row_seconds": time.time() - t0}, res
 
 
 def run(cfg: IndependentConfig, out_dir: str | os.PathLike = "results", command: str = "", log=print,

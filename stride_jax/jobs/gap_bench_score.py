@@ -39,6 +39,8 @@ import mujoco
 import numpy as np
 
 from stride_jax.gap import baseline, diagnose, effects, fit
+from stride_jax.jobs import gap_bench
+from stride_jax.jobs.gap_bench import mean, med
 from stride_jax.sim.model import SimModel
 
 
@@ -127,39 +129,26 @@ def score(sm: SimModel, case: dict, res: dict, clean_held: list, settings: dict,
     return row
 
 
-def _med(xs):
-    return float(np.median(xs)) if xs else None
-
-
-def _mean(xs):
-    return float(np.mean(xs)) if xs else None
-
-
 def summary(rows: list[dict]) -> dict[str, Any]:
     out = {}
-    for noisy in (False, True):
-        rs = [r for r in rows if r["noisy"] == noisy]
-        if not rs:
-            continue
-        singles = [r for r in rs if r["kind"] == "single"]
-        pairs = [r for r in rs if r["kind"] == "pair"]
-        ctrl = [r for r in rs if r["kind"] == "control"]
+    for label, rs, kind in gap_bench.by_noise(rows):
+        singles, pairs, ctrl = kind["single"], kind["pair"], kind["control"]
         nameable = [r for r in singles if r.get("nameable")]
-        out["noisy" if noisy else "noise_free"] = {
-            "top1_single": _mean([r["correct"] for r in singles]),
-            "top1_pairs": _mean([r["correct"] for r in pairs]),
-            "median_shrink_single": _med([r["shrink_ratio"] for r in singles if "shrink_ratio" in r]),
+        out[label] = {
+            "top1_single": mean([r["correct"] for r in singles]),
+            "top1_pairs": mean([r["correct"] for r in pairs]),
+            "median_shrink_single": med([r["shrink_ratio"] for r in singles if "shrink_ratio" in r]),
             "confident_false": int(sum(r["confident_false"] for r in rs)),
             "control_verdict": [f"{r['verdict']}; simulator settings found: {'; '.join(r['calibration']) or 'none'} "
                                 f"(drawn: {r['real_settings']})" for r in ctrl],
-            "top1_single_strict": _mean([r["correct_strict"] for r in singles]),
+            "top1_single_strict": mean([r["correct_strict"] for r in singles]),
             "right_as_set": sorted("+".join(r["planted"]) for r in rs if r["correct_as_set"]),
             "not_nameable": sorted("+".join(r["planted"]) for r in singles if r.get("nameable") is False),
-            "top1_single_nameable": _mean([r["correct"] for r in nameable]),
-            "median_share_ratio_single": _med([r["share_ratio"] for r in singles if "share_ratio" in r]),
-            "median_shrink_vs_nominal_single": _med([r["clean"]["shrink_vs_nominal"] for r in singles if "clean" in r]),
-            "median_calibration_shrink": _med([r["clean"]["calibration_shrink"] for r in rs if "clean" in r]),
-            "out_of_library_verdicts": [r["verdict"] for r in rs if r["kind"] == "out_of_library"],
+            "top1_single_nameable": mean([r["correct"] for r in nameable]),
+            "median_share_ratio_single": med([r["share_ratio"] for r in singles if "share_ratio" in r]),
+            "median_shrink_vs_nominal_single": med([r["clean"]["shrink_vs_nominal"] for r in singles if "clean" in r]),
+            "median_calibration_shrink": med([r["clean"]["calibration_shrink"] for r in rs if "clean" in r]),
+            "out_of_library_verdicts": [r["verdict"] for r in kind["out_of_library"]],
             "cases": len(rs),
         }
     return out

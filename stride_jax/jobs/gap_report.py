@@ -357,12 +357,13 @@ def write(d: dict[str, Any], out_dir: str | os.PathLike, command: str | None = N
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files = plots(d, out)
-    io.atomic_write_text(out / "diagnosis.json", json.dumps(d, indent=1, default=_default))
+    io.atomic_write_text(out / "diagnosis.json", json.dumps(d, indent=1, default=json_default))
     io.atomic_write_text(out / "report.md", markdown(d, files, command))
     return out / "report.md"
 
 
-def _default(x):
+def json_default(x):
+    """``json.dumps``'s ``default`` for the diagnosis: arrays as lists, numpy scalars as numbers."""
     if isinstance(x, np.ndarray):
         return x.tolist()
     if isinstance(x, np.generic):
