@@ -14,7 +14,7 @@
   interval of +-0.02). Rules (a) and (b) cannot tell such a surrogate from a real second effect;
   a share of the gap can. A second effect below (c) is reported as a candidate, not named.
 * **Nuisance rule** (:func:`nuisance_test`). A hypothesis holding an effect that overlaps the
-  simulator's contact settings (:data:`stride_jax.gap.nuisance.OVERLAPS`) must beat the same
+  simulator's contact settings (:data:`stride_jax.gap.nominal.OVERLAPS`) must beat the same
   hypothesis without that effect and with the contact settings fitted again
   (:class:`stride_jax.gap.nuisance.Null`), by the measures of rules (a) and (b) at level ``alpha``.
   Where it does not, the effect is read as the simulator's contact model being off, and the next
@@ -27,7 +27,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from stride_jax.gap import fit, nuisance
+from stride_jax.gap import fit, nominal, nuisance
 from stride_jax.gap.regions import noise_floor
 
 
@@ -101,7 +101,7 @@ def choose(rows: list[dict], r_te: dict, test: fit.Data, M: int, L_nom: float, b
     nuis: list[dict] = []
     chosen = None
     for cand in order:
-        over = nuisance.overlapping(cand["effects"]) if null is not None else []
+        over = nominal.overlapping(cand["effects"]) if null is not None else []
         results = [nuisance_test(cand, e, null, blocks, Wb, boot_nom, test, M, L_nom, cfg) for e in over]
         nuis += results
         if all(t["admitted"] for t in results):

@@ -110,9 +110,6 @@ class Settings:
                 if getattr(self, f.name) != getattr(neutral, f.name)}
 
 
-# ----------------------------------------------------------------------------- loading
-
-
 # library effects that overlap the calibrated contact settings -> the setting each one is exactly
 # (a factor on it), or None where no setting reproduces it
 OVERLAPS: dict[str, str | None] = {"contact_softness": "solref_timeconst", "ground_friction": None}
@@ -133,6 +130,9 @@ def fold_into(s: Settings, fold: dict, names: list[str]) -> Settings:
         lo, hi = CONTINUOUS[setting][:2]
         s = dataclasses.replace(s, **{setting: float(np.clip(getattr(s, setting) * float(np.ravel(p)[0]), lo, hi))})
     return s
+
+
+# ----------------------------------------------------------------------------- loading
 
 
 def _shipped_edit(robot):

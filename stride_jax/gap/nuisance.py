@@ -29,8 +29,9 @@ from typing import Any
 import numpy as np
 
 from stride_jax.gap import baseline, calibrate, fit, nominal
-from stride_jax.gap.nominal import CONTINUOUS, OVERLAPS, Settings, fold_into, overlapping  # noqa: F401
+from stride_jax.gap.nominal import OVERLAPS, Settings, fold_into
 from stride_jax.sim.model import SimModel
+
 
 class Null:
     """The null of an overlapping effect: the continuous contact settings re-fitted from the
