@@ -111,9 +111,26 @@ def _row_key(r: dict) -> str:
     return "-"
 
 
+def _command(d: dict) -> str | None:
+    """A run's command; a merged table's part commands joined."""
+    parts = d.get("parts")
+    if isinstance(parts, dict):
+        return " ; ".join(str(v.get("command", "")) for v in parts.values()) or None
+    return d.get("command") or _dig(d, "env", "command")
+
+
+def _part_devices(d: dict) -> str | None:
+    parts = d.get("parts")
+    if isinstance(parts, dict):
+        return ", ".join(dict.fromkeys(str(v.get("device")) for v in parts.values()))
+    return None
+
+
 def load_closed_loop(results: pathlib.Path) -> list[tuple[pathlib.Path, dict]]:
     out = []
     for p in sorted(results.glob("closed_loop*/**/*.json")):
+        if "parts" in p.relative_to(results).parts:
+            continue  # a merged table's parts (stride_jax.jobs.closed_loop.merge): read merged
         try:
             d = _load_json(p)
         except (OSError, json.JSONDecodeError):
@@ -144,8 +161,7 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
     models = sorted({m for _, _, m in cells})
     stride = {k: v for k, v in cells.items() if k[2] == "stride"}
     srcs = ", ".join(rel(p) for p, _ in files)
-    cmd = "; ".join(filter(None, ((d.get("command") or _dig(d, "env", "command"))
-                                  for _, d in files)))
+    cmd = "; ".join(filter(None, (_command(d) for _, d in files)))
     if not stride:
         why = f"not yet run (no STRIDE rows; models present: {', '.join(models)})"
         rows = [Row(claim_fall, WHERE_CLOSED, paper_fall, why, NOT_RUN, srcs, cmd),
@@ -178,10 +194,10 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
                             "no scenario with STRIDE and DeLaN or ONN side by side", NOT_RUN,
                             srcs, cmd))
     for p, d in files:
-        c = d.get("command") or _dig(d, "env", "command")
+        c = _command(d)
         git = _git_note(p)
         lines += [f"`{rel(p)}`{' (' + git + ')' if git else ''}: `{c}`; "
-                  f"device {d.get('device') or _dig(d, 'env', 'device')}. Cells: velocity "
+                  f"device {d.get('device') or _dig(d, 'env', 'device') or _part_devices(d)}. Cells: velocity "
                   "tracking RMSE (m/s), mean ± std over runs; falls.", ""]
         keys = list(dict.fromkeys(_row_key(r) for r in d["rows"]))
         ms = list(dict.fromkeys(_row_model(r) for r in d["rows"]))

@@ -109,6 +109,13 @@ def test_learned_reward_and_value_drive_the_planner(go1):
     u, _, info = jax.jit(planner.step)(planner.init(jax.random.key(0)), q0, jnp.zeros(18))
     assert u.shape == (12,) and np.isfinite(info.costs).all()
     assert np.ptp(np.asarray(info.costs)) > 0  # the learned reward tells samples apart
+    # learned_track_weight adds the quadratic tracking term: 1 m/s short of the command costs
+    # weight x dt x 1 more per step
+    track = planning_lib.make_planning(dataclasses.replace(cfg.planning, learned_track_weight=5.0),
+                                       env_cfg, go1, _fake_step, learned_params=(r_params, v_params))
+    u0 = jnp.zeros(12)
+    extra = track.cost(q0, jnp.zeros(18), u0, 0) - planning.cost(q0, jnp.zeros(18), u0, 0)
+    assert float(extra) == pytest.approx(5.0 * 0.02 * 1.0, rel=1e-5)
 
 
 def test_the_task_clock_runs_inside_rollouts_for_a_clocked_policy(go1):
@@ -216,3 +223,42 @@ def test_planning_settings_are_one_nested_config_with_the_old_flags_kept():
     assert new == old and new.planning == planning_lib.PlanningConfig(noise_std=0.1,
                                                                       prior_noise_std=0.05)
     assert dreamer_mpc.variant_config(new, "prior").planning == new.planning
+
+
+def test_disturbance_observer_finds_a_persistent_push_and_rollouts_carry_it(go1):
+    """Offset-free planning: the model (here: standing still) misses a constant base
+    acceleration of the real robot; the observer's estimate converges to it, is bounded, and
+    the planner's rollouts then predict the real step. Off, the state's entries change nothing."""
+    nq, nv, dt = go1.mj.nq, go1.mj.nv, go1.robot.ctrl_dt
+    cfg = planning_lib.PlanningConfig(observer_gain=0.2, observer_limit=6.0, observer_angular=True)
+    planning = planning_lib.make_planning(cfg, envs.config("go1"), go1, _fake_step)
+    true = jnp.array([-3.3, 0.4, 0.6, 0.0, -1.0, 0.2])  # a slope's pull, a tilt's roll
+    q, qd, u = jnp.asarray(go1.info.qpos0), jnp.zeros(nv), jnp.zeros(12)
+    qd_real = qd.at[:6].add(dt * true)
+    dist = jnp.zeros(planning_lib.N_DIST)
+    update = jax.jit(lambda dist: planning_lib.update_disturbance(
+        planning, planning_lib.augment(q, jnp.array([1.0, 0, 0]), disturbance=dist), qd, u,
+        qd_real, dt, jax.random.key(0)))
+    for _ in range(80):
+        dist = update(dist)
+    np.testing.assert_allclose(dist, true, atol=1e-3)
+    q_aug = planning_lib.augment(q, jnp.array([1.0, 0, 0]), disturbance=dist)
+    q2, qd2 = planning.dynamics(q_aug, qd, u, jax.random.key(1))
+    np.testing.assert_allclose(qd2, qd_real, atol=1e-4)
+    np.testing.assert_allclose(q2[:3], q[:3] + dt * dt * true[:3], atol=1e-6)
+    np.testing.assert_array_equal(planning_lib.split(q2, nq).disturbance, dist)  # held
+    # bounded: a push beyond the limit saturates there
+    big = planning_lib.update_disturbance(planning, q_aug, qd, u, qd.at[0].add(dt * 50.0), dt,
+                                          jax.random.key(0))
+    assert float(big[0]) == pytest.approx(6.0)
+    # by default only the linear part is estimated
+    linear = planning_lib.make_planning(dataclasses.replace(cfg, observer_angular=False),
+                                        envs.config("go1"), go1, _fake_step)
+    d1 = planning_lib.update_disturbance(linear, planning_lib.augment(q, jnp.zeros(3)), qd, u,
+                                         qd_real, dt, jax.random.key(0))
+    np.testing.assert_allclose(d1, jnp.r_[0.2 * true[:3], 0, 0, 0], rtol=1e-5, atol=1e-6)
+    # off: the model's own step, whatever the state's disturbance entries hold
+    off = planning_lib.make_planning(planning_lib.PlanningConfig(), envs.config("go1"), go1,
+                                     _fake_step)
+    _, qd_off = off.dynamics(q_aug, qd, u, jax.random.key(1))
+    np.testing.assert_array_equal(qd_off, qd)

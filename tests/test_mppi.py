@@ -288,3 +288,42 @@ def test_model_check_finds_a_model_that_misranks_candidates():
     assert float(bad["spearman"]) < 0.5 and float(bad["regret"]) > 0.0
     s = model_check.summarise(jax.tree.map(lambda x: jnp.stack([x, x]), bad), n_policy=8)
     assert s["states"] == 2 and len(s["vel_err_noise"]) == 8 and "vel_err_policy" in s
+
+
+def test_a_policy_family_finds_the_command_offset_its_policy_lacks():
+    """Candidates from a family of policies (the closed loop's PPO policy given command + z):
+    a P-controller towards 1 under a drift settles at 0.5; the planner, searching z with the
+    offsets warm-started across steps, asks it for ~1.5 and reaches the target."""
+    drift = lambda q, qd, u, key=None: (q + u - 0.5, qd)
+    family = lambda q, qd, z: (1.0 + z) - q
+    policy = lambda q, qd: family(q, qd, jnp.zeros(1))
+    cost = lambda q, qd, u, t: (q[0] - 1.0) ** 2
+    cfg = mppi.MPPIConfig(samples=64, horizon=4, family_samples=56, policy_samples=8,
+                          family_std=(0.3,), family_range=2.0, temperature=0.1)
+    planner = mppi.make(cfg, drift, cost, [-5.0], [5.0], policy=policy, family=family)
+
+    def run(planned: bool):
+        def body(carry, _):
+            q, state = carry
+            if planned:
+                u, state, _ = planner.step(state, q, jnp.zeros(1))
+            else:
+                u = policy(q, None)
+            q, _ = drift(q, None, u)
+            return (q, state), q[0]
+        init = (jnp.zeros(1), planner.init(jax.random.key(0)))
+        (q, state), qs = jax.lax.scan(body, init, None, length=40)
+        return qs, state
+
+    qs_policy = np.asarray(jax.jit(lambda: run(False))()[0])
+    qs, state = jax.jit(lambda: run(True))()
+    qs = np.asarray(qs)
+    assert abs(qs_policy[-1] - 0.5) < 1e-5  # the policy alone keeps its offset
+    assert np.abs(qs[-10:] - 1.0).max() < 0.1
+    assert float(state.z[0]) == pytest.approx(0.5, abs=0.15)
+    with pytest.raises(ValueError, match="needs a family"):
+        mppi.make(cfg, drift, cost, [-5.0], [5.0], policy=policy)
+    with pytest.raises(ValueError, match="family_samples=60"):
+        mppi.MPPIConfig(samples=64, policy_samples=8, family_samples=60)
+    with pytest.raises(ValueError, match="family_decay"):
+        mppi.MPPIConfig(family_decay=1.5)

@@ -22,7 +22,7 @@ import numpy as np
 from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
-from stride_jax.control.planning import Planning, augment
+from stride_jax.control.planning import N_DIST, Planning, augment, update_disturbance
 from stride_jax.control.scenarios import command_at, push_at
 from stride_jax.sim import model as sim_model, rollout_mjx
 
@@ -40,6 +40,7 @@ class Trace(NamedTuple):
     action: jax.Array  # [T, nu_plan] the applied planner action
     status: jax.Array  # [T] int32 the planner's mppi status (PLANNED, or why it fell back)
     cut: jax.Array  # [T] share of the planner's rollouts cut for predicted model error
+    disturbance: jax.Array  # [T, 6] the observer's base-acceleration estimate after the step
 
 
 def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Planning,
@@ -54,7 +55,15 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     adds what it returns per step, stacked ``[T, ...]``: the episode then returns ``(trace,
     recorded)``. ``q_aug_next`` is the state reached under the step's command, ``down`` whether
     the robot was down before the step. ``pushes`` (:func:`stride_jax.control.scenarios.
-    push_schedule`) applies horizontal forces to the base body (unknown to the planner's model)."""
+    push_schedule`) applies horizontal forces to the base body (unknown to the planner's model).
+
+    With ``planning.observer_gain`` > 0 (and a planner) a disturbance observer runs beside the
+    planner: after each real step the planner's model predicts the same step from the same state
+    and action under the current estimate ``d``, and ``d += gain * (qd_real - qd_pred)[:6] / dt``
+    (bounded by ``planning.observer_limit``, held while fallen or after a non-finite step). The
+    planner sees ``d`` in its state and adds it to every rollout step
+    (:func:`stride_jax.control.planning.apply_disturbance`): integral action, so a persistent
+    model error (a slope, a payload) stops biasing the plan."""
     nu = sm.info.nu
     gait = len(planning.lo) > nu
     qpos0 = jnp.asarray(sm.info.qpos0).at[2].add(0.02)
@@ -73,11 +82,14 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     if record is not None and planner is None:
         raise ValueError("record needs a planner (it records the planner's candidates)")
 
+    observe = planner is not None and planning.observer_gain > 0
+    obs_key = jax.random.fold_in(key, 0x0B5E)  # the observer's own draws
+
     def body(carry, step):
-        d, ps, clock, down = carry
+        d, ps, clock, down, dist = carry
         t = step * dt
         command = command_at(starts, values, t)
-        q_aug = augment(d.qpos, command, clock)
+        q_aug = augment(d.qpos, command, clock, disturbance=dist)
         status, cut, info = jnp.zeros((), jnp.int32), jnp.zeros(()), None
         if planner is not None:
             u, ps, info = planner.step(ps, q_aug, d.qvel)
@@ -96,15 +108,20 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
         finite = jnp.all(jnp.isfinite(d2.qpos)) & jnp.all(jnp.isfinite(d2.qvel))
         d2 = jax.tree.map(lambda a, b: jnp.where(finite, a, b), d2, d)  # freeze a diverged sim
         down2 = down | rollout_mjx.fallen(sm, d2.qpos) | ~finite
+        if observe:  # the planner's model predicts the step just taken; integrate its error
+            new = update_disturbance(planning, q_aug, d.qvel, u, d2.qvel, dt,
+                                     jax.random.fold_in(obs_key, step))
+            dist = jnp.where(finite & ~down2, new, dist)
         v, w, _ = envs.base_signals(d2.qpos, d2.qvel)
         rec = Trace(t + dt, command, v, w, d2.qpos[2], down2, envs.foot_contact(sm, slots, d2),
-                    u, status, cut)
+                    u, status, cut, dist)
         if record is not None:
-            rec = (rec, record(q_aug, d.qvel, u, info, augment(d2.qpos, command, clock),
+            rec = (rec, record(q_aug, d.qvel, u, info,
+                               augment(d2.qpos, command, clock, disturbance=dist),
                                d2.qvel, down, jax.random.fold_in(key, step)))
-        return (d2, ps, clock, down2), rec
+        return (d2, ps, clock, down2, dist), rec
 
-    init = (d0, ps0, jnp.zeros(()), jnp.zeros((), bool))
+    init = (d0, ps0, jnp.zeros(()), jnp.zeros((), bool), jnp.zeros(N_DIST, d0.qpos.dtype))
     _, trace = jax.lax.scan(body, init, jnp.arange(n_steps))
     return trace
 
@@ -130,6 +147,8 @@ def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
                upright_s=float(up.sum() * (tr.t[1] - tr.t[0]) if len(tr.t) > 1 else 0.0),
                fallbacks=int((tr.status != mppi.PLANNED).sum()),
                cut_share=float(tr.cut.mean()))
+    if np.any(tr.disturbance != 0) and up.any():  # the observer's mean estimate while upright
+        out["disturbance"] = [float(x) for x in tr.disturbance[up].mean(axis=0)]
     if up.sum() >= 10 and tr.contact.shape[1] == 4:  # the quadruped gait the feet showed
         out["contact_gait"], out["contact_gait_score"] = gait_lib.classify_contacts(
             tr.contact[up])

@@ -1,11 +1,19 @@
 """The planner's view of a closed-loop task: augmented state, actions to joint targets, cost.
 
-The planner's state is ``(q, command, gait clock, latched gait)`` stacked into its ``q`` (the
-dynamics carry the command unchanged and advance the clock), so one jitted planner follows
-command changes. Its action is a joint-target offset from the home pose (rad); with ``gait`` it is
+The planner's state is ``(q, command, gait clock, latched gait, disturbance)`` stacked into its
+``q`` (the dynamics carry the command and the disturbance unchanged and advance the clock), so
+one jitted planner follows command changes. Its action is a joint-target offset from the home pose (rad); with ``gait`` it is
 a residual on a gait reference plus the gait parameters (:mod:`stride_jax.control.gait`), which
 MPPI optimises jointly. The cost is the environment's reward terms that a state determines,
-negated, plus a tracking term and a fall cost; or the learned reward and value.
+negated, plus a tracking term and a fall cost; or the learned reward and value (plus, with
+``learned_track_weight``, the same tracking term).
+
+Offset-free planning (``observer_gain``): the disturbance is a constant acceleration of the
+floating base (world-frame linear, body-frame angular; ``[6]``) that the planner's model adds at
+every step of its rollouts. The closed loop estimates it online from the model's one-step
+prediction errors on the real robot (:func:`stride_jax.control.episode.run_episode`): the classic
+disturbance observer of offset-free MPC, which lets any model -- learned or the nominal simulator
+-- account for what it does not know and that persists (a slope, a payload, a sagging ground).
 
 Its settings are a :class:`PlanningConfig` (the closed-loop job's ``ClosedLoopConfig`` nests one
 beside the planner's :class:`~stride_jax.control.mppi.MPPIConfig`); one episode in MJX is
@@ -46,6 +54,18 @@ class PlanningConfig:
       track_weight: weight of a quadratic velocity-tracking cost added to the reward terms (per
         (m/s)^2, times dt): the reward's exp-kernels are flat far from the command (at 2 m/s
         below it, exp(-16)), which leaves a planner starting from rest without a direction.
+      learned_track_weight: the same tracking term added to the learned reward (0: the learned
+        reward alone, the trade-off the policy was trained on; > 0: the planner's task weighs
+        tracking above the reward's smoothness and effort terms).
+      observer_gain: gain of the online disturbance observer (per control step; 0: off). Each
+        step the estimate moves by this fraction of the base's one-step acceleration error
+        (observed minus predicted by the planner's model with the current estimate).
+      observer_limit: bound of each disturbance entry (m/s^2, rad/s^2).
+      family_std: std of the command offsets of the policy family's candidates
+        (``--mppi.family-samples``): vx (m/s) and yaw rate (rad/s); vy gets half.
+      observer_angular: estimate the base's angular acceleration too (default: the linear
+        part only; the angular one-step errors of the learned models are dominated by contact
+        transients, not by what persists).
     """
 
     noise_std: float = 0.15
@@ -56,6 +76,11 @@ class PlanningConfig:
     value_weight: float = 1.0
     fall_cost: float = 1.0
     track_weight: float = 1.0
+    learned_track_weight: float = 0.0
+    observer_gain: float = 0.0
+    observer_limit: float = 6.0
+    observer_angular: bool = False
+    family_std: float = 0.3
 
 
 class Planning(NamedTuple):
@@ -72,9 +97,13 @@ class Planning(NamedTuple):
     nominal_u: np.ndarray  # [nu_plan] initial plan
     clock_hz: float = 0.0  # the task's gait clock (G1's policy observes it), without planned gaits
     obs: Callable | None = None  # (q_aug, qd) -> the learned reward's and value's observation
-    disagreement: Callable | None = None  # (qs [E, nq+11], qds [E, nv]) -> [] m/s, of E draws
+    disagreement: Callable | None = None  # (qs [E, nq+17], qds [E, nv]) -> [] m/s, of E draws
     step_error: Callable | None = None  # (q_aug, qd, u) -> [] learned one-step error (m/s)
     reward_action: Callable | None = None  # (q_aug, u) -> the policy's normalised action [nu]
+    observer_gain: float = 0.0  # the disturbance observer's gain (0: off)
+    observer_limit: float = 6.0  # bound of each disturbance entry
+    observer_angular: bool = False  # estimate the angular entries too
+    family: Callable | None = None  # (q_aug, qd, z [3]) -> u: the policy given command + z
 
 
 class Aug(NamedTuple):
@@ -85,25 +114,60 @@ class Aug(NamedTuple):
     clock: jax.Array  # [] gait clock (cycles)
     gait: jax.Array  # [6] gait parameters latched at a rollout's first step
     latched: jax.Array  # [] 1 inside a rollout (after its first step), 0 in the real state
+    disturbance: jax.Array  # [6] estimated base acceleration the model misses, held constant
 
 
-N_AUG = 3 + 1 + gait_lib.N_GAIT + 1
+N_DIST = 6
+N_AUG = 3 + 1 + gait_lib.N_GAIT + 1 + N_DIST
 
 
 def augment(q: jax.Array, command: jax.Array, clock: jax.Array | float = 0.0,
-            gait: jax.Array | None = None, latched: jax.Array | float = 0.0) -> jax.Array:
-    """``[nq + 11]``: the robot state with the command, clock and latched gait."""
+            gait: jax.Array | None = None, latched: jax.Array | float = 0.0,
+            disturbance: jax.Array | None = None) -> jax.Array:
+    """``[nq + 17]``: the robot state with the command, clock, latched gait and disturbance."""
     gait = jnp.zeros(gait_lib.N_GAIT) if gait is None else gait
+    disturbance = jnp.zeros(N_DIST, q.dtype) if disturbance is None else disturbance
     return jnp.concatenate([q, command, jnp.reshape(clock, (1,)), gait,
-                            jnp.reshape(jnp.asarray(latched, q.dtype), (1,))])
+                            jnp.reshape(jnp.asarray(latched, q.dtype), (1,)), disturbance])
 
 
 def split(q_aug: jax.Array, nq: int) -> Aug:
     if q_aug.shape[-1] != nq + N_AUG:
         raise ValueError(f"planner state must have {nq} + {N_AUG} entries, got {q_aug.shape}")
     g0 = nq + 4
+    d0 = g0 + gait_lib.N_GAIT + 1
     return Aug(q_aug[:nq], q_aug[nq:nq + 3], q_aug[nq + 3], q_aug[g0:g0 + gait_lib.N_GAIT],
-               q_aug[g0 + gait_lib.N_GAIT])
+               q_aug[g0 + gait_lib.N_GAIT], q_aug[d0:d0 + N_DIST])
+
+
+def with_disturbance(q_aug: jax.Array, nq: int, disturbance: jax.Array) -> jax.Array:
+    """``q_aug`` with its disturbance entries replaced."""
+    return q_aug.at[nq + N_AUG - N_DIST:].set(disturbance)
+
+
+def apply_disturbance(q: jax.Array, qd: jax.Array, disturbance: jax.Array, dt: float):
+    """One step's effect of a constant base acceleration ``disturbance`` [6] on the model's next
+    state: the base velocities gain ``dt * disturbance``, the base position ``dt^2 *`` its
+    linear part (semi-implicit Euler); the orientation's second-order change is left out."""
+    qd = qd.at[:N_DIST].add(dt * disturbance)
+    return q.at[:3].add(dt * dt * disturbance[:3]), qd
+
+
+def update_disturbance(planning: "Planning", q_aug: jax.Array, qd: jax.Array, u: jax.Array,
+                       qd_real: jax.Array, dt: float, key: jax.Array) -> jax.Array:
+    """The disturbance observer's next estimate ``[6]`` after the real step ``(q_aug, qd) --u-->
+    qd_real``: the planner's model predicts that step under the current estimate (in ``q_aug``)
+    and the estimate moves by ``planning.observer_gain`` times the base's acceleration error,
+    bounded by ``planning.observer_limit`` (a non-finite prediction keeps the estimate)."""
+    nq = q_aug.shape[-1] - N_AUG
+    dist = split(q_aug, nq).disturbance
+    _, qd_pred = planning.dynamics(q_aug, qd, u, key)
+    innovation = (qd_real[:N_DIST] - qd_pred[:N_DIST]) / dt
+    if not planning.observer_angular:
+        innovation = innovation.at[3:].set(0.0)
+    new = jnp.clip(dist + planning.observer_gain * innovation, -planning.observer_limit,
+                   planning.observer_limit)
+    return jnp.where(jnp.all(jnp.isfinite(new)), new, dist)
 
 
 def servo_torque(sm: sim_model.SimModel, q: jax.Array, qd: jax.Array, ctrl: jax.Array):
@@ -146,10 +210,19 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
     def dynamics(q_aug, qd, u, key):
         a = split(q_aug, nq)
         q2, qd2 = model_step(a.q, qd, ctrl(q_aug, u), key)
+        if cfg.observer_gain:  # off: the model's own step, bit for bit
+            q2, qd2 = apply_disturbance(q2, qd2, a.disturbance, dt)
         if not cfg.gait:  # the task's clock runs on inside rollouts (the policy candidates see it)
-            return augment(q2, a.command, jnp.mod(a.clock + env_cfg.gait_hz * dt, 1.0)), qd2
+            return augment(q2, a.command, jnp.mod(a.clock + env_cfg.gait_hz * dt, 1.0),
+                           disturbance=a.disturbance), qd2
         g = gait_of(q_aug, u)
-        return augment(q2, a.command, jnp.mod(a.clock + g[0] * dt, 1.0), g, 1.0), qd2
+        return augment(q2, a.command, jnp.mod(a.clock + g[0] * dt, 1.0), g, 1.0,
+                       a.disturbance), qd2
+
+    def track_error(q_aug, qd):  # squared velocity-tracking error (yaw rate at half weight)
+        q, command = split(q_aug, nq)[:2]
+        v, w, _ = envs.base_signals(q, qd)
+        return jnp.sum((command[:2] - v[:2]) ** 2) + 0.5 * (command[2] - w[2]) ** 2
 
     def analytic_cost(q_aug, qd, u, t):
         q, command = split(q_aug, nq)[:2]
@@ -157,9 +230,8 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
         terms = envs.state_terms(env_cfg, home, q, qd, command,
                                  servo_torque(sm, q, qd, ctrl(q_aug, u)), fallen)
         _, parts = envs.total_reward(env_cfg, terms, dt)
-        v, w, _ = envs.base_signals(q, qd)
-        track = jnp.sum((command[:2] - v[:2]) ** 2) + 0.5 * (command[2] - w[2]) ** 2
-        return -sum(parts.values()) + cfg.track_weight * dt * track + cfg.fall_cost * fallen
+        return (-sum(parts.values()) + cfg.track_weight * dt * track_error(q_aug, qd)
+                + cfg.fall_cost * fallen)
 
     def obs_aug(q_aug, qd):
         a = split(q_aug, nq)
@@ -186,15 +258,20 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
         def cost(q_aug, qd, u, t):
             q = split(q_aug, nq).q
             return (r_cost(q_aug, qd, reward_action(q_aug, u), t)
+                    + cfg.learned_track_weight * dt * track_error(q_aug, qd)
                     + cfg.fall_cost * rollout_mjx.fallen(sm, q))
 
-    policy = None
+    policy = family = None
     if ppo_policy is not None and not cfg.gait:
         key0 = jax.random.key(0)
 
-        def policy(q_aug, qd):
+        def family(q_aug, qd, z):  # the policy asked for the command + z (vx, vy, yaw rate)
             a = split(q_aug, nq)
-            return env_cfg.action_scale * ppo_policy(obs_of(a.q, qd, a.command, a.clock), key0)
+            return env_cfg.action_scale * ppo_policy(obs_of(a.q, qd, a.command + z, a.clock),
+                                                     key0)
+
+        def policy(q_aug, qd):
+            return family(q_aug, qd, jnp.zeros(3, q_aug.dtype))
 
     r = cfg.plan_range
     lo, hi = np.full(nu, -r, np.float32), np.full(nu, r, np.float32)
@@ -209,22 +286,28 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
             nominal = np.asarray(gait_lib.join_action(jnp.asarray(nominal), trot), np.float32)
     return Planning(dynamics, cost, value, policy, ctrl, lo, hi, noise, nominal,
                     0.0 if cfg.gait else env_cfg.gait_hz, obs_aug, disagreement, step_error,
-                    reward_action)
+                    reward_action, cfg.observer_gain, cfg.observer_limit, cfg.observer_angular,
+                    family)
 
 
 def mppi_config(mppi_cfg: mppi.MPPIConfig, cfg: PlanningConfig,
                 planning: Planning) -> mppi.MPPIConfig:
     """The run's MPPI settings ``mppi_cfg`` with the task's exploration noise per action entry
-    and the policy prior's noise (and no policy candidates or prior without a policy)."""
+    and the policy prior's noise, the policy family's command-offset noise (and no policy
+    candidates, prior or family without a policy)."""
     nu = len(planning.lo)
+    fam_std = (cfg.family_std, 0.5 * cfg.family_std, cfg.family_std)
     return dataclasses.replace(mppi_cfg, noise_std=planning.noise,
                                prior_noise_std=(cfg.prior_noise_std,) * nu,
                                policy_samples=mppi_cfg.policy_samples if planning.policy else 0,
-                               prior_fraction=mppi_cfg.prior_fraction if planning.policy else 0.0)
+                               prior_fraction=mppi_cfg.prior_fraction if planning.policy else 0.0,
+                               family_samples=mppi_cfg.family_samples if planning.family else 0,
+                               family_std=fam_std)
 
 
 def make_planner(planning: Planning, mppi_cfg: mppi.MPPIConfig) -> mppi.Planner:
     """MPPI over the planning functions (build outside jit: it checks its bounds)."""
     return mppi.make(mppi_cfg, planning.dynamics, planning.cost, planning.lo, planning.hi,
                      planning.value, planning.policy, disagreement=planning.disagreement,
+                     family=planning.family,
                      step_error=planning.step_error)

@@ -241,6 +241,8 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
              f"{'learned reward/value ' + cfg.learned if cfg.learned else 'analytic reward terms'}"
              f"{', gait parameters planned' if cfg.planning.gait else ''}"
              f"{', PPO candidates from ' + cfg.policy if cfg.policy and cfg.mppi.policy_samples else ''}"
+             f"{f', tracking weight {cfg.planning.learned_track_weight:g} on the learned reward' if cfg.learned and cfg.planning.learned_track_weight else ''}"
+             f"{f', disturbance observer (gain {cfg.planning.observer_gain:g})' if cfg.planning.observer_gain else ''}"
              ". Tracking RMSE of the base-frame velocity (xy) and yaw rate while upright, "
              f"{cfg.settle_s} s after each command change.", "",
              "Gait: the named pattern the measured foot contacts fit best (score: in-phase minus "
@@ -259,6 +261,57 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
                      f"{'yes' if r['fell'] else 'no'} | {fmt(r['fall_s'], '{:.2f}')} | "
                      f"{contact} | {planned} | {r['ms_per_step']:.1f} |")
     atomic_write_text(out / "closed_loop.md", "\n".join(lines) + "\n")
+
+
+def merge(parts: list[str], out: str, title: str = "") -> list[dict]:
+    """One table from several runs' folders (``closed_loop.json`` each: runs split over device
+    calls, or variants of the planner): every row keeps its part's name (``part``) and the part's
+    command and device go to ``closed_loop.json``'s ``parts``. A part may also be a JSON file of
+    rows recovered from a run's log (``{"env": {...}, "rows": [...]}``, rows with at least
+    ``scenario``, ``model``, ``vel_rmse``, ``fell``, ``ms_per_step``). Traces found beside a
+    part are copied, so the plots show every row. A (scenario, model) pair that an earlier part
+    already has is renamed ``model@part``."""
+    import shutil
+
+    out_dir = pathlib.Path(out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows, envs_ = [], {}
+    for part in parts:
+        path = pathlib.Path(part)
+        src = path / "closed_loop.json" if path.is_dir() else path
+        if not src.is_file():
+            raise FileNotFoundError(f"{src}: no closed_loop.json to merge")
+        data = json.loads(src.read_text())
+        name = path.name if path.is_dir() else path.stem
+        envs_[name] = data["env"]
+        for r in data["rows"]:
+            missing = {"scenario", "model", "vel_rmse", "fell", "ms_per_step"} - set(r)
+            if missing:
+                raise ValueError(f"{src}: a row lacks {sorted(missing)}")
+            model = r["model"]
+            if any((x["scenario"], x["model"]) == (r["scenario"], model) for x in rows):
+                model = f"{model}@{name}"  # a second part's variant of the same model
+            rows.append({**r, "model": model, "part": name})
+            trace = src.parent / f"trace_{r['scenario']}_{r['model']}.npz"
+            if trace.is_file():
+                shutil.copy2(trace, out_dir / f"trace_{r['scenario']}_{model}.npz")
+    atomic_write_text(out_dir / "closed_loop.json",
+                      json.dumps(dict(title=title, parts=envs_, rows=rows), indent=1))
+    fmt = lambda x, f="{:.3f}": "-" if x is None or (isinstance(x, float) and np.isnan(x)) else (
+        f.format(x))
+    lines = [f"# {title or 'Closed-loop MPPI'}", "", "Parts (each row names its part):", ""]
+    lines += [f"- `{k}`: `{v.get('command', '')}` ({v.get('device', '?')})"
+              for k, v in envs_.items()]
+    lines += ["", "| scenario | model | part | vel RMSE (m/s) | yaw RMSE (rad/s) | mean vx (m/s) | "
+              "fell | fall at (s) | ms/step |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['scenario']} | {r['model']} | {r['part']} | {fmt(r['vel_rmse'])} | "
+                     f"{fmt(r.get('yaw_rmse'))} | {fmt(r.get('mean_vx'), '{:.2f}')} | "
+                     f"{'yes' if r['fell'] else 'no'} | {fmt(r.get('fall_s'), '{:.2f}')} | "
+                     f"{r['ms_per_step']:.1f} |")
+    atomic_write_text(out_dir / "closed_loop.md", "\n".join(lines) + "\n")
+    plot(out_dir, rows)
+    return rows
 
 
 def plot(out: pathlib.Path, rows: list[dict]) -> list[pathlib.Path]:

@@ -1,0 +1,33 @@
+#!/usr/bin/env bash
+# Issue 19's closed-loop runs on one GPU, one process (several processes on one GPU time-slice
+# it: measured 2-3x slower per control step each, results/closed_loop_go1_gpu/README.md).
+#   bash experiments/closed_loop_targets.sh ROBOT OUT LIMIT_S MODELS SCENARIOS [more flags]
+# e.g. bash experiments/closed_loop_targets.sh g1 /tmp/g1 540 policy,stride,delan,onn slope,soft
+# MODELS: policy, oracle, NAME=RUN, or names of results/models/ROBOT/<name>-s0. Rows are written as they
+# finish and the driver skips the pairs already in OUT/closed_loop.json (re-run to resume); the
+# whole folder ends as OUT.tgz (the device returns few files).
+set -u
+robot=$1 out=$2 limit=$3 names=$4 scen=$5
+shift 5
+models=""
+for n in ${names//,/ }; do
+  case $n in
+    policy|oracle|nominal|*=*) models+="$n,";;
+    *) models+="$n=results/models/$robot/$n-s0,";;
+  esac
+done
+common=(--preset gpu --robot "$robot" --policy "results/policies/ppo_$robot"
+        --learned "results/learned_$robot/reward_value.msgpack"
+        --planning.observer-gain 0.1 --planning.learned-track-weight 10)
+if [ "$robot" = go1 ]; then  # K = 1024: 64 policy, 256 command-family, 352 prior, 352 plan
+  common+=(--mppi.policy-samples 64 --mppi.family-samples 256 --mppi.prior-fraction 0.5
+           --prior-noise-std 0.08)
+else  # G1: closer to the policy (the settings that kept G1 planners up before,
+      # results/closed_loop/closed_loop_g1_gpu_policy_noise): 128 policy, 384 family, 512 prior
+  common+=(--mppi.policy-samples 128 --mppi.family-samples 384 --mppi.prior-fraction 1.0
+           --prior-noise-std 0.05 --mppi.family-decay 0.8)
+fi
+mkdir -p "$out"
+timeout "$limit" python -m stride_jax.jobs.closed_loop "${common[@]}" --models "${models%,}" \
+  --scenarios "$scen" --out "$out" "$@" 2>&1 | grep -v "import warp\|import mujoco_warp" | tee "$out/run.log"
+tar -czf "$out.tgz" -C "$(dirname "$out")" "$(basename "$out")"
