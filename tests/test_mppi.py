@@ -321,6 +321,15 @@ def test_a_policy_family_finds_the_command_offset_its_policy_lacks():
     assert abs(qs_policy[-1] - 0.5) < 1e-5  # the policy alone keeps its offset
     assert np.abs(qs[-10:] - 1.0).max() < 0.1
     assert float(state.z[0]) == pytest.approx(0.5, abs=0.15)
+    # a prior on the offsets that outweighs the gain keeps the plain policy
+    import dataclasses
+    costly = mppi.make(dataclasses.replace(cfg, family_cost=100.0), drift, cost, [-5.0], [5.0],
+                       policy=policy, family=family)
+    state = costly.init(jax.random.key(0))
+    q = jnp.full(1, 0.5)
+    for _ in range(5):
+        u, state, _ = jax.jit(costly.step)(state, q, jnp.zeros(1))
+    assert abs(float(state.z[0])) < 0.1
     with pytest.raises(ValueError, match="needs a family"):
         mppi.make(cfg, drift, cost, [-5.0], [5.0], policy=policy)
     with pytest.raises(ValueError, match="family_samples=60"):

@@ -33,8 +33,9 @@ unchanged):
   rollouts stay on the states the model was trained on (the planning diagnosis: a learned
   model's cost bias is ~0 on the policy's candidates, 0.4-2.1 on noise candidates), and can
   ask for more than the command where the robot falls short of it (a slope). The offsets are
-  drawn around the last step's weighted mean (kept in :class:`MPPIState`), within
-  ``family_range``;
+  drawn around the last step's weighted mean (kept in :class:`MPPIState`), shrunk by
+  ``family_decay``, within ``family_range``; ``family_cost`` is a prior that pulls them back to
+  the plain policy;
 * **the model's error where the planner goes** (``error_draws``, ``error_bound``,
   ``error_weight``): each rollout step is predicted under ``error_draws`` keys (a stochastic
   model's residual draws); their spread (``disagreement``, or a caller's learned
@@ -131,6 +132,9 @@ class MPPIConfig:
         ``family_std``; the first keeps that mean. 0: none. Needs a ``family``.
       family_std: std of each offset entry (scalar or per entry; its length is ``z``'s size).
       family_range: bound of every offset entry.
+      family_cost: a prior on the offsets: ``family_cost * sum((z / family_std)^2)`` is added to
+        each family candidate's cost (cost units per candidate; 0: none), so an offset must buy
+        a predicted gain larger than its distance from the plain policy (the policy's command).
       family_decay: the previous mean offset is shrunk by this factor before the draws (1:
         kept). Below 1 the offset returns to the plain policy unless the costs keep asking for
         it: the weighted mean of draws around the last mean is otherwise a random walk, and an
@@ -165,6 +169,7 @@ class MPPIConfig:
     family_std: float | tuple[float, ...] = 0.3
     family_range: float = 1.0
     family_decay: float = 1.0
+    family_cost: float = 0.0
     unroll: int | bool = 1
 
     def __post_init__(self):
@@ -184,6 +189,8 @@ class MPPIConfig:
         if not 0 <= self.family_samples <= self.samples - self.policy_samples:
             problems.append(f"family_samples={self.family_samples} must be in [0, samples - "
                             f"policy_samples]")
+        if self.family_cost < 0:
+            problems.append(f"family_cost={self.family_cost} must be >= 0")
         if not 0 <= self.family_decay <= 1:
             problems.append(f"family_decay={self.family_decay} must be in [0, 1]")
         if np.any(np.asarray(self.family_std) < 0) or not self.family_range > 0:
@@ -422,9 +429,13 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
             z_mean = cfg.family_decay * z_mean
             zs = z_mean + z_std * jax.random.normal(key_z, (n_fam,) + z_std.shape)
             zs = jnp.clip(zs.at[0].set(z_mean), -cfg.family_range, cfg.family_range)
-            groups.append(jax.vmap(closed_loop, in_axes=(None, None, 0, 0, 0))(
+            fam = jax.vmap(closed_loop, in_axes=(None, None, 0, 0, 0))(
                 q, qd, shard(jax.random.split(key_fam, n_fam)),
-                shard(jnp.zeros((n_fam, H, nu))), shard(zs)))
+                shard(jnp.zeros((n_fam, H, nu))), shard(zs))
+            if cfg.family_cost:
+                prior = cfg.family_cost * jnp.sum((zs / jnp.maximum(z_std, 1e-6)) ** 2, axis=1)
+                fam = (fam[0] + prior,) + tuple(fam[1:])
+            groups.append(fam)
         costs, actions, err, kept = (jnp.concatenate(x) for x in zip(*groups))
         costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)  # a diverged rollout gets no weight
         finite = jnp.isfinite(costs)
