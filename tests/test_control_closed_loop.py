@@ -111,8 +111,9 @@ def test_learned_reward_and_value_drive_the_planner(go1):
     assert np.ptp(np.asarray(info.costs)) > 0  # the learned reward tells samples apart
     # learned_track_weight adds the quadratic tracking term: 1 m/s short of the command costs
     # weight x dt x 1 more per step
-    track = planning_lib.make_planning(dataclasses.replace(cfg.planning, learned_track_weight=5.0),
-                                       env_cfg, go1, _fake_step, learned_params=(r_params, v_params))
+    track_cfg = dataclasses.replace(cfg.planning, learned_track_weight=5.0)
+    track = planning_lib.make_planning(track_cfg, env_cfg, go1, _fake_step,
+                                       learned_params=(r_params, v_params))
     u0 = jnp.zeros(12)
     extra = track.cost(q0, jnp.zeros(18), u0, 0) - planning.cost(q0, jnp.zeros(18), u0, 0)
     assert float(extra) == pytest.approx(5.0 * 0.02 * 1.0, rel=1e-5)

@@ -2,11 +2,11 @@
 
 The planner's state is ``(q, command, gait clock, latched gait, disturbance)`` stacked into its
 ``q`` (the dynamics carry the command and the disturbance unchanged and advance the clock), so
-one jitted planner follows command changes. Its action is a joint-target offset from the home pose (rad); with ``gait`` it is
-a residual on a gait reference plus the gait parameters (:mod:`stride_jax.control.gait`), which
-MPPI optimises jointly. The cost is the environment's reward terms that a state determines,
-negated, plus a tracking term and a fall cost; or the learned reward and value (plus, with
-``learned_track_weight``, the same tracking term).
+one jitted planner follows command changes. Its action is a joint-target offset from the home
+pose (rad); with ``gait`` it is a residual on a gait reference plus the gait parameters
+(:mod:`stride_jax.control.gait`), which MPPI optimises jointly. The cost is the environment's
+reward terms that a state determines, negated, plus a tracking term and a fall cost; or the
+learned reward and value (plus, with ``learned_track_weight``, the same tracking term).
 
 Offset-free planning (``observer_gain``): the disturbance is a constant acceleration of the
 floating base (world-frame linear, body-frame angular; ``[6]``) that the planner's model adds at
@@ -61,11 +61,11 @@ class PlanningConfig:
         step the estimate moves by this fraction of the base's one-step acceleration error
         (observed minus predicted by the planner's model with the current estimate).
       observer_limit: bound of each disturbance entry (m/s^2, rad/s^2).
-      family_std: std of the command offsets of the policy family's candidates
-        (``--mppi.family-samples``): vx (m/s) and yaw rate (rad/s); vy gets half.
       observer_angular: estimate the base's angular acceleration too (default: the linear
         part only; the angular one-step errors of the learned models are dominated by contact
         transients, not by what persists).
+      family_std: std of the command offsets of the policy family's candidates
+        (``--mppi.family-samples``): vx (m/s) and yaw rate (rad/s); vy gets half.
     """
 
     noise_std: float = 0.15
@@ -138,11 +138,6 @@ def split(q_aug: jax.Array, nq: int) -> Aug:
     d0 = g0 + gait_lib.N_GAIT + 1
     return Aug(q_aug[:nq], q_aug[nq:nq + 3], q_aug[nq + 3], q_aug[g0:g0 + gait_lib.N_GAIT],
                q_aug[g0 + gait_lib.N_GAIT], q_aug[d0:d0 + N_DIST])
-
-
-def with_disturbance(q_aug: jax.Array, nq: int, disturbance: jax.Array) -> jax.Array:
-    """``q_aug`` with its disturbance entries replaced."""
-    return q_aug.at[nq + N_AUG - N_DIST:].set(disturbance)
 
 
 def apply_disturbance(q: jax.Array, qd: jax.Array, disturbance: jax.Array, dt: float):

@@ -20,7 +20,9 @@ gait clock, latched gait)``, so one jitted planner follows command changes; its 
 joint-target offset from home (with ``gait``, a residual on the Go1 gait reference plus the gait
 parameters, optimised jointly); its cost is the environment's state reward terms, negated, plus a
 tracking term and ``planning.fall_cost`` per step fallen, or (``learned``) the learned reward and value. A
-PPO run can add ``policy_samples`` candidates.
+PPO run can add ``policy_samples`` candidates. Offset-free planning in the policy's command space
+(``planning.observer_gain``, ``mppi.family_samples``, ``planning.learned_track_weight``;
+:mod:`stride_jax.control.planning`) is how issue 19's runs plan (``docs/control.md``).
 
 Scenarios (:mod:`stride_jax.control.scenarios`): velocity step 0 -> 2 m/s, sudden command
 changes, a 20 degree slope, low friction, soft contacts, rough terrain. The gait study lives in
@@ -235,15 +237,20 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
     fmt = lambda x, f="{:.3f}": "-" if x is None or (isinstance(x, float) and np.isnan(x)) else (
         f.format(x))
     robot = {"go1": "Go1", "g1": "G1"}.get(cfg.robot, cfg.robot)
+    pl = cfg.planning
+    extras = "".join([
+        f", tracking weight {pl.learned_track_weight:g} on the learned reward"
+        if cfg.learned and pl.learned_track_weight else "",
+        f", disturbance observer (gain {pl.observer_gain:g})" if pl.observer_gain else "",
+        f", {cfg.mppi.family_samples} candidates from the policy asked for command + z"
+        if cfg.mppi.family_samples else ""])
     lines = [f"# Closed-loop MPPI on the MJX {robot}", "", f"Command: `{command}`", "",
              f"Device: {env['device']} ({env['backend']}), jax {env['jax']}. MPPI K={cfg.mppi.samples}, "
              f"H={cfg.mppi.horizon}, {cfg.mppi.iterations} iteration(s); cost: "
              f"{'learned reward/value ' + cfg.learned if cfg.learned else 'analytic reward terms'}"
              f"{', gait parameters planned' if cfg.planning.gait else ''}"
              f"{', PPO candidates from ' + cfg.policy if cfg.policy and cfg.mppi.policy_samples else ''}"
-             f"{f', tracking weight {cfg.planning.learned_track_weight:g} on the learned reward' if cfg.learned and cfg.planning.learned_track_weight else ''}"
-             f"{f', disturbance observer (gain {cfg.planning.observer_gain:g})' if cfg.planning.observer_gain else ''}"
-             ". Tracking RMSE of the base-frame velocity (xy) and yaw rate while upright, "
+             f"{extras}. Tracking RMSE of the base-frame velocity (xy) and yaw rate while upright, "
              f"{cfg.settle_s} s after each command change.", "",
              "Gait: the named pattern the measured foot contacts fit best (score: in-phase minus "
              "anti-phase contact correlation); with planned gaits, the median planned "
