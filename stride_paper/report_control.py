@@ -197,8 +197,8 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
         c = _command(d)
         git = _git_note(p)
         lines += [f"`{rel(p)}`{' (' + git + ')' if git else ''}: `{c}`; "
-                  f"device {d.get('device') or _dig(d, 'env', 'device') or _part_devices(d)}. Cells: velocity "
-                  "tracking RMSE (m/s), mean ± std over runs; falls.", ""]
+                  f"device {d.get('device') or _dig(d, 'env', 'device') or _part_devices(d)}. "
+                  "Cells: velocity tracking RMSE (m/s), mean ± std over runs; falls.", ""]
         keys = list(dict.fromkeys(_row_key(r) for r in d["rows"]))
         ms = list(dict.fromkeys(_row_model(r) for r in d["rows"]))
         table = []

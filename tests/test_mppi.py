@@ -1,6 +1,8 @@
 """MPPI: solves a pendulum swing-up with the true dynamics, compiles once, is deterministic, and
 refuses bad configurations."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -322,7 +324,6 @@ def test_a_policy_family_finds_the_command_offset_its_policy_lacks():
     assert np.abs(qs[-10:] - 1.0).max() < 0.1
     assert float(state.z[0]) == pytest.approx(0.5, abs=0.15)
     # a prior on the offsets that outweighs the gain keeps the plain policy
-    import dataclasses
     costly = mppi.make(dataclasses.replace(cfg, family_cost=100.0), drift, cost, [-5.0], [5.0],
                        policy=policy, family=family)
     state = costly.init(jax.random.key(0))

@@ -308,9 +308,9 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
     if sharding is not None:
         n_dev = sharding.mesh.size
         if n_plan % n_dev or n_prior % n_dev or n_pol % n_dev or n_fam % n_dev:
-            raise ValueError(f"samples={K} with policy_samples={n_pol} and {n_prior} policy-"
-                             f"prior candidates: each group must split evenly over the "
-                             f"sharding's {n_dev} devices")
+            raise ValueError(f"samples={K} with policy_samples={n_pol}, family_samples={n_fam} "
+                             f"and {n_prior} policy-prior candidates: each group must split "
+                             f"evenly over the sharding's {n_dev} devices")
     shard = (lambda x: x) if sharding is None else (
         lambda x: jax.lax.with_sharding_constraint(x, sharding))
     std = jnp.broadcast_to(jnp.asarray(cfg.noise_std, jnp.float32), (nu,))
@@ -403,8 +403,10 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
         return over_draws
 
     open_loop, closed_loop = drawn(False), drawn(True)
-    batch = lambda fn, q, qd, keys, bases: jax.vmap(fn, in_axes=(None, None, 0, 0))(
-        q, qd, shard(keys), shard(bases))
+    def batch(fn, q, qd, keys, bases, *per_candidate):
+        """``fn`` over the candidates (keys, bases and any further per-candidate inputs)."""
+        ins = (keys, bases) + per_candidate
+        return jax.vmap(fn, in_axes=(None, None) + (0,) * len(ins))(q, qd, *map(shard, ins))
 
     def iterate(plan, z_mean, q, qd, key):
         key_noise, key_roll, key_pol = jax.random.split(key, 3)
@@ -429,9 +431,8 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
             z_mean = cfg.family_decay * z_mean
             zs = z_mean + z_std * jax.random.normal(key_z, (n_fam,) + z_std.shape)
             zs = jnp.clip(zs.at[0].set(z_mean), -cfg.family_range, cfg.family_range)
-            fam = jax.vmap(closed_loop, in_axes=(None, None, 0, 0, 0))(
-                q, qd, shard(jax.random.split(key_fam, n_fam)),
-                shard(jnp.zeros((n_fam, H, nu))), shard(zs))
+            fam = batch(closed_loop, q, qd, jax.random.split(key_fam, n_fam),
+                        jnp.zeros((n_fam, H, nu)), zs)
             if cfg.family_cost:
                 prior = cfg.family_cost * jnp.sum((zs / jnp.maximum(z_std, 1e-6)) ** 2, axis=1)
                 fam = (fam[0] + prior,) + tuple(fam[1:])

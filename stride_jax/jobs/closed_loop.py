@@ -230,12 +230,15 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     return rows
 
 
+def _fmt(x, f: str = "{:.3f}") -> str:
+    """A table cell: ``-`` for a missing or NaN value."""
+    return "-" if x is None or (isinstance(x, float) and np.isnan(x)) else f.format(x)
+
+
 def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Path) -> None:
     env = dict(command=command, backend=jax.default_backend(), device=jax.devices()[0].device_kind,
                jax=jax.__version__, code=code_version(), config=dataclasses.asdict(cfg))
     atomic_write_text(out / "closed_loop.json", json.dumps(dict(env=env, rows=rows), indent=1))
-    fmt = lambda x, f="{:.3f}": "-" if x is None or (isinstance(x, float) and np.isnan(x)) else (
-        f.format(x))
     robot = {"go1": "Go1", "g1": "G1"}.get(cfg.robot, cfg.robot)
     pl = cfg.planning
     extras = "".join([
@@ -263,9 +266,9 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
                    if "plan_gait" in r else "-")
         contact = (f"{r['contact_gait']} ({r['contact_gait_score']:.2f})"
                    if "contact_gait" in r else "-")
-        lines.append(f"| {r['scenario']} | {r['model']} | {fmt(r['vel_rmse'])} | "
-                     f"{fmt(r['yaw_rmse'])} | {fmt(r['mean_vx'], '{:.2f}')} | "
-                     f"{'yes' if r['fell'] else 'no'} | {fmt(r['fall_s'], '{:.2f}')} | "
+        lines.append(f"| {r['scenario']} | {r['model']} | {_fmt(r['vel_rmse'])} | "
+                     f"{_fmt(r['yaw_rmse'])} | {_fmt(r['mean_vx'], '{:.2f}')} | "
+                     f"{'yes' if r['fell'] else 'no'} | {_fmt(r['fall_s'], '{:.2f}')} | "
                      f"{contact} | {planned} | {r['ms_per_step']:.1f} |")
     atomic_write_text(out / "closed_loop.md", "\n".join(lines) + "\n")
 
@@ -282,7 +285,7 @@ def merge(parts: list[str], out: str, title: str = "") -> list[dict]:
 
     out_dir = pathlib.Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    rows, envs_ = [], {}
+    rows, envs_, seen = [], {}, set()
     for part in parts:
         path = pathlib.Path(part)
         src = path / "closed_loop.json" if path.is_dir() else path
@@ -296,25 +299,24 @@ def merge(parts: list[str], out: str, title: str = "") -> list[dict]:
             if missing:
                 raise ValueError(f"{src}: a row lacks {sorted(missing)}")
             model = r["model"]
-            if any((x["scenario"], x["model"]) == (r["scenario"], model) for x in rows):
+            if (r["scenario"], model) in seen:
                 model = f"{model}@{name}"  # a second part's variant of the same model
+            seen.add((r["scenario"], model))
             rows.append({**r, "model": model, "part": name})
             trace = src.parent / f"trace_{r['scenario']}_{r['model']}.npz"
             if trace.is_file():
                 shutil.copy2(trace, out_dir / f"trace_{r['scenario']}_{model}.npz")
     atomic_write_text(out_dir / "closed_loop.json",
                       json.dumps(dict(title=title, parts=envs_, rows=rows), indent=1))
-    fmt = lambda x, f="{:.3f}": "-" if x is None or (isinstance(x, float) and np.isnan(x)) else (
-        f.format(x))
     lines = [f"# {title or 'Closed-loop MPPI'}", "", "Parts (each row names its part):", ""]
     lines += [f"- `{k}`: `{v.get('command', '')}` ({v.get('device', '?')})"
               for k, v in envs_.items()]
     lines += ["", "| scenario | model | part | vel RMSE (m/s) | yaw RMSE (rad/s) | mean vx (m/s) | "
               "fell | fall at (s) | ms/step |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['scenario']} | {r['model']} | {r['part']} | {fmt(r['vel_rmse'])} | "
-                     f"{fmt(r.get('yaw_rmse'))} | {fmt(r.get('mean_vx'), '{:.2f}')} | "
-                     f"{'yes' if r['fell'] else 'no'} | {fmt(r.get('fall_s'), '{:.2f}')} | "
+        lines.append(f"| {r['scenario']} | {r['model']} | {r['part']} | {_fmt(r['vel_rmse'])} | "
+                     f"{_fmt(r.get('yaw_rmse'))} | {_fmt(r.get('mean_vx'), '{:.2f}')} | "
+                     f"{'yes' if r['fell'] else 'no'} | {_fmt(r.get('fall_s'), '{:.2f}')} | "
                      f"{r['ms_per_step']:.1f} |")
     atomic_write_text(out_dir / "closed_loop.md", "\n".join(lines) + "\n")
     plot(out_dir, rows)
