@@ -21,7 +21,7 @@ endif
 $(BIN)/stride: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[test]'
+	$(BIN)/python -m pip install -q -e '.[test,warp]'
 	touch $@
 
 setup: $(BIN)/stride

@@ -8,8 +8,12 @@ Each device count runs in its own process (JAX fixes its devices when it starts)
 sees the first ``d`` of them (``CUDA_VISIBLE_DEVICES``), on a CPU ``d`` forced host devices
 (``--xla_force_host_platform_device_count``). In it:
 
-- **data**: the MJX collection of ``stride data`` (``rollout_mjx.collect``: worlds sharded over
-  the devices), timed on its second call (the first compiles); simulator steps per second.
+- **data**: the MJX collection of ``stride data`` (``rollout_mjx.collect``: worlds split over
+  the devices), timed on its second call (the first compiles); simulator steps per second, with
+  the records copied to the host (``data``) and on the devices alone (``device``: the jitted
+  collection function, blocked on, nothing copied). ``--impl warp`` runs MuJoCo Warp's physics.
+  ``--data-batches`` > 1 splits the worlds into that many calls, as ``stride data --batch`` does
+  (each batch's copy overlaps the next one's simulation).
 - **training**: ``stride train`` on one shared dataset (the minibatch split over the devices,
   XLA all-reducing the gradients), steps per second read from ``metrics.csv`` between its first
   and last validation (compilation excluded). ``--per-device-batch`` keeps each device's share
@@ -47,16 +51,32 @@ def child(args) -> None:
     sm = model.load(args.robot)
     n_steps = max(1, int(round(args.seconds / sm.robot.ctrl_dt)))
     worlds = args.worlds * (n if args.per_device_batch else 1)  # weak scaling: a share per device
+    batch = worlds // args.data_batches
     times = []
     for _ in range(2):  # the first call compiles
         t = time.perf_counter()
-        ep = rollout_mjx.collect(sm, jax.random.key(0), worlds, n_steps, worlds)
+        ep = rollout_mjx.collect(sm, jax.random.key(0), worlds, n_steps, batch, impl=args.impl)
         jax.block_until_ready(ep.records.q)
         times.append(time.perf_counter() - t)
+    fn = rollout_mjx.collect_fn(sm, n_steps, True, args.impl, batch)
+    keys = jax.random.split(jax.random.key(0), batch)
+    if (sharding := rollout_mjx.world_sharding(batch)) is not None:
+        keys = jax.device_put(keys, sharding)
+    dev = []
+    for _ in range(3):
+        t = time.perf_counter()
+        jax.block_until_ready(fn(keys))
+        dev.append(time.perf_counter() - t)
     sim_steps = worlds * n_steps * sm.n_substeps
     row = dict(devices=n, platform=jax.default_backend(), device_kind=jax.devices()[0].device_kind,
-               robot=args.robot, worlds=worlds, control_steps=n_steps,
-               data_seconds=times[1], data_sim_steps_per_s=sim_steps / times[1])
+               robot=args.robot, impl=args.impl, worlds=worlds, data_batch=batch,
+               control_steps=n_steps, data_seconds=times[1],
+               data_sim_steps_per_s=sim_steps / times[1],
+               device_sim_steps_per_s=batch * n_steps * sm.n_substeps / min(dev[1:]))
+    if args.no_train:
+        pathlib.Path(args.result).write_text(json.dumps(row))
+        print(json.dumps(row), flush=True)
+        return
     batch = args.batch * (n if args.per_device_batch else 1)
     with tempfile.TemporaryDirectory() as tmp:
         cli.main(["train", "--robot", args.robot, "--model", args.model, "--preset", "paper",
@@ -91,18 +111,29 @@ def write(rows: list[dict], out: pathlib.Path, command: str) -> None:
     lines = [f"# Throughput against device count ({base['robot']}, {base['platform']}: "
              f"{base['device_kind']})", "",
              f"Command: `{command}`", "",
-             "| devices | worlds | data sim steps/s | speed-up | batch | train steps/s | examples/s "
-             "| speed-up |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| devices | worlds | data sim steps/s | speed-up | on device | speed-up "
+             "| batch | train steps/s | examples/s | speed-up |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    train = "train_steps_per_s" in base
     for r in rows:
-        lines.append(f"| {r['devices']} | {r['worlds']} | {r['data_sim_steps_per_s']:,.0f} | "
-                     f"{r['data_sim_steps_per_s'] / base['data_sim_steps_per_s']:.2f}x | "
-                     f"{r['batch']} | {r['train_steps_per_s']:,.1f} | {r['train_examples_per_s']:,.0f} | "
-                     f"{r['train_examples_per_s'] / base['train_examples_per_s']:.2f}x |")
-    lines += ["", f"Data: the worlds of each row x {base['control_steps']} control steps per call "
-              f"(MJX, sharded over the devices; the time includes copying the records to the "
-              f"host). Training: `{base['model']}` at the paper preset's 256 x 3, the row's batch "
-              f"split over the devices, {base['train_steps_timed']} timed steps."]
+        cells = [str(r["devices"]), str(r["worlds"]), f"{r['data_sim_steps_per_s']:,.0f}",
+                 f"{r['data_sim_steps_per_s'] / base['data_sim_steps_per_s']:.2f}x",
+                 f"{r.get('device_sim_steps_per_s', float('nan')):,.0f}",
+                 f"{r.get('device_sim_steps_per_s', float('nan')) / base.get('device_sim_steps_per_s', float('nan')):.2f}x"]
+        if train:
+            cells += [str(r["batch"]), f"{r['train_steps_per_s']:,.1f}",
+                      f"{r['train_examples_per_s']:,.0f}",
+                      f"{r['train_examples_per_s'] / base['train_examples_per_s']:.2f}x"]
+        else:
+            cells += ["-"] * 4
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", f"Data: the worlds of each row x {base['control_steps']} control steps, "
+              f"{base.get('impl', 'jax')} physics, in calls of {base.get('data_batch', base['worlds'])}"
+              f" worlds split over the devices; 'data' includes copying the records to the host, "
+              f"'on device' is one call with nothing copied."]
+    if train:
+        lines += [f"Training: `{base['model']}` at the paper preset's 256 x 3, the row's batch "
+                  f"split over the devices, {base['train_steps_timed']} timed steps."]
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "scale.json", json.dumps(rows, indent=1))
     atomic_write_text(out / "scale.md", "\n".join(lines) + "\n")
@@ -121,6 +152,9 @@ def main(argv=None) -> None:
     p.add_argument("--train-steps", type=int, default=2000)
     p.add_argument("--batch", type=int, default=1024)
     p.add_argument("--per-device-batch", action="store_true")
+    p.add_argument("--impl", default="jax", choices=("jax", "warp"), help="the data's physics")
+    p.add_argument("--data-batches", type=int, default=1, help="calls the worlds are split into")
+    p.add_argument("--no-train", action="store_true", help="data only")
     p.add_argument("--out", default="results/scale")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--d", type=int, default=1, help=argparse.SUPPRESS)
@@ -132,7 +166,7 @@ def main(argv=None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     counts = [int(d) for d in args.devices.split(",")]
     data = args.data
-    if not data:
+    if not data and not args.no_train:
         data = str(out / f"data_{args.robot}")
         if not (pathlib.Path(data) / "meta.json").exists():
             subprocess.run([sys.executable, "-m", "stride_jax.cli", "data", "--robot", args.robot,
@@ -144,9 +178,9 @@ def main(argv=None) -> None:
         cmd = [sys.executable, __file__, "--child", "--d", str(d), "--result", str(result),
                "--robot", args.robot, "--model", args.model, "--worlds", str(args.worlds),
                "--seconds", str(args.seconds), "--data", data,
-               "--train-steps", str(args.train_steps), "--batch", str(args.batch)]
-        if args.per_device_batch:
-            cmd.append("--per-device-batch")
+               "--train-steps", str(args.train_steps), "--batch", str(args.batch),
+               "--impl", args.impl, "--data-batches", str(args.data_batches)]
+        cmd += ["--per-device-batch"] * args.per_device_batch + ["--no-train"] * args.no_train
         print(f"--- {d} device(s)", flush=True)
         subprocess.run(cmd, env=_env(args.platform, d), check=True)
         rows.append(json.loads(result.read_text()))

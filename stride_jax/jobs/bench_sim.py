@@ -2,7 +2,8 @@
 
 Two MJX measurements per robot and batch size: ``physics`` is a jitted, vmapped ``lax.scan`` of
 ``mjx.step`` (the number MuJoCo Playground quotes), ``collect`` is the full data pipeline
-(randomised worlds, explorer, recording). ``cpu`` is the ``mujoco.rollout`` backend's collect.
+(randomised worlds, explorer, recording). ``warp`` is the same two through MuJoCo Warp's kernels
+(MJX's ``impl="warp"``), ``cpu`` the ``mujoco.rollout`` backend's collect.
 Each is timed after a compile-and-warm-up call, as the median of ``repeats`` calls.
 """
 
@@ -19,7 +20,7 @@ import jax.numpy as jnp
 from mujoco import mjx
 
 from stride_jax.jobs import bench_table
-from stride_jax.sim import model, rollout_cpu, rollout_mjx
+from stride_jax.sim import mjx_warp, model, rollout_cpu, rollout_mjx
 from stride_jax.timing import median_time
 
 
@@ -27,7 +28,7 @@ from stride_jax.timing import median_time
 class BenchConfig:
     """Attributes:
       robots: comma-separated robot names.
-      backends: comma-separated, of mjx and cpu.
+      backends: comma-separated, of mjx, warp and cpu.
       batches: comma-separated batch sizes (worlds).
       steps: control steps per call (each is the robot's n_substeps simulation steps).
       repeats: timed calls per measurement (median reported).
@@ -49,16 +50,21 @@ class BenchConfig:
 PRESETS = {
     "tiny": BenchConfig(robots="pendulum", batches="16", steps=5, repeats=1),
     "default": BenchConfig(),
-    "gpu": BenchConfig(backends="mjx", batches="1024,8192", steps=20, repeats=3),
+    "gpu": BenchConfig(backends="mjx,warp", batches="1024,8192", steps=20, repeats=3),
 }
 
 
-def _physics_fn(sm: model.SimModel, batch: int, n_steps: int):
-    mx = mjx.put_model(sm.mj)
+def _physics_fn(sm: model.SimModel, batch: int, n_steps: int, impl: str = "jax"):
+    if impl == "warp":
+        mjx_warp.check_devices()
+        mx, template = mjx_warp.put_model(sm.mj), mjx_warp.layout(sm, sm.mj, batch).template
+    else:
+        mx = mjx.put_model(sm.mj)
+        template = mjx.make_data(mx)
     qpos = jnp.asarray(sm.info.qpos0)
 
     def one(key):
-        d = mjx.make_data(mx).replace(qpos=qpos.at[7:].add(0.01 * jax.random.normal(key, (sm.mj.nq - 7,)))
+        d = template.replace(qpos=qpos.at[7:].add(0.01 * jax.random.normal(key, (sm.mj.nq - 7,)))
                                       if sm.robot.floating_base else qpos)
         with jax.default_matmul_precision(rollout_mjx.PRECISION):  # as the data's physics
             d = jax.lax.fori_loop(0, n_steps * sm.n_substeps, lambda _, dd: mjx.step(mx, dd), d)
@@ -83,16 +89,22 @@ def _with_solver(sm: model.SimModel, cfg: BenchConfig) -> model.SimModel:
 
 def measure(cfg: BenchConfig, on_row=None) -> list[dict]:
     """Every (robot, backend, batch) row of ``cfg``; ``on_row(rows)`` after each."""
+    unknown = set(cfg.backends.split(",")) - {"mjx", "warp", "cpu"}
+    if unknown:
+        raise ValueError(f"unknown backends {sorted(unknown)}; use mjx, warp and cpu")
     rows = []
     for name in cfg.robots.split(","):
         sm = _with_solver(model.load(name), cfg)
         for backend in cfg.backends.split(","):
             for batch in (int(b) for b in cfg.batches.split(",")):
                 sim_steps = batch * cfg.steps * sm.n_substeps
-                if backend == "mjx":
-                    t_phys = median_time(_physics_fn(sm, batch, cfg.steps), cfg.repeats)
-                    collect = jax.jit(jax.vmap(rollout_mjx.make_collect_fn(sm, cfg.steps)))
+                if backend in ("mjx", "warp"):
+                    impl = "warp" if backend == "warp" else "jax"
+                    t_phys = median_time(_physics_fn(sm, batch, cfg.steps, impl), cfg.repeats)
+                    collect = rollout_mjx.collect_fn(sm, cfg.steps, True, impl, batch)
                     keys = jax.random.split(jax.random.key(1), batch)
+                    if (sharding := rollout_mjx.world_sharding(batch)) is not None:
+                        keys = jax.device_put(keys, sharding)
                     t_coll = median_time(lambda: jax.block_until_ready(collect(keys)), cfg.repeats)
                     modes = [("physics", t_phys), ("collect", t_coll)]
                 else:

@@ -27,8 +27,9 @@ class DataConfig:
 
     Attributes:
       robot: pendulum, pendulum_bouncing, go1 or g1.
-      backend: ``mjx`` (jit/vmap on any JAX device), ``cpu`` (threaded ``mujoco.rollout``), or
-        ``auto``: mjx when an accelerator is present, cpu otherwise.
+      backend: ``mjx`` (jit/vmap on any JAX device), ``warp`` (MJX on MuJoCo Warp's kernels:
+        CUDA or CPU, needs ``warp-lang``; not with rough ground), ``cpu`` (threaded
+        ``mujoco.rollout``), or ``auto``: mjx when an accelerator is present, cpu otherwise.
       episodes: number of episodes (worlds).
       seconds: episode length (s); 0 uses the robot's default.
       batch: worlds per jitted MJX call (0: all at once).
@@ -69,8 +70,8 @@ PRESETS = {
 def resolve_backend(backend: str) -> str:
     if backend == "auto":
         return "cpu" if jax.default_backend() == "cpu" else "mjx"
-    if backend not in ("cpu", "mjx"):
-        raise ValueError(f"unknown backend {backend!r}; use cpu, mjx or auto")
+    if backend not in ("cpu", "mjx", "warp"):
+        raise ValueError(f"unknown backend {backend!r}; use cpu, mjx, warp or auto")
     return backend
 
 
@@ -102,11 +103,12 @@ def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Datas
     part = distributed.share(cfg.episodes)  # all of them for a single process
     quiet = not distributed.is_main()
     t0 = time.perf_counter()
-    if backend == "mjx":
-        with tqdm(total=part.stop - part.start, desc=f"{cfg.robot} mjx", unit="episode",
+    if backend in ("mjx", "warp"):
+        with tqdm(total=part.stop - part.start, desc=f"{cfg.robot} {backend}", unit="episode",
                   disable=quiet) as bar:
             ep = rollout_mjx.collect(sm, key, cfg.episodes, n_steps, cfg.batch or None,
-                                     randomized, bar.update, part)
+                                     randomized, bar.update, part,
+                                     impl="warp" if backend == "warp" else "jax")
     else:
         with tqdm(total=n_steps, desc=f"{cfg.robot} cpu", unit="step", disable=quiet) as bar:
             ep = rollout_cpu.collect(sm, key, cfg.episodes, n_steps, randomized,

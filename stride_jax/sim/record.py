@@ -101,17 +101,28 @@ def from_mjx(sm: SimModel, d, layout: ContactLayout) -> Record:
                 up = local @ con.frame[c, :len(local), 2]
                 foot_force[f] = foot_force[f] + layout.sign[c] * up
     foot_force = jnp.stack(foot_force) if sm.nfeet else jnp.zeros((0,))
+    return from_forward(sm, d, foot_force)
+
+
+def from_forward(sm: SimModel, d, foot_force: jnp.ndarray, before=None) -> Record:
+    """A record from MJX data holding a forward pass's quantities and the feet's normal forces.
+
+    ``before``: the data whose state (time, qpos, qvel, ctrl) the forward pass was run at, when
+    ``d`` is the data after a whole step (MuJoCo Warp: the step's forward-pass quantities stay in
+    ``d`` while its state has moved on); by default ``d`` itself.
+    """
+    s = d if before is None else before
     b = sm.base_body
     floating = sm.robot.floating_base
     qfrc_external = d.qfrc_smooth - d.qfrc_actuator - d.qfrc_passive + d.qfrc_bias
     return Record(
-        time=d.time, q=d.qpos, qd=d.qvel, qdd=d.qacc, ctrl=d.ctrl, tau=d.qfrc_actuator,
+        time=s.time, q=s.qpos, qd=s.qvel, qdd=d.qacc, ctrl=s.ctrl, tau=d.qfrc_actuator,
         qfrc_passive=d.qfrc_passive, qfrc_constraint=d.qfrc_constraint, qfrc_bias=d.qfrc_bias,
         qfrc_external=qfrc_external,
         foot_force=foot_force, foot_contact=foot_force > 0,
         base_pos=d.xpos[b], base_quat=d.xquat[b],
-        base_linvel=d.qvel[0:3] if floating else jnp.zeros(3),
-        base_angvel=d.qvel[3:6] if floating else jnp.zeros(3),
+        base_linvel=s.qvel[0:3] if floating else jnp.zeros(3),
+        base_angvel=s.qvel[3:6] if floating else jnp.zeros(3),
     )
 
 

@@ -3,6 +3,9 @@
 A world's episode is a ``lax.scan`` over control steps. Each control step runs ``n_substeps``
 simulation steps with the control held; the first is split into ``mjx.forward`` (whose quantities
 are recorded) and the integrator, so recording costs no extra forward pass.
+
+``impl="warp"`` runs the same episodes on MuJoCo Warp's kernels instead of MJX's JAX physics
+(:mod:`stride_jax.sim.mjx_warp`); everything else (explorer, randomization, records) is shared.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 from mujoco import mjx
 
-from stride_jax.sim import randomize, record, terrain
+from stride_jax.sim import mjx_warp, randomize, record, terrain
 from stride_jax.sim.model import SimModel, check_open_loop
 
 
@@ -70,7 +73,8 @@ def control_step(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, d: m
     return d, rec
 
 
-def run_episode(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, qpos: jax.Array,
+def run_episode(sm: SimModel, layout: record.ContactLayout | mjx_warp.WarpLayout, mx: mjx.Model,
+                qpos: jax.Array,
                 qvel: jax.Array, n_steps: int, policy: Callable, disturb: Callable,
                 ground: Callable | None = None) -> tuple[record.Record, jax.Array]:
     """Rolls one world out for ``n_steps`` control steps under ``policy(step, qpos, qvel)``.
@@ -78,9 +82,12 @@ def run_episode(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, qpos:
     ``disturb(time, qpos)`` returns the hidden :class:`~stride_jax.sim.randomize.Disturbance`;
     ``ground(mx, qpos)``, if given, the model of this control step (the ground under the feet).
 
+    ``layout`` is a :class:`~stride_jax.sim.mjx_warp.WarpLayout` for a Warp model.
+
     Returns the records ``[T, ...]`` and the validity mask ``[T]``.
     """
-    d = mjx.make_data(mx).replace(qpos=qpos, qvel=qvel)
+    warp = isinstance(layout, mjx_warp.WarpLayout)
+    d = (layout.template if warp else mjx.make_data(mx)).replace(qpos=qpos, qvel=qvel)
 
     def body(carry, step):
         d, alive = carry
@@ -88,15 +95,37 @@ def run_episode(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, qpos:
             jnp.isfinite(d.qvel))
         ctrl = policy(step, d.qpos, d.qvel)
         mx_t = mx if ground is None else ground(mx, d.qpos)
-        d, rec = control_step(sm, layout, mx_t, d, ctrl, disturb(d.time, d.qpos))
+        dist = disturb(d.time, d.qpos)
+        if warp:
+            with jax.default_matmul_precision(PRECISION):
+                d, rec = mjx_warp.control_step(sm, layout, mx_t, d, ctrl, dist.push, dist.qfrc)
+        else:
+            d, rec = control_step(sm, layout, mx_t, d, ctrl, dist)
         return (d, alive), (rec, alive)
 
     _, (recs, valid) = jax.lax.scan(body, (d, jnp.ones((), bool)), jnp.arange(n_steps))
     return recs, valid
 
 
-def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True) -> Callable:
-    """A pure ``episode(key) -> Episode`` for one world, exploring with the robot's explorer."""
+IMPLS = ("jax", "warp")
+
+
+def _check_impl(impl: str, worlds: int | None) -> None:
+    if impl not in IMPLS:
+        raise ValueError(f"unknown MJX implementation {impl!r}; use one of {IMPLS}")
+    if impl == "warp" and not worlds:
+        raise ValueError("impl='warp' needs the number of worlds (its contacts are allocated "
+                         "for all worlds at once)")
+
+
+def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True, impl: str = "jax",
+                    worlds: int | None = None) -> Callable:
+    """A pure ``episode(key) -> Episode`` for one world, exploring with the robot's explorer.
+
+    ``impl``: MJX's ``jax`` physics or MuJoCo Warp's (``warp``, which needs ``worlds``, the number
+    of worlds the function is vmapped over).
+    """
+    _check_impl(impl, worlds)
     explorer, info, robot = sm.robot.explorer, sm.info, sm.robot
     r = robot.randomization
     patches = randomized and r.patches
@@ -104,8 +133,13 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True) -> Call
     if rough:  # the heightfield in place of the floor; its heights are set per world below
         sm = terrain.rough_model(sm, r)
     mj = randomize.ground_ready(sm.mj, sm.geom_foot) if patches else sm.mj
-    mx0 = mjx.put_model(mj)
-    layout = record.mjx_contact_layout(sm, mx0)
+    mx_kin = mjx.put_model(mj)  # MJX's own kinematics: both impls look up the same patches
+    if impl == "warp":
+        mx0 = mjx_warp.put_model(mj)
+        layout = mjx_warp.layout(sm, mj, worlds)
+    else:
+        mx0 = mx_kin
+        layout = record.mjx_contact_layout(sm, mx0)
     fields = randomize.nominal_fields(mj)
     pair_foot = randomize.pair_feet(mj, sm.geom_foot)
     episode_s = n_steps * robot.ctrl_dt
@@ -126,7 +160,7 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True) -> Call
             here = {k: getattr(mx, k) for k in randomize.GROUND_FIELDS}
 
             def ground(mx_, q):
-                fr, so = randomize.foot_patches(rand, r, randomize.foot_xy(mx0, sm.foot_sites, q))
+                fr, so = randomize.foot_patches(rand, r, randomize.foot_xy(mx_kin, sm.foot_sites, q))
                 new = randomize.apply_ground(here, sm.geom_foot, pair_foot, fr, so)
                 return mx_.replace(**{k: a.astype(here[k].dtype) for k, a in new.items()})
         recs, valid = run_episode(sm, layout, mx, qpos, qvel, n_steps, policy, disturb, ground)
@@ -163,35 +197,57 @@ def world_sharding(n_worlds: int) -> NamedSharding | None:
 _COLLECT_FNS: dict = {}
 
 
-def collect_fn(sm: SimModel, n_steps: int, randomized: bool = True) -> Callable:
-    """The jitted, vmapped ``episodes(keys [B]) -> Episode`` of :func:`make_collect_fn`, built once
-    per (model, episode length, randomization), so that repeated collections in one process (data
-    in chunks, benchmarks timing a second call) reuse its compilation instead of tracing anew."""
-    k = (id(sm), n_steps, randomized)
+def collect_fn(sm: SimModel, n_steps: int, randomized: bool = True, impl: str = "jax",
+               worlds: int | None = None) -> Callable:
+    """The jitted ``episodes(keys [B]) -> Episode`` of :func:`make_collect_fn`, vmapped over worlds.
+    Built once per (model, episode length, randomization, impl, worlds), so that repeated
+    collections in one process (data in chunks, benchmarks timing a second call) reuse its
+    compilation instead of tracing anew. On several local devices MJX's physics is split over them
+    by XLA's partitioner (the keys sharded over the devices, as :func:`collect` passes them).
+
+    ``worlds`` (``B``): needed by ``impl="warp"`` (its contacts are allocated per call); ignored
+    otherwise. MuJoCo Warp's foreign call cannot be partitioned by XLA, and under ``shard_map``
+    it crashed (SIGSEGV on two H200s, as did MJX's physics), so ``warp`` runs on one device per
+    process: several GPUs take one process each (:mod:`stride_jax.distributed`).
+    """
+    if impl == "warp":
+        mjx_warp.check_devices()
+    k = (id(sm), n_steps, randomized, impl, worlds if impl == "warp" else None)
     hit = _COLLECT_FNS.get(k)
     if hit is None or hit[0] is not sm:  # the model kept beside its id: an id is never reused
         if len(_COLLECT_FNS) >= 8:
             _COLLECT_FNS.clear()
-        hit = _COLLECT_FNS[k] = (sm, jax.jit(jax.vmap(make_collect_fn(sm, n_steps, randomized))))
+        fn = jax.vmap(make_collect_fn(sm, n_steps, randomized, impl, worlds))
+        hit = _COLLECT_FNS[k] = (sm, jax.jit(fn))
     return hit[1]
 
 
 def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, batch: int | None = None,
             randomized: bool = True, progress: Callable[[int], None] | None = None,
-            part: slice = slice(None)) -> Episode:
+            part: slice = slice(None), impl: str = "jax") -> Episode:
     """Collects ``n_episodes`` episodes of ``n_steps`` control steps, ``batch`` worlds at a time.
 
-    Each batch is one jitted, vmapped call, sharded over the local devices. Returns numpy arrays
-    with a leading episode axis. ``progress(n)`` is called after each batch with its size.
+    Each batch is one jitted, vmapped call, split over the local devices. The next batch is
+    dispatched before the last one's records are copied to the host, so the copy overlaps the
+    simulation. Returns numpy arrays with a leading episode axis. ``progress(n)`` is called after
+    each batch with its size.
     ``part``: only these of the ``n_episodes`` (each episode's draws come from its own key, so a
     part is exactly those episodes of the whole; several processes each make one).
+    ``impl``: ``jax`` (MJX's physics) or ``warp`` (MuJoCo Warp's; :mod:`~stride_jax.sim.mjx_warp`).
     """
     keys = jax.random.split(key, n_episodes)[part]
     n_episodes = keys.shape[0]
     batch = min(batch or n_episodes, n_episodes)
-    fn = collect_fn(sm, n_steps, randomized)
+    fn = collect_fn(sm, n_steps, randomized, impl, batch)
     sharding = world_sharding(batch)
-    out = []
+    out, pending = [], None
+
+    def fetch(job):
+        ep, n = job
+        out.append(jax.tree.map(lambda a: np.asarray(a)[:n], jax.device_get(_keys_to_data(ep))))
+        if progress:
+            progress(n)
+
     for start in range(0, n_episodes, batch):
         k = keys[start:start + batch]
         n = k.shape[0]
@@ -199,18 +255,24 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, batch: 
             k = jnp.concatenate([k, jnp.repeat(k[-1:], batch - n, axis=0)])
         if sharding is not None:
             k = jax.device_put(k, sharding)
-        ep = jax.device_get(_keys_to_data(fn(k)))
-        out.append(jax.tree.map(lambda a: np.asarray(a)[:n], ep))
-        if progress:
-            progress(n)
+        job = (fn(k), n)  # dispatched: runs while the previous batch is copied
+        if pending is not None:
+            fetch(pending)
+        pending = job
+    fetch(pending)
     return jax.tree.map(lambda *a: np.concatenate(a), *out)
 
 
-def simulate(sm: SimModel, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray) -> record.Record:
+def simulate(sm: SimModel, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray,
+             impl: str = "jax") -> record.Record:
     """Open-loop rollout of the nominal model from one state under ``ctrl`` ``[T, nu]``."""
     qpos, qvel, ctrl = check_open_loop(sm, qpos, qvel, ctrl)
-    mx = mjx.put_model(sm.mj)
-    layout = record.mjx_contact_layout(sm, mx)
+    _check_impl(impl, 1)
+    if impl == "warp":
+        mx, layout = mjx_warp.put_model(sm.mj), mjx_warp.layout(sm, sm.mj, 1)
+    else:
+        mx = mjx.put_model(sm.mj)
+        layout = record.mjx_contact_layout(sm, mx)
     ctrl = jnp.asarray(ctrl, jnp.float32)
     policy = lambda step, q, qd: ctrl[step]
     fn = jax.jit(lambda q, qd: run_episode(sm, layout, mx, q, qd, ctrl.shape[0], policy,
