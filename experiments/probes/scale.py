@@ -114,12 +114,12 @@ def write(rows: list[dict], out: pathlib.Path, command: str) -> None:
              "| devices | worlds | data sim steps/s | speed-up | on device | speed-up "
              "| batch | train steps/s | examples/s | speed-up |",
              "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    train = "train_steps_per_s" in base
+    train, nan = "train_steps_per_s" in base, float("nan")  # rows from before the device column
     for r in rows:
+        dev = r.get("device_sim_steps_per_s", nan)
         cells = [str(r["devices"]), str(r["worlds"]), f"{r['data_sim_steps_per_s']:,.0f}",
                  f"{r['data_sim_steps_per_s'] / base['data_sim_steps_per_s']:.2f}x",
-                 f"{r.get('device_sim_steps_per_s', float('nan')):,.0f}",
-                 f"{r.get('device_sim_steps_per_s', float('nan')) / base.get('device_sim_steps_per_s', float('nan')):.2f}x"]
+                 f"{dev:,.0f}", f"{dev / base.get('device_sim_steps_per_s', nan):.2f}x"]
         if train:
             cells += [str(r["batch"]), f"{r['train_steps_per_s']:,.1f}",
                       f"{r['train_examples_per_s']:,.0f}",
@@ -128,8 +128,9 @@ def write(rows: list[dict], out: pathlib.Path, command: str) -> None:
             cells += ["-"] * 4
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", f"Data: the worlds of each row x {base['control_steps']} control steps, "
-              f"{base.get('impl', 'jax')} physics, in calls of {base.get('data_batch', base['worlds'])}"
-              f" worlds split over the devices; 'data' includes copying the records to the host, "
+              f"{base.get('impl', 'jax')} physics, in calls of "
+              f"{base.get('data_batch', base['worlds'])} worlds split over the devices; "
+              f"'data' includes copying the records to the host, "
               f"'on device' is one call with nothing copied."]
     if train:
         lines += [f"Training: `{base['model']}` at the paper preset's 256 x 3, the row's batch "

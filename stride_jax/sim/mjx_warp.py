@@ -7,7 +7,7 @@ through JAX's FFI, vmapped over worlds by MJX's custom batching rule.
 Differences that shape the code here:
 
 - Warp allocates its contacts for all worlds at once (``naconmax``), so a collection function is
-  built for one number of worlds (:func:`make_data`), and a world's contacts are found through its
+  built for one number of worlds (:func:`layout`), and a world's contacts are found through its
   constraint rows (``efc.id`` names the contact of each row) rather than through fixed slots.
 - MuJoCo Warp has no separate integrator entry in MJX, so a control period's first step is a full
   ``mjx.step``; its forward-pass quantities (``qacc``, the force split, body poses) are those of
@@ -32,9 +32,9 @@ from mujoco import mjx
 from stride_jax.sim import record
 from stride_jax.sim.model import SimModel
 
-# Contacts per foot geom a world may hold at most (a sphere on a heightfield or a box on a plane
-# makes up to 4); MuJoCo Warp drops contacts beyond
-# ``naconmax`` (summed over worlds) and warns, so the bound is generous.
+# Contacts per foot geom a world may hold at most (a box on a plane makes up to 4); MuJoCo Warp
+# drops contacts beyond ``naconmax`` (summed over worlds) and warns. Measured: 4 per foot (not per
+# foot geom) overflowed on G1, whose 2 feet have 6 geoms.
 CONTACTS_PER_GEOM = 4
 _PYRAMIDAL = int(mujoco.mjtConstraint.mjCNSTR_CONTACT_PYRAMIDAL)
 
@@ -77,7 +77,7 @@ def check_model(m: mujoco.MjModel) -> None:
     if m.nhfield:
         raise ValueError("backend 'warp': rough ground (a heightfield) is not supported, since "
                          "MuJoCo Warp cannot give each world its own heights; use backend 'mjx'")
-    if m.opt.cone != mujoco.mjtCone.mjCONE_PYRAMIDAL and m.ngeom > 1:
+    if m.opt.cone != mujoco.mjtCone.mjCONE_PYRAMIDAL:
         raise ValueError("backend 'warp' records foot forces from pyramidal contacts; "
                          f"this model's cone is {mujoco.mjtCone(m.opt.cone).name}")
 

@@ -74,8 +74,7 @@ def control_step(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, d: m
 
 
 def run_episode(sm: SimModel, layout: record.ContactLayout | mjx_warp.WarpLayout, mx: mjx.Model,
-                qpos: jax.Array,
-                qvel: jax.Array, n_steps: int, policy: Callable, disturb: Callable,
+                qpos: jax.Array, qvel: jax.Array, n_steps: int, policy: Callable, disturb: Callable,
                 ground: Callable | None = None) -> tuple[record.Record, jax.Array]:
     """Rolls one world out for ``n_steps`` control steps under ``policy(step, qpos, qvel)``.
 
@@ -160,7 +159,8 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True, impl: s
             here = {k: getattr(mx, k) for k in randomize.GROUND_FIELDS}
 
             def ground(mx_, q):
-                fr, so = randomize.foot_patches(rand, r, randomize.foot_xy(mx_kin, sm.foot_sites, q))
+                xy = randomize.foot_xy(mx_kin, sm.foot_sites, q)
+                fr, so = randomize.foot_patches(rand, r, xy)
                 new = randomize.apply_ground(here, sm.geom_foot, pair_foot, fr, so)
                 return mx_.replace(**{k: a.astype(here[k].dtype) for k, a in new.items()})
         recs, valid = run_episode(sm, layout, mx, qpos, qvel, n_steps, policy, disturb, ground)
