@@ -89,7 +89,7 @@ def _with_solver(sm: model.SimModel, cfg: BenchConfig) -> model.SimModel:
 
 def measure(cfg: BenchConfig, on_row=None) -> list[dict]:
     """Every (robot, backend, batch) row of ``cfg``; ``on_row(rows)`` after each."""
-    unknown = set(cfg.backends.split(",")) - {"mjx", "warp", "cpu"}
+    unknown = set(cfg.backends.split(",")) - {"cpu", *rollout_mjx.BACKENDS}
     if unknown:
         raise ValueError(f"unknown backends {sorted(unknown)}; use mjx, warp and cpu")
     rows = []
@@ -98,8 +98,8 @@ def measure(cfg: BenchConfig, on_row=None) -> list[dict]:
         for backend in cfg.backends.split(","):
             for batch in (int(b) for b in cfg.batches.split(",")):
                 sim_steps = batch * cfg.steps * sm.n_substeps
-                if backend in ("mjx", "warp"):
-                    impl = "warp" if backend == "warp" else "jax"
+                if backend in rollout_mjx.BACKENDS:
+                    impl = rollout_mjx.BACKENDS[backend]
                     t_phys = median_time(_physics_fn(sm, batch, cfg.steps, impl), cfg.repeats)
                     collect = rollout_mjx.collect_fn(sm, cfg.steps, True, impl, batch)
                     keys = jax.random.split(jax.random.key(1), batch)

@@ -70,7 +70,7 @@ PRESETS = {
 def resolve_backend(backend: str) -> str:
     if backend == "auto":
         return "cpu" if jax.default_backend() == "cpu" else "mjx"
-    if backend not in ("cpu", "mjx", "warp"):
+    if backend != "cpu" and backend not in rollout_mjx.BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; use cpu, mjx, warp or auto")
     return backend
 
@@ -103,12 +103,12 @@ def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Datas
     part = distributed.share(cfg.episodes)  # all of them for a single process
     quiet = not distributed.is_main()
     t0 = time.perf_counter()
-    if backend in ("mjx", "warp"):
+    if backend in rollout_mjx.BACKENDS:
         with tqdm(total=part.stop - part.start, desc=f"{cfg.robot} {backend}", unit="episode",
                   disable=quiet) as bar:
             ep = rollout_mjx.collect(sm, key, cfg.episodes, n_steps, cfg.batch or None,
                                      randomized, bar.update, part,
-                                     impl="warp" if backend == "warp" else "jax")
+                                     impl=rollout_mjx.BACKENDS[backend])
     else:
         with tqdm(total=n_steps, desc=f"{cfg.robot} cpu", unit="step", disable=quiet) as bar:
             ep = rollout_cpu.collect(sm, key, cfg.episodes, n_steps, randomized,

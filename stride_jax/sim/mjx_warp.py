@@ -69,7 +69,6 @@ class WarpLayout(NamedTuple):
 
     template: mjx.Data  # one world's data, allocated for ``worlds`` worlds' contacts
     geom_foot: np.ndarray  # [ngeom] foot index of each geom, or -1
-    worlds: int
 
 
 def check_model(m: mujoco.MjModel) -> None:
@@ -101,7 +100,7 @@ def layout(sm: SimModel, m: mujoco.MjModel, worlds: int) -> WarpLayout:
     per_world = CONTACTS_PER_GEOM * foot_geoms if foot_geoms else max(4, m.ngeom)
     njmax = 2 * m.nv + 8 * per_world  # joint limits and friction, plus 4 pyramid rows per contact
     template = mjx.make_data(m, impl="warp", naconmax=worlds * per_world, njmax=njmax)
-    return WarpLayout(template, np.asarray(sm.geom_foot), worlds)
+    return WarpLayout(template, np.asarray(sm.geom_foot))
 
 
 def foot_force(sm: SimModel, lay: WarpLayout, d: mjx.Data) -> jax.Array:

@@ -95,9 +95,8 @@ def run_episode(sm: SimModel, layout: record.ContactLayout | mjx_warp.WarpLayout
         ctrl = policy(step, d.qpos, d.qvel)
         mx_t = mx if ground is None else ground(mx, d.qpos)
         dist = disturb(d.time, d.qpos)
-        if warp:
-            with jax.default_matmul_precision(PRECISION):
-                d, rec = mjx_warp.control_step(sm, layout, mx_t, d, ctrl, dist.push, dist.qfrc)
+        if warp:  # Warp's kernels compute in float32 whatever XLA's matmul precision
+            d, rec = mjx_warp.control_step(sm, layout, mx_t, d, ctrl, dist.push, dist.qfrc)
         else:
             d, rec = control_step(sm, layout, mx_t, d, ctrl, dist)
         return (d, alive), (rec, alive)
@@ -107,6 +106,7 @@ def run_episode(sm: SimModel, layout: record.ContactLayout | mjx_warp.WarpLayout
 
 
 IMPLS = ("jax", "warp")
+BACKENDS = {"mjx": "jax", "warp": "warp"}  # data backend name -> MJX implementation
 
 
 def _check_impl(impl: str, worlds: int | None) -> None:
@@ -132,13 +132,14 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True, impl: s
     if rough:  # the heightfield in place of the floor; its heights are set per world below
         sm = terrain.rough_model(sm, r)
     mj = randomize.ground_ready(sm.mj, sm.geom_foot) if patches else sm.mj
-    mx_kin = mjx.put_model(mj)  # MJX's own kinematics: both impls look up the same patches
     if impl == "warp":
         mx0 = mjx_warp.put_model(mj)
         layout = mjx_warp.layout(sm, mj, worlds)
     else:
-        mx0 = mx_kin
+        mx0 = mjx.put_model(mj)
         layout = record.mjx_contact_layout(sm, mx0)
+    # MJX's own kinematics find the patches under the feet, so both impls look up the same ones
+    mx_kin = (mx0 if impl == "jax" else mjx.put_model(mj)) if patches else None
     fields = randomize.nominal_fields(mj)
     pair_foot = randomize.pair_feet(mj, sm.geom_foot)
     episode_s = n_steps * robot.ctrl_dt
