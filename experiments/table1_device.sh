@@ -4,7 +4,7 @@
 # NAME_driver.log as it goes, then NAME.tar.xz with the table (md, json), every run's
 # metrics.csv / train.log / summary.json / eval.log and the seed-0 checkpoints, where NAME is
 # ROBOT or ROBOT_DATA. Usage (repository root, on the GPU machine, with .whl and .menagerie
-# carried):
+# carried: the cp312 wheels, or .whl/site.tar.xz, them installed into a folder and packed):
 #   [DATA=walk] bash experiments/table1_device.sh OUT ROBOT STEPS TRAIN_MINUTES [ABLATION [EXTRA...]]
 # DATA picks experiments/table1.py's --data (explore: default); two calls with different DATA
 # may run side by side (they share the compilation cache). LIMIT_S stops the driver after that
@@ -17,8 +17,12 @@ name=$robot; [ "$data" = explore ] || name=${robot}_$data
 (
   flock 9
   if [ ! -f /tmp/site/.done ]; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-      --target /tmp/site .whl/*.whl && touch /tmp/site/.done
+    if [ -f .whl/site.tar.xz ]; then  # the wheels installed and packed here (one carried file)
+      mkdir -p /tmp/site && tar -C /tmp/site -xJf .whl/site.tar.xz && touch /tmp/site/.done
+    else
+      python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target /tmp/site .whl/*.whl && touch /tmp/site/.done
+    fi
   fi
   [ -d .menagerie/menagerie ] || tar -C .menagerie -xJf .menagerie/menagerie.tar.xz
 ) 9>/tmp/table1_setup.lock
