@@ -302,6 +302,17 @@ def further_section(tables: dict[str, dict], rel) -> list[str]:
                 rows.append([m if den == "delan" else f"{m} / {den}", label,
                              _ratio_text(r, None, "DeLaN"), v])
         lines += _table(["model", "metric", "/ DeLaN", "target / direction"], rows)
+        if {"stride", "delan"} <= set(models):
+            # what a perfect residual on STRIDE's prior would give: the force it implies with the
+            # true acceleration, against DeLaN's per-sample force error
+            fl = seed_ratio(_per_seed(t, "stride", lambda r: _dig(r, "force", "of_prior")),
+                            _per_seed(t, "delan", _force))
+            if fl["stats"] is not None:
+                reach = "below" if fl["stats"]["mean"] <= TARGET_FORCE else "above"
+                lines += ["", "A perfect residual on STRIDE's prior (its inverse dynamics with the "
+                          "true acceleration) would have a force error of "
+                          f"{_ratio_text(fl, TARGET_FORCE, 'DeLaN')} of DeLaN's per-sample one: "
+                          f"{reach} the {TARGET_FORCE} target."]
         if "delan_prior" in models:
             div = _model_mean(t, "delan_prior", lambda r: _dig(r, "state", "diverged"))
             prior_force = _model_mean(t, "delan_prior", lambda r: _dig(r, "force", "of_prior"))
