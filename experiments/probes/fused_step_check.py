@@ -1,7 +1,7 @@
 """The whole-step kernel (``stride_jax/dynamics/fused_step.py``) against XLA on this machine's
 default device: agreement of one model step over a batch of states (the step's acceleration),
 and the time of one vmapped step and of a vmapped 30-step rollout for each kernel choice. Go1
-STRIDE, one network for L and V:
+(or ``--robot g1``) STRIDE, one network for L and V:
 
     python experiments/probes/fused_step_check.py [--run results/mppi_latency/planning_shared/stride-h64-shared]
         [--samples 1024] [--kernels xla,pallas-bf16,pallas-step,pallas-step-bf16]
@@ -30,7 +30,8 @@ from stride_jax.train.setup import model_config
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--run", default="", help="a Go1 STRIDE run with shared_lnn (else: init)")
+    p.add_argument("--run", default="", help="a STRIDE run with shared_lnn (else: init)")
+    p.add_argument("--robot", default="go1", help="go1 or g1 (the model at initialisation)")
     p.add_argument("--hidden", type=int, default=64)
     p.add_argument("--samples", type=int, default=1024)
     p.add_argument("--horizon", type=int, default=30)
@@ -42,10 +43,14 @@ def main():
                    "the others (fused_step.SKIP: products, flow, solve; wrong results)")
     p.add_argument("--unroll", default="", help="the step kernel's loops to unroll "
                    "(fused_step.UNROLL: products, gram, factor, backward)")
+    p.add_argument("--warps", type=int, default=0,
+                   help="warps per program of the step kernel (0: fused_step.WARPS)")
     a = p.parse_args()
+    if a.warps:
+        fused_step.WARPS = a.warps
     fused_step.UNROLL = frozenset(x for x in a.unroll.split(",") if x)
     fused_step.SKIP = frozenset(x for x in a.skip.split(",") if x)
-    sm, meta, spec, act = bench._robot("go1")
+    sm, meta, spec, act = bench._robot(a.robot)
     if a.run:
         params = dynamics.load(a.run)[1]
         model_of = lambda kernel: dynamics.load(a.run, kernel=kernel)[0]
@@ -66,10 +71,11 @@ def main():
     q = np.tile(q0, (K, 1)) + 0.05 * rng.standard_normal((K, q0.size)).astype(np.float32)
     q[:, 3:7] /= np.linalg.norm(q[:, 3:7], axis=1, keepdims=True)
     qd = (0.5 * rng.standard_normal((K, spec.nv))).astype(np.float32)
-    ctrl = q[:, 7:] + 0.1 * rng.standard_normal((K, 12)).astype(np.float32)
+    nu = q0.size - 7  # every joint actuated (Go1, G1)
+    ctrl = q[:, 7:] + 0.1 * rng.standard_normal((K, nu)).astype(np.float32)
     keys = jax.random.split(jax.random.key(1), K)
     ctrls = jnp.asarray(np.tile(ctrl[:, None], (1, H, 1)))
-    print(f"{jax.devices()[0].device_kind}: Go1 STRIDE, K={K}, H={H}", flush=True)
+    print(f"{jax.devices()[0].device_kind}: {a.robot} STRIDE, K={K}, H={H}", flush=True)
     ref = None
     for kernel in a.kernels.split(","):
         model = model_of(kernel)
