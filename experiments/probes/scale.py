@@ -19,6 +19,13 @@ sees the first ``d`` of them (``CUDA_VISIBLE_DEVICES``), on a CPU ``d`` forced h
   and last validation (compilation excluded). ``--per-device-batch`` keeps each device's share
   fixed, of the minibatch and of the data probe's worlds (weak scaling); otherwise the global
   batch and worlds are fixed (strong scaling).
+
+``--processes`` (data only): a device count ``d`` runs ``d`` processes side by side, each seeing
+one device and collecting its own share of the worlds (``--worlds`` each) with its own copy to
+the host, as several ``stride_jax.distributed`` processes of one host do before process 0
+gathers their shares (the gather and the write are not timed). The processes start each timed
+call together (a file barrier); a row's rate is all their steps over the span from the first
+start to the last end.
 """
 
 from __future__ import annotations
@@ -48,31 +55,51 @@ def child(args) -> None:
 
     n = len(jax.local_devices())
     assert n == args.d, f"asked for {args.d} devices, JAX sees {n}"
+    procs = args.procs or 1
+    barrier_no = iter(range(1 << 30))
+
+    def barrier():  # every process of a --processes row waits for the others here
+        if procs == 1:
+            return
+        k = next(barrier_no)
+        d = pathlib.Path(args.barrier)
+        (d / f"{k}.{args.rank}").touch()
+        while len(list(d.glob(f"{k}.*"))) < procs:
+            time.sleep(0.005)
+
+    spans, dev_spans = [], []
     sm = model.load(args.robot)
     n_steps = max(1, int(round(args.seconds / sm.robot.ctrl_dt)))
     worlds = args.worlds * (n if args.per_device_batch else 1)  # weak scaling: a share per device
     batch = worlds // args.data_batches
     times = []
     for _ in range(2):  # the first call compiles
-        t = time.perf_counter()
-        ep = rollout_mjx.collect(sm, jax.random.key(0), worlds, n_steps, batch, impl=args.impl)
+        barrier()
+        t, t_wall = time.perf_counter(), time.time()
+        ep = rollout_mjx.collect(sm, jax.random.key(args.rank), worlds, n_steps, batch,
+                                 impl=args.impl)
         jax.block_until_ready(ep.records.q)
         times.append(time.perf_counter() - t)
+        spans.append((t_wall, time.time()))
     fn = rollout_mjx.collect_fn(sm, n_steps, True, args.impl, batch)
     keys = jax.random.split(jax.random.key(0), batch)
     if (sharding := rollout_mjx.world_sharding(batch)) is not None:
         keys = jax.device_put(keys, sharding)
     dev = []
     for _ in range(3):
-        t = time.perf_counter()
+        barrier()
+        t, t_wall = time.perf_counter(), time.time()
         jax.block_until_ready(fn(keys))
         dev.append(time.perf_counter() - t)
+        dev_spans.append((t_wall, time.time()))
     sim_steps = worlds * n_steps * sm.n_substeps
     row = dict(devices=n, platform=jax.default_backend(), device_kind=jax.devices()[0].device_kind,
                robot=args.robot, impl=args.impl, worlds=worlds, data_batch=batch,
                control_steps=n_steps, data_seconds=times[1],
                data_sim_steps_per_s=sim_steps / times[1],
-               device_sim_steps_per_s=batch * n_steps * sm.n_substeps / min(dev[1:]))
+               device_sim_steps_per_s=batch * n_steps * sm.n_substeps / min(dev[1:]),
+               data_span=spans[1], device_spans=dev_spans[1:],
+               device_sim_steps=batch * n_steps * sm.n_substeps)
     if args.no_train:
         pathlib.Path(args.result).write_text(json.dumps(row))
         print(json.dumps(row), flush=True)
@@ -93,14 +120,31 @@ def child(args) -> None:
     print(json.dumps(row), flush=True)
 
 
-def _env(platform: str, d: int) -> dict:
+def merge_processes(parts: list[dict]) -> dict:
+    """One row from the rows of processes that ran side by side: all their simulator steps over
+    the span from the first start to the last end (data: the timed call; on device: the best of
+    the repetitions, each started together)."""
+    row = dict(parts[0], devices=len(parts), processes=len(parts),
+               worlds=sum(p["worlds"] for p in parts))
+    steps = sum(p["data_sim_steps_per_s"] * p["data_seconds"] for p in parts)
+    span = max(p["data_span"][1] for p in parts) - min(p["data_span"][0] for p in parts)
+    row.update(data_seconds=span, data_sim_steps_per_s=steps / span)
+    dev_steps = sum(p["device_sim_steps"] for p in parts)
+    reps = zip(*(p["device_spans"] for p in parts))
+    row["device_sim_steps_per_s"] = max(
+        dev_steps / (max(e for _, e in rep) - min(s for s, _ in rep)) for rep in reps)
+    row["per_process_data_sim_steps_per_s"] = [p["data_sim_steps_per_s"] for p in parts]
+    return row
+
+
+def _env(platform: str, d: int, first: int = 0) -> dict:
     env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
     if platform == "cpu":
         env["JAX_PLATFORMS"] = "cpu"
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") +
                             f" --xla_force_host_platform_device_count={d}").strip()
     else:
-        env["CUDA_VISIBLE_DEVICES"] = ",".join(str(i) for i in range(d))
+        env["CUDA_VISIBLE_DEVICES"] = ",".join(str(i) for i in range(first, first + d))
     return env
 
 
@@ -132,6 +176,10 @@ def write(rows: list[dict], out: pathlib.Path, command: str) -> None:
               f"{base.get('data_batch', base['worlds'])} worlds split over the devices; "
               f"'data' includes copying the records to the host, "
               f"'on device' is one call with nothing copied."]
+    if base.get("processes"):
+        lines += ["One process per device, side by side, each collecting and copying its own "
+                  "share (`--processes`): a row's rate is all their steps over the span from "
+                  "the first start to the last end."]
     if train:
         lines += [f"Training: `{base['model']}` at the paper preset's 256 x 3, the row's batch "
                   f"split over the devices, {base['train_steps_timed']} timed steps."]
@@ -156,16 +204,23 @@ def main(argv=None) -> None:
     p.add_argument("--impl", default="jax", choices=("jax", "warp"), help="the data's physics")
     p.add_argument("--data-batches", type=int, default=1, help="calls the worlds are split into")
     p.add_argument("--no-train", action="store_true", help="data only")
+    p.add_argument("--processes", action="store_true",
+                   help="data only: one process per device, side by side (module docstring)")
     p.add_argument("--out", default="results/scale")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--d", type=int, default=1, help=argparse.SUPPRESS)
     p.add_argument("--result", default="", help=argparse.SUPPRESS)
+    p.add_argument("--procs", type=int, default=0, help=argparse.SUPPRESS)
+    p.add_argument("--rank", type=int, default=0, help=argparse.SUPPRESS)
+    p.add_argument("--barrier", default="", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.child:
         return child(args)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     counts = [int(d) for d in args.devices.split(",")]
+    if args.processes:
+        args.no_train = True
     data = args.data
     if not data and not args.no_train:
         data = str(out / f"data_{args.robot}")
@@ -182,9 +237,20 @@ def main(argv=None) -> None:
                "--train-steps", str(args.train_steps), "--batch", str(args.batch),
                "--impl", args.impl, "--data-batches", str(args.data_batches)]
         cmd += ["--per-device-batch"] * args.per_device_batch + ["--no-train"] * args.no_train
-        print(f"--- {d} device(s)", flush=True)
-        subprocess.run(cmd, env=_env(args.platform, d), check=True)
-        rows.append(json.loads(result.read_text()))
+        print(f"--- {d} device(s)" + " in as many processes" * args.processes, flush=True)
+        if not args.processes:
+            subprocess.run(cmd, env=_env(args.platform, d), check=True)
+            rows.append(json.loads(result.read_text()))
+        else:
+            with tempfile.TemporaryDirectory() as barrier:
+                res = [out / f"devices_{d}_rank_{i}.json" for i in range(d)]
+                jobs = [subprocess.Popen(cmd[:4] + ["1", "--result", str(res[i])] + cmd[7:]
+                                         + ["--procs", str(d), "--rank", str(i),
+                                            "--barrier", barrier],
+                                         env=_env(args.platform, 1, i)) for i in range(d)]
+                if any(j.wait() for j in jobs):
+                    raise SystemExit(f"a process of the {d}-device row failed")
+            rows.append(merge_processes([json.loads(r.read_text()) for r in res]))
         write(rows, out, "python experiments/probes/scale.py " + " ".join(argv or sys.argv[1:]))
     print((out / "scale.md").read_text())
 
