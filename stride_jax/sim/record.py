@@ -13,8 +13,10 @@ simulation step integrates.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
@@ -73,11 +75,18 @@ def uneven(m) -> bool:
     return m.nhfield > 0
 
 
-def mjx_contact_layout(sm: SimModel, mx) -> ContactLayout:
-    """Reads the static contact layout of an ``mjx.Model`` (outside any trace)."""
+@functools.cache
+def _jitted_forward():
     from mujoco import mjx
 
-    con = mjx.forward(mx, mjx.make_data(mx))._impl.contact
+    return jax.jit(lambda mx: mjx.forward(mx, mjx.make_data(mx))._impl.contact)
+
+
+def mjx_contact_layout(sm: SimModel, mx) -> ContactLayout:
+    """Reads the static contact layout of an ``mjx.Model`` (outside any trace). The forward pass
+    that lays the contacts out is compiled, not run op by op: eagerly, G1's on rough ground took
+    78 s on a 2-core CPU against 16 s to compile it."""
+    con = _jitted_forward()(mx)
     dim = np.asarray(con.dim)
     geom = np.asarray(con.geom)
     sign = np.where(sm.geom_foot[geom[:, 1]] >= 0, 1.0, -1.0) if uneven(mx) else None
