@@ -3,8 +3,9 @@
 # "ROBOT HIDDEN KERNEL" configuration, two launches of the kernel (K = SAMPLES rows) profiled with
 # the sections that place it against the device's compute and memory ceilings (speed of light,
 # compute and memory workload, occupancy, launch statistics, warp stalls). One CSV per
-# configuration in OUT (ncu's own log lines among its rows), the probe's output in ncu_step.err. Usage (repository root, on a GPU machine whose runtime lets ncu read the
-# counters; the clocks are left alone):
+# configuration in OUT (ncu's own log lines among its rows), the probe's output in ncu_step.err.
+# Usage (repository root, on a GPU machine whose runtime lets ncu read the counters; the clocks
+# are left alone):
 #   bash experiments/probes/ncu_step.sh OUT [SAMPLES] ["go1 256 pallas-step;g1 64 pallas-step-bf16;..."]
 set -uo pipefail
 out=$1; samples=${2:-1024}

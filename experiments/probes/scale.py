@@ -231,23 +231,23 @@ def main(argv=None) -> None:
     rows = []
     for d in counts:
         result = out / f"devices_{d}.json"
-        cmd = [sys.executable, __file__, "--child", "--d", str(d), "--result", str(result),
-               "--robot", args.robot, "--model", args.model, "--worlds", str(args.worlds),
-               "--seconds", str(args.seconds), "--data", data,
-               "--train-steps", str(args.train_steps), "--batch", str(args.batch),
-               "--impl", args.impl, "--data-batches", str(args.data_batches)]
-        cmd += ["--per-device-batch"] * args.per_device_batch + ["--no-train"] * args.no_train
+        opts = ["--robot", args.robot, "--model", args.model, "--worlds", str(args.worlds),
+                "--seconds", str(args.seconds), "--data", data,
+                "--train-steps", str(args.train_steps), "--batch", str(args.batch),
+                "--impl", args.impl, "--data-batches", str(args.data_batches)]
+        opts += ["--per-device-batch"] * args.per_device_batch + ["--no-train"] * args.no_train
+        child_cmd = lambda devices, res: [sys.executable, __file__, "--child", "--d",
+                                          str(devices), "--result", str(res), *opts]
         print(f"--- {d} device(s)" + " in as many processes" * args.processes, flush=True)
         if not args.processes:
-            subprocess.run(cmd, env=_env(args.platform, d), check=True)
+            subprocess.run(child_cmd(d, result), env=_env(args.platform, d), check=True)
             rows.append(json.loads(result.read_text()))
         else:
             with tempfile.TemporaryDirectory() as barrier:
                 res = [out / f"devices_{d}_rank_{i}.json" for i in range(d)]
-                jobs = [subprocess.Popen(cmd[:4] + ["1", "--result", str(res[i])] + cmd[7:]
-                                         + ["--procs", str(d), "--rank", str(i),
-                                            "--barrier", barrier],
-                                         env=_env(args.platform, 1, i)) for i in range(d)]
+                jobs = [subprocess.Popen(child_cmd(1, res[i]) + [
+                    "--procs", str(d), "--rank", str(i), "--barrier", barrier],
+                    env=_env(args.platform, 1, i)) for i in range(d)]
                 if any(j.wait() for j in jobs):
                     raise SystemExit(f"a process of the {d}-device row failed")
             rows.append(merge_processes([json.loads(r.read_text()) for r in res]))

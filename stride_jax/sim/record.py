@@ -85,7 +85,7 @@ def _jitted_forward():
 def mjx_contact_layout(sm: SimModel, mx) -> ContactLayout:
     """Reads the static contact layout of an ``mjx.Model`` (outside any trace). The forward pass
     that lays the contacts out is compiled, not run op by op: eagerly, G1's on rough ground took
-    78 s on a 2-core CPU against 16 s to compile it."""
+    78 s on a 2-core CPU, compiled 7 s."""
     con = _jitted_forward()(mx)
     dim = np.asarray(con.dim)
     geom = np.asarray(con.geom)
