@@ -6,7 +6,11 @@ their measured durations (``tests/durations.json``, rewritten with ``--record``;
 counts as the median). Each process's output is streamed with its number in front; the exit
 status is non-zero when any process fails.
 
-    python tests/run_parallel.py [--workers N] [--record] [-- PYTEST_ARGS...]
+    python tests/run_parallel.py [--workers N] [--record] [-- PYTEST_ARGS... [tests/test_X.py ...]]
+
+Test files among the pytest arguments are the ones run; without any, every ``tests/test_*.py``.
+The workers share one JAX compilation cache for the run (a temporary folder, unless
+``JAX_COMPILATION_CACHE_DIR`` is set).
 """
 
 from __future__ import annotations
@@ -68,10 +72,18 @@ def main(argv: list[str] | None = None) -> int:
     if a.workers < 1:
         p.error(f"--workers must be >= 1, got {a.workers}")
     root = TESTS.parent
-    files = sorted(str(f.relative_to(root)) for f in TESTS.glob("test_*.py"))
+    # test files named after "--" are the ones run (split over the workers); else every file
+    named = [x for x in extra if x.endswith(".py") and (root / x).is_file()]
+    extra = [x for x in extra if x not in named]
+    files = sorted(named) or sorted(str(f.relative_to(root)) for f in TESTS.glob("test_*.py"))
     durations = json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
     groups = plan(files, durations, a.workers)
     with tempfile.TemporaryDirectory() as tmp:
+        # one JAX compilation cache for the run, shared by the workers: tests compile many of the
+        # same programs (14% less time on five of the files, measured on 2 cores)
+        env = dict(os.environ)
+        env.setdefault("JAX_COMPILATION_CACHE_DIR", str(pathlib.Path(tmp) / "jax_cache"))
+        env.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.3")
         procs, threads = [], []
         for i, group in enumerate(groups, 1):
             junit = pathlib.Path(tmp) / f"worker{i}.xml"
@@ -79,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"[{i}] {len(group)} files: {' '.join(pathlib.Path(f).stem for f in group)}",
                   flush=True)
             proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.PIPE,
-                                    stderr=subprocess.STDOUT, text=True)
+                                    stderr=subprocess.STDOUT, text=True, env=env)
             thread = threading.Thread(target=_stream, args=(i, proc))
             thread.start()
             procs.append((proc, junit))
