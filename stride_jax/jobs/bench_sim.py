@@ -91,7 +91,8 @@ def measure(cfg: BenchConfig, on_row=None) -> list[dict]:
     """Every (robot, backend, batch) row of ``cfg``; ``on_row(rows)`` after each."""
     unknown = set(cfg.backends.split(",")) - {"cpu", *rollout_mjx.BACKENDS}
     if unknown:
-        raise ValueError(f"unknown backends {sorted(unknown)}; use mjx, warp and cpu")
+        raise ValueError(f"unknown backends {sorted(unknown)}; use "
+                         f"{', '.join(rollout_mjx.BACKENDS)} and cpu")
     rows = []
     for name in cfg.robots.split(","):
         sm = _with_solver(model.load(name), cfg)

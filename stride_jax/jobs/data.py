@@ -71,7 +71,8 @@ def resolve_backend(backend: str) -> str:
     if backend == "auto":
         return "cpu" if jax.default_backend() == "cpu" else "mjx"
     if backend != "cpu" and backend not in rollout_mjx.BACKENDS:
-        raise ValueError(f"unknown backend {backend!r}; use cpu, mjx, warp or auto")
+        raise ValueError(f"unknown backend {backend!r}; use cpu, "
+                         f"{', '.join(rollout_mjx.BACKENDS)} or auto")
     return backend
 
 
