@@ -96,6 +96,34 @@ def test_eval_writes_the_table(runs, tmp_path):
     assert "energy score" in md
 
 
+def test_merge_replaces_one_models_rows(runs, tmp_path):
+    """A model re-evaluated later (e.g. retrained to the full step count) replaces its rows in
+    the earlier table; tables of other settings or datasets are refused."""
+    if len(list(runs.iterdir())) < 3:
+        pytest.skip("needs the runs trained above")
+    from stride_jax.jobs import eval as eval_job
+    cli.main(["eval", "--runs", f"{runs}/*", "--preset", "tiny", "--out", str(tmp_path / "a")])
+    base = json.loads((tmp_path / "a" / "table.json").read_text())
+    update = dict(base, command="later", runs=[dict(r) for r in base["runs"] if r["model"] == "onn"])
+    update["runs"][0]["state"] = dict(update["runs"][0]["state"], mean=123.0)
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "table.json").write_text(json.dumps(update))
+    eval_job.merge(tmp_path / "a" / "table.json", tmp_path / "b" / "table.json", tmp_path / "m")
+    merged = json.loads((tmp_path / "m" / "table.json").read_text())
+    assert merged["table"]["onn"]["state"]["mean"] == 123.0
+    assert merged["table"]["stride"] == base["table"]["stride"]
+    assert "later" in merged["command"] and "| onn |" in (tmp_path / "m" / "table.md").read_text()
+    other = dict(update, config=dict(update["config"], horizon=7))
+    (tmp_path / "b" / "table.json").write_text(json.dumps(other))
+    with pytest.raises(ValueError, match="different settings.*horizon"):
+        eval_job.merge(tmp_path / "a" / "table.json", tmp_path / "b" / "table.json", tmp_path / "m")
+    moved = dict(update, run_configs={k: dict(v, dataset_sha256="0" * 64)
+                                      for k, v in update["run_configs"].items()})
+    (tmp_path / "b" / "table.json").write_text(json.dumps(moved))
+    with pytest.raises(ValueError, match="different datasets"):
+        eval_job.merge(tmp_path / "a" / "table.json", tmp_path / "b" / "table.json", tmp_path / "m")
+
+
 def test_eval_latents_and_the_divergence_bound(runs, tmp_path):
     """``--latents rollout`` labels the stochastic rows (their own cache file beside
     ``eval.json``); a rollout beyond ``--diverged-above`` counts as diverged (here all)."""

@@ -405,3 +405,44 @@ def run(cfg: EvalConfig, command: str = "stride eval", log=print) -> pathlib.Pat
     atomic_write_text(out / "table.md", markdown(table, robot, command, cfg))
     log(f"wrote {out / 'table.md'} and table.json ({len(runs)} runs)")
     return out
+
+
+def merge(base: str | pathlib.Path, update: str | pathlib.Path, out: str | pathlib.Path,
+          log=print) -> pathlib.Path:
+    """One table from two ``table.json`` files of the same robot and dataset: every model that
+    ``update`` evaluated replaces that model's rows in ``base`` (e.g. one model retrained to the
+    full step count in a later GPU call), the rest stay. Refuses tables made with different
+    evaluation settings, robots or datasets (their numbers would not be comparable)."""
+    a, b = (json.loads(pathlib.Path(p).read_text()) for p in (base, update))
+    ignore = ("runs", "out", "label")
+    ca, cb = ({k: v for k, v in t["config"].items() if k not in ignore} for t in (a, b))
+    if ca != cb:
+        diff = sorted(k for k in set(ca) | set(cb) if ca.get(k) != cb.get(k))
+        raise ValueError(f"{base} and {update} were evaluated with different settings: {diff}")
+    robots = {r["robot"] for r in a["runs"] + b["runs"]}
+    if len(robots) != 1:
+        raise ValueError(f"{base} and {update} mix robots {sorted(robots)}")
+    digests = {c.get("dataset_sha256") for t in (a, b) for c in t["run_configs"].values()}
+    if len(digests) != 1:
+        raise ValueError(f"{base} and {update} were trained on different datasets "
+                         f"(sha256 {sorted(str(d)[:12] for d in digests)})")
+    replaced = {r["model"] for r in b["runs"]}
+    runs = [r for r in a["runs"] if r["model"] not in replaced] + b["runs"]
+    configs = {k: v for k, v in a["run_configs"].items()
+               if not any(r["run"] == k for r in a["runs"] if r["model"] in replaced)}
+    configs.update(b["run_configs"])
+    table = aggregate(runs)
+    command = (f"{a['command']}; then {', '.join(sorted(replaced))} from: {b['command']}; "
+               f"merged by stride_jax.jobs.eval.merge")
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "table.json", json.dumps(
+        {"command": command, "config": a["config"], "table": table, "ratios": _ratios(table),
+         "runs": runs, "run_configs": configs, "backend": a["backend"],
+         "code": sorted({a["code"], b["code"]}), "merged_from": [a["command"], b["command"]],
+         "seconds": a["seconds"] + b["seconds"]}, indent=1))
+    cfg = EvalConfig(**{k: v for k, v in a["config"].items()
+                        if k in {f.name for f in dataclasses.fields(EvalConfig)}})
+    atomic_write_text(out / "table.md", markdown(table, robots.pop(), command, cfg))
+    log(f"wrote {out / 'table.md'} and table.json: {sorted(replaced)} from {update}")
+    return out
