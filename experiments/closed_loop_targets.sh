@@ -3,7 +3,8 @@
 # it: measured 2-3x slower per control step each, results/closed_loop_go1_gpu/README.md).
 #   bash experiments/closed_loop_targets.sh ROBOT OUT LIMIT_S MODELS SCENARIOS [more flags]
 # e.g. bash experiments/closed_loop_targets.sh g1 /tmp/g1 540 policy,stride,delan,onn slope,soft
-# MODELS: policy, oracle, NAME=RUN, or names of results/models/ROBOT/<name>-s0. Rows are written as they
+# MODELS: policy, oracle, NAME=RUN, or names of results/models/ROBOT/<name>-s0 (MODELS_DIR=g1_walk:
+# of results/models/g1_walk/, the models trained on walking data). Rows are written as they
 # finish and the driver skips the pairs already in OUT/closed_loop.json (re-run to resume); the
 # whole folder ends as OUT.tgz (the device returns few files).
 set -u
@@ -13,7 +14,7 @@ models=""
 for n in ${names//,/ }; do
   case $n in
     policy|oracle|nominal|*=*) models+="$n,";;
-    *) models+="$n=results/models/$robot/$n-s0,";;
+    *) models+="$n=results/models/${MODELS_DIR:-$robot}/$n-s0,";;
   esac
 done
 common=(--preset gpu --robot "$robot" --policy "results/policies/ppo_$robot"
