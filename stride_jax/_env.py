@@ -23,12 +23,20 @@ import warnings
 # when they set none.
 CPU_SAFE_XLA_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false "
                       "--xla_cpu_multi_thread_eigen=false")
+# On a GPU, XLA's scatter-adds (MJX assembles its constraints with them) and its autotuned kernel
+# choices vary from run to run, so a dataset simulated twice from one seed came out different
+# (Table I's G1 and Go1 walking data, regenerated on the same kind of H200: other sha256). The
+# data job asks for deterministic ops (``STRIDE_DETERMINISTIC=0`` opts out).
+GPU_DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 
 
-def set_xla_flags() -> None:
+def set_xla_flags(deterministic: bool = False) -> None:
     """Sets ``XLA_FLAGS`` to :data:`CPU_SAFE_XLA_FLAGS` unless the process (user) set any, and
     splits the CPU into ``STRIDE_HOST_DEVICES`` XLA host devices where that is set. Idempotent;
     child processes inherit the setting. Warns if JAX's backend already started (too late).
+
+    ``deterministic``: also :data:`GPU_DETERMINISTIC_FLAG` (run-to-run identical results on a
+    GPU; no effect on a CPU), unless the flags name it already or ``STRIDE_DETERMINISTIC=0``.
 
     ``STRIDE_HOST_DEVICES=N`` (or ``auto``: one per core) splits the CPU into N XLA host
     devices, over which the MPPI planner shards its samples (``control.mppi.sample_sharding``):
@@ -48,6 +56,9 @@ def set_xla_flags() -> None:
             raise ValueError(f"STRIDE_HOST_DEVICES must be a positive integer or 'auto', got "
                              f"{host_devices!r}")
         os.environ["XLA_FLAGS"] += f" --xla_force_host_platform_device_count={n}"
+    if (deterministic and os.environ.get("STRIDE_DETERMINISTIC", "1") != "0"
+            and "xla_gpu_deterministic_ops" not in os.environ["XLA_FLAGS"]):
+        os.environ["XLA_FLAGS"] += " " + GPU_DETERMINISTIC_FLAG
     if os.environ["XLA_FLAGS"] != before and _backend_started():
         warnings.warn("stride_jax.set_xla_flags() ran after JAX's backend started: XLA_FLAGS "
                       "take effect in child processes only; call it before the first JAX "

@@ -50,8 +50,9 @@ def _commands():
 
 
 def main(argv: list[str] | None = None) -> None:
-    stride_jax.set_xla_flags()  # before JAX starts: small CPUs deadlock without
     args_in = sys.argv[1:] if argv is None else argv
+    # before JAX starts: small CPUs deadlock without; datasets are simulated deterministically
+    stride_jax.set_xla_flags(deterministic=bool(args_in) and args_in[0] == "data")
     if args_in and args_in[0] == "gap":  # the gap tool has its own subcommands (stride_jax.jobs.gap)
         from stride_jax.jobs import gap
         return gap.main(list(args_in[1:]))

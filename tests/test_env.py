@@ -70,3 +70,22 @@ def test_importing_any_module_leaves_jax_unstarted():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=300, env={**os.environ, "JAX_PLATFORMS": "cpu"})
     assert out.returncode == 0, out.stderr[-2000:]
+
+
+def test_the_data_job_asks_for_deterministic_gpu_ops():
+    """``stride data`` adds XLA's deterministic-ops flag (a GPU simulated the same seed twice into
+    different datasets without it); other commands, a user's own flag and the opt-out do not."""
+    probe = ("import os, sys; from stride_jax import cli; sys.argv = ['stride'] + sys.argv[1:]\n"
+             "try:\n    cli.main()\nexcept SystemExit:\n    pass\n"
+             "print(os.environ['XLA_FLAGS'])")
+    flags = lambda *argv, **env: subprocess.run(
+        [sys.executable, "-c", probe, *argv], capture_output=True, text=True,
+        env={k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS",
+                                                             "STRIDE_DETERMINISTIC")} | env
+    ).stdout.splitlines()[-1]
+    assert "--xla_gpu_deterministic_ops=true" in flags("data", "--help")
+    assert "multi_thread_eigen=false" in flags("data", "--help")  # the CPU guards stay
+    assert "deterministic" not in flags("train", "--help")
+    assert "deterministic" not in flags("data", "--help", STRIDE_DETERMINISTIC="0")
+    user = flags("data", "--help", XLA_FLAGS="--xla_gpu_deterministic_ops=false")
+    assert user.strip() == "--xla_gpu_deterministic_ops=false"
