@@ -122,6 +122,11 @@ def test_merge_replaces_one_models_rows(runs, tmp_path):
     (tmp_path / "b" / "table.json").write_text(json.dumps(moved))
     with pytest.raises(ValueError, match="different datasets"):
         eval_job.merge(tmp_path / "a" / "table.json", tmp_path / "b" / "table.json", tmp_path / "m")
+    eval_job.merge(tmp_path / "a" / "table.json", tmp_path / "b" / "table.json", tmp_path / "m",
+                   other_data=True)
+    merged = json.loads((tmp_path / "m" / "table.json").read_text())
+    assert merged["datasets"]["onn"] == ["000000000000"]
+    assert "regenerated dataset" in (tmp_path / "m" / "table.md").read_text()
 
 
 def test_eval_latents_and_the_divergence_bound(runs, tmp_path):

@@ -408,11 +408,13 @@ def run(cfg: EvalConfig, command: str = "stride eval", log=print) -> pathlib.Pat
 
 
 def merge(base: str | pathlib.Path, update: str | pathlib.Path, out: str | pathlib.Path,
-          log=print) -> pathlib.Path:
+          other_data: bool = False, log=print) -> pathlib.Path:
     """One table from two ``table.json`` files of the same robot and dataset: every model that
     ``update`` evaluated replaces that model's rows in ``base`` (e.g. one model retrained to the
     full step count in a later GPU call), the rest stay. Refuses tables made with different
-    evaluation settings, robots or datasets (their numbers would not be comparable)."""
+    evaluation settings, robots or datasets (their numbers would not be comparable), unless
+    ``other_data``: the same generator and settings regenerated into another dataset (its rows
+    then come from other samples of the same distribution; the table names both digests)."""
     a, b = (json.loads(pathlib.Path(p).read_text()) for p in (base, update))
     ignore = ("runs", "out", "label")
     ca, cb = ({k: v for k, v in t["config"].items() if k not in ignore} for t in (a, b))
@@ -423,7 +425,7 @@ def merge(base: str | pathlib.Path, update: str | pathlib.Path, out: str | pathl
     if len(robots) != 1:
         raise ValueError(f"{base} and {update} mix robots {sorted(robots)}")
     digests = {c.get("dataset_sha256") for t in (a, b) for c in t["run_configs"].values()}
-    if len(digests) != 1:
+    if len(digests) != 1 and not other_data:
         raise ValueError(f"{base} and {update} were trained on different datasets "
                          f"(sha256 {sorted(str(d)[:12] for d in digests)})")
     replaced = {r["model"] for r in b["runs"]}
@@ -434,12 +436,20 @@ def merge(base: str | pathlib.Path, update: str | pathlib.Path, out: str | pathl
     table = aggregate(runs)
     command = (f"{a['command']}; then {', '.join(sorted(replaced))} from: {b['command']}; "
                f"merged by stride_jax.jobs.eval.merge")
+    datasets = {m: sorted({t["run_configs"][r["run"]].get("dataset_sha256", "")[:12]
+                           for t in (a, b) for r in t["runs"] if r["run"] in t["run_configs"]
+                           and r["model"] == m and r in runs}) for m in {r["model"] for r in runs}}
+    if len(digests) != 1:
+        command += (" (the later rows on a regenerated dataset of the same generator and "
+                    "settings: dataset sha256 per model " + ", ".join(
+                        f"{m} {'/'.join(d)}" for m, d in sorted(datasets.items())) + ")")
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "table.json", json.dumps(
         {"command": command, "config": a["config"], "table": table, "ratios": _ratios(table),
          "runs": runs, "run_configs": configs, "backend": a["backend"],
          "code": sorted({a["code"], b["code"]}), "merged_from": [a["command"], b["command"]],
+         "datasets": datasets,
          "seconds": a["seconds"] + b["seconds"]}, indent=1))
     cfg = EvalConfig(**{k: v for k, v in a["config"].items()
                         if k in {f.name for f in dataclasses.fields(EvalConfig)}})
