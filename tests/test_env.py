@@ -12,8 +12,8 @@ PROBE = ("import stride_jax, jax, os; stride_jax.set_xla_flags(); "
 
 
 def _run(probe=PROBE, **env):
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "STRIDE_HOST_DEVICES")
-           } | env
+    drop = ("XLA_FLAGS", "STRIDE_HOST_DEVICES", "STRIDE_DETERMINISTIC")
+    env = {k: v for k, v in os.environ.items() if k not in drop} | env
     return subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True)
 
 
@@ -74,18 +74,19 @@ def test_importing_any_module_leaves_jax_unstarted():
 
 def test_the_data_job_asks_for_deterministic_gpu_ops():
     """``stride data`` adds XLA's deterministic-ops flag (a GPU simulated the same seed twice into
-    different datasets without it); other commands, a user's own flag and the opt-out do not."""
-    probe = ("import os, sys; from stride_jax import cli; sys.argv = ['stride'] + sys.argv[1:]\n"
+    different datasets without it); without the request, with the opt-out or with the user's own
+    flag it is not added."""
+    probe = ("import os, sys; from stride_jax import cli; sys.argv = ['stride', 'data', '--help']\n"
              "try:\n    cli.main()\nexcept SystemExit:\n    pass\n"
              "print(os.environ['XLA_FLAGS'])")
-    flags = lambda *argv, **env: subprocess.run(
-        [sys.executable, "-c", probe, *argv], capture_output=True, text=True,
-        env={k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS",
-                                                             "STRIDE_DETERMINISTIC")} | env
-    ).stdout.splitlines()[-1]
-    assert "--xla_gpu_deterministic_ops=true" in flags("data", "--help")
-    assert "multi_thread_eigen=false" in flags("data", "--help")  # the CPU guards stay
-    assert "deterministic" not in flags("train", "--help")
-    assert "deterministic" not in flags("data", "--help", STRIDE_DETERMINISTIC="0")
-    user = flags("data", "--help", XLA_FLAGS="--xla_gpu_deterministic_ops=false")
+    out = _run(probe)
+    assert out.returncode == 0, out.stderr
+    flags = out.stdout.splitlines()[-1]
+    assert "--xla_gpu_deterministic_ops=true" in flags
+    assert "multi_thread_eigen=false" in flags  # the CPU guards stay
+    asked = ("import os, stride_jax; stride_jax.set_xla_flags(deterministic={}); "
+             "print(os.environ['XLA_FLAGS'])")
+    assert "deterministic" not in _run(asked.format(False)).stdout
+    assert "deterministic" not in _run(asked.format(True), STRIDE_DETERMINISTIC="0").stdout
+    user = _run(asked.format(True), XLA_FLAGS="--xla_gpu_deterministic_ops=false").stdout
     assert user.strip() == "--xla_gpu_deterministic_ops=false"

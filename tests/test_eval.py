@@ -127,6 +127,9 @@ def test_merge_replaces_one_models_rows(runs, tmp_path):
     merged = json.loads((tmp_path / "m" / "table.json").read_text())
     assert merged["datasets"]["onn"] == ["000000000000"]
     assert "regenerated dataset" in (tmp_path / "m" / "table.md").read_text()
+    eval_job.merge(tmp_path / "m" / "table.json", tmp_path / "b" / "table.json", tmp_path / "m2",
+                   other_data=True)  # a merged table merges again
+    assert json.loads((tmp_path / "m2" / "table.json").read_text())["code"] == merged["code"]
 
 
 def test_eval_latents_and_the_divergence_bound(runs, tmp_path):

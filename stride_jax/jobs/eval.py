@@ -436,9 +436,11 @@ def merge(base: str | pathlib.Path, update: str | pathlib.Path, out: str | pathl
     table = aggregate(runs)
     command = (f"{a['command']}; then {', '.join(sorted(replaced))} from: {b['command']}; "
                f"merged by stride_jax.jobs.eval.merge")
-    datasets = {m: sorted({t["run_configs"][r["run"]].get("dataset_sha256", "")[:12]
-                           for t in (a, b) for r in t["runs"] if r["run"] in t["run_configs"]
-                           and r["model"] == m and r in runs}) for m in {r["model"] for r in runs}}
+    datasets = {}  # model -> the first 12 hex digits of its runs' datasets' sha256
+    for r in runs:
+        digest = configs.get(r["run"], {}).get("dataset_sha256") or "unknown"
+        datasets.setdefault(r["model"], set()).add(digest[:12])
+    datasets = {m: sorted(d) for m, d in datasets.items()}
     if len(digests) != 1:
         command += (" (the later rows on a regenerated dataset of the same generator and "
                     "settings: dataset sha256 per model " + ", ".join(
@@ -448,7 +450,9 @@ def merge(base: str | pathlib.Path, update: str | pathlib.Path, out: str | pathl
     atomic_write_text(out / "table.json", json.dumps(
         {"command": command, "config": a["config"], "table": table, "ratios": _ratios(table),
          "runs": runs, "run_configs": configs, "backend": a["backend"],
-         "code": sorted({a["code"], b["code"]}), "merged_from": [a["command"], b["command"]],
+         "code": sorted({c for t in (a, b) for c in (t["code"] if isinstance(t["code"], list)
+                                                    else [t["code"]])}),
+         "merged_from": [a["command"], b["command"]],
          "datasets": datasets,
          "seconds": a["seconds"] + b["seconds"]}, indent=1))
     cfg = EvalConfig(**{k: v for k, v in a["config"].items()
