@@ -382,6 +382,19 @@ def _ratios(table: dict) -> dict[str, float]:
     return out
 
 
+def _write(out: pathlib.Path, robot: str, cfg: EvalConfig, command: str, results: list[dict],
+           run_configs: dict, **fields) -> None:
+    """``out/table.json`` (settings, the aggregated table and its ratios, every run's result and
+    config, then ``fields``) and ``out/table.md``: what ``run`` and ``merge`` write alike."""
+    out.mkdir(parents=True, exist_ok=True)
+    table = aggregate(results)
+    atomic_write_text(out / "table.json", json.dumps(
+        {"command": command, "config": dataclasses.asdict(cfg), "table": table,
+         "ratios": _ratios(table), "runs": results, "run_configs": run_configs, **fields},
+        indent=1))
+    atomic_write_text(out / "table.md", markdown(table, robot, command, cfg))
+
+
 def run(cfg: EvalConfig, command: str = "stride eval", log=print) -> pathlib.Path:
     runs = find_runs(cfg.runs)
     results = []
@@ -393,16 +406,9 @@ def run(cfg: EvalConfig, command: str = "stride eval", log=print) -> pathlib.Pat
         raise ValueError(f"runs mix robots {sorted(robots)}; evaluate one robot at a time")
     robot = robots.pop()
     out = pathlib.Path(cfg.out or f"results/table1/{robot}")
-    out.mkdir(parents=True, exist_ok=True)
-    table = aggregate(results)
-    command = cfg.label or command
-    atomic_write_text(out / "table.json", json.dumps(
-        {"command": command, "config": dataclasses.asdict(cfg), "table": table,
-         "ratios": _ratios(table), "runs": results,
-         "run_configs": {str(r): json.loads((r / "config.json").read_text()) for r in runs},
-         "backend": jax.default_backend(), "code": code_version(),
-         "seconds": time.time() - t0}, indent=1))
-    atomic_write_text(out / "table.md", markdown(table, robot, command, cfg))
+    _write(out, robot, cfg, cfg.label or command, results,
+           {str(r): json.loads((r / "config.json").read_text()) for r in runs},
+           backend=jax.default_backend(), code=code_version(), seconds=time.time() - t0)
     log(f"wrote {out / 'table.md'} and table.json ({len(runs)} runs)")
     return out
 
@@ -430,10 +436,9 @@ def merge(base: str | pathlib.Path, update: str | pathlib.Path, out: str | pathl
                          f"(sha256 {sorted(str(d)[:12] for d in digests)})")
     replaced = {r["model"] for r in b["runs"]}
     runs = [r for r in a["runs"] if r["model"] not in replaced] + b["runs"]
-    configs = {k: v for k, v in a["run_configs"].items()
-               if not any(r["run"] == k for r in a["runs"] if r["model"] in replaced)}
+    dropped = {r["run"] for r in a["runs"] if r["model"] in replaced}
+    configs = {k: v for k, v in a["run_configs"].items() if k not in dropped}
     configs.update(b["run_configs"])
-    table = aggregate(runs)
     command = (f"{a['command']}; then {', '.join(sorted(replaced))} from: {b['command']}; "
                f"merged by stride_jax.jobs.eval.merge")
     datasets = {}  # model -> the first 12 hex digits of its runs' datasets' sha256
@@ -445,18 +450,11 @@ def merge(base: str | pathlib.Path, update: str | pathlib.Path, out: str | pathl
         command += (" (the later rows on a regenerated dataset of the same generator and "
                     "settings: dataset sha256 per model " + ", ".join(
                         f"{m} {'/'.join(d)}" for m, d in sorted(datasets.items())) + ")")
+    codes = lambda t: t["code"] if isinstance(t["code"], list) else [t["code"]]  # merged: a list
     out = pathlib.Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "table.json", json.dumps(
-        {"command": command, "config": a["config"], "table": table, "ratios": _ratios(table),
-         "runs": runs, "run_configs": configs, "backend": a["backend"],
-         "code": sorted({c for t in (a, b) for c in (t["code"] if isinstance(t["code"], list)
-                                                    else [t["code"]])}),
-         "merged_from": [a["command"], b["command"]],
-         "datasets": datasets,
-         "seconds": a["seconds"] + b["seconds"]}, indent=1))
-    cfg = EvalConfig(**{k: v for k, v in a["config"].items()
-                        if k in {f.name for f in dataclasses.fields(EvalConfig)}})
-    atomic_write_text(out / "table.md", markdown(table, robots.pop(), command, cfg))
+    _write(out, robots.pop(), EvalConfig(**ca, **{k: a["config"][k] for k in ignore}), command,
+           runs, configs, backend=a["backend"], code=sorted({*codes(a), *codes(b)}),
+           merged_from=[a["command"], b["command"]], datasets=datasets,
+           seconds=a["seconds"] + b["seconds"])
     log(f"wrote {out / 'table.md'} and table.json: {sorted(replaced)} from {update}")
     return out
