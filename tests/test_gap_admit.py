@@ -82,3 +82,49 @@ def test_diagnosis_refits_the_contact_settings_where_the_calibration_missed_them
     assert out["which"]["ranking"][0]["params"]["damping"][0] == pytest.approx(0.3, abs=0.03)
     assert cal["applied"] and cal["settings"]["solref_timeconst"] == pytest.approx(1.6, rel=0.05), cal
     assert "contact settings were fitted again" in v["reason"] and "contact_softness" in cal["refit"]["why"]
+
+
+def test_the_pair_screen_always_proposes_the_best_partner():
+    # even where no partner clears the screen's gain bar (here an impossible one), the partner that
+    # removes most is fitted: a confident single needs the data to rule a material second out
+    from stride_jax.gap import screen
+    sm = nominal.load("pendulum")
+    _, logged = real.generate(sm, {"damping": 0.3, "delay": 1}, 4, 100, seed=2)
+    train = fit.make_data(logged[:3], TINY.steps)
+    test = fit.make_data(logged[3:], TINY.steps)
+    scale = diagnose.scale_of(sm, fit.make_data(logged[:3]))
+    C = screen.columns(sm, ["damping", "delay", "frictionloss", "armature"], train, test, scale, TINY.screen,
+                       screen.rows_every(train, 1), screen.rows_every(test, 1), show=False)
+    strict = screen.pairs(sm, C, "damping", {"damping": [0.3]}, n=2, min_gain=10.0)
+    loose = screen.pairs(sm, C, "damping", {"damping": [0.3]}, n=2, min_gain=0.0)
+    assert len(strict) == 1 and strict[0][0] == loose[0][0] and strict[0][0][0] == "damping"
+
+
+def _w(pair_test: dict) -> dict:
+    """A "which" record whose best single (damping) explains 90% and is confident on every other
+    count, beside one pair test."""
+    best = {"effects": ["damping"], "params": {"damping": [0.3]}, "at_bound": {}, "explained": 0.9,
+            "explained_above_floor": 0.9, "explained_ci": [0.85, 0.93], "p_beats_next": 1.0}
+    det = {"significant": True, "p_value": 1e-4, "p_floor": 1e-5, "p_normal": 1e-9, "level": 0.01,
+           "hypotheses": 5, "explained_crossfit": 0.9}
+    return {"ranking": [best], "detection": det, "probe_explained_nominal": 0.9, "gap_ms": 1.0,
+            "noise_floor": 0.0, "structure_left": 0.0, "structure_hints": [], "pair_tests": [pair_test],
+            "nuisance_tests": []}
+
+
+def test_a_single_is_not_confident_while_a_material_second_effect_cannot_be_ruled_out():
+    import numpy as np
+    from stride_jax.gap import admit
+    S = {"effects": ["damping"], "heldout_loss": 10.0, "_boot": np.zeros(1000)}
+    rng = np.random.default_rng(0)
+    tight = {"effects": ["damping", "delay"], "heldout_loss": 9.9, "_boot": 0.01 + 0.002 * rng.standard_normal(1000)}
+    wide = {"effects": ["damping", "payload"], "heldout_loss": 9.9, "_boot": 0.01 + 0.05 * rng.standard_normal(1000)}
+    t_tight, t_wide = admit.pair_tests(S, [tight, wide], left_S=0.02, floor_frac=0.0, M=100, L_nom=100.0, cfg=TINY)
+    for t in (t_tight, t_wide):
+        assert t["gain_lower"] <= t["gain_upper"] and not t["material"] and not t["preferred"]
+    assert not t_tight["material_possible"] and t_wide["material_possible"]
+    v = verdict(_w(t_tight), TINY)
+    assert v["verdict"] == "explained" and v["confident"], v["reason"]
+    v = verdict(_w(t_wide), TINY)
+    assert v["verdict"] == "explained" and not v["confident"]
+    assert "a material second effect cannot be ruled out: payload on top" in v["reason"]

@@ -13,6 +13,10 @@
   (measured: ground friction x 1.31 on top of a planted damping, 1.7% of the gap, with a 90%
   interval of +-0.02). Rules (a) and (b) cannot tell such a surrogate from a real second effect;
   a share of the gap can. A second effect below (c) is reported as a candidate, not named.
+  Each test also carries the gain's upper bound (the bootstrap's ``1 - alpha`` quantile): where it
+  reaches the materiality bar (``material_possible``) the logs cannot rule out a material second
+  effect, and a single named beside it is not confident
+  (:func:`stride_jax.gap.attribute.verdict`).
 * **Nuisance rule** (:func:`nuisance_test`). A hypothesis holding an effect that overlaps the
   simulator's contact settings (:data:`stride_jax.gap.nominal.OVERLAPS`) must beat the same
   hypothesis without that effect and with the contact settings fitted again
@@ -47,12 +51,15 @@ def pair_tests(S: dict, pair_rows: list[dict], left_S: float, floor_frac: float,
         gain = (S["heldout_loss"] - P["heldout_loss"]) / M
         d = P["_boot"] - S["_boot"]  # paired: explained(pair) - explained(single)
         lo = _lower(d, cfg.alpha / max(len(pair_rows), 1))
+        hi = _lower(d, 1 - cfg.alpha)
         share = float(gain * M / L_nom)
         significant = bool(lo > 0 and gain >= cfg.pair_min * left_S and gain > 1e-6 * L_nom / M)
         material = bool(share >= cfg.pair_material * above)
         out.append({"pair": P["effects"], "single": S["effects"], "gain_explained": share, "gain_lower": lo,
-                    "fraction_of_left": float(gain / max(left_S, 1e-300)), "significant": significant,
-                    "material": material, "material_min": float(cfg.pair_material * above),
+                    "gain_upper": hi, "fraction_of_left": float(gain / max(left_S, 1e-300)),
+                    "significant": significant, "material": material,
+                    "material_min": float(cfg.pair_material * above),
+                    "material_possible": bool(hi >= cfg.pair_material * above),
                     "preferred": significant and material})
         P["vs_best_single"] = out[-1]
     return out

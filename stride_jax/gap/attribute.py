@@ -306,8 +306,9 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
        failed;
     3. an "explained" call is confident when the explained fraction's lower bootstrap bound clears
        the attribute rule, the best beats the runner-up in ``cfg.confident_p`` of resamples, no
-       other effect ties with it and the fit leaves no structure hint; otherwise the reason names
-       the conditions that failed.
+       other effect ties with it, the fit leaves no structure hint and, for a single, no second
+       effect fitted on top of it could be material (the upper bound of its gain stays below the
+       pair rule's materiality bar); otherwise the reason names the conditions that failed.
 
     Every verdict lists the hypotheses the held-out data cannot tell apart from the best
     (``indistinguishable_from``). Which hypothesis is the best is the pair and nuisance rules'
@@ -370,6 +371,14 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
                           f"{cfg.confident_p:.0%})")
     if ties:
         shortfalls.append("other effects tie with it")
+    for t in w.get("pair_tests", []):
+        if (len(best["effects"]) == 1 and set(t["single"]) == set(best["effects"]) and not t["preferred"]
+                and t.get("material_possible")):
+            extra = "+".join(e for e in t["pair"] if e not in t["single"])
+            shortfalls.append(f"a material second effect cannot be ruled out: {extra} on top closes "
+                              f"{t['gain_explained']:+.2%} of the held-out gap, up to {t['gain_upper']:.2%} "
+                              f"({1 - cfg.alpha:.0%} bootstrap quantile), which reaches the "
+                              f"{t['material_min']:.2%} materiality bar for naming a second effect")
     if hint:
         shortfalls.append("the fit leaves structure (below)")
     confident = not shortfalls

@@ -263,9 +263,11 @@ def pairs(sm: SimModel, C: Columns, best: str, fitted: dict, n: int, min_gain: f
           ) -> list[tuple[tuple[str, str], dict]]:
     """The ``n`` second effects whose joint linear fit with ``best`` removes most of the held-out
     gap: ``[((best, other), start params)]`` (start: the fitted single and the linear estimate).
-    Only pairs whose linear fit removes at least ``min_gain`` of what ``best``'s own linear fit
-    leaves held out are proposed (the pair rule's ``pair_min``, to first order): where the single
-    leaves nothing a second effect could take, no pair is fitted."""
+    Pairs whose linear fit removes at least ``min_gain`` of what ``best``'s own linear fit leaves
+    held out are proposed (the pair rule's ``pair_min``, to first order); where none does, the one
+    partner that removes most is proposed all the same (if it removes anything): a confident
+    single needs the data to rule out a material second effect (:func:`stride_jax.gap.admit.pair_tests`),
+    and the linear screen, to first order and on noisy logs, can miss one that the full fit finds."""
     if n == 0 or best not in C.names:
         return []
     _, _, l_single = linear_fit(C, sm, (best,))
@@ -274,7 +276,8 @@ def pairs(sm: SimModel, C: Columns, best: str, fitted: dict, n: int, min_gain: f
         if other == best or other == finer.parent(best) or finer.parent(other) == best:
             continue  # an effect and its own finer variant: nested, not a second effect
         params, _, l_te = linear_fit(C, sm, (best, other))
-        if l_single - l_te >= min_gain * l_single:
+        if l_te < l_single:
             scored.append((l_te, other, params))
     scored.sort(key=lambda t: t[0])
-    return [((best, o), {best: np.asarray(fitted[best], float), o: p[o]}) for _, o, p in scored[:n]]
+    keep = [t for t in scored if l_single - t[0] >= min_gain * l_single][:n] or scored[:1]
+    return [((best, o), {best: np.asarray(fitted[best], float), o: p[o]}) for _, o, p in keep]

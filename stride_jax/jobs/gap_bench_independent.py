@@ -67,14 +67,16 @@ PRESETS = {
     "tiny": IndependentConfig(robot="pendulum", trajectories=4, steps=80, singles=(("damping", 0.3),),
                               noise=(False,), diagnose="tiny", pairs_of=0, name="gap_bench_pendulum_independent"),
     # the Go1: every in-library effect that is not a simulator setting, damping on the calf joints
-    # only (a finer effect), two pairs, two effects out of library, the control; clean and noisy;
-    # 6 x 200 steps (4 s) per case
+    # only (a finer effect), four pairs (the first two each with an effect the other can stand in
+    # for, the last two with effects on different channels), two effects out of library, the
+    # control; clean and noisy; 6 x 200 steps (4 s) per case
     "default": IndependentConfig(
         robot="go1", trajectories=6, steps=200,
         singles=(("damping", 1.5), ("frictionloss", 0.8), ("armature", 0.04), ("delay", 0.01),
                  ("torque_scale", 0.65), ("torque_limit", 0.4), ("kp_scale", 0.7), ("ground_friction", 0.3),
                  ("payload", 2.5), ("com_offset", (0.03, 0.0, 0.0)), ("deadzone", 0.04), ("damping@calf", 2.0)),
-        pairs=((("damping", 1.0), ("delay", 0.006)), (("payload", 2.0), ("torque_scale", 0.8))),
+        pairs=((("damping", 1.0), ("delay", 0.006)), (("payload", 2.0), ("torque_scale", 0.8)),
+               (("armature", 0.04), ("delay", 0.01)), (("damping", 1.5), ("torque_limit", 0.5))),
         out_of_library=(("joint_stiffness", 10.0), ("quadratic_drag", 0.05))),
 }
 # the same cases on shorter logs: what a 2-core CPU can run in a few hours
@@ -121,7 +123,8 @@ def diagnose_case(cfg: IndependentConfig, index: int, noisy: bool
         dcfg = dataclasses.replace(dcfg, pairs_of=cfg.pairs_of)
     res = diagnose.diagnose(sm, trajs, dcfg, log=lambda s: None)
     held = [t for t in clean if t.name in set(res["heldout"])]
-    row = scoring.score(sm, cases(cfg)[index], res, held, settings, form, dcfg.attribute_min)
+    row = scoring.score(sm, cases(cfg)[index], res, held, settings, form, dcfg.attribute_min, dcfg.pair_material,
+                        dcfg.fit)
     return row | {"noisy": noisy, "case": index, "row_seconds": time.time() - t0}, res
 
 
