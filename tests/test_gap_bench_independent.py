@@ -68,3 +68,15 @@ def test_tiny_preset_end_to_end(tmp_path):
     (single,) = [r for r in res["cases"] if r["kind"] == "single"]
     assert single["shrink_ratio"] > 0.8 and single["clean"]["shrink_vs_nominal"] > 0.9
     assert (tmp_path / f"{name}.md").read_text().startswith("# Sim-to-real gap: independent benchmark")
+
+
+def test_a_confident_call_naming_part_of_a_pair_is_false_only_where_the_pair_is_nameable():
+    from stride_jax.jobs import gap_bench_score as sc
+    pair = {"kind": "pair", "planted": {"payload": [2.0], "torque_scale": [0.8]}, "confident": True}
+    assert sc.confident_false(pair | {"named": ["torque_scale"], "nameable": False}) == (False, True)
+    assert sc.confident_false(pair | {"named": ["torque_scale"], "nameable": True}) == (True, False)
+    assert sc.confident_false(pair | {"named": ["torque_scale", "damping"], "nameable": False}) == (True, False)
+    assert sc.confident_false(pair | {"named": ["payload", "torque_scale"], "nameable": True}) == (False, False)
+    assert sc.confident_false(pair | {"named": ["torque_scale"], "nameable": False, "confident": False}) == (False, False)
+    ool = {"kind": "out_of_library", "planted": {"joint_stiffness": [10.0]}, "confident": True, "named": ["damping"]}
+    assert sc.confident_false(ool) == (True, False)

@@ -7,7 +7,11 @@ right *as a set* when it is "explained" but not confident and its indistinguisha
 tell the members apart (a servo gain error and a motor-constant error are the same dynamics
 while nothing saturates) and the verdict says so, naming the set rather than a member.
 ``top1_single`` and ``top1_pairs`` count both; ``top1_single_strict`` only the first. A confident
-call naming anything but the planted effects is a confident false attribution, set or not.
+call naming an effect that was not planted is a confident false attribution, set or not; so is one
+naming only part of a pair whose every effect the logs show (``nameable``). A confident call naming
+part of a pair that is not nameable (the named effect stands in for the other, which then adds
+less than the materiality bar) is counted apart, as ``confident_partial``: it attributes the gap
+to an effect that is there and misses one the logs cannot show.
 
 **How far** (on the clean held-out trajectories, one-step gaps of :func:`stride_jax.gap.baseline.gap_of`):
 
@@ -96,7 +100,7 @@ def score(sm: SimModel, case: dict, res: dict, clean_held: list, settings: dict,
     row["correct_as_set"] = bool(in_lib and explained and not v["confident"] and named != planted
                                  and in_set(v, planted))
     row["correct"] = row["correct_strict"] or row["correct_as_set"]
-    row["confident_false"] = bool(v["confident"] and named and (not in_lib or named != planted))
+    row["confident_false"] = bool(v["confident"] and named and (not in_lib or named != planted))  # until nameable is known
     wh = res.get("which")
     if not wh:
         return row
@@ -142,7 +146,21 @@ def score(sm: SimModel, case: dict, res: dict, clean_held: list, settings: dict,
             row["shrink_ratio"] = c["effect_shrink"] / c["truth_shrink"]
         row["share_ratio"] = c["effect_shrink"] / max(c["effect_share"], tiny)
     row["clean"] = c
+    row["confident_false"], row["confident_partial"] = confident_false(row)
     return row
+
+
+def confident_false(row: dict) -> tuple[bool, bool]:
+    """``(confident false attribution, confident partial)`` for a scored row (module docstring)."""
+    named, planted = set(row["named"]), set(row["planted"])
+    if not (row["confident"] and named):
+        return False, False
+    if row["kind"] not in ("single", "pair") or named - planted:
+        return True, False
+    if named == planted:
+        return False, False
+    partial = row["kind"] == "pair" and row.get("nameable") is False
+    return not partial, partial
 
 
 def summary(rows: list[dict]) -> dict[str, Any]:
@@ -155,7 +173,8 @@ def summary(rows: list[dict]) -> dict[str, Any]:
             "top1_single": mean([r["correct"] for r in singles]),
             "top1_pairs": mean([r["correct"] for r in pairs]),
             "median_shrink_single": med([r["shrink_ratio"] for r in singles if "shrink_ratio" in r]),
-            "confident_false": int(sum(r["confident_false"] for r in rs)),
+            "confident_false": int(sum(confident_false(r)[0] for r in rs)),
+            "confident_partial": int(sum(confident_false(r)[1] for r in rs)),
             "control_verdict": [f"{r['verdict']}; simulator settings found: {'; '.join(r['calibration']) or 'none'} "
                                 f"(drawn: {r['real_settings']})" for r in ctrl],
             "top1_single_strict": mean([r["correct_strict"] for r in singles]),
@@ -192,7 +211,8 @@ def markdown(cfg, rows: list[dict], summ: dict, command: str, seconds: float) ->
          "`pairs_not_nameable`: pairs of which one effect, added last at its planted value, closes less than the "
          "5% of the baseline's gap that the pair rule asks of a second effect.",
          "", "| metric | noise-free | noisy |", "|---|---|---|"]
-    for k in ("top1_single", "top1_pairs", "median_shrink_single", "confident_false", "top1_single_strict",
+    for k in ("top1_single", "top1_pairs", "median_shrink_single", "confident_false", "confident_partial",
+              "top1_single_strict",
               "right_as_set", "not_nameable", "top1_single_nameable", "pairs_not_nameable",
               "top1_pairs_nameable", "median_share_ratio_single",
               "median_shrink_vs_nominal_single", "median_calibration_shrink", "out_of_library_verdicts"):
