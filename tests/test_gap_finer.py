@@ -160,3 +160,15 @@ def test_speed_path_gives_the_full_paths_verdict(capsys):
     assert set(fast["verdict"]["effects"]) == {"damping", "delay"}
     for k in ("verdict", "effects", "confident"):
         assert fast["verdict"][k] == full["verdict"][k], (fast["verdict"], full["verdict"])
+
+
+def test_a_pair_s_indistinguishable_set_swaps_the_collinear_member():
+    # servo damping and joint damping are one dynamics without measured torques: a pair named
+    # with one of them has the pair with the other as its twin (not the other alone)
+    from stride_jax.gap import granularity
+    w = {"ranking": [{"effects": ["servo_damping", "torque_limit"], "explained": 0.9}]}
+    s = granularity.indistinguishable(w, {"servo_damping": {"damping": 0.98}, "torque_limit": {}}, 0.05)
+    assert s["effects"] == ["servo_damping+torque_limit", "damping+torque_limit"]
+    single = {"ranking": [{"effects": ["kp_scale"], "explained": 0.9}]}
+    assert granularity.indistinguishable(single, {"kp_scale": {"torque_scale": 0.99}}, 0.05)["effects"] == [
+        "kp_scale", "torque_scale"]

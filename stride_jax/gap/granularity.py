@@ -81,8 +81,10 @@ def indistinguishable(w: dict[str, Any], collinear: dict[str, dict[str, float]],
         for other, c in cos.items():
             if other in best["effects"]:
                 continue
+            # the best with e swapped for its collinear twin (a pair stays a pair)
+            alt = "+".join(other if x == e else x for x in best["effects"])
             why = f"collinear sensitivity columns with {e} (cos {c:+.3f} on the training windows)"
-            members[other] = f"{members[other]}; and {why}" if other in members else why
+            members[alt] = f"{members[alt]}; and {why}" if alt in members else why
     if not members:
         return None
     names = ["+".join(best["effects"])] + list(members)
