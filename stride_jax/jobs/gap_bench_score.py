@@ -100,7 +100,7 @@ def score(sm: SimModel, case: dict, res: dict, clean_held: list, settings: dict,
     row["correct_as_set"] = bool(in_lib and explained and not v["confident"] and named != planted
                                  and in_set(v, planted))
     row["correct"] = row["correct_strict"] or row["correct_as_set"]
-    row["confident_false"] = bool(v["confident"] and named and (not in_lib or named != planted))  # until nameable is known
+    row["confident_false"], row["confident_partial"] = confident_false(row)  # again once "nameable" is known
     wh = res.get("which")
     if not wh:
         return row
@@ -111,7 +111,8 @@ def score(sm: SimModel, case: dict, res: dict, clean_held: list, settings: dict,
     row["tool"] = {k: hf.get(k) for k in ("gap_nominal", "gap_baseline", "gap_final", "shrink_vs_nominal",
                                            "shrink_vs_baseline", "calibration_shrink")}
     data1 = list(clean_held)
-    scale = diagnose.scale_of(sm, fit.make_data(data1))
+    held = fit.make_data(data1)
+    scale = diagnose.scale_of(sm, held)
     base = baseline.baseline_of(sm, cal)
     g_nom = baseline.gap_of(sm, data1, scale)
     g_base = baseline.gap_of(base, data1, scale)
@@ -133,7 +134,6 @@ def score(sm: SimModel, case: dict, res: dict, clean_held: list, settings: dict,
                 n: (baseline.gap_of(base, data1, scale, applied={k: x for k, x in truth.items() if k != n}) - g_truth)
                 / max(g_base, tiny) for n in truth}
             fcfg = dataclasses.replace(fit_cfg or fit.FitConfig(), profile=0, refits=0)
-            held = fit.make_data(data1)
             c["truth_adds_last_refit"] = {}
             for n in truth:
                 rest = tuple(k for k in truth if k != n)
