@@ -128,3 +128,36 @@ def test_a_single_is_not_confident_while_a_material_second_effect_cannot_be_rule
     v = verdict(_w(t_wide), TINY)
     assert v["verdict"] == "explained" and not v["confident"]
     assert "a material second effect cannot be ruled out: payload on top" in v["reason"]
+
+
+def test_a_single_whose_estimate_a_significant_second_effect_moves_is_not_confident():
+    # armature alone takes up a delay below the materiality bar (0.068 for a planted 0.04 + delay
+    # 0.01 on the independent Go1 benchmark): fitted beside the delay it moves back outside its
+    # own interval, so its value holds only if nothing else is there
+    import numpy as np
+    from stride_jax.gap import admit
+    rng = np.random.default_rng(0)
+    S = {"effects": ["damping"], "heldout_loss": 10.0, "_boot": np.zeros(1000),
+         "params": {"damping": [0.3]}, "param_lo": {"damping": [0.29]}, "param_hi": {"damping": [0.31]}}
+    pair = lambda est: {"effects": ["damping", "delay"], "heldout_loss": 9.0,
+                        "_boot": 0.01 + 0.002 * rng.standard_normal(1000),
+                        "params": {"damping": [est], "delay": [1.0]}}
+    (moved,) = admit.pair_tests(S, [pair(0.2)], left_S=0.02, floor_frac=0.0, M=100, L_nom=100.0, cfg=TINY)
+    (kept,) = admit.pair_tests(S, [pair(0.305)], left_S=0.02, floor_frac=0.0, M=100, L_nom=100.0, cfg=TINY)
+    for t in (moved, kept):
+        assert t["significant"] and not t["material"] and not t["material_possible"], t
+    assert moved["moves"] == [{"param": "damping", "index": 0, "single": 0.3, "lo": 0.29, "hi": 0.31,
+                               "in_pair": 0.2}]
+    assert kept["moves"] == []
+    v = verdict(_w(kept), TINY)
+    assert v["verdict"] == "explained" and v["confident"], v["reason"]
+    v = verdict(_w(moved), TINY)
+    assert v["verdict"] == "explained" and v["effects"] == ["damping"] and not v["confident"]
+    assert "its estimate depends on a second effect: with delay fitted beside it" in v["reason"]
+    assert "damping 0.3 -> 0.2 (interval 0.29 to 0.31)" in v["reason"]
+    # a shift that comes with a gain the bootstrap cannot tell from zero is not evidence of a second
+    # effect: the single stays confident
+    noisy = pair(0.2) | {"_boot": 0.01 + 0.05 * rng.standard_normal(1000), "heldout_loss": 9.999}
+    (weak,) = admit.pair_tests(S, [noisy], left_S=0.02, floor_frac=0.0, M=100, L_nom=100.0, cfg=TINY)
+    assert not weak["significant"] and weak["moves"]
+    assert "its estimate depends" not in verdict(_w(weak), TINY)["reason"]

@@ -308,7 +308,8 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
        the attribute rule, the best beats the runner-up in ``cfg.confident_p`` of resamples, no
        other effect ties with it, the fit leaves no structure hint and, for a single, no second
        effect fitted on top of it could be material (the upper bound of its gain stays below the
-       pair rule's materiality bar); otherwise the reason names the conditions that failed.
+       pair rule's materiality bar) and no significant second effect moves its estimate outside its
+       own interval; otherwise the reason names the conditions that failed.
 
     Every verdict lists the hypotheses the held-out data cannot tell apart from the best
     (``indistinguishable_from``). Which hypothesis is the best is the pair and nuisance rules'
@@ -379,6 +380,15 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
                               f"{t['gain_explained']:+.2%} of the held-out gap, up to {t['gain_upper']:.2%} "
                               f"({1 - cfg.alpha:.0%} bootstrap quantile), which reaches the "
                               f"{t['material_min']:.2%} materiality bar for naming a second effect")
+        if (len(best["effects"]) == 1 and set(t["single"]) == set(best["effects"]) and t["significant"]
+                and t.get("moves")):
+            extra = "+".join(e for e in t["pair"] if e not in t["single"])
+            shifts = ", ".join(f"{m['param']}" + (f"[{m['index']}]" if len(best["params"][m["param"]]) > 1 else "")
+                               + f" {_num(m['single'])} -> {_num(m['in_pair'])} (interval {_num(m['lo'])} to "
+                               f"{_num(m['hi'])})" for m in t["moves"])
+            shortfalls.append(f"its estimate depends on a second effect: with {extra} fitted beside it (a significant "
+                              f"{t['gain_explained']:+.2%} of the held-out gap) it moves outside its own interval: "
+                              f"{shifts}")
     if hint:
         shortfalls.append("the fit leaves structure (below)")
     confident = not shortfalls
