@@ -22,7 +22,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy import stats
 
-from stride_jax.gap import admit, effects, fit, granularity, linear_probe, nominal, progress, regions, replay, sim
+from stride_jax.gap import (admit, effects, fit, form, granularity, linear_probe, nominal, progress, regions,
+                            replay, sim)
 from stride_jax.gap.regions import noise_floor
 from stride_jax.sim.model import SimModel
 
@@ -237,6 +238,15 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     for row in rows:
         row["explained_above_floor"] = float(min(1.0, (g_nom - row["heldout_loss"] / M) / above))
         del row["_boot"]
+    # the named single's form: one value on the slow and the fast half of the logs (only where it
+    # would be named: the check costs two fits)
+    form_check = None
+    if cfg.form_tol > 0 and len(best["effects"]) == 1 and best["explained_above_floor"] >= cfg.attribute_min:
+        t0 = time.time()
+        form_check = form.check(sm, train, scale, best, cfg.fit, cfg.form_tol)
+        if form_check:
+            log(f"  form check {best['effects'][0]}: slow half {form_check['slow']}, fast half "
+                f"{form_check['fast']} ({'differ' if form_check['differs'] else 'agree'}; {time.time() - t0:.1f} s)")
     u1 = sim.unstable()
     unstable = {"fits": int(sum(f.unstable for f in fits)), "pair_screen": int(screen_unstable),
                 "diverged_replays": u1["diverged"] - unstable0["diverged"],
@@ -245,6 +255,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
             "gap_ms": g_nom, "probe_explained_nominal": probe_nom, "structure_left": left,
             "detection": detection,
             "structure_hints": hints, "pair_tests": pair_tests, "nuisance_tests": nuisance_tests,
+            "form_check": form_check,
             "best_single": S["effects"], "singles_fitted": n_single,
             "residual_after_best": {"per_dof_rms_scaled": _rms(r_best_te, 0).tolist()},
             "r_nom_test": r_nom_te, "r_best_test": r_best_te, "plan_best": plan_best}
@@ -310,7 +321,9 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
        effect fitted on top of it could be material (the upper bound of its gain stays below the
        pair rule's materiality bar) and no significant second effect moves its estimate outside its
        own interval (a contact effect that does only qualifies the value: it may stand for the
-       simulator's contact model); otherwise the reason names the conditions that failed.
+       simulator's contact model) and, for a single, its value fitted on the slow and the fast half
+       of the logs agrees (:mod:`stride_jax.gap.form`); otherwise the reason names the conditions
+       that failed.
 
     Every verdict lists the hypotheses the held-out data cannot tell apart from the best
     (``indistinguishable_from``). Which hypothesis is the best is the pair and nuisance rules'
@@ -397,6 +410,9 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
                 shortfalls.append(f"its estimate depends on a second effect: with {'+'.join(extra)} fitted beside it "
                                   f"(a significant {t['gain_explained']:+.2%} of the held-out gap) it moves outside "
                                   f"its own interval: {shifts}")
+    fc = w.get("form_check")
+    if fc and fc["differs"] and fc["effect"] in best["effects"]:
+        shortfalls.append(form.note(fc))
     if hint:
         shortfalls.append("the fit leaves structure (below)")
     confident = not shortfalls
