@@ -25,18 +25,19 @@ from stride_jax.gap import effects, fit
 from stride_jax.sim.model import SimModel
 
 
-def halves(sm: SimModel, data: fit.Data) -> tuple[fit.Data, fit.Data, float]:
-    """``(slow, fast, median speed)``: the replay windows of ``data`` whose start's RMS actuated
-    joint speed is at most / above the median (rad/s)."""
+def halves(sm: SimModel, data: fit.Data, share: float = 0.5) -> tuple[fit.Data, fit.Data, tuple[float, float]]:
+    """``(slow, fast, (lower cut, upper cut))``: the replay windows of ``data`` whose start's RMS
+    actuated joint speed is at most the ``share`` quantile / above the ``1 - share`` quantile
+    (rad/s; ``share`` 0.5: the two halves)."""
     speed = np.sqrt(np.mean(data.qd[data.start][:, sm.act_dof] ** 2, axis=1))
-    med = float(np.median(speed))
+    lo, hi = (float(np.quantile(speed, x)) for x in (share, 1 - share))
     pick = lambda m: data._replace(start=data.start[m], first=data.first[m], target=data.target[m],
                                    traj=data.traj[m])
-    return pick(speed <= med), pick(speed > med), med
+    return pick(speed <= lo), pick(speed > hi), (lo, hi)
 
 
 def check(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict[str, Any], cfg: fit.FitConfig,
-          tol: float, min_windows: int = 40) -> dict[str, Any] | None:
+          tol: float, share: float = 1 / 3, min_windows: int = 40) -> dict[str, Any] | None:
     """The named single ``row`` (a ranking row: ``effects``, ``params``) refitted on the slow and
     the fast half of ``train``: ``{"effect", "median_speed", "slow", "fast", "slow_lo", ...,
     "differs", "entries"}`` (None for a pair, or when a half has fewer than ``min_windows``
@@ -44,7 +45,7 @@ def check(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict[str, Any],
     if len(row["effects"]) != 1:
         return None
     (name,) = row["effects"]
-    slow, fast, med = halves(sm, train)
+    slow, fast, cuts = halves(sm, train, share)
     if min(len(slow.start), len(fast.start)) < min_windows:
         return None
     start = {name: np.asarray(row["params"][name], float)}
@@ -58,7 +59,7 @@ def check(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict[str, Any],
     size = np.maximum(np.abs(a - nominal), np.abs(b - nominal))
     far = np.abs(a - b) > tol * np.maximum(size, 1e-12)
     entries = [i for i in range(len(a)) if apart[i] and far[i]]
-    return {"effect": name, "median_speed": med, "windows": [len(slow.start), len(fast.start)],
+    return {"effect": name, "cuts": list(cuts), "share": share, "windows": [len(slow.start), len(fast.start)],
             "slow": a.tolist(), "slow_lo": alo.tolist(), "slow_hi": ahi.tolist(),
             "fast": b.tolist(), "fast_lo": blo.tolist(), "fast_hi": bhi.tolist(), "tol": tol,
             "differs": bool(entries), "entries": entries}
@@ -68,8 +69,9 @@ def note(c: dict[str, Any]) -> str:
     """The verdict's clause for a differing check."""
     labels = effects.ALL[c["effect"]].labels
     parts = [(f"{labels[i]}: " if len(c["slow"]) > 1 else "")
-             + f"{c['slow'][i]:.4g} [{c['slow_lo'][i]:.4g}, {c['slow_hi'][i]:.4g}] on the slower half, "
+             + f"{c['slow'][i]:.4g} [{c['slow_lo'][i]:.4g}, {c['slow_hi'][i]:.4g}] on the slower windows, "
              f"{c['fast'][i]:.4g} [{c['fast_lo'][i]:.4g}, {c['fast_hi'][i]:.4g}] on the faster" for i in c["entries"]]
-    return (f"its value changes with joint speed (windows split at {c['median_speed']:.2f} rad/s RMS): "
+    return (f"its value changes with joint speed (the slowest and the fastest {c['share']:.0%} of the windows, "
+            f"below {c['cuts'][0]:.2f} and above {c['cuts'][1]:.2f} rad/s RMS): "
             + "; ".join(parts) + f" -- apart beyond both intervals and by more than {c['tol']:.0%}: an effect "
             "of this form does not fit both, so another (e.g. a drag nonlinear in speed) may be at work")
