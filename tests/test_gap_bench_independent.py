@@ -3,6 +3,7 @@ with simulator settings that differ from the nominal model; the tiny preset runs
 
 import ast
 import copy
+import dataclasses
 import json
 import pathlib
 
@@ -80,3 +81,22 @@ def test_a_confident_call_naming_part_of_a_pair_is_false_only_where_the_pair_is_
     assert sc.confident_false(pair | {"named": ["torque_scale"], "nameable": False, "confident": False}) == (False, False)
     ool = {"kind": "out_of_library", "planted": {"joint_stiffness": [10.0]}, "confident": True, "named": ["damping"]}
     assert sc.confident_false(ool) == (True, False)
+
+
+def test_a_pair_row_is_scored_with_what_each_planted_effect_adds_last():
+    # the scorer's pair path (the Go1 preset's pairs) on the pendulum: damping 0.3 under a 20 ms
+    # delay, the tiny diagnosis with pairs on; what each effect adds last, at its planted value and
+    # against the other re-fitted alone, decides whether the logs can show the pair at all
+    from stride_jax.jobs import gap_bench_score as sc
+    cfg = dataclasses.replace(bi.PRESETS["tiny"], singles=(), pairs=((("damping", 0.3), ("delay", 0.02)),),
+                              pairs_of=-1)
+    row, _ = bi.diagnose_case(cfg, 1, False)
+    c = row["clean"]
+    assert row["kind"] == "pair" and set(row["planted"]) == {"damping", "delay"}
+    assert set(c["truth_adds_last"]) == set(c["truth_adds_last_refit"]) == {"damping", "delay"}
+    adds = list(c["truth_adds_last"].values()) + list(c["truth_adds_last_refit"].values())
+    assert row["nameable"] == (c["truth_closes"] >= 0.5 and min(adds) >= 0.05)
+    assert (row["confident_false"], row["confident_partial"]) == sc.confident_false(row)
+    summ = sc.summary([row])["noise_free"]
+    assert summ["pairs_not_nameable"] == ([] if row["nameable"] else ["damping+delay"])
+    assert summ["top1_pairs"] == float(row["correct"])
