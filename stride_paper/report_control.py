@@ -232,6 +232,19 @@ def gap_lines(results: pathlib.Path, rel) -> list[str]:
                      f"{_num(s.get('top1_single'))}, of pairs {_num(s.get('top1_pairs'))}, "
                      f"confident false attributions {s.get('confident_false_attributions')} "
                      f"({s.get('cases')} cases)")
+    q = results / "gap_bench_go1_independent.json"
+    if q.is_file():  # logs from independent code and simulator settings (issue 18)
+        d = _load_json(q)
+        md = q.with_suffix(".md")
+        lines += ["", f"On logs written by independent code with simulator settings drawn per case, `{rel(q)}` "
+                  f"(command `{d.get('command')}`" + (f"; details in [{md.name}]({rel(md)})" if md.is_file() else "")
+                  + "; targets: top-1 single >= 0.9, pairs >= 0.8, median shrink >= 0.8, no confident false "
+                  "attribution):"]
+        for k, s in (d.get("summary") or {}).items():
+            lines.append(f"- {k}: top-1 single {_num(s.get('top1_single'))}, pairs {_num(s.get('top1_pairs'))}, "
+                         f"median shrink of the truth's own {_num(s.get('median_shrink_single'))}, confident false "
+                         f"{s.get('confident_false')}, confident partial {s.get('confident_partial')} "
+                         f"({s.get('cases')} cases)")
     return lines + [""]
 
 

@@ -238,14 +238,14 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     for row in rows:
         row["explained_above_floor"] = float(min(1.0, (g_nom - row["heldout_loss"] / M) / above))
         del row["_boot"]
-    # the named single's form: one value on the slow and the fast half of the logs (only where it
+    # the named single's form: one value on the slowest and the fastest windows (only where it
     # would be named: the check costs two fits)
     form_check = None
     if cfg.form_tol > 0 and len(best["effects"]) == 1 and best["explained_above_floor"] >= cfg.attribute_min:
         t0 = time.time()
         form_check = form.check(sm, train, scale, best, cfg.fit, cfg.form_tol)
         if form_check:
-            log(f"  form check {best['effects'][0]}: slow half {form_check['slow']}, fast half "
+            log(f"  form check {best['effects'][0]}: slowest windows {form_check['slow']}, fastest "
                 f"{form_check['fast']} ({'differ' if form_check['differs'] else 'agree'}; {time.time() - t0:.1f} s)")
     u1 = sim.unstable()
     unstable = {"fits": int(sum(f.unstable for f in fits)), "pair_screen": int(screen_unstable),
@@ -321,8 +321,8 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
        effect fitted on top of it could be material (the upper bound of its gain stays below the
        pair rule's materiality bar) and no significant second effect moves its estimate outside its
        own interval (a contact effect that does only qualifies the value: it may stand for the
-       simulator's contact model) and, for a single, its value fitted on the slow and the fast half
-       of the logs agrees (:mod:`stride_jax.gap.form`); otherwise the reason names the conditions
+       simulator's contact model) and, for a single, its value fitted on the slowest and the fastest
+       windows agrees (:mod:`stride_jax.gap.form`); otherwise the reason names the conditions
        that failed.
 
     Every verdict lists the hypotheses the held-out data cannot tell apart from the best

@@ -1,17 +1,19 @@
-"""Is the named effect's form right? Its value, fitted on the slow and the fast half of the logs.
+"""Is the named effect's form right? Its value, fitted on the slowest and the fastest logs.
 
 A physical parameter of the right form is one number whatever the robot does: joint damping is
 the same at 1 and at 8 rad/s. An effect of another form that a library effect imitates is not: a
 quadratic drag ``-c qd |qd|`` fitted as linear damping takes a damping that grows with speed
 (measured on the independent Go1 benchmark: a planted quadratic drag named ``servo_damping``,
-confidently, at 78% of the gap). :func:`check` refits the named single on the replay windows
-below and above the median joint speed (RMS of the actuated joints' velocities where the window
-starts) and compares the two estimates: they **differ** when their intervals do not overlap and
+confidently, at 78% of the gap). :func:`check` refits the named single on the slowest and the
+fastest third of the replay windows (by the RMS of the actuated joints' velocities where each
+window starts) and compares the two estimates: they **differ** when their intervals do not overlap and
 they are further apart than ``tol`` of the larger of their two departures from the nominal value
 -- both, because under a model-form difference the intervals hold the noise and not the bias
 (the pair rule measured a surrogate moving damping by 7%), so intervals alone would flag right
 effects. ``tol`` (25%) is a stated convention, like the pair rule's 5% materiality. A differing
-estimate makes the call not confident (:func:`stride_jax.gap.attribute.verdict`).
+estimate makes the call not confident (:func:`stride_jax.gap.attribute.verdict`). Thirds, not
+halves: the contrast in speed is what the check sees (a trotting Go1's windows span only ~1.5x in
+RMS joint speed between its slowest and fastest thirds).
 """
 
 from __future__ import annotations
@@ -38,10 +40,10 @@ def halves(sm: SimModel, data: fit.Data, share: float = 0.5) -> tuple[fit.Data, 
 
 def check(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict[str, Any], cfg: fit.FitConfig,
           tol: float, share: float = 1 / 3, min_windows: int = 40) -> dict[str, Any] | None:
-    """The named single ``row`` (a ranking row: ``effects``, ``params``) refitted on the slow and
-    the fast half of ``train``: ``{"effect", "median_speed", "slow", "fast", "slow_lo", ...,
-    "differs", "entries"}`` (None for a pair, or when a half has fewer than ``min_windows``
-    windows)."""
+    """The named single ``row`` (a ranking row: ``effects``, ``params``) refitted on the slowest and
+    the fastest ``share`` of ``train``'s windows (:func:`halves`): ``{"effect", "cuts", "share",
+    "windows", "slow", "slow_lo", "slow_hi", "fast", ..., "differs", "entries"}`` (None for a pair,
+    or when a part has fewer than ``min_windows`` windows)."""
     if len(row["effects"]) != 1:
         return None
     (name,) = row["effects"]
