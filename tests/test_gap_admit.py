@@ -149,6 +149,8 @@ def test_a_single_whose_estimate_a_significant_second_effect_moves_is_not_confid
     assert moved["moves"] == [{"param": "damping", "index": 0, "single": 0.3, "lo": 0.29, "hi": 0.31,
                                "in_pair": 0.2}]
     assert kept["moves"] == []
+    no_interval = S | {"param_lo": {"damping": [0.3]}, "param_hi": {"damping": [0.3]}}  # fitted with profile 0
+    assert admit.moves(no_interval, pair(0.2)) == []
     v = verdict(_w(kept), TINY)
     assert v["verdict"] == "explained" and v["confident"], v["reason"]
     v = verdict(_w(moved), TINY)

@@ -75,7 +75,8 @@ def moves(S: dict, P: dict) -> list[dict[str, Any]]:
     """The entries of single ``S``'s parameters whose estimate in pair ``P`` (``S``'s effect with a
     second one fitted beside it) lies outside ``S``'s own interval: ``[{"param", "index", "single",
     "lo", "hi", "in_pair"}]`` (ranking rows with ``params``, ``param_lo``, ``param_hi``; rows
-    without intervals give none)."""
+    without intervals give none, and so do entries whose interval is the estimate alone: a fit
+    with ``FitConfig.profile`` 0)."""
     out = []
     for name, est in S.get("params", {}).items():
         lo, hi = S.get("param_lo", {}).get(name), S.get("param_hi", {}).get(name)
@@ -83,7 +84,7 @@ def moves(S: dict, P: dict) -> list[dict[str, Any]]:
         if lo is None or hi is None or other is None:
             continue
         for i, (e, a, b, x) in enumerate(zip(est, lo, hi, other, strict=True)):
-            if not a - 1e-12 * abs(a) <= x <= b + 1e-12 * abs(b):
+            if a < b and not a - 1e-12 * abs(a) <= x <= b + 1e-12 * abs(b):
                 out.append({"param": name, "index": i, "single": float(e), "lo": float(a), "hi": float(b),
                             "in_pair": float(x)})
     return out
