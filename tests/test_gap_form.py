@@ -45,10 +45,10 @@ def test_the_halves_split_the_windows_at_the_median_speed(pendulum):
     _, logged = real.generate(pendulum, None, 3, 60, seed=2)
     data = fit.make_data(logged, 2)
     speed = lambda d: np.abs(d.qd[d.start][:, pendulum.act_dof]).max(1)
-    slow, fast, (lo, hi) = form.halves(pendulum, data)
+    slow, fast, (lo, hi) = form.by_speed(pendulum, data)
     assert lo == hi and len(slow.start) + len(fast.start) == len(data.start)
     assert speed(slow).max() <= lo < speed(fast).min()
-    slow, fast, (lo, hi) = form.halves(pendulum, data, 1 / 3)  # the slowest and the fastest third
+    slow, fast, (lo, hi) = form.by_speed(pendulum, data, 1 / 3)  # the slowest and the fastest third
     assert lo < hi and abs(len(slow.start) - len(data.start) / 3) <= 1 and abs(len(fast.start) - len(data.start) / 3) <= 1
     assert speed(slow).max() <= lo and hi < speed(fast).min()
     pair = {"effects": ["damping", "delay"], "params": {"damping": [0.1], "delay": [1.0]}}

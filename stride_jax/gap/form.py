@@ -27,7 +27,7 @@ from stride_jax.gap import effects, fit
 from stride_jax.sim.model import SimModel
 
 
-def halves(sm: SimModel, data: fit.Data, share: float = 0.5) -> tuple[fit.Data, fit.Data, tuple[float, float]]:
+def by_speed(sm: SimModel, data: fit.Data, share: float = 0.5) -> tuple[fit.Data, fit.Data, tuple[float, float]]:
     """``(slow, fast, (lower cut, upper cut))``: the replay windows of ``data`` whose start's RMS
     actuated joint speed is at most the ``share`` quantile / above the ``1 - share`` quantile
     (rad/s; ``share`` 0.5: the two halves)."""
@@ -41,13 +41,13 @@ def halves(sm: SimModel, data: fit.Data, share: float = 0.5) -> tuple[fit.Data, 
 def check(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict[str, Any], cfg: fit.FitConfig,
           tol: float, share: float = 1 / 3, min_windows: int = 40) -> dict[str, Any] | None:
     """The named single ``row`` (a ranking row: ``effects``, ``params``) refitted on the slowest and
-    the fastest ``share`` of ``train``'s windows (:func:`halves`): ``{"effect", "cuts", "share",
+    the fastest ``share`` of ``train``'s windows (:func:`by_speed`): ``{"effect", "cuts", "share",
     "windows", "slow", "slow_lo", "slow_hi", "fast", ..., "differs", "entries"}`` (None for a pair,
     or when a part has fewer than ``min_windows`` windows)."""
     if len(row["effects"]) != 1:
         return None
     (name,) = row["effects"]
-    slow, fast, cuts = halves(sm, train, share)
+    slow, fast, cuts = by_speed(sm, train, share)
     if min(len(slow.start), len(fast.start)) < min_windows:
         return None
     start = {name: np.asarray(row["params"][name], float)}
