@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# Nsight Compute on the training step (issue 20, item 4): for each "ROBOT HIDDEN BATCH"
+# configuration, train_step_floor.py times the step against its FLOP and memory floors (no
+# profiler), then ncu records every kernel of two single steps (bracketed by cudaProfilerStart/Stop)
+# with its duration and its compute and memory throughput; ncu_summary.py sums them per step.
+# Usage (repository root, on a GPU machine whose runtime lets ncu read the counters):
+#   bash experiments/probes/ncu_train.sh OUT ["go1 256 1024;g1 256 1024;..."]
+set -uo pipefail
+out=$1
+configs=${2:-"go1 256 1024;go1 256 8192;g1 256 1024"}
+IFS=';' read -ra list <<< "$configs"
+for c in "${list[@]}"; do
+  read -r robot hidden batch <<< "$c"
+  name=ncu_train_${robot}_${hidden}_b${batch}
+  echo "== $c" | tee -a "$out/ncu_train.log"
+  python3 experiments/probes/train_step_floor.py --robot "$robot" --hidden "$hidden" \
+    --batch "$batch" --out "$out" 2>&1 | grep -v -i "warn" | tail -2 | tee -a "$out/ncu_train.log"
+  timeout 300 ncu --clock-control none --profile-from-start off \
+    --metrics gpu__time_duration.sum,sm__throughput.avg.pct_of_peak_sustained_elapsed,gpu__compute_memory_throughput.avg.pct_of_peak_sustained_elapsed,launch__grid_size \
+    --csv --page raw --log-file "$out/$name.csv" \
+    python3 experiments/probes/train_step_floor.py --robot "$robot" --hidden "$hidden" \
+    --batch "$batch" --chunk 2 --repeats 1 --cuda-profile --profile-steps 2 \
+    >> "$out/ncu_train.err" 2>&1 || echo "ncu failed ($?), see ncu_train.err" | tee -a "$out/ncu_train.log"
+  python3 experiments/probes/ncu_summary.py "$out/$name.csv" --steps 2 | tee -a "$out/ncu_train.log"
+done
