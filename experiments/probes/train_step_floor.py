@@ -35,6 +35,8 @@ from stride_jax.timing import median_time, peak_flops
 from stride_jax.train.loop import optimizer, scan_steps
 from stride_jax.train.setup import model_config
 
+from mppi_hlo_ops import entry_ops  # this folder's (the script's own directory is on sys.path)
+
 
 def examples(spec, q0: np.ndarray, n: int, feet: int, seed: int = 0) -> dict:
     """``n`` examples with the training set's keys and shapes (values of a plausible scale)."""
@@ -65,6 +67,38 @@ def _cost(compiled) -> dict:
     return dict(cost or {})
 
 
+def kernel_profile(fn, calls: int, top: int = 15) -> dict:
+    """The device's kernels over ``calls`` calls of ``fn`` (JAX's profiler, CUPTI on a GPU): per
+    call, their count and summed time, and the ``top`` kernels by time. Empty off a GPU."""
+    import tempfile
+
+    from jax.profiler import ProfileData
+
+    with tempfile.TemporaryDirectory() as tmp:
+        with jax.profiler.trace(tmp):
+            for _ in range(calls):
+                jax.block_until_ready(fn())
+        paths = glob.glob(os.path.join(tmp, "**", "*.xplane.pb"), recursive=True)
+        data = ProfileData.from_file(paths[0])
+        planes = [p for p in data.planes if p.name.startswith("/device:GPU")]
+        if not planes:
+            return {"planes": [p.name for p in data.planes]}
+        per_name, lines = {}, []
+        for line in planes[0].lines:
+            lines.append(line.name)
+            if not line.name.startswith("Stream"):  # "XLA Ops"/"XLA Modules" repeat the kernels
+                continue
+            for ev in line.events:
+                n, t = per_name.get(ev.name, (0, 0.0))
+                per_name[ev.name] = (n + 1, t + ev.duration_ns)
+    total = sum(t for _, t in per_name.values())
+    ranked = sorted(per_name.items(), key=lambda kv: -kv[1][1])
+    return {"lines": lines, "kernels_per_call": sum(n for n, _ in per_name.values()) / calls,
+            "kernel_us_per_call": total / calls / 1e3,
+            "top": [{"name": k[:80], "calls_per_call": n / calls, "us_per_call": t / calls / 1e3}
+                    for k, (n, t) in ranked[:top]]}
+
+
 def _cudart():
     """``libcudart`` of the CUDA wheels JAX uses (for cudaProfilerStart/Stop), or None."""
     try:
@@ -90,6 +124,8 @@ def main():
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--cuda-profile", action="store_true")
     p.add_argument("--profile-steps", type=int, default=2)
+    p.add_argument("--trace", type=int, default=0,
+                   help="single steps to trace with JAX's profiler (kernel times per step)")
     p.add_argument("--out", default="")
     a = p.parse_args()
 
@@ -129,10 +165,16 @@ def main():
                flops_per_step=flops, bytes_per_step=nbytes, peak_tflops_f32=peak32 / 1e12,
                peak_tflops_bf16=peak16 / 1e12, copy_gbs=bw / 1e9,
                flop_floor_ms=1e3 * flops / peak32, memory_floor_ms=1e3 * nbytes / bw,
-               hlo_ops=one.as_text().count("\n  "), jax=jax.__version__)
+               xla_flags=os.environ.get("XLA_FLAGS", ""), jax=jax.__version__)
+    counts, sources = entry_ops(one.as_text())  # one step unrolled: what it launches
+    row["entry_ops"] = dict(counts.most_common())
+    row["entry_sources"] = dict(sources.most_common(25))
     row["x_flop_floor"] = row["step_ms"] / row["flop_floor_ms"]
     row["x_memory_floor"] = row["step_ms"] / row["memory_floor_ms"]
-    print(json.dumps(row), flush=True)
+    print(json.dumps({k: v for k, v in row.items() if k != "entry_sources"}), flush=True)
+    if a.trace:
+        row["kernels"] = kernel_profile(lambda: one(params, opt_state, 0), a.trace)
+        print(json.dumps(row["kernels"]), flush=True)
     if a.cuda_profile:  # the kernels of a few single steps, for ncu --profile-from-start off
         lib = _cudart()
         if lib is None:
