@@ -238,15 +238,6 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     for row in rows:
         row["explained_above_floor"] = float(min(1.0, (g_nom - row["heldout_loss"] / M) / above))
         del row["_boot"]
-    # the named single's form: one value on the slowest and the fastest windows (only where it
-    # would be named: the check costs two fits)
-    form_check = None
-    if cfg.form_tol > 0 and len(best["effects"]) == 1 and best["explained_above_floor"] >= cfg.attribute_min:
-        t0 = time.time()
-        form_check = form.check(sm, train, scale, best, cfg.fit, cfg.form_tol)
-        if form_check:
-            log(f"  form check {best['effects'][0]}: slowest windows {form_check['slow']}, fastest "
-                f"{form_check['fast']} ({'differ' if form_check['differs'] else 'agree'}; {time.time() - t0:.1f} s)")
     u1 = sim.unstable()
     unstable = {"fits": int(sum(f.unstable for f in fits)), "pair_screen": int(screen_unstable),
                 "diverged_replays": u1["diverged"] - unstable0["diverged"],
@@ -255,10 +246,27 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
             "gap_ms": g_nom, "probe_explained_nominal": probe_nom, "structure_left": left,
             "detection": detection,
             "structure_hints": hints, "pair_tests": pair_tests, "nuisance_tests": nuisance_tests,
-            "form_check": form_check,
+            "form_check": None,  # check_form's, run only where it could decide (diagnose)
             "best_single": S["effects"], "singles_fitted": n_single,
             "residual_after_best": {"per_dof_rms_scaled": _rms(r_best_te, 0).tolist()},
             "r_nom_test": r_nom_te, "r_best_test": r_best_te, "plan_best": plan_best}
+
+
+def check_form(sm: SimModel, train: fit.Data, scale: np.ndarray, w: dict[str, Any], v: dict[str, Any],
+               cfg: DiagnoseConfig, log=print) -> dict[str, Any] | None:
+    """The named single's form (:func:`stride_jax.gap.form.check`: one value on the slowest and
+    the fastest windows), run only where it can decide: the verdict ``v`` is a confident single
+    (the check costs two fits and can only take confidence away). Sets ``w["form_check"]``."""
+    best = w["ranking"][0]
+    w["form_check"] = None
+    if not (cfg.form_tol > 0 and v["verdict"] == "explained" and v["confident"] and len(best["effects"]) == 1):
+        return None
+    t0 = time.time()
+    c = w["form_check"] = form.check(sm, train, scale, best, cfg.fit, cfg.form_tol)
+    if c:
+        log(f"  form check {best['effects'][0]}: slowest windows {c['slow']}, fastest {c['fast']} "
+            f"({'differ' if c['differs'] else 'agree'}; {time.time() - t0:.1f} s)")
+    return c
 
 
 def _ties(w: dict[str, Any], cfg: DiagnoseConfig) -> list[str]:

@@ -41,7 +41,7 @@ import numpy as np
 
 from stride_jax.gap import (baseline, calibrate, effects, filters, fit, granularity, logs, nuisance,
                             progress, regions, residual, screen)
-from stride_jax.gap.attribute import check_nominal, verdict, which
+from stride_jax.gap.attribute import check_form, check_nominal, verdict, which
 from stride_jax.gap.localise import divergence, where
 from stride_jax.gap.regions import PHASES, dof_names, foot_phases, noise_floor  # noqa: F401 (re-exported)
 from stride_jax.gap.residual import ResidualConfig
@@ -272,6 +272,9 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     t0 = time.time()
     out["screen"] = scr
     out["verdict"] = verdict(w, cfg)
+    if check_form(sm, fit.thin(train_k, cfg.screen.fit_stride), scale, w, out["verdict"], cfg, log):
+        out["verdict"] = verdict(w, cfg)  # a differing form takes the confidence
+    stages["form_check"], t0 = time.time() - t0, time.time()
     collinear = {e: screen.collinear_with(C, e, cfg.screen.collinear) for e in w["ranking"][0]["effects"]} if scr else {}
     sets = granularity.indistinguishable(w, collinear, cfg.alpha)
     out["verdict"]["indistinguishable_set"] = sets
