@@ -7,6 +7,11 @@ import pytest
 
 import stride_jax
 
+# Tests compile far more than they compute (three MJX-heavy files: 99 s with a warm compilation
+# cache, 281 s cold), so off a GPU run they take XLA's LLVM optimisation off (291 -> 242 s on those
+# files, 2 cores), beside the CPU-safe flags; only where the user set no XLA_FLAGS.
+if "XLA_FLAGS" not in os.environ and os.environ.get("STRIDE_REQUIRE_GPU") != "1":
+    os.environ["XLA_FLAGS"] = stride_jax.CPU_SAFE_XLA_FLAGS + " --xla_backend_optimization_level=0"
 stride_jax.set_xla_flags()  # before JAX starts: the 2-core CPU deadlocks in XLA without
 
 SHARED = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "menagerie"
