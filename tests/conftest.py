@@ -10,7 +10,8 @@ import stride_jax
 # Tests compile far more than they compute (three MJX-heavy files: 99 s with a warm compilation
 # cache, 281 s cold), so off a GPU run they take XLA's LLVM optimisation off, beside the CPU-safe
 # flags; only where the user set no XLA_FLAGS. Measured by clean-clone .ci/run on 2 cores, same
-# day, same split: workers 16.9 / 19.3 min with it (7072ba1), 21.7 / 23.3 without (8b5ecd2).
+# day, same split: workers 16.9 / 19.3 and 16.5 / 18.3 min with it (7072ba1, 91ab006), 21.7 / 23.3
+# without (8b5ecd2).
 if "XLA_FLAGS" not in os.environ and os.environ.get("STRIDE_REQUIRE_GPU") != "1":
     os.environ["XLA_FLAGS"] = stride_jax.CPU_SAFE_XLA_FLAGS + " --xla_backend_optimization_level=0"
 stride_jax.set_xla_flags()  # before JAX starts: the 2-core CPU deadlocks in XLA without
