@@ -10,7 +10,9 @@ training split, keeps them only where they lower the held-out gap, and then fits
 effects on top of the calibrated model (the *baseline*). Both are reported apart: "the
 simulator's contact model is off by ..., and on top of that ...".
 
-Search (k-step replay loss on the training split, every ``subsample``-th replay):
+Search (k-step replay loss on the training split, every ``subsample``-th replay, thinned further
+to at most ``windows`` replays: a dozen settings need far fewer replays than the physical effects'
+fits, and a replay of the shipped Go1 costs ~6x the MJX-training form's):
 
 1. start: the nominal model, and the robot's MJX-training form where it has one
    (:func:`stride_jax.gap.nominal.training_settings`), whichever has the lower loss;
@@ -19,7 +21,8 @@ Search (k-step replay loss on the training split, every ``subsample``-th replay)
    loss by more than ``min_gain`` (relative), ``sweeps`` passes;
 3. continuous settings (solref time constant and damping ratio, solimp softness and width,
    margin, impratio) jointly by box-constrained least squares in coordinates normalised to their
-   (log) ranges, with 2%-of-range finite-difference steps; then each is put back to its neutral
+   (log) ranges, with 2%-of-range finite-difference steps replayed in one batch, within a budget
+   of evaluations that counts the Jacobian's; then each is put back to its neutral
    value where that costs less than ``min_gain`` of the loss (only settings that matter are
    reported);
 4. held-out: the calibrated baseline is kept only if it lowers the held-out k-step gap
@@ -67,14 +70,18 @@ class CalibrateConfig:
       timestep_min, timestep_max: time steps tried (s; those in range that divide the control
         period, at 0.5 ms resolution, and the model's own).
       sweeps: coordinate-descent passes over the discrete settings.
-      max_nfev: least-squares evaluations per continuous setting.
+      max_nfev: least-squares evaluations per continuous setting, the finite-difference
+        Jacobian's included (each iteration costs one evaluation plus one per setting).
       subsample: fit on every n-th replayed sample of the training split (the held-out check
         uses all).
+      windows: ... and on at most this many of them (a larger stride where the training split
+        has more; 0: no cap).
       min_gain: relative loss decrease a setting must bring to be changed (discrete) or kept
         (continuous).
       block: control steps per block of the held-out sign-flip test.
       seed: of the sign flips.
-      screen_steps: bounded Brent steps per effect in the screen, after its grid.
+      screen_steps: Gauss-Newton steps per effect in the screen of :func:`refine` (the first
+        from a secant replay, the others a parabola's vertex for the four best effects).
       refine: screen the scalar library effects on top of the first calibration (a grid each),
         and fit the settings again with the best of them held fixed on top (a strong physical
         effect biases settings fitted without it: a planted damping pulled the Go1's integrator
@@ -90,10 +97,11 @@ class CalibrateConfig:
     sweeps: int = 2
     max_nfev: int = 4
     subsample: int = 2
+    windows: int = 400
     min_gain: float = 0.01
     block: int = 10
     seed: int = 0
-    screen_steps: int = 6
+    screen_steps: int = 3
     refine: bool = True
 
     def __post_init__(self):
@@ -107,6 +115,8 @@ class CalibrateConfig:
                              f"{', '.join(CONTINUOUS)}; integrators: {', '.join(nominal.INTEGRATORS)}")
         if self.sweeps < 1 or self.max_nfev < 1 or self.subsample < 1 or self.block < 1:
             raise ValueError("calibrate: sweeps, max_nfev, subsample and block must be >= 1")
+        if self.windows < 0:
+            raise ValueError(f"calibrate.windows {self.windows} must be >= 0 (0: no cap)")
         if not 0 < self.timestep_min <= self.timestep_max:
             raise ValueError(f"calibrate: timestep range [{self.timestep_min}, {self.timestep_max}] is empty")
         if self.min_gain < 0:
@@ -120,14 +130,23 @@ def _names(s: str) -> list[str]:
 @dataclasses.dataclass(frozen=True)
 class Calibration:
     """The baseline model (``model``: the nominal one with ``settings``), and the JSON-able
-    ``record`` of the search and the held-out check."""
+    ``record`` of the search and the held-out check; ``heldout``: the held-out residuals computed
+    on the way, by (settings, effects held fixed), which :func:`refine` reuses."""
 
     model: SimModel
     settings: Settings
     record: dict
+    heldout: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
+
+
+def stride(cfg: CalibrateConfig, n: int) -> int:
+    """The stride over ``n`` training replays: ``cfg.subsample``, larger where that leaves more
+    than ``cfg.windows``."""
+    return max(cfg.subsample, -(-n // cfg.windows) if cfg.windows else 1)
 
 
 def _sub(data: fit.Data, n: int) -> fit.Data:
+    """Every ``n``-th replay of ``data``."""
     if n <= 1:
         return data
     keep = np.arange(len(data.start)) % n == 0
@@ -182,28 +201,59 @@ def fit_continuous(sm: SimModel, start: Settings, data: fit.Data, scale: np.ndar
                    evals: dict | None = None) -> tuple[Settings, float, np.ndarray]:
     """The continuous settings ``names`` fitted jointly from ``start`` (the others as ``start`` has
     them) by box-constrained least squares of the ``k``-step residual on ``data``, in coordinates
-    normalised to each setting's (log) range with 2%-of-range finite-difference steps, at most
-    ``max_nfev`` evaluations per setting; ``applied``: library effects held fixed on top. Returns
-    ``(settings, loss, z)``: ``start`` itself where the fit does not lower its loss."""
+    normalised to each setting's (log) range; ``applied``: library effects held fixed on top.
+
+    The Jacobian is a forward difference with 2%-of-range steps (backward at the upper bound),
+    its ``len(names)`` models replayed in one batch (:mod:`stride_jax.gap.replay`). At most
+    ``max_nfev * len(names)`` evaluations in all, the Jacobian's included: each iteration costs
+    one step and, once the step is taken, one Jacobian. Returns ``(settings, loss, z)``:
+    ``start`` itself where the fit does not lower its loss."""
     cache = {} if cache is None else cache
     evals = {"n": 0} if evals is None else evals
+    names = list(names)
+    n, h = len(names), 0.02
+    budget = max_nfev * n
+    used = {"n": 0, "J": None}
+    base = nominal.apply(sm, start)  # every point shares its time step (and so the substep count)
+    held = {m: np.atleast_1d(np.asarray(v, float)) for m, v in (applied or {}).items()}
 
     def settings_at(z):
-        return dataclasses.replace(start, **{n: _from_z(n, v) for n, v in zip(names, z)})
+        return dataclasses.replace(start, **{m: _from_z(m, v) for m, v in zip(names, z)})
 
-    def resid(z):
-        s = settings_at(z)
-        evals["n"] += 1
-        r = residual(nominal.apply(sm, s), data, scale, applied)
-        cache[s] = float((r ** 2).sum())
-        return r.ravel()
+    def resids(Z) -> list[np.ndarray]:
+        ss = [settings_at(z) for z in Z]
+        plans = [effects.build(nominal.apply(sm, s), held) for s in ss]
+        R = replay.residuals(base, plans, data, scale)
+        evals["n"] += len(ss)
+        used["n"] += len(ss)
+        for s, r in zip(ss, R, strict=True):
+            cache[s] = float((r ** 2).sum())
+        return list(R)
 
-    z0 = np.array([_z(n, getattr(start, n)) for n in names]).clip(0, 1)
+    seen: dict[bytes, np.ndarray] = {}
+
+    def fun(z):
+        key = np.asarray(z, float).tobytes()
+        if key not in seen:
+            seen[key] = resids([z])[0].ravel()
+        return seen[key]
+
+    def jac(z):
+        z = np.asarray(z, float)
+        if used["J"] is not None and used["n"] + n > budget:
+            return used["J"]  # out of budget: the fit stops after this iteration anyway
+        steps = np.where(z + h <= 1.0, h, -h)
+        R = resids([z + steps[i] * np.eye(n)[i] for i in range(n)])
+        f = fun(z)
+        used["J"] = np.stack([(r.ravel() - f) / steps[i] for i, r in enumerate(R)], axis=1)
+        return used["J"]
+
+    z0 = np.array([_z(m, getattr(start, m)) for m in names]).clip(0, 1)
     if start not in cache:
-        resid(z0)
+        fun(z0)
     L0 = cache[start]
-    res = optimize.least_squares(resid, z0, bounds=(0, 1), diff_step=0.02, method="trf",
-                                 max_nfev=max_nfev * len(names), x_scale=1.0)
+    iters = max(1, (budget - 1) // (n + 1))  # one step plus one Jacobian each
+    res = optimize.least_squares(fun, z0, jac=jac, bounds=(0, 1), method="trf", max_nfev=iters + 1, x_scale=1.0)
     if 2 * res.cost < L0:
         s = settings_at(res.x)
         return s, cache.get(s, float(2 * res.cost)), res.x
@@ -211,15 +261,25 @@ def fit_continuous(sm: SimModel, start: Settings, data: fit.Data, scale: np.ndar
 
 
 def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: CalibrateConfig,
-              log=print, applied: dict | None = None, start: Settings | None = None) -> Calibration:
+              log=print, applied: dict | None = None, start: Settings | None = None,
+              heldout: dict | None = None) -> Calibration:
     """Fits the simulator's settings on ``train`` (k-step replays), checks them on ``test``; returns
     the baseline (the nominal ``sm`` where calibration does not lower the held-out gap).
 
     ``applied``: library effects (name -> parameters) held fixed on top while the settings are
     fitted (the refinement pass, with the best hypothesis of a first pass); ``start``: settings
-    to start the search from as well (the first pass's)."""
+    to start the search from as well (the first pass's); ``heldout``: held-out residuals already
+    computed (:attr:`Calibration.heldout` of a first pass on the same ``test``)."""
     t0 = time.time()
-    sub = _sub(train, cfg.subsample)
+    heldout = {} if heldout is None else heldout
+
+    def r_test(s: Settings, app: dict | None = None) -> np.ndarray:
+        key = (s, tuple(sorted((n, tuple(np.atleast_1d(v).tolist())) for n, v in (app or {}).items())))
+        if key not in heldout:
+            heldout[key] = residual(sm if s == Settings() else nominal.apply(sm, s), test, scale, app)
+        return heldout[key]
+
+    sub = _sub(train, stride(cfg, len(train.start)))
     cache: dict[Settings, float] = {}
     evals = {"n": 0}
 
@@ -295,11 +355,9 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
     best = _neutral(best, own)
     # held-out check: with the effects held fixed on top where given (they decide), and the
     # settings' own share without them (what the report quotes)
-    r_nom = residual(sm, test, scale)
-    r_cal = r_nom if best == Settings() else residual(base, test, scale)
+    r_nom, r_cal = r_test(Settings()), r_test(best)
     if applied:
-        g_nom_a = fit.gap(residual(sm, test, scale, applied))
-        g_cal_a = g_nom_a if best == Settings() else fit.gap(residual(base, test, scale, applied))
+        g_nom_a, g_cal_a = fit.gap(r_test(Settings(), applied)), fit.gap(r_test(best, applied))
     ids, nb, _ = fit.block_ids(test, cfg.block)
     bl = lambda r: np.bincount(ids, weights=(r ** 2).sum(1), minlength=nb)
     d = bl(r_nom) - bl(r_cal)
@@ -308,7 +366,7 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
     p = _signflip(d, 4000, cfg.seed + 11) if best != Settings() else 1.0
     forms_heldout = {}
     for name, s in forms.items():
-        forms_heldout[name] = g_nom if s == Settings() else fit.gap(residual(nominal.apply(sm, s), test, scale))
+        forms_heldout[name] = fit.gap(r_test(s))
     record = {
         "mode": cfg.mode, "applied": ok, "effects_held_fixed": {n: np.atleast_1d(v).tolist() for n, v in (applied or {}).items()},
         "settings": {f.name: getattr(best, f.name) for f in dataclasses.fields(best)},
@@ -331,48 +389,82 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
         log(f"  calibration ({evals['n']} evaluations): the nominal settings stay"
             + (f" (proposed {'; '.join(record['proposed'])} did not lower the held-out gap: {g_nom:.4g} -> {g_cal:.4g})"
                if best != Settings() else ""))
-    return Calibration(model=base if ok else sm, settings=best if ok else Settings(), record=record)
+    return Calibration(model=base if ok else sm, settings=best if ok else Settings(), record=record, heldout=heldout)
 
 
 def screen(base: SimModel, train: fit.Data, scale: np.ndarray, cfg: CalibrateConfig, grid: int
            ) -> tuple[dict, dict]:
-    """The scalar library effect that lowers the training loss most on top of ``base`` (a grid of
-    ``grid`` values over its bounds and ``screen_steps`` Brent steps in the best cell; delays on a
-    grid of at most 8; every ``subsample``-th replay):
-    ``({name: value}, record)``, or ``({}, record)`` when none lowers it by ``min_gain``."""
-    sub = _sub(train, cfg.subsample)
-    L0 = float((residual(base, sub, scale) ** 2).sum())
+    """The scalar library effect that lowers the training loss most on top of ``base`` (every
+    :func:`stride`-th replay): ``({name: value}, record)``, or ``({}, record)`` when none lowers
+    it by ``min_gain``.
+
+    Each effect is found by Gauss-Newton from its nominal value, every effect's replays in one
+    batch: a secant replay at a tenth of its range gives the residual's slope and the linear
+    least-squares estimate; then ``screen_steps - 1`` times, for the four effects with the
+    lowest loss so far, the vertex of a parabola through the effect's three best points. Integer
+    effects (delays) are scored on a grid of at most ``grid`` values. It only picks the effect to
+    hold fixed while the settings are fitted again (:func:`refine`); the effects' own fits come
+    later, on the calibrated baseline."""
+    sub = _sub(train, stride(cfg, len(train.start)))
+    r0 = residual(base, sub, scale).ravel()
+    L0 = float(r0 @ r0)
+    pts: dict[str, dict[float, float]] = {}  # effect -> {value: loss}
+    scalar = [e for e in effects.candidates(base) if e.size == 1]
+
+    def score(points):
+        if not points:
+            return []
+        R = replay.residuals(base, [effects.build(base, {n: [x]}) for n, x in points], sub, scale)
+        for (n, x), r in zip(points, R, strict=True):
+            pts.setdefault(n, {})[x] = float((r ** 2).sum())
+        return R
+
+    ends = {e.name: tuple(float(b[0]) for b in e.bounds(base)) for e in scalar}
+    first = []
+    for e in scalar:
+        lo, hi = ends[e.name]
+        x0 = float(e.nominal[0])
+        if e.integer:
+            xs = np.unique(np.linspace(lo, hi, min(grid, int(hi - lo) + 1)).round())
+            first += [(e.name, float(x)) for x in xs if abs(x - x0) > 1e-12]
+        else:
+            d = 0.1 * (hi - lo)
+            first.append((e.name, x0 + d if x0 + d <= hi else x0 - d))
+    R = score(first)
+    est = []
+    for (n, x1), r in zip(first, R, strict=True):
+        e = effects.ALL[n]
+        if e.integer:
+            continue
+        x0 = float(e.nominal[0])
+        J = (r.ravel() - r0) / (x1 - x0)
+        if J @ J > 0:
+            lo, hi = ends[n]
+            x = float(np.clip(x0 - (J @ r0) / (J @ J), lo, hi))
+            if all(abs(x - v) > 1e-9 * (hi - lo) for v in (x0, x1)):
+                est.append((n, x))
+    score(est)
+    for _ in range(cfg.screen_steps - 1):
+        best4 = sorted((n for n in pts if not effects.ALL[n].integer), key=lambda n: min(pts[n].values()))[:4]
+        step = []
+        for n in best4:
+            lo, hi = ends[n]
+            xy = sorted(pts[n].items(), key=lambda p: p[1])[:2] + [(float(effects.ALL[n].nominal[0]), L0)]
+            (a, fa), (b, fb), (c, fc) = xy
+            den = (b - a) * (fb - fc) - (b - c) * (fb - fa)
+            if len({a, b, c}) < 3 or ((fa - fb) / (a - b) - (fb - fc) / (b - c)) / (a - c) <= 0:
+                continue  # no convex parabola through them
+            x = float(np.clip(b - 0.5 * ((b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)) / den, lo, hi))
+            if all(abs(x - v) > 1e-6 * (hi - lo) for v in (a, b, c)):
+                step.append((n, x))
+        score(step)
     rows = []
-    grids = {}
-    for e in effects.candidates(base):
-        if e.size != 1:
-            continue
-        lo, hi = (float(b[0]) for b in e.bounds(base))
-        xs = (np.unique(np.linspace(lo, hi, min(8, int(hi - lo) + 1)).round()) if e.integer
-              else np.linspace(lo, hi, grid))
-        grids[e.name] = [float(x) for x in xs if abs(x - e.nominal[0]) > 1e-12]
-    # every grid point of every effect in one batched replay (the same numbers as one at a time)
-    flat = [(n, x) for n, xs in grids.items() for x in xs]
-    R = replay.residuals(base, [effects.build(base, {n: [x]}) for n, x in flat], sub, scale)
-    L = {nx: float((r ** 2).sum()) for nx, r in zip(flat, R, strict=True)}
-    for e in effects.candidates(base):
-        if e.name not in grids:
-            continue
-        lo, hi = (float(b[0]) for b in e.bounds(base))
-        f = lambda x: float((residual(base, sub, scale, {e.name: [x]}) ** 2).sum())
-        xs = grids[e.name]
-        ls = [L[(e.name, x)] for x in xs]
-        k = int(np.argmin(ls))
-        x, fx = xs[k], ls[k]
-        if not e.integer and len(xs) > 2:  # a few bounded Brent steps in the best grid cell
-            a, b = xs[max(k - 1, 0)], xs[min(k + 1, len(xs) - 1)]
-            r = optimize.minimize_scalar(f, bounds=(a, b), method="bounded",
-                                         options={"maxiter": cfg.screen_steps, "xatol": 1e-3 * (hi - lo)})
-            if r.fun < fx:
-                x, fx = float(r.x), float(r.fun)
-        rows.append({"effect": e.name, "value": x, "loss": fx})
+    for e in scalar:
+        if e.name in pts:
+            x, fx = min(pts[e.name].items(), key=lambda p: p[1])
+            rows.append({"effect": e.name, "value": x, "loss": fx})
     rows.sort(key=lambda r: r["loss"])
-    rec = {"loss_without": L0, "screen": rows}
+    rec = {"loss_without": L0, "screen": rows, "replays": sum(len(v) for v in pts.values())}
     if rows and rows[0]["loss"] < (1 - cfg.min_gain) * L0:
         return {rows[0]["effect"]: [rows[0]["value"]]}, rec
     return {}, rec
@@ -397,6 +489,6 @@ def refine(sm: SimModel, cal: Calibration, train: fit.Data, test: fit.Data, scal
     if not held and not fold:
         return dataclasses.replace(cal, record=cal.record | {"refined": info | {"settings_moved": False}})
     log(f"  calibration refined with {held} held fixed on top and {fold} folded into the settings (screened)")
-    cal2 = calibrate(sm, train, test, scale, cfg, log, applied=held or None, start=start)
+    cal2 = calibrate(sm, train, test, scale, cfg, log, applied=held or None, start=start, heldout=cal.heldout)
     info["settings_moved"] = cal2.settings != cal.settings
     return dataclasses.replace(cal2, record=cal2.record | {"refined": info})

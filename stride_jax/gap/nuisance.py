@@ -35,7 +35,7 @@ from stride_jax.sim.model import SimModel
 
 class Null:
     """The null of an overlapping effect: the continuous contact settings re-fitted from the
-    calibrated ``settings`` on the training split (every ``cfg.subsample``-th replay, at most
+    calibrated ``settings`` on the training split (every :func:`stride_jax.gap.calibrate.stride`-th replay, at most
     ``cfg.max_nfev`` least-squares evaluations per setting), with other effects held fixed on top.
 
     ``null(held, fold)`` returns ``(r, record)``: the scaled ``k``-step residual ``[M, nv]`` of the
@@ -46,7 +46,7 @@ class Null:
     def __init__(self, sm: SimModel, settings: Settings, train: fit.Data, test: fit.Data, scale: np.ndarray,
                  cfg: calibrate.CalibrateConfig, names: list[str]):
         self.sm, self.settings, self.test, self.scale, self.cfg, self.names = sm, settings, test, scale, cfg, names
-        self.sub = calibrate._sub(train, cfg.subsample)
+        self.sub = calibrate._sub(train, calibrate.stride(cfg, len(train.start)))
         self._cache: dict[tuple, tuple[np.ndarray, dict]] = {}
 
     def start(self, fold: dict) -> Settings:
