@@ -449,10 +449,12 @@ def screen(base: SimModel, train: fit.Data, scale: np.ndarray, cfg: CalibrateCon
         step = []
         for n in best4:
             lo, hi = ends[n]
-            xy = sorted(pts[n].items(), key=lambda p: p[1])[:2] + [(float(effects.ALL[n].nominal[0]), L0)]
-            (a, fa), (b, fb), (c, fc) = xy
+            known = {float(effects.ALL[n].nominal[0]): L0} | pts[n]
+            if len(known) < 3:
+                continue  # only the secant point so far: no parabola to draw
+            (a, fa), (b, fb), (c, fc) = sorted(known.items(), key=lambda p: p[1])[:3]
             den = (b - a) * (fb - fc) - (b - c) * (fb - fa)
-            if len({a, b, c}) < 3 or ((fa - fb) / (a - b) - (fb - fc) / (b - c)) / (a - c) <= 0:
+            if ((fa - fb) / (a - b) - (fb - fc) / (b - c)) / (a - c) <= 0:
                 continue  # no convex parabola through them
             x = float(np.clip(b - 0.5 * ((b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)) / den, lo, hi))
             if all(abs(x - v) > 1e-6 * (hi - lo) for v in (a, b, c)):
