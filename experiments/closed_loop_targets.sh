@@ -18,15 +18,17 @@ for n in ${names//,/ }; do
   esac
 done
 common=(--preset gpu --robot "$robot" --policy "results/policies/ppo_$robot"
-        --learned "results/learned_$robot/reward_value.msgpack"
-        --planning.observer-gain 0.1 --planning.learned-track-weight 10)
+        --learned "results/learned_$robot/reward_value.msgpack")
 if [ "$robot" = go1 ]; then  # K = 1024: 64 policy, 256 command-family, 352 prior, 352 plan
+  # observer gain 0.3 and tracking weight 30 since session 21 (results/closed_loop_go1_gpu/
+  # parts/tw30_obs03; the rows @walk ran with 0.1 and 10)
   common+=(--mppi.policy-samples 64 --mppi.family-samples 256 --mppi.prior-fraction 0.5
-           --prior-noise-std 0.08)
+           --prior-noise-std 0.08 --planning.observer-gain 0.3 --planning.learned-track-weight 30)
 else  # G1: closer to the policy (the settings that kept G1 planners up before,
       # results/closed_loop/closed_loop_g1_gpu_policy_noise): 128 policy, 384 family, 512 prior
   common+=(--mppi.policy-samples 128 --mppi.family-samples 384 --mppi.prior-fraction 1.0
-           --prior-noise-std 0.05 --mppi.family-decay 0.8)
+           --prior-noise-std 0.05 --mppi.family-decay 0.8 --planning.observer-gain 0.1
+           --planning.learned-track-weight 10)
 fi
 mkdir -p "$out"
 timeout "$limit" python -m stride_jax.jobs.closed_loop "${common[@]}" --models "${models%,}" \
