@@ -25,6 +25,7 @@ from scipy import stats
 from stride_jax.gap import (admit, effects, fit, form, granularity, linear_probe, nominal, progress, regions,
                             replay, sim)
 from stride_jax.gap.regions import noise_floor
+from stride_jax.gap.screen import fit_stride_of
 from stride_jax.sim.model import SimModel
 
 if TYPE_CHECKING:
@@ -193,7 +194,8 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     if exact:
         swap_params = start
     else:
-        f_sw = fit.fit(sm, test, scale, bnames, dataclasses.replace(cfg.fit, profile=0, refits=0), start)
+        thin = fit.thin(test, fit_stride_of(cfg.screen, len(test.start)))
+        f_sw = fit.fit(sm, thin, scale, bnames, dataclasses.replace(cfg.fit, profile=0, refits=0), start)
         swap_params = f_sw.params
     r_sw_tr = fit.residual(sm, effects.build(sm, swap_params), train, scale)
     ids_tr, nb_tr = _block_ids(train, cfg.block)

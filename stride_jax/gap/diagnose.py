@@ -194,7 +194,7 @@ def _screen_and_which(sm, sm_nominal, cal, train_k, test_k, scale, cfg, log, sta
     t0 = time.time()
     # effects that overlap the contact settings must beat re-fitting them (:mod:`stride_jax.gap.nuisance`)
     null = nuisance.make(sm_nominal, cal.settings, train_k, test_k, scale, cfg.calibrate) if cal else None
-    w = which(sm, fit.thin(train_k, cfg.screen.fit_stride), test_k, scale, cfg, log, singles, pair_screen, null)
+    w = which(sm, fit.thin(train_k, screen.fit_stride_of(cfg.screen, len(train_k.start))), test_k, scale, cfg, log, singles, pair_screen, null)
     stages["which"] = stages.get("which", 0.0) + time.time() - t0
     return scr, C, w
 
@@ -272,7 +272,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     t0 = time.time()
     out["screen"] = scr
     out["verdict"] = verdict(w, cfg)
-    if check_form(sm, fit.thin(train_k, cfg.screen.fit_stride), scale, w, out["verdict"], cfg, log):
+    if check_form(sm, fit.thin(train_k, screen.fit_stride_of(cfg.screen, len(train_k.start))), scale, w, out["verdict"], cfg, log):
         out["verdict"] = verdict(w, cfg)  # a differing form takes the confidence
     stages["form_check"], t0 = time.time() - t0, time.time()
     collinear = {e: screen.collinear_with(C, e, cfg.screen.collinear) for e in w["ranking"][0]["effects"]} if scr else {}

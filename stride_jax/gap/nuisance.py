@@ -63,6 +63,9 @@ class Null:
             start = self.start(fold)
             s, loss, _ = calibrate.fit_continuous(self.sm, start, self.sub, self.scale, self.names, self.cfg.max_nfev,
                                                   held, evals=evals)
+            train_loss = lambda s_: float((baseline.residual(nominal.apply(self.sm, s_), self.sub, self.scale, held)
+                                           ** 2).sum())
+            s, loss = calibrate.parsimony(s, loss, self.names, train_loss, self.cfg.min_gain)
             r = baseline.residual(nominal.apply(self.sm, s), self.test, self.scale, held)
             rec = {"_settings": s, "held_fixed": {n: v.tolist() for n, v in held.items()},
                    "folded": {n: v.tolist() for n, v in fold.items() if OVERLAPS.get(n) in self.names},
