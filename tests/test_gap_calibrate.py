@@ -127,3 +127,15 @@ def test_settings_kept_for_the_effect_held_on_top_say_so():
     assert "fitted with kp_scale held fixed on top, with which they lower the held-out gap; without it they " \
            "close -30.0%" in s
     assert "held fixed" not in baseline.sentence(rec | {"shrink": 0.2})
+
+
+def test_parsimony_puts_back_only_the_settings_that_do_not_matter():
+    # a loss that cares about the time constant (x 1.6) and barely about the margin (6.5 microns)
+    loss = lambda s: 1.0 + 50 * (s.solref_timeconst - 1.6) ** 2 + 1e3 * s.margin
+    s = Settings(solref_timeconst=1.6, solimp_softness=1.0, margin=6.5e-6)
+    out, L = calibrate.parsimony(s, loss(s), ["solref_timeconst", "solimp_softness", "margin"], loss, 0.01)
+    assert out.margin == 0.0 and out.solref_timeconst == 1.6 and L == loss(out)
+    # a margin that matters stays
+    loss2 = lambda s: 1.0 + 1e4 * abs(s.margin - 0.002)
+    s2 = Settings(margin=0.002)
+    assert calibrate.parsimony(s2, loss2(s2), ["margin"], loss2, 0.01)[0].margin == 0.002

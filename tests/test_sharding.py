@@ -47,8 +47,8 @@ def test_rollouts_and_training_on_two_devices_match_one(tmp_path):
     outs, procs = [], []
     for n in (1, 2):  # side by side: each is mostly single-threaded compilation
         env = dict(os.environ)
-        env["XLA_FLAGS"] = ("--xla_cpu_enable_concurrency_optimized_scheduler=false "
-                            f"--xla_force_host_platform_device_count={n}")
+        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "--xla_cpu_enable_concurrency_optimized_scheduler=false")
+                            + f" --xla_force_host_platform_device_count={n}")  # conftest's flags too
         out = tmp_path / f"dev{n}"
         out.mkdir()
         procs.append(subprocess.Popen([sys.executable, "-c", SCRIPT, str(out), str(data), str(n)],
