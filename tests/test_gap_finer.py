@@ -172,3 +172,26 @@ def test_a_pair_s_indistinguishable_set_swaps_the_collinear_member():
     single = {"ranking": [{"effects": ["kp_scale"], "explained": 0.9}]}
     assert granularity.indistinguishable(single, {"kp_scale": {"torque_scale": 0.99}}, 0.05)["effects"] == [
         "kp_scale", "torque_scale"]
+
+
+def test_window_caps_thin_long_logs_and_keep_the_verdict():
+    # minutes of logs cost what ~1000 windows cost: the screen's and the fits' strides grow past
+    # their caps; capped far below this log's ~470 training windows, the verdict is the same
+    assert screen.fit_stride_of(screen.ScreenConfig(), 800) == 1  # the benchmarks' logs: every window
+    assert screen.fit_stride_of(screen.ScreenConfig(), 3160) == 4  # 12 x 8 s of Go1 logs
+    assert screen.fit_stride_of(screen.ScreenConfig(fit_stride=5), 3160) == 5
+    assert screen.fit_stride_of(screen.ScreenConfig(fit_windows=0), 10 ** 6) == 1
+    sm = model.load("pendulum")
+    _, logged = real.generate(sm, {"damping": 0.3}, 6, 120, seed=2)
+    out = {}
+    for name, cfg in (("uncapped", screen.ScreenConfig(windows=0, fit_windows=0)),
+                      ("capped", screen.ScreenConfig(windows=40, fit_windows=100))):
+        out[name] = diagnose.diagnose(sm, logged, _quiet(screen=cfg), log=lambda s: None)
+    n_tr, _ = out["capped"]["screen"]["windows"]
+    assert n_tr <= 40 < out["uncapped"]["screen"]["windows"][0]
+    assert out["capped"]["which"]["fit_windows"] <= 100 < out["uncapped"]["which"]["fit_windows"]
+    assert out["uncapped"]["which"]["fit_stride"] == 1 < out["capped"]["which"]["fit_stride"]
+    for k in ("verdict", "effects"):
+        assert out["capped"]["verdict"][k] == out["uncapped"]["verdict"][k] == (
+            "explained" if k == "verdict" else ["damping"])
+    assert out["capped"]["which"]["ranking"][0]["params"]["damping"][0] == pytest.approx(0.3, abs=0.03)

@@ -194,7 +194,10 @@ def _screen_and_which(sm, sm_nominal, cal, train_k, test_k, scale, cfg, log, sta
     t0 = time.time()
     # effects that overlap the contact settings must beat re-fitting them (:mod:`stride_jax.gap.nuisance`)
     null = nuisance.make(sm_nominal, cal.settings, train_k, test_k, scale, cfg.calibrate) if cal else None
-    w = which(sm, fit.thin(train_k, screen.fit_stride_of(cfg.screen, len(train_k.start))), test_k, scale, cfg, log, singles, pair_screen, null)
+    stride = screen.fit_stride_of(cfg.screen, len(train_k.start))
+    fit_data = fit.thin(train_k, stride)
+    w = which(sm, fit_data, test_k, scale, cfg, log, singles, pair_screen, null)
+    w["fit_windows"], w["fit_stride"] = int(len(fit_data.start)), int(stride)  # what the fits replayed
     stages["which"] = stages.get("which", 0.0) + time.time() - t0
     return scr, C, w
 
