@@ -21,8 +21,8 @@ fits, and a replay of the shipped Go1 costs ~6x the MJX-training form's):
    loss by more than ``min_gain`` (relative), ``sweeps`` passes;
 3. continuous settings (solref time constant and damping ratio, solimp softness and width,
    margin, impratio) jointly by box-constrained least squares in coordinates normalised to their
-   (log) ranges, with 2%-of-range finite-difference steps replayed in one batch, within a budget
-   of evaluations that counts the Jacobian's; then each is put back to its neutral
+   (log) ranges, with 2%-of-range finite-difference steps replayed in one batch, at most
+   ``max_nfev`` iterations per setting; then each is put back to its neutral
    value where that costs less than ``min_gain`` of the loss (only settings that matter are
    reported);
 4. held-out: the calibrated baseline is kept only if it lowers the held-out k-step gap
@@ -229,7 +229,8 @@ def fit_continuous(sm: SimModel, start: Settings, data: fit.Data, scale: np.ndar
     evals = {"n": 0} if evals is None else evals
     names = list(names)
     n, h = len(names), 0.02
-    budget = max_nfev * n * (n + 1)
+    iters = max_nfev * n
+    budget = 1 + iters * (n + 1)  # replays: the start, then one step and one Jacobian per iteration
     used = {"n": 0, "J": None}
     base = nominal.apply(sm, start)  # every point shares its time step (and so the substep count)
     held = {m: np.atleast_1d(np.asarray(v, float)) for m, v in (applied or {}).items()}
@@ -269,7 +270,6 @@ def fit_continuous(sm: SimModel, start: Settings, data: fit.Data, scale: np.ndar
     if start not in cache:
         fun(z0)
     L0 = cache[start]
-    iters = max(1, (budget - 1) // (n + 1))  # one step plus one Jacobian each
     res = optimize.least_squares(fun, z0, jac=jac, bounds=(0, 1), method="trf", max_nfev=iters + 1, x_scale=1.0,
                                  ftol=FTOL, xtol=FTOL)
     if 2 * res.cost < L0:

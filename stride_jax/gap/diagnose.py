@@ -275,7 +275,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     t0 = time.time()
     out["screen"] = scr
     out["verdict"] = verdict(w, cfg)
-    if check_form(sm, fit.thin(train_k, screen.fit_stride_of(cfg.screen, len(train_k.start))), scale, w, out["verdict"], cfg, log):
+    if check_form(sm, fit.thin(train_k, w["fit_stride"]), scale, w, out["verdict"], cfg, log):
         out["verdict"] = verdict(w, cfg)  # a differing form takes the confidence
     stages["form_check"], t0 = time.time() - t0, time.time()
     collinear = {e: screen.collinear_with(C, e, cfg.screen.collinear) for e in w["ranking"][0]["effects"]} if scr else {}
