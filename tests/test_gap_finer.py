@@ -195,3 +195,10 @@ def test_window_caps_thin_long_logs_and_keep_the_verdict():
         assert out["capped"]["verdict"][k] == out["uncapped"]["verdict"][k] == (
             "explained" if k == "verdict" else ["damping"])
     assert out["capped"]["which"]["ranking"][0]["params"]["damping"][0] == pytest.approx(0.3, abs=0.03)
+    # intervals: the named single has one around its estimate; singles that cannot be named
+    # (below the best two held out) were fitted without
+    ranking = out["uncapped"]["which"]["ranking"]
+    top = ranking[0]
+    assert top["interval"] and top["param_lo"]["damping"][0] < top["params"]["damping"][0] < top["param_hi"]["damping"][0]
+    singles = sorted((r for r in ranking if len(r["effects"]) == 1), key=lambda r: -r["explained"])
+    assert len(singles) > 2 and not any(r["interval"] for r in singles[2:] if r is not top)

@@ -99,7 +99,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     names = [e.name for e in effects.candidates(sm)] if singles is None else list(singles)
     for name in progress.track(names, "fits: each shortlisted effect alone", cfg.progress):
         t0 = time.time()
-        f = fit.fit(sm, train, scale, (name,), cfg.fit)
+        f = fit.fit(sm, train, scale, (name,), cfg.fit, interval=False)  # intervals: below, where reported
         score(f)
         log(f"  fit {name:17s} {_fmt(f.params)}  train loss {f.train_loss:.4g}  ({f.evals} evals, "
             f"{time.time() - t0:.1f} s)")
@@ -107,9 +107,14 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     lead = min(fits, key=lambda f: held(f.names)).names[0]
     coarse = granularity.coarse_of(sm, lead)  # the finer choice needs the best's all-joints rival
     if coarse and coarse not in [f.names[0] for f in fits]:
-        score(fit.fit(sm, train, scale, (coarse,), cfg.fit))
+        score(fit.fit(sm, train, scale, (coarse,), cfg.fit, interval=False))
         log(f"  fit {coarse:17s} {_fmt(fits[-1].params)}  (the all-joints rival of {lead})")
     n_single = len(fits)
+    # intervals for the singles a verdict can name or weigh a pair against: the best two held out
+    # (the others' rows report none: ``interval`` False)
+    top = {f.names for f in sorted(fits, key=lambda f: held(f.names))[:2]}
+    fits[:] = [fit.with_interval(sm, train, scale, f, cfg.fit) if f.names in top else f for f in fits]
+    with_iv = set(top)
     singles = {f.names[0]: f for f in fits}
     ranked = sorted(fits, key=lambda f: held(f.names))
     best_single = ranked[0]
@@ -149,6 +154,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         t0 = time.time()
         f = fit.fit(sm, train, scale, (a, b), cfg.fit, start)
         score(f)
+        with_iv.add(f.names)
         log(f"  fit {a}+{b}: {_fmt(f.params)}  ({f.evals} evals, {time.time() - t0:.1f} s)")
     rows = []
     for f in fits:
@@ -157,7 +163,8 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         expl = 1 - Lb.sum() / max(L_nom, 1e-300)
         boot = 1 - (Wb @ Lb) / boot_nom
         rows.append({"effects": list(f.names), "params": _jsonable(f.params), "param_lo": _jsonable(f.lo),
-                     "param_hi": _jsonable(f.hi), "at_bound": _at_bound(f), "unstable_evals": f.unstable,
+                     "param_hi": _jsonable(f.hi), "interval": f.names in with_iv or not cfg.fit.profile,
+                     "_fit": f, "at_bound": _at_bound(f), "unstable_evals": f.unstable,
                      "n_params": k, "train_loss": f.train_loss,
                      "heldout_loss": float(Lb.sum()), "explained": float(expl),
                      "explained_ci": np.percentile(boot, [5, 95]).tolist(),
@@ -167,6 +174,9 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     granularity.prefer_coarse(rows, cfg.screen.finer_margin, cfg.alpha, lambda n: noise_floor(r_te[n], test) * M / L_nom)
     _, S, pair_tests, nuisance_tests = admit.choose(rows, r_te, test, M, L_nom, blocks, Wb, boot_nom, cfg,
                                                     nuisance)
+    if not rows[0]["interval"]:  # the named hypothesis always has its interval
+        f = fit.with_interval(sm, train, scale, rows[0]["_fit"], cfg.fit)
+        rows[0].update(param_lo=_jsonable(f.lo), param_hi=_jsonable(f.hi), interval=True)
     # bootstrap probability that the chosen hypothesis beats the runner-up (for a chosen single:
     # by penalised score, against the best hypothesis that is not a superset of it; for a chosen
     # pair: unpenalised, against the best single)
@@ -239,7 +249,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     hints = linear_probe.structure_hints(sm, train, r_best_tr, test, r_best_te)
     for row in rows:
         row["explained_above_floor"] = float(min(1.0, (g_nom - row["heldout_loss"] / M) / above))
-        del row["_boot"]
+        del row["_boot"], row["_fit"]
     u1 = sim.unstable()
     unstable = {"fits": int(sum(f.unstable for f in fits)), "pair_screen": int(screen_unstable),
                 "diverged_replays": u1["diverged"] - unstable0["diverged"],

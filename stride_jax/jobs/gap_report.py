@@ -187,8 +187,10 @@ def markdown(d: dict[str, Any], files: dict[str, str], command: str | None = Non
               "|---|---|---|---|---|---|---|---|---|"]
         for i, r in enumerate(wh["ranking"]):
             flag = " (at the bound)" if any(any(v) for v in r.get("at_bound", {}).values()) else ""
-            L.append(f"| {i + 1} | {'+'.join(r['effects'])} | {_fmt(r['params'])}{flag} | {_fmt(r['param_lo'])} – "
-                     f"{_fmt(r['param_hi'])} | {r['explained']:.1%} | [{r['explained_ci'][0]:.1%}, "
+            iv = (f"{_fmt(r['param_lo'])} – {_fmt(r['param_hi'])}" if r.get("interval", True)
+                  else "not computed (not named)")
+            L.append(f"| {i + 1} | {'+'.join(r['effects'])} | {_fmt(r['params'])}{flag} | {iv} | "
+                     f"{r['explained']:.1%} | [{r['explained_ci'][0]:.1%}, "
                      f"{r['explained_ci'][1]:.1%}] | {r['explained_above_floor']:.1%} | {r['score']:.3f} | "
                      f"{r['p_beats_next']:.2f} |")
         level = d["config"].get("fit", {}).get("level", 0.9)
@@ -196,7 +198,9 @@ def markdown(d: dict[str, Any], files: dict[str, str], command: str | None = Non
               "training loss, calibrated by the spread of its gradient over blocks of the logs, clipped to the "
               "parameter's bounds; they contain the estimate. They cover sampling noise only, not the bias that "
               "sensor noise in the replayed start states gives the estimate (docs/gap.md). \"(at the bound)\": the "
-              "estimate sits on a bound of its parameter: the true value may lie beyond it."]
+              "estimate sits on a bound of its parameter: the true value may lie beyond it. Single effects "
+              "other than the two best held out and the named one are fitted without an interval (a third of a fit's "
+              "replays)."]
         det = wh.get("detection") or {}
         if det:
             L += ["", f"Detection (cross-fitted, {det['blocks']} blocks): sign-flip p = {det['p_value']:.3g} (Monte Carlo "
