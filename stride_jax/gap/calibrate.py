@@ -82,7 +82,7 @@ class CalibrateConfig:
       seed: of the sign flips.
       screen_steps: Gauss-Newton steps per effect in the screen of :func:`refine` (the first
         from a secant replay, the others a parabola's vertex for the four best effects).
-      refine: screen the scalar library effects on top of the first calibration (a grid each),
+      refine: screen the scalar library effects on top of the first calibration (:func:`screen`),
         and fit the settings again with the best of them held fixed on top (a strong physical
         effect biases settings fitted without it: a planted damping pulled the Go1's integrator
         to RK4).
@@ -145,7 +145,7 @@ FTOL = 1e-3  # least squares stops when a step lowers the loss by less than 0.1%
 def stride(cfg: CalibrateConfig, n: int) -> int:
     """The stride over ``n`` training replays: ``cfg.subsample``, larger where that leaves more
     than ``cfg.windows``."""
-    return max(cfg.subsample, -(-n // cfg.windows) if cfg.windows else 1)
+    return fit.capped_stride(cfg.subsample, n, cfg.windows)
 
 
 def _sub(data: fit.Data, n: int) -> fit.Data:
@@ -186,8 +186,8 @@ def parsimony(s: Settings, L: float, names: list[str], loss, min_gain: float) ->
     real contact model has, but which moves replays across the contact threshold)."""
     for n in sorted(names, key=lambda n: abs(_z(n, getattr(s, n)) - _z(n, CONTINUOUS[n][3]))):
         trial = dataclasses.replace(s, **{n: CONTINUOUS[n][3]})
-        if trial != s and loss(trial) <= L * (1 + min_gain):
-            s, L = trial, loss(trial)
+        if trial != s and (L_trial := loss(trial)) <= L * (1 + min_gain):
+            s, L = trial, L_trial
     return s, L
 
 

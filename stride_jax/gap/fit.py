@@ -106,6 +106,12 @@ def thin(data: Data, stride: int) -> Data:
                          traj=data.traj[keep])
 
 
+def capped_stride(stride: int, n: int, cap: int) -> int:
+    """``stride``, or the smallest larger one that leaves at most ``cap`` (0: no cap) of ``n``
+    replays: long logs cost what ``cap`` replays cost (neighbouring windows overlap)."""
+    return max(stride, -(-n // cap) if cap else 1)
+
+
 def samples_before_next(data: Data) -> np.ndarray:
     """``[M]`` index into ``q``/``qd`` of each replayed sample."""
     return data.start
@@ -258,8 +264,9 @@ def _split(names, vec) -> dict:
 
 def fit_scalar(obj: Objective, cfg: FitConfig, integer: bool, lo: float, hi: float
                ) -> tuple[float, float, float, float]:
-    """Minimises a one-parameter objective; returns ``(x, loss, x_lo, x_hi)`` (the interval at
-    level ``cfg.level``; ``x`` itself when ``cfg.profile == 0``)."""
+    """Minimises a one-parameter objective; returns ``(x, loss, x_lo, x_hi)``: for an integer
+    parameter the set at level ``cfg.level`` (``x`` itself when ``cfg.profile == 0``), for a
+    continuous one ``x`` itself (its profile interval: :func:`with_interval`)."""
     if integer:
         xs = np.arange(int(lo), int(hi) + 1, dtype=float)
         B = obj.block_losses_many([[x] for x in xs])
@@ -274,10 +281,7 @@ def fit_scalar(obj: Objective, cfg: FitConfig, integer: bool, lo: float, hi: flo
     res = optimize.minimize_scalar(lambda x: obj.losses(np.array([x])).sum(), bounds=(a, b),
                                    method="bounded", options={"xatol": 1e-4 * (hi - lo), "maxiter": 25})
     x, f = (float(res.x), float(res.fun)) if res.fun <= L[k].sum() else (float(xs[k]), float(L[k].sum()))
-    if not cfg.profile:
-        return x, f, x, x
-    x_lo, x_hi, _ = scalar_interval(obj, x, f, lo, hi, cfg.level)
-    return x, f, float(x_lo), float(x_hi)
+    return x, f, x, x
 
 
 def fit_vector(obj: Objective, cfg: FitConfig, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray
@@ -307,8 +311,6 @@ def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg
     third of a scalar fit's replays, and a diagnosis reports intervals only for the hypotheses
     it names."""
     names = tuple(names)
-    if not interval and len(names) == 1 and not effects.ALL[names[0]].integer:
-        cfg = dataclasses.replace(cfg, profile=0)
     ints = [n for n in names if effects.ALL[n].integer]
     conts = [n for n in names if not effects.ALL[n].integer]
     start = dict(start or {})
@@ -321,13 +323,12 @@ def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg
         obj = Objective(sm, data, scale, names, block=cfg.block)
         if e.size == 1:
             x, f, xl, xh = fit_scalar(obj, cfg, e.integer, lo[0], hi[0])
-            return Fit(names, {name: np.array([x])}, f, {name: np.array([xl])}, {name: np.array([xh])},
-                       obj.evals, _flags(bound_flags(np.array([x]))), obj.unstable)
-        x0 = np.asarray(start.get(name, e.nominal), float)
-        x, f = fit_vector(obj, cfg, x0, lo, hi)
-        xl, xh = sandwich(obj, x, lo, hi, cfg.level) if cfg.profile else (x, x)
-        return Fit(names, {name: x}, f, _split(names, xl), _split(names, xh), obj.evals,
-                   _flags(bound_flags(x)), obj.unstable)
+            est = Fit(names, {name: np.array([x])}, f, {name: np.array([xl])}, {name: np.array([xh])},
+                      obj.evals, _flags(bound_flags(np.array([x]))), obj.unstable)
+        else:
+            x, f = fit_vector(obj, cfg, np.asarray(start.get(name, e.nominal), float), lo, hi)
+            est = Fit(names, {name: x}, f, {name: x}, {name: x}, obj.evals, _flags(bound_flags(x)), obj.unstable)
+        return with_interval(sm, data, scale, est, cfg, obj) if interval else est
     if ints:  # grid over the integer effect near its single estimate, fit the rest at each value
         (iname,) = ints[:1]
         hi_i = int(effects.ALL[iname].bounds(sm)[1][0])
@@ -362,15 +363,18 @@ def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg
                _flags(bound_flags(x)), obj.unstable)
 
 
-def with_interval(sm: SimModel, data: Data, scale: np.ndarray, f: Fit, cfg: FitConfig) -> Fit:
-    """``f`` (a single continuous effect fitted with ``interval=False`` on ``data``) with its
-    interval at level ``cfg.level``, as :func:`fit` computes it; ``f`` itself otherwise, or
-    where ``cfg.profile`` is 0."""
+def with_interval(sm: SimModel, data: Data, scale: np.ndarray, f: Fit, cfg: FitConfig,
+                  obj: Objective | None = None) -> Fit:
+    """``f`` (a single continuous effect fitted on ``data`` with ``interval=False``) with its
+    interval at level ``cfg.level``: the profile for a scalar, the sandwich for a vector; ``f``
+    itself for anything else or where ``cfg.profile`` is 0. ``obj``: the fit's own objective
+    (its evaluations are then counted once)."""
     if not cfg.profile or len(f.names) != 1 or effects.ALL[f.names[0]].integer:
         return f
     (name,) = f.names
     lo, hi = _bounds(sm, f.names)
-    obj = Objective(sm, data, scale, f.names, block=cfg.block)
+    own = obj is not None  # the fit's objective has counted the fit's evaluations already
+    obj = obj if own else Objective(sm, data, scale, f.names, block=cfg.block)
     x = np.asarray(f.params[name], float)
     if effects.ALL[name].size == 1:
         xl, xh, _ = scalar_interval(obj, float(x[0]), f.train_loss, lo[0], hi[0], cfg.level)
@@ -378,7 +382,8 @@ def with_interval(sm: SimModel, data: Data, scale: np.ndarray, f: Fit, cfg: FitC
     else:
         xl, xh = sandwich(obj, x, lo, hi, cfg.level)
     return f._replace(lo={name: np.asarray(xl, float)}, hi={name: np.asarray(xh, float)},
-                      evals=f.evals + obj.evals, unstable=f.unstable + obj.unstable)
+                      evals=obj.evals + (0 if own else f.evals),
+                      unstable=obj.unstable + (0 if own else f.unstable))
 
 
 def _flags(d: dict) -> dict:

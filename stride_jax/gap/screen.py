@@ -105,16 +105,11 @@ def candidate_names(sm: SimModel, cfg: ScreenConfig) -> list[str]:
     return out + (finer.candidates(sm) if cfg.finer else [])
 
 
-def _capped(stride: int, n: int, cap: int) -> int:
-    """``stride``, or the smallest larger one that leaves at most ``cap`` of ``n`` windows."""
-    return max(stride, -(-n // cap) if cap else 1)
-
-
 def fit_stride_of(cfg: ScreenConfig, n: int) -> int:
     """The full fits' stride over ``n`` training windows: ``cfg.fit_stride``, larger where that
     leaves more than ``cfg.fit_windows``. Measured on 12 x 8 s Go1 logs (3160 training windows,
     shipped model: ~6 s per evaluation of all of them), the fits were 70% of the diagnosis."""
-    return _capped(cfg.fit_stride, n, cfg.fit_windows)
+    return fit.capped_stride(cfg.fit_stride, n, cfg.fit_windows)
 
 
 def rows_every(data: fit.Data, stride: int) -> np.ndarray:
@@ -236,7 +231,7 @@ def run(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: S
     table plus ``_columns`` (for :func:`pairs` and :func:`collinear_with`)."""
     t0 = time.time()
     names = candidate_names(sm, cfg)
-    stride = _capped(cfg.stride or train.k, len(train.start), cfg.windows)
+    stride = fit.capped_stride(cfg.stride or train.k, len(train.start), cfg.windows)
     rows_tr, rows_te = rows_every(train, stride), rows_every(test, stride)
     C = columns(sm, names, train, test, scale, cfg, rows_tr, rows_te, show=show)
     table = []
