@@ -132,8 +132,8 @@ def test_settings_kept_for_the_effect_held_on_top_say_so():
 def test_parsimony_puts_back_only_the_settings_that_do_not_matter():
     # a loss that cares about the time constant (x 1.6) and barely about the margin (6.5 microns)
     loss = lambda s: 1.0 + 50 * (s.solref_timeconst - 1.6) ** 2 + 1e3 * s.margin
-    s = Settings(solref_timeconst=1.6, solimp_softness=1.0, margin=6.5e-6)
-    out, L = calibrate.parsimony(s, loss(s), ["solref_timeconst", "solimp_softness", "margin"], loss, 0.01)
+    s = Settings(solref_timeconst=1.6, solimp_d0=1.0, margin=6.5e-6)
+    out, L = calibrate.parsimony(s, loss(s), ["solref_timeconst", "solimp_d0", "margin"], loss, 0.01)
     assert out.margin == 0.0 and out.solref_timeconst == 1.6 and L == loss(out)
     # a margin that matters stays
     loss2 = lambda s: 1.0 + 1e4 * abs(s.margin - 0.002)

@@ -51,7 +51,11 @@ _EULERDAMP = int(mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
 CONTINUOUS = {
     "solref_timeconst": (0.3, 3.0, True, 1.0, "contact time constant (solref[0]), factor"),
     "solref_dampratio": (0.3, 3.0, True, 1.0, "contact damping ratio (solref[1]), factor"),
-    "solimp_softness": (0.2, 5.0, True, 1.0, "contact impedance softness 1 - d (solimp d0, dmax), factor"),
+    # 1 - d of solimp's d0 and dmax apart, each from MuJoCo's floor 1e-4 (d is clamped to [1e-4,
+    # 0.9999]): a foot with dmax = 1 (Menagerie's Go1) can then soften, which a factor on 1 - d alone
+    # cannot (0 x anything); dmax's range is wider, as its 1 - d starts at the floor
+    "solimp_d0": (0.2, 5.0, True, 1.0, "contact impedance softness 1 - d0 (solimp[0]), factor"),
+    "solimp_dmax": (0.2, 50.0, True, 1.0, "contact impedance softness 1 - dmax (solimp[1]), factor"),
     "solimp_width": (0.2, 5.0, True, 1.0, "contact impedance transition width (solimp[2]), factor"),
     "margin": (0.0, 0.005, False, 0.0, "contact margin added to every colliding geom, m"),
     "impratio": (0.03, 30.0, True, 1.0, "frictional-to-normal impedance ratio (impratio), factor"),
@@ -70,7 +74,7 @@ class Settings:
         the floor, nothing else collides: the MJX-training edit).
       foot_condim: contact dimension of the feet's geoms (1, 3, 4 or 6).
       iterations: solver iteration cap (and line-search iterations).
-      solref_timeconst, solref_dampratio, solimp_softness, solimp_width, impratio: factors on the
+      solref_timeconst, solref_dampratio, solimp_d0, solimp_dmax, solimp_width, impratio: factors on the
         model's values (1: unchanged); margin: added (m). See :data:`CONTINUOUS`.
     """
 
@@ -82,7 +86,8 @@ class Settings:
     iterations: int | None = None
     solref_timeconst: float = 1.0
     solref_dampratio: float = 1.0
-    solimp_softness: float = 1.0
+    solimp_d0: float = 1.0
+    solimp_dmax: float = 1.0
     solimp_width: float = 1.0
     margin: float = 0.0
     impratio: float = 1.0
@@ -273,8 +278,9 @@ def apply(sm: SimModel, s: Settings, base: SimModel | None = None) -> SimModel:
         if s.solref_dampratio != 1.0:
             solref[:, 1] *= s.solref_dampratio
     for solimp in (m.geom_solimp, m.pair_solimp):
-        if s.solimp_softness != 1.0:
-            solimp[:, :2] = np.clip(1 - (1 - solimp[:, :2]) * s.solimp_softness, 1e-4, 0.9999)
+        for col, f in ((0, s.solimp_d0), (1, s.solimp_dmax)):
+            if f != 1.0:
+                solimp[:, col] = np.clip(1 - np.maximum(1 - solimp[:, col], 1e-4) * f, 1e-4, 0.9999)
         if s.solimp_width != 1.0:
             solimp[:, 2] *= s.solimp_width
     if s.margin != 0.0:
@@ -312,8 +318,8 @@ def summary(s: Settings, sm: SimModel) -> list[str]:
         elif k == "solref_dampratio":
             dr = [r[1] for r in d["solref"]]
             out.append(f"contact damping ratio (solref): x {v:.3g} ({_rng(dr)} -> {_rng([x * v for x in dr])})")
-        elif k == "solimp_softness":
-            out.append(f"contact impedance softness 1 - d (solimp): x {v:.3g}")
+        elif k in ("solimp_d0", "solimp_dmax"):
+            out.append(f"contact impedance softness 1 - {k[7:]} (solimp): x {v:.3g}")
         elif k == "solimp_width":
             out.append(f"contact impedance width (solimp): x {v:.3g}")
     return out
