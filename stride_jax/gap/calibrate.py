@@ -270,9 +270,10 @@ def fit_continuous(sm: SimModel, start: Settings, data: fit.Data, scale: np.ndar
         return used["J"]
 
     z0 = np.array([_z(m, getattr(start, m)) for m in names]).clip(0, 1)
-    if start not in cache:
+    s0 = settings_at(z0)  # ``start`` through the normalised coordinates: equal up to rounding (or clipped)
+    if s0 not in cache:
         fun(z0)
-    L0 = cache[start]
+    L0 = cache[s0]
     res = optimize.least_squares(fun, z0, jac=jac, bounds=(0, 1), method="trf", max_nfev=iters + 1, x_scale=1.0,
                                  ftol=FTOL, xtol=FTOL)
     if 2 * res.cost < L0:
