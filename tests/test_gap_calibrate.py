@@ -139,3 +139,34 @@ def test_parsimony_puts_back_only_the_settings_that_do_not_matter():
     loss2 = lambda s: 1.0 + 1e4 * abs(s.margin - 0.002)
     s2 = Settings(margin=0.002)
     assert calibrate.parsimony(s2, loss2(s2), ["margin"], loss2, 0.01)[0].margin == 0.002
+
+
+def test_solimp_d0_and_dmax_soften_apart_even_from_a_dmax_of_one():
+    """Menagerie's Go1 feet have solimp dmax = 1: a factor on ``1 - d`` alone could never move it;
+    from MuJoCo's floor (d <= 0.9999) it can, and d0 moves on its own."""
+    sm = nominal.load("go1")
+    feet = [i for i in range(sm.mj.ngeom) if sm.mj.geom_solimp[i, 1] == 1.0]
+    assert feet, "the shipped Go1's feet have dmax = 1"
+    d0 = sm.mj.geom_solimp[feet, 0].copy()
+    soft = nominal.apply(sm, Settings(solimp_dmax=10.0)).mj.geom_solimp
+    np.testing.assert_allclose(soft[feet, 1], 1 - 1e-3)
+    np.testing.assert_array_equal(soft[feet, 0], d0)  # d0 untouched
+    soft = nominal.apply(sm, Settings(solimp_d0=0.5)).mj.geom_solimp
+    np.testing.assert_allclose(soft[feet, 0], 1 - (1 - d0) * 0.5)
+    assert (soft[feet, 1] == 1.0).all()
+    assert "1 - dmax (solimp): x 10" in " ".join(nominal.summary(Settings(solimp_dmax=10.0), sm))
+
+
+def test_continuous_fit_starts_from_a_value_off_its_coordinate_grid():
+    """A start that does not survive exp(log) bit for bit (a calibrated solref times a folded
+    contact_softness) is its own starting point, not a missing cache key."""
+    sm = nominal.load("pendulum")
+    _, logged = real.generate(sm, {}, 2, 40, seed=1)
+    data = fit.make_data(logged, 2)
+    scale = diagnose.scale_of(sm, fit.make_data(logged))
+    v = 1.3811745813108585
+    assert calibrate._from_z("solref_timeconst", calibrate._z("solref_timeconst", v)) != v
+    start = Settings(solref_timeconst=v)
+    s, loss, _ = calibrate.fit_continuous(sm, start, data, scale, ["solref_timeconst"], 1)
+    assert np.isfinite(loss)
+    assert s.solref_timeconst == pytest.approx(v)  # no contacts on the pendulum: nothing to gain, the start stays
