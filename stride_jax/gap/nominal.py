@@ -53,7 +53,9 @@ CONTINUOUS = {
     "solref_dampratio": (0.3, 3.0, True, 1.0, "contact damping ratio (solref[1]), factor"),
     # 1 - d of solimp's d0 and dmax apart, each from MuJoCo's floor 1e-4 (d is clamped to [1e-4,
     # 0.9999]): a foot with dmax = 1 (Menagerie's Go1) can then soften, which a factor on 1 - d alone
-    # cannot (0 x anything); dmax's range is wider, as its 1 - d starts at the floor
+    # cannot (0 x anything); dmax's range is wider, as its 1 - d starts at the floor. dmax is not
+    # calibrated by default (CalibrateConfig.continuous): where feet sink far less than solimp's
+    # width (the Go1's 3 cm) it is barely identified and fits noise
     "solimp_d0": (0.2, 5.0, True, 1.0, "contact impedance softness 1 - d0 (solimp[0]), factor"),
     "solimp_dmax": (0.2, 50.0, True, 1.0, "contact impedance softness 1 - dmax (solimp[1]), factor"),
     "solimp_width": (0.2, 5.0, True, 1.0, "contact impedance transition width (solimp[2]), factor"),
