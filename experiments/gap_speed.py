@@ -4,8 +4,8 @@
 
 Writes the logs (12 full-length trajectories of the Go1 explorer on the nominal model with the planted
 effect: episodes where the robot falls are skipped), runs ``stride_jax.gap.diagnose.diagnose`` under cProfile
-``--repeat`` times, and prints the wall time of each run, its stages and the profile's top lines
-(of the fastest run). The machine's load is printed before and after each run: other jobs on a
+``--repeat`` times, and prints the wall time of each run, its stages, the verdict with its reason and the profile's
+top lines (of the fastest run). The machine's load is printed before and after each run: other jobs on a
 small machine inflate the time.
 """
 
@@ -61,7 +61,7 @@ def main() -> None:
         runs.append({"seconds": sec, "load_before": load0, "load_after": os.getloadavg()[0],
                      "stages": {k: round(v, 1) for k, v in out["stage_seconds"].items()},
                      "verdict": out["verdict"]["verdict"], "effects": out["verdict"]["effects"],
-                     "confident": out["verdict"]["confident"],
+                     "confident": out["verdict"]["confident"], "reason": out["verdict"].get("reason"),
                      "indistinguishable": (out["verdict"].get("indistinguishable_set") or {}).get("effects"),
                      "shortlist": (out["screen"] or {}).get("shortlist"), "profile": s.getvalue()})
         print(json.dumps({k: v for k, v in runs[-1].items() if k != "profile"}), flush=True)
