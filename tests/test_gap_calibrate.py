@@ -132,8 +132,8 @@ def test_settings_kept_for_the_effect_held_on_top_say_so():
 def test_parsimony_puts_back_only_the_settings_that_do_not_matter():
     # a loss that cares about the time constant (x 1.6) and barely about the margin (6.5 microns)
     loss = lambda s: 1.0 + 50 * (s.solref_timeconst - 1.6) ** 2 + 1e3 * s.margin
-    s = Settings(solref_timeconst=1.6, solimp_d0=1.0, margin=6.5e-6)
-    out, L = calibrate.parsimony(s, loss(s), ["solref_timeconst", "solimp_d0", "margin"], loss, 0.01)
+    s = Settings(solref_timeconst=1.6, solimp_softness=1.0, margin=6.5e-6)
+    out, L = calibrate.parsimony(s, loss(s), ["solref_timeconst", "solimp_softness", "margin"], loss, 0.01)
     assert out.margin == 0.0 and out.solref_timeconst == 1.6 and L == loss(out)
     # a margin that matters stays
     loss2 = lambda s: 1.0 + 1e4 * abs(s.margin - 0.002)
@@ -141,7 +141,7 @@ def test_parsimony_puts_back_only_the_settings_that_do_not_matter():
     assert calibrate.parsimony(s2, loss2(s2), ["margin"], loss2, 0.01)[0].margin == 0.002
 
 
-def test_solimp_d0_and_dmax_soften_apart_even_from_a_dmax_of_one():
+def test_solimp_softness_moves_d0_and_dmax_even_from_a_dmax_of_one():
     """Menagerie's Go1 feet have solimp dmax = 1: a factor on ``1 - d`` alone could never move it;
     from MuJoCo's floor (d <= 0.9999) it can, and d0 moves on its own."""
     sm = nominal.load("go1")
@@ -155,6 +155,11 @@ def test_solimp_d0_and_dmax_soften_apart_even_from_a_dmax_of_one():
     np.testing.assert_allclose(soft[feet, 0], 1 - (1 - d0) * 0.5)
     assert (soft[feet, 1] == 1.0).all()
     assert "1 - dmax (solimp): x 10" in " ".join(nominal.summary(Settings(solimp_dmax=10.0), sm))
+    # the default setting moves both; the factors multiply
+    both = nominal.apply(sm, Settings(solimp_softness=2.0, solimp_d0=0.5)).mj.geom_solimp
+    np.testing.assert_allclose(both[feet, 0], d0)
+    np.testing.assert_allclose(both[feet, 1], 1 - 2e-4)
+    assert "solimp_softness" in calibrate.CalibrateConfig().continuous
 
 
 def test_continuous_fit_starts_from_a_value_off_its_coordinate_grid():

@@ -19,7 +19,7 @@ fits, and a replay of the shipped Go1 costs ~6x the MJX-training form's):
 2. discrete settings (time step, integrator, cone, collision set, foot contact dimension) by
    coordinate descent: every value of one setting with the others fixed, kept if it lowers the
    loss by more than ``min_gain`` (relative), ``sweeps`` passes;
-3. continuous settings (solref time constant and damping ratio, solimp softness of d0 and dmax, width,
+3. continuous settings (solref time constant and damping ratio, solimp softness and width,
    margin, impratio) jointly by box-constrained least squares in coordinates normalised to their
    (log) ranges, with 2%-of-range finite-difference steps replayed in one batch, at most
    ``max_nfev`` iterations per setting; then each is put back to its neutral
@@ -64,10 +64,11 @@ class CalibrateConfig:
       discrete: comma-separated discrete settings to search (timestep, integrator, cone,
         contacts, foot_condim).
       continuous: comma-separated continuous settings to fit (solref_timeconst,
-        solref_dampratio, solimp_d0, solimp_dmax, solimp_width, margin, impratio); empty: none.
-        ``solimp_dmax`` is left out by default: measured on the independent Go1 benchmark's noisy
-        delay case, it took x 2.22 where the "real" contact was the model's own, and the time step
-        and delay moved with it (delay + inertia@thigh named instead of delay).
+        solref_dampratio, solimp_softness, solimp_d0, solimp_dmax, solimp_width, margin,
+        impratio); empty: none. By default solimp's d0 and dmax move together
+        (``solimp_softness``): apart, dmax took x 2.22 on the independent Go1 benchmark's noisy
+        delay case where the "real" contact was the model's own, and the time step and delay
+        moved with it (delay + inertia@thigh named instead of delay).
       integrators: comma-separated integrators to try (``euler_nodamp``: Euler without
         implicit damping).
       timestep_min, timestep_max: time steps tried (s; those in range that divide the control
@@ -95,7 +96,7 @@ class CalibrateConfig:
 
     mode: str = "fit"
     discrete: str = "timestep,integrator,cone,contacts,foot_condim"
-    continuous: str = "solref_timeconst,solref_dampratio,solimp_d0,solimp_width,margin,impratio"
+    continuous: str = "solref_timeconst,solref_dampratio,solimp_softness,solimp_width,margin,impratio"
     integrators: str = "euler,euler_nodamp,implicitfast,rk4"
     timestep_min: float = 0.0009
     timestep_max: float = 0.0101
