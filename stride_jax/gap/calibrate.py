@@ -25,6 +25,8 @@ fits, and a replay of the shipped Go1 costs ~6x the MJX-training form's):
    ``max_nfev`` iterations per setting; then each is put back to its neutral
    value where that costs less than ``min_gain`` of the loss (only settings that matter are
    reported);
+3b. 2 and 3 in turns, at most ``rounds`` times: the discrete settings swept again at the fitted
+   continuous ones, and the continuous refitted where a discrete one moved;
 4. held-out: the calibrated baseline is kept only if it lowers the held-out k-step gap
    (otherwise the nominal model stays the baseline, and the report says so), with a one-sided
    sign-flip test of the paired block improvements reported beside it.
@@ -380,11 +382,9 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
     cont = _names(cfg.continuous) if contacts else []  # nothing collides: contact parameters change nothing
     cont_fit: dict[str, Any] = {}
     ties: dict[str, list] = {}
-    # discrete and continuous settings in turns: a discrete value picked while the contact
-    # parameters are still the model's can be the wrong one once they are fitted (measured on the
-    # independent Go1 benchmark, case 10: condim 3 picked before the contact parameters), so the discrete
-    # settings are swept again at the fitted continuous ones, and the continuous refitted where
-    # one moved (at most ``rounds``)
+    # discrete and continuous settings in turns (step 3b): a discrete value picked while the
+    # contact parameters are still the model's can be the wrong one once they are fitted
+    # (independent Go1 benchmark, case 10: condim 3 picked before the contact parameters)
     for round_ in range(cfg.rounds):
         best, moved_any = _sweep(best, values, own, loss, cfg, path, round_)
         if round_ and not moved_any:

@@ -79,8 +79,8 @@ class Settings:
       foot_condim: contact dimension of the feet's geoms (1, 3, 4 or 6).
       iterations: solver iteration cap (and line-search iterations).
       solref_timeconst, solref_dampratio, solimp_softness, solimp_d0, solimp_dmax, solimp_width,
-        impratio: factors on the
-        model's values (1: unchanged); margin: added (m). See :data:`CONTINUOUS`.
+        impratio: factors on the model's values (1: unchanged); margin: added (m). See
+        :data:`CONTINUOUS`.
     """
 
     timestep: float | None = None
