@@ -1,4 +1,4 @@
-"""The named effect's form: one value on the slow and the fast half of the logs
+"""The named effect's form: one value where each joint moves slowest and fastest
 (stride_jax.gap.form)."""
 
 import dataclasses
@@ -41,21 +41,43 @@ def test_a_damping_of_the_right_form_agrees_on_both_halves(pendulum):
     out = diagnose.diagnose(pendulum, logged, TINY, log=QUIET)
     v, c = out["verdict"], out["which"]["form_check"]
     assert v["effects"] == ["damping"] and v["confident"], v["reason"]
-    assert not c["differs"] and abs(c["windows"][0] - c["windows"][1]) <= 2
+    assert not c["differs"] and c["split"] == "per joint" and c["windows"] == out["which"]["fit_windows"]
     for half in ("slow", "fast"):
         assert c[f"{half}_lo"][0] <= c[half][0] <= c[f"{half}_hi"][0]
         assert abs(c[half][0] - 0.3) < 0.01
 
 
-def test_the_halves_split_the_windows_at_the_median_speed(pendulum):
+def test_the_split_is_per_joint_speed(pendulum):
     _, logged = real.generate(pendulum, None, 3, 60, seed=2)
     data = fit.make_data(logged, 2)
-    speed = lambda d: np.abs(d.qd[d.start][:, pendulum.act_dof]).max(1)
-    slow, fast, (lo, hi) = form.by_speed(pendulum, data)
-    assert lo == hi and len(slow.start) + len(fast.start) == len(data.start)
-    assert speed(slow).max() <= lo < speed(fast).min()
-    slow, fast, (lo, hi) = form.by_speed(pendulum, data, 1 / 3)  # the slowest and the fastest third
-    assert lo < hi and abs(len(slow.start) - len(data.start) / 3) <= 1 and abs(len(fast.start) - len(data.start) / 3) <= 1
-    assert speed(slow).max() <= lo and hi < speed(fast).min()
+    j = pendulum.act_dof[0]
+    rows = data.start[:, None] + np.arange(data.k + 1)
+    speed = np.sqrt((data.qd[rows][:, :, j] ** 2).mean(1))  # over the replay window
+    slow, fast, (lo, hi) = form.by_joint_speed(pendulum, data)  # the slowest and the fastest third
+    assert slow.shape == fast.shape == (len(data.start), pendulum.mj.nv)
+    assert lo[j] < hi[j] and abs(slow[:, j].sum() - len(data.start) / 3) <= 1 and abs(fast[:, j].sum() - len(data.start) / 3) <= 1
+    assert speed[slow[:, j] > 0].max() <= lo[j] and hi[j] < speed[fast[:, j] > 0].min()
+    assert not (slow * fast).any()
     pair = {"effects": ["damping", "delay"], "params": {"damping": [0.1], "delay": [1.0]}}
     assert form.check(pendulum, data, np.ones(pendulum.mj.nv), pair, TINY.fit, 0.25) is None
+
+
+def test_the_split_goes_by_each_joint_not_the_window():
+    # two joints out of phase: one window has one joint fast and the other slow; a per-window
+    # split (by RMS speed) would put both entries on the same side
+    import types
+    sm = types.SimpleNamespace(act_dof=np.array([0, 1]), mj=types.SimpleNamespace(nv=2))
+    t = np.linspace(0, 4 * np.pi, 300)
+    qd = np.stack([np.sin(t), np.cos(t)], 1)
+    data = types.SimpleNamespace(qd=qd, start=np.arange(299), k=1)
+    slow, fast, _ = form.by_joint_speed(sm, data)
+    both = (slow[:, 0] > 0) & (fast[:, 1] > 0)
+    assert both.sum() > 50  # joint 0 slow where joint 1 is fast
+    assert np.abs(qd[:299][slow[:, 0] > 0, 0]).max() < np.abs(qd[:299][fast[:, 0] > 0, 0]).min()
+
+
+def test_a_mask_of_the_wrong_shape_is_named(pendulum):
+    _, logged = real.generate(pendulum, None, 2, 30, seed=3)
+    data = fit.make_data(logged, 1)
+    with pytest.raises(ValueError, match="mask has shape"):
+        fit.Objective(pendulum, data, np.ones(pendulum.mj.nv), ("damping",), mask=np.ones((3, 7)))

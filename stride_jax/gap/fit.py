@@ -150,11 +150,17 @@ def block_ids(data: Data, length: int) -> tuple[np.ndarray, int, np.ndarray]:
 
 class Objective:
     """Per-trajectory (and per-block) loss of parameters ``p`` of ``effects`` (concatenated), on
-    top of ``base``. ``evals`` counts evaluations, ``unstable`` those where a replay diverged."""
+    top of ``base``. ``evals`` counts evaluations, ``unstable`` those where a replay diverged.
+    ``mask [M, nv]`` (0/1, optional) keeps only some entries of the residual: a fit on the samples
+    of each joint where it moves slowly, say (:mod:`stride_jax.gap.form`)."""
 
     def __init__(self, sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...],
-                 base: dict | None = None, block: int = 10):
+                 base: dict | None = None, block: int = 10, mask: np.ndarray | None = None):
         self.sm, self.data, self.scale, self.names, self.base = sm, data, scale, names, dict(base or {})
+        if mask is not None and np.shape(mask) != (len(data.start), sm.mj.nv):
+            raise ValueError(f"mask has shape {np.shape(mask)}, needs (replayed samples, nv) = "
+                             f"({len(data.start)}, {sm.mj.nv})")
+        self.mask = None if mask is None else np.asarray(mask, np.float64)
         self.sizes = [effects.ALL[n].size for n in names]
         self.evals = 0
         self.unstable = 0
@@ -172,7 +178,7 @@ class Objective:
         before = sim.unstable()["diverged"]
         r = residual(self.sm, effects.build(self.sm, self.applied(p)), self.data, self.scale)
         self.unstable += int(sim.unstable()["diverged"] > before)
-        return r
+        return r if self.mask is None else r * self.mask
 
     def losses(self, p: np.ndarray) -> np.ndarray:
         return per_traj(self.residual(p), self.data)
@@ -189,7 +195,7 @@ class Objective:
         before = sim.unstable()["diverged"]
         R = replay.residuals(self.sm, [effects.build(self.sm, self.applied(p)) for p in ps], self.data, self.scale)
         self.unstable += int(sim.unstable()["diverged"] > before)
-        return R
+        return R if self.mask is None else R * self.mask
 
     def losses_many(self, ps) -> np.ndarray:
         """``[P, n]`` :meth:`losses` of every parameter vector of ``ps`` (one batched replay)."""
@@ -303,13 +309,13 @@ def _nominal(names) -> np.ndarray:
 
 
 def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg: FitConfig,
-        start: dict | None = None, interval: bool = True) -> Fit:
+        start: dict | None = None, interval: bool = True, mask: np.ndarray | None = None) -> Fit:
     """Fits the effects ``names`` jointly on ``data`` (start from ``start`` where given).
 
     ``interval=False`` leaves a single continuous effect's interval for later
     (:func:`with_interval`; the estimate stands for it meanwhile): the profile costs about a
     third of a scalar fit's replays, and a diagnosis reports intervals only for the hypotheses
-    it names."""
+    it names. ``mask [M, nv]``: fit on those entries of the residual only (:class:`Objective`)."""
     names = tuple(names)
     ints = [n for n in names if effects.ALL[n].integer]
     conts = [n for n in names if not effects.ALL[n].integer]
@@ -320,7 +326,7 @@ def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg
     if len(names) == 1:
         (name,) = names
         e = effects.ALL[name]
-        obj = Objective(sm, data, scale, names, block=cfg.block)
+        obj = Objective(sm, data, scale, names, block=cfg.block, mask=mask)
         if e.size == 1:
             x, f, xl, xh = fit_scalar(obj, cfg, e.integer, lo[0], hi[0])
             est = Fit(names, {name: np.array([x])}, f, {name: np.array([xl])}, {name: np.array([xh])},
@@ -336,7 +342,8 @@ def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg
         clo, chi = _bounds(sm, conts)
         tried = []
         for d in sorted({min(max(centre + k, 0), hi_i) for k in (-1, 0, 1)}):
-            obj = Objective(sm, data, scale, tuple(conts), base={iname: np.array([float(d)])}, block=cfg.block)
+            obj = Objective(sm, data, scale, tuple(conts), base={iname: np.array([float(d)])}, block=cfg.block,
+                            mask=mask)
             x0 = np.concatenate([np.asarray(start.get(n, effects.ALL[n].nominal), float) for n in conts])
             x, f = fit_vector(obj, cfg, x0, clo, chi)
             tried.append((d, f, x, obj))
@@ -356,7 +363,7 @@ def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg
         vec = np.concatenate([params[n] for n in names])
         return Fit(names, params, f, los, his, evals, _flags(bound_flags(vec)), unstable)
     x0 = np.concatenate([np.asarray(start.get(n, effects.ALL[n].nominal), float) for n in names])
-    obj = Objective(sm, data, scale, names, block=cfg.block)
+    obj = Objective(sm, data, scale, names, block=cfg.block, mask=mask)
     x, f = fit_vector(obj, cfg, x0, lo, hi)
     xl, xh = sandwich(obj, x, lo, hi, cfg.level) if cfg.profile else (x, x)
     return Fit(names, _split(names, x), f, _split(names, xl), _split(names, xh), obj.evals,

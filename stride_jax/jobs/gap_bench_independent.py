@@ -125,7 +125,12 @@ def diagnose_case(cfg: IndependentConfig, index: int, noisy: bool
     held = [t for t in clean if t.name in set(res["heldout"])]
     row = scoring.score(sm, cases(cfg)[index], res, held, settings, form, dcfg.attribute_min, dcfg.pair_material,
                         dcfg.fit)
-    return row | {"noisy": noisy, "case": index, "row_seconds": time.time() - t0}, res
+    fc = (res.get("which") or {}).get("form_check")
+    # the form check runs only on a call that was confident before it: with it, the row says what
+    # the call would have been without the check
+    form_check = {k: fc[k] for k in ("effect", "split", "slow", "fast", "differs")} if fc else None
+    return row | {"noisy": noisy, "case": index, "form_check": form_check,
+                  "row_seconds": time.time() - t0}, res
 
 
 def run(cfg: IndependentConfig, out_dir: str | os.PathLike = "results", command: str = "", log=print,
