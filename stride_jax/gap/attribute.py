@@ -266,8 +266,8 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
 
 def check_form(sm: SimModel, train: fit.Data, scale: np.ndarray, w: dict[str, Any], v: dict[str, Any],
                cfg: DiagnoseConfig, log=print) -> dict[str, Any] | None:
-    """The named single's form (:func:`stride_jax.gap.form.check`: one value on the slowest and
-    the fastest windows), run only where it can decide: the verdict ``v`` is a confident single
+    """The named single's form (:func:`stride_jax.gap.form.check`: one value where each joint moves
+    slowest and where it moves fastest), run only where it can decide: the verdict ``v`` is a confident single
     (the check costs two fits and can only take confidence away). Sets ``w["form_check"]``."""
     best = w["ranking"][0]
     w["form_check"] = None
@@ -276,7 +276,7 @@ def check_form(sm: SimModel, train: fit.Data, scale: np.ndarray, w: dict[str, An
     t0 = time.time()
     c = w["form_check"] = form.check(sm, train, scale, best, cfg.fit, cfg.form_tol)
     if c:
-        log(f"  form check {best['effects'][0]}: slowest windows {c['slow']}, fastest {c['fast']} "
+        log(f"  form check {best['effects'][0]}: where each joint moves slowest {c['slow']}, fastest {c['fast']} "
             f"({'differ' if c['differs'] else 'agree'}; {time.time() - t0:.1f} s)")
     return c
 
@@ -341,8 +341,8 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
        effect fitted on top of it could be material (the upper bound of its gain stays below the
        pair rule's materiality bar) and no significant second effect moves its estimate outside its
        own interval (a contact effect that does only qualifies the value: it may stand for the
-       simulator's contact model) and, for a single, its value fitted on the slowest and the fastest
-       windows agrees (:mod:`stride_jax.gap.form`); otherwise the reason names the conditions
+       simulator's contact model) and, for a single, its value fitted where each joint moves slowest
+       and where it moves fastest agrees (:mod:`stride_jax.gap.form`); otherwise the reason names the conditions
        that failed.
 
     Every verdict lists the hypotheses the held-out data cannot tell apart from the best
