@@ -175,3 +175,29 @@ def test_continuous_fit_starts_from_a_value_off_its_coordinate_grid():
     s, loss, _ = calibrate.fit_continuous(sm, start, data, scale, ["solref_timeconst"], 1)
     assert np.isfinite(loss)
     assert s.solref_timeconst == pytest.approx(v)  # no contacts on the pendulum: nothing to gain, the start stays
+
+
+def test_discrete_and_continuous_settings_in_turns_revisit_a_discrete_pick():
+    # a synthetic training loss where the best time step depends on the contact time constant:
+    # at the model's own constant the 2 ms step wins, once the constant is fitted 4 ms does.
+    # One round keeps 2 ms; the second round's sweep moves to 4 ms and refits the constant.
+    c = {0.002: 1.5, 0.004: 1.9}  # each step's best contact time-constant factor
+    base = {0.002: 0.3, 0.004: 0.0}
+    loss = lambda s: (s.solref_timeconst - c[s.timestep]) ** 2 + base[s.timestep]
+    fit_cont = lambda s: (dataclasses.replace(s, solref_timeconst=c[s.timestep]), base[s.timestep])
+    values = {"timestep": [0.002, 0.004], "integrator": [], "cone": [], "contacts": [], "foot_condim": [],
+              "iterations": []}
+    own = {"timestep": 0.002}
+    start = Settings(timestep=0.002)
+    picks = {}
+    for rounds in (1, 2, 3):
+        cfg = calibrate.CalibrateConfig(rounds=rounds)
+        path = []
+        best, ties, cont = calibrate.in_turns(start, values, own, loss, fit_cont, ["solref_timeconst"], cfg, path)
+        picks[rounds] = (best.timestep, best.solref_timeconst, cont["rounds"], [(p["setting"], p["round"]) for p in path])
+    assert picks[1] == (0.002, 1.5, 1, [])
+    assert picks[2] == (0.004, 1.9, 2, [("timestep", 1)])
+    assert picks[3] == picks[2][:2] + (2, [("timestep", 1)])  # a third sweep moves nothing: the turns stop
+    # nothing continuous to fit: one sweep, no record
+    best, _, cont = calibrate.in_turns(start, values, own, loss, fit_cont, [], calibrate.CalibrateConfig(), [])
+    assert best.timestep == 0.002 and cont == {}

@@ -26,7 +26,7 @@ fits, and a replay of the shipped Go1 costs ~6x the MJX-training form's):
    value where that costs less than ``min_gain`` of the loss (only settings that matter are
    reported);
 3b. 2 and 3 in turns, at most ``rounds`` times: the discrete settings swept again at the fitted
-   continuous ones, and the continuous refitted where a discrete one moved;
+   continuous ones, and the continuous refitted where a discrete one moved (:func:`in_turns`);
 4. held-out: the calibrated baseline is kept only if it lowers the held-out k-step gap
    (otherwise the nominal model stays the baseline, and the report says so), with a one-sided
    sign-flip test of the paired block improvements reported beside it.
@@ -325,6 +325,36 @@ def _ties(best: Settings, values: dict, loss, cfg: CalibrateConfig) -> dict[str,
     return ties
 
 
+def in_turns(best: Settings, values: dict, own: dict, loss, fit_cont, cont: list[str], cfg: CalibrateConfig,
+             path: list) -> tuple[Settings, dict[str, list], dict[str, Any]]:
+    """Steps 2, 3 and 3b of the module docstring: the discrete settings by coordinate descent
+    (:func:`_sweep` over ``values``), then the continuous ones ``cont`` (``fit_cont(settings) ->
+    (settings, loss)``, then :func:`parsimony`), in turns, at most ``cfg.rounds`` times: a
+    discrete value picked while the contact parameters are still the model's can be the wrong one
+    once they are fitted (independent Go1 benchmark, case 10: condim 3 picked before the contact
+    parameters). Stops early when a round's sweep moves nothing. ``loss(settings)``: the training
+    loss. Returns ``(settings, discrete ties, continuous record)``; appends the moves to ``path``."""
+    ties: dict[str, list] = {}
+    cont_fit: dict[str, Any] = {}
+    for round_ in range(cfg.rounds):
+        best, moved_any = _sweep(best, values, own, loss, cfg, path, round_)
+        if round_ and not moved_any:
+            break
+        # discrete values the training loss cannot tell apart from the chosen ones (within min_gain)
+        ties = _ties(best, values, loss, cfg)
+        if not cont:
+            break
+        L0 = loss(best)
+        s_fit, L_fit = fit_cont(best)
+        if L_fit < (1 - cfg.min_gain) * L0:
+            best, L_fit = parsimony(s_fit, L_fit, cont, loss, cfg.min_gain)
+        else:
+            L_fit = L0
+        cont_fit = {"start_loss": cont_fit.get("start_loss", L0), "fitted_loss": L_fit,
+                    "kept": {n: getattr(best, n) for n in cont}, "rounds": round_ + 1}
+    return best, ties, cont_fit
+
+
 def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: CalibrateConfig,
               log=print, applied: dict | None = None, start: Settings | None = None,
               heldout: dict | None = None) -> Calibration:
@@ -380,27 +410,8 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
     best = dataclasses.replace(best, **{n: own[n] for n in DISCRETE if getattr(best, n) is None and own.get(n) is not None})
     path: list[dict] = []
     cont = _names(cfg.continuous) if contacts else []  # nothing collides: contact parameters change nothing
-    cont_fit: dict[str, Any] = {}
-    ties: dict[str, list] = {}
-    # discrete and continuous settings in turns (step 3b): a discrete value picked while the
-    # contact parameters are still the model's can be the wrong one once they are fitted
-    # (independent Go1 benchmark, case 10: condim 3 picked before the contact parameters)
-    for round_ in range(cfg.rounds):
-        best, moved_any = _sweep(best, values, own, loss, cfg, path, round_)
-        if round_ and not moved_any:
-            break
-        # discrete values the training loss cannot tell apart from the chosen ones (within min_gain)
-        ties = _ties(best, values, loss, cfg)
-        if not cont:
-            break
-        L0 = loss(best)
-        s_fit, L_fit, _ = fit_continuous(sm, best, sub, scale, cont, cfg.max_nfev, applied, cache, evals)
-        if L_fit < (1 - cfg.min_gain) * L0:
-            best, L_fit = parsimony(s_fit, L_fit, cont, loss, cfg.min_gain)
-        else:
-            L_fit = L0
-        cont_fit = {"start_loss": cont_fit.get("start_loss", L0), "fitted_loss": L_fit,
-                    "kept": {n: getattr(best, n) for n in cont}, "rounds": round_ + 1}
+    fit_cont = lambda s: fit_continuous(sm, s, sub, scale, cont, cfg.max_nfev, applied, cache, evals)[:2]
+    best, ties, cont_fit = in_turns(best, values, own, loss, fit_cont, cont, cfg, path)
     # held-out check
     base = nominal.apply(sm, best)
     best = _neutral(best, own)
