@@ -194,7 +194,8 @@ def test_discrete_and_continuous_settings_in_turns_revisit_a_discrete_pick():
         cfg = calibrate.CalibrateConfig(rounds=rounds)
         path = []
         best, ties, cont = calibrate.in_turns(start, values, own, loss, fit_cont, ["solref_timeconst"], cfg, path)
-        picks[rounds] = (best.timestep, best.solref_timeconst, cont["rounds"], [(p["setting"], p["round"]) for p in path])
+        moves = [(p["setting"], p["round"]) for p in path]
+        picks[rounds] = (best.timestep, best.solref_timeconst, cont["rounds"], moves)
     assert picks[1] == (0.002, 1.5, 1, [])
     assert picks[2] == (0.004, 1.9, 2, [("timestep", 1)])
     assert picks[3] == picks[2][:2] + (2, [("timestep", 1)])  # a third sweep moves nothing: the turns stop

@@ -55,7 +55,8 @@ def test_the_split_is_per_joint_speed(pendulum):
     speed = np.sqrt((data.qd[rows][:, :, j] ** 2).mean(1))  # over the replay window
     slow, fast, (lo, hi) = form.by_joint_speed(pendulum, data)  # the slowest and the fastest third
     assert slow.shape == fast.shape == (len(data.start), pendulum.mj.nv)
-    assert lo[j] < hi[j] and abs(slow[:, j].sum() - len(data.start) / 3) <= 1 and abs(fast[:, j].sum() - len(data.start) / 3) <= 1
+    assert lo[j] < hi[j]
+    assert abs(slow[:, j].sum() - len(data.start) / 3) <= 1 and abs(fast[:, j].sum() - len(data.start) / 3) <= 1
     assert speed[slow[:, j] > 0].max() <= lo[j] and hi[j] < speed[fast[:, j] > 0].min()
     assert not (slow * fast).any()
     pair = {"effects": ["damping", "delay"], "params": {"damping": [0.1], "delay": [1.0]}}

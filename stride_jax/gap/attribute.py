@@ -267,8 +267,9 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
 def check_form(sm: SimModel, train: fit.Data, scale: np.ndarray, w: dict[str, Any], v: dict[str, Any],
                cfg: DiagnoseConfig, log=print) -> dict[str, Any] | None:
     """The named single's form (:func:`stride_jax.gap.form.check`: one value where each joint moves
-    slowest and where it moves fastest), run only where it can decide: the verdict ``v`` is a confident single
-    (the check costs two fits and can only take confidence away). Sets ``w["form_check"]``."""
+    slowest and where it moves fastest), run only where it can decide: the verdict ``v`` is a
+    confident single (the check costs two fits and can only take confidence away). Sets
+    ``w["form_check"]``."""
     best = w["ranking"][0]
     w["form_check"] = None
     if not (cfg.form_tol > 0 and v["verdict"] == "explained" and v["confident"] and len(best["effects"]) == 1):
@@ -342,8 +343,8 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
        pair rule's materiality bar) and no significant second effect moves its estimate outside its
        own interval (a contact effect that does only qualifies the value: it may stand for the
        simulator's contact model) and, for a single, its value fitted where each joint moves slowest
-       and where it moves fastest agrees (:mod:`stride_jax.gap.form`); otherwise the reason names the conditions
-       that failed.
+       and where it moves fastest agrees (:mod:`stride_jax.gap.form`); otherwise the reason names
+       the conditions that failed.
 
     Every verdict lists the hypotheses the held-out data cannot tell apart from the best
     (``indistinguishable_from``). Which hypothesis is the best is the pair and nuisance rules'

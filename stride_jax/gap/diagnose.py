@@ -82,9 +82,9 @@ class DiagnoseConfig:
         of what the single leaves above the noise floor (and significantly more than nothing).
       pair_material: ... and at least this fraction of the whole held-out gap above the noise
         floor (a second effect must be material: :mod:`stride_jax.gap.admit`).
-      form_tol: a named single refitted where each joint moves slowest and fastest (thirds) must not differ
-        beyond both intervals and by more than this fraction of its departure from nominal, for
-        a confident call (:mod:`stride_jax.gap.form`; 0: no check).
+      form_tol: a named single refitted where each joint moves slowest and fastest (thirds) must
+        not differ beyond both intervals and by more than this fraction of its departure from
+        nominal, for a confident call (:mod:`stride_jax.gap.form`; 0: no check).
       residual: the STRIDE residual fitted on top of the best hypothesis (by default only when
         the verdict is "unexplained by the library"; :mod:`stride_jax.gap.residual`).
       calibrate: the simulator's own settings (time step, integrator, cone, contacts, contact

@@ -87,7 +87,8 @@ def note(c: dict[str, Any]) -> str:
     labels = effects.ALL[c["effect"]].labels
     parts = [(f"{labels[i]}: " if len(c["slow"]) > 1 else "")
              + f"{c['slow'][i]:.4g} [{c['slow_lo'][i]:.4g}, {c['slow_hi'][i]:.4g}] where the joints move slower, "
-             f"{c['fast'][i]:.4g} [{c['fast_lo'][i]:.4g}, {c['fast_hi'][i]:.4g}] where they move faster" for i in c["entries"]]
+             f"{c['fast'][i]:.4g} [{c['fast_lo'][i]:.4g}, {c['fast_hi'][i]:.4g}] where they move faster"
+             for i in c["entries"]]
     return (f"its value changes with joint speed (where each joint moves slowest and fastest, the {c['share']:.0%} "
             f"of its samples below and above cuts of median {c['cuts'][0]:.2f} and {c['cuts'][1]:.2f} rad/s): "
             + "; ".join(parts) + f" -- apart beyond both intervals and by more than {c['tol']:.0%}: an effect "
