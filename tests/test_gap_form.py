@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from stride_jax.gap import attribute, calibrate, diagnose, fit, form, nominal, real
+from stride_jax.jobs import gap_report as report
 
 TINY = dataclasses.replace(diagnose.PRESETS["tiny"], progress=False, calibrate=calibrate.CalibrateConfig(mode="off"))
 QUIET = lambda s: None
@@ -36,7 +37,7 @@ def test_a_quadratic_drag_named_as_damping_is_not_confident(pendulum):
     assert "its value changes with joint speed" in attribute.verdict(w, TINY)["reason"]
 
 
-def test_a_damping_of_the_right_form_agrees_on_both_halves(pendulum):
+def test_a_damping_of_the_right_form_agrees_on_both_halves(pendulum, tmp_path):
     _, logged = real.generate(pendulum, {"damping": 0.3}, 6, 120, seed=1)
     out = diagnose.diagnose(pendulum, logged, TINY, log=QUIET)
     v, c = out["verdict"], out["which"]["form_check"]
@@ -45,6 +46,8 @@ def test_a_damping_of_the_right_form_agrees_on_both_halves(pendulum):
     for half in ("slow", "fast"):
         assert c[f"{half}_lo"][0] <= c[half][0] <= c[f"{half}_hi"][0]
         assert abs(c[half][0] - 0.3) < 0.01
+    md = report.write(out, tmp_path).read_text()  # the report says what the check found
+    assert "Form check (damping refitted where each joint moves slowest" in md and "they agree" in md
 
 
 def test_the_split_is_per_joint_speed(pendulum):

@@ -211,6 +211,16 @@ def markdown(d: dict[str, Any], files: dict[str, str], command: str | None = Non
             L += ["", f"Unstable simulation: {u['diverged_replays']} replays diverged (NaN/Inf; MuJoCo warned "
                   f"{u['mujoco_warnings']} times, not printed) in {u['fits']} fit evaluations and {u['pair_screen']} of "
                   "the pair screen; those parameter values scored as very bad fits."]
+        fc = wh.get("form_check")
+        if fc:
+            one = lambda v: _fmt(v[0] if len(v) == 1 else v)
+            L += ["", f"Form check ({fc['effect']} refitted where each joint moves slowest and where it moves fastest, "
+                  f"the {fc['share']:.0%} of its samples below and above median cuts of {fc['cuts'][0]:.2f} and "
+                  f"{fc['cuts'][1]:.2f} rad/s): {one(fc['slow'])} [{one(fc['slow_lo'])}, {one(fc['slow_hi'])}] "
+                  f"against {one(fc['fast'])} [{one(fc['fast_lo'])}, {one(fc['fast_hi'])}]: "
+                  + ("they **differ** (beyond both intervals and by more than "
+                     f"{fc['tol']:.0%}): an effect of this form does not fit both" if fc["differs"] else "they agree")
+                  + "."]
         ties = d["verdict"].get("indistinguishable_from") or []
         L += ["", "Indistinguishable from the best on these logs: " + (", ".join(ties) if ties else "none") + "."]
         L += screen_lines(d)
