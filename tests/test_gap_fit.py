@@ -37,6 +37,22 @@ def test_damping_interval_covers_the_truth_in_repeated_noisy_draws(pend):
     assert 0.75 <= hits / 30 <= 1.0, hits
 
 
+def test_a_limit_reached_in_few_blocks_gets_an_interval_that_covers_it(pend):
+    # torque_limit 0.7 on 4 x 100 noisy steps: the limit is reached in 0-5 of 16 blocks, the
+    # estimates spread over 0.27-1.0 across draws, and the sandwich/profile interval (from the
+    # spread of a few blocks' gradients, at a kink of the loss) covered 3 of 16 draws. The
+    # interval is then the paired test's, which covers it
+    lo_b, hi_b = (float(b[0]) for b in effects.ALL["torque_limit"].bounds(pend))
+    hits = 0
+    for seed in range(6):
+        data, scale = _data(pend, {"torque_limit": 0.7}, 4, 100, 1000 + seed)
+        f = fit.fit(pend, data, scale, ("torque_limit",), CFG.fit)
+        x, lo, hi = f.params["torque_limit"][0], f.lo["torque_limit"][0], f.hi["torque_limit"][0]
+        assert lo_b <= lo <= x <= hi <= hi_b, (seed, lo, x, hi)
+        hits += lo <= 0.7 <= hi
+    assert hits >= 5, hits
+
+
 def test_estimate_on_a_bound_is_flagged_and_its_interval_clipped(pend):
     # a motor at 20% of its constant: torque_scale's lower bound is 0.3
     data, scale = _data(pend, {"torque_scale": 0.2}, 3, 80, 5, noise=False)
