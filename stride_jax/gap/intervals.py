@@ -77,7 +77,7 @@ def scalar_interval(obj: Objective, x: float, f: float, lo: float, hi: float, le
     :data:`KINK` times that at four times the step, as at a force limit or a dead band that few
     samples reach -- or the parameter moves the loss of fewer than :data:`MIN_BLOCKS` blocks,
     ``V`` and ``H`` say little about the spread of the estimate, and the interval is
-    :func:`test_interval`'s instead (``info["method"] == "test"``). In a block the parameter does
+    :func:`paired_interval`'s instead (``info["method"] == "test"``). In a block the parameter does
     not move at all nothing is learnt about it: Student's t and ``V``'s small-sample factor count
     the blocks it moves (``info["informative_blocks"]``); fewer than two give the bounds.
     """
@@ -124,7 +124,7 @@ def scalar_interval(obj: Objective, x: float, f: float, lo: float, hi: float, le
     t4, B4 = stencil(4 * h)
     H4 = float(_lagrange(t4, x)[1] @ B4.sum(1))
     if H4 <= 0 or H > KINK * H4 or n_eff < MIN_BLOCKS:
-        a, b = test_interval(obj, x, Lx, lo, hi, level, 4 * h, n_eff)
+        a, b = paired_interval(obj, x, Lx, lo, hi, level, 4 * h, n_eff)
         return a, b, {"method": "test", "curvature": H, "curvature_4h": H4, "sandwich_half_width": half,
                       "informative_blocks": n_eff}
     c = half ** 2 * H / 2
@@ -173,7 +173,7 @@ KINK = 2.0  # curvature at the profile's step over that at 4x the step beyond wh
 MIN_BLOCKS = 8
 
 
-def test_interval(obj: Objective, x: float, Lx: np.ndarray, lo: float, hi: float, level: float, step: float,
+def paired_interval(obj: Objective, x: float, Lx: np.ndarray, lo: float, hi: float, level: float, step: float,
                   n_eff: int | None = None) -> tuple[float, float]:
     """Interval of a scalar by test inversion: the values ``v`` that a one-sided paired per-block
     test at ``(1 - level) / 2`` does not find worse than the estimate ``x`` (per-block losses
