@@ -73,7 +73,7 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     cmd = (f"python experiments/gap_coverage.py --draws {a.draws} --trajectories {a.trajectories} "
            f"--steps {a.steps} --effects {a.effects} --out {a.out}")
-    lines = [f"# Coverage of the gap tool's 90% parameter intervals (pendulum, sensor noise)", "",
+    lines = ["# Coverage of the gap tool's 90% parameter intervals (pendulum, sensor noise)", "",
              f"Command: `{cmd}` ({time.time() - t0:.0f} s)", "",
              f"{a.draws} independent noisy draws of {a.trajectories} x {a.steps} control steps per effect, "
              "the effect fitted alone with the `tiny` preset's fit settings. Bias: median estimate minus the "

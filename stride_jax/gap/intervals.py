@@ -42,6 +42,12 @@ def _score_var(G: np.ndarray, nxt: np.ndarray) -> np.ndarray:
     return out * nb / max(nb - 1, 1)
 
 
+def _not_worse(d: np.ndarray, nxt: np.ndarray, q: float) -> bool:
+    """The one-sided paired per-block test: block loss differences ``d [nb]`` (a value's minus the
+    estimate's) do not exceed ``q`` standard deviations of their sum (:func:`_score_var`)."""
+    return float(d.sum()) <= q * np.sqrt(max(float(_score_var(d[:, None], nxt)[0, 0]), 0.0))
+
+
 def _lagrange(t: np.ndarray, x: float) -> tuple[np.ndarray, np.ndarray]:
     """Weights of the first and second derivative at ``x`` of the parabola through nodes ``t [3]``."""
     d1, d2 = np.empty(3), np.empty(3)
@@ -184,9 +190,7 @@ def paired_interval(obj: Objective, x: float, Lx: np.ndarray, lo: float, hi: flo
     parameter moves (Student's t over them; default all)."""
     q = _quantile(level, len(Lx) if n_eff is None else n_eff)
 
-    def accept(v: float) -> bool:
-        d = obj.block_losses(np.array([v])) - Lx
-        return float(d.sum()) <= q * np.sqrt(max(float(_score_var(d[:, None], obj.nxt)[0, 0]), 0.0))
+    accept = lambda v: _not_worse(obj.block_losses(np.array([v])) - Lx, obj.nxt, q)
 
     ends = []
     for sign, bound in ((-1, lo), (1, hi)):
@@ -221,7 +225,7 @@ def integer_set(B: np.ndarray, xs: np.ndarray, k: int, nxt: np.ndarray, level: f
     keep = []
     for j in range(len(xs)):
         dlt = B[j] - B[k]
-        keep.append(j == k or dlt.sum() <= q * np.sqrt(max(float(_score_var(dlt[:, None], nxt)[0, 0]), 0.0)))
+        keep.append(j == k or _not_worse(dlt, nxt, q))
     ok = xs[np.array(keep)]
     return float(ok.min()), float(ok.max())
 
