@@ -101,3 +101,19 @@ def test_go1_effects_move_the_dynamics_the_expected_way(go1):
     # a payload pulls a free-falling robot no differently, but loads the servos in stance: it
     # sinks faster on its legs
     assert acc({"payload": 3.0}, q=home, uu=cmd)[2] < acc({}, q=home, uu=cmd)[2]
+
+
+def test_replays_use_the_sparse_jacobian_on_a_floating_base_with_the_same_dynamics(pend):
+    import mujoco
+
+    go1 = model.load("go1")
+    fast = sim.for_replay(go1)
+    assert fast.mj.opt.jacobian == mujoco.mjtJacobian.mjJAC_SPARSE
+    assert go1.mj.opt.jacobian != mujoco.mjtJacobian.mjJAC_SPARSE  # the caller's model is left alone
+    assert sim.for_replay(pend) is pend  # no floating base: the model's own choice stands
+    clean, _ = real.generate(go1, None, 2, 15, seed=3, min_steps=3)
+    q, qd, u = (np.concatenate([getattr(t, f) for t in clean]) for f in ("q", "qd", "cmd"))
+    b = np.cumsum([0] + [len(t.t) for t in clean])
+    dense = sim.one_step(go1, effects.build(go1, {"damping": 0.5}), q, qd, u, b)[1]
+    sparse = sim.one_step(fast, effects.build(fast, {"damping": 0.5}), q, qd, u, b)[1]
+    np.testing.assert_allclose(sparse, dense, rtol=0, atol=1e-8)

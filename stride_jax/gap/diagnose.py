@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from stride_jax.gap import (baseline, calibrate, effects, filters, fit, granularity, logs, nuisance,
-                            progress, regions, residual, screen)
+                            progress, regions, residual, screen, sim)
 from stride_jax.gap.attribute import check_form, check_nominal, verdict, which
 from stride_jax.gap.localise import divergence, where
 from stride_jax.gap.regions import PHASES, dof_names, foot_phases, noise_floor  # noqa: F401 (re-exported)
@@ -210,6 +210,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     """Runs where / which / how far on logged trajectories. Returns a JSON-able dict (plus a few
     arrays under keys starting with ``_`` for the plots)."""
     t_start = time.time()
+    sm = sim.for_replay(sm)
     dt = sm.robot.ctrl_dt
     prep = [filters.preprocess(tr, dt, cfg.preprocess) for tr in trajs]
     trajs = [p[0] for p in prep]
