@@ -1,14 +1,18 @@
 """Coverage of the gap tool's parameter intervals over repeated noisy draws (issue 18, item 3).
 
     python experiments/gap_coverage.py --draws 30 --out results/gap_coverage [--trajectories 4 --steps 100]
+        [--effects damping,delay,com_offset,damping+delay,payload+torque_scale]
 
-For each planted effect (one at a time, on the pendulum, through a real robot's sensors:
-``real.SensorNoise``), ``--draws`` independent logs are generated and the effect alone is fitted with
-the ``tiny`` preset's fit settings; the 90% interval should cover the planted value in about 90% of
-draws. Besides the coverage each row gives the estimate's bias in standard errors (median estimate
-minus truth, over the median half width / 1.645): the intervals hold sampling noise only, so a bias
-from noise in the replayed start states (errors in variables) lowers coverage as the logs grow.
-Writes ``<out>/coverage.{md,json}``.
+For each planted effect or pair (one case at a time, on the pendulum, through a real robot's
+sensors: ``real.SensorNoise``), ``--draws`` independent logs are generated and the case's effects are
+fitted with the ``tiny`` preset's fit settings; the 90% interval of every parameter should cover
+its planted value in about 90% of draws. Scalars get the profile interval (or, where the loss is
+kinked or few blocks inform it, the test inversion), the delay its integer set, a vector (the centre
+of mass offset, one row per component) and a pair the sandwich interval; a pair is fitted as a
+diagnosis fits it, from its two singles' estimates. Besides the coverage each row gives the
+estimate's bias in standard errors (median estimate minus truth, over the median half width /
+1.645): the intervals hold sampling noise only, so a bias from noise in the replayed start states
+(errors in variables) lowers coverage as the logs grow. Writes ``<out>/coverage.{md,json}``.
 """
 
 from __future__ import annotations
@@ -22,7 +26,8 @@ import numpy as np
 
 # planted values: the tiny benchmark's smaller magnitudes (stride_jax/jobs/gap_bench.py)
 PLANTED = {"damping": 0.3, "frictionloss": 0.15, "armature": 0.05, "torque_scale": 0.85, "payload": 0.15,
-           "torque_limit": 0.7, "deadzone": 0.3}
+           "torque_limit": 0.7, "deadzone": 0.3, "delay": 2, "com_offset": (0.03, 0.0, 0.0)}
+SCALARS = "damping,frictionloss,armature,torque_scale,payload,torque_limit,deadzone"
 
 
 def main() -> None:
@@ -30,7 +35,7 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=30)
     ap.add_argument("--trajectories", type=int, default=4)
     ap.add_argument("--steps", type=int, default=100)
-    ap.add_argument("--effects", default=",".join(PLANTED))
+    ap.add_argument("--effects", default=SCALARS, help="comma-separated effects of PLANTED, or pairs a+b")
     ap.add_argument("--out", default="results/gap_coverage")
     a = ap.parse_args()
     from tqdm import tqdm
@@ -43,40 +48,52 @@ def main() -> None:
     sm = model.load("pendulum")
     rows = []
     t0 = time.time()
-    for name in a.effects.split(","):
-        true = PLANTED[name]
-        lo_b, hi_b = (float(b[0]) for b in effects.ALL[name].bounds(sm))
-        est, lo, hi = [], [], []
-        for seed in tqdm(range(a.draws), desc=name):
-            _, logged = real.generate(sm, {name: true}, a.trajectories, a.steps, seed=1000 + seed,
-                                      noise=real.SensorNoise())
+    for case in a.effects.split(","):
+        names = tuple(case.split("+"))
+        unknown = [n for n in names if n not in PLANTED]
+        if unknown:
+            raise SystemExit(f"no planted value for {unknown}; known: {', '.join(PLANTED)}")
+        truth = {n: np.atleast_1d(np.asarray(PLANTED[n], float)) for n in names}
+        draws = []  # per draw: {name: (estimate, lo, hi)} vectors
+        for seed in tqdm(range(a.draws), desc=case):
+            _, logged = real.generate(sm, {n: PLANTED[n] for n in names}, a.trajectories, a.steps,
+                                      seed=1000 + seed, noise=real.SensorNoise())
             logged = [filters.preprocess(t, sm.robot.ctrl_dt, cfg.preprocess)[0] for t in logged]
             data = fit.make_data(logged, cfg.steps)
-            f = fit.fit(sm, data, diagnose.scale_of(sm, data), (name,), cfg.fit)
-            est.append(float(f.params[name][0]))
-            lo.append(float(f.lo[name][0]))
-            hi.append(float(f.hi[name][0]))
-        est, lo, hi = map(np.asarray, (est, lo, hi))
-        half = np.median((hi - lo) / 2)
-        rows.append({"effect": name, "planted": true, "draws": a.draws,
-                     "covered": int(((lo <= true) & (true <= hi)).sum()),
-                     "contains_estimate": int(((lo <= est) & (est <= hi)).sum()),
-                     "inside_bounds": int(((lo_b <= lo) & (hi <= hi_b)).sum()),
-                     "mean_estimate": float(est.mean()), "median_estimate": float(np.median(est)),
-                     "sd_estimate": float(est.std(ddof=1)),
-                     "robust_sd_estimate": float(1.4826 * np.median(np.abs(est - np.median(est)))),
-                     "median_half_width": float(half),
-                     "bias_in_se": float((np.median(est) - true) / max(half / 1.645, 1e-300)),
-                     "low_misses": int((true < lo).sum()), "high_misses": int((true > hi).sum()),
-                     "estimates": est.tolist(), "lo": lo.tolist(), "hi": hi.tolist()})
+            scale = diagnose.scale_of(sm, data)
+            start = None
+            if len(names) > 1:  # as a diagnosis fits a pair: from its singles' estimates
+                start = {n: fit.fit(sm, data, scale, (n,), cfg.fit, interval=False).params[n] for n in names}
+            f = fit.fit(sm, data, scale, names, cfg.fit, start)
+            draws.append({n: tuple(np.asarray(v[n], float) for v in (f.params, f.lo, f.hi)) for n in names})
+        for n in names:
+            lo_b, hi_b = (np.asarray(b, float) for b in effects.ALL[n].bounds(sm))
+            for i, label in enumerate(effects.ALL[n].labels):
+                true = float(truth[n][i])
+                est, lo, hi = (np.array([d[n][j][i] for d in draws]) for j in range(3))
+                half = np.median((hi - lo) / 2)
+                rows.append({"effect": n if len(names) == 1 else f"{n} (with {'+'.join(m for m in names if m != n)})",
+                             "case": case, "parameter": label if len(truth[n]) > 1 else "",
+                             "planted": true, "draws": a.draws,
+                             "covered": int(((lo <= true) & (true <= hi)).sum()),
+                             "contains_estimate": int(((lo <= est) & (est <= hi)).sum()),
+                             "inside_bounds": int(((lo_b[i] <= lo) & (hi <= hi_b[i])).sum()),
+                             "mean_estimate": float(est.mean()), "median_estimate": float(np.median(est)),
+                             "sd_estimate": float(est.std(ddof=1)),
+                             "robust_sd_estimate": float(1.4826 * np.median(np.abs(est - np.median(est)))),
+                             "median_half_width": float(half),
+                             "bias_in_se": float((np.median(est) - true) / max(half / 1.645, 1e-300)),
+                             "low_misses": int((true < lo).sum()), "high_misses": int((true > hi).sum()),
+                             "estimates": est.tolist(), "lo": lo.tolist(), "hi": hi.tolist()})
     out = pathlib.Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     cmd = (f"python experiments/gap_coverage.py --draws {a.draws} --trajectories {a.trajectories} "
            f"--steps {a.steps} --effects {a.effects} --out {a.out}")
     lines = ["# Coverage of the gap tool's 90% parameter intervals (pendulum, sensor noise)", "",
              f"Command: `{cmd}` ({time.time() - t0:.0f} s)", "",
-             f"{a.draws} independent noisy draws of {a.trajectories} x {a.steps} control steps per effect, "
-             "the effect fitted alone with the `tiny` preset's fit settings. Bias: median estimate minus the "
+             f"{a.draws} independent noisy draws of {a.trajectories} x {a.steps} control steps per case, "
+             "the case's effects fitted with the `tiny` preset's fit settings (a pair jointly, from its singles' "
+             "estimates). Bias: median estimate minus the "
              "planted value, in standard errors (median half width / 1.645); sd: the estimates' spread over "
              "the draws (1.4826 x their median absolute deviation: a failed fit does not dominate it), which a "
              "right interval's half width / 1.645 matches. Misses below / above: the "
@@ -84,7 +101,8 @@ def main() -> None:
              "| effect | planted | covered | contains its estimate | inside the bounds | median estimate | sd | "
              "median half width | bias (se) | misses below / above |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['effect']} | {r['planted']:g} | {r['covered']}/{r['draws']} "
+        label = r["effect"] + (f" [{r['parameter']}]" if r.get("parameter") else "")
+        lines.append(f"| {label} | {r['planted']:g} | {r['covered']}/{r['draws']} "
                      f"({r['covered'] / r['draws']:.0%}) | {r['contains_estimate']}/{r['draws']} | "
                      f"{r['inside_bounds']}/{r['draws']} | {r['median_estimate']:.4g} | {r['robust_sd_estimate']:.3g} | "
                      f"{r['median_half_width']:.3g} | "
