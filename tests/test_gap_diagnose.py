@@ -94,3 +94,16 @@ def test_small_effect_in_noise_detected_and_control_is_not():
     assert "needs <" in verdicts["control"]["reason"]
     assert "50% rule" in verdicts["friction"]["reason"] and "15%" in verdicts["friction"]["reason"]
     assert all(isinstance(v["indistinguishable_from"], list) for v in verdicts.values())
+
+
+def test_an_effect_that_is_not_the_identity_at_its_nominal_value_stops_the_diagnosis(monkeypatch):
+    from stride_jax.gap import effects
+
+    sm = model.load("pendulum")
+    _, logged = real.generate(sm, {"damping": 0.3}, 3, 40, seed=2)
+    # a wrong effect implementation: "damping" at its nominal value adds 0.2 N m s/rad
+    monkeypatch.setitem(effects.LIBRARY, "damping", dataclasses.replace(effects.LIBRARY["damping"], nominal=(0.2,)))
+    cfg = dataclasses.replace(diagnose.PRESETS["tiny"], calibrate=dataclasses.replace(
+        diagnose.PRESETS["tiny"].calibrate, mode="off"), nominal_check=20, progress=False)
+    with pytest.raises(RuntimeError, match="do not reproduce the nominal model.*'damping'"):
+        diagnose.diagnose(sm, logged, cfg, log=lambda s: None)
