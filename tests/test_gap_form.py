@@ -85,3 +85,24 @@ def test_a_mask_of_the_wrong_shape_is_named(pendulum):
     data = fit.make_data(logged, 1)
     with pytest.raises(ValueError, match="mask has shape"):
         fit.Objective(pendulum, data, np.ones(pendulum.mj.nv), ("damping",), mask=np.ones((3, 7)))
+
+
+def test_fits_that_differ_only_in_their_mask_share_replays_and_give_the_same_fits(pendulum, monkeypatch):
+    _, logged = real.generate(pendulum, {"damping": 0.3}, 3, 60, seed=4, noise=real.SensorNoise())
+    data = fit.make_data(logged, 3)
+    scale = diagnose.scale_of(pendulum, data)
+    slow, fast, _ = form.by_joint_speed(pendulum, data)
+    cfg = TINY.fit
+    alone = [fit.fit(pendulum, data, scale, ("damping",), cfg, mask=m) for m in (slow, fast)]
+    replayed = []
+    real_residuals = fit.replay.residuals
+    monkeypatch.setattr(fit.replay, "residuals", lambda sm, plans, *a, **k: (
+        replayed.append(len(plans)), real_residuals(sm, plans, *a, **k))[1])
+    shared: dict = {}
+    together = [fit.fit(pendulum, data, scale, ("damping",), cfg, mask=m, cache=shared) for m in (slow, fast)]
+    for a, b in zip(alone, together):
+        for field in ("params", "lo", "hi"):
+            np.testing.assert_array_equal(getattr(a, field)["damping"], getattr(b, field)["damping"])
+        assert a.train_loss == b.train_loss
+    # the grid (grid points and the nominal value) was replayed once for both fits
+    assert replayed.count(cfg.grid + 1) == 1 and 0 not in replayed, replayed

@@ -152,15 +152,19 @@ class Objective:
     """Per-trajectory (and per-block) loss of parameters ``p`` of ``effects`` (concatenated), on
     top of ``base``. ``evals`` counts evaluations, ``unstable`` those where a replay diverged.
     ``mask [M, nv]`` (0/1, optional) keeps only some entries of the residual: a fit on the samples
-    of each joint where it moves slowly, say (:mod:`stride_jax.gap.form`)."""
+    of each joint where it moves slowly, say (:mod:`stride_jax.gap.form`). ``cache`` (a dict,
+    optional) keeps the unmasked residual of every parameter vector evaluated: objectives that
+    share it and differ only in their mask replay each vector once (their grids coincide)."""
 
     def __init__(self, sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...],
-                 base: dict | None = None, block: int = 10, mask: np.ndarray | None = None):
+                 base: dict | None = None, block: int = 10, mask: np.ndarray | None = None,
+                 cache: dict | None = None):
         self.sm, self.data, self.scale, self.names, self.base = sm, data, scale, names, dict(base or {})
         if mask is not None and np.shape(mask) != (len(data.start), sm.mj.nv):
             raise ValueError(f"mask has shape {np.shape(mask)}, needs (replayed samples, nv) = "
                              f"({len(data.start)}, {sm.mj.nv})")
         self.mask = None if mask is None else np.asarray(mask, np.float64)
+        self.cache = cache
         self.sizes = [effects.ALL[n].size for n in names]
         self.evals = 0
         self.unstable = 0
@@ -173,11 +177,19 @@ class Objective:
             i += k
         return out
 
+    def _key(self, p) -> tuple:
+        base = tuple(sorted((k, np.asarray(v, np.float64).tobytes()) for k, v in self.base.items()))
+        return self.names, base, np.asarray(p, np.float64).tobytes()
+
     def residual(self, p: np.ndarray) -> np.ndarray:
         self.evals += 1
-        before = sim.unstable()["diverged"]
-        r = residual(self.sm, effects.build(self.sm, self.applied(p)), self.data, self.scale)
-        self.unstable += int(sim.unstable()["diverged"] > before)
+        r = None if self.cache is None else self.cache.get(self._key(p))
+        if r is None:
+            before = sim.unstable()["diverged"]
+            r = residual(self.sm, effects.build(self.sm, self.applied(p)), self.data, self.scale)
+            self.unstable += int(sim.unstable()["diverged"] > before)
+            if self.cache is not None:
+                self.cache[self._key(p)] = r
         return r if self.mask is None else r * self.mask
 
     def losses(self, p: np.ndarray) -> np.ndarray:
@@ -192,9 +204,18 @@ class Objective:
         (:mod:`stride_jax.gap.replay`; the same numbers as one at a time)."""
         ps = [np.atleast_1d(np.asarray(p, np.float64)) for p in ps]
         self.evals += len(ps)
-        before = sim.unstable()["diverged"]
-        R = replay.residuals(self.sm, [effects.build(self.sm, self.applied(p)) for p in ps], self.data, self.scale)
-        self.unstable += int(sim.unstable()["diverged"] > before)
+        cached = {} if self.cache is None else {i: self.cache[k] for i, p in enumerate(ps)
+                                                 if (k := self._key(p)) in self.cache}
+        todo = [i for i in range(len(ps)) if i not in cached]
+        if todo:
+            before = sim.unstable()["diverged"]
+            new = replay.residuals(self.sm, [effects.build(self.sm, self.applied(ps[i])) for i in todo],
+                                   self.data, self.scale)
+            self.unstable += int(sim.unstable()["diverged"] > before)
+            cached.update(zip(todo, new))
+            if self.cache is not None:
+                self.cache.update({self._key(ps[i]): r for i, r in zip(todo, new)})
+        R = np.stack([cached[i] for i in range(len(ps))])
         return R if self.mask is None else R * self.mask
 
     def losses_many(self, ps) -> np.ndarray:
@@ -309,13 +330,15 @@ def _nominal(names) -> np.ndarray:
 
 
 def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg: FitConfig,
-        start: dict | None = None, interval: bool = True, mask: np.ndarray | None = None) -> Fit:
+        start: dict | None = None, interval: bool = True, mask: np.ndarray | None = None,
+        cache: dict | None = None) -> Fit:
     """Fits the effects ``names`` jointly on ``data`` (start from ``start`` where given).
 
     ``interval=False`` leaves a single continuous effect's interval for later
     (:func:`with_interval`; the estimate stands for it meanwhile): the profile costs about a
     third of a scalar fit's replays, and a diagnosis reports intervals only for the hypotheses
-    it names. ``mask [M, nv]``: fit on those entries of the residual only (:class:`Objective`)."""
+    it names. ``mask [M, nv]``: fit on those entries of the residual only; ``cache``: replays
+    shared with other fits on the same data and base (:class:`Objective`)."""
     names = tuple(names)
     ints = [n for n in names if effects.ALL[n].integer]
     conts = [n for n in names if not effects.ALL[n].integer]
@@ -326,7 +349,7 @@ def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg
     if len(names) == 1:
         (name,) = names
         e = effects.ALL[name]
-        obj = Objective(sm, data, scale, names, block=cfg.block, mask=mask)
+        obj = Objective(sm, data, scale, names, block=cfg.block, mask=mask, cache=cache)
         if e.size == 1:
             x, f, xl, xh = fit_scalar(obj, cfg, e.integer, lo[0], hi[0])
             est = Fit(names, {name: np.array([x])}, f, {name: np.array([xl])}, {name: np.array([xh])},
@@ -343,7 +366,7 @@ def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg
         tried = []
         for d in sorted({min(max(centre + k, 0), hi_i) for k in (-1, 0, 1)}):
             obj = Objective(sm, data, scale, tuple(conts), base={iname: np.array([float(d)])}, block=cfg.block,
-                            mask=mask)
+                            mask=mask, cache=cache)
             x0 = np.concatenate([np.asarray(start.get(n, effects.ALL[n].nominal), float) for n in conts])
             x, f = fit_vector(obj, cfg, x0, clo, chi)
             tried.append((d, f, x, obj))
@@ -363,7 +386,7 @@ def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg
         vec = np.concatenate([params[n] for n in names])
         return Fit(names, params, f, los, his, evals, _flags(bound_flags(vec)), unstable)
     x0 = np.concatenate([np.asarray(start.get(n, effects.ALL[n].nominal), float) for n in names])
-    obj = Objective(sm, data, scale, names, block=cfg.block, mask=mask)
+    obj = Objective(sm, data, scale, names, block=cfg.block, mask=mask, cache=cache)
     x, f = fit_vector(obj, cfg, x0, lo, hi)
     xl, xh = sandwich(obj, x, lo, hi, cfg.level) if cfg.profile else (x, x)
     return Fit(names, _split(names, x), f, _split(names, xl), _split(names, xh), obj.evals,

@@ -64,8 +64,9 @@ def check(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict[str, Any],
         return None
     slow, fast, (lo, hi) = by_joint_speed(sm, train, share)
     start = {name: np.asarray(row["params"][name], float)}
+    shared: dict = {}  # the two fits differ in their mask only: the second reuses the first's grid replays
     fits = [fit.fit(sm, train, scale, (name,), dataclasses.replace(cfg, profile=max(cfg.profile, 1)), start,
-                    mask=m) for m in (slow, fast)]
+                    mask=m, cache=shared) for m in (slow, fast)]
     nominal = np.asarray(effects.ALL[name].nominal, float)
     a, b = (np.asarray(f.params[name], float) for f in fits)
     alo, ahi = (np.asarray(v[name], float) for v in (fits[0].lo, fits[0].hi))
