@@ -177,16 +177,12 @@ def test_pushes_move_the_base_sideways_by_the_impulse(go1):
     assert not np.asarray(scenarios.push_at(pushes, 0.08)).any()
     with pytest.raises(ValueError, match="more than 4 pushes"):
         cl.push_schedule(dataclasses.replace(sc, pushes=sc.pushes * 5), mass)
-    # A robot holding its home pose (a "policy" that always returns it): the push's impulse shows
-    # as sideways base velocity, which the unpushed episode lacks.
-    cfg = cl.PRESETS["tiny"]
-    mx = mjx.put_model(cl.scenario_model(go1, sc))
-    planning = planning_lib.make_planning(cfg.planning, envs.config("go1"), go1, cl.mjx_step_fn(go1, mx))
-    planning = planning._replace(policy=lambda q, qd: jnp.asarray(planning.nominal_u))
+    # A robot holding its home pose (the "policy" of _held_episode at a zero command): the push's
+    # impulse shows as sideways base velocity, which the unpushed episode lacks.
+    run = _held_episode(go1)
     starts, values = cl.schedule(dataclasses.replace(sc, commands=((0.0, 0.0, 0.0, 0.0),)))
-    episode = jax.jit(lambda p: cl.run_episode(go1, mx, envs.contact_slots(mx), planning, None, 5,
-                                               starts, values, jax.random.key(0), pushes=p))
-    pushed, still = episode(jnp.asarray(pushes)), episode(jnp.zeros_like(pushes))
+    pushed = run(starts, values, jnp.asarray(pushes), *_NO_LIMITS)
+    still = run(starts, values, jnp.zeros_like(pushes), *_NO_LIMITS)
     vy_world = float(pushed.v_base[3, 1] - still.v_base[3, 1])  # base frame ~ world frame here
     assert 0.1 < vy_world < 0.45, vy_world  # at most the free-body 0.4 m/s, less what the feet hold
 
@@ -263,3 +259,38 @@ def test_disturbance_observer_finds_a_persistent_push_and_rollouts_carry_it(go1)
                                      _fake_step)
     _, qd_off = off.dynamics(q_aug, qd, u, jax.random.key(1))
     np.testing.assert_array_equal(qd_off, qd)
+
+
+_NO_LIMITS = (jnp.full(3, -jnp.inf, jnp.float32), jnp.full(3, jnp.inf, jnp.float32))  # clips nothing
+_HELD = {}
+
+
+def _held_episode(go1):
+    """One jitted 5-step episode on flat ground (shared by the tests below: one compilation) of a
+    "policy" that holds the home pose, moved by the forward command it sees:
+    ``run(starts, values, pushes, lo, hi) -> Trace``."""
+    if "run" not in _HELD:
+        mx = mjx.put_model(go1.mj)
+        planning = planning_lib.make_planning(cl.PRESETS["tiny"].planning, envs.config("go1"), go1,
+                                              cl.mjx_step_fn(go1, mx))
+        nq = go1.mj.nq
+        planning = planning._replace(policy=lambda q, qd: jnp.asarray(planning.nominal_u) + 0.1 * q[nq])
+        _HELD["run"] = jax.jit(lambda starts, values, pushes, lo, hi: cl.run_episode(
+            go1, mx, envs.contact_slots(mx), planning, None, 5, starts, values, jax.random.key(0),
+            pushes=pushes, limits=(lo, hi)))
+    return _HELD["run"]
+
+
+def test_a_command_governor_clips_what_the_controller_sees_and_the_trace_keeps_the_ask(go1):
+    run, no_push = _held_episode(go1), jnp.zeros((4, 4))
+    lo, hi = jnp.array([0.0, -0.3, -0.5]), jnp.array([1.0, 0.3, 0.5])
+
+    def episode(command, limits):
+        starts, values = cl.schedule(dataclasses.replace(cl.SCENARIOS["walk"], commands=((0.0, *command),)))
+        return run(starts, values, no_push, *limits)
+
+    governed, asked_within = episode((2.0, 0.6, 0.0), (lo, hi)), episode((1.0, 0.3, 0.0), _NO_LIMITS)
+    np.testing.assert_array_equal(governed.action, asked_within.action)  # it acted on (1.0, 0.3, 0)
+    np.testing.assert_allclose(governed.command[:, :2], [[2.0, 0.6]] * 5)  # the metrics see the ask
+    free = episode((2.0, 0.6, 0.0), _NO_LIMITS)
+    assert not np.allclose(free.action, governed.action)

@@ -46,7 +46,8 @@ class Trace(NamedTuple):
 def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Planning,
                 planner: mppi.Planner | None, n_steps: int, starts: jax.Array,
                 values: jax.Array, key: jax.Array, record: Callable | None = None,
-                pushes: jax.Array | None = None) -> Trace | tuple[Trace, object]:
+                pushes: jax.Array | None = None,
+                limits: tuple[jax.Array, jax.Array] | None = None) -> Trace | tuple[Trace, object]:
     """A closed-loop episode of ``n_steps`` control steps from the home pose (heading +x) under
     the command :func:`schedule` ``(starts, values)``. ``planner=None`` lets ``planning.policy``
     act alone. Pure; jit it.
@@ -56,6 +57,9 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     recorded)``. ``q_aug_next`` is the state reached under the step's command, ``down`` whether
     the robot was down before the step. ``pushes`` (:func:`stride_jax.control.scenarios.
     push_schedule`) applies horizontal forces to the base body (unknown to the planner's model).
+    ``limits = (lo [3], hi [3])`` is a command governor: the controller (policy and planner) sees
+    the command clipped to them, the trace keeps the command asked for, so the tracking metrics
+    count what the clipping gives up.
 
     With ``planning.observer_gain`` > 0 (and a planner) a disturbance observer runs beside the
     planner: after each real step the planner's model predicts the same step from the same state
@@ -89,7 +93,8 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
         d, ps, clock, down, dist = carry
         t = step * dt
         command = command_at(starts, values, t)
-        q_aug = augment(d.qpos, command, clock, disturbance=dist)
+        seen = command if limits is None else jnp.clip(command, limits[0], limits[1])
+        q_aug = augment(d.qpos, seen, clock, disturbance=dist)
         status, cut, info = jnp.zeros((), jnp.int32), jnp.zeros(()), None
         if planner is not None:
             u, ps, info = planner.step(ps, q_aug, d.qvel)
@@ -117,7 +122,7 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
                     u, status, cut, dist)
         if record is not None:
             rec = (rec, record(q_aug, d.qvel, u, info,
-                               augment(d2.qpos, command, clock, disturbance=dist),
+                               augment(d2.qpos, seen, clock, disturbance=dist),
                                d2.qvel, down, jax.random.fold_in(key, step)))
         return (d2, ps, clock, down2, dist), rec
 

@@ -90,6 +90,10 @@ class ClosedLoopConfig:
         ``pallas-bf16``: fused kernels on GPUs, ``stride_jax.dynamics.fused``;
         ``pallas-step[-bf16]``: STRIDE's whole step as one kernel where it applies).
       settle_s: tracking errors are counted from this long after each command change (s).
+      govern: a command governor: the controller (policy and planner) sees each command clipped
+        to the ranges its environment's policy was trained on (``envs`` commands: forward,
+        lateral, yaw), as a robot's operator interface would saturate it; the metrics still
+        compare with the command asked for, so they count what the governor gives up.
       out: results folder (``closed_loop.json``/``.md`` and plots).
       seed: planner key and terrain seed.
     """
@@ -105,6 +109,7 @@ class ClosedLoopConfig:
     error_model: str = ""
     kernel: str = "xla"
     settle_s: float = 0.5
+    govern: bool = False
     out: str = "results/closed_loop"
     seed: int = 0
 
@@ -175,6 +180,11 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     if any(name == "policy" for name, _ in models) and ppo_policy is None:
         raise ValueError("model 'policy' needs --policy RUN")
     compiled = {}  # one executable per (model, episode length, model structures)
+    limits = None
+    if cfg.govern:
+        c = env_cfg.commands
+        limits = (jnp.array([c.forward[0], c.lateral[0], c.yaw[0]], jnp.float32),
+                  jnp.array([c.forward[1], c.lateral[1], c.yaw[1]], jnp.float32))
 
     def episode_fn(name, n_steps, slots):
         def episode(mx_sim, mx_plan, starts, values, pushes, key):
@@ -187,7 +197,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                 with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
                     planner = make_planner(planning, mppi_config(cfg.mppi, cfg.planning, planning))
             return run_episode(sm, mx_sim, slots, planning, planner, n_steps, starts, values, key,
-                               pushes=pushes)
+                               pushes=pushes, limits=limits)
         return jax.jit(episode)
 
     for sc_name in [s for s in cfg.scenarios.split(",") if s]:
