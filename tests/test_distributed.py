@@ -55,22 +55,34 @@ def _alone(args: list[str], tmp: pathlib.Path, devices: int = 1) -> None:
     _wait([_stride(args, log, devices)], [log])
 
 
-def test_two_processes_make_the_same_dataset_and_model(tmp_path):
-    data = ["data", "--robot", "pendulum", "--preset", "tiny"]
-    _alone([*data, "--out", str(tmp_path / "d1")], tmp_path)
-    _together([*data, "--out", str(tmp_path / "d2")], tmp_path)
-    meta = [json.loads((tmp_path / d / "meta.json").read_text()) for d in ("d1", "d2")]
-    assert meta[0]["arrays_sha256"] == meta[1]["arrays_sha256"]
+DATA = ["data", "--robot", "pendulum", "--preset", "tiny"]
+TRAIN = ["train", "--robot", "pendulum", "--model", "delan", "--preset", "tiny", "--steps", "30"]
 
-    train = ["train", "--robot", "pendulum", "--model", "delan", "--preset", "tiny", "--steps",
-             "30", "--data", str(tmp_path / "d1")]
-    _alone([*train, "--out", str(tmp_path / "r1")], tmp_path)
-    _together([*train, "--out", str(tmp_path / "r2")], tmp_path)
-    (_, p1), (_, p2) = dynamics.load(tmp_path / "r1"), dynamics.load(tmp_path / "r2")
+
+@pytest.fixture(scope="module")
+def alone(tmp_path_factory) -> pathlib.Path:
+    """The dataset (``d1``) and the model (``r1``) of one process with one device: the reference
+    both tests below compare with (made once)."""
+    tmp = tmp_path_factory.mktemp("alone")
+    _alone([*DATA, "--out", str(tmp / "d1")], tmp)
+    _alone([*TRAIN, "--data", str(tmp / "d1"), "--out", str(tmp / "r1")], tmp)
+    return tmp
+
+
+def _same_model(r1: pathlib.Path, r2: pathlib.Path) -> None:
+    (_, p1), (_, p2) = dynamics.load(r1), dynamics.load(r2)
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5), p1, p2)
-    s1, s2 = (json.loads((tmp_path / r / "summary.json").read_text()) for r in ("r1", "r2"))
+    s1, s2 = (json.loads((r / "summary.json").read_text()) for r in (r1, r2))
     assert s1["best_step"] == s2["best_step"] == 30
     assert s2["best_val"] == pytest.approx(s1["best_val"], rel=1e-4)
+
+
+def test_two_processes_make_the_same_dataset_and_model(alone, tmp_path):
+    _together([*DATA, "--out", str(tmp_path / "d2")], tmp_path)
+    meta = [json.loads((d / "meta.json").read_text()) for d in (alone / "d1", tmp_path / "d2")]
+    assert meta[0]["arrays_sha256"] == meta[1]["arrays_sha256"]
+    _together([*TRAIN, "--data", str(alone / "d1"), "--out", str(tmp_path / "r2")], tmp_path)
+    _same_model(alone / "r1", tmp_path / "r2")
 
 
 def test_settings_come_from_flags_or_the_environment():
@@ -88,17 +100,9 @@ def test_settings_come_from_flags_or_the_environment():
         distributed.resolve(distributed.DistributedConfig("node0:1"), {})
 
 
-def test_one_process_with_two_devices_trains_the_same_model(tmp_path):
+def test_one_process_with_two_devices_trains_the_same_model(alone, tmp_path):
     """Two local devices of one process (the minibatch split over them, data and parameters
     replicated on each): the model one device trains, up to the order of the gradients'
     summation, and a checkpoint that restores in a one-device process."""
-    data = ["data", "--robot", "pendulum", "--preset", "tiny", "--out", str(tmp_path / "d")]
-    _alone(data, tmp_path)
-    train = ["train", "--robot", "pendulum", "--model", "delan", "--preset", "tiny", "--steps",
-             "30", "--data", str(tmp_path / "d")]
-    _alone([*train, "--out", str(tmp_path / "r1")], tmp_path)
-    _alone([*train, "--out", str(tmp_path / "r2")], tmp_path, devices=2)
-    (_, p1), (_, p2) = dynamics.load(tmp_path / "r1"), dynamics.load(tmp_path / "r2")
-    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5), p1, p2)
-    s1, s2 = (json.loads((tmp_path / r / "summary.json").read_text()) for r in ("r1", "r2"))
-    assert s2["best_val"] == pytest.approx(s1["best_val"], rel=1e-4)
+    _alone([*TRAIN, "--data", str(alone / "d1"), "--out", str(tmp_path / "r2")], tmp_path, devices=2)
+    _same_model(alone / "r1", tmp_path / "r2")
