@@ -167,7 +167,7 @@ def test_mppi_settings_are_one_nested_config_with_the_old_flags_kept():
     assert got.policy_samples == 0 and got.noise_std == (0.1, 0.2) and got.samples == 64
 
 
-def test_pushes_move_the_base_sideways_by_the_impulse(go1):
+def test_pushes_move_the_base_sideways_by_the_impulse(go1, held):
     sc = dataclasses.replace(cl.SCENARIOS["push"], pushes=((0.02, 0.06, 0.0, 0.4),))
     mass = float(go1.mj.body_mass.sum())
     pushes = cl.push_schedule(sc, mass)
@@ -177,9 +177,9 @@ def test_pushes_move_the_base_sideways_by_the_impulse(go1):
     assert not np.asarray(scenarios.push_at(pushes, 0.08)).any()
     with pytest.raises(ValueError, match="more than 4 pushes"):
         cl.push_schedule(dataclasses.replace(sc, pushes=sc.pushes * 5), mass)
-    # A robot holding its home pose (the "policy" of _held_episode at a zero command): the push's
-    # impulse shows as sideways base velocity, which the unpushed episode lacks.
-    run = _held_episode(go1)
+    # A robot holding its home pose (the "policy" of the held episode at a zero command): the
+    # push's impulse shows as sideways base velocity, which the unpushed episode lacks.
+    run = held
     starts, values = cl.schedule(dataclasses.replace(sc, commands=((0.0, 0.0, 0.0, 0.0),)))
     pushed = run(starts, values, jnp.asarray(pushes), *_NO_LIMITS)
     still = run(starts, values, jnp.zeros_like(pushes), *_NO_LIMITS)
@@ -262,27 +262,25 @@ def test_disturbance_observer_finds_a_persistent_push_and_rollouts_carry_it(go1)
 
 
 _NO_LIMITS = (jnp.full(3, -jnp.inf, jnp.float32), jnp.full(3, jnp.inf, jnp.float32))  # clips nothing
-_HELD = {}
 
 
-def _held_episode(go1):
-    """One jitted 5-step episode on flat ground (shared by the tests below: one compilation) of a
-    "policy" that holds the home pose, moved by the forward command it sees:
+@pytest.fixture(scope="module")
+def held(go1):
+    """One jitted 5-step episode on flat ground (shared by the pushes and governor tests: one
+    compilation) of a "policy" that holds the home pose, moved by the forward command it sees:
     ``run(starts, values, pushes, lo, hi) -> Trace``."""
-    if "run" not in _HELD:
-        mx = mjx.put_model(go1.mj)
-        planning = planning_lib.make_planning(cl.PRESETS["tiny"].planning, envs.config("go1"), go1,
-                                              cl.mjx_step_fn(go1, mx))
-        nq = go1.mj.nq
-        planning = planning._replace(policy=lambda q, qd: jnp.asarray(planning.nominal_u) + 0.1 * q[nq])
-        _HELD["run"] = jax.jit(lambda starts, values, pushes, lo, hi: cl.run_episode(
-            go1, mx, envs.contact_slots(mx), planning, None, 5, starts, values, jax.random.key(0),
-            pushes=pushes, limits=(lo, hi)))
-    return _HELD["run"]
+    mx = mjx.put_model(go1.mj)
+    planning = planning_lib.make_planning(cl.PRESETS["tiny"].planning, envs.config("go1"), go1,
+                                          cl.mjx_step_fn(go1, mx))
+    nq = go1.mj.nq
+    planning = planning._replace(policy=lambda q, qd: jnp.asarray(planning.nominal_u) + 0.1 * q[nq])
+    return jax.jit(lambda starts, values, pushes, lo, hi: cl.run_episode(
+        go1, mx, envs.contact_slots(mx), planning, None, 5, starts, values, jax.random.key(0),
+        pushes=pushes, limits=(lo, hi)))
 
 
-def test_a_command_governor_clips_what_the_controller_sees_and_the_trace_keeps_the_ask(go1):
-    run, no_push = _held_episode(go1), jnp.zeros((4, 4))
+def test_a_command_governor_clips_what_the_controller_sees_and_the_trace_keeps_the_ask(held):
+    run, no_push = held, jnp.zeros((4, 4))
     lo, hi = jnp.array([0.0, -0.3, -0.5]), jnp.array([1.0, 0.3, 0.5])
 
     def episode(command, limits):

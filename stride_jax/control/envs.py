@@ -53,6 +53,11 @@ class Commands:
     zero_prob: float = 0.1
     resample_s: float = 5.0
 
+    def bounds(self) -> tuple[jax.Array, jax.Array]:
+        """``(lo [3], hi [3])`` of (vx, vy, yaw rate): the ranges commands are drawn from."""
+        return (jnp.array([self.forward[0], self.lateral[0], self.yaw[0]]),
+                jnp.array([self.forward[1], self.lateral[1], self.yaw[1]]))
+
 
 @dataclasses.dataclass(frozen=True)
 class RewardScales:
@@ -223,8 +228,7 @@ def total_reward(cfg: EnvConfig, terms: dict[str, jax.Array], dt: float) -> tupl
 def sample_command(c: Commands, key: jax.Array) -> jax.Array:
     """One command ``[3]`` (vx, vy in m/s, yaw rate in rad/s)."""
     k_cmd, k_zero = jax.random.split(key)
-    lo = jnp.array([c.forward[0], c.lateral[0], c.yaw[0]])
-    hi = jnp.array([c.forward[1], c.lateral[1], c.yaw[1]])
+    lo, hi = c.bounds()
     cmd = jax.random.uniform(k_cmd, (3,), minval=lo, maxval=hi)
     return jnp.where(jax.random.bernoulli(k_zero, c.zero_prob), 0.0, cmd)
 

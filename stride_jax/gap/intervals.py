@@ -15,6 +15,13 @@ if TYPE_CHECKING:
     from stride_jax.gap.fit import Objective
 
 
+KINK = 2.0  # curvature at the profile's step over that at 4x the step beyond which the loss is kinked
+# fewer blocks than this moved by the parameter: its spread rests on a few events (a limit reached a few
+# times), the sandwich's variance on fewer than 7 degrees of freedom; the interval is the test's
+# (pendulum, torque_limit 0.7 in noise, 2-5 such blocks of 16: the sandwich covered 35% of draws)
+MIN_BLOCKS = 8
+
+
 def _quantile(level: float, nb: int) -> float:
     """Two-sided Student quantile for ``nb`` blocks."""
     return float(stats.t.ppf(0.5 + level / 2, max(nb - 1, 1)))
@@ -46,6 +53,23 @@ def _not_worse(d: np.ndarray, nxt: np.ndarray, q: float) -> bool:
     """The one-sided paired per-block test: block loss differences ``d [nb]`` (a value's minus the
     estimate's) do not exceed ``q`` standard deviations of their sum (:func:`_score_var`)."""
     return float(d.sum()) <= q * np.sqrt(max(float(_score_var(d[:, None], nxt)[0, 0]), 0.0))
+
+
+def _outward(ok, x: float, bound: float, step: float) -> tuple[float, float | None]:
+    """Doubling steps from ``x`` towards ``bound`` (first ``step``) while ``ok(v)``: ``(inside,
+    out)``, the last value accepted (``x`` if none) and the first rejected (None: none before
+    the bound)."""
+    inside = x
+    while True:
+        v = float(min(x + step, bound) if bound >= x else max(x - step, bound))
+        if v == inside:
+            return inside, None
+        if not ok(v):
+            return inside, v
+        inside = v
+        if v == bound:
+            return inside, None
+        step *= 2
 
 
 def _lagrange(t: np.ndarray, x: float) -> tuple[np.ndarray, np.ndarray]:
@@ -136,25 +160,23 @@ def scalar_interval(obj: Objective, x: float, f: float, lo: float, hi: float, le
     c = half ** 2 * H / 2
     info = {"method": "profile", "threshold": c, "sandwich_half_width": half, "curvature": H, "curvature_4h": H4,
             "informative_blocks": n_eff}
+    D = {}  # the profile above the minimum at the values tried
+
+    def within(v: float) -> bool:
+        D[v] = total(v) - f
+        return D[v] <= c
+
     ends = []
-    for sign, bound in ((-1, lo), (1, hi)):
-        inside, step = x, 1.2 * half  # a little past the sandwich end: brackets a quadratic profile
-        while True:  # bracket the end: doubling steps from x
-            v = float(np.clip(x + sign * step, lo, hi))
-            Dv = total(v) - f
-            if Dv > c:
-                break
-            inside = v
-            if v == bound:
-                break
-            step *= 2
-        if inside == bound:
-            ends.append(bound)
+    for bound in (lo, hi):
+        # bracket the end, from a little past the sandwich end (brackets a quadratic profile)
+        inside, v = _outward(within, x, bound, 1.2 * half)
+        if v is None:
+            ends.append(inside)
             continue
         # refine: the root of the parabola from x through the outer point (exact for a quadratic
         # profile), kept 10% inside the bracket (the profile need not be monotone), until the
         # profile there is within 10% of the threshold
-        a, b, Db, end = inside, v, Dv, None
+        a, b, Db, end = inside, v, D[v], None
         for _ in range(4):
             m = x + (b - x) * np.sqrt(c / Db)
             m = float(np.clip(m, min(a, b) + 0.1 * abs(b - a), max(a, b) - 0.1 * abs(b - a)))
@@ -172,15 +194,8 @@ def scalar_interval(obj: Objective, x: float, f: float, lo: float, hi: float, le
     return min(ends[0], x), max(ends[1], x), info
 
 
-KINK = 2.0  # curvature at the profile's step over that at 4x the step beyond which the loss is kinked
-# fewer blocks than this moved by the parameter: its spread rests on a few events (a limit reached a few
-# times), the sandwich's variance on fewer than 7 degrees of freedom; the interval is the test's
-# (pendulum, torque_limit 0.7 in noise, 2-5 such blocks of 16: the sandwich covered 35% of draws)
-MIN_BLOCKS = 8
-
-
-def paired_interval(obj: Objective, x: float, Lx: np.ndarray, lo: float, hi: float, level: float, step: float,
-                  n_eff: int | None = None) -> tuple[float, float]:
+def paired_interval(obj: Objective, x: float, Lx: np.ndarray, lo: float, hi: float, level: float,
+                    step: float, n_eff: int | None = None) -> tuple[float, float]:
     """Interval of a scalar by test inversion: the values ``v`` that a one-sided paired per-block
     test at ``(1 - level) / 2`` does not find worse than the estimate ``x`` (per-block losses
     ``Lx``), as :func:`integer_set` for a delay. Each end is bracketed by doubling steps from
@@ -193,19 +208,8 @@ def paired_interval(obj: Objective, x: float, Lx: np.ndarray, lo: float, hi: flo
     accept = lambda v: _not_worse(obj.block_losses(np.array([v])) - Lx, obj.nxt, q)
 
     ends = []
-    for sign, bound in ((-1, lo), (1, hi)):
-        inside, s, out = x, step, None
-        while True:
-            v = float(np.clip(x + sign * s, lo, hi))
-            if v == inside:
-                break
-            if not accept(v):
-                out = v
-                break
-            inside = v
-            if v == bound:
-                break
-            s *= 2
+    for bound in (lo, hi):
+        inside, out = _outward(accept, x, bound, step)
         if out is not None:
             for _ in range(4):
                 m = (inside + out) / 2

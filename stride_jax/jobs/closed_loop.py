@@ -180,11 +180,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     if any(name == "policy" for name, _ in models) and ppo_policy is None:
         raise ValueError("model 'policy' needs --policy RUN")
     compiled = {}  # one executable per (model, episode length, model structures)
-    limits = None
-    if cfg.govern:
-        c = env_cfg.commands
-        limits = (jnp.array([c.forward[0], c.lateral[0], c.yaw[0]], jnp.float32),
-                  jnp.array([c.forward[1], c.lateral[1], c.yaw[1]], jnp.float32))
+    limits = env_cfg.commands.bounds() if cfg.govern else None
 
     def episode_fn(name, n_steps, slots):
         def episode(mx_sim, mx_plan, starts, values, pushes, key):
