@@ -268,15 +268,18 @@ _NO_LIMITS = (jnp.full(3, -jnp.inf, jnp.float32), jnp.full(3, jnp.inf, jnp.float
 def held(go1):
     """One jitted 5-step episode on flat ground (shared by the pushes and governor tests: one
     compilation) of a "policy" that holds the home pose, moved by the forward command it sees:
-    ``run(starts, values, pushes, lo, hi) -> Trace``."""
+    ``run(starts, values, pushes, lo, hi, tilt) -> Trace``."""
     mx = mjx.put_model(go1.mj)
     planning = planning_lib.make_planning(cl.PRESETS["tiny"].planning, envs.config("go1"), go1,
                                           cl.mjx_step_fn(go1, mx))
     nq = go1.mj.nq
     planning = planning._replace(policy=lambda q, qd: jnp.asarray(planning.nominal_u) + 0.1 * q[nq])
-    return jax.jit(lambda starts, values, pushes, lo, hi: cl.run_episode(
+    return jax.jit(lambda starts, values, pushes, lo, hi, tilt: cl.run_episode(
         go1, mx, envs.contact_slots(mx), planning, None, 5, starts, values, jax.random.key(0),
-        pushes=pushes, limits=(lo, hi)))
+        pushes=pushes, limits=(lo, hi), tilt=tilt))
+
+
+_LEVEL = np.zeros(2, np.float32)  # no tilt schedule: the model's own gravity
 
 
 def test_a_command_governor_clips_what_the_controller_sees_and_the_trace_keeps_the_ask(held):
@@ -285,10 +288,34 @@ def test_a_command_governor_clips_what_the_controller_sees_and_the_trace_keeps_t
 
     def episode(command, limits):
         starts, values = cl.schedule(dataclasses.replace(cl.SCENARIOS["walk"], commands=((0.0, *command),)))
-        return run(starts, values, no_push, *limits)
+        return run(starts, values, no_push, *limits, _LEVEL)
 
     governed, asked_within = episode((2.0, 0.6, 0.0), (lo, hi)), episode((1.0, 0.3, 0.0), _NO_LIMITS)
     np.testing.assert_array_equal(governed.action, asked_within.action)  # it acted on (1.0, 0.3, 0)
     np.testing.assert_allclose(governed.command[:, :2], [[2.0, 0.6]] * 5)  # the metrics see the ask
     free = episode((2.0, 0.6, 0.0), _NO_LIMITS)
     assert not np.allclose(free.action, governed.action)
+
+
+def test_a_tilting_ground_builds_the_slope_up_and_a_still_one_is_the_models_own_gravity(held):
+    g = np.array([0.0, 0.0, -9.81], np.float32)
+    tilt = cl.tilt_schedule(cl.SCENARIOS["tilt"])
+    np.testing.assert_allclose(scenarios.gravity_at(tilt, 0.0, g), g, atol=1e-6)  # level at first
+    half = np.asarray(scenarios.gravity_at(tilt, 1.0, g))
+    np.testing.assert_allclose(np.degrees(np.arctan2(-half[0], -half[2])), 10.0, rtol=1e-5)
+    for t in (2.0, 5.0):
+        gt = np.asarray(scenarios.gravity_at(tilt, t, g))
+        np.testing.assert_allclose(np.degrees(np.arctan2(-gt[0], -gt[2])), 20.0, rtol=1e-5)
+        np.testing.assert_allclose(np.linalg.norm(gt), 9.81, rtol=1e-6)
+    slope = cl.tilt_schedule(cl.SCENARIOS["slope"])  # no build-up: whatever the model has
+    np.testing.assert_array_equal(scenarios.gravity_at(slope, 0.0, half), half)
+    # In an episode: the still schedule is bit-identical to none; a fast tilt pulls the robot
+    # back (downhill, -x) against the level run.
+    starts, values = cl.schedule(cl.SCENARIOS["walk"])
+    args = (starts, values, jnp.zeros((4, 4)), *_NO_LIMITS)
+    level = held(*args, _LEVEL)
+    still = held(*args, slope)
+    for a, b in zip(jax.tree.leaves(level), jax.tree.leaves(still)):
+        np.testing.assert_array_equal(a, b)
+    tilted = held(*args, np.array([np.deg2rad(30.0), 0.02], np.float32))
+    assert np.asarray(tilted.v_base)[-1, 0] < np.asarray(level.v_base)[-1, 0] - 0.05

@@ -23,7 +23,7 @@ from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.control.planning import N_DIST, Planning, augment, update_disturbance
-from stride_jax.control.scenarios import command_at, push_at
+from stride_jax.control.scenarios import command_at, gravity_at, push_at
 from stride_jax.sim import model as sim_model, rollout_mjx
 
 
@@ -47,7 +47,8 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
                 planner: mppi.Planner | None, n_steps: int, starts: jax.Array,
                 values: jax.Array, key: jax.Array, record: Callable | None = None,
                 pushes: jax.Array | None = None,
-                limits: tuple[jax.Array, jax.Array] | None = None) -> Trace | tuple[Trace, object]:
+                limits: tuple[jax.Array, jax.Array] | None = None,
+                tilt: jax.Array | None = None) -> Trace | tuple[Trace, object]:
     """A closed-loop episode of ``n_steps`` control steps from the home pose (heading +x) under
     the command :func:`schedule` ``(starts, values)``. ``planner=None`` lets ``planning.policy``
     act alone. Pure; jit it.
@@ -59,7 +60,10 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     push_schedule`) applies horizontal forces to the base body (unknown to the planner's model).
     ``limits = (lo [3], hi [3])`` is a command governor: the controller (policy and planner) sees
     the command clipped to them, the trace keeps the command asked for, so the tracking metrics
-    count what the clipping gives up.
+    count what the clipping gives up. ``tilt`` (:func:`stride_jax.control.scenarios.
+    tilt_schedule`) builds the slope up over the episode's first seconds: the simulation's gravity
+    at each step is :func:`stride_jax.control.scenarios.gravity_at` (``mx_sim``'s own where the
+    schedule does not build up); the planner's model is not told.
 
     With ``planning.observer_gain`` > 0 (and a planner) a disturbance observer runs beside the
     planner: after each real step the planner's model predicts the same step from the same state
@@ -107,7 +111,11 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
         u = jnp.where(down, jnp.asarray(planning.nominal_u), u)  # fallen: stop planning effort
         if pushes is not None:
             d = d.replace(xfrc_applied=d.xfrc_applied.at[base, :2].set(push_at(pushes, t)))
-        d2 = envs.physics_step(mx_sim, sm.n_substeps, d, planning.ctrl(q_aug, u))
+        mx_t = mx_sim
+        if tilt is not None:
+            mx_t = mx_sim.replace(opt=mx_sim.opt.replace(
+                gravity=gravity_at(tilt, t, mx_sim.opt.gravity)))
+        d2 = envs.physics_step(mx_t, sm.n_substeps, d, planning.ctrl(q_aug, u))
         freq = u[nu] if gait else planning.clock_hz
         clock = jnp.mod(clock + freq * dt, 1.0)
         finite = jnp.all(jnp.isfinite(d2.qpos)) & jnp.all(jnp.isfinite(d2.qvel))

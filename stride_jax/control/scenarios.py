@@ -2,8 +2,10 @@
 
 Scenarios: velocity step 0 -> 2 m/s, sudden command changes, a 20 degree slope (gravity tilted by
 20 degrees about the y axis: on a plane this is the same physics as a tilted floor, walking +x is
-uphill), ground unseen in training: low friction, soft contacts, rough terrain (a heightfield),
-and lateral pushes on the base while walking.
+uphill), the same slope reached by tilting the ground under the walking robot over its first two
+seconds (``tilt``: a robot that starts on the full slope starts leaning 20 degrees back, which a
+quadruped survives and a humanoid does not), ground unseen in training: low friction, soft
+contacts, rough terrain (a heightfield), and lateral pushes on the base while walking.
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ class Scenario:
       commands: ``(t_start s, vx m/s, vy m/s, yaw rad/s)`` pieces, piecewise constant.
       seconds: duration.
       slope_deg: ground slope, uphill along +x (gravity tilted about y).
+      tilt_s: seconds over which the slope builds up from level, linearly (a tilting platform
+        under the walking robot); 0: the slope is there from the first step.
       friction: scale of every geom's sliding friction.
       softness: scale of the contact time constant (solref[0]); > 1 is softer.
       rough_m: peak-to-peak height of a random heightfield replacing the floor (m); 0: flat.
@@ -40,6 +44,7 @@ class Scenario:
     commands: tuple[tuple[float, float, float, float], ...]
     seconds: float = 6.0
     slope_deg: float = 0.0
+    tilt_s: float = 0.0
     friction: float = 1.0
     softness: float = 1.0
     rough_m: float = 0.0
@@ -53,6 +58,7 @@ SCENARIOS = {
     "changes": Scenario("changes", ((0.0, 1.0, 0.0, 0.0), (1.5, 0.3, 0.4, 0.0),
                                     (3.0, 1.5, 0.0, 0.8), (4.5, 0.0, 0.0, 0.0))),
     "slope": Scenario("slope", WALK, slope_deg=20.0),
+    "tilt": Scenario("tilt", WALK, slope_deg=20.0, tilt_s=2.0),
     "low_friction": Scenario("low_friction", WALK, friction=0.3),
     "soft": Scenario("soft", WALK, softness=4.0),
     "rough": Scenario("rough", WALK, rough_m=0.04),
@@ -89,6 +95,24 @@ def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoc
     m.pair_friction[:, :2] *= sc.friction
     m.pair_solref[:, 0] *= sc.softness
     return m
+
+
+def tilt_schedule(sc: Scenario) -> np.ndarray:
+    """The scenario's slope as ``[slope rad, seconds to build up]`` for :func:`gravity_at` (an
+    array, so that scenarios share one compiled episode)."""
+    return np.array([np.deg2rad(sc.slope_deg), sc.tilt_s], np.float32)
+
+
+def gravity_at(tilt: jax.Array, t: jax.Array, gravity: jax.Array) -> jax.Array:
+    """The gravity ``[3]`` at time ``t`` (s) of a :func:`tilt_schedule`: level gravity (the
+    magnitude of ``gravity``, the scenario model's own) tilted about y by the slope times
+    ``min(1, t / seconds)``; ``gravity`` itself where the slope does not build up (seconds 0)."""
+    tilt, gravity = jnp.asarray(tilt), jnp.asarray(gravity)
+    slope, seconds = tilt[0], tilt[1]
+    th = slope * jnp.clip(t / jnp.maximum(seconds, 1e-9), 0.0, 1.0)
+    g = jnp.linalg.norm(gravity)
+    ramped = g * jnp.stack([-jnp.sin(th), jnp.zeros_like(th), -jnp.cos(th)])
+    return jnp.where(seconds > 0, ramped.astype(gravity.dtype), gravity)
 
 
 def schedule(sc: Scenario, pieces: int = 8) -> tuple[np.ndarray, np.ndarray]:

@@ -25,7 +25,8 @@ PPO run can add ``policy_samples`` candidates. Offset-free planning in the polic
 :mod:`stride_jax.control.planning`) is how issue 19's runs plan (``docs/control.md``).
 
 Scenarios (:mod:`stride_jax.control.scenarios`): velocity step 0 -> 2 m/s, sudden command
-changes, a 20 degree slope, low friction, soft contacts, rough terrain. The gait study lives in
+changes, a 20 degree slope (from the first step, or ``tilt``: built up over two seconds), low
+friction, soft contacts, rough terrain, pushes. The gait study lives in
 :mod:`stride_jax.jobs.gait_study`. Reported per (scenario, model): tracking RMSE of the
 base-frame velocity (xy) and yaw rate while
 upright, falls, and planning time per step.
@@ -54,7 +55,8 @@ from stride_jax.control.episode import (Trace, learned_step_fn, metrics,  # noqa
 from stride_jax.control.mppi import MPPIConfig
 from stride_jax.control.planning import PlanningConfig, make_planner, make_planning, mppi_config
 from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,  # noqa: F401
-                                          push_schedule, scenario_model, schedule)
+                                          push_schedule, scenario_model, schedule,
+                                          tilt_schedule)
 from stride_jax.io import atomic_write_text, code_version
 from stride_jax.sim import model as sim_model
 
@@ -72,6 +74,8 @@ class ClosedLoopConfig:
       models: comma-separated planner models (``oracle``, ``nominal``, ``policy``, ``NAME=RUN``).
       scenarios: comma-separated names of :data:`SCENARIOS`.
       seconds: override every scenario's duration (0: keep).
+      slope_deg: override the slope of the scenarios that have one (0: keep; their names get
+        the angle, ``tilt10``).
       mppi: the planner's settings (``--mppi.samples``, ``--mppi.horizon``, ...; the older flat
         flags ``--samples``, ``--horizon``, ``--policy-samples`` ... still answer). Its
         ``noise_std`` is set from ``planning.noise_std`` (and ``planning.gait_noise``), its
@@ -102,6 +106,7 @@ class ClosedLoopConfig:
     models: str = "oracle,nominal"
     scenarios: str = "step,changes,slope,low_friction,soft,rough"
     seconds: float = 0.0
+    slope_deg: float = 0.0
     mppi: MPPIConfig = MPPIConfig()
     planning: PlanningConfig = PlanningConfig()
     policy: str = ""
@@ -183,7 +188,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     limits = env_cfg.commands.bounds() if cfg.govern else None
 
     def episode_fn(name, n_steps, slots):
-        def episode(mx_sim, mx_plan, starts, values, pushes, key):
+        def episode(mx_sim, mx_plan, starts, values, pushes, tilt, key):
             step_fn = learned_steps.get(name) or mjx_step_fn(sm, mx_plan)
             planning = make_planning(cfg.planning, env_cfg, sm, step_fn, ppo_policy, learned_params,
                                      error_params=error_params if name in learned_steps
@@ -193,13 +198,15 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                 with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
                     planner = make_planner(planning, mppi_config(cfg.mppi, cfg.planning, planning))
             return run_episode(sm, mx_sim, slots, planning, planner, n_steps, starts, values, key,
-                               pushes=pushes, limits=limits)
+                               pushes=pushes, limits=limits, tilt=tilt)
         return jax.jit(episode)
 
     for sc_name in [s for s in cfg.scenarios.split(",") if s]:
         sc = SCENARIOS[sc_name]
         if cfg.seconds:
             sc = dataclasses.replace(sc, seconds=cfg.seconds)
+        if cfg.slope_deg and sc.slope_deg:
+            sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.slope_deg:g}", slope_deg=cfg.slope_deg)
         n_steps = max(1, int(round(sc.seconds / sm.robot.ctrl_dt)))
         mx_sim = mjx.put_model(scenario_model(sm, sc, cfg.seed))
         slots = envs.contact_slots(mx_sim)
@@ -210,7 +217,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             mx_plan = mx_sim if name == "oracle" else mx_nominal
             args = (mx_sim, mx_plan, jnp.asarray(starts), jnp.asarray(values),
                     jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum()))),
-                    jax.random.key(cfg.seed))
+                    jnp.asarray(tilt_schedule(sc)), jax.random.key(cfg.seed))
             sig = (name, n_steps, tuple(slots[0]), jax.tree.structure(args[:2]))
             t0 = time.perf_counter()
             if sig not in compiled:
