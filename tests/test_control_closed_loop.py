@@ -181,8 +181,8 @@ def test_pushes_move_the_base_sideways_by_the_impulse(go1, held):
     # push's impulse shows as sideways base velocity, which the unpushed episode lacks.
     run = held
     starts, values = cl.schedule(dataclasses.replace(sc, commands=((0.0, 0.0, 0.0, 0.0),)))
-    pushed = run(starts, values, jnp.asarray(pushes), *_NO_LIMITS)
-    still = run(starts, values, jnp.zeros_like(pushes), *_NO_LIMITS)
+    pushed = run(starts, values, jnp.asarray(pushes), *_NO_LIMITS, _LEVEL)
+    still = run(starts, values, jnp.zeros_like(pushes), *_NO_LIMITS, _LEVEL)
     vy_world = float(pushed.v_base[3, 1] - still.v_base[3, 1])  # base frame ~ world frame here
     assert 0.1 < vy_world < 0.45, vy_world  # at most the free-body 0.4 m/s, less what the feet hold
 
@@ -262,6 +262,7 @@ def test_disturbance_observer_finds_a_persistent_push_and_rollouts_carry_it(go1)
 
 
 _NO_LIMITS = (jnp.full(3, -jnp.inf, jnp.float32), jnp.full(3, jnp.inf, jnp.float32))  # clips nothing
+_LEVEL = np.zeros(2, np.float32)  # no tilt schedule: the model's own gravity
 
 
 @pytest.fixture(scope="module")
@@ -278,8 +279,6 @@ def held(go1):
         go1, mx, envs.contact_slots(mx), planning, None, 5, starts, values, jax.random.key(0),
         pushes=pushes, limits=(lo, hi), tilt=tilt))
 
-
-_LEVEL = np.zeros(2, np.float32)  # no tilt schedule: the model's own gravity
 
 
 def test_a_command_governor_clips_what_the_controller_sees_and_the_trace_keeps_the_ask(held):
@@ -317,5 +316,10 @@ def test_a_tilting_ground_builds_the_slope_up_and_a_still_one_is_the_models_own_
     still = held(*args, slope)
     for a, b in zip(jax.tree.leaves(level), jax.tree.leaves(still)):
         np.testing.assert_array_equal(a, b)
+    # --slope-deg: the angle of scenarios with a slope, in their names; the others untouched.
+    cfg = cl.ClosedLoopConfig(slope_deg=15.0, seconds=3.0)
+    t15 = cl.scenario(cfg, "tilt")
+    assert (t15.name, t15.slope_deg, t15.tilt_s, t15.seconds) == ("tilt15", 15.0, 2.0, 3.0)
+    assert cl.scenario(cfg, "soft").name == "soft" and cl.scenario(cfg, "soft").slope_deg == 0.0
     tilted = held(*args, np.array([np.deg2rad(30.0), 0.02], np.float32))
     assert np.asarray(tilted.v_base)[-1, 0] < np.asarray(level.v_base)[-1, 0] - 0.05

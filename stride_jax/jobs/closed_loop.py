@@ -202,11 +202,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         return jax.jit(episode)
 
     for sc_name in [s for s in cfg.scenarios.split(",") if s]:
-        sc = SCENARIOS[sc_name]
-        if cfg.seconds:
-            sc = dataclasses.replace(sc, seconds=cfg.seconds)
-        if cfg.slope_deg and sc.slope_deg:
-            sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.slope_deg:g}", slope_deg=cfg.slope_deg)
+        sc = scenario(cfg, sc_name)
         n_steps = max(1, int(round(sc.seconds / sm.robot.ctrl_dt)))
         mx_sim = mjx.put_model(scenario_model(sm, sc, cfg.seed))
         slots = envs.contact_slots(mx_sim)
@@ -241,6 +237,18 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                 f" (compile {compile_s:.0f} s)")
     plot(out, rows)
     return rows
+
+
+def scenario(cfg: ClosedLoopConfig, name: str) -> Scenario:
+    """The scenario ``name`` with the run's overrides: ``cfg.seconds``, and ``cfg.slope_deg`` for
+    a scenario with a slope (renamed with the angle, ``tilt15``, so that rows of different angles
+    never share a name)."""
+    sc = SCENARIOS[name]
+    if cfg.seconds:
+        sc = dataclasses.replace(sc, seconds=cfg.seconds)
+    if cfg.slope_deg and sc.slope_deg:
+        sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.slope_deg:g}", slope_deg=cfg.slope_deg)
+    return sc
 
 
 def _fmt(x, f: str = "{:.3f}") -> str:
