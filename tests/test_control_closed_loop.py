@@ -68,6 +68,25 @@ def test_scenario_grounds(go1):
         cl.run(cl.ClosedLoopConfig(kernel="triton"))
 
 
+def test_rough_ground_takes_the_floors_contact_pairs(g1):
+    """G1's feet collide with the floor through explicit pairs, which ignore contype: the rough
+    scenario moves them to the heightfield (before, G1's "rough" rows walked on the flat floor)."""
+    import mujoco
+    m = cl.scenario_model(g1, cl.SCENARIOS["rough"])
+    rough = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "rough")
+    floor = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "floor")
+    assert g1.mj.npair == m.npair > 0
+    pairs = np.stack([m.pair_geom1, m.pair_geom2], 1)
+    assert (pairs == rough).any(1).all() and not (pairs == floor).any()
+    # the feet meet the field: standing at home over it, the field's contacts carry the robot
+    d = mujoco.MjData(m)
+    d.qpos[:] = g1.info.qpos0
+    for _ in range(200):
+        mujoco.mj_step(m, d)
+    geoms = np.stack([d.contact.geom1[:d.ncon], d.contact.geom2[:d.ncon]], 1)
+    assert d.ncon > 0 and (geoms == rough).any(1).all()
+
+
 def _fake_step(q, qd, ctrl, key):  # the robot stands still: planner plumbing only
     return q, qd
 

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from stride_jax.sim import model as sim_model
+from stride_jax.sim import model as sim_model, terrain
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,6 +81,7 @@ def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoc
                                 contype=floor.contype, conaffinity=floor.conaffinity,
                                 pos=[half - 1.0, 0, 0])
         floor.contype = floor.conaffinity = 0
+        terrain.retarget_pairs(spec, "floor", "rough")  # G1's feet collide through pairs
         for g in spec.geoms:  # MJX's heightfield-sphere collision has no margin (Go1's: 1 mm)
             if g.conaffinity or g.contype:
                 g.margin = 0.0

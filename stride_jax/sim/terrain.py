@@ -66,10 +66,18 @@ def add_heightfield(spec: mujoco.MjSpec, r: Randomization) -> None:
         if (other.contype & floor.conaffinity) or (other.conaffinity & floor.contype):
             other.margin, other.gap = 0.0, 0.0
     floor.contype, floor.conaffinity = 0, 0
+    retarget_pairs(spec, floor.name, NAME)
+
+
+def retarget_pairs(spec: mujoco.MjSpec, old: str, new: str) -> None:
+    """Moves the explicit contact pairs (``<pair>``: G1's feet with the floor) of geom ``old`` to
+    geom ``new``, a heightfield taking the floor's place, with no margin or gap (MJX has none for
+    heightfields). Pairs ignore ``contype``/``conaffinity``: without this the feet keep colliding
+    with the switched-off floor and never meet the heightfield."""
     for pair in spec.pairs:
-        if floor.name in (pair.geomname1, pair.geomname2):
-            pair.geomname1 = NAME if pair.geomname1 == floor.name else pair.geomname1
-            pair.geomname2 = NAME if pair.geomname2 == floor.name else pair.geomname2
+        if old in (pair.geomname1, pair.geomname2):
+            pair.geomname1 = new if pair.geomname1 == old else pair.geomname1
+            pair.geomname2 = new if pair.geomname2 == old else pair.geomname2
             pair.margin, pair.gap = 0.0, 0.0
 
 
