@@ -87,7 +87,9 @@ def run(cfg: DiagnosisConfig, command: str) -> dict:
     from stride_jax.control.episode import learned_step_fn
     from stride_jax.control.planning import (PlanningConfig, augment, make_planner,
                                              make_planning, mppi_config)
-    from stride_jax.control.scenarios import SCENARIOS, command_at, scenario_model, schedule
+    from stride_jax.control.scenarios import (SCENARIOS, command_at, gravity_at, push_at,
+                                              push_schedule, scenario_model, schedule,
+                                              tilt_schedule)
     from stride_jax.io import atomic_write_text, code_version
     from stride_jax.sim import model as sim_model
 
@@ -133,6 +135,9 @@ def run(cfg: DiagnosisConfig, command: str) -> dict:
         truth = make_planning(planning_cfg, env_cfg, sm, envs.mjx_step_fn(sm.n_substeps, mx),
                               policy, learned)
         starts, values = map(jnp.asarray, schedule(sc))
+        pushes = jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum())))
+        tilt = jnp.asarray(tilt_schedule(sc))
+        base = int(sm.mj.jnt_bodyid[0])
         n_steps = max(1, int(round(sc.seconds / sm.robot.ctrl_dt)))
 
         @jax.jit
@@ -140,12 +145,14 @@ def run(cfg: DiagnosisConfig, command: str) -> dict:
             """The policy alone in the scenario: the states the planner would meet."""
             d0 = mjx.make_data(mx).replace(qpos=jnp.asarray(sm.info.qpos0).at[2].add(0.02))
 
-            def body(carry, step):
+            def body(carry, step):  # the scenario as the closed loop runs it: pushes, tilt
                 d, clock = carry
-                q_aug = augment(d.qpos, command_at(starts, values, step * sm.robot.ctrl_dt),
-                                clock)
+                t = step * sm.robot.ctrl_dt
+                q_aug = augment(d.qpos, command_at(starts, values, t), clock)
                 u = truth.policy(q_aug, d.qvel)
-                d2 = envs.physics_step(mx, sm.n_substeps, d, truth.ctrl(q_aug, u))
+                d = d.replace(xfrc_applied=d.xfrc_applied.at[base, :2].set(push_at(pushes, t)))
+                mx_t = mx.replace(opt=mx.opt.replace(gravity=gravity_at(tilt, t, mx.opt.gravity)))
+                d2 = envs.physics_step(mx_t, sm.n_substeps, d, truth.ctrl(q_aug, u))
                 clock = jnp.mod(clock + truth.clock_hz * sm.robot.ctrl_dt, 1.0)
                 return (d2, clock), (q_aug, d.qvel, u)
             return jax.lax.scan(body, (d0, jnp.zeros(())), jnp.arange(n_steps))[1]
