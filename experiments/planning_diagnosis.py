@@ -87,9 +87,8 @@ def run(cfg: DiagnosisConfig, command: str) -> dict:
     from stride_jax.control.episode import learned_step_fn
     from stride_jax.control.planning import (PlanningConfig, augment, make_planner,
                                              make_planning, mppi_config)
-    from stride_jax.control.scenarios import (SCENARIOS, command_at, gravity_at, push_at,
-                                              push_schedule, scenario_model, schedule,
-                                              tilt_schedule)
+    from stride_jax.control.scenarios import (SCENARIOS, command_at, push_schedule,
+                                              scenario_model, schedule, tilt_schedule, world_at)
     from stride_jax.io import atomic_write_text, code_version
     from stride_jax.sim import model as sim_model
 
@@ -150,8 +149,7 @@ def run(cfg: DiagnosisConfig, command: str) -> dict:
                 t = step * sm.robot.ctrl_dt
                 q_aug = augment(d.qpos, command_at(starts, values, t), clock)
                 u = truth.policy(q_aug, d.qvel)
-                d = d.replace(xfrc_applied=d.xfrc_applied.at[base, :2].set(push_at(pushes, t)))
-                mx_t = mx.replace(opt=mx.opt.replace(gravity=gravity_at(tilt, t, mx.opt.gravity)))
+                mx_t, d = world_at(mx, d, base, t, pushes, tilt)
                 d2 = envs.physics_step(mx_t, sm.n_substeps, d, truth.ctrl(q_aug, u))
                 clock = jnp.mod(clock + truth.clock_hz * sm.robot.ctrl_dt, 1.0)
                 return (d2, clock), (q_aug, d.qvel, u)

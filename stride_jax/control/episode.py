@@ -23,7 +23,7 @@ from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.control.planning import N_DIST, Planning, augment, update_disturbance
-from stride_jax.control.scenarios import command_at, gravity_at, push_at
+from stride_jax.control.scenarios import command_at, world_at
 from stride_jax.sim import model as sim_model, rollout_mjx
 
 
@@ -109,12 +109,7 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
         else:
             u = planning.policy(q_aug, d.qvel)
         u = jnp.where(down, jnp.asarray(planning.nominal_u), u)  # fallen: stop planning effort
-        if pushes is not None:
-            d = d.replace(xfrc_applied=d.xfrc_applied.at[base, :2].set(push_at(pushes, t)))
-        mx_t = mx_sim
-        if tilt is not None:
-            mx_t = mx_sim.replace(opt=mx_sim.opt.replace(
-                gravity=gravity_at(tilt, t, mx_sim.opt.gravity)))
+        mx_t, d = world_at(mx_sim, d, base, t, pushes, tilt)
         d2 = envs.physics_step(mx_t, sm.n_substeps, d, planning.ctrl(q_aug, u))
         freq = u[nu] if gait else planning.clock_hz
         clock = jnp.mod(clock + freq * dt, 1.0)

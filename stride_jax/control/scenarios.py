@@ -116,6 +116,18 @@ def gravity_at(tilt: jax.Array, t: jax.Array, gravity: jax.Array) -> jax.Array:
     return jnp.where(seconds > 0, ramped.astype(gravity.dtype), gravity)
 
 
+def world_at(mx, d, base: int, t: jax.Array, pushes: jax.Array | None = None,
+             tilt: jax.Array | None = None):
+    """The scenario's world for the control period from time ``t`` (s): ``(mx, d)`` with the
+    pushes of a :func:`push_schedule` on body ``base`` (``d.xfrc_applied``) and the gravity of a
+    :func:`tilt_schedule` (``mx.opt.gravity``); either left as it is where not given."""
+    if pushes is not None:
+        d = d.replace(xfrc_applied=d.xfrc_applied.at[base, :2].set(push_at(pushes, t)))
+    if tilt is not None:
+        mx = mx.replace(opt=mx.opt.replace(gravity=gravity_at(tilt, t, mx.opt.gravity)))
+    return mx, d
+
+
 def schedule(sc: Scenario, pieces: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """The scenario's commands as arrays ``(starts [pieces], values [pieces, 3])``, padded with
     the last piece, so that scenarios share one compiled episode."""
