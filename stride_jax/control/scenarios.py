@@ -77,14 +77,9 @@ def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoc
         spec.add_hfield(name="rough", size=[half, half, sc.rough_m, 0.1], nrow=n, ncol=n,
                         userdata=h.reshape(-1).tolist())
         floor = next(g for g in spec.geoms if g.name == "floor")
-        spec.worldbody.add_geom(name="rough", type=mujoco.mjtGeom.mjGEOM_HFIELD, hfieldname="rough",
-                                contype=floor.contype, conaffinity=floor.conaffinity,
-                                pos=[half - 1.0, 0, 0])
-        floor.contype = floor.conaffinity = 0
-        terrain.retarget_pairs(spec, "floor", "rough")  # G1's feet collide through pairs
-        for g in spec.geoms:  # MJX's heightfield-sphere collision has no margin (Go1's: 1 mm)
-            if g.conaffinity or g.contype:
-                g.margin = 0.0
+        field = spec.worldbody.add_geom(name="rough", type=mujoco.mjtGeom.mjGEOM_HFIELD,
+                                        hfieldname="rough", pos=[half - 1.0, 0, 0])
+        terrain.hand_floor_over(spec, floor, field)  # G1's feet collide through pairs
         m = spec.compile()
     else:
         m = copy.copy(sm.mj)

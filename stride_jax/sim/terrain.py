@@ -57,16 +57,25 @@ def add_heightfield(spec: mujoco.MjSpec, r: Randomization) -> None:
                     nrow=n, ncol=n, userdata=[0.5] * (n * n))
     g = spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_HFIELD, hfieldname=NAME, name=NAME,
                                 pos=[0, 0, -2 * top])
+    hand_floor_over(spec, floor, g)
+
+
+def hand_floor_over(spec: mujoco.MjSpec, floor, field) -> None:
+    """Gives the floor geom's collisions to ``field`` (a heightfield geom added in its place):
+    the floor's contact settings are copied, the floor stops colliding, its explicit pairs move to
+    the field, and the geoms that touch the ground lose their margin and gap. One handover for the
+    data's rough ground and the closed loop's, so both see the same contact."""
     for attr in ("contype", "conaffinity", "condim", "priority", "friction", "solref", "solimp",
                  "solmix"):
-        setattr(g, attr, getattr(floor, attr))
+        setattr(field, attr, getattr(floor, attr))
     # MJX has no contact margin for heightfields (mjx/_src/io.py): the geoms that touch the
     # ground lose theirs (Go1's feet: 1 mm).
     for other in spec.geoms:
-        if (other.contype & floor.conaffinity) or (other.conaffinity & floor.contype):
+        if other is not floor and other is not field and (
+                (other.contype & floor.conaffinity) or (other.conaffinity & floor.contype)):
             other.margin, other.gap = 0.0, 0.0
     floor.contype, floor.conaffinity = 0, 0
-    retarget_pairs(spec, floor.name, NAME)
+    retarget_pairs(spec, floor.name, field.name)
 
 
 def retarget_pairs(spec: mujoco.MjSpec, old: str, new: str) -> None:
