@@ -340,5 +340,9 @@ def test_a_tilting_ground_builds_the_slope_up_and_a_still_one_is_the_models_own_
     t15 = cl.scenario(cfg, "tilt")
     assert (t15.name, t15.slope_deg, t15.tilt_s, t15.seconds) == ("tilt15", 15.0, 2.0, 3.0)
     assert cl.scenario(cfg, "soft").name == "soft" and cl.scenario(cfg, "soft").slope_deg == 0.0
+    # --rough-cm: the bump height of rough-ground scenarios, in their names.
+    low = cl.scenario(cl.ClosedLoopConfig(rough_cm=2.0), "rough")
+    assert (low.name, low.rough_m) == ("rough2", 0.02)
+    assert cl.scenario(cl.ClosedLoopConfig(rough_cm=2.0), "slope").rough_m == 0.0
     tilted = held(*args, np.array([np.deg2rad(30.0), 0.02], np.float32))
     assert np.asarray(tilted.v_base)[-1, 0] < np.asarray(level.v_base)[-1, 0] - 0.05

@@ -76,6 +76,8 @@ class ClosedLoopConfig:
       seconds: override every scenario's duration (0: keep).
       slope_deg: override the slope of the scenarios that have one (0: keep; their names get
         the angle, ``tilt10``).
+      rough_cm: override the bump height of the rough-ground scenarios (cm; 0: keep; their
+        names get the height, ``rough2``).
       mppi: the planner's settings (``--mppi.samples``, ``--mppi.horizon``, ...; the older flat
         flags ``--samples``, ``--horizon``, ``--policy-samples`` ... still answer). Its
         ``noise_std`` is set from ``planning.noise_std`` (and ``planning.gait_noise``), its
@@ -107,6 +109,7 @@ class ClosedLoopConfig:
     scenarios: str = "step,changes,slope,low_friction,soft,rough"
     seconds: float = 0.0
     slope_deg: float = 0.0
+    rough_cm: float = 0.0
     mppi: MPPIConfig = MPPIConfig()
     planning: PlanningConfig = PlanningConfig()
     policy: str = ""
@@ -240,14 +243,16 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
 
 
 def scenario(cfg: ClosedLoopConfig, name: str) -> Scenario:
-    """The scenario ``name`` with the run's overrides: ``cfg.seconds``, and ``cfg.slope_deg`` for
-    a scenario with a slope (renamed with the angle, ``tilt15``, so that rows of different angles
-    never share a name)."""
+    """The scenario ``name`` with the run's overrides: ``cfg.seconds``, ``cfg.slope_deg`` for a
+    scenario with a slope and ``cfg.rough_cm`` for one with rough ground (renamed with the angle
+    or height, ``tilt15``, ``rough2``, so that rows of different grounds never share a name)."""
     sc = SCENARIOS[name]
     if cfg.seconds:
         sc = dataclasses.replace(sc, seconds=cfg.seconds)
     if cfg.slope_deg and sc.slope_deg:
         sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.slope_deg:g}", slope_deg=cfg.slope_deg)
+    if cfg.rough_cm and sc.rough_m:
+        sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.rough_cm:g}", rough_m=cfg.rough_cm / 100)
     return sc
 
 
