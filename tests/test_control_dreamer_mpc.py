@@ -254,6 +254,13 @@ def test_ablation_variants_switch_one_thing_at_a_time():
     assert rows["short"].learned == cfg.learned and rows["value"].learned == "planner.msgpack"
     assert rows["value"].mppi.error_bound == 0 and rows["value"].error_model == ""
     assert rows["error"].mppi.error_bound == 0.4 and rows["error"].error_model == "err.msgpack"
+    # prior_value: the full-horizon prior planner, the refitted value, discounted; nothing else
+    pv = rows["prior_value"]
+    assert pv.mppi == dataclasses.replace(rows["prior"].mppi, discount=cfg.discount)
+    assert pv.learned == "planner.msgpack" and pv.error_model == ""
+    assert pv.out.endswith("prior_value")
+    with pytest.raises(ValueError, match="value_collector"):
+        dreamer_mpc.AblationConfig(value_collector="value")
     with pytest.raises(ValueError, match="unknown variants"):
         dreamer_mpc.AblationConfig(variants="mppi,magic")
     with pytest.raises(ValueError, match="NAME=RUN"):

@@ -21,6 +21,15 @@ Rows (``variants``, cumulative, each one switch more than the one before):
   ``error_bound`` (0: calibrated, ``error_bound_scale`` x the model's mean one-step error in the
   closed loop x sqrt(horizon)) and down-weighted by ``error_weight``: every switch on.
 
+One row outside the cumulative chain:
+
+* ``prior_value``: ``prior`` (the full horizon) with the value refitted on the planner's own
+  rollouts as its terminal value, discounted (``discount``): the value without the short horizon.
+
+The value's data are collected by the ``value_collector`` variant's planner (``short`` by
+default, as the first ablation ran; ``prior``, the full-horizon planner that stays up, is the
+session-27 choice) into ``out/value`` (``out/value_<collector>`` for another collector).
+
 Each variant is a :func:`stride_jax.jobs.closed_loop.run` into ``out/<variant>`` (resumable:
 finished pairs are skipped, a trained value is reused); ``out/ablation.{json,md}`` gather the
 rows (``scenario``, ``model``, ``variant``, ``vel_rmse``, ``fell``, ``ms_per_step``, ...).
@@ -54,7 +63,9 @@ from stride_jax.jobs import closed_loop
 from stride_jax.jobs.closed_loop import ClosedLoopConfig
 from stride_jax.sim import model as sim_model
 
-VARIANTS = ("policy", "mppi", "prior", "short", "value", "error")
+VARIANTS = ("policy", "mppi", "prior", "short", "value", "error", "prior_value")
+CHAIN = VARIANTS[:6]  # the cumulative rows; prior_value stands apart
+COLLECTORS = ("mppi", "prior", "short")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,6 +97,8 @@ class AblationConfig:
       error_bound_scale: see ``error_bound``.
       error_weight: cost per m/s of predicted error per kept step.
       value: collecting the planner's data and refitting the value (``--value.worlds`` ...).
+      value_collector: the variant whose planner collects the value's data (``mppi``,
+        ``prior`` or ``short``).
       kernel: how structured models run their networks (``xla``, ``pallas-step`` ...).
       settle_s: tracking errors count from this long after each command change (s).
       out: results folder.
@@ -110,6 +123,7 @@ class AblationConfig:
     error_bound_scale: float = 2.0
     error_weight: float = 0.0
     value: planner_value.PlannerValueConfig = planner_value.PlannerValueConfig()
+    value_collector: str = "short"
     kernel: str = "xla"
     settle_s: float = 0.5
     out: str = "results/dreamer_mpc_go1"
@@ -129,6 +143,10 @@ class AblationConfig:
                              f"{self.model!r}")
         if not (self.policy and self.learned):
             raise ValueError("the ablation needs a policy and a learned reward/value")
+        if self.value_collector not in COLLECTORS:
+            raise ValueError(f"value_collector={self.value_collector!r} must be one of "
+                             f"{', '.join(COLLECTORS)} (a planner that collects without the "
+                             f"value it trains)")
         if self.short_horizon < 1:
             raise ValueError(f"short_horizon={self.short_horizon} must be >= 1")
 
@@ -147,6 +165,11 @@ def variant_config(cfg: AblationConfig, variant: str, learned: str | None = None
                    error_model: str = "", error_bound: float = 0.0) -> ClosedLoopConfig:
     """The closed-loop configuration of one row (``learned``/``error_model``: the files the
     ``value`` and ``error`` rows use, ``error_bound``: the bound in m/s)."""
+    if variant == "prior_value":
+        base = variant_config(cfg, "prior")
+        return dataclasses.replace(
+            base, mppi=dataclasses.replace(base.mppi, discount=cfg.discount),
+            learned=learned or cfg.learned, out=str(pathlib.Path(cfg.out) / variant))
     level = VARIANTS.index(variant)
     name, _, run = cfg.model.partition("=")
     m = cfg.mppi
@@ -222,13 +245,15 @@ def run(cfg: AblationConfig, command: str = "", log=print) -> list[dict]:
     out.mkdir(parents=True, exist_ok=True)
     variants = [v for v in cfg.variants.split(",") if v]
     name, _, run_dir = cfg.model.partition("=")
-    value_dir = out / "value"
+    value_dir = out / ("value" if cfg.value_collector == "short" else
+                       f"value_{cfg.value_collector}")
     learned_file, error_file, bound = None, "", cfg.error_bound
     value_report = None
     if any(VARIANTS.index(v) >= VARIANTS.index("value") for v in variants):
         if not (value_dir / "report.json").is_file():
-            log("training the value on the planner's own rollouts (the 'short' planner)")
-            collector = dataclasses.replace(variant_config(cfg, "short"),
+            log(f"training the value on the planner's own rollouts (the "
+                f"'{cfg.value_collector}' planner)")
+            collector = dataclasses.replace(variant_config(cfg, cfg.value_collector),
                                             out=str(value_dir))
             vcfg = dataclasses.replace(cfg.value, discount=cfg.discount,
                                        error_model=cfg.value.error_model or cfg.error_model)
@@ -237,7 +262,7 @@ def run(cfg: AblationConfig, command: str = "", log=print) -> list[dict]:
         learned_file = str(value_dir / "reward_value.msgpack")
         if cfg.error_model and (value_dir / "error_model.msgpack").is_file():
             error_file = str(value_dir / "error_model.msgpack")
-        if not bound:
+        if not bound and "error" in variants:
             e_cl = (value_report.get("error_model") or {}).get("mean_error_closed_loop")
             if e_cl is None or not math.isfinite(e_cl) or e_cl <= 0:
                 raise ValueError("error_bound=0 is calibrated on the error model's closed-loop "
@@ -288,7 +313,9 @@ def write(rows: list[dict], cfg: AblationConfig, command: str, out: pathlib.Path
              f"{cfg.prior_fraction:.0%} of the noise candidates at {cfg.planning.prior_noise_std} rad; "
              f"short H={cfg.short_horizon}, gamma {cfg.discount}; error: {cfg.error_draws} "
              f"draws{' + learned one-step error' if cfg.error_model else ''}, cut at "
-             f"{bound:.3f} m/s, weight {cfg.error_weight}. Variants are cumulative.", "",
+             f"{bound:.3f} m/s, weight {cfg.error_weight}. Variants up to error are cumulative; "
+             f"prior_value is prior with the refitted value, discounted. The value's data: the "
+             f"{cfg.value_collector} planner.", "",
              "Velocity RMSE (m/s) while upright:", "",
              "| scenario | " + " | ".join(variants) + " |",
              "|---|" + "---:|" * len(variants)]
@@ -302,7 +329,8 @@ def write(rows: list[dict], cfg: AblationConfig, command: str, out: pathlib.Path
             if (sc, v) in by else "-" for v in variants) + " |")
     if value_report:
         b, a = value_report["value_before"], value_report["value_after"]
-        lines += ["", f"Value on the planner's held-out data ({value_report['worlds']} worlds, "
+        lines += ["", f"Value on the {cfg.value_collector} planner's held-out data "
+                  f"({value_report['worlds']} worlds, "
                   f"{value_report['held_out_worlds']} held out), policy-trained -> refitted: "
                   f"R^2 on candidates {b['r2_candidates']:.3f} -> {a['r2_candidates']:.3f}, on "
                   f"the closed loop {b['r2_closed']:.3f} -> {a['r2_closed']:.3f}; bias V - G on "
