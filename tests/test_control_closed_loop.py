@@ -346,3 +346,18 @@ def test_a_tilting_ground_builds_the_slope_up_and_a_still_one_is_the_models_own_
     assert cl.scenario(cl.ClosedLoopConfig(rough_cm=2.0), "slope").rough_m == 0.0
     tilted = held(*args, np.array([np.deg2rad(30.0), 0.02], np.float32))
     assert np.asarray(tilted.v_base)[-1, 0] < np.asarray(level.v_base)[-1, 0] - 0.05
+
+
+def test_a_run_logs_its_progress_writes_its_row_and_resumes(tmp_path):
+    """The closed-loop job end to end at tiny size: progress lines while an episode runs (a
+    planner through MJX runs minutes per episode), the row in closed_loop.json, and a second
+    call skipping the finished pair."""
+    cfg = cl.ClosedLoopConfig(models="policy", scenarios="walk", seconds=0.2, progress_s=0.1,
+                              settle_s=0.0, policy="results/policies/ppo_go1", out=str(tmp_path))
+    lines = []
+    rows = cl.run(cfg, log=lines.append)
+    assert [r["model"] for r in rows] == ["policy"] and np.isfinite(rows[0]["vel_rmse"])
+    ticks = [x for x in lines if "s simulated" in x]
+    assert [t.split(":")[1].split(" of")[0].strip() for t in ticks] == ["0.1", "0.2"]
+    again = []
+    assert cl.run(cfg, log=again.append) == rows and not any("simulated" in x for x in again)

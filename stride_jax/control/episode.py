@@ -48,7 +48,8 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
                 values: jax.Array, key: jax.Array, record: Callable | None = None,
                 pushes: jax.Array | None = None,
                 limits: tuple[jax.Array, jax.Array] | None = None,
-                tilt: jax.Array | None = None) -> Trace | tuple[Trace, object]:
+                tilt: jax.Array | None = None, progress: Callable | None = None,
+                progress_every: int = 50) -> Trace | tuple[Trace, object]:
     """A closed-loop episode of ``n_steps`` control steps from the home pose (heading +x) under
     the command :func:`schedule` ``(starts, values)``. ``planner=None`` lets ``planning.policy``
     act alone. Pure; jit it.
@@ -63,7 +64,9 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     count what the clipping gives up. ``tilt`` (:func:`stride_jax.control.scenarios.
     tilt_schedule`) builds the slope up over the episode's first seconds: the simulation's gravity
     at each step is :func:`stride_jax.control.scenarios.gravity_at` (``mx_sim``'s own where the
-    schedule does not build up); the planner's model is not told.
+    schedule does not build up); the planner's model is not told. ``progress(steps_done)`` is
+    called on the host every ``progress_every`` control steps (``jax.debug.callback``; long
+    episodes, e.g. planning through MJX, otherwise run silent for minutes).
 
     With ``planning.observer_gain`` > 0 (and a planner) a disturbance observer runs beside the
     planner: after each real step the planner's model predicts the same step from the same state
@@ -127,6 +130,9 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
             rec = (rec, record(q_aug, d.qvel, u, info,
                                augment(d2.qpos, seen, clock, disturbance=dist),
                                d2.qvel, down, jax.random.fold_in(key, step)))
+        if progress is not None:
+            jax.lax.cond((step + 1) % progress_every == 0,
+                         lambda s: jax.debug.callback(progress, s), lambda s: None, step + 1)
         return (d2, ps, clock, down2, dist), rec
 
     init = (d0, ps0, jnp.zeros(()), jnp.zeros((), bool), jnp.zeros(N_DIST, d0.qpos.dtype))

@@ -101,6 +101,8 @@ class ClosedLoopConfig:
         lateral, yaw), as a robot's operator interface would saturate it; the metrics still
         compare with the command asked for, so they count what the governor gives up.
       out: results folder (``closed_loop.json``/``.md`` and plots).
+      progress_s: log the episode's progress every this many simulated seconds (0: only when
+        a pair finishes).
       seed: planner key and terrain seed.
     """
 
@@ -117,6 +119,7 @@ class ClosedLoopConfig:
     error_model: str = ""
     kernel: str = "xla"
     settle_s: float = 0.5
+    progress_s: float = 1.0
     govern: bool = False
     out: str = "results/closed_loop"
     seed: int = 0
@@ -189,6 +192,12 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         raise ValueError("model 'policy' needs --policy RUN")
     compiled = {}  # one executable per (model, episode length, model structures)
     limits = env_cfg.commands.bounds() if cfg.govern else None
+    every = max(1, int(round(cfg.progress_s / sm.robot.ctrl_dt))) if cfg.progress_s > 0 else 0
+    now = {"label": "", "t0": 0.0, "n": 1}  # the running pair, for the progress callback
+
+    def progress(steps):
+        log(f"  {now['label']}: {int(steps) * sm.robot.ctrl_dt:.1f} of "
+            f"{now['n'] * sm.robot.ctrl_dt:.1f} s simulated ({time.perf_counter() - now['t0']:.0f} s)")
 
     def episode_fn(name, n_steps, slots):
         def episode(mx_sim, mx_plan, starts, values, pushes, tilt, key):
@@ -201,7 +210,9 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                 with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
                     planner = make_planner(planning, mppi_config(cfg.mppi, cfg.planning, planning))
             return run_episode(sm, mx_sim, slots, planning, planner, n_steps, starts, values, key,
-                               pushes=pushes, limits=limits, tilt=tilt)
+                               pushes=pushes, limits=limits, tilt=tilt,
+                               progress=progress if every else None,
+                               progress_every=every or 1)
         return jax.jit(episode)
 
     for sc_name in [s for s in cfg.scenarios.split(",") if s]:
@@ -220,9 +231,12 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             sig = (name, n_steps, tuple(slots[0]), jax.tree.structure(args[:2]))
             t0 = time.perf_counter()
             if sig not in compiled:
+                if every:
+                    log(f"  {sc.name} {name}: compiling")
                 compiled[sig] = episode_fn(name, n_steps, slots).lower(*args).compile()
             compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
+            now.update(label=f"{sc.name} {name}", t0=t0, n=n_steps)
             trace = jax.block_until_ready(compiled[sig](*args))
             run_s = time.perf_counter() - t0
             planned = name != "policy"
