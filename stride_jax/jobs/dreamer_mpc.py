@@ -63,8 +63,7 @@ from stride_jax.jobs import closed_loop
 from stride_jax.jobs.closed_loop import ClosedLoopConfig
 from stride_jax.sim import model as sim_model
 
-VARIANTS = ("policy", "mppi", "prior", "short", "value", "error", "prior_value")
-CHAIN = VARIANTS[:6]  # the cumulative rows; prior_value stands apart
+VARIANTS = ("policy", "mppi", "prior", "short", "value", "error", "prior_value")  # the last apart
 COLLECTORS = ("mppi", "prior", "short")
 
 
