@@ -240,6 +240,42 @@ def test_a_tiny_closed_loop_with_every_switch_on(go1):
     new_v, err, report = planner_value.fit(jax.random.key(1), pcfg, v_params, data)
     assert err is not None and np.isfinite(report["value_after"]["bias_candidates"])
     assert report["closed_steps"] == 3 and report["candidate_steps"] == 3 * 2 * 3
+    # A value ensemble: the first member is the single fit, the others bootstrap refits whose
+    # spread the report measures where the closed loop went and along the candidates.
+    ens, _, rep3 = planner_value.fit(jax.random.key(1),
+                                     dataclasses.replace(pcfg, ensemble=3), v_params, data)
+    assert isinstance(ens, list) and len(ens) == 3 and rep3["ensemble"] == 3
+    for a_, b_ in zip(jax.tree.leaves(ens[0]), jax.tree.leaves(new_v)):
+        np.testing.assert_array_equal(a_, b_)
+    assert any(not np.array_equal(a_, b_) for a_, b_ in
+               zip(jax.tree.leaves(ens[1]), jax.tree.leaves(ens[0])))
+    for k in ("spread_closed", "spread_candidates"):
+        assert np.isfinite(rep3["value_after"][k]) and rep3["value_after"][k] > 0
+
+
+def test_a_value_ensemble_is_stored_and_planned_against_pessimistically(go1, tmp_path):
+    """Saved with its members, read back as one value (the first member) by readers that want
+    one; the planner's terminal value is w (mean - beta std) of the members, a single value's
+    is unchanged."""
+    _, r_params, v0 = _learned_params(go1)
+    v1 = {**v0, "y_mean": v0["y_mean"] + 1.0}
+    v2 = {**v0, "y_mean": v0["y_mean"] - 0.5}
+    path = tmp_path / "reward_value.msgpack"
+    learned.save(path, r_params, [v0, v1, v2])
+    _, one = learned.load(path)
+    _, members = learned.load(path, ensemble=True)
+    assert isinstance(one, dict) and len(members) == 3
+    np.testing.assert_array_equal(one["y_mean"], v0["y_mean"])
+    np.testing.assert_array_equal(members[1]["y_mean"], v1["y_mean"])
+    obs = jnp.linspace(-1.0, 1.0, v0["x_mean"].shape[0])
+    vals = np.array([float(learned.apply(v, obs)) for v in (v0, v1, v2)])
+    _, value = learned.planner_terms(r_params, members, lambda q, qd: q, 2.0, 1.5)
+    np.testing.assert_allclose(float(value(obs, None)), 2.0 * (vals.mean() - 1.5 * vals.std()),
+                               rtol=1e-5)
+    _, single = learned.planner_terms(r_params, v0, lambda q, qd: q, 2.0, 1.5)
+    np.testing.assert_allclose(float(single(obs, None)), 2.0 * vals[0], rtol=1e-6)
+    learned.save(path, r_params, v0)  # a file without an ensemble reads as one value either way
+    assert isinstance(learned.load(path, ensemble=True)[1], dict)
 
 
 def test_ablation_variants_switch_one_thing_at_a_time():

@@ -254,15 +254,43 @@ def rollouts(env: Any, policy: Callable, key: jax.Array, n_envs: int, n_steps: i
     return jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), data)
 
 
-def planner_terms(reward_params: dict, value_params: dict, obs_of: Callable,
-                  value_weight: float = 1.0) -> tuple[Callable, Callable]:
+def stack(members: list[dict]) -> dict:
+    """Models of the same shape as one pytree with a leading member axis (for
+    :func:`apply_ensemble`)."""
+    return jax.tree.map(lambda *a: jnp.stack(a), *members)
+
+
+def apply_ensemble(params: dict | list[dict], x: jax.Array) -> jax.Array:
+    """``[E]`` the outputs of every member of an ensemble (a list of models, or :func:`stack`'s
+    pytree) for one input ``[D]``; a single model gives ``[1]``."""
+    if isinstance(params, (list, tuple)):
+        params = stack(list(params))
+    elif params["x_mean"].ndim == 1:
+        return apply(params, x)[None]
+    return jax.vmap(apply, in_axes=(0, None))(params, x)
+
+
+def pessimistic(values: jax.Array, pessimism: float) -> jax.Array:
+    """The members' mean minus ``pessimism`` standard deviations (``values [E]``)."""
+    return jnp.mean(values) - pessimism * jnp.std(values)
+
+
+def planner_terms(reward_params: dict, value_params: dict | list[dict], obs_of: Callable,
+                  value_weight: float = 1.0, pessimism: float = 0.0
+                  ) -> tuple[Callable, Callable]:
     """MPPI's ``running_cost(q, qd, u, t) = -r(obs, u)`` and ``terminal_value(q, qd) = w V(obs)``
-    for an ``obs_of(q, qd) -> obs`` (the planner's state may carry the command)."""
+    for an ``obs_of(q, qd) -> obs`` (the planner's state may carry the command). With a value
+    ensemble (a list, :func:`load` ``ensemble=True``) ``V`` is :func:`pessimistic` over its
+    members."""
+    stacked = stack(list(value_params)) if isinstance(value_params, (list, tuple)) else None
+
     def running_cost(q, qd, u, t):
         return -apply(reward_params, reward_input(obs_of(q, qd), u))
 
     def terminal_value(q, qd):
-        return value_weight * apply(value_params, obs_of(q, qd))
+        if stacked is None:
+            return value_weight * apply(value_params, obs_of(q, qd))
+        return value_weight * pessimistic(apply_ensemble(stacked, obs_of(q, qd)), pessimism)
 
     return running_cost, terminal_value
 
@@ -272,17 +300,26 @@ def r2(pred: jax.Array, target: jax.Array) -> float:
     return float(1 - jnp.mean((pred - target) ** 2) / jnp.maximum(jnp.var(target), 1e-12))
 
 
-def save(path: pathlib.Path, reward_params: dict, value_params: dict) -> None:
-    blob = serialization.msgpack_serialize(jax.device_get(
-        {"reward": reward_params, "value": value_params}))
+def save(path: pathlib.Path, reward_params: dict, value_params: dict | list[dict]) -> None:
+    """Writes the reward and the value (a list: a value ensemble, whose first member is also
+    stored as the plain value, so that readers of one value keep working)."""
+    members = list(value_params) if isinstance(value_params, (list, tuple)) else None
+    d = {"reward": reward_params, "value": members[0] if members else value_params}
+    if members:
+        d["value_ensemble"] = {str(i): m for i, m in enumerate(members)}
+    blob = serialization.msgpack_serialize(jax.device_get(d))
     atomic_write(path, lambda f: f.write(blob))
 
 
-def load(path: str | pathlib.Path) -> tuple[dict, dict]:
-    """``(reward_params, value_params)`` written by :func:`save`."""
+def load(path: str | pathlib.Path, ensemble: bool = False) -> tuple[dict, dict | list[dict]]:
+    """``(reward_params, value_params)`` written by :func:`save`; with ``ensemble`` the value
+    is the list of an ensemble's members where the file has one (one model otherwise)."""
     path = pathlib.Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no learned reward/value models at {path}")
     d = serialization.msgpack_restore(path.read_bytes())
     as_jnp = lambda t: jax.tree.map(jnp.asarray, t)
+    if ensemble and "value_ensemble" in d:
+        members = d["value_ensemble"]
+        return as_jnp(d["reward"]), [as_jnp(members[str(i)]) for i in range(len(members))]
     return as_jnp(d["reward"]), as_jnp(d["value"])

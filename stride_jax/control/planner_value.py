@@ -63,6 +63,9 @@ class PlannerValueConfig:
       lam: lambda of the returns.
       error_model: also fit the one-step error model (the simulator replays every recorded step).
       error_width: hidden width of the error model (2 layers).
+      ensemble: value members fitted (1: one value). The first is fitted on all the training
+        data; each other on a bootstrap resample of its steps, so that their spread grows where
+        the planner's data are thin (``--planning.value-pessimism`` plans against it).
       seed: command draws, candidate picks and fits.
     """
 
@@ -79,6 +82,7 @@ class PlannerValueConfig:
     lam: float = 0.95
     error_model: bool = True
     error_width: int = 64
+    ensemble: int = 1
     seed: int = 1
 
     def __post_init__(self):
@@ -87,6 +91,8 @@ class PlannerValueConfig:
                              f"world is held out; half the records are the best candidates)")
         if not 0 < self.holdout < 1 or self.seconds <= 0 or self.change_s <= 0:
             raise ValueError("holdout must be in (0, 1), seconds and change_s > 0")
+        if self.ensemble < 1:
+            raise ValueError(f"ensemble={self.ensemble} must be >= 1 (value members)")
 
     def learned_config(self, width: int = 256) -> learned.LearnedConfig:
         return learned.LearnedConfig(width=width, steps=self.steps, rounds=self.rounds,
@@ -215,26 +221,47 @@ def _per_candidate(d: learned.Trajectories) -> learned.Trajectories:
     return jax.tree.map(_flat, d)
 
 
-def targets(params: dict, d: learned.Trajectories, cfg: PlannerValueConfig) -> jax.Array:
+def _value_fn(params: dict | list[dict]) -> Callable:
+    """``obs -> V``: one value, or an ensemble's mean."""
+    if isinstance(params, (list, tuple)):
+        stacked = learned.stack(list(params))
+        return lambda o: jnp.mean(learned.apply_ensemble(stacked, o))
+    return lambda o: learned.apply(params, o)
+
+
+def targets(params: dict | list[dict], d: learned.Trajectories, cfg: PlannerValueConfig
+            ) -> jax.Array:
     """The value's lambda-return targets ``[N, T]`` of trajectories ``d`` ``[N, T, ...]`` under
     the value ``params`` (each trajectory bootstraps ``V`` of its last next state; a fall ends
-    the return), as :func:`stride_jax.control.learned.refit_value` computes them."""
-    v = jax.vmap(jax.vmap(lambda o: learned.apply(params, o)))
+    the return), as :func:`stride_jax.control.learned.refit_value` computes them; an ensemble
+    bootstraps its mean."""
+    v = jax.vmap(jax.vmap(_value_fn(params)))
     return jax.vmap(learned.lambda_returns, in_axes=(0, 0, 0, 0, None, None))(
         d.reward, v(d.next_obs), d.terminal, d.reset, cfg.discount, cfg.lam)
 
 
-def value_report(params: dict, data: PlannerData, cfg: PlannerValueConfig) -> dict:
-    """How well a value fits its own lambda-returns on the planner's data: R^2 and the mean
-    bias ``V - G`` on the closed loop's states and the candidates' states (steps while up)."""
+def value_report(params: dict | list[dict], data: PlannerData, cfg: PlannerValueConfig
+                 ) -> dict:
+    """How well a value (an ensemble: its mean) fits its own lambda-returns on the planner's
+    data: R^2 and the mean bias ``V - G`` on the closed loop's states and the candidates' states
+    (steps while up). For an ensemble also the members' mean spread (std) there, and the
+    correlation of the spread with the mean's absolute error: whether the spread marks where
+    the value is wrong."""
     i_closed, i_cand, _ = _indices(np.asarray(data.up), cfg.record, data.cand.reward.shape[-1])
     out = {}
     for name, d, idx in (("closed", data.closed, i_closed),
                          ("candidates", _per_candidate(data.cand), i_cand)):
-        v = jax.vmap(jax.vmap(lambda o: learned.apply(params, o)))
+        v = jax.vmap(jax.vmap(_value_fn(params)))
         pred, target = _flat(v(d.obs))[idx], _flat(targets(params, d, cfg))[idx]
         out[f"r2_{name}"] = learned.r2(pred, target)
         out[f"bias_{name}"] = float(jnp.mean(pred - target))
+        if isinstance(params, (list, tuple)):
+            stacked = learned.stack(list(params))
+            spread = _flat(jax.vmap(jax.vmap(
+                lambda o: jnp.std(learned.apply_ensemble(stacked, o))))(d.obs))[idx]
+            err = jnp.abs(pred - target)
+            out[f"spread_{name}"] = float(jnp.mean(spread))
+            out[f"spread_error_corr_{name}"] = float(jnp.corrcoef(spread, err)[0, 1])
     return out
 
 
@@ -242,7 +269,8 @@ def fit(key: jax.Array, cfg: PlannerValueConfig, value_params: dict, data: Plann
         ) -> tuple[dict, dict | None, dict]:
     """``(value_params, error_params or None, report)``: the value refitted from
     ``value_params`` on the planner's data of all but the held-out worlds (the first
-    ``holdout`` share), the one-step error model, and their held-out scores."""
+    ``holdout`` share; a list of ``cfg.ensemble`` members where it is > 1), the one-step error
+    model, and their held-out scores."""
     up = np.asarray(data.up)
     N = up.shape[0]
     n_test = max(1, int(round(cfg.holdout * N)))
@@ -258,8 +286,18 @@ def fit(key: jax.Array, cfg: PlannerValueConfig, value_params: dict, data: Plann
     refit = jax.jit(lambda k, p, closed, cand: learned.refit_value(
         k, lc, p, [(closed, i_closed), (cand, i_cand)]))
     new_params, losses = refit(key_v, value_params, train.closed, _per_candidate(train.cand))
+    if cfg.ensemble > 1:  # the other members on bootstrap resamples of the training steps
+        rng = np.random.default_rng(cfg.seed)
+        members = [new_params]
+        for e in range(1, cfg.ensemble):
+            boot = [np.sort(rng.choice(i, i.size)) for i in (i_closed, i_cand)]
+            refit_e = jax.jit(lambda k, p, closed, cand: learned.refit_value(
+                k, lc, p, [(closed, boot[0]), (cand, boot[1])]))
+            members.append(refit_e(jax.random.fold_in(key_v, e), value_params, train.closed,
+                                   _per_candidate(train.cand))[0])
+        new_params = members
     report = dict(worlds=N, held_out_worlds=n_test, closed_steps=int(i_closed.size),
-                  candidate_steps=int(i_cand.size), horizon=H,
+                  candidate_steps=int(i_cand.size), horizon=H, ensemble=cfg.ensemble,
                   value_loss_last=float(losses[-1, -1]),
                   value_before=value_report(value_params, test, cfg),
                   value_after=value_report(new_params, test, cfg))

@@ -50,6 +50,9 @@ class PlanningConfig:
       gait: plan gait parameters jointly with joint residuals (Go1 gait reference).
       gait_noise: exploration std of the gait frequency (Hz); duty 0.15x, offsets 0.25x this.
       value_weight: weight of the learned terminal value.
+      value_pessimism: with a value ensemble (``planner_value``'s ``--value.ensemble``), the
+        terminal value is the members' mean minus this many standard deviations across them
+        (0: their mean): pessimism where the members disagree, off the value's data.
       fall_cost: planner cost per step spent fallen (reward units per step).
       track_weight: weight of a quadratic velocity-tracking cost added to the reward terms (per
         (m/s)^2, times dt): the reward's exp-kernels are flat far from the command (at 2 m/s
@@ -74,6 +77,7 @@ class PlanningConfig:
     gait: bool = False
     gait_noise: float = 0.2
     value_weight: float = 1.0
+    value_pessimism: float = 0.0
     fall_cost: float = 1.0
     track_weight: float = 1.0
     learned_track_weight: float = 0.0
@@ -248,7 +252,8 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
     value = None
     cost = analytic_cost
     if learned_params is not None:
-        r_cost, value = learned_lib.planner_terms(*learned_params, obs_aug, cfg.value_weight)
+        r_cost, value = learned_lib.planner_terms(*learned_params, obs_aug, cfg.value_weight,
+                                                  cfg.value_pessimism)
 
         def cost(q_aug, qd, u, t):
             q = split(q_aug, nq).q

@@ -175,7 +175,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         ppo_policy, _, env_cfg = ppo.load_policy(cfg.policy)
         if env_cfg.robot != cfg.robot:
             raise ValueError(f"the policy {cfg.policy} drives {env_cfg.robot}, not {cfg.robot}")
-    learned_params = learned_lib.load(cfg.learned) if cfg.learned else None
+    learned_params = learned_lib.load(cfg.learned, ensemble=True) if cfg.learned else None
     error_params = None
     if cfg.error_model:
         from stride_jax.control import planner_value
