@@ -71,6 +71,8 @@ def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoc
     if sc.rough_m > 0:
         spec = sm.robot.load_spec()
         sm.robot.edit_spec(spec)
+        # as sim.model.compile_robot does, so that geom ids (the feet's contact flags) match sm's
+        sim_model.strip_visual_meshes(spec)
         n, half = 64, 4.0  # 8 m x 8 m, 12.5 cm cells
         h = np.random.default_rng(seed).uniform(0, 1, (n, n))
         h[:, : n // 8 + 1] = 0.0  # a flat start area around the robot

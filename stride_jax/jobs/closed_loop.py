@@ -196,10 +196,11 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     now = {"label": "", "t0": 0.0, "n": 1}  # the running pair, for the progress callback
 
     def progress(steps):
-        log(f"  {now['label']}: {int(steps) * sm.robot.ctrl_dt:.1f} of "
-            f"{now['n'] * sm.robot.ctrl_dt:.1f} s simulated ({time.perf_counter() - now['t0']:.0f} s)")
+        dt, wall = sm.robot.ctrl_dt, time.perf_counter() - now["t0"]
+        log(f"  {now['label']}: {int(steps) * dt:.1f} of {now['n'] * dt:.1f} s simulated "
+            f"({wall:.0f} s)")
 
-    def episode_fn(name, n_steps, slots):
+    def episode_fn(name, n_steps, slots, sm_sim):
         def episode(mx_sim, mx_plan, starts, values, pushes, tilt, key):
             step_fn = learned_steps.get(name) or mjx_step_fn(sm, mx_plan)
             planning = make_planning(cfg.planning, env_cfg, sm, step_fn, ppo_policy, learned_params,
@@ -209,8 +210,8 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             if name != "policy":
                 with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
                     planner = make_planner(planning, mppi_config(cfg.mppi, cfg.planning, planning))
-            return run_episode(sm, mx_sim, slots, planning, planner, n_steps, starts, values, key,
-                               pushes=pushes, limits=limits, tilt=tilt,
+            return run_episode(sm_sim, mx_sim, slots, planning, planner, n_steps, starts, values,
+                               key, pushes=pushes, limits=limits, tilt=tilt,
                                progress=progress if every else None,
                                progress_every=every or 1)
         return jax.jit(episode)
@@ -218,7 +219,9 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     for sc_name in [s for s in cfg.scenarios.split(",") if s]:
         sc = scenario(cfg, sc_name)
         n_steps = max(1, int(round(sc.seconds / sm.robot.ctrl_dt)))
-        mx_sim = mjx.put_model(scenario_model(sm, sc, cfg.seed))
+        m_sim = scenario_model(sm, sc, cfg.seed)
+        mx_sim = mjx.put_model(m_sim)
+        sm_sim = sim_model.with_geoms_of(sm, m_sim)  # the feet's geom ids in the scenario's model
         slots = envs.contact_slots(mx_sim)
         starts, values = schedule(sc)
         for name, run_dir in models:
@@ -228,12 +231,13 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             args = (mx_sim, mx_plan, jnp.asarray(starts), jnp.asarray(values),
                     jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum()))),
                     jnp.asarray(tilt_schedule(sc)), jax.random.key(cfg.seed))
-            sig = (name, n_steps, tuple(slots[0]), jax.tree.structure(args[:2]))
+            sig = (name, n_steps, tuple(slots[0]), sm_sim.geom_foot.tobytes(),
+                   jax.tree.structure(args[:2]))
             t0 = time.perf_counter()
             if sig not in compiled:
                 if every:
                     log(f"  {sc.name} {name}: compiling")
-                compiled[sig] = episode_fn(name, n_steps, slots).lower(*args).compile()
+                compiled[sig] = episode_fn(name, n_steps, slots, sm_sim).lower(*args).compile()
             compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
             now.update(label=f"{sc.name} {name}", t0=t0, n=n_steps)

@@ -80,6 +80,32 @@ def strip_visual_meshes(spec: mujoco.MjSpec) -> int:
     return gone
 
 
+def _foot_maps(robot: Robot, m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
+    """``(foot_geoms [nfeet, G], geom_foot [ngeom])`` of ``robot``'s feet in ``m``, by name."""
+    width = max((len(f.geoms) for f in robot.feet), default=0)
+    foot_geoms = np.full((len(robot.feet), width), -1, dtype=np.int32)
+    for i, foot in enumerate(robot.feet):
+        for j, g in enumerate(foot.geoms):
+            foot_geoms[i, j] = _id(m, mujoco.mjtObj.mjOBJ_GEOM, g, robot.name)
+    geom_foot = np.full(m.ngeom, -1, dtype=np.int32)
+    for i, geoms in enumerate(foot_geoms):
+        geom_foot[geoms[geoms >= 0]] = i
+    return foot_geoms, geom_foot
+
+
+def with_geoms_of(sm: SimModel, m: mujoco.MjModel) -> SimModel:
+    """``sm`` with its feet's geom ids (``foot_geoms``, ``geom_foot``) read from ``m``: the same
+    robot compiled again with other geoms (a heightfield beside the floor), which numbers its
+    geoms differently. Everything else stays ``sm``'s; bodies, joints and sites must match."""
+    for what in ("nbody", "njnt", "nsite", "nq", "nv", "nu"):
+        if getattr(m, what) != getattr(sm.mj, what):
+            raise RobotError(f"robot {sm.robot.name!r}: the model has {what} = "
+                             f"{getattr(m, what)}, the robot's {getattr(sm.mj, what)}: only geoms "
+                             f"may differ")
+    foot_geoms, geom_foot = _foot_maps(sm.robot, m)
+    return dataclasses.replace(sm, foot_geoms=foot_geoms, geom_foot=geom_foot)
+
+
 def compile_robot(robot: Robot, visual: bool = False) -> SimModel:
     """Parses, edits and compiles ``robot``; checks that its names match the model.
 
@@ -101,16 +127,9 @@ def compile_robot(robot: Robot, visual: bool = False) -> SimModel:
     qpos0 = m.qpos0.copy()
     if robot.home_key is not None:
         qpos0 = m.key(_id(m, mujoco.mjtObj.mjOBJ_KEY, robot.home_key, robot.name)).qpos.copy()
-    width = max((len(f.geoms) for f in robot.feet), default=0)
-    foot_geoms = np.full((len(robot.feet), width), -1, dtype=np.int32)
-    for i, foot in enumerate(robot.feet):
-        for j, g in enumerate(foot.geoms):
-            foot_geoms[i, j] = _id(m, mujoco.mjtObj.mjOBJ_GEOM, g, robot.name)
+    foot_geoms, geom_foot = _foot_maps(robot, m)
     foot_sites = np.array([_id(m, mujoco.mjtObj.mjOBJ_SITE, f.site, robot.name) for f in robot.feet],
                           dtype=np.int32)
-    geom_foot = np.full(m.ngeom, -1, dtype=np.int32)
-    for i, geoms in enumerate(foot_geoms):
-        geom_foot[geoms[geoms >= 0]] = i
     base = _id(m, mujoco.mjtObj.mjOBJ_BODY, robot.base_body, robot.name)
     info = ModelInfo(
         nq=m.nq, nv=m.nv, nu=m.nu, qpos0=qpos0.astype(np.float32),
