@@ -91,7 +91,7 @@ def test_the_feet_are_read_by_their_geoms_in_the_scenarios_model(go1, g1):
     """The feet's contact flags map the colliding geoms' ids to feet: in the rough scenario's
     model (compiled again, the heightfield added to the world body) the feet are other ids than
     in the robot's model (before: the Go1's 16-42 read at 21-56 with the visual meshes kept, and
-    one off without them), so the closed loop reads them by name (``with_geoms_of``)."""
+    one off without them), so the closed loop reads them by name (``on_model``)."""
     import mujoco
 
     from stride_jax.robots import RobotError
@@ -99,16 +99,16 @@ def test_the_feet_are_read_by_their_geoms_in_the_scenarios_model(go1, g1):
     for sm in (go1, g1):
         m = cl.scenario_model(sm, cl.SCENARIOS["rough"])
         assert m.ngeom == sm.mj.ngeom + 1  # visual meshes left out as in the robot's model
-        moved = sim_model.with_geoms_of(sm, m)
+        moved = sim_model.on_model(sm, m)
         for i, foot in enumerate(sm.robot.feet):
             ids = moved.foot_geoms[i][moved.foot_geoms[i] >= 0]
             assert [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, int(g)) for g in ids] == \
                 list(foot.geoms)
             assert (moved.geom_foot[ids] == i).all()
         assert (moved.geom_foot >= 0).sum() == (sm.geom_foot >= 0).sum()
-        assert moved.mj is sm.mj and (moved.foot_geoms != sm.foot_geoms).any()
+        assert moved.mj is m and (moved.foot_geoms != sm.foot_geoms).any()
     with pytest.raises(RobotError, match="only geoms may differ"):
-        sim_model.with_geoms_of(go1, g1.mj)
+        sim_model.on_model(go1, g1.mj)
 
 
 def _fake_step(q, qd, ctrl, key):  # the robot stands still: planner plumbing only

@@ -221,7 +221,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         n_steps = max(1, int(round(sc.seconds / sm.robot.ctrl_dt)))
         m_sim = scenario_model(sm, sc, cfg.seed)
         mx_sim = mjx.put_model(m_sim)
-        sm_sim = sim_model.with_geoms_of(sm, m_sim)  # the feet's geom ids in the scenario's model
+        sm_sim = sim_model.on_model(sm, m_sim)  # the robot in the scenario's model (geom ids)
         slots = envs.contact_slots(mx_sim)
         starts, values = schedule(sc)
         for name, run_dir in models:

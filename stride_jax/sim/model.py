@@ -93,17 +93,18 @@ def _foot_maps(robot: Robot, m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]
     return foot_geoms, geom_foot
 
 
-def with_geoms_of(sm: SimModel, m: mujoco.MjModel) -> SimModel:
-    """``sm`` with its feet's geom ids (``foot_geoms``, ``geom_foot``) read from ``m``: the same
-    robot compiled again with other geoms (a heightfield beside the floor), which numbers its
-    geoms differently. Everything else stays ``sm``'s; bodies, joints and sites must match."""
+def on_model(sm: SimModel, m: mujoco.MjModel) -> SimModel:
+    """``sm`` for ``m``, the same robot compiled again with other geoms (a heightfield beside the
+    floor), which numbers its geoms differently: ``m`` itself and the feet's geom ids
+    (``foot_geoms``, ``geom_foot``) read from it by name. Bodies, joints, sites and actuators
+    must match (their ids are kept)."""
     for what in ("nbody", "njnt", "nsite", "nq", "nv", "nu"):
         if getattr(m, what) != getattr(sm.mj, what):
             raise RobotError(f"robot {sm.robot.name!r}: the model has {what} = "
                              f"{getattr(m, what)}, the robot's {getattr(sm.mj, what)}: only geoms "
                              f"may differ")
     foot_geoms, geom_foot = _foot_maps(sm.robot, m)
-    return dataclasses.replace(sm, foot_geoms=foot_geoms, geom_foot=geom_foot)
+    return dataclasses.replace(sm, mj=m, foot_geoms=foot_geoms, geom_foot=geom_foot)
 
 
 def compile_robot(robot: Robot, visual: bool = False) -> SimModel:
