@@ -278,7 +278,7 @@ def test_a_value_ensemble_is_stored_and_planned_against_pessimistically(go1, tmp
     assert isinstance(learned.load(path, ensemble=True)[1], dict)
 
 
-def test_ablation_variants_switch_one_thing_at_a_time():
+def test_ablation_variants_switch_one_thing_at_a_time(tmp_path):
     cfg = dreamer_mpc.AblationConfig()
     rows = {v: dreamer_mpc.variant_config(cfg, v, "planner.msgpack", "err.msgpack", 0.4)
             for v in dreamer_mpc.VARIANTS}
@@ -297,6 +297,13 @@ def test_ablation_variants_switch_one_thing_at_a_time():
     assert pv.out.endswith("prior_value")
     with pytest.raises(ValueError, match="value_collector"):
         dreamer_mpc.AblationConfig(value_collector="value")
+    # a value trained by an earlier call is reused only as it was asked for
+    trained = dict(config=dataclasses.asdict(planner_value.PlannerValueConfig(worlds=32)))
+    trained["config"].pop("ensemble")  # a report that predates a setting: its default
+    want = planner_value.PlannerValueConfig(worlds=32)
+    dreamer_mpc._check_reused_value(trained, want, tmp_path)
+    with pytest.raises(ValueError, match=r"ensemble 1 \(asked 5\)"):
+        dreamer_mpc._check_reused_value(trained, dataclasses.replace(want, ensemble=5), tmp_path)
     with pytest.raises(ValueError, match="unknown variants"):
         dreamer_mpc.AblationConfig(variants="mppi,magic")
     with pytest.raises(ValueError, match="NAME=RUN"):

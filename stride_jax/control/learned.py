@@ -260,14 +260,9 @@ def stack(members: list[dict]) -> dict:
     return jax.tree.map(lambda *a: jnp.stack(a), *members)
 
 
-def apply_ensemble(params: dict | list[dict], x: jax.Array) -> jax.Array:
-    """``[E]`` the outputs of every member of an ensemble (a list of models, or :func:`stack`'s
-    pytree) for one input ``[D]``; a single model gives ``[1]``."""
-    if isinstance(params, (list, tuple)):
-        params = stack(list(params))
-    elif params["x_mean"].ndim == 1:
-        return apply(params, x)[None]
-    return jax.vmap(apply, in_axes=(0, None))(params, x)
+def apply_ensemble(stacked: dict, x: jax.Array) -> jax.Array:
+    """``[E]`` the outputs of an ensemble's members (:func:`stack`) for one input ``[D]``."""
+    return jax.vmap(apply, in_axes=(0, None))(stacked, x)
 
 
 def pessimistic(values: jax.Array, pessimism: float) -> jax.Array:
@@ -275,22 +270,28 @@ def pessimistic(values: jax.Array, pessimism: float) -> jax.Array:
     return jnp.mean(values) - pessimism * jnp.std(values)
 
 
+def value_fn(value_params: dict | list[dict], pessimism: float = 0.0) -> Callable:
+    """``obs -> V`` of one value model, or of an ensemble (a list of members, :func:`load`
+    ``ensemble=True``): :func:`pessimistic` over its members (their mean at 0)."""
+    if not isinstance(value_params, (list, tuple)):
+        return lambda obs: apply(value_params, obs)
+    stacked = stack(list(value_params))
+    return lambda obs: pessimistic(apply_ensemble(stacked, obs), pessimism)
+
+
 def planner_terms(reward_params: dict, value_params: dict | list[dict], obs_of: Callable,
                   value_weight: float = 1.0, pessimism: float = 0.0
                   ) -> tuple[Callable, Callable]:
     """MPPI's ``running_cost(q, qd, u, t) = -r(obs, u)`` and ``terminal_value(q, qd) = w V(obs)``
-    for an ``obs_of(q, qd) -> obs`` (the planner's state may carry the command). With a value
-    ensemble (a list, :func:`load` ``ensemble=True``) ``V`` is :func:`pessimistic` over its
-    members."""
-    stacked = stack(list(value_params)) if isinstance(value_params, (list, tuple)) else None
+    for an ``obs_of(q, qd) -> obs`` (the planner's state may carry the command); ``V`` is
+    :func:`value_fn` (pessimistic over an ensemble's members)."""
+    value = value_fn(value_params, pessimism)
 
     def running_cost(q, qd, u, t):
         return -apply(reward_params, reward_input(obs_of(q, qd), u))
 
     def terminal_value(q, qd):
-        if stacked is None:
-            return value_weight * apply(value_params, obs_of(q, qd))
-        return value_weight * pessimistic(apply_ensemble(stacked, obs_of(q, qd)), pessimism)
+        return value_weight * value(obs_of(q, qd))
 
     return running_cost, terminal_value
 

@@ -221,21 +221,13 @@ def _per_candidate(d: learned.Trajectories) -> learned.Trajectories:
     return jax.tree.map(_flat, d)
 
 
-def _value_fn(params: dict | list[dict]) -> Callable:
-    """``obs -> V``: one value, or an ensemble's mean."""
-    if isinstance(params, (list, tuple)):
-        stacked = learned.stack(list(params))
-        return lambda o: jnp.mean(learned.apply_ensemble(stacked, o))
-    return lambda o: learned.apply(params, o)
-
-
 def targets(params: dict | list[dict], d: learned.Trajectories, cfg: PlannerValueConfig
             ) -> jax.Array:
     """The value's lambda-return targets ``[N, T]`` of trajectories ``d`` ``[N, T, ...]`` under
     the value ``params`` (each trajectory bootstraps ``V`` of its last next state; a fall ends
     the return), as :func:`stride_jax.control.learned.refit_value` computes them; an ensemble
     bootstraps its mean."""
-    v = jax.vmap(jax.vmap(_value_fn(params)))
+    v = jax.vmap(jax.vmap(learned.value_fn(params)))
     return jax.vmap(learned.lambda_returns, in_axes=(0, 0, 0, 0, None, None))(
         d.reward, v(d.next_obs), d.terminal, d.reset, cfg.discount, cfg.lam)
 
@@ -251,17 +243,22 @@ def value_report(params: dict | list[dict], data: PlannerData, cfg: PlannerValue
     out = {}
     for name, d, idx in (("closed", data.closed, i_closed),
                          ("candidates", _per_candidate(data.cand), i_cand)):
-        v = jax.vmap(jax.vmap(_value_fn(params)))
-        pred, target = _flat(v(d.obs))[idx], _flat(targets(params, d, cfg))[idx]
+        ensemble = isinstance(params, (list, tuple))
+        if ensemble:  # every member once: their mean predicts, their spread is reported
+            stacked = learned.stack(list(params))
+            members = _flat(jax.vmap(jax.vmap(
+                lambda o: learned.apply_ensemble(stacked, o)))(d.obs))[idx]  # [n, E]
+            pred = jnp.mean(members, axis=-1)
+        else:
+            pred = _flat(jax.vmap(jax.vmap(lambda o: learned.apply(params, o)))(d.obs))[idx]
+        target = _flat(targets(params, d, cfg))[idx]
         out[f"r2_{name}"] = learned.r2(pred, target)
         out[f"bias_{name}"] = float(jnp.mean(pred - target))
-        if isinstance(params, (list, tuple)):
-            stacked = learned.stack(list(params))
-            spread = _flat(jax.vmap(jax.vmap(
-                lambda o: jnp.std(learned.apply_ensemble(stacked, o))))(d.obs))[idx]
-            err = jnp.abs(pred - target)
+        if ensemble:
+            spread = jnp.std(members, axis=-1)
             out[f"spread_{name}"] = float(jnp.mean(spread))
-            out[f"spread_error_corr_{name}"] = float(jnp.corrcoef(spread, err)[0, 1])
+            out[f"spread_error_corr_{name}"] = float(
+                jnp.corrcoef(spread, jnp.abs(pred - target))[0, 1])
     return out
 
 
@@ -283,18 +280,18 @@ def fit(key: jax.Array, cfg: PlannerValueConfig, value_params: dict, data: Plann
         raise ValueError("the planner was down at every training step: no data to fit")
     key_v, key_e = jax.random.split(key)
     lc = cfg.learned_config()
-    refit = jax.jit(lambda k, p, closed, cand: learned.refit_value(
-        k, lc, p, [(closed, i_closed), (cand, i_cand)]))
-    new_params, losses = refit(key_v, value_params, train.closed, _per_candidate(train.cand))
+    # the steps to fit are arguments, so that every member of an ensemble shares one compile
+    refit = jax.jit(lambda k, p, closed, cand, ic, ia: learned.refit_value(
+        k, lc, p, [(closed, ic), (cand, ia)]))
+    cand_train = _per_candidate(train.cand)
+    new_params, losses = refit(key_v, value_params, train.closed, cand_train, i_closed, i_cand)
     if cfg.ensemble > 1:  # the other members on bootstrap resamples of the training steps
         rng = np.random.default_rng(cfg.seed)
         members = [new_params]
         for e in range(1, cfg.ensemble):
             boot = [np.sort(rng.choice(i, i.size)) for i in (i_closed, i_cand)]
-            refit_e = jax.jit(lambda k, p, closed, cand: learned.refit_value(
-                k, lc, p, [(closed, boot[0]), (cand, boot[1])]))
-            members.append(refit_e(jax.random.fold_in(key_v, e), value_params, train.closed,
-                                   _per_candidate(train.cand))[0])
+            members.append(refit(jax.random.fold_in(key_v, e), value_params, train.closed,
+                                 cand_train, *boot)[0])
         new_params = members
     report = dict(worlds=N, held_out_worlds=n_test, closed_steps=int(i_closed.size),
                   candidate_steps=int(i_cand.size), horizon=H, ensemble=cfg.ensemble,

@@ -249,15 +249,16 @@ def run(cfg: AblationConfig, command: str = "", log=print) -> list[dict]:
     learned_file, error_file, bound = None, "", cfg.error_bound
     value_report = None
     if any(VARIANTS.index(v) >= VARIANTS.index("value") for v in variants):
+        vcfg = dataclasses.replace(cfg.value, discount=cfg.discount,
+                                   error_model=cfg.value.error_model or cfg.error_model)
         if not (value_dir / "report.json").is_file():
             log(f"training the value on the planner's own rollouts (the "
                 f"'{cfg.value_collector}' planner)")
             collector = dataclasses.replace(variant_config(cfg, cfg.value_collector),
                                             out=str(value_dir))
-            vcfg = dataclasses.replace(cfg.value, discount=cfg.discount,
-                                       error_model=cfg.value.error_model or cfg.error_model)
             train_value(collector, vcfg, name, run_dir, value_dir, command, log)
         value_report = json.loads((value_dir / "report.json").read_text())
+        _check_reused_value(value_report, vcfg, value_dir)
         learned_file = str(value_dir / "reward_value.msgpack")
         if cfg.error_model and (value_dir / "error_model.msgpack").is_file():
             error_file = str(value_dir / "error_model.msgpack")
@@ -274,6 +275,23 @@ def run(cfg: AblationConfig, command: str = "", log=print) -> list[dict]:
         log(f"variant {variant}: {time.perf_counter() - t0:.0f} s")
         write(gather(out), cfg, command, out, bound, value_report)
     return gather(out)
+
+
+def _check_reused_value(report: dict, want: planner_value.PlannerValueConfig,
+                        value_dir: pathlib.Path) -> None:
+    """A value trained by an earlier call is reused only if it was trained as this call asks
+    (``--value.ensemble``, ``--value.worlds`` ...): a clear error names what differs. Settings the
+    report predates count at their defaults."""
+    fields = {f.name for f in dataclasses.fields(planner_value.PlannerValueConfig)}
+    stored = (report.get("config") or {})
+    had = dataclasses.replace(planner_value.PlannerValueConfig(),
+                              **{k: v for k, v in stored.items() if k in fields})
+    differ = [f"{k} {getattr(had, k)!r} (asked {getattr(want, k)!r})" for k in sorted(fields)
+              if getattr(had, k) != getattr(want, k)]
+    if differ:
+        raise ValueError(f"{value_dir} holds a value trained with other settings: "
+                         f"{'; '.join(differ)}. Use another --out, or delete that folder to "
+                         f"train it again")
 
 
 def gather(out: pathlib.Path) -> list[dict]:
