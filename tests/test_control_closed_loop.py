@@ -368,6 +368,16 @@ def test_a_tilting_ground_builds_the_slope_up_and_a_still_one_is_the_models_own_
     low = cl.scenario(cl.ClosedLoopConfig(rough_cm=2.0), "rough")
     assert (low.name, low.rough_m) == ("rough2", 0.02)
     assert cl.scenario(cl.ClosedLoopConfig(rough_cm=2.0), "slope").rough_m == 0.0
+    # --push-scale and --friction: the pushes' strength and the lowered friction, in the names.
+    hard = cl.scenario(cl.ClosedLoopConfig(push_scale=3.0), "push")
+    assert hard.name == "push3x"
+    assert [p[3] for p in hard.pushes] == [3 * p[3] for p in cl.SCENARIOS["push"].pushes]
+    assert cl.scenario(cl.ClosedLoopConfig(push_scale=3.0), "soft").pushes == ()
+    icy = cl.scenario(cl.ClosedLoopConfig(friction=0.15), "low_friction")
+    assert (icy.name, icy.friction) == ("low_friction0.15", 0.15)
+    assert cl.scenario(cl.ClosedLoopConfig(friction=0.15), "slope").friction == 1.0
+    with pytest.raises(ValueError, match="friction"):
+        cl.scenario(cl.ClosedLoopConfig(friction=-0.1), "low_friction")
     tilted = held(*args, np.array([np.deg2rad(30.0), 0.02], np.float32))
     assert np.asarray(tilted.v_base)[-1, 0] < np.asarray(level.v_base)[-1, 0] - 0.05
 

@@ -78,6 +78,10 @@ class ClosedLoopConfig:
         the angle, ``tilt10``).
       rough_cm: override the bump height of the rough-ground scenarios (cm; 0: keep; their
         names get the height, ``rough2``).
+      push_scale: scale the velocity change of every push of the scenarios that push (0: keep;
+        their names get the factor, ``push3x``).
+      friction: override the friction scale of the scenarios with a lowered friction (0: keep;
+        their names get the value, ``low_friction0.15``).
       mppi: the planner's settings (``--mppi.samples``, ``--mppi.horizon``, ...; the older flat
         flags ``--samples``, ``--horizon``, ``--policy-samples`` ... still answer). Its
         ``noise_std`` is set from ``planning.noise_std`` (and ``planning.gait_noise``), its
@@ -112,6 +116,8 @@ class ClosedLoopConfig:
     seconds: float = 0.0
     slope_deg: float = 0.0
     rough_cm: float = 0.0
+    push_scale: float = 0.0
+    friction: float = 0.0
     mppi: MPPIConfig = MPPIConfig()
     planning: PlanningConfig = PlanningConfig()
     policy: str = ""
@@ -262,15 +268,26 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
 
 def scenario(cfg: ClosedLoopConfig, name: str) -> Scenario:
     """The scenario ``name`` with the run's overrides: ``cfg.seconds``, ``cfg.slope_deg`` for a
-    scenario with a slope and ``cfg.rough_cm`` for one with rough ground (renamed with the angle
-    or height, ``tilt15``, ``rough2``, so that rows of different grounds never share a name)."""
+    scenario with a slope, ``cfg.rough_cm`` for one with rough ground, ``cfg.push_scale`` for one
+    with pushes and ``cfg.friction`` for one with a lowered friction (renamed with the angle,
+    height, factor or value, ``tilt15``, ``rough2``, ``push3x``, ``low_friction0.15``, so that
+    rows of different scenarios never share a name)."""
     sc = SCENARIOS[name]
+    for field in ("seconds", "slope_deg", "rough_cm", "push_scale", "friction"):
+        if getattr(cfg, field) < 0:
+            raise ValueError(f"--{field.replace('_', '-')} is {getattr(cfg, field)}: it must be >= 0 "
+                             "(0 keeps the scenario's own)")
     if cfg.seconds:
         sc = dataclasses.replace(sc, seconds=cfg.seconds)
     if cfg.slope_deg and sc.slope_deg:
         sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.slope_deg:g}", slope_deg=cfg.slope_deg)
     if cfg.rough_cm and sc.rough_m:
         sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.rough_cm:g}", rough_m=cfg.rough_cm / 100)
+    if cfg.push_scale and sc.pushes:
+        pushes = tuple((t, d, cfg.push_scale * dvx, cfg.push_scale * dvy) for t, d, dvx, dvy in sc.pushes)
+        sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.push_scale:g}x", pushes=pushes)
+    if cfg.friction and sc.friction != 1.0:
+        sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.friction:g}", friction=cfg.friction)
     return sc
 
 

@@ -1,0 +1,101 @@
+"""Issue 19, item 3: is there a ground where the risk-aware STRIDE planner stays up and the
+mean-only one falls? A resumable search on one GPU, run in several device calls:
+
+1. the policy and the mean-only STRIDE planner on harder versions of the scenarios that
+   the main tables pass (pushes scaled up, friction lowered; ``--push-scale``, ``--friction``);
+2. where the mean-only planner fell, the same planner with each candidate rolled out under
+   several residual draws and ranked by mean + 1 std of its costs (``--mppi.risk std``) and by
+   CVaR 0.75 (``--mppi.risk cvar``).
+
+Each job is one ``experiments/closed_loop_targets.sh`` call (Go1, the main planner's flags) in
+``WORK/<job>``; a job whose folder has a finished ``closed_loop.json`` is skipped (run again to
+resume), a job is started only if the time left covers its estimate, and each finished job's
+folder is packed to ``OUT/<job>.tgz``.
+
+    python experiments/risk_fall_search.py --work /tmp/fs --out $OUT --deadline 560
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+# (job name, scenario, override flags); the mean-only stage, in order of interest
+MEAN = [("push3x", "push", ["--push-scale", "3"]),
+        ("low_friction0.12", "low_friction", ["--friction", "0.12"]),
+        ("push5x", "push", ["--push-scale", "5"]),
+        ("low_friction0.06", "low_friction", ["--friction", "0.06"])]
+RISK = {"std": ["--mppi.risk-draws", "4", "--mppi.risk", "std", "--mppi.risk-weight", "1.0"],
+        "cvar": ["--mppi.risk-draws", "4", "--mppi.risk", "cvar", "--mppi.risk-alpha", "0.75"]}
+ESTIMATE_S = {"mean": 170, "risk": 260}
+
+
+def rows(folder: pathlib.Path) -> list[dict]:
+    f = folder / "closed_loop.json"
+    return json.loads(f.read_text())["rows"] if f.exists() else []
+
+
+def run_job(name: str, models: str, scen: str, flags: list[str], work: pathlib.Path,
+            out: pathlib.Path, limit: int) -> list[dict]:
+    folder = work / name
+    want = 2 if "," in models else 1
+    if len(rows(folder)) >= want:
+        print(f"[search] {name}: done before", flush=True)
+        return rows(folder)
+    t0 = time.time()
+    cmd = ["bash", "experiments/closed_loop_targets.sh", "go1", str(folder), str(limit), models, scen,
+           *flags, "--progress-s", "0"]
+    print(f"[search] {name}: {' '.join(cmd)}", flush=True)
+    subprocess.run(cmd, cwd=ROOT, env=dict(os.environ, MODELS_DIR="go1_walk"), check=False)
+    tgz = folder.with_suffix(".tgz")
+    if tgz.exists():
+        out.mkdir(parents=True, exist_ok=True)
+        (out / tgz.name).write_bytes(tgz.read_bytes())
+    got = rows(folder)
+    for r in got:
+        print(f"[search] {name}: {r['model']:>8} on {r['scenario']}: vel {r['vel_rmse']:.3f}, fell {r['fell']}"
+              f" at {r.get('fall_s')}, {r['ms_per_step']:.1f} ms/step", flush=True)
+    print(f"[search] {name}: {time.time() - t0:.0f} s", flush=True)
+    return got
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--work", default="/tmp/fs")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--deadline", type=float, default=560, help="seconds this call may use")
+    a = ap.parse_args(argv)
+    work, out, t_end = pathlib.Path(a.work), pathlib.Path(a.out), time.time() + a.deadline
+    left = lambda: t_end - time.time()
+    fell_mean = []
+    for name, scen, flags in MEAN:
+        done = len(rows(work / f"mean_{name}")) >= 2
+        if not done and left() < ESTIMATE_S["mean"]:
+            print(f"[search] stop: {left():.0f} s left, {name} needs ~{ESTIMATE_S['mean']} s", flush=True)
+            return 0
+        got = run_job(f"mean_{name}", "policy,stride", scen, flags, work, out,
+                      int(min(left(), 1.5 * ESTIMATE_S["mean"])))
+        by = {r["model"]: r for r in got}
+        if "stride" in by and by["stride"]["fell"]:
+            fell_mean.append((name, scen, flags))
+        # the risk-aware planner on each ground where the mean-only one fell, before going on
+        for rname, rflags in RISK.items():
+            if (name, scen, flags) not in fell_mean:
+                break
+            job = f"risk_{rname}_{name}"
+            if len(rows(work / job)) < 1 and left() < ESTIMATE_S["risk"]:
+                print(f"[search] stop: {left():.0f} s left, {job} needs ~{ESTIMATE_S['risk']} s", flush=True)
+                return 0
+            run_job(job, "stride", scen, flags + rflags, work, out, int(min(left(), 1.5 * ESTIMATE_S["risk"])))
+    print("[search] all jobs done", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
