@@ -27,7 +27,10 @@ import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 # (job name, scenario, override flags); the mean-only stage, in order of interest
-MEAN = [("push3x", "push", ["--push-scale", "3"]),
+MEAN = [("push1.5x", "push", ["--push-scale", "1.5"]),
+        ("push1.75x", "push", ["--push-scale", "1.75"]),
+        ("push2x", "push", ["--push-scale", "2"]),
+        ("push3x", "push", ["--push-scale", "3"]),
         ("low_friction0.12", "low_friction", ["--friction", "0.12"]),
         ("push5x", "push", ["--push-scale", "5"]),
         ("low_friction0.06", "low_friction", ["--friction", "0.06"])]
@@ -53,7 +56,7 @@ def run_job(name: str, models: str, scen: str, flags: list[str], work: pathlib.P
            *flags, "--progress-s", "0"]
     print(f"[search] {name}: {' '.join(cmd)}", flush=True)
     subprocess.run(cmd, cwd=ROOT, env=dict(os.environ, MODELS_DIR="go1_walk"), check=False)
-    tgz = folder.with_suffix(".tgz")
+    tgz = folder.parent / f"{folder.name}.tgz"  # (not with_suffix: names like push1.5x have a dot)
     if tgz.exists():
         out.mkdir(parents=True, exist_ok=True)
         (out / tgz.name).write_bytes(tgz.read_bytes())
