@@ -123,3 +123,25 @@ def test_verdict_reasons_name_the_rule_and_list_ties():
     v = attribute.verdict(_w(0.9, 0.0, p_value=0.3, ties=True), cfg)
     assert v["verdict"] == "no significant gap" and v["indistinguishable_from"] == ["armature"]
     assert "needs < 0.005 = 0.05 / 10 hypotheses" in v["reason"]
+
+
+def test_the_line_search_stops_at_a_tenth_of_the_standard_error():
+    # per-block losses a_b (x - c_b)^2: the loss's curvature and its per-block gradients are
+    # known, so the sandwich standard error at the best grid node is too
+    rng = np.random.default_rng(0)
+    nb = 60
+    a, c = rng.uniform(0.5, 2.0, nb), rng.normal(0.5, 0.3, nb)
+    xs = np.linspace(0.0, 1.0, 11)
+    B = a[None] * (xs[:, None] - c[None]) ** 2  # [P, nb]
+    k = int(np.argmin(B.sum(1)))
+    obj = type("O", (), {"nxt": np.full(nb, -1)})()  # independent blocks
+    g = 2 * a * (xs[k] - c)
+    se = np.sqrt(((g - g.mean()) ** 2).sum() * nb / (nb - 1)) / (2 * a.sum())
+    tol = fit.line_tol(obj, xs, B, k, 1.0)
+    assert 1e-4 < tol < 1e-2 and tol == pytest.approx(0.1 * se, rel=1e-9)
+    # a tiny spread: the floor; a huge one: the ceiling; the grid's edge or a concave loss: the floor
+    assert fit.line_tol(obj, xs, a[None] * (xs[:, None] - 0.5) ** 2 + 1e-9 * B, k, 1.0) == 1e-4
+    a2, d = np.tile(a[:nb // 2], 2), np.concatenate([c[:nb // 2] - 0.5, 0.5 - c[:nb // 2]]) * 100
+    wide = a2[None] * (xs[:, None] - 0.5 - d[None]) ** 2  # optimum 0.5, blocks wildly apart
+    assert fit.line_tol(obj, xs, wide, int(np.argmin(wide.sum(1))), 1.0) == 1e-2
+    assert fit.line_tol(obj, xs, B, 0, 1.0) == 1e-4 and fit.line_tol(obj, xs, -B, k, 1.0) == 1e-4
