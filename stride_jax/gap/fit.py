@@ -421,17 +421,18 @@ def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg
 
 
 def with_interval(sm: SimModel, data: Data, scale: np.ndarray, f: Fit, cfg: FitConfig,
-                  obj: Objective | None = None) -> Fit:
+                  obj: Objective | None = None, mask: np.ndarray | None = None,
+                  cache: dict | None = None) -> Fit:
     """``f`` (a single continuous effect fitted on ``data`` with ``interval=False``) with its
     interval at level ``cfg.level``: the profile for a scalar, the sandwich for a vector; ``f``
     itself for anything else or where ``cfg.profile`` is 0. ``obj``: the fit's own objective
-    (its evaluations are then counted once)."""
+    (its evaluations are then counted once); else ``mask`` and ``cache`` as the fit had them."""
     if not cfg.profile or len(f.names) != 1 or effects.ALL[f.names[0]].integer:
         return f
     (name,) = f.names
     lo, hi = _bounds(sm, f.names)
     own = obj is not None  # the fit's objective has counted the fit's evaluations already
-    obj = obj if own else Objective(sm, data, scale, f.names, block=cfg.block)
+    obj = obj if own else Objective(sm, data, scale, f.names, block=cfg.block, mask=mask, cache=cache)
     x = np.asarray(f.params[name], float)
     if effects.ALL[name].size == 1:
         xl, xh, _ = scalar_interval(obj, float(x[0]), f.train_loss, lo[0], hi[0], cfg.level)

@@ -14,6 +14,9 @@ nominal value -- both, because under a model-form difference the intervals hold 
 the bias (the pair rule measured a surrogate moving damping by 7%), so intervals alone would flag
 right effects. ``tol`` (25%) is a stated convention, like the pair rule's 5% materiality. A
 differing estimate makes the call not confident (:func:`stride_jax.gap.attribute.verdict`).
+The intervals are profiled only where the two estimates are that far apart: closer, they cannot
+differ whatever their intervals (on the 12 x 8 s Go1 logs of ``results/gap_speed.md`` the two
+profiles were a third of the check's replays).
 
 Per joint, not per window: a trotting Go1's windows span only ~1.5x in RMS joint speed between
 their slowest and fastest thirds, and a split of whole windows left the planted drag's two
@@ -53,8 +56,10 @@ def check(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict[str, Any],
           tol: float, share: float = 1 / 3, min_windows: int = 40) -> dict[str, Any] | None:
     """The named single ``row`` (a ranking row: ``effects``, ``params``) refitted on the entries of
     ``train``'s residual where each joint moves slowest and fastest (:func:`by_joint_speed`):
-    ``{"effect", "cuts", "share", "windows", "slow", "slow_lo", "slow_hi", "fast", ..., "differs",
-    "entries"}`` (``cuts``: the median over the actuated joints of their lower and upper cuts;
+    ``{"effect", "cuts", "share", "windows", "slow", "slow_lo", "slow_hi", "fast", ..., "intervals",
+    "differs", "entries"}`` (``cuts``: the median over the actuated joints of their lower and upper cuts;
+    ``intervals``: whether the estimates were far enough apart for their intervals to decide, the
+    ``*_lo``/``*_hi`` None otherwise;
     ``windows``: replay windows; None for a pair, or with fewer than ``min_windows`` windows in a
     share)."""
     if len(row["effects"]) != 1:
@@ -65,22 +70,27 @@ def check(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict[str, Any],
     slow, fast, (lo, hi) = by_joint_speed(sm, train, share)
     start = {name: np.asarray(row["params"][name], float)}
     shared: dict = {}  # the two fits differ in their mask only: the second reuses the first's grid replays
-    fits = [fit.fit(sm, train, scale, (name,), dataclasses.replace(cfg, profile=max(cfg.profile, 1)), start,
-                    mask=m, cache=shared) for m in (slow, fast)]
+    cfg = dataclasses.replace(cfg, profile=max(cfg.profile, 1))
+    masks = (slow, fast)
+    fits = [fit.fit(sm, train, scale, (name,), cfg, start, interval=False, mask=m, cache=shared) for m in masks]
     nominal = np.asarray(effects.ALL[name].nominal, float)
     a, b = (np.asarray(f.params[name], float) for f in fits)
+    size = np.maximum(np.abs(a - nominal), np.abs(b - nominal))
+    far = np.abs(a - b) > tol * np.maximum(size, 1e-12)
+    act = sm.act_dof
+    out = {"effect": name, "cuts": [float(np.median(lo[act])), float(np.median(hi[act]))], "share": share,
+           "split": "per joint", "windows": int(len(train.start)), "slow": a.tolist(), "fast": b.tolist(),
+           "tol": tol, "intervals": bool(far.any()), "slow_lo": None, "slow_hi": None, "fast_lo": None,
+           "fast_hi": None, "differs": False, "entries": []}
+    if not far.any():  # closer than tol: they agree whatever their intervals
+        return out
+    fits = [fit.with_interval(sm, train, scale, f, cfg, mask=m, cache=shared) for f, m in zip(fits, masks)]
     alo, ahi = (np.asarray(v[name], float) for v in (fits[0].lo, fits[0].hi))
     blo, bhi = (np.asarray(v[name], float) for v in (fits[1].lo, fits[1].hi))
     apart = (alo > bhi) | (blo > ahi)
-    size = np.maximum(np.abs(a - nominal), np.abs(b - nominal))
-    far = np.abs(a - b) > tol * np.maximum(size, 1e-12)
     entries = [i for i in range(len(a)) if apart[i] and far[i]]
-    act = sm.act_dof
-    return {"effect": name, "cuts": [float(np.median(lo[act])), float(np.median(hi[act]))], "share": share,
-            "split": "per joint", "windows": int(len(train.start)),
-            "slow": a.tolist(), "slow_lo": alo.tolist(), "slow_hi": ahi.tolist(),
-            "fast": b.tolist(), "fast_lo": blo.tolist(), "fast_hi": bhi.tolist(), "tol": tol,
-            "differs": bool(entries), "entries": entries}
+    return out | {"slow_lo": alo.tolist(), "slow_hi": ahi.tolist(), "fast_lo": blo.tolist(), "fast_hi": bhi.tolist(),
+                  "differs": bool(entries), "entries": entries}
 
 
 def note(c: dict[str, Any]) -> str:

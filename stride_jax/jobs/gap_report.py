@@ -214,12 +214,14 @@ def markdown(d: dict[str, Any], files: dict[str, str], command: str | None = Non
         fc = wh.get("form_check")
         if fc:
             one = lambda v: _fmt(v[0] if len(v) == 1 else v)
+            iv = lambda h: f" [{one(fc[h + '_lo'])}, {one(fc[h + '_hi'])}]" if fc.get(h + "_lo") is not None else ""
             L += ["", f"Form check ({fc['effect']} refitted where each joint moves slowest and where it moves fastest, "
                   f"the {fc['share']:.0%} of its samples below and above median cuts of {fc['cuts'][0]:.2f} and "
-                  f"{fc['cuts'][1]:.2f} rad/s): {one(fc['slow'])} [{one(fc['slow_lo'])}, {one(fc['slow_hi'])}] "
-                  f"against {one(fc['fast'])} [{one(fc['fast_lo'])}, {one(fc['fast_hi'])}]: "
+                  f"{fc['cuts'][1]:.2f} rad/s): {one(fc['slow'])}{iv('slow')} against {one(fc['fast'])}{iv('fast')}: "
                   + ("they **differ** (beyond both intervals and by more than "
                      f"{fc['tol']:.0%}): an effect of this form does not fit both" if fc["differs"] else "they agree")
+                  + ("" if fc.get("slow_lo") is not None else
+                     f" (within {fc['tol']:.0%} of each other, so their intervals were not needed)")
                   + "."]
         ties = d["verdict"].get("indistinguishable_from") or []
         L += ["", "Indistinguishable from the best on these logs: " + (", ".join(ties) if ties else "none") + "."]
