@@ -145,3 +145,18 @@ def test_the_line_search_stops_at_a_tenth_of_the_standard_error():
     wide = a2[None] * (xs[:, None] - 0.5 - d[None]) ** 2  # optimum 0.5, blocks wildly apart
     assert fit.line_tol(obj, xs, wide, int(np.argmin(wide.sum(1))), 1.0) == 1e-2
     assert fit.line_tol(obj, xs, B, 0, 1.0) == 1e-4 and fit.line_tol(obj, xs, -B, k, 1.0) == 1e-4
+
+
+def test_a_fit_replays_no_parameter_vector_twice(pend, monkeypatch):
+    # the least squares' start and end and the interval's centre are asked for again: one replay each
+    data, scale = _data(pend, {"com_offset": [0.0, 0.0, 0.05]}, 3, 80, 4)
+    replayed = []
+    one = fit.residual
+    monkeypatch.setattr(fit, "residual", lambda sm, plan, *a: replayed.append(plan) or one(sm, plan, *a))
+    f = fit.fit(pend, data, scale, ("com_offset",), CFG.fit)
+    keys = [(p.mj.body_ipos.tobytes(), p.mj.body_mass.tobytes()) for p in replayed]
+    assert len(keys) == len(set(keys)) and len(keys) < f.evals, (len(keys), len(set(keys)), f.evals)
+    obj = fit.Objective(pend, data, scale, ("damping",))
+    r = obj.residual(np.array([0.2]))
+    n = len(replayed)
+    assert np.array_equal(obj.residual(np.array([0.2])), r) and len(replayed) == n and obj.evals == 2
