@@ -160,3 +160,14 @@ def test_a_fit_replays_no_parameter_vector_twice(pend, monkeypatch):
     r = obj.residual(np.array([0.2]))
     n = len(replayed)
     assert np.array_equal(obj.residual(np.array([0.2])), r) and len(replayed) == n and obj.evals == 2
+
+
+def test_an_objectives_own_cache_keeps_its_most_recent_residuals():
+    c = fit._Recent(3)
+    for i in range(5):
+        c[i] = i
+    c.update({5: 5})
+    assert list(c) == [3, 4, 5]
+    c[3] = 30  # written again: the most recent
+    c.update({6: 6})
+    assert list(c) == [5, 3, 6] and c[3] == 30

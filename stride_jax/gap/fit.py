@@ -14,8 +14,9 @@ Optimisers, per the lessons the issue lists:
   (no derivatives, so steps across contact events do no harm) to a tenth of the estimate's
   standard error (:func:`line_tol`);
 * vectors and pairs: a box-constrained trust-region least squares (``scipy.optimize.least_squares``,
-  stopped at a 0.01% step gain, :data:`FTOL`) in coordinates normalised to the bounds, with a 2%-of-range finite-difference step (large steps:
-  tiny ones straddle contact events and give meaningless Jacobians);
+  stopped at a 0.01% step gain, :data:`FTOL`) in coordinates normalised to the bounds, with a
+  2%-of-range finite-difference step (large steps: tiny ones straddle contact events and give
+  meaningless Jacobians);
 * intervals (level ``FitConfig.level``, 90%) are calibrated by the spread of the loss's gradient
   over blocks of ``FitConfig.block`` control steps (a sandwich: the residuals are neither white nor
   of known variance; :func:`_score_var` says how neighbouring blocks are handled): scalars by the profile of the training loss, ``{x : L(x) - L(x^) <= c}`` with
@@ -33,6 +34,7 @@ optimisers stay away from it; :attr:`Objective.unstable` counts such evaluations
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 from typing import NamedTuple
 
@@ -149,6 +151,25 @@ def block_ids(data: Data, length: int) -> tuple[np.ndarray, int, np.ndarray]:
     return ids.ravel(), len(uniq), nxt
 
 
+class _Recent(collections.OrderedDict):
+    """A dict that keeps its ``size`` most recently written entries (an objective's own cache: a
+    vector fit asks for a few hundred residuals, and only recent ones are asked for again)."""
+
+    def __init__(self, size: int):
+        super().__init__()
+        self.size = size
+
+    def __setitem__(self, key, value):
+        super().__setitem__(key, value)
+        self.move_to_end(key)
+        while len(self) > self.size:
+            self.popitem(last=False)
+
+    def update(self, other=(), **kw):
+        for key, value in dict(other, **kw).items():
+            self[key] = value
+
+
 class Objective:
     """Per-trajectory (and per-block) loss of parameters ``p`` of ``effects`` (concatenated), on
     top of ``base``. ``evals`` counts evaluations, ``unstable`` those where a replay diverged.
@@ -157,7 +178,7 @@ class Objective:
     keeps the unmasked residual of every parameter vector evaluated, so that no vector is replayed
     twice (the least squares' start and end, an interval's centre); objectives that share one and
     differ only in their mask replay each vector once (their grids coincide). Without one, each
-    objective keeps its own."""
+    objective keeps its 64 most recent."""
 
     def __init__(self, sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...],
                  base: dict | None = None, block: int = 10, mask: np.ndarray | None = None,
@@ -167,7 +188,7 @@ class Objective:
             raise ValueError(f"mask has shape {np.shape(mask)}, needs (replayed samples, nv) = "
                              f"({len(data.start)}, {sm.mj.nv})")
         self.mask = None if mask is None else np.asarray(mask, np.float64)
-        self.cache = {} if cache is None else cache
+        self.cache = _Recent(64) if cache is None else cache
         self.sizes = [effects.ALL[n].size for n in names]
         self.evals = 0
         self.unstable = 0
@@ -323,9 +344,9 @@ def line_tol(obj: Objective, xs: np.ndarray, B: np.ndarray, k: int, span: float)
     of the parameter's range ``span``.
 
     Searching an estimate closer than its own spread buys nothing (an error of a tenth of the
-    standard error adds at most 1% to the estimate's variance) and costs replays: where contact events make
-    the loss rough, the bounded Brent search falls back to golden-section steps, each shrinking the
-    bracket by only 38%. The standard error is the sandwich ``sqrt(V) / H`` of the parabola through
+    standard error adds at most 1% to the estimate's variance) and costs replays: where contact
+    events make the loss rough, the bounded Brent search falls back to golden-section steps, each
+    shrinking the bracket by only 38%. The standard error is the sandwich ``sqrt(V) / H`` of the parabola through
     the best node and its neighbours (``V``: variance of the per-block gradients, ``H``: curvature);
     a best node on the grid's edge, a flat or concave parabola keep the fine tolerance."""
     fine = 1e-4 * span
