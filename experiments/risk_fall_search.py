@@ -47,8 +47,7 @@ def rows(folder: pathlib.Path) -> list[dict]:
 def run_job(name: str, models: str, scen: str, flags: list[str], work: pathlib.Path,
             out: pathlib.Path, limit: int) -> list[dict]:
     folder = work / name
-    want = 2 if "," in models else 1
-    if len(rows(folder)) >= want:
+    if len(rows(folder)) >= len(models.split(",")):
         print(f"[search] {name}: done before", flush=True)
         return rows(folder)
     t0 = time.time()
@@ -75,27 +74,25 @@ def main(argv=None) -> int:
     ap.add_argument("--deadline", type=float, default=560, help="seconds this call may use")
     a = ap.parse_args(argv)
     work, out, t_end = pathlib.Path(a.work), pathlib.Path(a.out), time.time() + a.deadline
-    left = lambda: t_end - time.time()
-    fell_mean = []
+
+    def job(name: str, models: str, scen: str, flags: list[str], kind: str) -> list[dict] | None:
+        """The job's rows (run now, or done before); None where the time left does not cover it."""
+        done = len(rows(work / name)) >= len(models.split(","))
+        if not done and t_end - time.time() < ESTIMATE_S[kind]:
+            print(f"[search] stop: {t_end - time.time():.0f} s left, {name} needs ~{ESTIMATE_S[kind]} s", flush=True)
+            return None
+        return run_job(name, models, scen, flags, work, out, int(min(t_end - time.time(), 1.5 * ESTIMATE_S[kind])))
+
     for name, scen, flags in MEAN:
-        done = len(rows(work / f"mean_{name}")) >= 2
-        if not done and left() < ESTIMATE_S["mean"]:
-            print(f"[search] stop: {left():.0f} s left, {name} needs ~{ESTIMATE_S['mean']} s", flush=True)
+        got = job(f"mean_{name}", "policy,stride", scen, flags, "mean")
+        if got is None:
             return 0
-        got = run_job(f"mean_{name}", "policy,stride", scen, flags, work, out,
-                      int(min(left(), 1.5 * ESTIMATE_S["mean"])))
-        by = {r["model"]: r for r in got}
-        if "stride" in by and by["stride"]["fell"]:
-            fell_mean.append((name, scen, flags))
+        if not any(r["model"] == "stride" and r["fell"] for r in got):
+            continue
         # the risk-aware planner on each ground where the mean-only one fell, before going on
         for rname, rflags in RISK.items():
-            if (name, scen, flags) not in fell_mean:
-                break
-            job = f"risk_{rname}_{name}"
-            if len(rows(work / job)) < 1 and left() < ESTIMATE_S["risk"]:
-                print(f"[search] stop: {left():.0f} s left, {job} needs ~{ESTIMATE_S['risk']} s", flush=True)
+            if job(f"risk_{rname}_{name}", "stride", scen, flags + rflags, "risk") is None:
                 return 0
-            run_job(job, "stride", scen, flags + rflags, work, out, int(min(left(), 1.5 * ESTIMATE_S["risk"])))
     print("[search] all jobs done", flush=True)
     return 0
 

@@ -240,17 +240,17 @@ def value_report(params: dict | list[dict], data: PlannerData, cfg: PlannerValue
     correlation of the spread with the mean's absolute error: whether the spread marks where
     the value is wrong."""
     i_closed, i_cand, _ = _indices(np.asarray(data.up), cfg.record, data.cand.reward.shape[-1])
+    ensemble = isinstance(params, (list, tuple))
+    stacked = learned.stack(list(params)) if ensemble else None
     out = {}
     for name, d, idx in (("closed", data.closed, i_closed),
                          ("candidates", _per_candidate(data.cand), i_cand)):
-        ensemble = isinstance(params, (list, tuple))
         if ensemble:  # every member once: their mean predicts, their spread is reported
-            stacked = learned.stack(list(params))
             members = _flat(jax.vmap(jax.vmap(
                 lambda o: learned.apply_ensemble(stacked, o)))(d.obs))[idx]  # [n, E]
             pred = jnp.mean(members, axis=-1)
         else:
-            pred = _flat(jax.vmap(jax.vmap(lambda o: learned.apply(params, o)))(d.obs))[idx]
+            pred = _flat(jax.vmap(jax.vmap(learned.value_fn(params)))(d.obs))[idx]
         target = _flat(targets(params, d, cfg))[idx]
         out[f"r2_{name}"] = learned.r2(pred, target)
         out[f"bias_{name}"] = float(jnp.mean(pred - target))

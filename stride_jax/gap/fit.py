@@ -326,8 +326,7 @@ def fit_scalar(obj: Objective, cfg: FitConfig, integer: bool, lo: float, hi: flo
         return float(xs[k]), float(B[k].sum()), xl, xh
     nom = float(effects.ALL[obj.names[-1]].nominal[0])
     xs = np.unique(np.concatenate([np.linspace(lo, hi, cfg.grid), [nom]]))
-    R = obj.residual_many([[x] for x in xs])
-    B = np.stack([np.bincount(obj.ids, weights=(r ** 2).sum(1), minlength=obj.nb) for r in R])  # [P, nb]
+    B = obj.block_losses_many([[x] for x in xs])  # [P, nb]
     L = B.sum(1, keepdims=True)
     k = int(np.argmin(L.sum(1)))
     a, b = xs[max(k - 1, 0)], xs[min(k + 1, len(xs) - 1)]

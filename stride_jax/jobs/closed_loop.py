@@ -130,6 +130,12 @@ class ClosedLoopConfig:
     out: str = "results/closed_loop"
     seed: int = 0
 
+    def __post_init__(self):
+        for field in ("seconds", "slope_deg", "rough_cm", "push_scale", "friction"):
+            if getattr(self, field) < 0:
+                raise ValueError(f"--{field.replace('_', '-')} is {getattr(self, field)}: it must be >= 0 "
+                                 "(0 keeps the scenario's own)")
+
     # The flat flags of earlier commands (recorded in results/) still answer.
     FLAG_ALIASES: ClassVar[dict[str, str]] = {
         **{f"mppi.{name}": "--" + name.replace("_", "-")
@@ -273,10 +279,6 @@ def scenario(cfg: ClosedLoopConfig, name: str) -> Scenario:
     height, factor or value, ``tilt15``, ``rough2``, ``push3x``, ``low_friction0.15``, so that
     rows of different scenarios never share a name)."""
     sc = SCENARIOS[name]
-    for field in ("seconds", "slope_deg", "rough_cm", "push_scale", "friction"):
-        if getattr(cfg, field) < 0:
-            raise ValueError(f"--{field.replace('_', '-')} is {getattr(cfg, field)}: it must be >= 0 "
-                             "(0 keeps the scenario's own)")
     if cfg.seconds:
         sc = dataclasses.replace(sc, seconds=cfg.seconds)
     if cfg.slope_deg and sc.slope_deg:
