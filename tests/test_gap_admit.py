@@ -91,10 +91,9 @@ def test_the_pair_screen_always_proposes_the_best_partner():
     sm = nominal.load("pendulum")
     _, logged = real.generate(sm, {"damping": 0.3, "delay": 1}, 4, 100, seed=2)
     train = fit.make_data(logged[:3], TINY.steps)
-    test = fit.make_data(logged[3:], TINY.steps)
     scale = diagnose.scale_of(sm, fit.make_data(logged[:3]))
-    C = screen.columns(sm, ["damping", "delay", "frictionloss", "armature"], train, test, scale, TINY.screen,
-                       screen.rows_every(train, 1), screen.rows_every(test, 1), show=False)
+    C = screen.columns(sm, ["damping", "delay", "frictionloss", "armature"], train, scale, TINY.screen,
+                       screen.rows_every(train, 1), show=False)
     strict = screen.pairs(sm, C, "damping", {"damping": [0.3]}, n=2, min_gain=10.0)
     loose = screen.pairs(sm, C, "damping", {"damping": [0.3]}, n=2, min_gain=0.0)
     assert len(strict) == 1 and strict[0][0] == loose[0][0] and strict[0][0][0] == "damping"

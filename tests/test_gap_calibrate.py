@@ -202,3 +202,23 @@ def test_discrete_and_continuous_settings_in_turns_revisit_a_discrete_pick():
     # nothing continuous to fit: one sweep, no record
     best, _, cont = calibrate.in_turns(start, values, own, loss, fit_cont, [], calibrate.CalibrateConfig(), [])
     assert best.timestep == 0.002 and cont == {}
+
+
+def test_a_finer_time_step_must_pay_for_the_replays_it_multiplies():
+    # from 2 ms: 1 ms doubles every later replay, so it must lower the loss by 2 x min_gain (2%);
+    # from 4 ms, 2 ms likewise; a coarser step needs min_gain alone
+    values = {"timestep": [0.001, 0.002, 0.004, 0.005], "integrator": [], "cone": [], "contacts": [],
+              "foot_condim": [], "iterations": []}
+
+    def pick(losses, start=0.002, **kw):
+        cfg = calibrate.CalibrateConfig(**kw)
+        best, _ = calibrate._sweep(Settings(timestep=start), values, {"timestep": start},
+                                   lambda s: losses[s.timestep], cfg, [], 0)
+        return best.timestep
+
+    losses = {0.001: 0.986, 0.002: 1.0, 0.004: 1.2, 0.005: 1.3}  # 1 ms wins 1.4%: not enough
+    assert pick(losses) == 0.002 and pick(losses, step_cost=False) == 0.001
+    assert pick(losses | {0.001: 0.975}) == 0.001  # 2.5%: it pays
+    assert pick(losses | {0.004: 0.985}) == 0.004  # coarser: 1.5% > min_gain
+    coarse = {0.001: 1.1, 0.002: 0.985, 0.004: 1.0, 0.005: 1.1}
+    assert pick(coarse, start=0.004) == 0.004 and pick(coarse | {0.002: 0.975}, start=0.004) == 0.002

@@ -202,3 +202,51 @@ def test_window_caps_thin_long_logs_and_keep_the_verdict():
     assert top["interval"] and top["param_lo"]["damping"][0] < top["params"]["damping"][0] < top["param_hi"]["damping"][0]
     singles = sorted((r for r in ranking if len(r["effects"]) == 1), key=lambda r: -r["explained"])
     assert len(singles) > 2 and not any(r["interval"] for r in singles[2:] if r is not top)
+
+
+def test_a_side_or_end_of_a_quadruped_adds_up_its_limbs_columns(go1, g1, monkeypatch):
+    names = screen.candidate_names(go1, screen.ScreenConfig())
+    u = finer.unions(go1, names)
+    assert u["damping@left"] == ("damping@FL", "damping@RL") and u["kp_scale@front"] == ("kp_scale@FR", "kp_scale@FL")
+    assert {n.partition("@")[2] for n in u} == {"left", "right", "front", "rear"} and len(u) == 24
+    assert set(finer.unions(g1, screen.candidate_names(g1, screen.ScreenConfig()))) == {
+        f"{b}@{s}" for b in ("damping", "frictionloss", "armature", "kp_scale", "torque_limit", "servo_damping")
+        for s in ("left", "right")}  # a humanoid's sides: its leg and its arm
+    _, tr = real.generate(go1, {}, 2, 40, seed=3)
+    data = fit.make_data(tr, 2)
+    scale = diagnose.scale_of(go1, data)
+    rows = np.arange(len(data.start))
+    cfg = screen.ScreenConfig()
+    plans = []
+    many = replay.residuals
+    monkeypatch.setattr(replay, "residuals", lambda sm, p, *a, **k: plans.append(len(p)) or many(sm, p, *a, **k))
+    group = ["damping@FR", "damping@FL", "damping@RR", "damping@RL", "damping@left", "torque_limit@FL",
+             "torque_limit@RL", "torque_limit@left"]
+    C = screen.columns(go1, group, data, scale, cfg, rows, show=False)
+    assert plans == [7]  # the nominal and six limbs, no replay of the sides
+    for side in ("damping@left", "torque_limit@left"):
+        D = screen.columns(go1, [side], data, scale, cfg, rows, show=False)  # replayed itself
+        a, b = C.J_tr[C.cols(side)[0]].ravel(), D.J_tr[0].ravel()
+        assert a @ b / (np.linalg.norm(a) * np.linalg.norm(b)) > 0.95, side  # the same to first order
+        assert np.linalg.norm(a - b) < 0.3 * np.linalg.norm(b), side
+
+
+def test_the_screen_scores_candidates_by_cross_validation_over_training_trajectories():
+    # an effect with several parameters fits the training windows' noise; out of sample it gains
+    # nothing: the cross-validated score ranks the planted damping first, the 3-vector below zero
+    sm = model.load("pendulum")
+    _, logged = real.generate(sm, {"damping": 0.3}, 4, 80, seed=6, noise=real.SensorNoise())
+    train = fit.make_data(logged, 2)
+    scale = diagnose.scale_of(sm, fit.make_data(logged))
+    rows = screen.rows_every(train, 1)
+    names = [e.name for e in effects.candidates(sm)]
+    C = screen.columns(sm, names, train, scale, screen.ScreenConfig(), rows, show=False)
+    assert sorted(set(C.fold)) == [0, 1, 2, 3] and len(C.fold) == len(rows)  # one fold per trajectory
+    two = fit.make_data(logged[:2], 2)
+    assert len(set(screen.folds(two, np.arange(len(two.start))))) == 8  # two trajectories: their quarters
+    fits = {n: screen.linear_fit(C, sm, (n,)) for n in names}
+    for n, (_, left_train, left_cv) in fits.items():
+        assert left_train <= left_cv + 1e-9, n  # in sample never looks worse than out of sample here
+    assert min(fits, key=lambda n: fits[n][2]) == "damping"
+    assert fits["damping"][0]["damping"][0] == pytest.approx(0.3, abs=0.06)
+    assert fits["com_offset"][2] > 1.0 > fits["com_offset"][1]  # worse than nothing out of sample

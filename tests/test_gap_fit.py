@@ -2,6 +2,7 @@
 parameter values are scored as bad fits without MuJoCo's warnings; verdicts name their rule."""
 
 import numpy as np
+from scipy import optimize
 import pytest
 
 from stride_jax.gap import attribute, diagnose, effects, filters, fit, real, sim
@@ -125,12 +126,12 @@ def test_verdict_reasons_name_the_rule_and_list_ties():
     assert "needs < 0.005 = 0.05 / 10 hypotheses" in v["reason"]
 
 
-def test_the_line_search_stops_at_a_tenth_of_the_standard_error():
+def test_the_line_search_stops_at_a_quarter_of_the_standard_error():
     # per-block losses a_b (x - c_b)^2: the loss's curvature and its per-block gradients are
     # known, so the sandwich standard error at the best grid node is too
     rng = np.random.default_rng(0)
     nb = 60
-    a, c = rng.uniform(0.5, 2.0, nb), rng.normal(0.5, 0.3, nb)
+    a, c = rng.uniform(0.5, 2.0, nb), rng.normal(0.5, 0.12, nb)
     xs = np.linspace(0.0, 1.0, 11)
     B = a[None] * (xs[:, None] - c[None]) ** 2  # [P, nb]
     k = int(np.argmin(B.sum(1)))
@@ -138,13 +139,45 @@ def test_the_line_search_stops_at_a_tenth_of_the_standard_error():
     g = 2 * a * (xs[k] - c)
     se = np.sqrt(((g - g.mean()) ** 2).sum() * nb / (nb - 1)) / (2 * a.sum())
     tol = fit.line_tol(obj, xs, B, k, 1.0)
-    assert 1e-4 < tol < 1e-2 and tol == pytest.approx(0.1 * se, rel=1e-9)
+    assert fit.LINE_SE == 0.25 and 1e-4 < tol < 1e-2 and tol == pytest.approx(0.25 * se, rel=1e-9)
     # a tiny spread: the floor; a huge one: the ceiling; the grid's edge or a concave loss: the floor
     assert fit.line_tol(obj, xs, a[None] * (xs[:, None] - 0.5) ** 2 + 1e-9 * B, k, 1.0) == 1e-4
     a2, d = np.tile(a[:nb // 2], 2), np.concatenate([c[:nb // 2] - 0.5, 0.5 - c[:nb // 2]]) * 100
     wide = a2[None] * (xs[:, None] - 0.5 - d[None]) ** 2  # optimum 0.5, blocks wildly apart
     assert fit.line_tol(obj, xs, wide, int(np.argmin(wide.sum(1))), 1.0) == 1e-2
     assert fit.line_tol(obj, xs, B, 0, 1.0) == 1e-4 and fit.line_tol(obj, xs, -B, k, 1.0) == 1e-4
+
+
+def test_the_parabolic_line_search_finds_the_minimum_within_its_tolerance_in_few_evaluations():
+    xs = np.linspace(0.0, 1.0, 9)
+
+    def search(f, tol=1e-4):
+        L = np.array([f(x) for x in xs])
+        k = int(np.argmin(L))
+        calls = []
+        x, fx, n = fit.line_search(lambda v: calls.append(v) or f(v), dict(zip(xs, L)),
+                                   xs[max(k - 1, 0)], xs[min(k + 1, 8)], tol)
+        assert n == len(calls) and fx == pytest.approx(f(x)) and fx <= L.min()
+        return x, n
+
+    x, n = search(lambda v: 3 * (v - 0.3141) ** 2 + 1)  # a quadratic: its vertex at once, then a confirmation
+    assert x == pytest.approx(0.3141, abs=1e-12) and n == 2
+    rng = np.random.default_rng(1)
+    worst = []
+    for _ in range(40):  # convex, skewed, not quadratic: within a few tolerances of the minimum c
+        c, w = rng.uniform(0.05, 0.95), rng.uniform(1, 12)
+        x, n = search(lambda v: np.exp(w * (v - c)) - w * (v - c))
+        assert abs(x - c) < 3e-4 and n <= 10, (c, w, x, n)
+        worst.append(n)
+    ref = [optimize.minimize_scalar(lambda v: np.exp(w * (v - c)) - w * (v - c), bounds=(c - 0.125, c + 0.125),
+                                    method="bounded", options={"xatol": 1e-4}).nfev for c, w in ((0.4, 3), (0.6, 9))]
+    assert np.mean(worst) < min(ref), (np.mean(worst), ref)  # fewer than Brent's bounded search
+    x, n = search(lambda v: (v + 0.2) ** 2)  # the minimum beyond the lower bound: the bound, one replay
+    assert x == 0.0 and n == 1
+    x, n = search(lambda v: (v - 0.99) ** 2 + 0.5 * abs(v - 0.99))  # kinked near the upper bound
+    assert abs(x - 0.99) < 1e-3, x
+    x, n = search(lambda v: -np.cos(40 * v) - v)  # rough: still the best evaluated point, at most 25 steps
+    assert n <= 25
 
 
 def test_a_fit_replays_no_parameter_vector_twice(pend, monkeypatch):

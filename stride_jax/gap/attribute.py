@@ -58,8 +58,16 @@ def _lower(x: np.ndarray, level: float) -> float:
     return float(np.quantile(x, min(max(level, 0.0), 1.0)))
 
 
+def _with_interval(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict, cfg: DiagnoseConfig) -> None:
+    """Gives a ranking row fitted without its interval (:func:`stride_jax.gap.fit.with_interval`) one."""
+    if not row["interval"]:
+        f = fit.with_interval(sm, train, scale, row["_fit"], cfg.fit)
+        row.update(param_lo=_jsonable(f.lo), param_hi=_jsonable(f.hi), interval=True, _fit=f)
+
+
 def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: DiagnoseConfig,
-          log=print, singles: list[str] | None = None, pair_screen=None, nuisance=None) -> dict[str, Any]:
+          log=print, singles: list[str] | None = None, pair_screen=None, nuisance=None,
+          hints: dict | None = None) -> dict[str, Any]:
     """Fits every candidate on ``train``, then pairs of the best (unless the best single is exact),
     and scores all on ``test``.
 
@@ -73,7 +81,8 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     (``nuisance``: a :class:`stride_jax.gap.nuisance.Null`, or None; :mod:`stride_jax.gap.admit`).
 
     ``singles``: the effects to fit alone (default: every library candidate; the screen's
-    shortlist, :mod:`stride_jax.gap.screen`). ``pair_screen(best_single_name, fits_by_name) ->
+    shortlist, :mod:`stride_jax.gap.screen`); ``hints``: their screen's linear estimates (name ->
+    parameters), which a scalar's grid holds as well. ``pair_screen(best_single_name, fits_by_name) ->
     [((a, b), start)]``: the pairs to fit (default: the best ``pairs_of`` singles with each other
     and a conditional grid screen on top of the best). A finer variant ranks above its all-joints
     effect only by the margin rule of :func:`stride_jax.gap.granularity.prefer_coarse`.
@@ -99,7 +108,8 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     names = [e.name for e in effects.candidates(sm)] if singles is None else list(singles)
     for name in progress.track(names, "fits: each shortlisted effect alone", cfg.progress):
         t0 = time.time()
-        f = fit.fit(sm, train, scale, (name,), cfg.fit, interval=False)  # intervals: below, where reported
+        start = {name: hints[name]} if hints and name in hints else None
+        f = fit.fit(sm, train, scale, (name,), cfg.fit, start, interval=False)  # intervals: below, where reported
         score(f)
         log(f"  fit {name:17s} {_fmt(f.params)}  train loss {f.train_loss:.4g}  ({f.evals} evals, "
             f"{time.time() - t0:.1f} s)")
@@ -110,11 +120,9 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         score(fit.fit(sm, train, scale, (coarse,), cfg.fit, interval=False))
         log(f"  fit {coarse:17s} {_fmt(fits[-1].params)}  (the all-joints rival of {lead})")
     n_single = len(fits)
-    # intervals for the singles a verdict can name or weigh a pair against: the best two held out
-    # (the others' rows report none: ``interval`` False)
-    top = {f.names for f in sorted(fits, key=lambda f: held(f.names))[:2]}
-    fits[:] = [fit.with_interval(sm, train, scale, f, cfg.fit) if f.names in top else f for f in fits]
-    with_iv = set(top)
+    # intervals only where reported: the best single (a pair's estimates are weighed against it)
+    # and the named hypothesis, below; other singles' rows report none (``interval`` False)
+    with_iv = set()
     singles = {f.names[0]: f for f in fits}
     ranked = sorted(fits, key=lambda f: held(f.names))
     best_single = ranked[0]
@@ -172,11 +180,10 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
                      "score": float(expl - cfg.penalty * k), "_boot": boot})
     rows.sort(key=lambda r: -r["score"])
     granularity.prefer_coarse(rows, cfg.screen.finer_margin, cfg.alpha, lambda n: noise_floor(r_te[n], test) * M / L_nom)
+    _with_interval(sm, train, scale, next(r for r in rows if len(r["effects"]) == 1), cfg)
     _, S, pair_tests, nuisance_tests = admit.choose(rows, r_te, test, M, L_nom, blocks, Wb, boot_nom, cfg,
                                                     nuisance)
-    if not rows[0]["interval"]:  # the named hypothesis always has its interval
-        f = fit.with_interval(sm, train, scale, rows[0]["_fit"], cfg.fit)
-        rows[0].update(param_lo=_jsonable(f.lo), param_hi=_jsonable(f.hi), interval=True)
+    _with_interval(sm, train, scale, rows[0], cfg)  # the named hypothesis always has its interval
     # bootstrap probability that the chosen hypothesis beats the runner-up (for a chosen single:
     # by penalised score, against the best hypothesis that is not a superset of it; for a chosen
     # pair: unpenalised, against the best single)

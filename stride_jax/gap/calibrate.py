@@ -18,7 +18,8 @@ fits, and a replay of the shipped Go1 costs ~6x the MJX-training form's):
    (:func:`stride_jax.gap.nominal.training_settings`), whichever has the lower loss;
 2. discrete settings (time step, integrator, cone, collision set, foot contact dimension) by
    coordinate descent: every value of one setting with the others fixed, kept if it lowers the
-   loss by more than ``min_gain`` (relative), ``sweeps`` passes;
+   loss by more than ``min_gain`` (relative; a finer time step by ``min_gain`` times the factor by
+   which it multiplies the replays' cost, ``step_cost``), ``sweeps`` passes;
 3. continuous settings (solref time constant and damping ratio, solimp softness and width,
    margin, impratio) jointly by box-constrained least squares in coordinates normalised to their
    (log) ranges, with 2%-of-range finite-difference steps replayed in one batch, at most
@@ -86,6 +87,11 @@ class CalibrateConfig:
         has more; 0: no cap).
       min_gain: relative loss decrease a setting must bring to be changed (discrete) or kept
         (continuous).
+      step_cost: a finer time step must bring ``min_gain`` times the factor by which it multiplies
+        the cost of every later replay (2 ms -> 1 ms: 2%): on the shipped Go1 a 1 ms step won
+        1.4% of the training loss and doubled the calibration's and the effect screen's replays
+        (~60 s of a 5-minute diagnosis; ``experiments/probes/calibration_time.py``). Off: every
+        time step needs ``min_gain`` alone.
       block: control steps per block of the held-out sign-flip test.
       seed: of the sign flips.
       screen_steps: Gauss-Newton steps per effect in the screen of :func:`refine` (the first
@@ -108,6 +114,7 @@ class CalibrateConfig:
     subsample: int = 2
     windows: int = 400
     min_gain: float = 0.01
+    step_cost: bool = True
     block: int = 10
     seed: int = 0
     screen_steps: int = 3
@@ -299,6 +306,9 @@ def _sweep(best: Settings, values: dict, own: dict, loss, cfg: CalibrateConfig, 
         for name in _names(cfg.discrete) + ["iterations"]:
             cur = loss(best)
             trial = [dataclasses.replace(best, **{name: v}) for v in values[name]]
+            if name == "timestep" and cfg.step_cost:  # a finer step pays for the replays it multiplies
+                trial = [s for s in trial if s.timestep >= best.timestep
+                         or loss(s) < (1 - cfg.min_gain * best.timestep / s.timestep) * cur]
             if not trial:
                 continue
             cand = _pick(trial, name, loss, cfg.min_gain, own.get(name))

@@ -186,11 +186,12 @@ def _screen_and_which(sm, sm_nominal, cal, train_k, test_k, scale, cfg, log, sta
     """The screen (unless ``cfg.screen.shortlist`` is 0) and :func:`which` on the baseline ``sm``:
     ``(screen record, sensitivity columns, which)``; adds their seconds to ``stages``."""
     t0 = time.time()
-    scr, C, singles, pair_screen = None, None, None, None
+    scr, C, singles, pair_screen, hints = None, None, None, None, None
     if cfg.screen.shortlist:
         scr = screen.run(sm, train_k, test_k, scale, cfg.screen, cfg.penalty, cfg.progress, log)
         C = scr.pop("_columns")
         singles = scr["shortlist"]
+        hints = {r["effect"]: r["params"][r["effect"]] for r in scr["table"]}
         pair_screen = lambda best, fitted: screen.pairs(sm, C, best, fitted, cfg.screen.pairs, cfg.pair_min)
     elif cfg.screen.finer:
         singles = screen.candidate_names(sm, cfg.screen)
@@ -200,7 +201,7 @@ def _screen_and_which(sm, sm_nominal, cal, train_k, test_k, scale, cfg, log, sta
     null = nuisance.make(sm_nominal, cal.settings, train_k, test_k, scale, cfg.calibrate) if cal else None
     stride = screen.fit_stride_of(cfg.screen, len(train_k.start))
     fit_data = fit.thin(train_k, stride)
-    w = which(sm, fit_data, test_k, scale, cfg, log, singles, pair_screen, null)
+    w = which(sm, fit_data, test_k, scale, cfg, log, singles, pair_screen, null, hints)
     w["fit_windows"], w["fit_stride"] = int(len(fit_data.start)), int(stride)  # what the fits replayed
     stages["which"] = stages.get("which", 0.0) + time.time() - t0
     return scr, C, w

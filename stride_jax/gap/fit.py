@@ -10,9 +10,10 @@ joints weigh alike. Losses are kept per trajectory so that intervals can resampl
 Optimisers, per the lessons the issue lists:
 
 * integer parameters (delay) are searched on their whole grid, never locally;
-* scalar parameters: a coarse grid over the bounds, then a bounded Brent search in the best cell
-  (no derivatives, so steps across contact events do no harm) to a tenth of the estimate's
-  standard error (:func:`line_tol`);
+* scalar parameters: a coarse grid over the bounds, then successive parabolic interpolation in
+  the best cell (:func:`line_search`: no derivatives, so steps across contact events do no harm)
+  until a step would move the estimate by less than a quarter of its standard error
+  (:func:`line_tol`);
 * vectors and pairs: a box-constrained trust-region least squares (``scipy.optimize.least_squares``,
   stopped at a 0.01% step gain, :data:`FTOL`) in coordinates normalised to the bounds, with a
   2%-of-range finite-difference step (large steps: tiny ones straddle contact events and give
@@ -274,7 +275,10 @@ class FitConfig:
     """Optimiser settings.
 
     Attributes:
-      grid: coarse grid points per scalar parameter.
+      grid: coarse grid points per scalar parameter, beside its nominal value and the fit's hint
+        (the screen's linear estimate): they find the best cell, the line search the minimum in
+        it. 5, as the benchmarks' preset ``fast`` (9 until session 29: each point is a replay of
+        every fitted window).
       profile: 0 skips the intervals (the estimate stands for its interval); any other value
         computes them (its size no longer matters: the profile is searched, not gridded).
       bootstrap: unused (intervals were bootstrap percentiles, which could miss the estimate;
@@ -289,7 +293,7 @@ class FitConfig:
         as dependent, blocks further apart as independent).
     """
 
-    grid: int = 9
+    grid: int = 5
     profile: int = 13
     bootstrap: int = 200
     refits: int = 4
@@ -313,11 +317,13 @@ def _split(names, vec) -> dict:
     return out
 
 
-def fit_scalar(obj: Objective, cfg: FitConfig, integer: bool, lo: float, hi: float
+def fit_scalar(obj: Objective, cfg: FitConfig, integer: bool, lo: float, hi: float, hint: float | None = None
                ) -> tuple[float, float, float, float]:
     """Minimises a one-parameter objective; returns ``(x, loss, x_lo, x_hi)``: for an integer
     parameter the set at level ``cfg.level`` (``x`` itself when ``cfg.profile == 0``), for a
-    continuous one ``x`` itself (its profile interval: :func:`with_interval`)."""
+    continuous one ``x`` itself (its profile interval: :func:`with_interval`). ``hint``: a value
+    the grid holds as well (the screen's linear estimate, a fit of the same effect on other
+    data): near the minimum, it leaves the line search a narrow cell."""
     if integer:
         xs = np.arange(int(lo), int(hi) + 1, dtype=float)
         B = obj.block_losses_many([[x] for x in xs])
@@ -325,29 +331,99 @@ def fit_scalar(obj: Objective, cfg: FitConfig, integer: bool, lo: float, hi: flo
         xl, xh = integer_set(B, xs, k, obj.nxt, cfg.level) if cfg.profile else (xs[k], xs[k])
         return float(xs[k]), float(B[k].sum()), xl, xh
     nom = float(effects.ALL[obj.names[-1]].nominal[0])
-    xs = np.unique(np.concatenate([np.linspace(lo, hi, cfg.grid), [nom]]))
+    extra = [nom] + ([] if hint is None else [float(np.clip(hint, lo, hi))])
+    xs = np.unique(np.concatenate([np.linspace(lo, hi, cfg.grid), extra]))
     B = obj.block_losses_many([[x] for x in xs])  # [P, nb]
-    L = B.sum(1, keepdims=True)
-    k = int(np.argmin(L.sum(1)))
-    a, b = xs[max(k - 1, 0)], xs[min(k + 1, len(xs) - 1)]
-    res = optimize.minimize_scalar(lambda x: obj.losses(np.array([x])).sum(), bounds=(a, b),
-                                   method="bounded", options={"xatol": line_tol(obj, xs, B, k, hi - lo),
-                                                              "maxiter": 25})
-    x, f = (float(res.x), float(res.fun)) if res.fun <= L[k].sum() else (float(xs[k]), float(L[k].sum()))
+    L = B.sum(1)
+    k = int(np.argmin(L))
+    x, f, _ = line_search(lambda v: float(obj.losses(np.array([v])).sum()), dict(zip(xs.tolist(), L.tolist())),
+                          float(xs[max(k - 1, 0)]), float(xs[min(k + 1, len(xs) - 1)]),
+                          line_tol(obj, xs, B, k, hi - lo))
     return x, f, x, x
 
 
-def line_tol(obj: Objective, xs: np.ndarray, B: np.ndarray, k: int, span: float) -> float:
-    """The line search's tolerance on a scalar parameter: a tenth of its standard error, as the
-    grid ``xs`` (per-block losses ``B [P, nb]``, best node ``k``) sees it, within ``[1e-4, 1e-2]``
-    of the parameter's range ``span``.
+_GOLDEN = 0.3819660112501051
 
-    Searching an estimate closer than its own spread buys nothing (an error of a tenth of the
-    standard error adds at most 1% to the estimate's variance) and costs replays: where contact
-    events make the loss rough, the bounded Brent search falls back to golden-section steps, each
-    shrinking the bracket by only 38%. The standard error is the sandwich ``sqrt(V) / H`` of the parabola through
-    the best node and its neighbours (``V``: variance of the per-block gradients, ``H``: curvature);
-    a best node on the grid's edge, a flat or concave parabola keep the fine tolerance."""
+
+def line_search(f, known: dict[float, float], a: float, b: float, tol: float, maxiter: int = 25
+                ) -> tuple[float, float, int]:
+    """The minimum of ``f`` on ``[a, b]`` by safeguarded successive parabolic interpolation from
+    the values ``known`` (``{x: f(x)}``, the grid's: its best inside ``[a, b]`` and that node's
+    neighbours). Returns ``(x, f(x), evaluations)``: the best point evaluated.
+
+    Each step evaluates the vertex of the parabola through the best point and its nearest
+    evaluated neighbours on either side (a golden-section step into the larger side where that
+    parabola is not convex or its vertex falls outside them; not the three best points, as
+    Brent's method takes: on the rough loss of a legged robot's contacts, close points give
+    parabolas of the roughness, not of the loss); the search stops when the next
+    step would move the estimate by less than ``tol`` and a point within 1.5 ``tol`` of the
+    estimate confirms the slope there (without one, the parabola may rest on far points: one is
+    evaluated ``tol`` away first). For a loss nearly quadratic in the parameter (most effects over
+    a grid cell) that is after two to four replays. Brent's bounded
+    search (SciPy's ``fminbound``), which this replaced, stops only once its bracket has shrunk
+    to ``tol``, and spent 7-11 replays per Go1 fit doing so. A best point on the edge of
+    ``[a, b]`` (a bound of the parameter, where the grid's best node is its first or last) is
+    tested with one replay ``tol`` inward: where the loss does not fall there, the minimum is on
+    the bound."""
+    pts = {float(x): float(v) for x, v in known.items()}
+    n = 0
+    while n < maxiter:
+        inside = sorted(x for x in pts if a <= x <= b)
+        x = min(inside, key=pts.__getitem__)
+        i = inside.index(x)
+        left = inside[i - 1] if i > 0 else None
+        right = inside[i + 1] if i + 1 < len(inside) else None
+        if left is None or right is None:  # the best sits on a bound of the parameter (the grid's edge)
+            inward = right if left is None else left
+            if inward is None or abs(inward - x) <= tol:
+                break
+            v = x + tol if inward > x else x - tol  # does the loss fall inward from the bound at all?
+            if v in pts:
+                break  # it does not: the minimum is on the bound, to within tol
+        else:
+            v = _vertex(x, left, right, pts)
+            if v is None or not left < v < right:
+                v = x + _GOLDEN * (right - x) if right - x >= x - left else x - _GOLDEN * (x - left)
+            if abs(v - x) < tol:
+                if min(x - left, right - x) <= 1.5 * tol:
+                    break  # a neighbour within the tolerance: the slope at x is known, the step is small
+                v = x + (tol if v >= x else -tol)  # else confirm with a point one tolerance away
+        pts[float(v)] = float(f(v))
+        n += 1
+    x = min((y for y in pts if a <= y <= b), key=pts.__getitem__)
+    return x, pts[x], n
+
+
+def _vertex(x: float, y: float, z: float, pts: dict) -> float | None:
+    """The vertex of the parabola through ``(x, y, z)`` and their values ``pts``; None where it is
+    not convex."""
+    fx, fy, fz = pts[x], pts[y], pts[z]
+    num = (x - y) ** 2 * (fx - fz) - (x - z) ** 2 * (fx - fy)
+    den = (x - y) * (fx - fz) - (x - z) * (fx - fy)
+    curv = ((fx - fy) / (x - y) - (fx - fz) / (x - z)) / (y - z)
+    if not curv > 0 or den == 0:
+        return None
+    return x - 0.5 * num / den
+
+
+LINE_SE = 0.25
+"""The scalar line search's tolerance in standard errors of the estimate (:func:`line_tol`)."""
+
+
+def line_tol(obj: Objective, xs: np.ndarray, B: np.ndarray, k: int, span: float) -> float:
+    """The line search's tolerance on a scalar parameter: :data:`LINE_SE` (a quarter) of its
+    standard error, as the grid ``xs`` (per-block losses ``B [P, nb]``, best node ``k``) sees it,
+    within ``[1e-4, 1e-2]`` of the parameter's range ``span``.
+
+    Searching an estimate closer than its own spread buys nothing (an optimiser's error of a
+    quarter of the standard error, independent of the data's, adds at most 3% to the estimate's
+    spread; a tenth, session 28's choice, 0.5%) and costs replays: on the rough loss of a legged
+    robot's contacts each step of the line search near the minimum is a replay of every fitted
+    window (the Go1's 12 x 8 s logs: a tenth took 6-7 steps per fit, a quarter 3-5,
+    results/gap_speed.md). The standard error is the sandwich ``sqrt(V) / H`` of the parabola
+    through the best node and its neighbours (``V``: variance of the per-block gradients, ``H``:
+    curvature); a best node on the grid's edge, a flat or concave parabola keep the fine
+    tolerance."""
     fine = 1e-4 * span
     if k == 0 or k == len(xs) - 1:
         return fine
@@ -357,7 +433,7 @@ def line_tol(obj: Objective, xs: np.ndarray, B: np.ndarray, k: int, span: float)
     if not H > 0:
         return fine
     V = float(_score_var((d1 @ B[k - 1:k + 2])[:, None], obj.nxt)[0, 0])
-    return float(np.clip(0.1 * np.sqrt(max(V, 0.0)) / H, fine, 1e-2 * span))
+    return float(np.clip(LINE_SE * np.sqrt(max(V, 0.0)) / H, fine, 1e-2 * span))
 
 
 FTOL = 1e-4
@@ -388,7 +464,8 @@ def _nominal(names) -> np.ndarray:
 def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg: FitConfig,
         start: dict | None = None, interval: bool = True, mask: np.ndarray | None = None,
         cache: dict | None = None) -> Fit:
-    """Fits the effects ``names`` jointly on ``data`` (start from ``start`` where given).
+    """Fits the effects ``names`` jointly on ``data`` (start from ``start`` where given; a
+    continuous scalar's grid holds its start as well, :func:`fit_scalar`).
 
     ``interval=False`` leaves a single continuous effect's interval for later
     (:func:`with_interval`; the estimate stands for it meanwhile): the profile costs about a
@@ -407,7 +484,9 @@ def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg
         e = effects.ALL[name]
         obj = Objective(sm, data, scale, names, block=cfg.block, mask=mask, cache=cache)
         if e.size == 1:
-            x, f, xl, xh = fit_scalar(obj, cfg, e.integer, lo[0], hi[0])
+            hint = start.get(name)
+            hint = None if hint is None else float(np.ravel(hint)[0])
+            x, f, xl, xh = fit_scalar(obj, cfg, e.integer, lo[0], hi[0], hint)
             est = Fit(names, {name: np.array([x])}, f, {name: np.array([xl])}, {name: np.array([xh])},
                       obj.evals, _flags(bound_flags(np.array([x]))), obj.unstable)
         else:

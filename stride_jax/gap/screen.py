@@ -1,20 +1,24 @@
 """The cheap screen before the full fits: one batched replay of every candidate at a probe value,
-a linearised held-out score for each, a check of the best at their linear estimate, and the
+a linearised cross-validated score for each, a check of the best at their linear estimate, and the
 sensitivity columns that say which effects the logs cannot tell apart.
 
 Why: a full fit of one effect on the Go1 costs 30-40 replays of every logged state (a grid, a
 Brent search, the profile interval), and the library with its finer variants (per joint group,
 encoder offsets, link groups, base wrench: :mod:`stride_jax.gap.finer`) holds about a hundred
-candidates. The screen spends one replay per parameter, all in one threaded ``mujoco.rollout``
-batch (:mod:`stride_jax.gap.replay`), on every ``stride``-th replay window:
+candidates. The screen spends one replay per parameter (a joint effect on a side or end of a quadruped adds
+up its limbs' columns instead: :func:`stride_jax.gap.finer.unions`), all in one threaded
+``mujoco.rollout`` batch (:mod:`stride_jax.gap.replay`), on every ``stride``-th replay window:
 
 1. **Sensitivity columns**: for each parameter ``i`` of each candidate the secant
    ``J_i = (r(p0 + h_i e_i) - r(p0)) / h_i`` of the scaled ``k``-step residual ``[M, nv]``, with the
    probe step ``h_i`` a fraction (``probe``) of the way from the nominal value to the farther bound
    (a secant, not a derivative: a torque limit or a dead band does nothing for small steps).
-2. **Linearised held-out score**: the residual model ``r(p) ~ r0 + J (p - p0)`` is fitted by bounded
-   least squares on the training windows and scored on the held-out ones: the fraction of the
-   held-out gap it removes, like the full diagnosis's "explained" but to first order.
+2. **Linearised cross-validated score**: the residual model ``r(p) ~ r0 + J (p - p0)`` is fitted by
+   bounded least squares on all training trajectories but one and scored on the one left out, in
+   turn (:func:`folds`): the fraction of the gap it removes out of sample, like the full
+   diagnosis's held-out "explained" but to first order. Cross-validation on the training windows
+   replaces the held-out columns the screen used to replay (a third of its replays) and scores on
+   all of its windows rather than on the held-out third.
 3. **One-step check**: the ``check`` best are replayed once at their linear estimate (one batch);
    their actual held-out gap there ranks them, and the best member (all joints or one group) of
    each of the ``shortlist`` best effects goes to the full fits, plus the leading effect's
@@ -62,7 +66,7 @@ class ScreenConfig:
       fit_stride: the full fits replay from every ``fit_stride``-th sample of the training logs
         (their ``steps``-period windows overlap; 1: every sample). Held-out scores use every one.
       windows: the screen's stride grows where it would leave more than this many training
-        windows (0: no cap); the held-out windows take the same stride.
+        windows (0: no cap); the held-out windows of its check take the same stride.
       fit_windows: the full fits' stride grows where ``fit_stride`` would leave more than this
         many training windows (0: no cap); so does the cross-fit's on the held-out split. Logs
         of a few minutes are thinned, shorter ones are fitted on every window
@@ -132,77 +136,106 @@ def _probe(sm: SimModel, name: str, frac: float) -> np.ndarray:
 
 @dataclasses.dataclass
 class Columns:
-    """Sensitivity columns: ``names`` of the candidates, ``param`` ``[C]`` (candidate, parameter)
-    of each column, ``step [C]``, residuals at the base ``r0_tr [M1, nv]``, ``r0_te [M2, nv]`` and
-    columns ``J_tr [C, M1, nv]``, ``J_te [C, M2, nv]`` (per unit of the parameter)."""
+    """Sensitivity columns on training windows: ``names`` of the candidates, ``param`` ``[C]``
+    (candidate, parameter) of each column, ``step [C]``, the residual at the base ``r0_tr [M, nv]``,
+    the columns ``J_tr [C, M, nv]`` (per unit of the parameter) and ``fold [M]``, the
+    cross-validation fold of each window (:func:`folds`)."""
 
     names: list[str]
     param: list[tuple[str, int]]
     step: np.ndarray
     r0_tr: np.ndarray
-    r0_te: np.ndarray
     J_tr: np.ndarray
-    J_te: np.ndarray
+    fold: np.ndarray
 
     def cols(self, name: str) -> list[int]:
         return [c for c, (n, _) in enumerate(self.param) if n == name]
 
 
-def columns(sm: SimModel, names: list[str], train: fit.Data, test: fit.Data, scale: np.ndarray,
-            cfg: ScreenConfig, rows_tr: np.ndarray, rows_te: np.ndarray, base: dict | None = None,
-            show: bool = True) -> Columns:
+def folds(data: fit.Data, rows: np.ndarray, n_min: int = 3) -> np.ndarray:
+    """``[len(rows)]`` cross-validation fold of each replay ``rows`` of ``data``: its trajectory
+    where there are at least ``n_min`` (whole trajectories, like the held-out split), else the
+    quarter of its trajectory it falls in (contiguous stretches)."""
+    traj = data.traj[rows]
+    if len(np.unique(traj)) >= n_min:
+        return np.unique(traj, return_inverse=True)[1].ravel()
+    b = data.bounds
+    local = (data.start[rows] - b[traj]) / np.maximum(b[traj + 1] - b[traj], 1)
+    return (traj * 4 + np.minimum((local * 4).astype(int), 3)).astype(int)
+
+
+def columns(sm: SimModel, names: list[str], train: fit.Data, scale: np.ndarray, cfg: ScreenConfig,
+            rows_tr: np.ndarray, base: dict | None = None, show: bool = True) -> Columns:
     """Secant columns of every parameter of ``names`` on top of ``base`` (applied effects), on the
-    replays ``rows_tr`` of ``train`` and ``rows_te`` of ``test``: one batched replay."""
+    replays ``rows_tr`` of ``train``: one batched replay. A joint effect on a union of limbs with
+    the same probe step as its limbs' (:func:`stride_jax.gap.finer.unions`) gets the sum of their
+    columns, without a replay of its own (where ``base`` is empty)."""
     base = dict(base or {})
-    plans, param, step = [effects.build(sm, base)], [], []
+    steps = {n: _probe(sm, n, cfg.probe) for n in names}
+    derived = {} if base else {n: parts for n, parts in finer.unions(sm, names).items()
+                               if all(np.array_equal(steps[q], steps[n]) for q in parts)}
+    plans, param, step, replayed = [effects.build(sm, base)], [], [], []
     for n in names:
         e = effects.ALL[n]
-        h = _probe(sm, n, cfg.probe)
         p0 = np.asarray(base.get(n, e.nominal), float)
         for i in range(e.size):
-            p = p0.copy()
-            p[i] += h[i]
-            plans.append(effects.build(sm, base | {n: p}))
             param.append((n, i))
-            step.append(h[i])
-    R_tr, R_te = [], []
-    per = max(1, replay.CHUNK // max(len(rows_tr) + len(rows_te), 1))
+            step.append(steps[n][i])
+            if n in derived:
+                continue
+            p = p0.copy()
+            p[i] += steps[n][i]
+            plans.append(effects.build(sm, base | {n: p}))
+            replayed.append(len(param) - 1)
+    R = []
+    per = max(1, replay.CHUNK // max(len(rows_tr), 1))
     with progress.bar(len(plans), "screen: replay every candidate at a probe value", show) as bar:
         for c0 in range(0, len(plans), per):
-            R_tr.append(replay.residuals(sm, plans[c0:c0 + per], train, scale, rows_tr))
-            R_te.append(replay.residuals(sm, plans[c0:c0 + per], test, scale, rows_te))
+            R.append(replay.residuals(sm, plans[c0:c0 + per], train, scale, rows_tr))
             bar.update(len(plans[c0:c0 + per]))
-    R_tr, R_te = np.concatenate(R_tr), np.concatenate(R_te)
+    R = np.concatenate(R)
     step = np.asarray(step, float)
-    return Columns(list(names), param, step, R_tr[0], R_te[0], (R_tr[1:] - R_tr[0]) / step[:, None, None],
-                   (R_te[1:] - R_te[0]) / step[:, None, None])
+    J = np.empty((len(param),) + R.shape[1:])
+    J[replayed] = (R[1:] - R[0]) / step[replayed, None, None]
+    at = {pr: c for c, pr in enumerate(param)}
+    for n, parts in derived.items():
+        J[at[(n, 0)]] = sum(J[at[(q, 0)]] for q in parts)
+    return Columns(list(names), param, step, R[0], J, folds(train, rows_tr))
+
+
+def _solve(A: np.ndarray, b: np.ndarray, dlo: np.ndarray, dhi: np.ndarray) -> np.ndarray:
+    """Bounded least squares ``min |A d - b|`` over ``dlo <= d <= dhi``."""
+    if A.shape[1] == 1:
+        a = float(A[:, 0] @ A[:, 0])
+        return np.clip([float(A[:, 0] @ b) / a if a > 0 else 0.0], dlo, dhi)
+    return optimize.lsq_linear(A, b, bounds=(np.minimum(dlo, -1e-12), np.maximum(dhi, 1e-12))).x
 
 
 def linear_fit(C: Columns, sm: SimModel, names: tuple[str, ...], base: dict | None = None
                ) -> tuple[dict, float, float]:
     """Bounded least squares of the linear residual model of the effects ``names`` on the training
-    columns; returns ``(params, train gap fraction left, held-out gap fraction left)``."""
+    columns; returns ``(params, train gap fraction left, cross-validated gap fraction left)``: the
+    latter fits on all folds but one and scores the one left out, in turn (:func:`folds`), so a
+    candidate with more parameters gains nothing from fitting noise, as on a held-out split."""
     base = dict(base or {})
     idx = [c for n in names for c in C.cols(n)]
-    A = C.J_tr[idx].reshape(len(idx), -1).T  # [M1 nv, p]
-    b = -C.r0_tr.ravel()
     p0 = np.concatenate([np.asarray(base.get(n, effects.ALL[n].nominal), float) for n in names])
     lo, hi = fit._bounds(sm, names)
-    dlo, dhi = lo - p0, hi - p0
-    if len(idx) == 1:
-        a = float(A[:, 0] @ A[:, 0])
-        d = np.clip([float(A[:, 0] @ b) / a if a > 0 else 0.0], dlo, dhi)
-    else:
-        d = optimize.lsq_linear(A, b, bounds=(np.minimum(dlo, -1e-12), np.maximum(dhi, 1e-12))).x
-    if any(effects.ALL[n].integer for n in names):  # integer parameters take integer values
-        k = 0
-        for n in names:
-            s = effects.ALL[n].size
-            if effects.ALL[n].integer:
-                d[k:k + s] = np.round(p0[k:k + s] + d[k:k + s]) - p0[k:k + s]
-            k += s
-    left = lambda r0, J: float(((r0 + np.tensordot(d, J[idx], 1)) ** 2).sum() / max((r0 ** 2).sum(), 1e-300))
-    return fit._split(names, p0 + d), left(C.r0_tr, C.J_tr), left(C.r0_te, C.J_te)
+    ints = np.concatenate([np.full(effects.ALL[n].size, effects.ALL[n].integer) for n in names])
+
+    def solve(rows):
+        A = C.J_tr[idx][:, rows].reshape(len(idx), -1).T  # [rows nv, p]
+        d = _solve(A, -C.r0_tr[rows].ravel(), lo - p0, hi - p0)
+        return np.where(ints, np.round(p0 + d) - p0, d)  # integer parameters take integer values
+
+    def left(rows, d):
+        return float(((C.r0_tr[rows] + np.tensordot(d, C.J_tr[idx][:, rows], 1)) ** 2).sum())
+
+    everything = np.arange(len(C.r0_tr))
+    d = solve(everything)
+    total = max(float((C.r0_tr ** 2).sum()), 1e-300)
+    cv = sum(left(C.fold == f, solve(C.fold != f)) for f in np.unique(C.fold))
+    return fit._split(names, p0 + d), left(everything, d) / total, cv / total
 
 
 def collinear_with(C: Columns, name: str, threshold: float) -> dict[str, float]:
@@ -233,22 +266,22 @@ def run(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: S
     names = candidate_names(sm, cfg)
     stride = fit.capped_stride(cfg.stride or train.k, len(train.start), cfg.windows)
     rows_tr, rows_te = rows_every(train, stride), rows_every(test, stride)
-    C = columns(sm, names, train, test, scale, cfg, rows_tr, rows_te, show=show)
+    C = columns(sm, names, train, scale, cfg, rows_tr, show=show)
     table = []
     for n in names:
-        params, l_tr, l_te = linear_fit(C, sm, (n,))
+        params, l_tr, l_cv = linear_fit(C, sm, (n,))
         k = effects.ALL[n].size
         table.append({"effect": n, "params": {n: params[n].round(6).tolist()}, "linear_train": 1 - l_tr,
-                      "linear_heldout": 1 - l_te, "score": 1 - l_te - penalty * k, "_p": params})
+                      "linear_cv": 1 - l_cv, "score": 1 - l_cv - penalty * k, "_p": params})
     table.sort(key=lambda r: -r["score"])
     top = table[:cfg.check]
     plans = [effects.build(sm, r["_p"]) for r in top]
     with progress.bar(2, "screen: one-step check at the linear estimates", show) as bar:
         R_tr = replay.residuals(sm, plans, train, scale, rows_tr)
         bar.update(1)
-        R_te = replay.residuals(sm, plans, test, scale, rows_te)
+        r0_te, *R_te = replay.residuals(sm, [effects.build(sm)] + plans, test, scale, rows_te)
         bar.update(1)
-    g_tr, g_te = float((C.r0_tr ** 2).sum()), float((C.r0_te ** 2).sum())
+    g_tr, g_te = float((C.r0_tr ** 2).sum()), float((r0_te ** 2).sum())
     for r, a, b in zip(top, R_tr, R_te, strict=True):
         r["checked_train"] = 1 - float((a ** 2).sum()) / max(g_tr, 1e-300)
         r["checked_heldout"] = 1 - float((b ** 2).sum()) / max(g_te, 1e-300)
@@ -276,10 +309,10 @@ def run(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: S
 
 def pairs(sm: SimModel, C: Columns, best: str, fitted: dict, n: int, min_gain: float = 0.0
           ) -> list[tuple[tuple[str, str], dict]]:
-    """The ``n`` second effects whose joint linear fit with ``best`` removes most of the held-out
+    """The ``n`` second effects whose joint linear fit with ``best`` removes most of the cross-validated
     gap: ``[((best, other), start params)]`` (start: the fitted single and the linear estimate).
     Pairs whose linear fit removes at least ``min_gain`` of what ``best``'s own linear fit leaves
-    held out are proposed (the pair rule's ``pair_min``, to first order); where none does, the one
+    out of sample are proposed (the pair rule's ``pair_min``, to first order); where none does, the one
     partner that removes most is proposed all the same (if it removes anything): a confident
     single needs the data to rule out a material second effect (:func:`stride_jax.gap.admit.pair_tests`),
     and the linear screen, to first order and on noisy logs, can miss one that the full fit finds."""
@@ -290,9 +323,9 @@ def pairs(sm: SimModel, C: Columns, best: str, fitted: dict, n: int, min_gain: f
     for other in C.names:
         if other == best or other == finer.parent(best) or finer.parent(other) == best:
             continue  # an effect and its own finer variant: nested, not a second effect
-        params, _, l_te = linear_fit(C, sm, (best, other))
-        if l_te < l_single:
-            scored.append((l_te, other, params))
+        params, _, l_cv = linear_fit(C, sm, (best, other))
+        if l_cv < l_single:
+            scored.append((l_cv, other, params))
     scored.sort(key=lambda t: t[0])
     keep = [t for t in scored if l_single - t[0] >= min_gain * l_single][:n] or scored[:1]
     return [((best, o), {best: np.asarray(fitted[best], float), o: p[o]}) for _, o, p in keep]

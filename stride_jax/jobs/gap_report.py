@@ -263,10 +263,10 @@ def screen_lines(d: dict[str, Any]) -> list[str]:
     if scr:
         L += ["", f"Screen ({scr['candidates']} candidates, {scr['parameters']} parameters, {scr['windows'][0]} + "
               f"{scr['windows'][1]} windows, {scr['seconds']:.0f} s): fitted in full: {', '.join(scr['shortlist'])}.", "",
-              "| candidate | linearised held-out explained | at the linear estimate |", "|---|---|---|"]
+              "| candidate | linearised, cross-validated explained | held out at the linear estimate |", "|---|---|---|"]
         for r in scr["table"][:10]:
             chk = r.get("checked_heldout")
-            L.append(f"| {r['effect']} | {r['linear_heldout']:.1%} | {'' if chk is None else f'{chk:.1%}'} |")
+            L.append(f"| {r['effect']} | {r.get('linear_cv', r.get('linear_heldout', float('nan'))):.1%} | {'' if chk is None else f'{chk:.1%}'} |")
     return L
 
 
