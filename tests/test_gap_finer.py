@@ -250,3 +250,14 @@ def test_the_screen_scores_candidates_by_cross_validation_over_training_trajecto
     assert min(fits, key=lambda n: fits[n][2]) == "damping"
     assert fits["damping"][0]["damping"][0] == pytest.approx(0.3, abs=0.06)
     assert fits["com_offset"][2] > 1.0 > fits["com_offset"][1]  # worse than nothing out of sample
+
+
+def test_the_one_step_check_replays_at_most_two_members_of_one_effect(arms):
+    _, logged = real.generate(arms, {"damping@left": 0.8}, 4, 60, seed=4)
+    train, test = fit.make_data(logged[:3], 2), fit.make_data(logged[3:], 2)
+    scale = diagnose.scale_of(arms, fit.make_data(logged))
+    out = screen.run(arms, train, test, scale, screen.ScreenConfig(check=5), 0.005, show=False, log=lambda s: None)
+    checked = [r["effect"] for r in out["table"] if "checked_heldout" in r]
+    families = [finer.parent(n) for n in checked]
+    assert len(checked) == 5 and max(families.count(f) for f in families) == screen.CHECK_PER_EFFECT
+    assert finer.parent(out["table"][0]["effect"]) == "damping"
