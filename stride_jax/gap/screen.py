@@ -2,8 +2,8 @@
 a linearised cross-validated score for each, a check of the best at their linear estimate, and the
 sensitivity columns that say which effects the logs cannot tell apart.
 
-Why: a full fit of one effect on the Go1 costs 30-40 replays of every logged state (a grid, a
-Brent search, the profile interval), and the library with its finer variants (per joint group,
+Why: a full fit of one effect on the Go1 costs 15-40 replays of every logged state (a grid, a
+line search, the profile interval), and the library with its finer variants (per joint group,
 encoder offsets, link groups, base wrench: :mod:`stride_jax.gap.finer`) holds about a hundred
 candidates. The screen spends one replay per parameter (a joint effect on a side or end of a quadruped adds
 up its limbs' columns instead: :func:`stride_jax.gap.finer.unions`), all in one threaded
