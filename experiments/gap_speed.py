@@ -60,6 +60,7 @@ def main() -> None:
         pstats.Stats(prof, stream=s).sort_stats("cumulative").print_stats(25)
         runs.append({"seconds": sec, "load_before": load0, "load_after": os.getloadavg()[0],
                      "stages": {k: round(v, 1) for k, v in out["stage_seconds"].items()},
+                     "which_stages": (out.get("which") or {}).get("seconds"),
                      "verdict": out["verdict"]["verdict"], "effects": out["verdict"]["effects"],
                      "confident": out["verdict"]["confident"], "reason": out["verdict"].get("reason"),
                      "indistinguishable": (out["verdict"].get("indistinguishable_set") or {}).get("effects"),

@@ -88,6 +88,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     effect only by the margin rule of :func:`stride_jax.gap.granularity.prefer_coarse`.
     """
     unstable0 = sim.unstable()
+    clock = [("start", time.time())]  # the stages' seconds, for the record (``seconds``)
     nom = effects.build(sm)
     r_nom_tr = fit.residual(sm, nom, train, scale)
     r_nom_te = fit.residual(sm, nom, test, scale)
@@ -120,6 +121,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         score(fit.fit(sm, train, scale, (coarse,), cfg.fit, interval=False))
         log(f"  fit {coarse:17s} {_fmt(fits[-1].params)}  (the all-joints rival of {lead})")
     n_single = len(fits)
+    clock.append(("singles", time.time()))
     # intervals only where reported: the best single (a pair's estimates are weighed against it)
     # and the named hypothesis, below; other singles' rows report none (``interval`` False)
     with_iv = set()
@@ -164,6 +166,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         score(f)
         with_iv.add(f.names)
         log(f"  fit {a}+{b}: {_fmt(f.params)}  ({f.evals} evals, {time.time() - t0:.1f} s)")
+    clock.append(("pairs", time.time()))
     rows = []
     for f in fits:
         Lb = blocks(r_te[f.names])
@@ -200,6 +203,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         s_self = row["_boot"] - cfg.penalty * row["n_params"]
         s_other = other["_boot"] - cfg.penalty * other["n_params"]
         row["p_beats_next"] = float((s_self > s_other).mean())
+    clock.append(("choice", time.time()))  # the ranking, the nuisance tests and the intervals
     # detection: is the best hypothesis better than the nominal model on data it was not fitted
     # on? Cross-fitting: the held-out split scored with the training fit, and the training split
     # scored with a refit on the held-out split (every trajectory is held-out once). One-sided
@@ -216,6 +220,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         swap_params = f_sw.params
     r_sw_tr = fit.residual(sm, effects.build(sm, swap_params), train, scale)
     ids_tr, nb_tr = _block_ids(train, cfg.block)
+    clock.append(("crossfit", time.time()))
     Lb_all_nom = np.concatenate([Lb_nom, np.bincount(ids_tr, weights=(r_nom_tr ** 2).sum(1), minlength=nb_tr)])
     Lb_all_best = np.concatenate([blocks(r_te[bnames]),
                                   np.bincount(ids_tr, weights=(r_sw_tr ** 2).sum(1), minlength=nb_tr)])
@@ -267,6 +272,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
             "structure_hints": hints, "pair_tests": pair_tests, "nuisance_tests": nuisance_tests,
             "form_check": None,  # check_form's, run only where it could decide (diagnose)
             "best_single": S["effects"], "singles_fitted": n_single,
+            "seconds": {b[0]: round(b[1] - a[1], 2) for a, b in zip(clock, clock[1:] + [("rest", time.time())])},
             "residual_after_best": {"per_dof_rms_scaled": _rms(r_best_te, 0).tolist()},
             "r_nom_test": r_nom_te, "r_best_test": r_best_te, "plan_best": plan_best}
 
