@@ -122,9 +122,9 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         log(f"  fit {coarse:17s} {_fmt(fits[-1].params)}  (the all-joints rival of {lead})")
     n_single = len(fits)
     clock.append(("singles", time.time()))
-    # intervals only where reported: the best single (a pair's estimates are weighed against it)
-    # and the named hypothesis, below; other singles' rows report none (``interval`` False)
-    with_iv = set()
+    # intervals only where reported: pairs (their fits give them), the best single (a pair's
+    # estimates are weighed against it) and the named hypothesis, below; other singles' rows
+    # report none (``interval`` False)
     singles = {f.names[0]: f for f in fits}
     ranked = sorted(fits, key=lambda f: held(f.names))
     best_single = ranked[0]
@@ -164,7 +164,6 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         t0 = time.time()
         f = fit.fit(sm, train, scale, (a, b), cfg.fit, start)
         score(f)
-        with_iv.add(f.names)
         log(f"  fit {a}+{b}: {_fmt(f.params)}  ({f.evals} evals, {time.time() - t0:.1f} s)")
     clock.append(("pairs", time.time()))
     rows = []
@@ -174,7 +173,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         expl = 1 - Lb.sum() / max(L_nom, 1e-300)
         boot = 1 - (Wb @ Lb) / boot_nom
         rows.append({"effects": list(f.names), "params": _jsonable(f.params), "param_lo": _jsonable(f.lo),
-                     "param_hi": _jsonable(f.hi), "interval": f.names in with_iv or not cfg.fit.profile,
+                     "param_hi": _jsonable(f.hi), "interval": len(f.names) > 1 or not cfg.fit.profile,
                      "_fit": f, "at_bound": _at_bound(f), "unstable_evals": f.unstable,
                      "n_params": k, "train_loss": f.train_loss,
                      "heldout_loss": float(Lb.sum()), "explained": float(expl),

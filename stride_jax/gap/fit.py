@@ -397,13 +397,10 @@ def line_search(f, known: dict[float, float], a: float, b: float, tol: float, ma
 def _vertex(x: float, y: float, z: float, pts: dict) -> float | None:
     """The vertex of the parabola through ``(x, y, z)`` and their values ``pts``; None where it is
     not convex."""
-    fx, fy, fz = pts[x], pts[y], pts[z]
-    num = (x - y) ** 2 * (fx - fz) - (x - z) ** 2 * (fx - fy)
-    den = (x - y) * (fx - fz) - (x - z) * (fx - fy)
-    curv = ((fx - fy) / (x - y) - (fx - fz) / (x - z)) / (y - z)
-    if not curv > 0 or den == 0:
-        return None
-    return x - 0.5 * num / den
+    d1, d2 = _lagrange(np.array([x, y, z]), x)
+    f = np.array([pts[x], pts[y], pts[z]])
+    slope, curv = float(d1 @ f), float(d2 @ f)
+    return x - slope / curv if curv > 0 else None
 
 
 LINE_SE = 0.25

@@ -36,6 +36,7 @@ up its limbs' columns instead: :func:`stride_jax.gap.finer.unions`), all in one 
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import time
 from typing import Any
@@ -179,11 +180,11 @@ def columns(sm: SimModel, names: list[str], train: fit.Data, scale: np.ndarray, 
     """Secant columns of every parameter of ``names`` on top of ``base`` (applied effects), on the
     replays ``rows_tr`` of ``train``: one batched replay. A joint effect on a union of limbs with
     the same probe step as its limbs' (:func:`stride_jax.gap.finer.unions`) gets the sum of their
-    columns, without a replay of its own (where ``base`` is empty)."""
+    columns, without a replay of its own."""
     base = dict(base or {})
     steps = {n: _probe(sm, n, cfg.probe) for n in names}
-    derived = {} if base else {n: parts for n, parts in finer.unions(sm, names).items()
-                               if all(np.array_equal(steps[q], steps[n]) for q in parts)}
+    derived = {n: parts for n, parts in finer.unions(sm, names).items()
+               if all(np.array_equal(steps[q], steps[n]) for q in parts)}
     plans, param, step, replayed = [effects.build(sm, base)], [], [], []
     for n in names:
         e = effects.ALL[n]
@@ -232,14 +233,14 @@ def linear_fit(C: Columns, sm: SimModel, names: tuple[str, ...], base: dict | No
     p0 = np.concatenate([np.asarray(base.get(n, effects.ALL[n].nominal), float) for n in names])
     lo, hi = fit._bounds(sm, names)
     ints = np.concatenate([np.full(effects.ALL[n].size, effects.ALL[n].integer) for n in names])
+    J = C.J_tr[idx]  # [p, M, nv]
 
     def solve(rows):
-        A = C.J_tr[idx][:, rows].reshape(len(idx), -1).T  # [rows nv, p]
-        d = _solve(A, -C.r0_tr[rows].ravel(), lo - p0, hi - p0)
+        d = _solve(J[:, rows].reshape(len(idx), -1).T, -C.r0_tr[rows].ravel(), lo - p0, hi - p0)
         return np.where(ints, np.round(p0 + d) - p0, d)  # integer parameters take integer values
 
     def left(rows, d):
-        return float(((C.r0_tr[rows] + np.tensordot(d, C.J_tr[idx][:, rows], 1)) ** 2).sum())
+        return float(((C.r0_tr[rows] + np.tensordot(d, J[:, rows], 1)) ** 2).sum())
 
     everything = np.arange(len(C.r0_tr))
     d = solve(everything)
@@ -284,12 +285,12 @@ def run(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: S
         table.append({"effect": n, "params": {n: params[n].round(6).tolist()}, "linear_train": 1 - l_tr,
                       "linear_cv": 1 - l_cv, "score": 1 - l_cv - penalty * k, "_p": params})
     table.sort(key=lambda r: -r["score"])
-    top, per = [], {}  # the best, at most CHECK_PER_EFFECT of one effect and its finer variants
+    top, per = [], collections.Counter()  # the best, at most CHECK_PER_EFFECT of one effect's members
     for r in table:
         fam = finer.parent(r["effect"])
-        if len(top) < cfg.check and per.get(fam, 0) < CHECK_PER_EFFECT:
+        if len(top) < cfg.check and per[fam] < CHECK_PER_EFFECT:
             top.append(r)
-            per[fam] = per.get(fam, 0) + 1
+            per[fam] += 1
     plans = [effects.build(sm, r["_p"]) for r in top]
     with progress.bar(2, "screen: one-step check at the linear estimates", show) as bar:
         R_tr = replay.residuals(sm, plans, train, scale, rows_tr)
