@@ -222,3 +222,23 @@ def test_a_finer_time_step_must_pay_for_the_replays_it_multiplies():
     assert pick(losses | {0.004: 0.985}) == 0.004  # coarser: 1.5% > min_gain
     coarse = {0.001: 1.1, 0.002: 0.985, 0.004: 1.0, 0.005: 1.1}
     assert pick(coarse, start=0.004) == 0.004 and pick(coarse | {0.002: 0.975}, start=0.004) == 0.002
+
+
+def test_settings_naming_the_models_own_value_are_one_model():
+    own = {"timestep": 0.002, "iterations": 100, "cone": "elliptic"}
+    c = calibrate.ByModel(own)
+    c[Settings()] = 1.0
+    assert Settings(timestep=0.002, iterations=100, cone="elliptic") in c and c.get(Settings(cone="pyramidal")) is None
+    # a sweep whose solver cap goes from None to the model's own 100 changes no model: no move, so no
+    # second pass re-scores every other setting (the Go1's calibration did, 11-13 replays per pass)
+    scored = []
+
+    def loss(s):
+        scored.append(calibrate._neutral(s, own))
+        return 2.0 if s.cone == "pyramidal" else 1.0
+
+    values = {"timestep": [], "integrator": [], "cone": ["elliptic", "pyramidal"], "contacts": [], "foot_condim": [],
+              "iterations": [15, 100]}
+    path = []
+    best, moved = calibrate._sweep(Settings(cone="elliptic"), values, own, loss, calibrate.CalibrateConfig(), path, 0)
+    assert not moved and path == [] and calibrate._neutral(best, own) == Settings()

@@ -204,3 +204,46 @@ def test_an_objectives_own_cache_keeps_its_most_recent_residuals():
     c[3] = 30  # written again: the most recent
     c.update({6: 6})
     assert list(c) == [5, 3, 6] and c[3] == 30
+
+
+class _Rough:
+    """A two-parameter least-squares objective, quadratic with a bump of 1e-6 x its loss every
+    1e-5 of the range (the rough contact loss of a legged robot at tiny steps)."""
+
+    def __init__(self):
+        self.evals = 0
+
+    def residual(self, p):
+        self.evals += 1
+        p = np.asarray(p, float)
+        return np.concatenate([p - np.array([0.3, 0.7]), [1e-3 * np.sin(1e5 * p.sum())]])
+
+    def losses(self, p):
+        return np.array([(self.residual(p) ** 2).sum()])
+
+
+def test_a_pair_fit_stops_once_its_steps_are_below_a_thousandth_of_the_ranges(monkeypatch):
+    cfg, lo, hi = fit.FitConfig(max_nfev=20), np.zeros(2), np.ones(2)
+    got, ours = {}, fit.XTOL
+    for xtol in (ours, 1e-8):
+        monkeypatch.setattr(fit, "XTOL", xtol)
+        obj = _Rough()
+        x, _ = fit.fit_vector(obj, cfg, np.array([0.9, 0.1]), lo, hi)
+        got[xtol] = (x, obj.evals)
+    (x, n), (x8, n8) = got[ours], got[1e-8]
+    assert np.abs(x - [0.3, 0.7]).max() < 2e-3 and np.abs(x8 - [0.3, 0.7]).max() < 2e-3
+    assert n < n8, (n, n8)  # SciPy's default tolerance keeps shrinking its trust region on the bumps
+
+
+def test_a_single_far_behind_keeps_its_grid_node(pend):
+    data, scale = _data(pend, {"damping": 0.3}, 3, 80, 5, noise=False)
+    full = fit.fit(pend, data, scale, ("damping",), CFG.fit, interval=False)
+    left = fit.fit(pend, data, scale, ("damping",), CFG.fit, interval=False, grid_only_above=0.0)
+    lo, hi = (float(b[0]) for b in effects.ALL["damping"].bounds(pend))
+    grid = np.linspace(lo, hi, CFG.fit.grid)
+    assert left.grid_only and not full.grid_only and left.evals < full.evals
+    assert np.min(np.abs(grid - left.params["damping"][0])) < 1e-12 or left.params["damping"][0] == 0.0
+    assert full.train_loss <= left.train_loss
+    # an effect with a better grid node than the bar is searched as before
+    again = fit.fit(pend, data, scale, ("damping",), CFG.fit, interval=False, grid_only_above=1e300)
+    assert not again.grid_only and again.params["damping"][0] == full.params["damping"][0]

@@ -58,11 +58,20 @@ def _lower(x: np.ndarray, level: float) -> float:
     return float(np.quantile(x, min(max(level, 0.0), 1.0)))
 
 
-def _with_interval(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict, cfg: DiagnoseConfig) -> None:
+def _with_interval(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict, cfg: DiagnoseConfig,
+                   cache: dict | None = None) -> None:
     """Gives a ranking row fitted without its interval (:func:`stride_jax.gap.fit.with_interval`) one."""
     if not row["interval"]:
-        f = fit.with_interval(sm, train, scale, row["_fit"], cfg.fit)
+        f = fit.with_interval(sm, train, scale, row["_fit"], cfg.fit, cache=cache)
         row.update(param_lo=_jsonable(f.lo), param_hi=_jsonable(f.hi), interval=True, _fit=f)
+
+
+FAR_BEHIND = 4.0
+"""A shortlisted single whose best grid node's training loss is this many times the best single
+fitted before it keeps that node (no line search: ``Fit.grid_only``). A line search moves the
+loss within one grid cell, and on the Go1's 12 x 8 s case the three singles it skipped (damping,
+frictionloss@calf, kp_scale@calf) were 7-10x behind damping@calf after theirs; should a
+grid-only single lead on the held-out split all the same, it is fitted in full."""
 
 
 def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg: DiagnoseConfig,
@@ -101,6 +110,10 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     boot_nom = np.maximum(Wb @ Lb_nom, 1e-300)
     fits: list[fit.Fit] = []
     r_te: dict[tuple, np.ndarray] = {}
+    # every training replay of the fits (keyed by effects and parameters), shared by the singles,
+    # the pairs, the intervals and the form check (:func:`check_form`): an interval's centre and
+    # the form check's grid are replays the singles' fits made already
+    replays: dict = {}
 
     def score(f: fit.Fit) -> None:
         fits.append(f)
@@ -110,15 +123,22 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     for name in progress.track(names, "fits: each shortlisted effect alone", cfg.progress):
         t0 = time.time()
         start = {name: hints[name]} if hints and name in hints else None
-        f = fit.fit(sm, train, scale, (name,), cfg.fit, start, interval=False)  # intervals: below, where reported
+        far = FAR_BEHIND * min(f.train_loss for f in fits) if fits else None
+        f = fit.fit(sm, train, scale, (name,), cfg.fit, start, interval=False, cache=replays,  # intervals: below
+                    grid_only_above=far)
         score(f)
         log(f"  fit {name:17s} {_fmt(f.params)}  train loss {f.train_loss:.4g}  ({f.evals} evals, "
-            f"{time.time() - t0:.1f} s)")
+            f"{time.time() - t0:.1f} s{'; grid only: far behind' if f.grid_only else ''})")
     held = lambda names: float((r_te[names] ** 2).sum())
+    first = min(fits, key=lambda f: held(f.names))
+    if first.grid_only:  # a single left on its grid that leads all the same is fitted in full
+        fits.remove(first)
+        score(fit.fit(sm, train, scale, first.names, cfg.fit, first.params, interval=False, cache=replays))
+        log(f"  fit {first.names[0]:17s} {_fmt(fits[-1].params)}  (left on its grid, leads held out: fitted in full)")
     lead = min(fits, key=lambda f: held(f.names)).names[0]
     coarse = granularity.coarse_of(sm, lead)  # the finer choice needs the best's all-joints rival
     if coarse and coarse not in [f.names[0] for f in fits]:
-        score(fit.fit(sm, train, scale, (coarse,), cfg.fit, interval=False))
+        score(fit.fit(sm, train, scale, (coarse,), cfg.fit, interval=False, cache=replays))
         log(f"  fit {coarse:17s} {_fmt(fits[-1].params)}  (the all-joints rival of {lead})")
     n_single = len(fits)
     clock.append(("singles", time.time()))
@@ -162,7 +182,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     proposals = [(ab, st) for ab, st in proposals if not (frozenset(ab) in seen or seen.add(frozenset(ab)))]
     for (a, b), start in progress.track(proposals, "fits: pairs", cfg.progress):
         t0 = time.time()
-        f = fit.fit(sm, train, scale, (a, b), cfg.fit, start)
+        f = fit.fit(sm, train, scale, (a, b), cfg.fit, start, cache=replays)
         score(f)
         log(f"  fit {a}+{b}: {_fmt(f.params)}  ({f.evals} evals, {time.time() - t0:.1f} s)")
     clock.append(("pairs", time.time()))
@@ -174,7 +194,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         boot = 1 - (Wb @ Lb) / boot_nom
         rows.append({"effects": list(f.names), "params": _jsonable(f.params), "param_lo": _jsonable(f.lo),
                      "param_hi": _jsonable(f.hi), "interval": len(f.names) > 1 or not cfg.fit.profile,
-                     "_fit": f, "at_bound": _at_bound(f), "unstable_evals": f.unstable,
+                     "_fit": f, "at_bound": _at_bound(f), "unstable_evals": f.unstable, "grid_only": f.grid_only,
                      "n_params": k, "train_loss": f.train_loss,
                      "heldout_loss": float(Lb.sum()), "explained": float(expl),
                      "explained_ci": np.percentile(boot, [5, 95]).tolist(),
@@ -182,10 +202,10 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
                      "score": float(expl - cfg.penalty * k), "_boot": boot})
     rows.sort(key=lambda r: -r["score"])
     granularity.prefer_coarse(rows, cfg.screen.finer_margin, cfg.alpha, lambda n: noise_floor(r_te[n], test) * M / L_nom)
-    _with_interval(sm, train, scale, next(r for r in rows if len(r["effects"]) == 1), cfg)
+    _with_interval(sm, train, scale, next(r for r in rows if len(r["effects"]) == 1), cfg, replays)
     _, S, pair_tests, nuisance_tests = admit.choose(rows, r_te, test, M, L_nom, blocks, Wb, boot_nom, cfg,
                                                     nuisance)
-    _with_interval(sm, train, scale, rows[0], cfg)  # the named hypothesis always has its interval
+    _with_interval(sm, train, scale, rows[0], cfg, replays)  # the named hypothesis always has its interval
     # bootstrap probability that the chosen hypothesis beats the runner-up (for a chosen single:
     # by penalised score, against the best hypothesis that is not a superset of it; for a chosen
     # pair: unpenalised, against the best single)
@@ -273,7 +293,8 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
             "best_single": S["effects"], "singles_fitted": n_single,
             "seconds": {b[0]: round(b[1] - a[1], 2) for a, b in zip(clock, clock[1:] + [("rest", time.time())])},
             "residual_after_best": {"per_dof_rms_scaled": _rms(r_best_te, 0).tolist()},
-            "r_nom_test": r_nom_te, "r_best_test": r_best_te, "plan_best": plan_best}
+            "r_nom_test": r_nom_te, "r_best_test": r_best_te, "plan_best": plan_best,
+            "_train": train, "_replays": replays}
 
 
 def check_form(sm: SimModel, train: fit.Data, scale: np.ndarray, w: dict[str, Any], v: dict[str, Any],
@@ -287,7 +308,8 @@ def check_form(sm: SimModel, train: fit.Data, scale: np.ndarray, w: dict[str, An
     if not (cfg.form_tol > 0 and v["verdict"] == "explained" and v["confident"] and len(best["effects"]) == 1):
         return None
     t0 = time.time()
-    c = w["form_check"] = form.check(sm, train, scale, best, cfg.fit, cfg.form_tol)
+    shared = w.get("_replays") if train is w.get("_train") else None  # which()'s replays of the same data
+    c = w["form_check"] = form.check(sm, train, scale, best, cfg.fit, cfg.form_tol, cache=shared)
     if c:
         log(f"  form check {best['effects'][0]}: where each joint moves slowest {c['slow']}, fastest {c['fast']} "
             f"({'differ' if c['differs'] else 'agree'}; {time.time() - t0:.1f} s)")

@@ -195,6 +195,31 @@ def _neutral(s: Settings, own: dict) -> Settings:
     return dataclasses.replace(s, **same)
 
 
+class ByModel(dict):
+    """Training losses keyed by the model a :class:`Settings` makes: settings that differ only in
+    naming the nominal model's own discrete value (``iterations=100`` against ``None`` on a model
+    whose cap is 100) are one key (:func:`_neutral`), so that no model is replayed twice. Before,
+    the Go1's calibration replayed 11-13 of its 71 models twice per pass (a sweep repeated because
+    the solver cap "moved" from None to its own value, and the calibrated settings re-scored in
+    their neutral form)."""
+
+    def __init__(self, own: dict):
+        super().__init__()
+        self.own = own
+
+    def __contains__(self, s) -> bool:
+        return super().__contains__(_neutral(s, self.own))
+
+    def __getitem__(self, s) -> float:
+        return super().__getitem__(_neutral(s, self.own))
+
+    def __setitem__(self, s, value) -> None:
+        super().__setitem__(_neutral(s, self.own), value)
+
+    def get(self, s, default=None):
+        return super().get(_neutral(s, self.own), default)
+
+
 def parsimony(s: Settings, L: float, names: list[str], loss, min_gain: float) -> tuple[Settings, float]:
     """``s`` (training loss ``L``) with each continuous setting of ``names`` put back to neutral
     where that costs less than ``min_gain`` of the loss, nearest to neutral first: a least-squares
@@ -313,7 +338,8 @@ def _sweep(best: Settings, values: dict, own: dict, loss, cfg: CalibrateConfig, 
                 continue
             cand = _pick(trial, name, loss, cfg.min_gain, own.get(name))
             back = getattr(cand, name) == own.get(name) and loss(cand) <= (1 + cfg.min_gain) * cur
-            if getattr(cand, name) != getattr(best, name) and (loss(cand) < (1 - cfg.min_gain) * cur or back):
+            # a move changes the model (not None -> the model's own value, :class:`ByModel`)
+            if _neutral(cand, own) != _neutral(best, own) and (loss(cand) < (1 - cfg.min_gain) * cur or back):
                 path.append({"setting": name, "value": getattr(cand, name), "loss": loss(cand), "from": cur,
                              "round": round_})
                 best, moved = cand, True
@@ -385,7 +411,8 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
         return heldout[key]
 
     sub = _sub(train, stride(cfg, len(train.start)))
-    cache: dict[Settings, float] = {}
+    own = nominal.describe(sm)
+    cache = ByModel(own)
     evals = {"n": 0}
 
     def loss(s: Settings) -> float:
@@ -405,7 +432,7 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
         forms["first pass"] = start
     best = min(forms.values(), key=loss)
     # discrete: coordinate descent
-    contacts = nominal.describe(sm)["colliding_geoms"] > 0
+    contacts = own["colliding_geoms"] > 0
     values = {"timestep": nominal.timesteps(sm, cfg.timestep_min, cfg.timestep_max),
               "integrator": _names(cfg.integrators), "cone": list(nominal.CONES) if contacts else [],
               "contacts": list(nominal.CONTACTS) if sm.nfeet else [],
@@ -413,7 +440,6 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
               # the solver cap: only the training form's, where it has one (in ties the model's own)
               "iterations": sorted({s.iterations for s in forms.values() if s.iterations is not None})}
     values["timestep"] = [v for v in values["timestep"] if abs(v * 2e3 - round(v * 2e3)) < 1e-6]  # 0.5 ms multiples
-    own = nominal.describe(sm)
     for name in values:  # the nominal model's own value is always a candidate
         if values[name] and own.get(name) is not None and own[name] not in values[name]:
             values[name].append(own[name])

@@ -282,7 +282,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     t0 = time.time()
     out["screen"] = scr
     out["verdict"] = verdict(w, cfg)
-    if check_form(sm, fit.thin(train_k, w["fit_stride"]), scale, w, out["verdict"], cfg, log):
+    if check_form(sm, w["_train"], scale, w, out["verdict"], cfg, log):
         out["verdict"] = verdict(w, cfg)  # a differing form takes the confidence
     stages["form_check"], t0 = time.time() - t0, time.time()
     collinear = {e: screen.collinear_with(C, e, cfg.screen.collinear) for e in w["ranking"][0]["effects"]} if scr else {}
@@ -304,7 +304,8 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
                                               cfg.bins, log)
         out["residual"]["on_top_of"] = out["verdict"]["effects"]
         out["verdict"]["reason"] += residual.reason(out["residual"])
-    out["which"] = {k: v for k, v in w.items() if k not in ("r_nom_test", "r_best_test", "plan_best")}
+    out["which"] = {k: v for k, v in w.items()
+                    if k not in ("r_nom_test", "r_best_test", "plan_best", "_train", "_replays")}
     out["where"]["divergence"] = out["how_far"]["rollout_before"]
     stages["residual"] = time.time() - t0
     out["seconds"] = time.time() - t_start

@@ -15,9 +15,9 @@ Optimisers, per the lessons the issue lists:
   until a step would move the estimate by less than a quarter of its standard error
   (:func:`line_tol`);
 * vectors and pairs: a box-constrained trust-region least squares (``scipy.optimize.least_squares``,
-  stopped at a 0.01% step gain, :data:`FTOL`) in coordinates normalised to the bounds, with a
-  2%-of-range finite-difference step (large steps: tiny ones straddle contact events and give
-  meaningless Jacobians);
+  stopped at a 0.01% step gain, :data:`FTOL`, or a step of ~0.1% of the ranges, :data:`XTOL`) in
+  coordinates normalised to the bounds, with a 2%-of-range finite-difference step (large steps:
+  tiny ones straddle contact events and give meaningless Jacobians);
 * intervals (level ``FitConfig.level``, 90%) are calibrated by the spread of the loss's gradient
   over blocks of ``FitConfig.block`` control steps (a sandwich: the residuals are neither white nor
   of known variance; :func:`_score_var` says how neighbouring blocks are handled): scalars by the profile of the training loss, ``{x : L(x) - L(x^) <= c}`` with
@@ -258,7 +258,8 @@ class Fit(NamedTuple):
     parameters' confidence interval (``lo``/``hi``, name -> vector, level ``FitConfig.level``;
     equal to the estimate where none was computed), evaluations, ``at_bound`` (name -> bool
     vector: the estimate sits on a bound other than its nominal value) and ``unstable``
-    (evaluations in which a replay diverged)."""
+    (evaluations in which a replay diverged); ``grid_only``: a scalar left at its best grid node
+    (:func:`fit`'s ``grid_only_above``)."""
 
     names: tuple[str, ...]
     params: dict
@@ -268,6 +269,7 @@ class Fit(NamedTuple):
     evals: int
     at_bound: dict | None = None
     unstable: int = 0
+    grid_only: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -317,13 +319,15 @@ def _split(names, vec) -> dict:
     return out
 
 
-def fit_scalar(obj: Objective, cfg: FitConfig, integer: bool, lo: float, hi: float, hint: float | None = None
-               ) -> tuple[float, float, float, float]:
+def fit_scalar(obj: Objective, cfg: FitConfig, integer: bool, lo: float, hi: float, hint: float | None = None,
+               grid_only_above: float | None = None) -> tuple[float, float, float, float]:
     """Minimises a one-parameter objective; returns ``(x, loss, x_lo, x_hi)``: for an integer
     parameter the set at level ``cfg.level`` (``x`` itself when ``cfg.profile == 0``), for a
     continuous one ``x`` itself (its profile interval: :func:`with_interval`). ``hint``: a value
     the grid holds as well (the screen's linear estimate, a fit of the same effect on other
-    data): near the minimum, it leaves the line search a narrow cell."""
+    data): near the minimum, it leaves the line search a narrow cell. ``grid_only_above``: a
+    continuous parameter whose best grid loss is above it keeps its best grid node (no line
+    search)."""
     if integer:
         xs = np.arange(int(lo), int(hi) + 1, dtype=float)
         B = obj.block_losses_many([[x] for x in xs])
@@ -336,6 +340,8 @@ def fit_scalar(obj: Objective, cfg: FitConfig, integer: bool, lo: float, hi: flo
     B = obj.block_losses_many([[x] for x in xs])  # [P, nb]
     L = B.sum(1)
     k = int(np.argmin(L))
+    if grid_only_above is not None and L[k] > grid_only_above:
+        return float(xs[k]), float(L[k]), float(xs[k]), float(xs[k])
     x, f, _ = line_search(lambda v: float(obj.losses(np.array([v])).sum()), dict(zip(xs.tolist(), L.tolist())),
                           float(xs[max(k - 1, 0)]), float(xs[min(k + 1, len(xs) - 1)]),
                           line_tol(obj, xs, B, k, hi - lo))
@@ -438,6 +444,14 @@ FTOL = 1e-4
 0.01% (SciPy's default, 1e-8, ran every pair fit to its evaluation budget on the rough loss of a
 legged robot's contacts)."""
 
+XTOL = 1e-3
+"""Vectors and pairs: ... or when a trial step moves the parameters by less than ~0.1% of their
+ranges (``norm(dz) < XTOL (XTOL + norm(z))`` in coordinates normalised to the bounds; SciPy's
+default, 1e-8: where the loss is rough at that scale, the trust-region least squares shrinks its
+radius fourfold per rejected trial, and the Go1's damping@calf + contact_softness pair replayed
+the same point to four digits seven times, 7 s of a diagnosis). The estimates' own spread is
+several times larger (that pair: 0.3% of the damping's range at one standard error)."""
+
 
 def fit_vector(obj: Objective, cfg: FitConfig, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray
                ) -> tuple[np.ndarray, float]:
@@ -446,7 +460,7 @@ def fit_vector(obj: Objective, cfg: FitConfig, x0: np.ndarray, lo: np.ndarray, h
     z0 = np.clip((x0 - lo) / span, 0, 1)
     fun = lambda z: obj.residual(lo + z * span).ravel()
     res = optimize.least_squares(fun, z0, bounds=(0, 1), diff_step=0.02, method="trf",
-                                 max_nfev=cfg.max_nfev * len(x0), x_scale=1.0, ftol=FTOL)
+                                 max_nfev=cfg.max_nfev * len(x0), x_scale=1.0, ftol=FTOL, xtol=XTOL)
     x = lo + res.x * span
     x0 = lo + z0 * span  # the start as the least squares replayed it (cached)
     f0 = obj.losses(x0).sum()
@@ -460,7 +474,7 @@ def _nominal(names) -> np.ndarray:
 
 def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg: FitConfig,
         start: dict | None = None, interval: bool = True, mask: np.ndarray | None = None,
-        cache: dict | None = None) -> Fit:
+        cache: dict | None = None, grid_only_above: float | None = None) -> Fit:
     """Fits the effects ``names`` jointly on ``data`` (start from ``start`` where given; a
     continuous scalar's grid holds its start as well, :func:`fit_scalar`).
 
@@ -468,7 +482,10 @@ def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg
     (:func:`with_interval`; the estimate stands for it meanwhile): the profile costs about a
     third of a scalar fit's replays, and a diagnosis reports intervals only for the hypotheses
     it names. ``mask [M, nv]``: fit on those entries of the residual only; ``cache``: replays
-    shared with other fits on the same data and base (:class:`Objective`)."""
+    shared with other fits on the same data and base (:class:`Objective`); ``grid_only_above``: a
+    single continuous scalar whose best grid node's training loss is above it is left there
+    (``Fit.grid_only``; :func:`stride_jax.gap.attribute.which` passes a multiple of its best
+    single's loss: a line search that cannot change the ranking costs 2-7 replays)."""
     names = tuple(names)
     ints = [n for n in names if effects.ALL[n].integer]
     conts = [n for n in names if not effects.ALL[n].integer]
@@ -483,9 +500,10 @@ def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg
         if e.size == 1:
             hint = start.get(name)
             hint = None if hint is None else float(np.ravel(hint)[0])
-            x, f, xl, xh = fit_scalar(obj, cfg, e.integer, lo[0], hi[0], hint)
+            x, f, xl, xh = fit_scalar(obj, cfg, e.integer, lo[0], hi[0], hint, grid_only_above)
+            grid_only = not e.integer and grid_only_above is not None and f > grid_only_above
             est = Fit(names, {name: np.array([x])}, f, {name: np.array([xl])}, {name: np.array([xh])},
-                      obj.evals, _flags(bound_flags(np.array([x]))), obj.unstable)
+                      obj.evals, _flags(bound_flags(np.array([x]))), obj.unstable, grid_only)
         else:
             x, f = fit_vector(obj, cfg, np.asarray(start.get(name, e.nominal), float), lo, hi)
             est = Fit(names, {name: x}, f, {name: x}, {name: x}, obj.evals, _flags(bound_flags(x)), obj.unstable)

@@ -53,7 +53,8 @@ def by_joint_speed(sm: SimModel, data: fit.Data, share: float = 1 / 3
 
 
 def check(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict[str, Any], cfg: fit.FitConfig,
-          tol: float, share: float = 1 / 3, min_windows: int = 40) -> dict[str, Any] | None:
+          tol: float, share: float = 1 / 3, min_windows: int = 40, cache: dict | None = None
+          ) -> dict[str, Any] | None:
     """The named single ``row`` (a ranking row: ``effects``, ``params``) refitted on the entries of
     ``train``'s residual where each joint moves slowest and fastest (:func:`by_joint_speed`):
     ``{"effect", "cuts", "share", "windows", "slow", "slow_lo", "slow_hi", "fast", ..., "intervals",
@@ -61,7 +62,8 @@ def check(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict[str, Any],
     ``intervals``: whether the estimates were far enough apart for their intervals to decide, the
     ``*_lo``/``*_hi`` None otherwise;
     ``windows``: replay windows; None for a pair, or with fewer than ``min_windows`` windows in a
-    share)."""
+    share). ``cache``: replays of the effect on ``train`` made already (the named fit's: its grid
+    is most of this check's, :func:`stride_jax.gap.fit.Objective`)."""
     if len(row["effects"]) != 1:
         return None
     (name,) = row["effects"]
@@ -69,7 +71,7 @@ def check(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict[str, Any],
         return None
     slow, fast, (lo, hi) = by_joint_speed(sm, train, share)
     start = {name: np.asarray(row["params"][name], float)}
-    shared: dict = {}  # the two fits differ in their mask only: the second reuses the first's grid replays
+    shared = {} if cache is None else cache  # the two fits differ in their mask only: one grid's replays
     cfg = dataclasses.replace(cfg, profile=max(cfg.profile, 1))
     masks = (slow, fast)
     fits = [fit.fit(sm, train, scale, (name,), cfg, start, interval=False, mask=m, cache=shared) for m in masks]
