@@ -171,3 +171,42 @@ def test_a_single_whose_estimate_a_significant_second_effect_moves_is_not_confid
     (weak,) = admit.pair_tests(S, [noisy], left_S=0.02, floor_frac=0.0, M=100, L_nom=100.0, cfg=TINY)
     assert not weak["significant"] and weak["moves"]
     assert "its estimate depends" not in verdict(_w(weak), TINY)["reason"]
+
+
+def test_a_pair_that_moves_the_singles_delay_needs_its_second_effect_with_the_delay_held():
+    # the independent Go1 benchmark's noisy delay case: delay 1 + mass@calf beat delay 2 alone by
+    # 2.68% of the gap, the heavier calf standing in for the step of delay. With the delay held at
+    # the single's 2 steps the second effect must pass the pair rule on its own.
+    import numpy as np
+    from stride_jax.gap import admit
+    rng = np.random.default_rng(1)
+    S = {"effects": ["delay"], "heldout_loss": 10.0, "_boot": np.zeros(1000), "params": {"delay": [2.0]},
+         "param_lo": {"delay": [1.0]}, "param_hi": {"delay": [2.0]}}
+    held = lambda loss, gain: {"effect": "delay", "value": 2.0, "params": {"delay": [2.0], "mass@calf": [1.05]},
+                               "heldout_loss": loss, "_boot": gain + 0.002 * rng.standard_normal(1000)}
+    pair = lambda c: {"effects": ["delay", "mass@calf"], "heldout_loss": 4.0, "_held_at_single": c,
+                      "_boot": 0.1 + 0.002 * rng.standard_normal(1000), "params": {"delay": [1.0], "mass@calf": [1.27]}}
+    test = lambda S_, P: admit.pair_tests(S_, [P], left_S=0.2, floor_frac=0.0, M=100, L_nom=100.0, cfg=TINY)[0]
+    traded, real_, plain = test(S, pair(held(9.99, 0.001))), test(S, pair(held(4.5, 0.055))), test(S, pair(None))
+    assert traded["significant"] and traded["material"] and traded["trade"]["is_trade"] and not traded["preferred"]
+    assert real_["preferred"] and not real_["trade"]["is_trade"] and plain["preferred"] and "trade" not in plain
+    w = _w(traded)
+    w["ranking"][0] |= {"effects": ["delay"], "params": {"delay": [2.0]}}
+    reason = verdict(w, TINY)["reason"]
+    assert "not named: delay+mass@calf, which moves delay from 2 to 1" in reason, reason
+    assert "mass@calf stands in for a step of delay" in reason
+    # only the single's own integer effect is held: a pair moving another member is tested as before
+    other = pair(held(9.99, 0.001)) | {"effects": ["damping", "delay"], "params": {"damping": [0.3], "delay": [1.0]}}
+    assert "trade" not in test(S | {"effects": ["damping"], "params": {"damping": [0.3]}}, other)
+
+
+def test_a_pair_with_an_integer_effect_keeps_its_fit_at_each_integer_value():
+    pendulum = nominal.load("pendulum")
+    _, logged = real.generate(pendulum, {"damping": 0.2, "delay": 2}, 3, 80, seed=2)
+    data = fit.make_data(logged, TINY.steps)
+    scale = diagnose.scale_of(pendulum, data)
+    f = fit.fit(pendulum, data, scale, ("delay", "damping"), TINY.fit, {"delay": [2.0], "damping": [0.1]})
+    assert sorted(f.integer_fits) == [1.0, 2.0, 3.0]
+    best = min(f.integer_fits.values(), key=lambda pf: pf[1])
+    assert best[1] == f.train_loss and best[0]["delay"][0] == f.params["delay"][0]
+    assert all(p["delay"][0] == v for v, (p, _) in f.integer_fits.items())

@@ -185,6 +185,17 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
         f = fit.fit(sm, train, scale, (a, b), cfg.fit, start, cache=replays)
         score(f)
         log(f"  fit {a}+{b}: {_fmt(f.params)}  ({f.evals} evals, {time.time() - t0:.1f} s)")
+    # a pair that moves an integer effect (a delay) off its single's value: the same pair with the
+    # integer held at the single's value (its fit is one of the pair's own, Fit.integer_fits),
+    # scored held out for the pair rule's trade test (:func:`stride_jax.gap.admit.pair_tests`)
+    held_at_single = {}
+    for f in fits[n_single:]:
+        for n in f.names:
+            if f.integer_fits and n in singles:
+                v = float(singles[n].params[n][0])
+                if v != float(f.params[n][0]) and v in f.integer_fits:
+                    params = f.integer_fits[v][0]
+                    held_at_single[f.names] = (n, v, params, fit.residual(sm, effects.build(sm, params), test, scale))
     clock.append(("pairs", time.time()))
     rows = []
     for f in fits:
@@ -200,6 +211,13 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
                      "explained_ci": np.percentile(boot, [5, 95]).tolist(),
                      "p_no_better_than_nominal": float((boot <= 0).mean()),
                      "score": float(expl - cfg.penalty * k), "_boot": boot})
+        if f.names in held_at_single:
+            n, v, params, r = held_at_single[f.names]
+            Lc = blocks(r)
+            rows[-1]["_held_at_single"] = {"effect": n, "value": v, "params": _jsonable(params),
+                                           "heldout_loss": float(Lc.sum()),
+                                           "explained": float(1 - Lc.sum() / max(L_nom, 1e-300)),
+                                           "_boot": 1 - (Wb @ Lc) / boot_nom}
     rows.sort(key=lambda r: -r["score"])
     granularity.prefer_coarse(rows, cfg.screen.finer_margin, cfg.alpha, lambda n: noise_floor(r_te[n], test) * M / L_nom)
     _with_interval(sm, train, scale, next(r for r in rows if len(r["effects"]) == 1), cfg, replays)
@@ -281,6 +299,7 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     for row in rows:
         row["explained_above_floor"] = float(min(1.0, (g_nom - row["heldout_loss"] / M) / above))
         del row["_boot"], row["_fit"]
+        row.pop("_held_at_single", None)
     u1 = sim.unstable()
     unstable = {"fits": int(sum(f.unstable for f in fits)), "pair_screen": int(screen_unstable),
                 "diverged_replays": u1["diverged"] - unstable0["diverged"],
@@ -346,6 +365,16 @@ def admission_note(w: dict[str, Any], cfg: DiagnoseConfig) -> str:
                        f"bound {t['gain_lower']:.2%}): below the {cfg.pair_material:.0%} materiality rule for a second "
                        f"effect, so not named (a share this small cannot be told from the model-form difference the "
                        f"simulator's settings leave)")
+        trade = t.get("trade")
+        if (trade and trade["is_trade"] and t["significant"] and t["material"]
+                and set(t["single"]) == set(best["effects"])):
+            out.append(f"not named: {'+'.join(t['pair'])}, which moves {trade['effect']} from "
+                       f"{_num(trade['single_value'])} to {_num(trade['pair_value'])} and closes a further "
+                       f"{t['gain_explained']:.2%} of the held-out gap: with {trade['effect']} held at "
+                       f"{_num(trade['single_value'])}, {trade['second']} closes {trade['gain_explained']:+.2%} (lower "
+                       f"bound {trade['gain_lower']:+.2%}), short of the pair rule (significant, at least "
+                       f"{cfg.pair_min:.0%} of what the single leaves and {t['material_min']:.2%} of the gap): "
+                       f"{trade['second']} stands in for a step of {trade['effect']}, not a second effect")
     for t in w.get("nuisance_tests", []):
         if t["admitted"] and t["effect"] in best["effects"]:
             out.append(t["summary"])
@@ -445,8 +474,9 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
         if (len(best["effects"]) == 1 and set(t["single"]) == set(best["effects"]) and not t["preferred"]
                 and t.get("material_possible")):
             extra = "+".join(e for e in t["pair"] if e not in t["single"])
+            g = t.get("trade") or t  # a trade: the second effect's gain with the integer held at the single's
             shortfalls.append(f"a material second effect cannot be ruled out: {extra} on top closes "
-                              f"{t['gain_explained']:+.2%} of the held-out gap, up to {t['gain_upper']:.2%} "
+                              f"{g['gain_explained']:+.2%} of the held-out gap, up to {g['gain_upper']:.2%} "
                               f"({1 - cfg.alpha:.0%} bootstrap quantile), which reaches the "
                               f"{t['material_min']:.2%} materiality bar for naming a second effect")
         if (len(best["effects"]) == 1 and set(t["single"]) == set(best["effects"]) and t["significant"]

@@ -259,7 +259,9 @@ class Fit(NamedTuple):
     equal to the estimate where none was computed), evaluations, ``at_bound`` (name -> bool
     vector: the estimate sits on a bound other than its nominal value) and ``unstable``
     (evaluations in which a replay diverged); ``grid_only``: a scalar left at its best grid node
-    (:func:`fit`'s ``grid_only_above``)."""
+    (:func:`fit`'s ``grid_only_above``); ``integer_fits``: for a hypothesis with an integer effect
+    (a delay) beside continuous ones, the fit at each integer value tried (value -> (parameters,
+    training loss)), the best of which is the estimate."""
 
     names: tuple[str, ...]
     params: dict
@@ -270,6 +272,7 @@ class Fit(NamedTuple):
     at_bound: dict | None = None
     unstable: int = 0
     grid_only: bool = False
+    integer_fits: dict | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -534,7 +537,8 @@ def fit(sm: SimModel, data: Data, scale: np.ndarray, names: tuple[str, ...], cfg
         evals = sum(t[3].evals for t in tried)
         unstable = sum(t[3].unstable for t in tried)
         vec = np.concatenate([params[n] for n in names])
-        return Fit(names, params, f, los, his, evals, _flags(bound_flags(vec)), unstable)
+        held = {float(t[0]): ({iname: np.array([float(t[0])])} | _split(conts, t[2]), float(t[1])) for t in tried}
+        return Fit(names, params, f, los, his, evals, _flags(bound_flags(vec)), unstable, integer_fits=held)
     x0 = np.concatenate([np.asarray(start.get(n, effects.ALL[n].nominal), float) for n in names])
     obj = Objective(sm, data, scale, names, block=cfg.block, mask=mask, cache=cache)
     x, f = fit_vector(obj, cfg, x0, lo, hi)
