@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from precision import assert_close, exact, rounded
 
-from stride_jax.dynamics import fused, mlp, models, stride
+from stride_jax.dynamics import fused, fused_step, mlp, models, stride
 from stride_jax.types import ModelSpec
 
 
@@ -36,11 +36,12 @@ def _states(spec, n: int, seed: int = 0):
     return q, qd, ctrl, jax.random.split(keys[4], n)
 
 
-@pytest.mark.parametrize("kernel", ["pallas-step", "pallas-step-bf16"])
-def test_whole_step_equals_the_xla_step(kernels, kernel):
+@pytest.mark.parametrize("kernel, rows", [("pallas-step", 16), ("pallas-step-bf16", 8)])
+def test_whole_step_equals_the_xla_step(kernels, kernel, rows, monkeypatch):
     """Servo (saturated and unlimited joints), features, the prior's networks and products, the
     flow sample, the solve and the integration: the kernel's next states are XLA's (a Go1-sized
-    robot, a learned mass)."""
+    robot, a learned mass), in programs of either size ``program_rows`` chooses."""
+    monkeypatch.setattr(fused_step, "ROWS", rows)
     spec, act = _robot(12)
     scales = stride.Scales(qd=jnp.linspace(0.5, 2.0, spec.nv), tau=jnp.linspace(1.0, 3.0, spec.nv),
                            force=jnp.linspace(2.0, 4.0, spec.nv))
@@ -51,7 +52,7 @@ def test_whole_step_equals_the_xla_step(kernels, kernel):
     noise = lambda w, k: w + 0.1 * jax.random.normal(k, w.shape)
     leaves, tree = jax.tree.flatten(xla.init(jax.random.key(1)))
     params = tree.unflatten([noise(w, jax.random.key(i)) for i, w in enumerate(leaves)])
-    q, qd, ctrl, keys = _states(spec, 20)  # not a multiple of the kernel's 16 rows
+    q, qd, ctrl, keys = _states(spec, 20)  # not a multiple of the programs' rows
     step = lambda m: jax.jit(jax.vmap(lambda *a: m.step(params, *a)))
     dtype = fused.kernel_dtype(kernel)
     rounded_params = rounded(params, dtype)  # to the kernel's precision: outside exact()
@@ -113,3 +114,14 @@ def test_models_too_big_for_shared_memory_take_the_per_pass_kernels():
     q, qd, ctrl, keys = _states(spec, 4)
     jaxpr = str(jax.make_jaxpr(jax.vmap(lambda *a: model.step(params, *a)))(q, qd, ctrl, keys))
     assert "stride_fused_step" not in jaxpr and "stride_fused_mlp" in jaxpr
+
+
+def test_program_rows_fill_the_gpu_before_halving():
+    """8 rows where 16-row programs would leave multiprocessors idle and 8 rows add no wave
+    (K = 1024 on an H200's 132 SMs: 128 programs, one wave), else 16 (K = 2048: 128 programs of
+    16 are one wave, 256 of 8 would be two); 16 where the device reports no multiprocessors."""
+    rows = fused_step.program_rows
+    assert rows(1024, sms=132) == 8 and rows(256, sms=132) == 8 and rows(20, sms=132) == 8
+    assert rows(2048, sms=132) == 16 and rows(4096, sms=132) == 16
+    assert rows(1024, sms=64) == 16  # 128 programs of 8 would be two waves
+    assert rows(1024, sms=0) == 16

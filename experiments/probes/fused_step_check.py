@@ -45,7 +45,10 @@ def main():
                    "(fused_step.UNROLL: products, gram, factor, backward)")
     p.add_argument("--warps", type=int, default=0,
                    help="warps per program of the step kernel (0: fused_step.WARPS)")
+    p.add_argument("--rows", type=int, default=0,
+                   help="samples per program of the step kernel (0: fused_step.program_rows)")
     a = p.parse_args()
+    fused_step.ROWS = a.rows or None
     if a.warps:
         fused_step.WARPS = a.warps
     fused_step.UNROLL = frozenset(x for x in a.unroll.split(",") if x)
@@ -75,7 +78,8 @@ def main():
     ctrl = q[:, 7:] + 0.1 * rng.standard_normal((K, nu)).astype(np.float32)
     keys = jax.random.split(jax.random.key(1), K)
     ctrls = jnp.asarray(np.tile(ctrl[:, None], (1, H, 1)))
-    print(f"{jax.devices()[0].device_kind}: {a.robot} STRIDE, K={K}, H={H}", flush=True)
+    print(f"{jax.devices()[0].device_kind}: {a.robot} STRIDE, K={K}, H={H}, "
+          f"{fused_step.program_rows(K)} rows per program of the step kernel", flush=True)
     ref = None
     for kernel in a.kernels.split(","):
         model = model_of(kernel)

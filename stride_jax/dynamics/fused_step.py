@@ -3,7 +3,7 @@ launches where XLA makes ~57 and the per-pass kernels ~32 (``results/mppi_latenc
 
 For a floating-base robot with position servos integrated implicitly, one network for L and V
 (``StructuredConfig.shared_lnn``) and a flow residual sampled with Euler steps, one kernel
-program takes a block of ``ROWS`` samples ``(q, qd, ctrl, z)`` through
+program takes a block of 8 or 16 samples ``(q, qd, ctrl, z)`` (``program_rows``) through
 
 0. the servo at the next state (``Actuation.implicit``), the prior's features (rotation matrix,
    joint angles) and their tangent along ``qd``, and the flow's context;
@@ -23,14 +23,16 @@ example like the rest of the library: under ``vmap`` on a GPU it is one kernel f
 replaces (the kernel runs on a CPU only in Pallas' interpreter, which the tests use).
 
 Layout inside a program (``fused_pallas`` has the network passes, ``fused_layout`` the index
-tables): per-dof quantities are ``[ROWS, n]`` tensors (``n``: nq padded to a power of two); the
+tables): per-dof quantities are ``[rows, n]`` tensors (``n``: nq padded to a power of two); the
 prologue writes its quantities into one scratch row (``PREP``) and the networks' inputs are
 gathered from it through static index tables; L's entries stay in the network's output order in
 a buffer, and L's rows and columns are gathered from it (``Layout.index``) inside short loops.
 
 Measured (one H100, Go1 STRIDE NFE 2, K = 1024, H = 30, MPPI step; commands in
 ``results/mppi_latency/README.md``): 64 x 3 networks 2.80 ms (2.47 ms with bfloat16 products) against 6.27 ms
-in XLA; 128 x 3 3.94 / 3.24 ms against 6.52; 256 x 3 8.19 / 4.21 against 7.57. In the version
+in XLA; 128 x 3 3.94 / 3.24 ms against 6.52; 256 x 3 8.19 / 4.21 against 7.57. Programs of 8
+rows where 16 leave SMs idle (``program_rows``; one H200, bfloat16): Go1 64 x 3 2.63 -> 2.41 ms,
+256 x 3 4.39 -> 3.70 ms, G1 64 x 3 7.99 -> 5.18 ms (XLA 8.78). In the version
 before the prologue and integration moved in (64 x 3, leaving parts out: ``SKIP``) the solve
 took ~24 us per step, the products and transposed pass ~22 us, the flow ~6 us. Unrolling the
 small loops lets their loads issue ahead but Triton's compile time grows steeply (``UNROLL``;
@@ -50,12 +52,33 @@ from stride_jax.dynamics.fused_layout import PREP, Layout
 from stride_jax.dynamics.time_embedding import time_embedding
 
 WARPS = 8  # warps per program of the step kernel (the reduced mass matrix in registers)
+# Samples per program: None lets ``program_rows`` choose; an int fixes it (the probes' --rows).
+ROWS: int | None = None
 # Parts left out, to time the others (``experiments/probes/fused_step_check.py --skip``; wrong results):
 # "products" (L's products and the transposed pass), "flow", "solve".
 SKIP: frozenset = frozenset()
 # The small loops unrolled, by name ("products", "gram", "factor", "backward"). Unrolled, a loop's
 # loads are issued ahead; but Triton's compile time grows steeply (all four unrolled: > 2 min).
 UNROLL: frozenset = frozenset()
+
+
+def program_rows(batch: int, sms: int | None = None) -> int:
+    """Samples per program for a batch of ``batch``: the fewest waves of programs over the GPU's
+    ``sms`` multiprocessors (one program per SM: the kernel's 255 registers per thread allow no
+    second), then 8 rows rather than 16. A program's time is latency, not arithmetic: 8 rows take
+    87% of 16 rows' time (one H200, Go1 64 x 3 and 256 x 3 at K = 1024: 104 -> 90 and 171 -> 148
+    us per rollout step; 4 rows: 137 and 233), so halving the rows pays only where the programs
+    would otherwise leave SMs idle (K = 1024: 64 programs of 16 on 132 SMs) and not where it adds
+    a wave. ``sms`` defaults to the default device's (16 rows where it reports none: a CPU, the
+    interpreter)."""
+    if ROWS:
+        return ROWS
+    if sms is None:
+        sms = getattr(jax.devices()[0], "core_count", None)
+    if not sms:
+        return fp.ROWS
+    waves = lambda rows: -(-(-(-batch // rows)) // sms)
+    return 8 if waves(8) <= waves(fp.ROWS) else fp.ROWS
 
 
 def _col(x, i):
@@ -70,8 +93,8 @@ def _set(x, i, value):
 
 
 def _gather(ref, index):
-    """``ref[r, index[r, c]]`` for a row block ``ref`` and ``index [1 or R, c]``."""
-    shape = (fp.ROWS, index.shape[-1])
+    """``ref[r, index[r, c]]`` for a row block ``ref [R, .]`` and ``index [1 or R, c]``."""
+    shape = (ref.shape[0], index.shape[-1])
     rows = jax.lax.broadcasted_iota(jnp.int32, shape, 0)
     return ref[rows, jnp.broadcast_to(index, shape)]
 
@@ -85,12 +108,14 @@ def _loop(name: str, n: int, body: Callable, init):
     return init
 
 
-def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float) -> Callable:
-    """The kernel body; ``lnn_dims``: the prior network's feature dimensions (input first),
-    ``flow_dims``: the flow's (latent, context, then its layers' outputs)."""
+def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float,
+            rows: int) -> Callable:
+    """The kernel body for programs of ``rows`` samples; ``lnn_dims``: the prior network's
+    feature dimensions (input first), ``flow_dims``: the flow's (latent, context, then its
+    layers' outputs)."""
     n_l = len(lnn_dims) - 1
     n_fw = 2 * (len(flow_dims) - 3)
-    R, n, nv, P = fp.ROWS, lay.n, lay.nv, lay.prep
+    R, n, nv, P = rows, lay.n, lay.nv, lay.prep
 
     def kernel(q_ref, qd_ref, ctrl_ref, z_ref, *refs):
         w_lnn, refs = refs[:2 * n_l], refs[2 * n_l:]
@@ -232,7 +257,7 @@ def _solve(lay, floor, rhs, ent_ref, index_r_ref, mass_ref, prep_ref, vec_ref, c
     3.. and columns 0-2; then ``x1 = (r1 - s B^T x2) / a``. S is factorised right-looking in
     registers, the forward substitution in the same loop, its columns kept for the backward
     one."""
-    R, n, nr, nv, P = fp.ROWS, lay.n, lay.nr, lay.nv, lay.prep
+    R, n, nr, nv, P = rhs.shape[0], lay.n, lay.nr, lay.nv, lay.prep
     dof = jax.lax.broadcasted_iota(jnp.int32, (R, n), 1)
     vec_ref[:, :n] = rhs
     fp._barrier()
@@ -351,7 +376,8 @@ def step_batched(st: Static, lnn_layers, flow_layers, sqrt_mass, gravity, servo,
     consts = [x.reshape(1, -1) if x.ndim == 1 else x for x in consts]
 
     batch = q.shape[0]
-    padded = -(-batch // fp.ROWS) * fp.ROWS
+    R = program_rows(batch)
+    padded = -(-batch // R) * R
     rows = [jnp.pad(r, ((0, padded - batch), (0, 0))) for r in (q, qd, ctrl, z)]
     blocks = [n, n, max(16, 1 << (ctrl.shape[1] - 1).bit_length()), n]
     wide = max([d.padded for d in lnn_dims] + [d.padded for d in hidden])
@@ -359,13 +385,13 @@ def step_batched(st: Static, lnn_layers, flow_layers, sqrt_mass, gravity, servo,
                                                  hidden[0].padded, lay.nr * lay.nr,
                                                  len(PREP) * n]
               + [d.padded for d in lnn_dims[1:-1]])
-    row_spec = lambda cols: pl.BlockSpec((fp.ROWS, cols), lambda i: (i, 0))
+    row_spec = lambda cols: pl.BlockSpec((R, cols), lambda i: (i, 0))
     results = pl.pallas_call(
-        _kernel(lay, lnn_dims, (dz, dc) + hidden, st.nfe, st.floor, st.dt),
+        _kernel(lay, lnn_dims, (dz, dc) + hidden, st.nfe, st.floor, st.dt, R),
         out_shape=[jax.ShapeDtypeStruct((padded, nv + 1), jnp.float32),
                    jax.ShapeDtypeStruct((padded, nv), jnp.float32)]
         + [jax.ShapeDtypeStruct((padded, w), jnp.float32) for w in widths],
-        grid=(padded // fp.ROWS,),
+        grid=(padded // R,),
         in_specs=[row_spec(b) for b in blocks]
         + [pl.BlockSpec(x.shape, lambda i: (0, 0)) for x in consts],
         out_specs=[row_spec(n), row_spec(n)] + [row_spec(w) for w in widths],
