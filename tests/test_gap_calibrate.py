@@ -242,3 +242,49 @@ def test_settings_naming_the_models_own_value_are_one_model():
     path = []
     best, moved = calibrate._sweep(Settings(cone="elliptic"), values, own, loss, calibrate.CalibrateConfig(), path, 0)
     assert not moved and path == [] and calibrate._neutral(best, own) == Settings()
+
+
+def test_contact_effect_start_is_adopted_only_where_it_fits_better_held_out(monkeypatch):
+    """The second start of the refinement: ground friction (no setting reproduces it) is screened
+    on the nominal model and held fixed in a calibration from the start; that calibration is
+    adopted only where its held-out gap, with the friction applied, beats the other's by
+    ``min_gain``. Stubbed screen, calibration and residuals: the selection rule alone."""
+    cfg = calibrate.CalibrateConfig()
+    first = calibrate.Calibration(model="first", settings=Settings(impratio=0.07), record={"applied": True})
+    alt = calibrate.Calibration(model="alt", settings=Settings(impratio=0.16), record={"applied": True})
+    screened, gaps = {}, {}
+
+    def fake_screen(base, *a, only=None, **k):
+        screened["only"] = only
+        found = screened.get("found", {})
+        rows = [{"effect": n, "value": v[0], "loss": screened["loss"]} for n, v in found.items()]
+        return found, {"loss_without": 100.0, "screen": rows}
+
+    monkeypatch.setattr(calibrate, "screen", fake_screen)
+    monkeypatch.setattr(calibrate, "calibrate", lambda sm, *a, applied=None, **k: alt)
+    monkeypatch.setattr(calibrate, "residual", lambda model, test, scale, app: gaps[model])
+    monkeypatch.setattr(calibrate.fit, "gap", lambda g: g)
+    test = type("T", (), {"k": 3})()
+    run = lambda held={}: calibrate._contact_effect_start("sm", first, first, held, None, test, None, cfg, 5,
+                                                          QUIET)
+    # nothing gains on the nominal model: the first calibration stays, nothing else is run
+    cal, info = run()
+    assert cal is first and not info["adopted"] and screened["only"] == frozenset({"ground_friction"})
+    # friction gains, but closes less than half of the nominal loss on its own: no second start
+    screened.update(found={"ground_friction": [0.3]}, loss=72.0)
+    gaps.update(first=0.145, alt=0.048)
+    cal, info = run()
+    assert cal is first and not info["adopted"] and "heldout_gap" not in info
+    # it closes 83%: adopted where it fits 3x better held out, kept out where within min_gain
+    screened["loss"] = 17.0
+    cal, info = run()
+    assert cal is alt and info["adopted"] and info["held_fixed"] == {"ground_friction": [0.3]}
+    gaps.update(alt=0.145 * (1 - cfg.min_gain / 2))
+    cal, info = run()
+    assert cal is first and not info["adopted"]
+    # a refinement that held friction at another value (screened on top of the first pass): the
+    # second start still runs; at the same value it would repeat that refinement and does not
+    gaps.update(alt=0.048)
+    assert run({"ground_friction": [0.84]})[0] is alt
+    cal, info = run({"ground_friction": [0.3]})
+    assert cal is first and not info["adopted"] and "heldout_gap" not in info

@@ -313,6 +313,12 @@ def calibration_section(d: dict[str, Any]) -> list[str]:
         else:
             L += ["", "No library effect lowered the training loss on top of the first calibration (screen): "
                   "not refined."]
+        alt = r.get("contact_effect_start") or {}
+        if alt.get("held_fixed"):
+            L += ["", f"Calibrated again from the start with {alt['held_fixed']} held fixed (a contact effect the "
+                  "settings can imitate, screened on the nominal model): held-out gap "
+                  f"{alt['heldout_gap']:.4g} against {alt['heldout_gap_other']:.4g}, "
+                  + ("adopted: the effect is scored on these settings." if alt["adopted"] else "not adopted.")]
     L += ["", f"{c['evaluations']} replays of the training split, {c['seconds']:.0f} s. What calibration can and cannot "
           "tell apart: docs/gap.md (a softer ground is a longer solref time constant; contact parameters can take up "
           "part of a payload or of ground friction).", ""]
