@@ -77,7 +77,8 @@ def program_rows(batch: int, sms: int | None = None) -> int:
         sms = getattr(jax.devices()[0], "core_count", None)
     if not sms:
         return fp.ROWS
-    waves = lambda rows: -(-(-(-batch // rows)) // sms)
+    ceil = lambda a, b: -(-a // b)
+    waves = lambda rows: ceil(ceil(batch, rows), sms)
     return 8 if waves(8) <= waves(fp.ROWS) else fp.ROWS
 
 
