@@ -19,38 +19,26 @@ Run it alone on the 2-core machine: each calibration takes 1-3 minutes, ``--shar
 from __future__ import annotations
 
 import argparse
-import tempfile
 import time
 
 import stride_jax
-from stride_jax.gap import calibrate, diagnose, filters, fit, logs, nominal, sim
+from stride_jax.gap import calibrate, diagnose
 from stride_jax.jobs import gap_bench_independent as bi
 
 
 def row_data(bcfg, case: int, noisy: bool):
-    """A benchmark row's logs as ``diagnose`` splits and scales them: ``(sm, cfg, train_k, test_k,
-    scale, drawn settings)``."""
-    sm = nominal.load(bcfg.robot, "shipped")
-    _, logged, settings, _ = bi.real_logs(bcfg, case, noisy)
-    with tempfile.TemporaryDirectory() as tmp:
-        logs.write(tmp, sm, logged, notes=f"independent benchmark case {case}")
-        _, trajs = logs.read(tmp, sm)
+    """A benchmark row's logs as ``diagnose`` prepares them, its diagnosis config and the drawn
+    settings."""
+    sm, trajs, _, settings, _ = bi.as_read(bcfg, case, noisy)
     cfg = diagnose.PRESETS[bcfg.diagnose]
-    sm = sim.for_replay(sm)
-    trajs = [filters.preprocess(tr, sm.robot.ctrl_dt, cfg.preprocess)[0] for tr in trajs]
-    tr_idx, te_idx = diagnose.split(len(trajs), cfg.holdout, cfg.seed)
-    scale = diagnose.scale_of(sm, fit.subset(fit.make_data(trajs), tr_idx))
-    train_k, test_k = (fit.make_data([trajs[i] for i in ix], cfg.steps) for ix in (tr_idx, te_idx))
-    return sm, cfg, train_k, test_k, scale, settings
+    return diagnose.prepare(sm, trajs, cfg), cfg, settings
 
 
 def shares(bcfg) -> None:
-    names = frozenset(n for n, s in nominal.OVERLAPS.items() if s is None)
     for case in range(len(bi.cases(bcfg))):
         for noisy in bcfg.noise:
-            sm, cfg, train_k, _, scale, _ = row_data(bcfg, case, noisy)
-            alt, rec = calibrate.screen(sm, train_k, scale, cfg.calibrate, cfg.fit.grid, only=names)
-            share = 1 - rec["screen"][0]["loss"] / rec["loss_without"] if alt else 0.0
+            p, cfg, _ = row_data(bcfg, case, noisy)
+            alt, _, share = calibrate.contact_effect_screen(p.sm, p.train_k, p.scale, cfg.calibrate, cfg.fit.grid)
             print(f"case {case:2d} {'noisy' if noisy else 'clean'} planted {bi.cases(bcfg)[case]['planted']}: "
                   f"{alt or 'no gain'}, share {share:.1%}" + ("  <- second start" if share >= cfg.calibrate.second_start
                                                                  else ""), flush=True)
@@ -69,7 +57,7 @@ def main() -> None:
         return shares(bcfg)
     if a.case < 0:
         ap.error("--case is required without --shares")
-    sm, cfg, train_k, test_k, scale, settings = row_data(bcfg, a.case, a.noisy)
+    p, cfg, settings = row_data(bcfg, a.case, a.noisy)
     print(f"case {a.case} ({'noisy' if a.noisy else 'clean'}): planted {bi.cases(bcfg)[a.case]['planted']}, "
           f"drawn settings {settings}", flush=True)
     runs = [("settings only", None)]
@@ -78,12 +66,11 @@ def main() -> None:
         runs.append((item, {name.strip(): [float(value)]}))
     for label, applied in runs:
         t0 = time.time()
-        cal = calibrate.calibrate(sm, train_k, test_k, scale, cfg.calibrate, log=lambda s: None, applied=applied)
-        r = cal.record
-        gap = fit.gap(calibrate.residual(nominal.apply(sm, nominal.Settings(**r["settings"])), test_k, scale, applied))
-        print(f"{label:28s} held-out {test_k.k}-step gap {gap:.5g} (nominal settings, nothing applied: "
-              f"{r['heldout_gap_nominal']:.5g}); {'; '.join(r['proposed'])} ({time.time() - t0:.0f} s)", flush=True)
-
+        cal = calibrate.calibrate(p.sm, p.train_k, p.test_k, p.scale, cfg.calibrate, log=lambda s: None,
+                                  applied=applied)
+        print(f"{label:28s} held-out {p.test_k.k}-step gap {calibrate.heldout_gap(cal):.5g} (nominal settings, "
+              f"nothing applied: {cal.record['heldout_gap_nominal']:.5g}); {'; '.join(cal.record['proposed'])} "
+              f"({time.time() - t0:.0f} s)", flush=True)
 
 if __name__ == "__main__":
     stride_jax.set_xla_flags()

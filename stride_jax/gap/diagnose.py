@@ -210,20 +210,46 @@ def _screen_and_which(sm, sm_nominal, cal, train_k, test_k, scale, cfg, log, sta
 # ----------------------------------------------------------------------------- top level
 
 
+@dataclasses.dataclass(frozen=True)
+class Prepared:
+    """Logged trajectories as :func:`diagnose` replays them: the model set up for replay
+    (``sim.for_replay``), the preprocessed trajectories, the train / held-out split, one-step data
+    (all, train, held out), the per-dof ``scale`` and the ``k``-step data of both splits."""
+
+    sm: SimModel
+    trajs: list
+    outliers_replaced: int
+    tr_idx: list[int]
+    te_idx: list[int]
+    data: fit.Data
+    train: fit.Data
+    test: fit.Data
+    scale: np.ndarray
+    train_k: fit.Data
+    test_k: fit.Data
+
+
+def prepare(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig) -> Prepared:
+    """The first step of :func:`diagnose` (also for probes that replay its stages on their own)."""
+    sm = sim.for_replay(sm)
+    prep = [filters.preprocess(tr, sm.robot.ctrl_dt, cfg.preprocess) for tr in trajs]
+    trajs = [q[0] for q in prep]
+    tr_idx, te_idx = split(len(trajs), cfg.holdout, cfg.seed)
+    data = fit.make_data(trajs)
+    train, test = fit.subset(data, tr_idx), fit.subset(data, te_idx)
+    train_k, test_k = (fit.make_data([trajs[i] for i in ix], cfg.steps) for ix in (tr_idx, te_idx))
+    return Prepared(sm, trajs, int(sum(q[1]["outliers_replaced"] for q in prep)), tr_idx, te_idx, data, train, test,
+                    scale_of(sm, train), train_k, test_k)
+
+
 def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = DiagnoseConfig(),
              log=print) -> dict[str, Any]:
     """Runs where / which / how far on logged trajectories. Returns a JSON-able dict (plus a few
     arrays under keys starting with ``_`` for the plots)."""
     t_start = time.time()
-    sm = sim.for_replay(sm)
-    dt = sm.robot.ctrl_dt
-    prep = [filters.preprocess(tr, dt, cfg.preprocess) for tr in trajs]
-    trajs = [p[0] for p in prep]
-    tr_idx, te_idx = split(len(trajs), cfg.holdout, cfg.seed)
-    data = fit.make_data(trajs)
-    train, test = fit.subset(data, tr_idx), fit.subset(data, te_idx)
-    scale = scale_of(sm, train)
-    train_k, test_k = (fit.make_data([trajs[i] for i in ix], cfg.steps) for ix in (tr_idx, te_idx))
+    p = prepare(sm, trajs, cfg)
+    sm, dt, trajs, tr_idx, te_idx, data = p.sm, p.sm.robot.ctrl_dt, p.trajs, p.tr_idx, p.te_idx, p.data
+    train, test, scale, train_k, test_k = p.train, p.test, p.scale, p.train_k, p.test_k
     nom = effects.build(sm)
     r_all = fit.residual(sm, nom, data, scale)
     log(f"{sm.robot.name}: {len(trajs)} trajectories ({len(tr_idx)} train, {len(te_idx)} held out), "
@@ -232,7 +258,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
         "robot": sm.robot.name, "n_trajectories": len(trajs), "train": [data.names[i] for i in tr_idx],
         "heldout": [data.names[i] for i in te_idx], "n_samples": int(len(r_all)),
         "config": dataclasses.asdict(cfg),
-        "preprocess": {"outliers_replaced": int(sum(p[1]["outliers_replaced"] for p in prep)),
+        "preprocess": {"outliers_replaced": p.outliers_replaced,
                        "smoothing_bandwidth_hz": cfg.preprocess.bandwidth_hz(dt)},
         "residual_definition": "(logged next velocity - nominal one-step prediction) / control period; "
                                "'scaled' divides each dof by the spread of its logged velocity changes",

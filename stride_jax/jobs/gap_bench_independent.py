@@ -108,16 +108,24 @@ def diagnose_row(cfg: IndependentConfig, index: int, noisy: bool) -> dict[str, A
     return diagnose_case(cfg, index, noisy)[0]
 
 
-def diagnose_case(cfg: IndependentConfig, index: int, noisy: bool
-                  ) -> tuple[dict[str, Any], dict[str, Any]]:
-    """:func:`diagnose_row`'s scored row and the whole diagnosis it scored
-    (``experiments/gap_one_row.py`` keeps both, to read a verdict without the benchmark)."""
-    t0 = time.time()
+def as_read(cfg: IndependentConfig, index: int, noisy: bool):
+    """Case ``index``'s logs as a user would hand them over: written to the documented log folder and
+    read back against the shipped nominal model. ``(nominal model, logged trajectories, clean
+    trajectories, drawn settings, "real" model)``."""
     sm = nominal.load(cfg.robot, "shipped")
     clean, logged, settings, form = real_logs(cfg, index, noisy)
     with tempfile.TemporaryDirectory() as tmp:
         logs.write(tmp, sm, logged, notes=f"independent benchmark case {index}")
         _, trajs = logs.read(tmp, sm)
+    return sm, trajs, clean, settings, form
+
+
+def diagnose_case(cfg: IndependentConfig, index: int, noisy: bool
+                  ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """:func:`diagnose_row`'s scored row and the whole diagnosis it scored
+    (``experiments/gap_one_row.py`` keeps both, to read a verdict without the benchmark)."""
+    t0 = time.time()
+    sm, trajs, clean, settings, form = as_read(cfg, index, noisy)
     dcfg = diagnose.PRESETS[cfg.diagnose]
     if cfg.pairs_of >= 0:
         dcfg = dataclasses.replace(dcfg, pairs_of=cfg.pairs_of)

@@ -314,7 +314,7 @@ def calibration_section(d: dict[str, Any]) -> list[str]:
             L += ["", "No library effect lowered the training loss on top of the first calibration (screen): "
                   "not refined."]
         alt = r.get("contact_effect_start") or {}
-        if alt.get("held_fixed"):
+        if "heldout_gap" in alt:  # the second start ran (the share reached the threshold)
             L += ["", f"Calibrated again from the start with {alt['held_fixed']} held fixed (a contact effect the "
                   "settings can imitate, screened on the nominal model): held-out gap "
                   f"{alt['heldout_gap']:.4g} against {alt['heldout_gap_other']:.4g}, "
