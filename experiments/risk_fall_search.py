@@ -13,6 +13,12 @@ resume), a job is started only if the time left covers its estimate, and each fi
 folder is packed to ``OUT/<job>.tgz``.
 
     python experiments/risk_fall_search.py --work /tmp/fs --out $OUT --deadline 560
+
+``--stage wide`` (session 33) runs the planner with candidates far from the policy (16 policy,
+64 command-family, 944 noise candidates around the shifted plan at std 0.5, no policy prior)
+under the 1.0 m/s pushes, mean-only and ranked by mean + 1 std of 4 residual draws, seeds 0-2:
+
+    python experiments/risk_fall_search.py --stage wide --work /tmp/fs --out $OUT --deadline 560
 """
 
 from __future__ import annotations
@@ -36,7 +42,10 @@ MEAN = [("push1.5x", "push", ["--push-scale", "1.5"]),
         ("low_friction0.06", "low_friction", ["--friction", "0.06"])]
 RISK = {"std": ["--mppi.risk-draws", "4", "--mppi.risk", "std", "--mppi.risk-weight", "1.0"],
         "cvar": ["--mppi.risk-draws", "4", "--mppi.risk", "cvar", "--mppi.risk-alpha", "0.75"]}
-ESTIMATE_S = {"mean": 170, "risk": 260}
+ESTIMATE_S = {"mean": 170, "risk": 260, "wide": 110}
+# the wide stage: candidates far from the policy, on the ground where the main planner falls
+WIDE = ["--mppi.policy-samples", "16", "--mppi.family-samples", "64", "--mppi.prior-fraction", "0",
+        "--planning.noise-std", "0.5", "--push-scale", "2"]
 
 
 def rows(folder: pathlib.Path) -> list[dict]:
@@ -72,6 +81,8 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default="/tmp/fs")
     ap.add_argument("--out", required=True)
     ap.add_argument("--deadline", type=float, default=560, help="seconds this call may use")
+    ap.add_argument("--stage", choices=("harder", "wide"), default="harder",
+                    help="harder: the pushes and frictions above; wide: candidates far from the policy")
     a = ap.parse_args(argv)
     work, out, t_end = pathlib.Path(a.work), pathlib.Path(a.out), time.time() + a.deadline
 
@@ -83,6 +94,15 @@ def main(argv=None) -> int:
             return None
         return run_job(name, models, scen, flags, work, out, int(min(t_end - time.time(), 1.5 * ESTIMATE_S[kind])))
 
+    if a.stage == "wide":
+        for seed in (0, 1, 2):
+            tag = "" if seed == 0 else f"_seed{seed}"
+            for kind, extra in (("mean", []), ("risk_std", RISK["std"])):
+                if job(f"wide_{kind}_push2x{tag}", "stride", "push", WIDE + extra + ["--seed", str(seed)],
+                       "wide") is None:
+                    return 0
+        print("[search] all jobs done", flush=True)
+        return 0
     for name, scen, flags in MEAN:
         got = job(f"mean_{name}", "policy,stride", scen, flags, "mean")
         if got is None:
