@@ -3,7 +3,8 @@ and height through the two 1.0 m/s pushes, the mean-only planner against the ris
 line stops where the episode counts a fall). Reads the traces the closed loop wrote in the
 search's work folder (``WORK/wide_<kind>_push2x[_seedN]/trace_*.npz``):
 
-    python experiments/risk_fall_plot.py --work /tmp/fs --out results/closed_loop_go1_gpu/parts/risk_search/wide_push2x.png
+    python experiments/risk_fall_plot.py --work /tmp/fs --out results/closed_loop_go1_gpu/parts/risk_search/wide_push2x.png \
+        [--seeds 0,1,2,3,4 --cpu-seeds 3,4]
 """
 
 from __future__ import annotations
@@ -37,9 +38,11 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default="/tmp/fs")
     ap.add_argument("--out", required=True)
     ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--cpu-seeds", default="", help="seeds whose runs were on the CPU (titled so)")
     a = ap.parse_args(argv)
     seeds = [int(s) for s in a.seeds.split(",")]
-    fig, axes = plt.subplots(2, len(seeds), figsize=(4.2 * len(seeds), 5.6), sharex=True, squeeze=False)
+    on_cpu = {int(s) for s in a.cpu_seeds.split(",") if s}
+    fig, axes = plt.subplots(2, len(seeds), figsize=(3.6 * len(seeds), 5.6), sharex=True, squeeze=False)
     found = 0
     for c, seed in enumerate(seeds):
         for kind, (label, color) in KINDS.items():
@@ -55,7 +58,7 @@ def main(argv=None) -> int:
         for ax in axes[:, c]:
             for t0, t1 in PUSHES:
                 ax.axvspan(t0, t1, color="0.85", lw=0)
-        axes[0, c].set_title(f"seed {seed}")
+        axes[0, c].set_title(f"seed {seed}" + (" (CPU)" if seed in on_cpu else ""))
         axes[0, c].legend(fontsize=7, loc="lower left")
         axes[1, c].set_xlabel("t (s)")
     if not found:
