@@ -18,15 +18,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from risk_fall_search import wide_job  # noqa: E402  (beside this script)
 from stride_jax import io  # noqa: E402
+from stride_jax.control.scenarios import SCENARIOS  # noqa: E402
 
 KINDS = {"mean": ("mean only", "tab:red"), "risk_std": ("mean + 1 std of 4 residual draws", "tab:blue")}
-PUSHES = ((2.0, 2.1), (4.0, 4.1))  # the push scenario's windows (s)
 
 
 def trace(work: pathlib.Path, kind: str, seed: int) -> dict | None:
-    tag = "" if seed == 0 else f"_seed{seed}"
-    files = sorted((work / f"wide_{kind}_push2x{tag}").glob("trace_*.npz"))
+    files = sorted((work / wide_job(kind, seed)).glob("trace_*.npz"))
     if not files:
         return None
     with np.load(files[0]) as z:
@@ -56,8 +56,8 @@ def main(argv=None) -> int:
             axes[0, c].plot(tr["t"][:end], tr["v_base"][:end, 1], color=color, lw=1, label=label + fell)
             axes[1, c].plot(tr["t"][:end], tr["height"][:end], color=color, lw=1)
         for ax in axes[:, c]:
-            for t0, t1 in PUSHES:
-                ax.axvspan(t0, t1, color="0.85", lw=0)
+            for t0, dur, *_ in SCENARIOS["push"].pushes:
+                ax.axvspan(t0, t0 + dur, color="0.85", lw=0)
         axes[0, c].set_title(f"seed {seed}" + (" (CPU)" if seed in on_cpu else ""))
         axes[0, c].legend(fontsize=7, loc="lower left")
         axes[1, c].set_xlabel("t (s)")

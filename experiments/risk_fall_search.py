@@ -51,6 +51,11 @@ WIDE = ["--mppi.policy-samples", "16", "--mppi.family-samples", "64", "--mppi.pr
         "--planning.noise-std", "0.5", "--push-scale", "2"]
 
 
+def wide_job(kind: str, seed: int) -> str:
+    """The wide stage's job (and folder) name: ``wide_<kind>_push2x``, ``_seed<N>`` beyond seed 0."""
+    return f"wide_{kind}_push2x" + ("" if seed == 0 else f"_seed{seed}")
+
+
 def rows(folder: pathlib.Path) -> list[dict]:
     f = folder / "closed_loop.json"
     return json.loads(f.read_text())["rows"] if f.exists() else []
@@ -100,9 +105,8 @@ def main(argv=None) -> int:
 
     if a.stage == "wide":
         for seed in (int(s) for s in a.seeds.split(",")):
-            tag = "" if seed == 0 else f"_seed{seed}"
             for kind, extra in (("mean", []), ("risk_std", RISK["std"])):
-                if job(f"wide_{kind}_push2x{tag}", "stride", "push", WIDE + extra + ["--seed", str(seed)],
+                if job(wide_job(kind, seed), "stride", "push", WIDE + extra + ["--seed", str(seed)],
                        "wide") is None:
                     return 0
         print("[search] all jobs done", flush=True)
