@@ -22,6 +22,14 @@ under the 1.0 m/s pushes, mean-only and ranked by mean + 1 std of 4 residual dra
 beyond this script's time estimates, which are the GPU's):
 
     python experiments/risk_fall_search.py --stage wide --work /tmp/fs --out $OUT --deadline 560 [--seeds 0,1,2]
+
+``--stage compose`` (session 34): the wide candidates keep the Go1 up under the 1.0 m/s pushes
+but track worse than the main planner where nothing pushes (README); the compositions between
+the two (how many policy, family and policy-prior candidates beside the wide noise), each
+risk-aware (mean + 1 std of 4 draws) under the same pushes, seed 0: which part of the main
+planner's candidates takes the wide planner's recovery away.
+
+    python experiments/risk_fall_search.py --stage compose --work /tmp/fs --out $OUT --deadline 560
 """
 
 from __future__ import annotations
@@ -45,10 +53,25 @@ MEAN = [("push1.5x", "push", ["--push-scale", "1.5"]),
         ("low_friction0.06", "low_friction", ["--friction", "0.06"])]
 RISK = {"std": ["--mppi.risk-draws", "4", "--mppi.risk", "std", "--mppi.risk-weight", "1.0"],
         "cvar": ["--mppi.risk-draws", "4", "--mppi.risk", "cvar", "--mppi.risk-alpha", "0.75"]}
-ESTIMATE_S = {"mean": 170, "risk": 260, "wide": 110}
+ESTIMATE_S = {"mean": 170, "risk": 260, "wide": 110, "compose": 100}
 # the wide stage: candidates far from the policy, on the ground where the main planner falls
 WIDE = ["--mppi.policy-samples", "16", "--mppi.family-samples", "64", "--mppi.prior-fraction", "0",
         "--planning.noise-std", "0.5", "--push-scale", "2"]
+
+# the compose stage: (name, candidate flags) between the main planner's candidates (64 policy,
+# 256 family, half the rest from the policy prior at std 0.08, half around the plan) and the wide
+# ones above; every job adds the wide noise around the plan (std 0.5), the pushes x 2 and the risk
+COMPOSE = [("pol64_fam256", ["--mppi.policy-samples", "64", "--mppi.family-samples", "256",
+                             "--mppi.prior-fraction", "0"]),
+           ("pol16_fam64_prior", ["--mppi.policy-samples", "16", "--mppi.family-samples", "64",
+                                  "--mppi.prior-fraction", "0.5"]),
+           ("pol64_fam64", ["--mppi.policy-samples", "64", "--mppi.family-samples", "64",
+                            "--mppi.prior-fraction", "0"]),
+           ("pol16_fam256", ["--mppi.policy-samples", "16", "--mppi.family-samples", "256",
+                             "--mppi.prior-fraction", "0"]),
+           ("main_prior_wide", ["--planning.prior-noise-std", "0.5"]),
+           ("wide_std0.3", ["--mppi.policy-samples", "16", "--mppi.family-samples", "64",
+                            "--mppi.prior-fraction", "0", "--planning.noise-std", "0.3"])]
 
 
 def wide_job(kind: str, seed: int) -> str:
@@ -89,8 +112,9 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default="/tmp/fs")
     ap.add_argument("--out", required=True)
     ap.add_argument("--deadline", type=float, default=560, help="seconds this call may use")
-    ap.add_argument("--stage", choices=("harder", "wide"), default="harder",
-                    help="harder: the pushes and frictions above; wide: candidates far from the policy")
+    ap.add_argument("--stage", choices=("harder", "wide", "compose"), default="harder",
+                    help="harder: the pushes and frictions above; wide: candidates far from the "
+                         "policy; compose: compositions between the main and the wide candidates")
     ap.add_argument("--seeds", default="0,1,2", help="the wide stage's seeds")
     a = ap.parse_args(argv)
     work, out, t_end = pathlib.Path(a.work), pathlib.Path(a.out), time.time() + a.deadline
@@ -103,6 +127,13 @@ def main(argv=None) -> int:
             return None
         return run_job(name, models, scen, flags, work, out, int(min(t_end - time.time(), 1.5 * ESTIMATE_S[kind])))
 
+    if a.stage == "compose":
+        for name, flags in COMPOSE:
+            if job(f"compose_{name}", "stride", "push", ["--planning.noise-std", "0.5"] + flags
+                   + ["--push-scale", "2"] + RISK["std"] + ["--seed", "0"], "compose") is None:
+                return 0
+        print("[search] all jobs done", flush=True)
+        return 0
     if a.stage == "wide":
         for seed in (int(s) for s in a.seeds.split(",")):
             for kind, extra in (("mean", []), ("risk_std", RISK["std"])):
