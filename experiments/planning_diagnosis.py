@@ -41,6 +41,9 @@ class DiagnosisConfig:
       samples, horizon, policy_samples: the planner (``MPPIConfig``'s).
       seconds: the policy's episode per scenario (s).
       every: diagnose every this many control steps.
+      central: comma-separated names of ``models`` that plan with their residual's central
+        sample (``key=None`` at every step, as ``MPPIConfig(latents="central")``), e.g.
+        ``stride_central=RUN`` beside ``stride=RUN`` compares the two on the same states.
       out: results folder.
     """
 
@@ -54,6 +57,7 @@ class DiagnosisConfig:
     policy_samples: int = 16
     seconds: float = 3.0
     every: int = 15
+    central: str = ""
     out: str = "results/planning_diagnosis"
 
 
@@ -103,6 +107,10 @@ def run(cfg: DiagnosisConfig, command: str) -> dict:
     planning_cfg, seed = PlanningConfig(), 0  # the closed loop's defaults
     models = [tuple(m.split("=", 1)) for m in cfg.models.split(",") if m]
     steps = {name: learned_step_fn(run_dir, sm) for name, run_dir in models}
+    for name in [n for n in cfg.central.split(",") if n]:
+        if name not in steps:
+            raise ValueError(f"central: {name!r} is not one of the models {sorted(steps)}")
+        steps[name] = (lambda f: lambda q, qd, ctrl, key: f(q, qd, ctrl, None))(steps[name])
     rows, t_start = [], time.time()
     jitted = {}  # one program per model and scenario structure (the MJX model is an argument)
 

@@ -126,6 +126,32 @@ def test_latents_per_step_or_held_for_the_rollout(name):
         model.rollout(params, Q0, jnp.zeros(7), ctrls, key, latents="episode")
 
 
+@pytest.mark.parametrize("name", ["stride", "lnn_diffusion", "diffusion", "onn"])
+def test_central_latents_step_with_the_residuals_central_sample(name):
+    """``key=None`` is the residual's central sample at every substep (two here), so
+    ``latents="central"`` rolls out deterministically, whatever the key, and equals stepping with
+    ``None``; a stochastic model's central rollout is not one of its random ones."""
+    model = models.make(name, SPEC, ACT, CFG)
+    params = jax.tree.map(lambda w: w + 0.05 * jax.random.normal(jax.random.key(1), w.shape),
+                          model.init(jax.random.key(0)))
+    ctrls = 0.1 * jnp.ones((4, 1))
+    roll = jax.jit(model.rollout, static_argnames="latents")
+    a = roll(params, Q0, jnp.zeros(7), ctrls, jax.random.key(3), latents="central")[1]
+    b = roll(params, Q0, jnp.zeros(7), ctrls, jax.random.key(4), latents="central")[1]
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    q, qd, out = Q0, jnp.zeros(7), []
+    for u in ctrls:
+        q, qd = jax.jit(model.step)(params, q, qd, u, None)
+        out.append(qd)
+    np.testing.assert_allclose(np.asarray(a), np.stack(out), rtol=1e-5, atol=1e-7)
+    drawn = roll(params, Q0, jnp.zeros(7), ctrls, jax.random.key(3), latents="step")[1]
+    assert (float(jnp.abs(drawn - a).max()) > 1e-6) == model.stochastic
+    if name == "stride":  # per substep: the prior plus M^-1 times the flow's central residual
+        terms = model.terms(params, Q0, jnp.zeros(7), jnp.ones(7), None)
+        again = model.terms(params, Q0, jnp.zeros(7), jnp.ones(7), None)
+        np.testing.assert_array_equal(np.asarray(terms["residual"]), np.asarray(again["residual"]))
+
+
 @pytest.mark.parametrize("name", ["stride", "delan", "onn"])
 def test_xla_bf16_kernel_is_the_same_model_with_bfloat16_products(name):
     """``kernel="xla-bf16"``: the same parameters, every network's products in bfloat16 at

@@ -237,6 +237,44 @@ def test_latents_held_for_the_rollout_make_each_draw_one_world():
         mppi.MPPIConfig(latents="world")
 
 
+def _noisy(q, qd, u, key):
+    """``x' = x + u`` plus a draw of unit noise (also the velocity's), none for ``key=None``
+    (the central sample)."""
+    if key is None:
+        return q + u, qd
+    w = jax.random.normal(key, q.shape)
+    return q + u + w, qd + w
+
+
+def test_central_latents_rank_candidates_without_sampling_noise():
+    """With ``latents="central"`` every candidate is scored by the model's central outcome:
+    the costs are the noise-free ones whatever the planner's key (one draw each under
+    ``"step"``), the observer-facing ``Planner.latents`` says so, and risk draws, which would
+    all be equal, are refused. Error draws still draw beside the central rollout."""
+    cost = lambda q, qd, u, t: (q[0] - 1.0) ** 2
+    plan = lambda latents, key, **kw: jax.jit(mppi.make(
+        mppi.MPPIConfig(samples=64, horizon=3, noise_std=0.5, latents=latents, **kw), _noisy,
+        cost, [-1.0], [1.0]).step)(mppi.MPPIState(jnp.zeros((3, 1)), jax.random.key(key)),
+                                   jnp.zeros(1), jnp.zeros(1))[2]
+    a, b = plan("central", 0), plan("central", 1)
+    # the candidates differ between keys, but each one's cost is its noise-free cost
+    def clean(info):  # the running cost at x_0 = 0, x_1, x_2 (the state before each action)
+        x = jnp.cumsum(info.candidates[..., 0], axis=1)
+        return jnp.sum((jnp.concatenate([jnp.zeros((64, 1)), x[:, :-1]], 1) - 1.0) ** 2, 1)
+
+    assert not np.array_equal(np.asarray(a.candidates), np.asarray(b.candidates))
+    for info in (a, b):
+        np.testing.assert_allclose(np.asarray(info.costs), np.asarray(clean(info)), rtol=1e-5)
+    drawn = plan("step", 0)
+    assert float(jnp.abs(drawn.costs - clean(drawn)).max()) > 0.1  # one draw each: noisy
+    with_errors = plan("central", 0, error_draws=4, error_weight=1.0)
+    assert float(with_errors.error.min()) > 0.1  # the draws' spread is still measured
+    assert mppi.make(mppi.MPPIConfig(latents="central"), _noisy, cost, [-1.0], [1.0]).latents \
+        == "central"
+    with pytest.raises(ValueError, match="central.*deterministic"):
+        mppi.MPPIConfig(latents="central", risk_draws=4)
+
+
 def test_risk_cost_statistics():
     c = jnp.array([1.0, 2.0, 3.0, 10.0])
     assert float(mppi.risk_cost(c)) == pytest.approx(4.0)

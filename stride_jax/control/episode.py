@@ -95,6 +95,7 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
 
     observe = planner is not None and planning.observer_gain > 0
     obs_key = jax.random.fold_in(key, 0x0B5E)  # the observer's own draws
+    central = planner is not None and planner.latents == "central"  # it predicts as the planner
 
     def body(carry, step):
         d, ps, clock, down, dist = carry
@@ -121,7 +122,7 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
         down2 = down | rollout_mjx.fallen(sm, d2.qpos) | ~finite
         if observe:  # the planner's model predicts the step just taken; integrate its error
             new = update_disturbance(planning, q_aug, d.qvel, u, d2.qvel, dt,
-                                     jax.random.fold_in(obs_key, step))
+                                     None if central else jax.random.fold_in(obs_key, step))
             dist = jnp.where(finite & ~down2, new, dist)
         v, w, _ = envs.base_signals(d2.qpos, d2.qvel)
         rec = Trace(t + dt, command, v, w, d2.qpos[2], down2, envs.foot_contact(sm, slots, d2),

@@ -77,7 +77,7 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from stride_jax.control.costs import (RISKS, Dynamics, open_loop_cost, risk_cost,  # noqa: F401
                                      velocity_spread, weights)
-from stride_jax.dynamics.models import LATENTS, rollout_keys
+from stride_jax.dynamics.models import LATENTS, rollout_keys, step_key
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,7 +111,11 @@ class MPPIConfig:
         :func:`stride_jax.dynamics.models.rollout_keys`): then each of the ``risk_draws`` is
         one consistent world in which what the model does not know (friction, payload)
         persists, and the risk statistic is taken over worlds rather than over per-step noise
-        that averages out along the horizon.
+        that averages out along the horizon; or not drawn (``central``): the model steps with
+        ``key=None``, its residual's central sample, so each candidate's cost is the model's
+        most typical outcome rather than one random draw (no sampling noise in the ranking; a
+        deterministic model is unchanged). Error draws (``error_draws``) still draw beside it;
+        risk draws would all be equal, so ``central`` takes ``risk_draws`` 1.
       prior_fraction: share of the noise candidates (``samples - policy_samples``) drawn around
         the policy's own closed-loop rollout through the model (``u_t = policy(x_t) + e_t``,
         noise at ``prior_noise_std``) instead of around the shifted plan; 0: none. Needs a
@@ -204,6 +208,9 @@ class MPPIConfig:
             problems.append(f"risk={self.risk!r} must be one of {', '.join(RISKS)}")
         if self.latents not in LATENTS:
             problems.append(f"latents={self.latents!r} must be one of {', '.join(LATENTS)}")
+        if self.latents == "central" and self.risk_draws > 1:
+            problems.append(f"latents='central' is deterministic: its {self.risk_draws} risk "
+                            "draws would be equal (use latents 'step' or 'rollout' with risk_draws)")
         if not 0 <= self.risk_alpha < 1:
             problems.append(f"risk_alpha={self.risk_alpha} must be in [0, 1)")
         if not 0 <= self.prior_fraction <= 1:
@@ -250,8 +257,7 @@ class Info(NamedTuple):
 class Planner(NamedTuple):
     init: Callable  # (key, plan=None) -> MPPIState
     step: Callable  # (state, q, qd) -> (action [nu], state, Info)
-
-
+    latents: str = "step"  # how its rollouts draw a stochastic model's latents (MPPIConfig's)
 
 
 def sample_sharding() -> NamedSharding | None:
@@ -320,6 +326,7 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
     spread = disagreement or velocity_spread
     discounts = jnp.asarray(cfg.discount ** np.arange(H + 1), jnp.float32)  # gamma^t, t <= H
     cut_on, bound = cfg.error_bound > 0, cfg.error_bound
+    central = cfg.latents == "central"
 
     def init(key: jax.Array, plan: jax.Array | None = None) -> MPPIState:
         if plan is None:
@@ -334,8 +341,10 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
         if E > 1:
             qs, qds = jax.vmap(lambda k: dynamics(q, qd, u, k))(jax.random.split(key, E))
             q2, qd2, var = qs[0], qds[0], spread(qs, qds) ** 2
+            if central:  # the rollout goes on from the central sample; the draws give the spread
+                q2, qd2 = dynamics(q, qd, u, None)
         else:
-            (q2, qd2), var = dynamics(q, qd, u, key), jnp.zeros(())
+            (q2, qd2), var = dynamics(q, qd, u, step_key(key, cfg.latents)), jnp.zeros(())
         if step_error is not None:
             var = var + step_error(q, qd, u) ** 2
         return q2, qd2, var
@@ -470,4 +479,4 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
         info = info._replace(plan=plan, status=status)
         return plan[0], MPPIState(plan, key, z), info
 
-    return Planner(init, step)
+    return Planner(init, step, cfg.latents)

@@ -153,11 +153,12 @@ def apply_disturbance(q: jax.Array, qd: jax.Array, disturbance: jax.Array, dt: f
 
 
 def update_disturbance(planning: "Planning", q_aug: jax.Array, qd: jax.Array, u: jax.Array,
-                       qd_real: jax.Array, dt: float, key: jax.Array) -> jax.Array:
+                       qd_real: jax.Array, dt: float, key: jax.Array | None) -> jax.Array:
     """The disturbance observer's next estimate ``[6]`` after the real step ``(q_aug, qd) --u-->
     qd_real``: the planner's model predicts that step under the current estimate (in ``q_aug``)
     and the estimate moves by ``planning.observer_gain`` times the base's acceleration error,
-    bounded by ``planning.observer_limit`` (a non-finite prediction keeps the estimate)."""
+    bounded by ``planning.observer_limit`` (a non-finite prediction keeps the estimate).
+    ``key=None``: a stochastic model predicts with its residual's central sample."""
     nq = q_aug.shape[-1] - N_AUG
     dist = split(q_aug, nq).disturbance
     _, qd_pred = planning.dynamics(q_aug, qd, u, key)

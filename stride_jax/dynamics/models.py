@@ -14,8 +14,9 @@ batch with ``vmap``):
 * ``step(params, q, qd, ctrl, key) -> (q', qd')``: one control period from a command, with the
   robot's servo model turning commands into joint torques at every substep, as the simulator does
 * ``rollout(params, q, qd, ctrls [H, nu], key, latents="step") -> (qs [H, nq], qds [H, nv])``:
-  a stochastic model's latents drawn afresh at every control step (``"step"``) or once for
-  the whole rollout (``"rollout"``; :func:`rollout_keys` says why both)
+  a stochastic model's latents drawn afresh at every control step (``"step"``), once for
+  the whole rollout (``"rollout"``), or not at all (``"central"``: the residual's central
+  sample, deterministic; :func:`rollout_keys` says why each)
 
 and carries what it was made from (``spec``, ``actuation``, ``config``, ``scales``,
 ``residual``), so that :func:`stride_jax.dynamics.save` needs nothing else and the physics
@@ -39,7 +40,7 @@ from stride_jax.types import InputError, ModelSpec
 
 __all__ = ["Actuation", "DEFAULT_NFE", "InputError", "LATENTS", "MODELS", "Model", "load", "make",
            "motors", "next_observation", "rollout_keys", "save_definition", "spec_from_meta",
-           "structured"]
+           "step_key", "structured"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -174,7 +175,7 @@ DESCRIPTIONS = {
 DEFAULT_NFE = {"flow": 2, "diffusion": 10}
 
 
-LATENTS = ("step", "rollout")
+LATENTS = ("step", "rollout", "central")
 
 
 def rollout_keys(key: jax.Array, horizon: int, latents: str = "step") -> jax.Array:
@@ -188,13 +189,24 @@ def rollout_keys(key: jax.Array, horizon: int, latents: str = "step") -> jax.Arr
     residual's distribution at every step). That is the other limit: what the model does not
     know persists -- a payload, the ground's friction under the feet, a servo's offset -- as
     hidden parameters of a real robot mostly do, and the spread grows like the horizon.
-    Deterministic models ignore the key either way.
+    ``"central"``: no draw. The model steps with ``key=None``, which a generative residual answers
+    with its central sample (the latent's centre ``z = 0`` transported by the flow; the
+    diffusion's deterministic sampler from 0): one deterministic rollout, the most typical
+    outcome rather than a random one. The keys returned are fresh per step (as ``"step"``) for
+    callers that still draw beside it (a planner's error draws); :func:`step_key` is what a
+    caller hands the model. Deterministic models ignore the key either way.
     """
-    if latents == "step":
+    if latents in ("step", "central"):
         return jax.random.split(key, horizon)
     if latents == "rollout":
         return jax.vmap(lambda _: key)(jnp.arange(horizon))
     raise ValueError(f"latents must be one of {LATENTS}, got {latents!r}")
+
+
+def step_key(key: jax.Array, latents: str) -> jax.Array | None:
+    """The key a model's ``step`` gets from a rollout's key ``key`` (:func:`rollout_keys`):
+    ``None`` (the residual's central sample) for ``"central"``, ``key`` otherwise."""
+    return None if latents == "central" else key
 
 
 def _check_inputs(name: str, spec: ModelSpec, nu: int, **arrays) -> None:
@@ -241,6 +253,11 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
     whole = residual == "flow" and _whole_step_applies(spec, act, cfg)
 
     def _step(params, q, qd, ctrl, key, nfe):
+        if key is None:  # the residual's central sample at every substep: deterministic (the
+            # whole-step kernel draws its latents from keys, so XLA runs this step)
+            central = lambda carry, _: (xla_substep(params, *carry, ctrl, None, nfe), None)
+            return jax.lax.scan(central, (q, qd), None, length=act.n_substeps)[0]
+
         def substep(carry, k):
             if whole:
                 return _fused_substep(xla_substep, spec, act, cfg, scales, params, *carry, ctrl,
@@ -261,7 +278,7 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
 
         def body(carry, inp):
             ctrl, k = inp
-            nxt = _step(params, *carry, ctrl, k, nfe)
+            nxt = _step(params, *carry, ctrl, step_key(k, latents), nfe)
             return nxt, nxt
 
         _, (qs, qds) = jax.lax.scan(body, (q, qd), (ctrls, rollout_keys(key, len(ctrls), latents)))
@@ -346,7 +363,8 @@ def next_observation(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Str
         keys = rollout_keys(key if key is not None else jax.random.key(0), len(ctrls), latents)
 
         def body(carry, inp):
-            nxt = _step(params, *carry, *inp, nfe)
+            ctrl, k = inp
+            nxt = _step(params, *carry, ctrl, step_key(k, latents), nfe)
             return nxt, nxt
 
         _, (qs, qds) = jax.lax.scan(body, (q, qd), (ctrls, keys))

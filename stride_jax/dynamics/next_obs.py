@@ -41,10 +41,13 @@ def init(key: jax.Array, spec: ModelSpec, cfg: StructuredConfig, nu: int, scales
 
 def step(params: dict, spec: ModelSpec, cfg: StructuredConfig, scales: Scales, q, qd, ctrl,
          key=None, nfe: int | None = None, generative_kind: str | None = None):
-    """Next ``(q', qd')`` after one control period under ``ctrl``."""
+    """Next ``(q', qd')`` after one control period under ``ctrl`` (a generator's sample;
+    ``key=None``: its central sample)."""
     c = _context(spec, q, qd, ctrl, scales)
     if generative_kind is None:
         out = mlp.mlp(cfg.inference_net, 2 * spec.nv, zero_last=True)[1](params, c)
+    elif key is None:
+        out = cfg.generator(generative_kind).central(params, c, 2 * spec.nv, nfe)
     else:
         out = cfg.generator(generative_kind).sample(params, c, key, 2 * spec.nv, nfe)
     dq, dqd = out[:spec.nv] * scales.dq, out[spec.nv:] * scales.dqd
