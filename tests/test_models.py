@@ -152,6 +152,35 @@ def test_central_latents_step_with_the_residuals_central_sample(name):
         np.testing.assert_array_equal(np.asarray(terms["residual"]), np.asarray(again["residual"]))
 
 
+@pytest.mark.parametrize("name", ["stride", "delan"])
+def test_transition_loss_is_the_models_own_step_against_the_logged_next_state(name):
+    """``transition_weight`` adds, per example, the squared error of the model's one-period step
+    (central residual, through both substeps) against ``q_next, qd_next`` in the one-step
+    changes' units; zero where the log is the model's own step; it trains both parts."""
+    scales = stride.Scales(dq=jnp.full(7, 0.5), dqd=jnp.full(7, 2.0))
+    model = models.make(name, SPEC, ACT, dataclasses.replace(CFG, transition_weight=0.5), scales)
+    params = jax.tree.map(lambda w: w + 0.05 * jax.random.normal(jax.random.key(1), w.shape),
+                          model.init(jax.random.key(0)))
+    q, qd, ctrl = Q0, 0.1 * jnp.ones(7), jnp.array([0.2])
+    q1, qd1 = model.step(params, q, qd, ctrl, None)
+    ex = dict(q=q, qd=qd, ctrl=ctrl, tau=jnp.ones(7), qdd=jnp.ones(7))
+    own = model.loss(params, dict(ex, q_next=q1, qd_next=qd1), jax.random.key(2))[1]
+    assert float(own["next"]) < 1e-8
+    off = dict(ex, q_next=q1.at[7].add(0.1), qd_next=qd1.at[6].add(0.4))
+    total, parts = model.loss(params, off, jax.random.key(2))
+    np.testing.assert_allclose(float(parts["next"]), (0.1 / 0.5) ** 2 + (0.4 / 2.0) ** 2,
+                               rtol=1e-3)
+    plain = models.make(name, SPEC, ACT, CFG, scales).loss(params, off, jax.random.key(2))
+    np.testing.assert_allclose(float(total), float(plain[0]) + 0.5 * float(parts["next"]),
+                               rtol=1e-5)
+    assert "next" not in plain[1]
+    grads = jax.grad(lambda p: model.loss(p, off, jax.random.key(2))[1]["next"])(params)
+    norm = lambda tree: sum(float(jnp.abs(g).sum()) for g in jax.tree.leaves(tree))
+    assert norm(grads["lnn"]) > 0 and norm(grads["residual"]) > 0
+    with pytest.raises(ValueError, match="transition_weight"):
+        dataclasses.replace(CFG, transition_weight=-1.0)
+
+
 @pytest.mark.parametrize("name", ["stride", "delan", "onn"])
 def test_xla_bf16_kernel_is_the_same_model_with_bfloat16_products(name):
     """``kernel="xla-bf16"``: the same parameters, every network's products in bfloat16 at

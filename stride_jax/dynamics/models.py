@@ -236,8 +236,35 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         return stride.init(key, spec, cfg, residual)
 
     def loss(params, ex, key):
-        return stride.loss(params, spec, cfg, residual, ex["q"], ex["qd"], ex["tau"], ex["qdd"],
-                           key, scales, ex.get("contact_jac"))
+        total, parts = stride.loss(params, spec, cfg, residual, ex["q"], ex["qd"], ex["tau"],
+                                   ex["qdd"], key, scales, ex.get("contact_jac"))
+        if cfg.transition_weight:
+            parts["next"] = transition_error(params, ex)
+            total = total + cfg.transition_weight * parts["next"]
+            parts["select"] = parts["select"] + cfg.transition_weight * parts["next"]
+        return total, parts
+
+    train_cfg = dataclasses.replace(cfg, kernel="xla")  # training differentiates in XLA
+
+    def transition_error(params, ex):
+        """The one-control-period transition loss: the model steps from the example's state
+        under its command through its substeps, servo in the loop, with the residual's central
+        sample (deterministic, differentiable), and the squared error against the logged next
+        state is taken in the one-step changes' units (``scales.dq``, ``scales.dqd``), as the
+        next-observation models are trained. The acceleration loss fits ``qacc`` at the
+        recorded instants only (the start of each control period, where a new servo target has
+        just been applied); this term fits what the rollout integrates over the whole period."""
+        def substep(carry, _):
+            q, qd = carry
+            tau = act.torque(q, qd, ex["ctrl"], spec)
+            servo = act.implicit(q, qd, ex["ctrl"], spec) if cfg.implicit_servo else None
+            qdd = stride.acceleration(params, spec, train_cfg, residual, q, qd, tau, None, None,
+                                      scales, servo)[0]
+            return integrate.semi_implicit_euler(q, qd, qdd, act.dt, spec.floating_base), None
+
+        (q1, qd1), _ = jax.lax.scan(substep, (ex["q"], ex["qd"]), None, length=act.n_substeps)
+        dq = integrate.difference(q1, ex["q_next"], spec.floating_base) / scales.dq
+        return jnp.sum(dq ** 2) + jnp.sum(((qd1 - ex["qd_next"]) / scales.dqd) ** 2)
 
     def acceleration(params, q, qd, tau, key, nfe=None):
         _check_inputs(name, spec, nu, q=q, qd=qd, tau=tau)

@@ -119,6 +119,9 @@ class StructuredConfig:
     implicit_servo: bool = True  # rollouts: servo PD at the next state (Actuation.implicit)
     fm_weight: float = 1.0
     residual_weight: float = 0.1
+    # the one-control-period transition loss (off: the paper's training on accelerations alone;
+    # ``models.structured``'s loss, needs ``q_next``, ``qd_next``, ``ctrl`` in the examples)
+    transition_weight: float = 0.0
     # Inference (acceleration, terms, step, rollout): the networks' passes in XLA or as fused
     # kernels (fused.KERNELS; the flow with Euler steps). Training always differentiates in XLA.
     kernel: str = "xla"
@@ -130,6 +133,8 @@ class StructuredConfig:
         if fused.fused(self.kernel) and self.net.activation != "silu":
             raise ValueError(f"kernel {self.kernel!r} implements SiLU networks only, not "
                              f"{self.net.activation!r}; use kernel='xla'")
+        if not self.transition_weight >= 0:
+            raise ValueError(f"transition_weight must be >= 0, got {self.transition_weight!r}")
         if self.acc_through not in ACC_THROUGH:
             raise ValueError(f"acc_through {self.acc_through!r} is not one of {ACC_THROUGH}")
         self.diffusion  # likewise for the diffusion's settings

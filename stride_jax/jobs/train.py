@@ -58,6 +58,10 @@ class TrainConfig:
         ``V = m g z + V_net`` and no base position among the prior's inputs
         (``LNNConfig.base_structure``); ``--no-base-structure`` learns a generic Lagrangian of
         the base's coordinates instead (an ablation of the structure).
+      transition_weight: structured models: weight of the one-control-period transition loss
+        (``StructuredConfig.transition_weight``: the model's own step through the period's
+        substeps against the logged next state, in the one-step changes' units); 0, the
+        default, trains on accelerations alone, as the paper.
       out: run folder; empty means ``runs/<robot>/<model>``.
       distributed: train data-parallel over several processes (:mod:`stride_jax.distributed`).
     """
@@ -74,6 +78,7 @@ class TrainConfig:
     acc_through: str = "central"
     learn_mass: bool = False
     base_structure: bool = True
+    transition_weight: float = 0.0
     out: str = ""
     distributed: DistributedConfig = DistributedConfig()
 
@@ -121,7 +126,7 @@ def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.P
     spec = spec_from_meta(ds.meta)
     model_cfg = model_config(cfg.model, ds.meta, cfg.net.hidden, cfg.net.depth, cfg.nfe,
                              cfg.shared_lnn, cfg.acc_through, cfg.learn_mass, cfg.net.activation,
-                             cfg.net.init, cfg.base_structure)
+                             cfg.net.init, cfg.base_structure, cfg.transition_weight)
     act = models.Actuation.from_meta(ds.meta)
     sc = scales(ds)
     model = models.make(cfg.model, spec, act, model_cfg, sc)
