@@ -28,6 +28,9 @@ from stride_jax.io import atomic_write_text
 from stride_jax.train.loop import LoopConfig, TrainingError, optimizer, run
 
 
+VALIDATION_CHUNK = 256  # validation examples evaluated at once (``train_examples``)
+
+
 def examples(split: dict, jacobians: Callable | None = None) -> dict:
     """Transitions between consecutive valid steps as flat examples [N, ...]: the step's
     ``q, qd, tau, qdd, ctrl``, the next step's ``q_next, qd_next``, and ``contact_jac``
@@ -93,7 +96,17 @@ def train_examples(loss_fn: Callable, init_fn: Callable, data: dict, val: dict,
         total, parts = jax.vmap(loss_fn, in_axes=(None, 0, 0))(params, ex, keys)
         return jnp.mean(total), jax.tree.map(jnp.mean, parts)
 
-    eval_fn = jax.jit(mean_loss)
+    def chunked_mean_loss(params, ex, key):
+        """``mean_loss`` evaluated ``VALIDATION_CHUNK`` examples at a time: a model's batched
+        factorisations (structured models: a Cholesky per example and substep) stay the
+        training minibatch's size; at 4096 at once jaxlib's batched LAPACK call hung on a
+        2-core CPU (DeLaN + MLP with the transition loss, measured twice)."""
+        keys = jax.random.split(key, len(ex["q"]))
+        total, parts = jax.lax.map(lambda a: loss_fn(params, *a), (ex, keys),
+                                   batch_size=VALIDATION_CHUNK)
+        return jnp.mean(total), jax.tree.map(jnp.mean, parts)
+
+    eval_fn = jax.jit(chunked_mean_loss)
     val_ex = jax.tree.map(lambda a: a[: min(len(a), 4096)], val)
 
     def validate(params):
