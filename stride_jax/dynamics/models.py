@@ -244,7 +244,24 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
             parts["select"] = parts["select"] + cfg.transition_weight * parts["next"]
         return total, parts
 
-    train_cfg = dataclasses.replace(cfg, kernel="xla")  # training differentiates in XLA
+    def substep_in(c: stride.StructuredConfig) -> Callable:
+        """One simulation substep under config ``c``: the servo law's torques, the acceleration
+        (``key=None``: the residual's central sample), semi-implicit Euler."""
+        def substep(params, q, qd, ctrl, key, nfe):
+            tau = act.torque(q, qd, ctrl, spec)
+            servo = act.implicit(q, qd, ctrl, spec) if cfg.implicit_servo else None
+            qdd = stride.acceleration(params, spec, c, residual, q, qd, tau, key, nfe, scales,
+                                      servo)[0]
+            return integrate.semi_implicit_euler(q, qd, qdd, act.dt, spec.floating_base)
+        return substep
+
+    xla_substep = substep_in(cfg)
+    train_substep = substep_in(dataclasses.replace(cfg, kernel="xla"))  # training: XLA, f32
+
+    def central_period(substep, params, q, qd, ctrl, nfe=None):
+        """One control period of ``substep`` with the residual's central sample throughout."""
+        body = lambda carry, _: (substep(params, *carry, ctrl, None, nfe), None)
+        return jax.lax.scan(body, (q, qd), None, length=act.n_substeps)[0]
 
     def transition_error(params, ex):
         """The one-control-period transition loss: the model steps from the example's state
@@ -254,15 +271,7 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         next-observation models are trained. The acceleration loss fits ``qacc`` at the
         recorded instants only (the start of each control period, where a new servo target has
         just been applied); this term fits what the rollout integrates over the whole period."""
-        def substep(carry, _):
-            q, qd = carry
-            tau = act.torque(q, qd, ex["ctrl"], spec)
-            servo = act.implicit(q, qd, ex["ctrl"], spec) if cfg.implicit_servo else None
-            qdd = stride.acceleration(params, spec, train_cfg, residual, q, qd, tau, None, None,
-                                      scales, servo)[0]
-            return integrate.semi_implicit_euler(q, qd, qdd, act.dt, spec.floating_base), None
-
-        (q1, qd1), _ = jax.lax.scan(substep, (ex["q"], ex["qd"]), None, length=act.n_substeps)
+        q1, qd1 = central_period(train_substep, params, ex["q"], ex["qd"], ex["ctrl"])
         dq = integrate.difference(q1, ex["q_next"], spec.floating_base) / scales.dq
         return jnp.sum(dq ** 2) + jnp.sum(((qd1 - ex["qd_next"]) / scales.dqd) ** 2)
 
@@ -270,20 +279,12 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         _check_inputs(name, spec, nu, q=q, qd=qd, tau=tau)
         return stride.acceleration(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)[0]
 
-    def xla_substep(params, q, qd, ctrl, key, nfe):
-        tau = act.torque(q, qd, ctrl, spec)
-        servo = act.implicit(q, qd, ctrl, spec) if cfg.implicit_servo else None
-        qdd = stride.acceleration(params, spec, cfg, residual, q, qd, tau, key, nfe, scales,
-                                  servo)[0]
-        return integrate.semi_implicit_euler(q, qd, qdd, act.dt, spec.floating_base)
-
     whole = residual == "flow" and _whole_step_applies(spec, act, cfg)
 
     def _step(params, q, qd, ctrl, key, nfe):
         if key is None:  # the residual's central sample at every substep: deterministic (the
             # whole-step kernel draws its latents from keys, so XLA runs this step)
-            central = lambda carry, _: (xla_substep(params, *carry, ctrl, None, nfe), None)
-            return jax.lax.scan(central, (q, qd), None, length=act.n_substeps)[0]
+            return central_period(xla_substep, params, q, qd, ctrl, nfe)
 
         def substep(carry, k):
             if whole:
