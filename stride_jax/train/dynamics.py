@@ -91,22 +91,21 @@ def train_examples(loss_fn: Callable, init_fn: Callable, data: dict, val: dict,
         raise TrainingError("no valid training or validation steps in the dataset")
     key_init, key_loop = jax.random.split(jax.random.key(cfg.seed))
 
-    def mean_loss(params, ex, key):
+    def mean_loss(params, ex, key, chunk: int | None = None):
+        """The examples' mean loss and parts, all at once (a training minibatch) or ``chunk``
+        examples at a time (validation, ``VALIDATION_CHUNK``: a model's batched factorisations,
+        a Cholesky per example and substep for the structured models, stay the minibatch's
+        size; at 4096 at once jaxlib's batched LAPACK call hung on a 2-core CPU, DeLaN + MLP
+        with the transition loss, measured twice)."""
         keys = jax.random.split(key, len(ex["q"]))
-        total, parts = jax.vmap(loss_fn, in_axes=(None, 0, 0))(params, ex, keys)
+        if chunk is None:
+            total, parts = jax.vmap(loss_fn, in_axes=(None, 0, 0))(params, ex, keys)
+        else:
+            total, parts = jax.lax.map(lambda a: loss_fn(params, *a), (ex, keys),
+                                       batch_size=chunk)
         return jnp.mean(total), jax.tree.map(jnp.mean, parts)
 
-    def chunked_mean_loss(params, ex, key):
-        """``mean_loss`` evaluated ``VALIDATION_CHUNK`` examples at a time: a model's batched
-        factorisations (structured models: a Cholesky per example and substep) stay the
-        training minibatch's size; at 4096 at once jaxlib's batched LAPACK call hung on a
-        2-core CPU (DeLaN + MLP with the transition loss, measured twice)."""
-        keys = jax.random.split(key, len(ex["q"]))
-        total, parts = jax.lax.map(lambda a: loss_fn(params, *a), (ex, keys),
-                                   batch_size=VALIDATION_CHUNK)
-        return jnp.mean(total), jax.tree.map(jnp.mean, parts)
-
-    eval_fn = jax.jit(chunked_mean_loss)
+    eval_fn = jax.jit(lambda params, ex, key: mean_loss(params, ex, key, VALIDATION_CHUNK))
     val_ex = jax.tree.map(lambda a: a[: min(len(a), 4096)], val)
 
     def validate(params):
