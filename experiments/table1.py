@@ -81,6 +81,9 @@ class Table1Config:
         e.g. ``prior,sample``.
       ablation_seeds: train the ablation runs on every seed, not only the first.
       steps: training steps (0: the training preset's).
+      transition_weight: ``stride train --transition-weight`` for every run (the structured
+        models' one-control-period transition loss; 0: the paper's training). Non-zero weights
+        get their own runs and results folders (``<robot>[_<data>]_tw<weight>``).
       parallel: processes at once.
       minutes: wall-clock budget for training, from when the data exist (0: none); runs stop
         cleanly at it.
@@ -97,6 +100,7 @@ class Table1Config:
     ablation: str = ""
     ablation_seeds: bool = False
     steps: int = 0
+    transition_weight: float = 0.0
     parallel: int = 5
     minutes: float = 0.0
     eval_only: bool = False
@@ -117,8 +121,9 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.time()
     env = pool.shared_env(root)
     suffix = "" if args.data == "explore" else f"_{args.data}"
+    tw = f"_tw{args.transition_weight:g}" if args.transition_weight else ""
     data = {r: root / "data" / f"{r}{suffix}-{args.preset}" for r in robots}
-    runs = {r: root / "runs" / f"{r}{suffix}-{args.preset}" for r in robots}
+    runs = {r: root / "runs" / f"{r}{suffix}{tw}-{args.preset}" for r in robots}
 
     gen = {f"data-{r}": pool.stride_command("data", "--robot", r, "--preset", preset.data,
                                             "--episodes", str(preset.episodes),
@@ -150,7 +155,8 @@ def main(argv: list[str] | None = None) -> None:
         "train", "--robot", r, "--model", m, "--preset", preset.train,
         *(["--steps", str(steps)] if steps else []),
         "--seed", str(s), "--data", str(data[r]), "--out", str(run_dir(r, m, s, v)),
-        "--deadline", str(deadline), *(["--acc-through", v] if v else []))
+        "--deadline", str(deadline), *(["--acc-through", v] if v else []),
+        *(["--transition-weight", f"{args.transition_weight:g}"] if tw else []))
         for r, m, s, v in jobs}
     folders = {name(*j): run_dir(*j) for j in jobs}
     follows = lambda n, marker: (lambda: leader[n] == folders[n] or (leader[n] / marker).exists())
@@ -177,7 +183,7 @@ def main(argv: list[str] | None = None) -> None:
         mine = [str(folders[n]) for n in ok if n.startswith(f"{r}/") and n not in failed]
         if not mine:
             continue
-        out = args.out or f"results/table1/{r}{suffix}"
+        out = args.out or f"results/table1/{r}{suffix}{tw}"
         subprocess.run(pool.stride_command("eval", "--preset", preset.eval, "--runs",
                                            ",".join(mine), "--out", out, "--label", command),
                        check=True, env=env)

@@ -6,14 +6,18 @@
 # ROBOT or ROBOT_DATA. Usage (repository root, on the GPU machine, with .whl and .menagerie
 # carried: the cp312 wheels, or .whl/site.tar.xz, them installed into a folder and packed):
 #   [DATA=walk] bash experiments/table1_device.sh OUT ROBOT STEPS TRAIN_MINUTES [ABLATION [EXTRA...]]
-# DATA picks experiments/table1.py's --data (explore: default); two calls with different DATA
+# DATA picks experiments/table1.py's --data (explore: default); TW (when set and not 0) its
+# --transition-weight, and NAME gains _twTW; two calls with different DATA
 # may run side by side (they share the compilation cache). LIMIT_S stops the driver after that
 # many seconds (0: never), so that what it made is still packed inside the device call's limit. EXTRA goes to experiments/table1.py:
 # --eval-only in a second call on the same (warm) machine evaluates what the first trained.
 set -uo pipefail
 out=$1; robot=$2; steps=$3; minutes=$4; ablation=${5:-}; shift 5 || shift $#
 data=${DATA:-explore}
+tw=${TW:-0}
 name=$robot; [ "$data" = explore ] || name=${robot}_$data
+twargs=(); tws=""
+if [ "$tw" != 0 ]; then twargs=(--transition-weight "$tw"); tws=_tw$tw; name=${name}$tws; fi
 (
   flock 9
   if [ ! -f /tmp/site/.done ]; then
@@ -33,10 +37,10 @@ res=/tmp/table1_results/$name
 mkdir -p "$res"
 timeout -s INT "${LIMIT_S:-0}" python3 experiments/table1.py --robot "$robot" --data "$data" \
   --preset paper --parallel 17 \
-  --steps "$steps" --minutes "$minutes" --ablation "$ablation" --root "$root" --out "$res" "$@" \
+  --steps "$steps" --minutes "$minutes" --ablation "$ablation" --root "$root" --out "$res" "${twargs[@]}" "$@" \
   2>&1 | grep --line-buffered -v -i "warp\|warn" | tee "$out/${name}_driver.log" | tail -40
 suffix=""; [ "$data" = explore ] || suffix=_$data
-runs=$root/runs/$robot$suffix-paper
+runs=$root/runs/$robot$suffix$tws-paper
 (cd "$runs" && tar -cf "$res/runs.tar" */metrics.csv */train.log */summary.json \
   $(ls */eval.log 2>/dev/null) && tar -rf "$res/runs.tar" --exclude=ckpt --exclude=eval_out *-s0)
 tar -C "$res" -cJf "$out/$name.tar.xz" .
