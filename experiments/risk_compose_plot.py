@@ -15,12 +15,7 @@ import argparse
 import json
 import pathlib
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from stride_jax import io  # noqa: E402
+from stride_jax.jobs import closed_loop
 
 ROOT = pathlib.Path(__file__).resolve().parents[1] / "results" / "closed_loop_go1_gpu"
 SEARCH = ROOT / "parts" / "risk_search"
@@ -61,29 +56,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", required=True)
     a = ap.parse_args(argv)
-    rows = table()
-    fig, ax = plt.subplots(figsize=(11, 4.2))
-    width = 0.8 / len(rows)
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for i, (label, got) in enumerate(rows.items()):
-        for j, scen in enumerate(SCENARIOS):
-            r = got.get(scen)
-            if r is None:
-                continue
-            x = j - 0.4 + (i + 0.5) * width
-            ax.bar(x, r["vel_rmse"], width, color=colors[i], label=label if j == 0 else None,
-                   hatch="//" if r["fell"] else None, edgecolor="k" if r["fell"] else None)
-            if r["fell"]:
-                ax.text(x, r["vel_rmse"] + 0.005, f"fell\n{r['fall_s']:.1f} s", ha="center",
-                        va="bottom", fontsize=6)
-    ax.set_xticks(range(len(SCENARIOS)))
-    ax.set_xticklabels([s.replace("push2x", "pushes x 2\n(1.0 m/s)") for s in SCENARIOS])
-    ax.set_ylabel("velocity RMSE while upright (m/s)")
-    ax.set_title("Go1, STRIDE-MPPI (K = 1024, H = 20, seed 0, H200): tracking against recovery")
-    ax.legend(fontsize=7, loc="upper center")
-    ax.set_ylim(0, 0.36)
-    fig.tight_layout()
-    io.atomic_write(a.out, lambda f: fig.savefig(f, format="png", dpi=130))
+    closed_loop.bars(table(), list(SCENARIOS), a.out,
+                     "Go1, STRIDE-MPPI (K = 1024, H = 20, seed 0, H200): tracking against recovery",
+                     labels={"push2x": "pushes x 2\n(1.0 m/s)"}, ylim=0.36)
     print(f"wrote {a.out}")
     return 0
 

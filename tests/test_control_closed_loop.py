@@ -2,6 +2,7 @@
 parameters; scenario grounds; the planner state; gait parameters held per rollout; learned costs."""
 
 import dataclasses
+import json
 
 import jax
 import jax.numpy as jnp
@@ -395,3 +396,43 @@ def test_a_run_logs_its_progress_writes_its_row_and_resumes(tmp_path):
     assert [t.split(":")[1].split(" of")[0].strip() for t in ticks] == ["0.1", "0.2"]
     again = []
     assert cl.run(cfg, log=again.append) == rows and not any("simulated" in x for x in again)
+
+
+def _part(folder, rows, command):
+    folder.mkdir(parents=True)
+    (folder / "closed_loop.json").write_text(json.dumps(dict(env=dict(command=command),
+                                                             rows=rows)))
+    return folder
+
+
+def _row(scenario, model, vel, fell=False):
+    return dict(scenario=scenario, model=model, vel_rmse=vel, fell=fell,
+                fall_s=1.5 if fell else None, ms_per_step=10.0)
+
+
+def test_merged_parts_keep_their_names_and_figures_and_bars_pick_by_part(tmp_path):
+    """Merging parts renames a second part's (scenario, model) pair ``model@part``; a scenario
+    none of whose rows has a trace keeps its figure (a merge must not blank it); ``select``
+    takes each scenario from the first listed part that has it; ``bars`` writes the figure."""
+    a = _part(tmp_path / "a", [_row("walk", "stride", 0.07), _row("push", "stride", 0.16),
+                               _row("walk", "policy", 0.068)], "first")
+    b = _part(tmp_path / "b", [_row("walk", "stride", 0.055), _row("rough", "stride", 0.7, True)],
+              "second")
+    out = tmp_path / "merged"
+    out.mkdir()
+    (out / "closed_loop_walk.png").write_bytes(b"kept")
+    rows = cl.merge([str(a), str(b)], str(out), "t")
+    assert [r["model"] for r in rows] == ["stride", "stride", "policy", "stride@b", "stride"]
+    assert [r["part"] for r in rows] == ["a", "a", "a", "b", "b"]
+    assert (out / "closed_loop_walk.png").read_bytes() == b"kept"
+    assert set(json.loads((out / "closed_loop.json").read_text())["parts"]) == {"a", "b"}
+
+    picked = cl.select(rows, "stride", ("b", "a"))
+    assert {sc: (r["part"], r["vel_rmse"]) for sc, r in picked.items()} == {
+        "walk": ("b", 0.055), "push": ("a", 0.16), "rough": ("b", 0.7)}
+    assert set(cl.select(rows, "stride", ("a",))) == {"walk", "push"}
+    assert cl.select(rows, "stride")["walk"]["part"] == "a"  # no parts: the first row
+    assert cl.select(rows, "onn") == {}
+    png = cl.bars({"policy": cl.select(rows, "policy"), "STRIDE": picked},
+                  ["walk", "push", "rough"], tmp_path / "bars.png", ylim=0.3)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -387,20 +387,23 @@ def merge(parts: list[str], out: str, title: str = "") -> list[dict]:
 
 
 def plot(out: pathlib.Path, rows: list[dict]) -> list[pathlib.Path]:
-    """One figure per scenario: forward velocity and yaw rate against the command, per model."""
+    """One figure per scenario: forward velocity and yaw rate against the command, per model
+    whose trace (``trace_<scenario>_<model>.npz``) lies in ``out``. A scenario without any trace
+    leaves its figure as it is (a merge of parts whose traces were not kept must not blank it)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     paths = []
     for sc in dict.fromkeys(r["scenario"] for r in rows):
+        traced = [r for r in rows if r["scenario"] == sc
+                  and (out / f"trace_{sc}_{r['model']}.npz").is_file()]
+        if not traced:
+            continue
         fig, ax = plt.subplots(1, 3, figsize=(14, 3.6))
         cmd_drawn = False
-        for r in [r for r in rows if r["scenario"] == sc]:
-            f = out / f"trace_{sc}_{r['model']}.npz"
-            if not f.is_file():
-                continue
-            tr = np.load(f)
+        for r in traced:
+            tr = np.load(out / f"trace_{sc}_{r['model']}.npz")
             if not cmd_drawn:
                 for i, label in enumerate(("vx", "vy", "yaw rate")):
                     ax[i].plot(tr["t"], tr["command"][:, i], "k--", lw=1, label="command")
@@ -419,6 +422,70 @@ def plot(out: pathlib.Path, rows: list[dict]) -> list[pathlib.Path]:
         plt.close(fig)
         paths.append(path)
     return paths
+
+
+def select(rows: list[dict], model: str, parts: tuple[str, ...] = ()) -> dict[str, dict]:
+    """``{scenario: row}`` of ``model`` (a merged row's name before any ``@part``), from the
+    first of ``parts`` that has the scenario (``parts`` empty: any part, the first row wins)."""
+    order = {p: i for i, p in enumerate(parts)}
+    best: dict[str, tuple[int, dict]] = {}
+    for r in rows:
+        part = r.get("part", "")
+        if r["model"].split("@")[0] != model or (parts and part not in order):
+            continue
+        rank = order.get(part, 0)
+        if r["scenario"] not in best or rank < best[r["scenario"]][0]:
+            best[r["scenario"]] = (rank, r)
+    return {sc: r for sc, (_, r) in best.items()}
+
+
+def bars(planners: dict[str, dict[str, dict]], scenarios: list[str], out: str | pathlib.Path,
+         title: str = "", labels: dict[str, str] | None = None,
+         ylim: float | None = None) -> pathlib.Path:
+    """Velocity RMSE per scenario as grouped bars, one colour per planner (``{label: {scenario:
+    row}}``); a fall is a hatched bar marked with its time, a missing row leaves a gap. Writes
+    the PNG ``out`` atomically."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from stride_jax import io
+
+    fig, ax = plt.subplots(figsize=(max(8.0, 1.3 * len(scenarios) + 2), 4.2))
+    width = 0.8 / max(len(planners), 1)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    top = ylim or 1.1 * max((r["vel_rmse"] for got in planners.values() for r in got.values()),
+                            default=1.0)
+    for i, (label, got) in enumerate(planners.items()):
+        for j, sc in enumerate(scenarios):
+            r = got.get(sc)
+            if r is None:
+                continue
+            x = j - 0.4 + (i + 0.5) * width
+            h = min(r["vel_rmse"], top)  # a fall's RMSE can dwarf the rest: clipped, marked
+            ax.bar(x, h, width, color=colors[i % len(colors)], label=label,
+                   hatch="//" if r["fell"] else None, edgecolor="k" if r["fell"] else None)
+            label = None  # one legend entry per planner
+            note = f"{r['vel_rmse']:.2f}" if r["vel_rmse"] > top else ""
+            if r["fell"]:
+                note += " fell" + (f" {r['fall_s']:.1f} s" if r.get("fall_s") is not None else "")
+            if r["vel_rmse"] > top:  # clipped: the value inside the bar
+                ax.text(x, 0.98 * top, note.strip(), ha="center", va="top", fontsize=6,
+                        rotation=90)
+            elif note:
+                ax.text(x, h + 0.01 * top, note.strip().replace(" ", "\n", 1), ha="center",
+                        va="bottom", fontsize=6)
+    ax.set_xticks(range(len(scenarios)))
+    ax.set_xticklabels([(labels or {}).get(s, s) for s in scenarios])
+    ax.set_ylabel("velocity RMSE while upright (m/s)")
+    ax.set_ylim(0, top if ylim else top * 1.1)
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    path = pathlib.Path(out)
+    io.atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=130))
+    plt.close(fig)
+    return path
 
 
 def main(argv: list[str] | None = None) -> None:
