@@ -436,3 +436,25 @@ def test_merged_parts_keep_their_names_and_figures_and_bars_pick_by_part(tmp_pat
     png = cl.bars({"policy": cl.select(rows, "policy"), "STRIDE": picked},
                   ["walk", "push", "rough"], tmp_path / "bars.png", ylim=0.3)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_the_recovery_alarm_fires_on_the_velocity_tracking_error(go1):
+    """``alarm_speed``: the planner's alarm holds while the base's velocity is further from the
+    command than that (the tracking term's error); the recovery candidates' noise is per action
+    entry, and the MPPI settings carry it only where there is an alarm."""
+    cfg = planning_lib.PlanningConfig(alarm_speed=0.4, recovery_noise_std=0.5, noise_std=0.15)
+    planning = planning_lib.make_planning(cfg, envs.config("go1"), go1, _fake_step)
+    q = planning_lib.augment(jnp.asarray(go1.info.qpos0), jnp.array([1.0, 0.0, 0.0]))
+    qd = jnp.zeros(go1.mj.nv)
+    assert not bool(planning.alarm(q, qd.at[0].set(1.1)))  # 0.1 m/s off: quiet
+    assert bool(planning.alarm(q, qd.at[0].set(0.5)))  # 0.5 m/s short of the command
+    assert bool(planning.alarm(q, qd.at[0].set(1.0).at[1].set(0.6)))  # pushed sideways
+    assert planning.recovery_noise == (0.5,) * 12
+    m = planning_lib.mppi_config(mppi.MPPIConfig(), cfg, planning)
+    assert m.alarm_noise_std == (0.5,) * 12
+    quiet = planning_lib.make_planning(planning_lib.PlanningConfig(), envs.config("go1"), go1,
+                                       _fake_step)
+    assert quiet.alarm is None
+    assert planning_lib.mppi_config(mppi.MPPIConfig(), cfg, quiet).alarm_noise_std == 0.0
+    with pytest.raises(ValueError, match="alarm_speed"):
+        planning_lib.PlanningConfig(alarm_speed=-1.0)

@@ -375,3 +375,35 @@ def test_a_policy_family_finds_the_command_offset_its_policy_lacks():
         mppi.MPPIConfig(samples=64, policy_samples=8, family_samples=60)
     with pytest.raises(ValueError, match="family_decay"):
         mppi.MPPIConfig(family_decay=1.5)
+
+
+def test_an_alarm_swaps_the_policy_prior_for_wide_noise_around_the_plan():
+    """A policy that always pushes the wrong way: its prior candidates pull the plan towards
+    it. While the alarm holds, those candidates leave the policy (the plan plus noise at
+    ``alarm_noise_std``) and the plan turns the right way; an alarm that never fires plans
+    exactly as no alarm at all, and the step says which candidates planned."""
+    drift = lambda q, qd, u, key=None: (q + 0.1 * u, qd)
+    cost = lambda q, qd, u, t: (q[0] - 1.0) ** 2  # the target lies at +1
+    wrong = lambda q, qd: jnp.full(1, -1.0)
+    base = mppi.MPPIConfig(samples=64, horizon=5, noise_std=0.05, prior_fraction=1.0,
+                           prior_noise_std=0.05, temperature=0.1)
+    q0, qd0 = jnp.zeros(1), jnp.zeros(1)
+
+    def plan(cfg, alarm=None):
+        planner = mppi.make(cfg, drift, cost, [-2.0], [2.0], policy=wrong, alarm=alarm)
+        u, state, info = jax.jit(planner.step)(planner.init(jax.random.key(0)), q0, qd0)
+        return float(u[0]), info
+
+    u_prior, info = plan(base)
+    assert u_prior < -0.8 and not bool(info.alarm)  # the prior's candidates all follow the policy
+    wide = dataclasses.replace(base, alarm_noise_std=1.0)
+    u_quiet, info = plan(wide, alarm=lambda q, qd: q[0] > 5.0)
+    assert u_quiet == u_prior and not bool(info.alarm)
+    u_alarm, info = plan(wide, alarm=lambda q, qd: q[0] < 0.5)
+    assert u_alarm > 0.3 and bool(info.alarm)
+    with pytest.raises(ValueError, match="alarm_noise_std=1.0 needs an alarm"):
+        mppi.make(wide, drift, cost, [-2.0], [2.0], policy=wrong)
+    with pytest.raises(ValueError, match="alarm_noise_std"):
+        mppi.MPPIConfig(alarm_noise_std=-0.1)
+    with pytest.raises(ValueError, match="not on policy_noise"):
+        mppi.MPPIConfig(policy_noise=True, alarm_noise_std=0.5)

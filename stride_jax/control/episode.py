@@ -41,6 +41,7 @@ class Trace(NamedTuple):
     status: jax.Array  # [T] int32 the planner's mppi status (PLANNED, or why it fell back)
     cut: jax.Array  # [T] share of the planner's rollouts cut for predicted model error
     disturbance: jax.Array  # [T, 6] the observer's base-acceleration estimate after the step
+    alarm: jax.Array  # [T] bool: the planner drew its recovery candidates (``alarm_noise_std``)
 
 
 def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Planning,
@@ -104,9 +105,10 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
         seen = command if limits is None else jnp.clip(command, limits[0], limits[1])
         q_aug = augment(d.qpos, seen, clock, disturbance=dist)
         status, cut, info = jnp.zeros((), jnp.int32), jnp.zeros(()), None
+        alarm = jnp.zeros((), bool)
         if planner is not None:
             u, ps, info = planner.step(ps, q_aug, d.qvel)
-            status = info.status
+            status, alarm = info.status, info.alarm
             cut = jnp.mean(info.kept < horizon)
             if gait:  # gait parameters are per rollout: hold the chosen ones over the plan
                 ps = ps._replace(plan=ps.plan.at[:, nu:].set(ps.plan[0, nu:]))
@@ -126,7 +128,7 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
             dist = jnp.where(finite & ~down2, new, dist)
         v, w, _ = envs.base_signals(d2.qpos, d2.qvel)
         rec = Trace(t + dt, command, v, w, d2.qpos[2], down2, envs.foot_contact(sm, slots, d2),
-                    u, status, cut, dist)
+                    u, status, cut, dist, alarm)
         if record is not None:
             rec = (rec, record(q_aug, d.qvel, u, info,
                                augment(d2.qpos, seen, clock, disturbance=dist),
@@ -161,7 +163,7 @@ def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
                mean_vx=float(tr.v_base[up, 0].mean()) if up.any() else float("nan"),
                upright_s=float(up.sum() * (tr.t[1] - tr.t[0]) if len(tr.t) > 1 else 0.0),
                fallbacks=int((tr.status != mppi.PLANNED).sum()),
-               cut_share=float(tr.cut.mean()))
+               cut_share=float(tr.cut.mean()), alarm_share=float(tr.alarm.mean()))
     if np.any(tr.disturbance != 0) and up.any():  # the observer's mean estimate while upright
         out["disturbance"] = [float(x) for x in tr.disturbance[up].mean(axis=0)]
     if up.sum() >= 10 and tr.contact.shape[1] == 4:  # the quadruped gait the feet showed

@@ -43,7 +43,14 @@ unchanged):
   ``e_t = sqrt(sum_{s<=t} sigma_s^2)``. A rollout whose ``e_t`` exceeds ``error_bound`` is cut:
   its costs from step ``t`` on are replaced by the discounted terminal value at the last trusted
   state, ``- gamma^t V(x_t)``; ``error_weight`` adds ``gamma^t error_weight e_(t+1)`` per kept
-  step, down-weighting candidates the model is unsure of.
+  step, down-weighting candidates the model is unsure of;
+* **recovery candidates on an alarm** (``alarm_noise_std``, with ``make(..., alarm=)``): while
+  ``alarm(q, qd)`` holds (in the closed loop: the robot far from its commanded velocity), the
+  policy-prior candidates leave the policy and, with the plan's own noise candidates, become the
+  plan plus AR(1) noise at ``alarm_noise_std``. Measured on the Go1 pushed sideways at 1.0 m/s
+  (``results/closed_loop_go1_gpu/parts/risk_search/``): candidates near the policy track best
+  where the policy copes, but every candidate set holding the policy prior fell there, and wide
+  open-loop noise without it recovered; the alarm picks the set by the situation.
 
 ``make`` returns ``init`` and ``step``, pure functions of an immutable :class:`MPPIState`; jit
 ``step`` once per (samples, horizon, model) and call it every control period.
@@ -143,6 +150,11 @@ class MPPIConfig:
         kept). Below 1 the offset returns to the plain policy unless the costs keep asking for
         it: the weighted mean of draws around the last mean is otherwise a random walk, and an
         offset that served one command (a slope) outlives a change of command.
+      alarm_noise_std: the recovery candidates' noise std in action units (scalar or per
+        action; 0: no recovery mode). While the ``alarm`` given to :func:`make` holds, the
+        policy-prior candidates (``prior_fraction``) are the shifted plan plus noise instead of
+        the policy's rollout, and they and the plan's noise candidates draw it at this std.
+        Policy and family candidates stay as they are. Needs an ``alarm``.
       unroll: horizon steps per loop iteration of the rollouts (``True``: the whole horizon,
         no loop, one CUDA graph on a GPU). Measured: Go1 STRIDE, K=1024, H=30 on an H100, 9.0 ms
         unrolled against 9.5 ms looped (within run-to-run noise); on a 2-core CPU no faster,
@@ -174,6 +186,7 @@ class MPPIConfig:
     family_range: float = 1.0
     family_decay: float = 1.0
     family_cost: float = 0.0
+    alarm_noise_std: float | tuple[float, ...] = 0.0
     unroll: int | bool = 1
 
     def __post_init__(self):
@@ -227,6 +240,11 @@ class MPPIConfig:
         if self.error_bound < 0 or self.error_weight < 0:
             problems.append(f"error_bound={self.error_bound} and error_weight="
                             f"{self.error_weight} must be >= 0")
+        if np.any(np.asarray(self.alarm_noise_std) < 0):
+            problems.append(f"alarm_noise_std={self.alarm_noise_std} must be >= 0")
+        if self.policy_noise and np.any(np.asarray(self.alarm_noise_std) > 0):
+            problems.append("alarm_noise_std acts on the prior_fraction spelling of the policy "
+                            "prior, not on policy_noise")
         if not isinstance(self.unroll, bool) and self.unroll < 1:
             problems.append(f"unroll={self.unroll} must be >= 1 or True")
         if problems:
@@ -252,6 +270,7 @@ class Info(NamedTuple):
     candidates: jax.Array  # [K, H, nu] the action sequences of the last iteration (costs' order)
     error: jax.Array  # [K] predicted model error at the rollout's end or cut (0 if unmeasured)
     kept: jax.Array  # [K] horizon steps each rollout kept before a cut (H: not cut)
+    alarm: jax.Array  # [] bool: the recovery candidates planned this step (``alarm_noise_std``)
 
 
 class Planner(NamedTuple):
@@ -272,7 +291,8 @@ def sample_sharding() -> NamedSharding | None:
 def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo, action_hi,
          terminal_value: Callable | None = None, policy: Callable | None = None,
          sharding: NamedSharding | None = None, disagreement: Callable | None = None,
-         step_error: Callable | None = None, family: Callable | None = None) -> Planner:
+         step_error: Callable | None = None, family: Callable | None = None,
+         alarm: Callable | None = None) -> Planner:
     """An MPPI planner for ``dynamics(q, qd, action, key) -> (q', qd')``.
 
     ``running_cost(q, qd, action, t) -> []`` is the cost of taking ``action`` at ``(q, qd)`` at
@@ -285,6 +305,7 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
     []`` of ``cfg.error_draws`` draws (default :func:`velocity_spread`), and/or a learned
     ``step_error(q, qd, action) -> []`` (both: added in quadrature). ``family(q, qd, z) ->
     action``: a family of policies indexed by an offset ``z`` (``cfg.family_samples``).
+    ``alarm(q, qd) -> bool []``: when the recovery candidates plan (``cfg.alarm_noise_std``).
     """
     lo, hi = jnp.asarray(action_lo, jnp.float32), jnp.asarray(action_hi, jnp.float32)
     if lo.ndim != 1 or lo.shape != hi.shape:
@@ -300,6 +321,10 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
                          f"follow the policy through the model)")
     if cfg.family_samples and family is None:
         raise ValueError(f"family_samples={cfg.family_samples} needs a family of policies")
+    recovery = bool(np.any(np.asarray(cfg.alarm_noise_std) > 0))
+    if recovery and alarm is None:
+        raise ValueError(f"alarm_noise_std={cfg.alarm_noise_std} needs an alarm (when the "
+                         f"recovery candidates plan)")
     E = cfg.error_draws
     measured = E > 1 or step_error is not None
     if (cfg.error_bound > 0 or cfg.error_weight > 0) and not measured:
@@ -322,6 +347,7 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
     std = jnp.broadcast_to(jnp.asarray(cfg.noise_std, jnp.float32), (nu,))
     prior_std = std if cfg.policy_noise else jnp.broadcast_to(
         jnp.asarray(cfg.prior_noise_std, jnp.float32), (nu,))
+    alarm_std = jnp.broadcast_to(jnp.asarray(cfg.alarm_noise_std, jnp.float32), (nu,))
     value = terminal_value or (lambda q, qd: jnp.zeros(()))
     spread = disagreement or velocity_spread
     discounts = jnp.asarray(cfg.discount ** np.arange(H + 1), jnp.float32)  # gamma^t, t <= H
@@ -349,16 +375,19 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
             var = var + step_error(q, qd, u) ** 2
         return q2, qd2, var
 
-    def rollout(q, qd, key, base, closed: bool, z=None):
+    def rollout(q, qd, key, base, closed: bool, z=None, anchor=None, leave=None):
         """``(cost, actions [H, nu], error, kept)`` of one candidate: ``base`` is its action
         sequence (open loop) or the offsets on the policy acting in closed loop (the family's
-        member ``z`` when given)."""
+        member ``z`` when given). With ``anchor`` (a plan [H, nu]) a closed-loop candidate
+        leaves the policy where ``leave`` holds: its actions are then ``anchor + base``."""
         act = policy if z is None else (lambda q, qd: family(q, qd, z))
 
         def body(carry, inp):
             q, qd, cost, err2, alive, err_kept, kept = carry
             t, k, b = inp
             u = jnp.clip(act(q, qd) + b, lo, hi) if closed else b
+            if anchor is not None:
+                u = jnp.where(leave, jnp.clip(anchor[t] + b, lo, hi), u)
             q2, qd2, var = model_step(q, qd, u, k)
             err2 = err2 + var
             w = discounts[t]
@@ -396,11 +425,11 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
 
     R = cfg.risk_draws
 
-    def drawn(closed: bool):
+    def drawn(closed: bool, **switch):
         """A candidate's ``(cost, actions, error, kept)`` over R draws: the risk statistic of
         the costs, the first draw's actions (an open-loop candidate's are the same in all), the
-        mean error and kept steps."""
-        one = lambda q, qd, key, base, z=None: rollout(q, qd, key, base, closed, z)
+        mean error and kept steps. ``switch``: :func:`rollout`'s ``anchor`` and ``leave``."""
+        one = lambda q, qd, key, base, z=None: rollout(q, qd, key, base, closed, z, **switch)
         if R == 1:
             return one
 
@@ -420,18 +449,22 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
     def iterate(plan, z_mean, q, qd, key):
         key_noise, key_roll, key_pol = jax.random.split(key, 3)
         groups, zs = [], None
+        wide = jnp.asarray(alarm(q, qd), bool) if recovery else jnp.zeros((), bool)
         if cfg.policy_noise:  # the older spelling: every noise candidate around the policy
             groups.append(batch(closed_loop, q, qd, jax.random.split(key_roll, n_prior),
                                 noise(key_noise)[:n_prior]))
         else:
             if n_plan:
-                candidates = jnp.clip(plan[None] + noise(key_noise), lo, hi)
+                scale = jnp.where(wide, alarm_std, std) if recovery else std
+                candidates = jnp.clip(plan[None] + noise(key_noise, scale), lo, hi)
                 groups.append(batch(open_loop, q, qd, jax.random.split(key_roll, n_plan),
                                     candidates[:n_plan]))
             if n_prior:
                 key_prior_noise, key_prior = jax.random.split(jax.random.fold_in(key, 7))
-                groups.append(batch(closed_loop, q, qd, jax.random.split(key_prior, n_prior),
-                                    noise(key_prior_noise, prior_std)[:n_prior]))
+                prior = drawn(True, anchor=plan, leave=wide) if recovery else closed_loop
+                scale = jnp.where(wide, alarm_std, prior_std) if recovery else prior_std
+                groups.append(batch(prior, q, qd, jax.random.split(key_prior, n_prior),
+                                    noise(key_prior_noise, scale)[:n_prior]))
         if n_pol:
             groups.append(batch(closed_loop, q, qd, jax.random.split(key_pol, n_pol),
                                 jnp.zeros((n_pol, H, nu))))
@@ -459,7 +492,7 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
             z_new = jnp.einsum("k,kz->z", w_fam, zs) / jnp.maximum(jnp.sum(w_fam), 1e-12)
             z_mean = jnp.where(ok & (jnp.sum(w_fam) > 1e-12), z_new, z_mean)
         return new_plan, z_mean, Info(costs, w, jnp.min(costs), new_plan, status, actions, err,
-                                      kept.astype(jnp.float32))
+                                      kept.astype(jnp.float32), wide)
 
     def step(state: MPPIState, q: jax.Array, qd: jax.Array):
         key, key_step = jax.random.split(state.key)

@@ -69,6 +69,13 @@ class PlanningConfig:
         transients, not by what persists).
       family_std: std of the command offsets of the policy family's candidates
         (``--mppi.family-samples``): vx (m/s) and yaw rate (rad/s); vy gets half.
+      alarm_speed: the recovery alarm (0: off): while the base's velocity-tracking error
+        (``sqrt((vx - vx*)^2 + (vy - vy*)^2 + (yaw rate - yaw rate*)^2 / 2)``, the tracking
+        term's, in the planner's state) exceeds this (m/s), the planner draws its recovery
+        candidates (``MPPIConfig.alarm_noise_std``): a push or a slip has taken the robot
+        where the policy-prior candidates are not to be trusted.
+      recovery_noise_std: the recovery candidates' exploration std of the joint offsets (rad);
+        planned gait parameters' noise scales by the same factor over ``noise_std``.
     """
 
     noise_std: float = 0.15
@@ -85,6 +92,13 @@ class PlanningConfig:
     observer_limit: float = 6.0
     observer_angular: bool = False
     family_std: float = 0.3
+    alarm_speed: float = 0.0
+    recovery_noise_std: float = 0.5
+
+    def __post_init__(self):
+        if self.alarm_speed < 0 or not self.recovery_noise_std > 0:
+            raise ValueError(f"alarm_speed={self.alarm_speed} must be >= 0 and "
+                             f"recovery_noise_std={self.recovery_noise_std} > 0")
 
 
 class Planning(NamedTuple):
@@ -108,6 +122,8 @@ class Planning(NamedTuple):
     observer_limit: float = 6.0  # bound of each disturbance entry
     observer_angular: bool = False  # estimate the angular entries too
     family: Callable | None = None  # (q_aug, qd, z [3]) -> u: the policy given command + z
+    alarm: Callable | None = None  # (q_aug, qd) -> bool []: plan the recovery candidates
+    recovery_noise: tuple = ()  # per action entry: the recovery candidates' noise std
 
 
 class Aug(NamedTuple):
@@ -274,6 +290,11 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
         def policy(q_aug, qd):
             return family(q_aug, qd, jnp.zeros(3, q_aug.dtype))
 
+    alarm = None
+    if cfg.alarm_speed:
+        def alarm(q_aug, qd):
+            return track_error(q_aug, qd) > cfg.alarm_speed ** 2
+
     r = cfg.plan_range
     lo, hi = np.full(nu, -r, np.float32), np.full(nu, r, np.float32)
     noise = (cfg.noise_std,) * nu
@@ -285,17 +306,20 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
         trot = gait_lib.named("trot")
         with jax.ensure_compile_time_eval():  # a constant, also where this is traced (the job)
             nominal = np.asarray(gait_lib.join_action(jnp.asarray(nominal), trot), np.float32)
+    recovery = tuple(n * cfg.recovery_noise_std / cfg.noise_std if cfg.noise_std else
+                     cfg.recovery_noise_std for n in noise)
     return Planning(dynamics, cost, value, policy, ctrl, lo, hi, noise, nominal,
                     0.0 if cfg.gait else env_cfg.gait_hz, obs_aug, disagreement, step_error,
                     reward_action, cfg.observer_gain, cfg.observer_limit, cfg.observer_angular,
-                    family)
+                    family, alarm, recovery)
 
 
 def mppi_config(mppi_cfg: mppi.MPPIConfig, cfg: PlanningConfig,
                 planning: Planning) -> mppi.MPPIConfig:
     """The run's MPPI settings ``mppi_cfg`` with the task's exploration noise per action entry
-    and the policy prior's noise, the policy family's command-offset noise (and no policy
-    candidates, prior or family without a policy)."""
+    and the policy prior's noise, the policy family's command-offset noise, the recovery
+    candidates' noise where the task has an alarm (and no policy candidates, prior or family
+    without a policy)."""
     nu = len(planning.lo)
     fam_std = (cfg.family_std, 0.5 * cfg.family_std, cfg.family_std)
     return dataclasses.replace(mppi_cfg, noise_std=planning.noise,
@@ -303,12 +327,13 @@ def mppi_config(mppi_cfg: mppi.MPPIConfig, cfg: PlanningConfig,
                                policy_samples=mppi_cfg.policy_samples if planning.policy else 0,
                                prior_fraction=mppi_cfg.prior_fraction if planning.policy else 0.0,
                                family_samples=mppi_cfg.family_samples if planning.family else 0,
-                               family_std=fam_std)
+                               family_std=fam_std,
+                               alarm_noise_std=planning.recovery_noise if planning.alarm else 0.0)
 
 
 def make_planner(planning: Planning, mppi_cfg: mppi.MPPIConfig) -> mppi.Planner:
     """MPPI over the planning functions (build outside jit: it checks its bounds)."""
     return mppi.make(mppi_cfg, planning.dynamics, planning.cost, planning.lo, planning.hi,
                      planning.value, planning.policy, disagreement=planning.disagreement,
-                     family=planning.family,
-                     step_error=planning.step_error)
+                     family=planning.family, step_error=planning.step_error,
+                     alarm=planning.alarm)
