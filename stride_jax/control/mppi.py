@@ -50,7 +50,9 @@ unchanged):
   plan plus AR(1) noise at ``alarm_noise_std``. Measured on the Go1 pushed sideways at 1.0 m/s
   (``results/closed_loop_go1_gpu/parts/risk_search/``): candidates near the policy track best
   where the policy copes, but every candidate set holding the policy prior fell there, and wide
-  open-loop noise without it recovered; the alarm picks the set by the situation.
+  open-loop noise without it recovered; the alarm picks the set by the situation. First
+  screens (same README, "Session 35"): no tracking cost where nothing pushes hard, but switched
+  at the alarm the wide set did not recover from those pushes (seed 0): not yet a fix.
 
 ``make`` returns ``init`` and ``step``, pure functions of an immutable :class:`MPPIState`; jit
 ``step`` once per (samples, horizon, model) and call it every control period.
