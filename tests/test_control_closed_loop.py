@@ -398,6 +398,34 @@ def test_a_run_logs_its_progress_writes_its_row_and_resumes(tmp_path):
     assert cl.run(cfg, log=again.append) == rows and not any("simulated" in x for x in again)
 
 
+def test_episodes_side_by_side_give_a_row_per_seed_and_the_first_equals_a_single_run(tmp_path):
+    """``episodes``: one vmapped program runs a pair's episodes over the seeds; each seed gets
+    its row and trace, the first seed's row is the row of a plain run at that seed, the others
+    differ (the planner's draws), the summary over seeds counts them, and a second call skips
+    them."""
+    common = dict(models="onn=results/models/go1_walk/onn-s0", scenarios="walk", seconds=0.1,
+                  settle_s=0.0, progress_s=0.0, mppi=mppi.MPPIConfig(samples=8, horizon=3))
+    single = cl.run(cl.ClosedLoopConfig(out=str(tmp_path / "one"), seed=3, **common),
+                    log=lambda *_: None)
+    cfg = cl.ClosedLoopConfig(out=str(tmp_path / "many"), seed=3, episodes=2, **common)
+    rows = cl.run(cfg, log=lambda *_: None)
+    assert [(r["seed"], r["episode"], r["side_by_side"]) for r in rows] == [(3, 0, 2), (4, 1, 2)]
+    np.testing.assert_allclose(rows[0]["vel_rmse"], single[0]["vel_rmse"], rtol=1e-4)
+    one = np.load(tmp_path / "one" / "trace_walk_onn.npz")
+    first = np.load(tmp_path / "many" / "trace_walk_onn.npz")
+    other = np.load(tmp_path / "many" / "trace_walk_onn_seed4.npz")
+    # the same draws (batched arithmetic rounds differently: 1e-6 at the first step, growing)
+    np.testing.assert_allclose(first["action"][0], one["action"][0], atol=1e-5)
+    np.testing.assert_allclose(first["action"], one["action"], atol=2e-3)
+    assert np.abs(other["action"] - first["action"]).max() > 2e-2  # other draws
+    summary = cl.over_seeds(rows)
+    assert [(g["episodes"], g["falls"], g["seeds"]) for g in summary] == [(2, 0, [3, 4])]
+    assert "Over seeds" in (tmp_path / "many" / "closed_loop.md").read_text()
+    assert cl.run(cfg, log=lambda *_: None) == rows
+    with pytest.raises(ValueError, match="episodes"):
+        cl.ClosedLoopConfig(episodes=0)
+
+
 def _part(folder, rows, command):
     folder.mkdir(parents=True)
     (folder / "closed_loop.json").write_text(json.dumps(dict(env=dict(command=command),
@@ -458,3 +486,9 @@ def test_the_recovery_alarm_fires_on_the_velocity_tracking_error(go1):
     assert planning_lib.mppi_config(mppi.MPPIConfig(), cfg, quiet).alarm_noise_std == 0.0
     with pytest.raises(ValueError, match="alarm_speed"):
         planning_lib.PlanningConfig(alarm_speed=-1.0)
+    held = dataclasses.replace(cfg, alarm_hold_s=0.3)
+    planning = planning_lib.make_planning(held, envs.config("go1"), go1, _fake_step)
+    assert planning.alarm_hold == round(0.3 / go1.robot.ctrl_dt)
+    assert planning_lib.mppi_config(mppi.MPPIConfig(), held, planning).alarm_hold == 15
+    with pytest.raises(ValueError, match="alarm_hold_s"):
+        planning_lib.PlanningConfig(alarm_hold_s=-0.1)

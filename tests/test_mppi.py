@@ -407,3 +407,32 @@ def test_an_alarm_swaps_the_policy_prior_for_wide_noise_around_the_plan():
         mppi.MPPIConfig(alarm_noise_std=-0.1)
     with pytest.raises(ValueError, match="not on policy_noise"):
         mppi.MPPIConfig(policy_noise=True, alarm_noise_std=0.5)
+
+
+def test_a_held_alarm_keeps_the_recovery_candidates_for_its_steps_after_it_last_rang():
+    """``alarm_hold``: once the alarm has rung, the recovery candidates plan that many more
+    steps after it stops (``Info.alarm`` says so); a new ring restarts the count; without a
+    hold they plan only while it rings; a non-finite state leaves the count alone."""
+    drift = lambda q, qd, u, key=None: (q + 0.1 * u, qd)
+    cost = lambda q, qd, u, t: (q[0] - 1.0) ** 2
+    wrong = lambda q, qd: jnp.full(1, -1.0)
+    cfg = mppi.MPPIConfig(samples=16, horizon=3, noise_std=0.05, prior_fraction=1.0,
+                          alarm_noise_std=1.0)
+    ringing = lambda q, qd: q[0] < 0.0  # the tests' states: -1 rings, +1 is quiet
+
+    def alarms(hold, states):
+        planner = mppi.make(dataclasses.replace(cfg, alarm_hold=hold), drift, cost, [-2.0],
+                            [2.0], policy=wrong, alarm=ringing)
+        state, step, out = planner.init(jax.random.key(0)), jax.jit(planner.step), []
+        for x in states:
+            _, state, info = step(state, jnp.full(1, x), jnp.zeros(1))
+            out.append(bool(info.alarm))
+        return out
+
+    quiet_after = [-1.0, 1.0, 1.0, 1.0, 1.0]
+    assert alarms(0, quiet_after) == [True, False, False, False, False]
+    assert alarms(2, quiet_after) == [True, True, True, False, False]
+    assert alarms(2, [-1.0, 1.0, -1.0, 1.0, 1.0, 1.0]) == [True, True, True, True, True, False]
+    assert alarms(2, [-1.0, float("nan"), 1.0, 1.0, 1.0]) == [True, True, True, True, False]
+    with pytest.raises(ValueError, match="alarm_hold"):
+        mppi.MPPIConfig(alarm_hold=-1)

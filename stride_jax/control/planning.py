@@ -76,6 +76,8 @@ class PlanningConfig:
         where the policy-prior candidates are not to be trusted.
       recovery_noise_std: the recovery candidates' exploration std of the joint offsets (rad);
         planned gait parameters' noise scales by the same factor over ``noise_std``.
+      alarm_hold_s: the recovery candidates keep planning this long (s) after the alarm last
+        held (``MPPIConfig.alarm_hold``; 0: only while it holds).
     """
 
     noise_std: float = 0.15
@@ -94,8 +96,11 @@ class PlanningConfig:
     family_std: float = 0.3
     alarm_speed: float = 0.0
     recovery_noise_std: float = 0.5
+    alarm_hold_s: float = 0.0
 
     def __post_init__(self):
+        if self.alarm_hold_s < 0:
+            raise ValueError(f"alarm_hold_s={self.alarm_hold_s} must be >= 0")
         if self.alarm_speed < 0 or not self.recovery_noise_std > 0:
             raise ValueError(f"alarm_speed={self.alarm_speed} must be >= 0 and "
                              f"recovery_noise_std={self.recovery_noise_std} > 0")
@@ -124,6 +129,7 @@ class Planning(NamedTuple):
     family: Callable | None = None  # (q_aug, qd, z [3]) -> u: the policy given command + z
     alarm: Callable | None = None  # (q_aug, qd) -> bool []: plan the recovery candidates
     recovery_noise: tuple = ()  # per action entry: the recovery candidates' noise std
+    alarm_hold: int = 0  # control steps the recovery candidates stay after the alarm last held
 
 
 class Aug(NamedTuple):
@@ -311,7 +317,8 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
     return Planning(dynamics, cost, value, policy, ctrl, lo, hi, noise, nominal,
                     0.0 if cfg.gait else env_cfg.gait_hz, obs_aug, disagreement, step_error,
                     reward_action, cfg.observer_gain, cfg.observer_limit, cfg.observer_angular,
-                    family, alarm, recovery)
+                    family, alarm, recovery,
+                    int(round(cfg.alarm_hold_s / sm.robot.ctrl_dt)) if alarm else 0)
 
 
 def mppi_config(mppi_cfg: mppi.MPPIConfig, cfg: PlanningConfig,
@@ -328,7 +335,8 @@ def mppi_config(mppi_cfg: mppi.MPPIConfig, cfg: PlanningConfig,
                                prior_fraction=mppi_cfg.prior_fraction if planning.policy else 0.0,
                                family_samples=mppi_cfg.family_samples if planning.family else 0,
                                family_std=fam_std,
-                               alarm_noise_std=planning.recovery_noise if planning.alarm else 0.0)
+                               alarm_noise_std=planning.recovery_noise if planning.alarm else 0.0,
+                               alarm_hold=planning.alarm_hold)
 
 
 def make_planner(planning: Planning, mppi_cfg: mppi.MPPIConfig) -> mppi.Planner:

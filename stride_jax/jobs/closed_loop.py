@@ -108,6 +108,13 @@ class ClosedLoopConfig:
       progress_s: log the episode's progress every this many simulated seconds (0: only when
         a pair finishes).
       seed: planner key and terrain seed.
+      episodes: episodes of each (scenario, model) pair side by side in one program (vmapped
+        over the planner's key): seeds ``seed``, ``seed + 1``, ... draw the planner's noise, the
+        residual's latents and the observer's draws; the ground (rough terrain) stays
+        ``seed``'s. One row per episode (``seed``, ``episode``); ``ms_per_step`` is then the
+        wall time of one control step of all of them together. On a GPU several episodes cost
+        little more than one (a planner's step is latency-bound), so this is how a pair is
+        measured over draws.
     """
 
     robot: str = "go1"
@@ -129,8 +136,11 @@ class ClosedLoopConfig:
     govern: bool = False
     out: str = "results/closed_loop"
     seed: int = 0
+    episodes: int = 1
 
     def __post_init__(self):
+        if self.episodes < 1:
+            raise ValueError(f"--episodes is {self.episodes}: it must be >= 1")
         for field in ("seconds", "slope_deg", "rough_cm", "push_scale", "friction"):
             if getattr(self, field) < 0:
                 raise ValueError(f"--{field.replace('_', '-')} is {getattr(self, field)}: it must be >= 0 "
@@ -196,7 +206,8 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     out.mkdir(parents=True, exist_ok=True)
     path = out / "closed_loop.json"
     rows = json.loads(path.read_text())["rows"] if path.is_file() else []
-    done = {(r["scenario"], r["model"]) for r in rows}
+    done = {(r["scenario"], r["model"], r.get("seed", cfg.seed)) for r in rows}
+    seeds = list(range(cfg.seed, cfg.seed + cfg.episodes))
     mx_nominal = mjx.put_model(sm.mj)
     learned_steps = {name: learned_step_fn(run_dir, sm, cfg.kernel) for name, run_dir in models
                      if run_dir}
@@ -212,7 +223,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         log(f"  {now['label']}: {int(steps) * dt:.1f} of {now['n'] * dt:.1f} s simulated "
             f"({wall:.0f} s)")
 
-    def episode_fn(name, n_steps, slots, sm_sim):
+    def episode_fn(name, n_steps, slots, sm_sim, batched):
         def episode(mx_sim, mx_plan, starts, values, pushes, tilt, key):
             step_fn = learned_steps.get(name) or mjx_step_fn(sm, mx_plan)
             planning = make_planning(cfg.planning, env_cfg, sm, step_fn, ppo_policy, learned_params,
@@ -226,6 +237,8 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                                key, pushes=pushes, limits=limits, tilt=tilt,
                                progress=progress if every else None,
                                progress_every=every or 1)
+        if batched:  # episodes side by side: only the key differs
+            episode = jax.vmap(episode, in_axes=(None,) * 6 + (0,))
         return jax.jit(episode)
 
     for sc_name in [s for s in cfg.scenarios.split(",") if s]:
@@ -237,39 +250,74 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         slots = envs.contact_slots(mx_sim)
         starts, values = schedule(sc)
         for name, run_dir in models:
-            if (sc.name, name) in done:
+            todo = [seed for seed in seeds if (sc.name, name, seed) not in done]
+            if not todo:
                 continue
+            batched = cfg.episodes > 1
+            keys = (jax.vmap(jax.random.key)(jnp.asarray(todo)) if batched
+                    else jax.random.key(todo[0]))
             mx_plan = mx_sim if name == "oracle" else mx_nominal
             args = (mx_sim, mx_plan, jnp.asarray(starts), jnp.asarray(values),
                     jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum()))),
-                    jnp.asarray(tilt_schedule(sc)), jax.random.key(cfg.seed))
+                    jnp.asarray(tilt_schedule(sc)), keys)
             sig = (name, n_steps, tuple(slots[0]), sm_sim.geom_foot.tobytes(),
-                   jax.tree.structure(args[:2]))
+                   jax.tree.structure(args[:2]), len(todo) if batched else 0)
             t0 = time.perf_counter()
             if sig not in compiled:
                 if every:
                     log(f"  {sc.name} {name}: compiling")
-                compiled[sig] = episode_fn(name, n_steps, slots, sm_sim).lower(*args).compile()
+                compiled[sig] = episode_fn(name, n_steps, slots, sm_sim,
+                                           batched).lower(*args).compile()
             compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
             now.update(label=f"{sc.name} {name}", t0=t0, n=n_steps)
-            trace = jax.block_until_ready(compiled[sig](*args))
+            traces = jax.block_until_ready(compiled[sig](*args))
             run_s = time.perf_counter() - t0
             planned = name != "policy"
-            row = dict(scenario=sc.name, model=name, run=run_dir or None,
-                       **metrics(trace, cfg.settle_s),
-                       ms_per_step=1e3 * run_s / n_steps, compile_s=compile_s, steps=n_steps,
-                       K=cfg.mppi.samples if planned else None,
-                       H=cfg.mppi.horizon if planned else None)
-            rows.append(row)
-            np.savez_compressed(out / f"trace_{sc.name}_{name}.npz",
-                                **{k: np.asarray(v) for k, v in trace._asdict().items()})
+            for i, seed in enumerate(todo):
+                trace = jax.tree.map(lambda x: x[i], traces) if batched else traces
+                episode = seeds.index(seed)
+                row = dict(scenario=sc.name, model=name, run=run_dir or None,
+                           **metrics(trace, cfg.settle_s),
+                           ms_per_step=1e3 * run_s / n_steps, compile_s=compile_s,
+                           steps=n_steps, K=cfg.mppi.samples if planned else None,
+                           H=cfg.mppi.horizon if planned else None, seed=seed,
+                           episode=episode, side_by_side=len(todo) if batched else 1)
+                rows.append(row)
+                np.savez_compressed(out / trace_name(sc.name, name, episode, seed),
+                                    **{k: np.asarray(v) for k, v in trace._asdict().items()})
+                log(f"{sc.name:>12} {name:>8}{f' seed {seed}' if batched else ''}: vel RMSE "
+                    f"{row['vel_rmse']:.3f} m/s, yaw RMSE {row['yaw_rmse']:.3f} rad/s, fell "
+                    f"{row['fell']}, {row['ms_per_step']:.1f} ms/step (compile {compile_s:.0f} s)")
             write(rows, cfg, command, out)
-            log(f"{sc.name:>12} {name:>8}: vel RMSE {row['vel_rmse']:.3f} m/s, yaw RMSE "
-                f"{row['yaw_rmse']:.3f} rad/s, fell {row['fell']}, {row['ms_per_step']:.1f} ms/step"
-                f" (compile {compile_s:.0f} s)")
     plot(out, rows)
     return rows
+
+
+def trace_name(scenario: str, model: str, episode: int = 0, seed: int = 0) -> str:
+    """A row's trace file: ``trace_<scenario>_<model>.npz`` for a pair's first episode (the
+    one the figures draw), ``..._seed<seed>.npz`` for the others."""
+    return f"trace_{scenario}_{model}" + (f"_seed{seed}" if episode else "") + ".npz"
+
+
+def over_seeds(rows: list[dict]) -> list[dict]:
+    """Per (scenario, model) with more than one episode: how many episodes, how many fell, and
+    the median, min and max velocity RMSE of the episodes that stayed up (NaN: none did)."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["scenario"], r["model"]), []).append(r)
+    out = []
+    for (sc, model), got in groups.items():
+        if len(got) < 2:
+            continue
+        up = [r["vel_rmse"] for r in got if not r["fell"]]
+        out.append(dict(scenario=sc, model=model, episodes=len(got),
+                        falls=sum(bool(r["fell"]) for r in got),
+                        seeds=[r.get("seed") for r in got],
+                        vel_rmse_median=float(np.median(up)) if up else float("nan"),
+                        vel_rmse_min=float(min(up)) if up else float("nan"),
+                        vel_rmse_max=float(max(up)) if up else float("nan")))
+    return out
 
 
 def scenario(cfg: ClosedLoopConfig, name: str) -> Scenario:
@@ -329,11 +377,29 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
                    if "plan_gait" in r else "-")
         contact = (f"{r['contact_gait']} ({r['contact_gait_score']:.2f})"
                    if "contact_gait" in r else "-")
-        lines.append(f"| {r['scenario']} | {r['model']} | {_fmt(r['vel_rmse'])} | "
+        model = r["model"] + (f" (seed {r['seed']})" if cfg.episodes > 1 else "")
+        lines.append(f"| {r['scenario']} | {model} | {_fmt(r['vel_rmse'])} | "
                      f"{_fmt(r['yaw_rmse'])} | {_fmt(r['mean_vx'], '{:.2f}')} | "
                      f"{'yes' if r['fell'] else 'no'} | {_fmt(r['fall_s'], '{:.2f}')} | "
                      f"{contact} | {planned} | {r['ms_per_step']:.1f} |")
+    lines += _over_seeds_lines(rows)
     atomic_write_text(out / "closed_loop.md", "\n".join(lines) + "\n")
+
+
+def _over_seeds_lines(rows: list[dict]) -> list[str]:
+    """The markdown table of :func:`over_seeds` (nothing when every pair ran one episode)."""
+    summary = over_seeds(rows)
+    if not summary:
+        return []
+    lines = ["", "Over seeds (the planner's draws; ms/step above is the wall time of one "
+             "control step of a pair's episodes side by side):", "",
+             "| scenario | model | episodes | fell | vel RMSE median of those up (min - max) |",
+             "|---|---|---|---|---|"]
+    for g in summary:
+        lines.append(f"| {g['scenario']} | {g['model']} | {g['episodes']} | {g['falls']} | "
+                     f"{_fmt(g['vel_rmse_median'])} ({_fmt(g['vel_rmse_min'])} - "
+                     f"{_fmt(g['vel_rmse_max'])}) |")
+    return lines
 
 
 def merge(parts: list[str], out: str, title: str = "") -> list[dict]:
@@ -342,7 +408,7 @@ def merge(parts: list[str], out: str, title: str = "") -> list[dict]:
     command and device go to ``closed_loop.json``'s ``parts``. A part may also be a JSON file of
     rows recovered from a run's log (``{"env": {...}, "rows": [...]}``, rows with at least
     ``scenario``, ``model``, ``vel_rmse``, ``fell``, ``ms_per_step``). Traces found beside a
-    part are copied, so the plots show every row. A (scenario, model) pair that an earlier part
+    part are copied, so the plots show every row. A (scenario, model, seed) that an earlier part
     already has is renamed ``model@part``."""
     import shutil
 
@@ -361,14 +427,14 @@ def merge(parts: list[str], out: str, title: str = "") -> list[dict]:
             missing = {"scenario", "model", "vel_rmse", "fell", "ms_per_step"} - set(r)
             if missing:
                 raise ValueError(f"{src}: a row lacks {sorted(missing)}")
-            model = r["model"]
-            if (r["scenario"], model) in seen:
+            model, episode, seed = r["model"], r.get("episode", 0), r.get("seed", 0)
+            if (r["scenario"], model, seed) in seen:
                 model = f"{model}@{name}"  # a second part's variant of the same model
-            seen.add((r["scenario"], model))
+            seen.add((r["scenario"], model, seed))
             rows.append({**r, "model": model, "part": name})
-            trace = src.parent / f"trace_{r['scenario']}_{r['model']}.npz"
+            trace = src.parent / trace_name(r["scenario"], r["model"], episode, seed)
             if trace.is_file():
-                shutil.copy2(trace, out_dir / f"trace_{r['scenario']}_{model}.npz")
+                shutil.copy2(trace, out_dir / trace_name(r["scenario"], model, episode, seed))
     atomic_write_text(out_dir / "closed_loop.json",
                       json.dumps(dict(title=title, parts=envs_, rows=rows), indent=1))
     lines = [f"# {title or 'Closed-loop MPPI'}", "", "Parts (each row names its part):", ""]
@@ -381,6 +447,7 @@ def merge(parts: list[str], out: str, title: str = "") -> list[dict]:
                      f"{_fmt(r.get('yaw_rmse'))} | {_fmt(r.get('mean_vx'), '{:.2f}')} | "
                      f"{'yes' if r['fell'] else 'no'} | {_fmt(r.get('fall_s'), '{:.2f}')} | "
                      f"{r['ms_per_step']:.1f} |")
+    lines += _over_seeds_lines(rows)
     atomic_write_text(out_dir / "closed_loop.md", "\n".join(lines) + "\n")
     plot(out_dir, rows)
     return rows
@@ -388,22 +455,23 @@ def merge(parts: list[str], out: str, title: str = "") -> list[dict]:
 
 def plot(out: pathlib.Path, rows: list[dict]) -> list[pathlib.Path]:
     """One figure per scenario: forward velocity and yaw rate against the command, per model
-    whose trace (``trace_<scenario>_<model>.npz``) lies in ``out``. A scenario without any trace
-    leaves its figure as it is (a merge of parts whose traces were not kept must not blank it)."""
+    whose trace (``trace_<scenario>_<model>.npz``: a pair's first episode) lies in ``out``. A
+    scenario without any trace leaves its figure as it is (a merge of parts whose traces were
+    not kept must not blank it)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     paths = []
     for sc in dict.fromkeys(r["scenario"] for r in rows):
-        traced = [r for r in rows if r["scenario"] == sc
-                  and (out / f"trace_{sc}_{r['model']}.npz").is_file()]
+        traced = [r for r in rows if r["scenario"] == sc and not r.get("episode", 0)
+                  and (out / trace_name(sc, r["model"])).is_file()]
         if not traced:
             continue
         fig, ax = plt.subplots(1, 3, figsize=(14, 3.6))
         cmd_drawn = False
         for r in traced:
-            tr = np.load(out / f"trace_{sc}_{r['model']}.npz")
+            tr = np.load(out / trace_name(sc, r["model"]))
             if not cmd_drawn:
                 for i, label in enumerate(("vx", "vy", "yaw rate")):
                     ax[i].plot(tr["t"], tr["command"][:, i], "k--", lw=1, label="command")
