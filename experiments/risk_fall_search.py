@@ -30,6 +30,14 @@ risk-aware (mean + 1 std of 4 draws) under the same pushes, seed 0: which part o
 planner's candidates takes the wide planner's recovery away.
 
     python experiments/risk_fall_search.py --stage compose --work /tmp/fs --out $OUT --deadline 560
+
+``--stage alarm`` (session 36): the main candidates with the recovery alarm (at 0.25 m/s, held
+1 s after it last rang, and not held), the always-wide ``compose_pol64_fam256`` set and the main
+set without an alarm, each risk-aware under the 1.0 m/s pushes over seeds 0-4 side by side in one
+program per job (``--episodes 5``); then the held alarm on the main table's six scenarios (two
+seeds each): does it keep the main planner's tracking?
+
+    python experiments/risk_fall_search.py --stage alarm --work /tmp/fs --out $OUT --deadline 560
 """
 
 from __future__ import annotations
@@ -53,7 +61,7 @@ MEAN = [("push1.5x", "push", ["--push-scale", "1.5"]),
         ("low_friction0.06", "low_friction", ["--friction", "0.06"])]
 RISK = {"std": ["--mppi.risk-draws", "4", "--mppi.risk", "std", "--mppi.risk-weight", "1.0"],
         "cvar": ["--mppi.risk-draws", "4", "--mppi.risk", "cvar", "--mppi.risk-alpha", "0.75"]}
-ESTIMATE_S = {"mean": 170, "risk": 260, "wide": 110, "compose": 100}
+ESTIMATE_S = {"mean": 170, "risk": 260, "wide": 110, "compose": 100, "alarm": 200}
 # the wide stage: candidates far from the policy, on the ground where the main planner falls
 WIDE = ["--mppi.policy-samples", "16", "--mppi.family-samples", "64", "--mppi.prior-fraction", "0",
         "--planning.noise-std", "0.5", "--push-scale", "2"]
@@ -74,6 +82,18 @@ COMPOSE = [("pol64_fam256", ["--mppi.policy-samples", "64", "--mppi.family-sampl
                             "--mppi.prior-fraction", "0", "--planning.noise-std", "0.3"])]
 
 
+# the alarm stage: (job, scenarios, flags beyond the main planner's), each risk-aware
+MAIN6 = "slope,rough,soft,changes,push,low_friction"
+ALARM_FLAGS = ["--planning.alarm-speed", "0.25", "--planning.recovery-noise-std", "0.5"]
+HOLD = ALARM_FLAGS + ["--planning.alarm-hold-s", "1.0"]
+ALARM = [("alarm_hold_push2x", "push", HOLD + ["--push-scale", "2"]),
+         ("compose_pol64_fam256_push2x_seeds", "push",
+          ["--planning.noise-std", "0.5"] + COMPOSE[0][1] + ["--push-scale", "2"]),
+         ("alarm_push2x_seeds", "push", ALARM_FLAGS + ["--push-scale", "2"]),
+         ("main_risk_push2x_seeds", "push", ["--push-scale", "2"]),
+         ("alarm_hold_main", MAIN6, HOLD)]
+
+
 def wide_job(kind: str, seed: int) -> str:
     """The wide stage's job (and folder) name: ``wide_<kind>_push2x``, ``_seed<N>`` beyond seed 0."""
     return f"wide_{kind}_push2x" + ("" if seed == 0 else f"_seed{seed}")
@@ -84,10 +104,16 @@ def rows(folder: pathlib.Path) -> list[dict]:
     return json.loads(f.read_text())["rows"] if f.exists() else []
 
 
+def expected(models: str, scen: str, flags: list[str]) -> int:
+    """The rows a finished job has: models x scenarios x episodes."""
+    episodes = int(flags[flags.index("--episodes") + 1]) if "--episodes" in flags else 1
+    return len(models.split(",")) * len(scen.split(",")) * episodes
+
+
 def run_job(name: str, models: str, scen: str, flags: list[str], work: pathlib.Path,
             out: pathlib.Path, limit: int) -> list[dict]:
     folder = work / name
-    if len(rows(folder)) >= len(models.split(",")):
+    if len(rows(folder)) >= expected(models, scen, flags):
         print(f"[search] {name}: done before", flush=True)
         return rows(folder)
     t0 = time.time()
@@ -101,7 +127,8 @@ def run_job(name: str, models: str, scen: str, flags: list[str], work: pathlib.P
         (out / tgz.name).write_bytes(tgz.read_bytes())
     got = rows(folder)
     for r in got:
-        print(f"[search] {name}: {r['model']:>8} on {r['scenario']}: vel {r['vel_rmse']:.3f}, fell {r['fell']}"
+        print(f"[search] {name}: {r['model']:>8} on {r['scenario']} (seed {r.get('seed')}): "
+              f"vel {r['vel_rmse']:.3f}, fell {r['fell']}"
               f" at {r.get('fall_s')}, {r['ms_per_step']:.1f} ms/step", flush=True)
     print(f"[search] {name}: {time.time() - t0:.0f} s", flush=True)
     return got
@@ -112,21 +139,33 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default="/tmp/fs")
     ap.add_argument("--out", required=True)
     ap.add_argument("--deadline", type=float, default=560, help="seconds this call may use")
-    ap.add_argument("--stage", choices=("harder", "wide", "compose"), default="harder",
+    ap.add_argument("--stage", choices=("harder", "wide", "compose", "alarm"), default="harder",
                     help="harder: the pushes and frictions above; wide: candidates far from the "
-                         "policy; compose: compositions between the main and the wide candidates")
+                         "policy; compose: compositions between the main and the wide "
+                         "candidates; alarm: the recovery alarm over seeds")
+    ap.add_argument("--episodes", type=int, default=5,
+                    help="the alarm stage's seeds per pushed job, side by side (the six "
+                         "scenarios' job: 2)")
     ap.add_argument("--seeds", default="0,1,2", help="the wide stage's seeds")
     a = ap.parse_args(argv)
     work, out, t_end = pathlib.Path(a.work), pathlib.Path(a.out), time.time() + a.deadline
 
     def job(name: str, models: str, scen: str, flags: list[str], kind: str) -> list[dict] | None:
         """The job's rows (run now, or done before); None where the time left does not cover it."""
-        done = len(rows(work / name)) >= len(models.split(","))
+        done = len(rows(work / name)) >= expected(models, scen, flags)
         if not done and t_end - time.time() < ESTIMATE_S[kind]:
             print(f"[search] stop: {t_end - time.time():.0f} s left, {name} needs ~{ESTIMATE_S[kind]} s", flush=True)
             return None
         return run_job(name, models, scen, flags, work, out, int(min(t_end - time.time(), 1.5 * ESTIMATE_S[kind])))
 
+    if a.stage == "alarm":
+        for name, scen, flags in ALARM:
+            n = 2 if "," in scen else a.episodes
+            if job(name, "stride", scen, flags + RISK["std"] + ["--seed", "0", "--episodes", str(n)],
+                   "alarm") is None:
+                return 0
+        print("[search] all jobs done", flush=True)
+        return 0
     if a.stage == "compose":
         for name, flags in COMPOSE:
             if job(f"compose_{name}", "stride", "push", ["--planning.noise-std", "0.5"] + flags
