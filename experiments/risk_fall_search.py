@@ -34,8 +34,9 @@ planner's candidates takes the wide planner's recovery away.
 ``--stage alarm`` (session 36): the main candidates with the recovery alarm (at 0.25 m/s, held
 1 s after it last rang, and not held), the always-wide ``compose_pol64_fam256`` set and the main
 set without an alarm, each risk-aware under the 1.0 m/s pushes over seeds 0-4 side by side in one
-program per job (``--episodes 5``); then the held alarm on the main table's six scenarios (two
-seeds each): does it keep the main planner's tracking?
+program per job (``--episodes 5``); an alarm that always rings and one at 0.1 m/s (held); then
+the held alarm on the main table's six scenarios (two seeds each): does it keep the main
+planner's tracking?
 
     python experiments/risk_fall_search.py --stage alarm --work /tmp/fs --out $OUT --deadline 560
 """
@@ -91,6 +92,15 @@ ALARM = [("alarm_hold_push2x", "push", HOLD + ["--push-scale", "2"]),
           ["--planning.noise-std", "0.5"] + COMPOSE[0][1] + ["--push-scale", "2"]),
          ("alarm_push2x_seeds", "push", ALARM_FLAGS + ["--push-scale", "2"]),
          ("main_risk_push2x_seeds", "push", ["--push-scale", "2"]),
+         # the first three above: the alarm (held or not) fell in 5 of 5 seeds where the
+         # always-wide set stayed up in 5 of 5; is it the switch? An alarm that always rings
+         # (the same candidates as the always-wide set, through the alarm's code) and one that
+         # rings earlier (0.1 m/s), held
+         ("alarm_always_push2x", "push", ["--planning.alarm-speed", "0.001",
+                                          "--planning.recovery-noise-std", "0.5", "--push-scale", "2"]),
+         ("alarm01_hold_push2x", "push", ["--planning.alarm-speed", "0.1",
+                                          "--planning.recovery-noise-std", "0.5",
+                                          "--planning.alarm-hold-s", "1.0", "--push-scale", "2"]),
          ("alarm_hold_main", MAIN6, HOLD)]
 
 
