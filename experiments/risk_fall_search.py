@@ -153,6 +153,8 @@ def main(argv=None) -> int:
                     help="harder: the pushes and frictions above; wide: candidates far from the "
                          "policy; compose: compositions between the main and the wide "
                          "candidates; alarm: the recovery alarm over seeds")
+    ap.add_argument("--only", default="", help="the alarm stage's jobs to run (comma-separated "
+                    "names; empty: all, in order)")
     ap.add_argument("--episodes", type=int, default=5,
                     help="the alarm stage's seeds per pushed job, side by side (the six "
                          "scenarios' job: 2)")
@@ -169,7 +171,8 @@ def main(argv=None) -> int:
         return run_job(name, models, scen, flags, work, out, int(min(t_end - time.time(), 1.5 * ESTIMATE_S[kind])))
 
     if a.stage == "alarm":
-        for name, scen, flags in ALARM:
+        only = set(filter(None, a.only.split(",")))
+        for name, scen, flags in [j for j in ALARM if not only or j[0] in only]:
             n = 2 if "," in scen else a.episodes
             if job(name, "stride", scen, flags + RISK["std"] + ["--seed", "0", "--episodes", str(n)],
                    "alarm") is None:
