@@ -101,7 +101,13 @@ ALARM = [("alarm_hold_push2x", "push", HOLD + ["--push-scale", "2"]),
          ("alarm01_hold_push2x", "push", ["--planning.alarm-speed", "0.1",
                                           "--planning.recovery-noise-std", "0.5",
                                           "--planning.alarm-hold-s", "1.0", "--push-scale", "2"]),
-         ("alarm_hold_main", MAIN6, HOLD)]
+         ("alarm_hold_main", MAIN6, HOLD),
+         # the alarm recovered only where it had rung before the push (below): the always-wide
+         # set at a lower noise under the pushes, and its tracking cost over two more seeds
+         ("compose_pol64_fam256_std0.3_push2x", "push",
+          ["--planning.noise-std", "0.3"] + COMPOSE[0][1] + ["--push-scale", "2"]),
+         ("compose_pol64_fam256_main3_seeds12", "rough,changes,low_friction",
+          ["--planning.noise-std", "0.5"] + COMPOSE[0][1] + ["--seed", "1", "--episodes", "2"])]
 
 
 def wide_job(kind: str, seed: int) -> str:
@@ -174,8 +180,8 @@ def main(argv=None) -> int:
         only = set(filter(None, a.only.split(",")))
         for name, scen, flags in [j for j in ALARM if not only or j[0] in only]:
             n = 2 if "," in scen else a.episodes
-            if job(name, "stride", scen, flags + RISK["std"] + ["--seed", "0", "--episodes", str(n)],
-                   "alarm") is None:
+            own = [] if "--seed" in flags else ["--seed", "0", "--episodes", str(n)]
+            if job(name, "stride", scen, flags + RISK["std"] + own, "alarm") is None:
                 return 0
         print("[search] all jobs done", flush=True)
         return 0
