@@ -2,10 +2,12 @@
 how many of its episodes stayed up through the 1.0 m/s pushes, and per episode how much of the
 second before the first push (1-2 s) the planner already spent in its recovery (wide) candidates.
 Reads the traces the closed loop wrote (``WORK/<job>/trace_push2x_stride[_seedN].npz``, one
-per seed of a job run with ``--episodes``):
+per seed of a job run with ``--episodes``; traces are not tracked in git) and writes the per-
+episode numbers (``STEM.json``, tracked) and the figure; ``--from-json`` draws the figure again
+from that file alone:
 
-    python experiments/alarm_timing.py --work results/closed_loop_go1_gpu/parts/risk_search \
-        --out results/closed_loop_go1_gpu/parts/risk_search/alarm_timing
+    python experiments/alarm_timing.py --work /tmp/fs --out results/closed_loop_go1_gpu/parts/risk_search/alarm_timing
+    python experiments/alarm_timing.py --from-json --out results/closed_loop_go1_gpu/parts/risk_search/alarm_timing
 """
 
 from __future__ import annotations
@@ -58,14 +60,20 @@ def episodes(work: pathlib.Path) -> list[dict]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--work", required=True)
+    ap.add_argument("--work", help="the search's work folder (the jobs' traces)")
     ap.add_argument("--out", required=True, help="path stem: writes STEM.json and STEM.png")
+    ap.add_argument("--from-json", action="store_true", help="draw from STEM.json alone")
     a = ap.parse_args(argv)
-    eps = episodes(pathlib.Path(a.work))
-    if not eps:
-        raise SystemExit(f"no job of the alarm stage under {a.work}")
     stem = pathlib.Path(a.out)
-    io.atomic_write_text(stem.with_suffix(".json"), json.dumps(eps, indent=1))
+    if a.from_json:
+        eps = json.loads(stem.with_suffix(".json").read_text())
+    else:
+        if not a.work:
+            raise SystemExit("--work is needed unless --from-json")
+        eps = episodes(pathlib.Path(a.work))
+        if not eps:
+            raise SystemExit(f"no job of the alarm stage under {a.work}")
+        io.atomic_write_text(stem.with_suffix(".json"), json.dumps(eps, indent=1))
 
     labels = list(dict.fromkeys(e["label"] for e in eps))
     fig, ax = plt.subplots(1, 2, figsize=(13, 4.2), gridspec_kw=dict(width_ratios=[1.1, 1]))
