@@ -84,6 +84,8 @@ class Table1Config:
       transition_weight: ``stride train --transition-weight`` for every run (the structured
         models' one-control-period transition loss; 0: the paper's training). Non-zero weights
         get their own runs and results folders (``<robot>[_<data>]_tw<weight>``).
+      transition_fraction: ``stride train --transition-fraction``: the share of each minibatch
+        the transition term is computed on (1: all; below 1 the folders gain ``_tf<fraction>``).
       parallel: processes at once.
       minutes: wall-clock budget for training, from when the data exist (0: none); runs stop
         cleanly at it.
@@ -101,6 +103,7 @@ class Table1Config:
     ablation_seeds: bool = False
     steps: int = 0
     transition_weight: float = 0.0
+    transition_fraction: float = 1.0
     parallel: int = 5
     minutes: float = 0.0
     eval_only: bool = False
@@ -122,6 +125,8 @@ def main(argv: list[str] | None = None) -> None:
     env = pool.shared_env(root)
     suffix = "" if args.data == "explore" else f"_{args.data}"
     tw = f"_tw{args.transition_weight:g}" if args.transition_weight else ""
+    tf = args.transition_fraction if tw and args.transition_fraction < 1 else 1.0
+    tw += f"_tf{tf:g}" if tf < 1 else ""
     data = {r: root / "data" / f"{r}{suffix}-{args.preset}" for r in robots}
     runs = {r: root / "runs" / f"{r}{suffix}{tw}-{args.preset}" for r in robots}
 
@@ -156,7 +161,8 @@ def main(argv: list[str] | None = None) -> None:
         *(["--steps", str(steps)] if steps else []),
         "--seed", str(s), "--data", str(data[r]), "--out", str(run_dir(r, m, s, v)),
         "--deadline", str(deadline), *(["--acc-through", v] if v else []),
-        *(["--transition-weight", f"{args.transition_weight:g}"] if tw else []))
+        *(["--transition-weight", f"{args.transition_weight:g}"] if tw else []),
+        *(["--transition-fraction", f"{tf:g}"] if tf < 1 else []))
         for r, m, s, v in jobs}
     folders = {name(*j): run_dir(*j) for j in jobs}
     follows = lambda n, marker: (lambda: leader[n] == folders[n] or (leader[n] / marker).exists())

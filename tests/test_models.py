@@ -199,3 +199,33 @@ def test_xla_bf16_kernel_is_the_same_model_with_bfloat16_products(name):
     ex = dict(q=Q0, qd=qd, tau=jnp.zeros(7), qdd=jnp.ones(7), ctrl=u, q_next=q1, qd_next=qd1)
     np.testing.assert_array_equal(plain.loss(params, ex, key)[0], bf16.loss(params, ex, key)[0])
     assert bf16.config.inference_net.products == "bfloat16" and bf16.config.net.products == "float32"
+
+
+def test_transition_fraction_computes_the_term_on_a_minibatchs_first_examples_only():
+    """``transition_fraction``: the model's ``batch_loss`` is the acceleration loss' mean over the
+    minibatch plus the weight times the transition term's mean over its first
+    ``ceil(fraction * B)`` examples (a random minibatch: an unbiased estimate); with the whole
+    minibatch there is no ``batch_loss`` (the per-example loss' mean is it); the trainer uses
+    it for its steps and validates on every example."""
+    scales = stride.Scales(dq=jnp.full(7, 0.5), dqd=jnp.full(7, 2.0))
+    cfg = dataclasses.replace(CFG, transition_weight=0.5, transition_fraction=0.5)
+    model = models.make("stride", SPEC, ACT, cfg, scales)
+    assert models.make("stride", SPEC, ACT, dataclasses.replace(cfg, transition_fraction=1.0),
+                       scales).batch_loss is None
+    params = model.init(jax.random.key(0))
+    B = 5
+    k = jax.random.split(jax.random.key(1), 6)
+    ex = dict(q=jnp.broadcast_to(Q0, (B, 8)) + 0.01 * jax.random.normal(k[0], (B, 8)),
+              qd=0.1 * jax.random.normal(k[1], (B, 7)), ctrl=0.2 * jax.random.normal(k[2], (B, 1)),
+              tau=jnp.ones((B, 7)), qdd=jax.random.normal(k[3], (B, 7)),
+              q_next=jnp.broadcast_to(Q0, (B, 8)), qd_next=jax.random.normal(k[4], (B, 7)))
+    keys = jax.random.split(k[5], B)
+    total, parts = jax.jit(model.batch_loss)(params, ex, keys)
+    per = [model.loss(params, jax.tree.map(lambda a: a[i], ex), keys[i]) for i in range(B)]
+    acc = np.mean([float(t) - 0.5 * float(p["next"]) for t, p in per])
+    nxt = np.mean([float(p["next"]) for _, p in per[:3]])  # ceil(0.5 * 5) = 3
+    np.testing.assert_allclose(float(parts["next"]), nxt, rtol=1e-5)
+    np.testing.assert_allclose(float(total), acc + 0.5 * nxt, rtol=1e-5)
+    assert abs(nxt - np.mean([float(p["next"]) for _, p in per])) > 1e-3  # a subset, not all
+    with pytest.raises(ValueError, match="transition_fraction"):
+        dataclasses.replace(CFG, transition_fraction=0.0)

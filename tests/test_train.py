@@ -1,5 +1,6 @@
 """Training: end to end from the CLI, resumption after a hard kill, and the NaN guard."""
 
+import csv
 import os
 import pathlib
 import signal
@@ -142,3 +143,21 @@ def test_train_flags_nest_the_library_configs_with_the_flat_flags_kept():
         loop.LoopConfig(), steps=12_000, batch=1024, eval_every=1000, ckpt_every=2000)
     flags = config.to_flags(new)
     assert config.from_flags(job.TrainConfig, parser.parse_args(flags)) == new
+
+
+def test_a_batch_loss_takes_the_training_steps_and_validation_stays_per_example(tmp_path):
+    """``batch_loss`` (a model's minibatch loss, ``Model.batch_loss``) is what the training steps
+    minimise; validation keeps the per-example loss' mean: a batch loss that pulls ``w`` to 2
+    while the per-example loss pulls it to 0 ends near 2, and the logged validation loss is the
+    per-example one at the end."""
+    split = {k: np.ones((2, 5, 1), np.float32) for k in ("q", "qd", "tau", "qdd", "ctrl")}
+    split["valid"] = np.ones((2, 5), bool)
+    init = lambda key: {"w": jnp.zeros(())}
+    loss = lambda p, ex, key: (p["w"] ** 2, {"select": p["w"] ** 2})
+    batch = lambda p, ex, keys: ((p["w"] - 2.0) ** 2, {"select": (p["w"] - 2.0) ** 2})
+    cfg = loop.LoopConfig(steps=300, batch=4, eval_every=300, ckpt_every=300, lr=0.05)
+    out = tmp_path / "batch"
+    train_dynamics.train(loss, init, split, split, cfg, out, log=lambda *_: None,
+                         batch_loss=batch)
+    last = list(csv.DictReader(open(out / "metrics.csv")))[-1]
+    assert abs(float(last["val_loss"]) - 4.0) < 0.2  # w near 2, scored by the per-example loss

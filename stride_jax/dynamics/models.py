@@ -147,6 +147,9 @@ class Model(NamedTuple):
     config: stride.StructuredConfig | None = None
     scales: stride.Scales | None = None
     residual: str | None = None
+    # a minibatch's mean loss where it is not the mean of ``loss`` over the examples:
+    # (params, examples {name: [B, ...]}, keys [B]) -> (loss [], parts); None: that mean
+    batch_loss: Callable | None = None
 
 
 # name -> (family, kind): structured models pair the Lagrangian prior with a residual of ``kind``;
@@ -235,14 +238,27 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
     def init(key):
         return stride.init(key, spec, cfg, residual)
 
-    def loss(params, ex, key):
+    def loss(params, ex, key, transition: bool = True):
         total, parts = stride.loss(params, spec, cfg, residual, ex["q"], ex["qd"], ex["tau"],
                                    ex["qdd"], key, scales, ex.get("contact_jac"))
-        if cfg.transition_weight:
+        if cfg.transition_weight and transition:
             parts["next"] = transition_error(params, ex)
             total = total + cfg.transition_weight * parts["next"]
             parts["select"] = parts["select"] + cfg.transition_weight * parts["next"]
         return total, parts
+
+    def batch_loss(params, ex, keys):
+        """A minibatch's mean loss with the transition term on its first
+        ``ceil(transition_fraction * B)`` examples only (a minibatch is drawn at random, so
+        they are a random subset and the term's mean is unbiased)."""
+        total, parts = jax.vmap(lambda e, k: loss(params, e, k, transition=False))(ex, keys)
+        n = max(1, int(np.ceil(cfg.transition_fraction * len(keys))))
+        nxt = jnp.mean(jax.vmap(lambda e: transition_error(params, e))(
+            jax.tree.map(lambda a: a[:n], ex)))
+        parts = jax.tree.map(jnp.mean, parts)
+        parts["next"] = nxt
+        parts["select"] = parts["select"] + cfg.transition_weight * nxt
+        return jnp.mean(total) + cfg.transition_weight * nxt, parts
 
     def substep_in(c: stride.StructuredConfig) -> Callable:
         """One simulation substep under config ``c``: the servo law's torques, the acceleration
@@ -316,8 +332,9 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         _check_inputs(name, spec, nu, q=q, qd=qd, tau=tau)
         return stride.terms(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
 
+    subset = cfg.transition_weight and cfg.transition_fraction < 1
     return Model(name, residual not in ("mlp", "none"), init, loss, acceleration, step, rollout,
-                 terms, spec, act, cfg, scales, residual)
+                 terms, spec, act, cfg, scales, residual, batch_loss if subset else None)
 
 
 def whole_step_fits(nv: int, hidden: int) -> bool:

@@ -122,6 +122,10 @@ class StructuredConfig:
     # the one-control-period transition loss (off: the paper's training on accelerations alone;
     # ``models.structured``'s loss, needs ``q_next``, ``qd_next``, ``ctrl`` in the examples)
     transition_weight: float = 0.0
+    # the share of each training minibatch the transition term is computed on (its examples are
+    # drawn at random, so the term's mean is unbiased; validation takes every example): the term
+    # costs ~5x an acceleration step per example, so 0.25 makes a step ~2x instead of ~5x
+    transition_fraction: float = 1.0
     # Inference (acceleration, terms, step, rollout): the networks' passes in XLA or as fused
     # kernels (fused.KERNELS; the flow with Euler steps). Training always differentiates in XLA.
     kernel: str = "xla"
@@ -135,6 +139,9 @@ class StructuredConfig:
                              f"{self.net.activation!r}; use kernel='xla'")
         if not self.transition_weight >= 0:
             raise ValueError(f"transition_weight must be >= 0, got {self.transition_weight!r}")
+        if not 0 < self.transition_fraction <= 1:
+            raise ValueError(f"transition_fraction must be in (0, 1], got "
+                             f"{self.transition_fraction!r}")
         if self.acc_through not in ACC_THROUGH:
             raise ValueError(f"acc_through {self.acc_through!r} is not one of {ACC_THROUGH}")
         self.diffusion  # likewise for the diffusion's settings

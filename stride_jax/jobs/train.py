@@ -62,6 +62,9 @@ class TrainConfig:
         (``StructuredConfig.transition_weight``: the model's own step through the period's
         substeps against the logged next state, in the one-step changes' units); 0, the
         default, trains on accelerations alone, as the paper.
+      transition_fraction: the share of each minibatch the transition term is computed on
+        (``StructuredConfig.transition_fraction``; 1: every example). The term costs ~5x an
+        acceleration step per example; validation takes every example.
       out: run folder; empty means ``runs/<robot>/<model>``.
       distributed: train data-parallel over several processes (:mod:`stride_jax.distributed`).
     """
@@ -79,6 +82,7 @@ class TrainConfig:
     learn_mass: bool = False
     base_structure: bool = True
     transition_weight: float = 0.0
+    transition_fraction: float = 1.0
     out: str = ""
     distributed: DistributedConfig = DistributedConfig()
 
@@ -126,7 +130,8 @@ def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.P
     spec = spec_from_meta(ds.meta)
     model_cfg = model_config(cfg.model, ds.meta, cfg.net.hidden, cfg.net.depth, cfg.nfe,
                              cfg.shared_lnn, cfg.acc_through, cfg.learn_mass, cfg.net.activation,
-                             cfg.net.init, cfg.base_structure, cfg.transition_weight)
+                             cfg.net.init, cfg.base_structure, cfg.transition_weight,
+                             cfg.transition_fraction)
     act = models.Actuation.from_meta(ds.meta)
     sc = scales(ds)
     model = models.make(cfg.model, spec, act, model_cfg, sc)
@@ -142,7 +147,7 @@ def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.P
         sm = sim_model.load(ds.meta["robot"])
         jacobians = lambda q: forces.foot_jacobians(sm, q)  # noqa: E731
     train_dynamics.train(model.loss, model.init, ds.split("train"), ds.split("val"), cfg.loop,
-                         out, log, jacobians=jacobians)
+                         out, log, jacobians=jacobians, batch_loss=model.batch_loss)
     log(f"trained {cfg.model} on {cfg.robot}: best params in {out / 'best'}, "
         f"log in {out / 'metrics.csv'}")
     return out

@@ -66,24 +66,26 @@ def examples(split: dict, jacobians: Callable | None = None) -> dict:
 
 def train(loss_fn: Callable, init_fn: Callable, train_split: dict, val_split: dict,
           cfg: LoopConfig, out: pathlib.Path, log: Callable[[str], None] = print,
-          jacobians: Callable | None = None) -> dict:
+          jacobians: Callable | None = None, batch_loss: Callable | None = None) -> dict:
     """Trains ``init_fn(key)`` params on ``loss_fn(params, example, key)``; returns the best params.
 
     Writes ``out/ckpt`` (latest, resumable), ``out/best`` (lowest validation ``select`` part of
     the loss where it has one, else the lowest validation loss) and
     ``out/metrics.csv``; resumes from ``out/ckpt`` when it exists. ``jacobians``: see
-    :func:`examples`.
+    :func:`examples`; ``batch_loss``: see :func:`train_examples`.
     """
     data, val = examples(train_split, jacobians), examples(val_split, jacobians)
-    return train_examples(loss_fn, init_fn, data, val, cfg, out, log)
+    return train_examples(loss_fn, init_fn, data, val, cfg, out, log, batch_loss)
 
 
 def train_examples(loss_fn: Callable, init_fn: Callable, data: dict, val: dict,
-                   cfg: LoopConfig, out: pathlib.Path, log: Callable[[str], None] = print
-                   ) -> dict:
+                   cfg: LoopConfig, out: pathlib.Path, log: Callable[[str], None] = print,
+                   batch_loss: Callable | None = None) -> dict:
     """:func:`train` on flat examples ``{name: [N, ...]}`` (``q, qd, tau, qdd``, and whatever
     else ``loss_fn`` reads) for training and validation: :func:`run` with :func:`optimizer`.
-    ``loss_fn(params, example, key) -> (loss, parts)`` is for one example. ``out/summary.json``
+    ``loss_fn(params, example, key) -> (loss, parts)`` is for one example; ``batch_loss(params,
+    examples, keys) -> (mean loss, mean parts)``, where given, is a training minibatch's instead
+    of ``loss_fn``'s mean (``Model.batch_loss``; validation stays ``loss_fn``'s mean). ``out/summary.json``
     records the best step and the SHA-256 of its parameters (``checkpoint.params_sha256``)."""
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -98,6 +100,8 @@ def train_examples(loss_fn: Callable, init_fn: Callable, data: dict, val: dict,
         size; at 4096 at once jaxlib's batched LAPACK call hung on a 2-core CPU, DeLaN + MLP
         with the transition loss, measured twice)."""
         keys = jax.random.split(key, len(ex["q"]))
+        if chunk is None and batch_loss is not None:
+            return batch_loss(params, ex, keys)
         if chunk is None:
             total, parts = jax.vmap(loss_fn, in_axes=(None, 0, 0))(params, ex, keys)
         else:
