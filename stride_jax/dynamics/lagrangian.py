@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.dynamics import fused, mlp
+from stride_jax.dynamics import fused, linalg, mlp
 from stride_jax.dynamics.integrate import quat_to_mat, retract
 from stride_jax.types import ModelSpec, check_shape
 
@@ -63,9 +63,10 @@ def bias_force(mass_fn: MassFn, potential_fn: PotentialFn, q: jax.Array, v: jax.
 
 def forward_dynamics(mass_fn: MassFn, potential_fn: PotentialFn, q: jax.Array, v: jax.Array,
                      tau: jax.Array, floating_base: bool) -> jax.Array:
-    """``qdd = M(q)^-1 (tau - C(q, v) v - g(q))`` (the paper's f_LNN), by a Cholesky solve."""
+    """``qdd = M(q)^-1 (tau - C(q, v) v - g(q))`` (the paper's f_LNN), by
+    :func:`stride_jax.dynamics.linalg.spd_solve` (a Cholesky solve on a GPU)."""
     M, b = bias_force(mass_fn, potential_fn, q, v, floating_base)
-    return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(M), tau - b)
+    return linalg.spd_solve(M, tau - b)
 
 
 # --- The learned prior: Cholesky mass network and scalar potential (the paper's Sec. III-B) ---

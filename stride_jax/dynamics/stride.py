@@ -266,9 +266,8 @@ def terms(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
     ``mass @ (qdd - prior)`` is the residual force the prior implies (its inverse dynamics)."""
     M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn, cfg.kernel)
     eps = residual_force(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
-    cho = jax.scipy.linalg.cho_factor(M)
-    return {"prior": jax.scipy.linalg.cho_solve(cho, tau - b),
-            "residual": jax.scipy.linalg.cho_solve(cho, eps), "eps": eps, "mass": M}
+    return {"prior": linalg.spd_solve(M, tau - b), "residual": linalg.spd_solve(M, eps),
+            "eps": eps, "mass": M}
 
 
 def non_contact_part(force: jax.Array, jac: jax.Array | None) -> jax.Array:
@@ -279,7 +278,7 @@ def non_contact_part(force: jax.Array, jac: jax.Array | None) -> jax.Array:
         return force
     gram = jac @ jac.T
     ridge = 1e-6 * jnp.trace(gram) / gram.shape[0] + 1e-9
-    coef = jnp.linalg.solve(gram + ridge * jnp.eye(gram.shape[0], dtype=gram.dtype), jac @ force)
+    coef = linalg.spd_solve(gram + ridge * jnp.eye(gram.shape[0], dtype=gram.dtype), jac @ force)
     return force - jac.T @ coef
 
 
@@ -293,7 +292,6 @@ def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
     cfg = dataclasses.replace(cfg, kernel="xla")  # training differentiates through everything
     key_sample, key_gen = jax.random.split(key)
     M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn)
-    cho = jax.scipy.linalg.cho_factor(M)
     c = context(spec, q, qd, tau, scales)
     generative_kind = residual not in ("mlp", "none")
     if not generative_kind:
@@ -309,7 +307,9 @@ def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
             eps = gen.mean(res_params, c, spec.nv)
         else:
             eps = gen.central(res_params, c, spec.nv)
-    err = (qdd - jax.scipy.linalg.cho_solve(cho, tau - b + scales.force * eps)) / scales.qdd
+    # linalg.spd_solve, as inference: on a CPU a vmapped LAPACK factorisation (batched
+    # cho_factor) deadlocked the training of a 2-core machine inside jaxlib's ParallelBatchMap
+    err = (qdd - linalg.spd_solve(M, tau - b + scales.force * eps)) / scales.qdd
     l_acc = jnp.sum(err ** 2)
     r_star = M @ qdd - (tau - b)  # the residual the prior leaves (N, N m)
     implied = r_star / scales.force
