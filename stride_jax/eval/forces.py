@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from stride_jax.dynamics import linalg
 from stride_jax.sim.model import SimModel
 
 
@@ -49,7 +50,9 @@ def foot_forces(jac: jax.Array, stance: jax.Array, eps: jax.Array) -> jax.Array:
     A = (jac * stance[:, None, None]).reshape(nfeet * k, nv).T  # [nv, nfeet k]
     AtA = A.T @ A
     ridge = 1e-9 * jnp.trace(AtA) + 1e-12
-    f = jnp.linalg.solve(AtA + ridge * jnp.eye(nfeet * k), A.T @ eps)
+    # spd_solve, not LAPACK's LU: vmapped over examples on a small CPU, jaxlib's batched LAPACK
+    # calls can deadlock (stride_jax.dynamics.linalg)
+    f = linalg.spd_solve(AtA + ridge * jnp.eye(nfeet * k), A.T @ eps)
     return f.reshape(nfeet, k) * stance[:, None]
 
 
