@@ -85,23 +85,26 @@ COMPOSE = [("pol64_fam256", ["--mppi.policy-samples", "64", "--mppi.family-sampl
 
 # the alarm stage: (job, scenarios, flags beyond the main planner's), each risk-aware
 MAIN6 = "slope,rough,soft,changes,push,low_friction"
-ALARM_FLAGS = ["--planning.alarm-speed", "0.25", "--planning.recovery-noise-std", "0.5"]
-HOLD = ALARM_FLAGS + ["--planning.alarm-hold-s", "1.0"]
-ALARM = [("alarm_hold_push2x", "push", HOLD + ["--push-scale", "2"]),
+
+
+def alarm_flags(speed: float, hold_s: float = 0.0) -> list[str]:
+    """The recovery alarm at ``speed`` m/s (wide noise 0.5), held ``hold_s`` after it last rang."""
+    return (["--planning.alarm-speed", f"{speed:g}", "--planning.recovery-noise-std", "0.5"]
+            + (["--planning.alarm-hold-s", f"{hold_s:g}"] if hold_s else []))
+
+
+ALARM = [("alarm_hold_push2x", "push", alarm_flags(0.25, 1.0) + ["--push-scale", "2"]),
          ("compose_pol64_fam256_push2x_seeds", "push",
           ["--planning.noise-std", "0.5"] + COMPOSE[0][1] + ["--push-scale", "2"]),
-         ("alarm_push2x_seeds", "push", ALARM_FLAGS + ["--push-scale", "2"]),
+         ("alarm_push2x_seeds", "push", alarm_flags(0.25) + ["--push-scale", "2"]),
          ("main_risk_push2x_seeds", "push", ["--push-scale", "2"]),
          # the first three above: the alarm (held or not) fell in 5 of 5 seeds where the
          # always-wide set stayed up in 5 of 5; is it the switch? An alarm that always rings
          # (the same candidates as the always-wide set, through the alarm's code) and one that
          # rings earlier (0.1 m/s), held
-         ("alarm_always_push2x", "push", ["--planning.alarm-speed", "0.001",
-                                          "--planning.recovery-noise-std", "0.5", "--push-scale", "2"]),
-         ("alarm01_hold_push2x", "push", ["--planning.alarm-speed", "0.1",
-                                          "--planning.recovery-noise-std", "0.5",
-                                          "--planning.alarm-hold-s", "1.0", "--push-scale", "2"]),
-         ("alarm_hold_main", MAIN6, HOLD),
+         ("alarm_always_push2x", "push", alarm_flags(0.001) + ["--push-scale", "2"]),
+         ("alarm01_hold_push2x", "push", alarm_flags(0.1, 1.0) + ["--push-scale", "2"]),
+         ("alarm_hold_main", MAIN6, alarm_flags(0.25, 1.0)),
          # the alarm recovered only where it had rung before the push (below): the always-wide
          # set at a lower noise under the pushes, and its tracking cost over two more seeds
          ("compose_pol64_fam256_std0.3_push2x", "push",

@@ -208,6 +208,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     rows = json.loads(path.read_text())["rows"] if path.is_file() else []
     done = {(r["scenario"], r["model"], r.get("seed", cfg.seed)) for r in rows}
     seeds = list(range(cfg.seed, cfg.seed + cfg.episodes))
+    batched = cfg.episodes > 1
     mx_nominal = mjx.put_model(sm.mj)
     learned_steps = {name: learned_step_fn(run_dir, sm, cfg.kernel) for name, run_dir in models
                      if run_dir}
@@ -253,7 +254,6 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             todo = [seed for seed in seeds if (sc.name, name, seed) not in done]
             if not todo:
                 continue
-            batched = cfg.episodes > 1
             keys = (jax.vmap(jax.random.key)(jnp.asarray(todo)) if batched
                     else jax.random.key(todo[0]))
             mx_plan = mx_sim if name == "oracle" else mx_nominal
@@ -273,10 +273,11 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             now.update(label=f"{sc.name} {name}", t0=t0, n=n_steps)
             traces = jax.block_until_ready(compiled[sig](*args))
             run_s = time.perf_counter() - t0
+            traces = jax.tree.map(np.asarray, traces)  # one copy to the host for all episodes
             planned = name != "policy"
             for i, seed in enumerate(todo):
                 trace = jax.tree.map(lambda x: x[i], traces) if batched else traces
-                episode = seeds.index(seed)
+                episode = seed - cfg.seed
                 row = dict(scenario=sc.name, model=name, run=run_dir or None,
                            **metrics(trace, cfg.settle_s),
                            ms_per_step=1e3 * run_s / n_steps, compile_s=compile_s,
@@ -285,7 +286,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                            episode=episode, side_by_side=len(todo) if batched else 1)
                 rows.append(row)
                 np.savez_compressed(out / trace_name(sc.name, name, episode, seed),
-                                    **{k: np.asarray(v) for k, v in trace._asdict().items()})
+                                    **trace._asdict())
                 log(f"{sc.name:>12} {name:>8}{f' seed {seed}' if batched else ''}: vel RMSE "
                     f"{row['vel_rmse']:.3f} m/s, yaw RMSE {row['yaw_rmse']:.3f} rad/s, fell "
                     f"{row['fell']}, {row['ms_per_step']:.1f} ms/step (compile {compile_s:.0f} s)")

@@ -84,9 +84,10 @@ def train_examples(loss_fn: Callable, init_fn: Callable, data: dict, val: dict,
     """:func:`train` on flat examples ``{name: [N, ...]}`` (``q, qd, tau, qdd``, and whatever
     else ``loss_fn`` reads) for training and validation: :func:`run` with :func:`optimizer`.
     ``loss_fn(params, example, key) -> (loss, parts)`` is for one example; ``batch_loss(params,
-    examples, keys) -> (mean loss, mean parts)``, where given, is a training minibatch's instead
-    of ``loss_fn``'s mean (``Model.batch_loss``; validation stays ``loss_fn``'s mean). ``out/summary.json``
-    records the best step and the SHA-256 of its parameters (``checkpoint.params_sha256``)."""
+    examples, keys) -> (mean loss, mean parts)``, where given, is a training minibatch's loss
+    instead of ``loss_fn``'s mean (``Model.batch_loss``; validation stays ``loss_fn``'s mean).
+    ``out/summary.json`` records the best step and the SHA-256 of its parameters
+    (``checkpoint.params_sha256``)."""
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if len(data["q"]) == 0 or len(val["q"]) == 0:
@@ -94,8 +95,9 @@ def train_examples(loss_fn: Callable, init_fn: Callable, data: dict, val: dict,
     key_init, key_loop = jax.random.split(jax.random.key(cfg.seed))
 
     def mean_loss(params, ex, key, chunk: int | None = None):
-        """The examples' mean loss and parts, all at once (a training minibatch) or ``chunk``
-        examples at a time (validation, ``VALIDATION_CHUNK``: a model's batched factorisations,
+        """The examples' mean loss and parts, all at once (a training minibatch, through
+        ``batch_loss`` where given) or ``chunk`` examples at a time (validation,
+        ``VALIDATION_CHUNK``: a model's batched factorisations,
         a Cholesky per example and substep for the structured models, stay the minibatch's
         size; at 4096 at once jaxlib's batched LAPACK call hung on a 2-core CPU, DeLaN + MLP
         with the transition loss, measured twice)."""
