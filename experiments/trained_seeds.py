@@ -1,0 +1,172 @@
+"""Closed loop over trained seeds: planners through several independently trained copies of each
+model (rows named MODEL, MODEL_s1, MODEL_s2, ...; the seed is read from the row's run folder,
+``.../MODEL-sN``, or from the name) gathered per (scenario, model kind), beside reference rows of
+other controllers: a table (``OUT.md``, ``OUT.json``) and a figure (``OUT.png``, one dot per
+trained seed, a cross where it fell, the references as horizontal ticks).
+
+    python experiments/trained_seeds.py PART/closed_loop.json [...] --out results/x/trained_seeds \\
+        --reference results/closed_loop_g1_gpu/closed_loop.json \\
+        --ref "policy=policy@walk_push,rough2_gov" --ref "oracle (MJX)=oracle@oracle_push"
+
+One trained model is one draw of its training (data order, initialisation): a closed-loop
+comparison of learned models needs the spread over trained seeds, which this table gives.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import re
+import textwrap
+
+import numpy as np
+
+from stride_jax import io
+from stride_jax.jobs import closed_loop
+
+_NAME_SEED = re.compile(r"^(?P<kind>.+?)_s(?P<seed>\d+)$")
+_RUN_SEED = re.compile(r"-s(?P<seed>\d+)$")
+
+
+def kind_and_seed(row: dict) -> tuple[str, int]:
+    """A row's model kind (its name without a ``_sN`` suffix or ``@part``) and trained seed
+    (the run folder's ``-sN`` where the row names one, else the name's ``_sN``, else 0)."""
+    name = row["model"].split("@")[0]
+    m = _NAME_SEED.match(name)
+    kind = m["kind"] if m else name
+    run = _RUN_SEED.search(pathlib.PurePath(str(row.get("run", ""))).name)
+    seed = int(run["seed"]) if run else int(m["seed"]) if m else 0
+    return kind, seed
+
+
+def gather(rows: list[dict]) -> list[dict]:
+    """Per (scenario, model kind), in first-seen order: each trained seed's velocity RMSE and
+    fall, the mean and worst RMSE of the seeds that stayed up (NaN: none did). Two rows of the
+    same scenario, kind and seed are an error (two parts ran the same model: pick one)."""
+    groups: dict[tuple[str, str], dict[int, dict]] = {}
+    for r in rows:
+        kind, seed = kind_and_seed(r)
+        got = groups.setdefault((r["scenario"], kind), {})
+        if seed in got:
+            raise ValueError(f"scenario {r['scenario']!r}: two rows of {kind} seed {seed} "
+                             f"({got[seed]['model']} and {r['model']})")
+        got[seed] = r
+    out = []
+    for (sc, kind), got in groups.items():
+        seeds = sorted(got)
+        up = [got[s]["vel_rmse"] for s in seeds if not got[s]["fell"]]
+        out.append(dict(scenario=sc, model=kind, seeds=seeds,
+                        vel_rmse=[float(got[s]["vel_rmse"]) for s in seeds],
+                        fell=[bool(got[s]["fell"]) for s in seeds],
+                        ms_per_step=float(np.mean([got[s]["ms_per_step"] for s in seeds])),
+                        vel_rmse_mean=float(np.mean(up)) if up else float("nan"),
+                        vel_rmse_worst=float(max(up)) if up else float("nan")))
+    return out
+
+
+def table(groups: list[dict], refs: dict[str, dict[str, dict]]) -> list[str]:
+    """Markdown lines: one row per (scenario, kind), the references of the scenario beside."""
+    lines = ["| scenario | model | trained seeds | vel RMSE per seed (m/s) | mean | worst | falls | "
+             "ms/step | " + " | ".join(refs) + " |",
+             "|---|---|---|---|---:|---:|---:|---:|" + "---:|" * len(refs)]
+    for g in groups:
+        per = " / ".join(f"{v:.3f}" + (" (fell)" if f else "")
+                         for v, f in zip(g["vel_rmse"], g["fell"]))
+        ref = [refs[k].get(g["scenario"]) for k in refs]
+        ref = [("falls" if r["fell"] else f"{r['vel_rmse']:.3f}") if r else "" for r in ref]
+        lines.append(f"| {g['scenario']} | {g['model']} | {', '.join(map(str, g['seeds']))} | "
+                     f"{per} | {g['vel_rmse_mean']:.3f} | {g['vel_rmse_worst']:.3f} | "
+                     f"{sum(g['fell'])}/{len(g['fell'])} | {g['ms_per_step']:.1f} | "
+                     + " | ".join(ref) + " |")
+    return lines
+
+
+def figure(groups: list[dict], refs: dict[str, dict[str, dict]], out: pathlib.Path,
+           title: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenarios = list(dict.fromkeys(g["scenario"] for g in groups))
+    kinds = list(dict.fromkeys(g["model"] for g in groups))
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    fig, ax = plt.subplots(figsize=(max(6.0, 2.2 * len(scenarios) + 2), 4.0))
+    width = 0.8 / max(len(kinds), 1)
+    labelled: set[str] = set()  # the legend names each kind once
+    for g in groups:
+        j, i = scenarios.index(g["scenario"]), kinds.index(g["model"])
+        x = j - 0.4 + (i + 0.5) * width
+        for v, f in zip(g["vel_rmse"], g["fell"]):
+            ax.plot(x, v, "x" if f else "o", color=colors[i % len(colors)], ms=6,
+                    label=None if g["model"] in labelled else g["model"])
+            labelled.add(g["model"])
+        if np.isfinite(g["vel_rmse_mean"]):
+            ax.hlines(g["vel_rmse_mean"], x - 0.3 * width, x + 0.3 * width,
+                      color=colors[i % len(colors)], lw=2)
+    styles = ["--", ":", "-.", (0, (5, 1))]
+    for n, (label, got) in enumerate(refs.items()):
+        for j, sc in enumerate(scenarios):
+            r = got.get(sc)
+            if r is not None and not r["fell"]:
+                ax.hlines(r["vel_rmse"], j - 0.45, j + 0.45, color="k", ls=styles[n % 4], lw=1,
+                          label=label if sc == next((s for s in scenarios if s in got), None)
+                          else None)
+    ax.set_xticks(range(len(scenarios)))
+    ax.set_xticklabels(scenarios)
+    ax.set_ylabel("velocity RMSE while upright (m/s)")
+    ax.set_ylim(bottom=0)
+    ax.set_title("\n".join(textwrap.wrap(title, 90)), fontsize=9)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    io.atomic_write(out, lambda f: fig.savefig(f, format="png", dpi=130))
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("tables", nargs="+", help="closed_loop.json files (or their folders)")
+    ap.add_argument("--out", required=True, help="path stem: writes STEM.md, .json, .png")
+    ap.add_argument("--reference", default="", help="a merged closed_loop.json for --ref")
+    ap.add_argument("--ref", action="append", default=[],
+                    help="LABEL=MODEL[@PART,PART...]: a reference controller's rows")
+    ap.add_argument("--title", default="")
+    a = ap.parse_args(argv)
+    rows, sources = [], []
+    for t in a.tables:
+        path = pathlib.Path(t)
+        path = path / "closed_loop.json" if path.is_dir() else path
+        if not path.is_file():
+            raise SystemExit(f"{path}: no closed-loop table")
+        rows += json.loads(path.read_text())["rows"]
+        sources.append(str(path))
+    refs: dict[str, dict[str, dict]] = {}
+    if a.ref and not a.reference:
+        raise SystemExit("--ref needs --reference (the table the reference rows come from)")
+    ref_rows = json.loads(pathlib.Path(a.reference).read_text())["rows"] if a.reference else []
+    for spec in a.ref:
+        label, sep, pick = spec.partition("=")
+        if not sep or not label or not pick:
+            raise SystemExit(f"--ref {spec!r}: expected LABEL=MODEL[@PART,PART...]")
+        model, _, parts = pick.partition("@")
+        refs[label] = closed_loop.select(ref_rows, model, tuple(p for p in parts.split(",") if p))
+        if not refs[label]:
+            raise SystemExit(f"--ref {spec!r}: no row of {model!r} in {a.reference}")
+    groups = gather(rows)
+    stem = pathlib.Path(a.out)
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    io.atomic_write_text(stem.with_suffix(".json"), json.dumps(
+        dict(title=a.title, sources=sources, reference=a.reference, refs=a.ref, groups=groups),
+        indent=1))
+    md = [f"# {a.title or 'Closed loop over trained seeds'}", "",
+          "Sources: " + ", ".join(f"`{s}`" for s in sources)
+          + (f"; references from `{a.reference}` ({', '.join(a.ref)})" if a.ref else ""), "",
+          "Mean and worst over the seeds that stayed up.", ""]
+    io.atomic_write_text(stem.with_suffix(".md"), "\n".join(md + table(groups, refs)) + "\n")
+    figure(groups, refs, stem.with_suffix(".png"), a.title)
+    print(f"wrote {stem}.{{md,json,png}} ({len(groups)} groups)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
