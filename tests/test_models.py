@@ -201,10 +201,11 @@ def test_xla_bf16_kernel_is_the_same_model_with_bfloat16_products(name):
     assert bf16.config.inference_net.products == "bfloat16" and bf16.config.net.products == "float32"
 
 
-def test_transition_fraction_computes_the_term_on_a_minibatchs_first_examples_only():
+def test_transition_fraction_computes_the_term_on_an_evenly_spread_share_of_the_minibatch():
     """``transition_fraction``: the model's ``batch_loss`` is the acceleration loss' mean over the
-    minibatch plus the weight times the transition term's mean over its first
-    ``ceil(fraction * B)`` examples (a random minibatch: an unbiased estimate); with the whole
+    minibatch plus the weight times the transition term's mean over ``n = ceil(fraction * B)``
+    examples spaced evenly over it (``i * B // n``: a random minibatch gives an unbiased estimate,
+    and each device's contiguous shard of a data-parallel batch its share); with the whole
     minibatch there is no ``batch_loss`` (the per-example loss' mean is it); the trainer uses
     it for its steps and validates on every example."""
     scales = stride.Scales(dq=jnp.full(7, 0.5), dqd=jnp.full(7, 2.0))
@@ -223,7 +224,7 @@ def test_transition_fraction_computes_the_term_on_a_minibatchs_first_examples_on
     total, parts = jax.jit(model.batch_loss)(params, ex, keys)
     per = [model.loss(params, jax.tree.map(lambda a: a[i], ex), keys[i]) for i in range(B)]
     acc = np.mean([float(t) - 0.5 * float(p["next"]) for t, p in per])
-    nxt = np.mean([float(p["next"]) for _, p in per[:3]])  # ceil(0.5 * 5) = 3
+    nxt = np.mean([float(per[i][1]["next"]) for i in (0, 1, 3)])  # n = ceil(0.5 * 5) = 3: 0, 1, 3
     np.testing.assert_allclose(float(parts["next"]), nxt, rtol=1e-5)
     np.testing.assert_allclose(float(total), acc + 0.5 * nxt, rtol=1e-5)
     assert abs(nxt - np.mean([float(p["next"]) for _, p in per])) > 1e-3  # a subset, not all

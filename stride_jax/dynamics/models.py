@@ -248,13 +248,18 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         return total, parts
 
     def batch_loss(params, ex, keys):
-        """A minibatch's mean loss with the transition term on its first
-        ``ceil(transition_fraction * B)`` examples only (a minibatch is drawn at random, so
-        they are a random subset and the term's mean is unbiased)."""
+        """A minibatch's mean loss with the transition term on ``n = ceil(transition_fraction
+        * B)`` of its examples only, evenly spaced (``i * B // n``): a minibatch is drawn at
+        random, so they are a random subset and the term's mean is unbiased, and spread over
+        the batch they put an equal share in every device's shard when data-parallel training
+        splits the batch into contiguous blocks (the first ``n`` would load the first devices
+        only)."""
         total, parts = jax.vmap(lambda e, k: loss(params, e, k, transition=False))(ex, keys)
-        n = max(1, int(np.ceil(cfg.transition_fraction * len(keys))))
+        b = len(keys)
+        n = max(1, int(np.ceil(cfg.transition_fraction * b)))
+        pick = np.arange(n) * b // n
         nxt = jnp.mean(jax.vmap(lambda e: transition_error(params, e))(
-            jax.tree.map(lambda a: a[:n], ex)))
+            jax.tree.map(lambda a: a[pick], ex)))
         parts = jax.tree.map(jnp.mean, parts)
         parts["next"] = nxt
         parts["select"] = parts["select"] + cfg.transition_weight * nxt
