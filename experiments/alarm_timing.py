@@ -40,6 +40,16 @@ def episodes(work: pathlib.Path) -> list[dict]:
     """Per episode of every job found: fell, when, and the share of the second before the push
     spent in the recovery candidates."""
     out = []
+    known = {job for job, _, _ in JOBS}
+    # the job list lives beside risk_fall_search.py's ALARM (this one adds the figure's labels):
+    # say what the two disagree on instead of drawing a partial figure silently
+    unknown = sorted(p.parent.name for p in work.glob("*push2x*/closed_loop.json")
+                     if p.parent.name not in known)
+    if unknown:
+        print(f"not drawn (push2x jobs under {work} without a label in JOBS): {', '.join(unknown)}")
+    missing = [job for job in known if not (work / job / "closed_loop.json").is_file()]
+    if missing:
+        print(f"not found under {work}: {', '.join(sorted(missing))}")
     for job, label, wide in JOBS:
         folder = work / job
         if not (folder / "closed_loop.json").is_file():
