@@ -465,6 +465,16 @@ def test_merged_parts_keep_their_names_and_figures_and_bars_pick_by_part(tmp_pat
                   ["walk", "push", "rough"], tmp_path / "bars.png", ylim=0.3)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
+    # rows written before ``seed`` existed carry their part's --seed (as the run's resume
+    # reads them): two such parts run at different seeds are episodes of one model, not variants
+    for name, seed in (("s0", 0), ("s3", 3)):
+        _part(tmp_path / name, [_row("walk", "stride", 0.07 + seed / 100)], "c")
+        data = json.loads((tmp_path / name / "closed_loop.json").read_text())
+        data["env"]["config"] = dict(seed=seed)
+        (tmp_path / name / "closed_loop.json").write_text(json.dumps(data))
+    rows = cl.merge([str(tmp_path / "s0"), str(tmp_path / "s3")], str(tmp_path / "m2"))
+    assert [r["model"] for r in rows] == ["stride", "stride"]
+
 
 def test_the_recovery_alarm_fires_on_the_velocity_tracking_error(go1):
     """``alarm_speed``: the planner's alarm holds while the base's velocity is further from the

@@ -424,11 +424,13 @@ def merge(parts: list[str], out: str, title: str = "") -> list[dict]:
         data = json.loads(src.read_text())
         name = path.name if path.is_dir() else path.stem
         envs_[name] = data["env"]
+        # rows written before ``seed`` was: the part's --seed, as the run's resume reads them
+        run_seed = (data["env"].get("config") or {}).get("seed", 0)
         for r in data["rows"]:
             missing = {"scenario", "model", "vel_rmse", "fell", "ms_per_step"} - set(r)
             if missing:
                 raise ValueError(f"{src}: a row lacks {sorted(missing)}")
-            model, episode, seed = r["model"], r.get("episode", 0), r.get("seed", 0)
+            model, episode, seed = r["model"], r.get("episode", 0), r.get("seed", run_seed)
             if (r["scenario"], model, seed) in seen:
                 model = f"{model}@{name}"  # a second part's variant of the same model
             seen.add((r["scenario"], model, seed))
