@@ -172,8 +172,14 @@ def test_the_parabolic_line_search_finds_the_minimum_within_its_tolerance_in_few
     ref = [optimize.minimize_scalar(lambda v: np.exp(w * (v - c)) - w * (v - c), bounds=(c - 0.125, c + 0.125),
                                     method="bounded", options={"xatol": 1e-4}).nfev for c, w in ((0.4, 3), (0.6, 9))]
     assert np.mean(worst) < min(ref), (np.mean(worst), ref)  # fewer than Brent's bounded search
-    x, n = search(lambda v: (v + 0.2) ** 2)  # the minimum beyond the lower bound: the bound, one replay
-    assert x == 0.0 and n == 1
+    x, n = search(lambda v: (v + 0.2) ** 2)  # the minimum beyond the lower bound: the bound, two
+    assert x == 0.0 and n == 2  # replays (a golden step into the edge cell, then one tol inward)
+    # the minimum inside the edge cell, on a loss whose roughness hides the slope at one tol from
+    # the bound (f(tol) > f(0)): the probe into the cell finds it
+    rough = lambda v: 10 * (v - 0.05) ** 2 + 1e-3 * np.sin(2e4 * v)
+    assert rough(1e-4) > rough(0.0)
+    x, n = search(rough)
+    assert abs(x - 0.05) < 0.02 and rough(x) < rough(0.0) - 0.02 and n <= 25, (x, n)
     x, n = search(lambda v: (v - 0.99) ** 2 + 0.5 * abs(v - 0.99))  # kinked near the upper bound
     assert abs(x - 0.99) < 1e-3, x
     x, n = search(lambda v: -np.cos(40 * v) - v)  # rough: still the best evaluated point, at most 25 steps

@@ -372,10 +372,16 @@ def line_search(f, known: dict[float, float], a: float, b: float, tol: float, ma
     search (SciPy's ``fminbound``), which this replaced, stops only once its bracket has shrunk
     to ``tol``, and spent 7-11 replays per Go1 fit doing so. A best point on the edge of
     ``[a, b]`` (a bound of the parameter, where the grid's best node is its first or last) is
-    tested with one replay ``tol`` inward: where the loss does not fall there, the minimum is on
-    the bound."""
+    tested first with one replay a golden step into the grid cell next to it (where the loss is
+    lower there, the search goes on inside the cell), then with one ``tol`` inward: where the
+    loss does not fall there either, the minimum is on the bound. The cell's probe comes first
+    because a step of ``tol`` (at the edge, 1e-4 of the range) sees the contacts' roughness, not
+    the slope: measured on the independent Go1 benchmark's noisy ground-friction case, the loss
+    rose from 146.10 at the bound 0.2 to 146.13 at 0.2002 and the search stopped there, while
+    the minimum, 132.8, lay at 0.3 inside the cell [0.2, 0.65]."""
     pts = {float(x): float(v) for x, v in known.items()}
     n = 0
+    cell_probed = False
     while n < maxiter:
         inside = sorted(x for x in pts if a <= x <= b)
         x = min(inside, key=pts.__getitem__)
@@ -386,9 +392,13 @@ def line_search(f, known: dict[float, float], a: float, b: float, tol: float, ma
             inward = right if left is None else left
             if inward is None or abs(inward - x) <= tol:
                 break
-            v = x + tol if inward > x else x - tol  # does the loss fall inward from the bound at all?
-            if v in pts:
-                break  # it does not: the minimum is on the bound, to within tol
+            if not cell_probed and abs(inward - x) > 2 * tol:  # is the minimum inside the cell?
+                cell_probed = True
+                v = x + _GOLDEN * (inward - x)
+            else:
+                v = x + tol if inward > x else x - tol  # does the loss fall inward from the bound at all?
+                if v in pts:
+                    break  # it does not: the minimum is on the bound, to within tol
         else:
             v = _vertex(x, left, right, pts)
             if v is None or not left < v < right:
