@@ -19,15 +19,6 @@ import pathlib
 from stride_jax.jobs import closed_loop
 
 
-def parse_planner(spec: str) -> tuple[str, str, tuple[str, ...]]:
-    """``LABEL=MODEL[@PART,PART...]`` -> (label, model, parts)."""
-    label, sep, pick = spec.partition("=")
-    if not sep or not label or not pick:
-        raise SystemExit(f"--planner {spec!r}: expected LABEL=MODEL[@PART,PART...]")
-    model, _, parts = pick.partition("@")
-    return label, model, tuple(p for p in parts.split(",") if p)
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("table", help="a merged closed_loop.json")
@@ -47,7 +38,10 @@ def main(argv=None) -> int:
     scenarios = [s for s in a.scenarios.split(",") if s]
     planners = {}
     for spec in a.planner:
-        label, model, parts = parse_planner(spec)
+        try:
+            label, model, parts = closed_loop.parse_pick(spec)
+        except ValueError as e:
+            raise SystemExit(str(e)) from None
         got = {sc: r for sc, r in closed_loop.select(rows, model, parts).items() if sc in scenarios}
         if not got:
             raise SystemExit(f"--planner {spec!r}: no row of model {model!r}"

@@ -125,7 +125,10 @@ def main(argv: list[str] | None = None) -> None:
     env = pool.shared_env(root)
     suffix = "" if args.data == "explore" else f"_{args.data}"
     tw = f"_tw{args.transition_weight:g}" if args.transition_weight else ""
-    tf = args.transition_fraction if tw and args.transition_fraction < 1 else 1.0
+    if args.transition_fraction < 1 and not tw:
+        raise SystemExit(f"--transition-fraction {args.transition_fraction:g} needs "
+                         "--transition-weight above 0")
+    tf = args.transition_fraction
     tw += f"_tf{tf:g}" if tf < 1 else ""
     data = {r: root / "data" / f"{r}{suffix}-{args.preset}" for r in robots}
     runs = {r: root / "runs" / f"{r}{suffix}{tw}-{args.preset}" for r in robots}

@@ -143,13 +143,15 @@ def main(argv=None) -> int:
     refs: dict[str, dict[str, dict]] = {}
     if a.ref and not a.reference:
         raise SystemExit("--ref needs --reference (the table the reference rows come from)")
+    if a.reference and not pathlib.Path(a.reference).is_file():
+        raise SystemExit(f"--reference {a.reference}: no such closed-loop table")
     ref_rows = json.loads(pathlib.Path(a.reference).read_text())["rows"] if a.reference else []
     for spec in a.ref:
-        label, sep, pick = spec.partition("=")
-        if not sep or not label or not pick:
-            raise SystemExit(f"--ref {spec!r}: expected LABEL=MODEL[@PART,PART...]")
-        model, _, parts = pick.partition("@")
-        refs[label] = closed_loop.select(ref_rows, model, tuple(p for p in parts.split(",") if p))
+        try:
+            label, model, parts = closed_loop.parse_pick(spec, "--ref")
+        except ValueError as e:
+            raise SystemExit(str(e)) from None
+        refs[label] = closed_loop.select(ref_rows, model, parts)
         if not refs[label]:
             raise SystemExit(f"--ref {spec!r}: no row of {model!r} in {a.reference}")
     groups = gather(rows)

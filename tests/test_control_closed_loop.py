@@ -461,6 +461,10 @@ def test_merged_parts_keep_their_names_and_figures_and_bars_pick_by_part(tmp_pat
     assert set(cl.select(rows, "stride", ("a",))) == {"walk", "push"}
     assert cl.select(rows, "stride")["walk"]["part"] == "a"  # no parts: the first row
     assert cl.select(rows, "onn") == {}
+    assert cl.parse_pick("STRIDE=stride@b,a") == ("STRIDE", "stride", ("b", "a"))
+    assert cl.parse_pick("all=stride") == ("all", "stride", ())
+    with pytest.raises(ValueError, match="--ref 'stride': expected LABEL=MODEL"):
+        cl.parse_pick("stride", "--ref")
     png = cl.bars({"policy": cl.select(rows, "policy"), "STRIDE": picked},
                   ["walk", "push", "rough"], tmp_path / "bars.png", ylim=0.3)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -230,3 +230,5 @@ def test_transition_fraction_computes_the_term_on_an_evenly_spread_share_of_the_
     assert abs(nxt - np.mean([float(p["next"]) for _, p in per])) > 1e-3  # a subset, not all
     with pytest.raises(ValueError, match="transition_fraction"):
         dataclasses.replace(CFG, transition_fraction=0.0)
+    with pytest.raises(ValueError, match="needs a transition_weight above 0"):
+        dataclasses.replace(CFG, transition_weight=0.0, transition_fraction=0.5)

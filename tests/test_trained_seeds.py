@@ -64,6 +64,12 @@ def test_the_script_writes_table_json_and_figure(tmp_path):
     assert md.rstrip().endswith("| 0.130 |")  # the policy's row beside ONN's
     assert json.loads(out.with_suffix(".json").read_text())["groups"][1]["model"] == "onn"
     assert out.with_suffix(".png").stat().st_size > 0
+    with pytest.raises(SystemExit, match="no such closed-loop table"):
+        mod.main([str(tmp_path / "part"), "--out", str(out), "--reference",
+                  str(tmp_path / "missing.json"), "--ref", "policy=policy"])
+    with pytest.raises(SystemExit, match="expected LABEL=MODEL"):
+        mod.main([str(tmp_path / "part"), "--out", str(out), "--reference",
+                  str(tmp_path / "ref.json"), "--ref", "policy"])
     with pytest.raises(SystemExit, match="no row of 'oracle'"):
         mod.main([str(tmp_path / "part"), "--out", str(out), "--reference",
                   str(tmp_path / "ref.json"), "--ref", "oracle=oracle"])

@@ -238,13 +238,17 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
     def init(key):
         return stride.init(key, spec, cfg, residual)
 
+    def with_transition(total, parts, nxt):
+        """The loss and its parts with the transition term ``nxt`` added at its weight."""
+        parts["next"] = nxt
+        parts["select"] = parts["select"] + cfg.transition_weight * nxt
+        return total + cfg.transition_weight * nxt, parts
+
     def loss(params, ex, key, transition: bool = True):
         total, parts = stride.loss(params, spec, cfg, residual, ex["q"], ex["qd"], ex["tau"],
                                    ex["qdd"], key, scales, ex.get("contact_jac"))
         if cfg.transition_weight and transition:
-            parts["next"] = transition_error(params, ex)
-            total = total + cfg.transition_weight * parts["next"]
-            parts["select"] = parts["select"] + cfg.transition_weight * parts["next"]
+            return with_transition(total, parts, transition_error(params, ex))
         return total, parts
 
     def batch_loss(params, ex, keys):
@@ -260,10 +264,7 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         pick = np.arange(n) * b // n
         nxt = jnp.mean(jax.vmap(lambda e: transition_error(params, e))(
             jax.tree.map(lambda a: a[pick], ex)))
-        parts = jax.tree.map(jnp.mean, parts)
-        parts["next"] = nxt
-        parts["select"] = parts["select"] + cfg.transition_weight * nxt
-        return jnp.mean(total) + cfg.transition_weight * nxt, parts
+        return with_transition(jnp.mean(total), jax.tree.map(jnp.mean, parts), nxt)
 
     def substep_in(c: stride.StructuredConfig) -> Callable:
         """One simulation substep under config ``c``: the servo law's torques, the acceleration

@@ -142,6 +142,10 @@ class StructuredConfig:
         if not 0 < self.transition_fraction <= 1:
             raise ValueError(f"transition_fraction must be in (0, 1], got "
                              f"{self.transition_fraction!r}")
+        if self.transition_fraction < 1 and not self.transition_weight:
+            raise ValueError(f"transition_fraction {self.transition_fraction!r} needs a "
+                             "transition_weight above 0 (it is the share of each minibatch the "
+                             "transition term is computed on)")
         if self.acc_through not in ACC_THROUGH:
             raise ValueError(f"acc_through {self.acc_through!r} is not one of {ACC_THROUGH}")
         self.diffusion  # likewise for the diffusion's settings

@@ -495,6 +495,16 @@ def plot(out: pathlib.Path, rows: list[dict]) -> list[pathlib.Path]:
     return paths
 
 
+def parse_pick(spec: str, flag: str = "--planner") -> tuple[str, str, tuple[str, ...]]:
+    """``LABEL=MODEL[@PART,PART...]`` -> ``(label, model, parts)``: a labelled choice of rows for
+    :func:`select` (the figures' command lines); a malformed spec is an error naming ``flag``."""
+    label, sep, pick = spec.partition("=")
+    if not sep or not label or not pick:
+        raise ValueError(f"{flag} {spec!r}: expected LABEL=MODEL[@PART,PART...]")
+    model, _, parts = pick.partition("@")
+    return label, model, tuple(p for p in parts.split(",") if p)
+
+
 def select(rows: list[dict], model: str, parts: tuple[str, ...] = ()) -> dict[str, dict]:
     """``{scenario: row}`` of ``model`` (a merged row's name before any ``@part``), from the
     first of ``parts`` that has the scenario (``parts`` empty: any part, the first row wins)."""
