@@ -85,7 +85,8 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     between hypotheses are paired). A pair replaces the best single only if (a) the paired
     bootstrap puts its held-out improvement over the single above zero at level ``alpha / pairs``
     and (b) it removes at least ``pair_min`` of what the single leaves above the noise floor and
-    (c) at least ``pair_material`` of the whole held-out gap above the floor; a hypothesis holding an
+    (c) at least ``pair_material`` of the whole held-out gap above the floor, or, below (c), its
+    second effect is a confounder of the single's estimate (``pair_confounds``); a hypothesis holding an
     effect that overlaps the simulator's contact settings must beat re-fitting them instead
     (``nuisance``: a :class:`stride_jax.gap.nuisance.Null`, or None; :mod:`stride_jax.gap.admit`).
 
@@ -359,7 +360,8 @@ def admission_note(w: dict[str, Any], cfg: DiagnoseConfig) -> str:
     best = w["ranking"][0]
     out = []
     for t in w.get("pair_tests", []):
-        if t["significant"] and not t["material"] and set(t["single"]) == set(best["effects"]):
+        if (t["significant"] and not t["material"] and not t.get("confounds")
+                and set(t["single"]) == set(best["effects"])):
             extra = "+".join(e for e in t["pair"] if e not in t["single"])
             out.append(f"{extra} on top would close a further {t['gain_explained']:.2%} of the held-out gap (lower "
                        f"bound {t['gain_lower']:.2%}): below the {cfg.pair_material:.0%} materiality rule for a second "
@@ -406,8 +408,9 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
        pair rule's materiality bar) and no significant second effect moves its estimate outside its
        own interval (a contact effect that does only qualifies the value: it may stand for the
        simulator's contact model) and, for a single, its value fitted where each joint moves slowest
-       and where it moves fastest agrees (:mod:`stride_jax.gap.form`); otherwise the reason names
-       the conditions that failed.
+       and where it moves fastest agrees (:mod:`stride_jax.gap.form`), and, for a pair, its second
+       effect is material (a pair named for a confounder below the bar is not confident);
+       otherwise the reason names the conditions that failed.
 
     Every verdict lists the hypotheses the held-out data cannot tell apart from the best
     (``indistinguishable_from``). Which hypothesis is the best is the pair and nuisance rules'
@@ -470,6 +473,17 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
                           f"{cfg.confident_p:.0%})")
     if ties:
         shortfalls.append("other effects tie with it")
+    t = best.get("vs_best_single")
+    if len(best["effects"]) == 2 and t and t.get("confounds") and not t["material"]:
+        extra = "+".join(e for e in t["pair"] if e not in t["single"])
+        shifts = "; ".join(f"{m['param']} {_num(m['single'])} alone -> {_num(m['in_pair'])} beside it, interval "
+                           f"{_num(m['lo'])} to {_num(m['hi'])}" for m in t["moves"])
+        single = "+".join(t["single"])
+        shortfalls.append(f"{extra} on top closes a further {t['gain_explained']:.2%} of the held-out gap, below the "
+                          f"{t['material_min']:.2%} materiality bar: it is named as a confounder, not for its share: "
+                          f"fitted beside it, {single}'s estimate moves by {t['change_in_estimate']:.0%} of its "
+                          f"departure from nominal and out of its own interval ({shifts}; the change-in-estimate rule "
+                          f"asks at least {cfg.pair_confounds:.0%}), so {single} alone would misstate its value")
     for t in w.get("pair_tests", []):
         if (len(best["effects"]) == 1 and set(t["single"]) == set(best["effects"]) and not t["preferred"]
                 and t.get("material_possible")):

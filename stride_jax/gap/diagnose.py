@@ -85,6 +85,9 @@ class DiagnoseConfig:
         of what the single leaves above the noise floor (and significantly more than nothing).
       pair_material: ... and at least this fraction of the whole held-out gap above the noise
         floor (a second effect must be material: :mod:`stride_jax.gap.admit`).
+      pair_confounds: ... or, below that bar, a significant second effect whose omission moves the
+        best single's estimate outside its interval and by at least this fraction of its departure
+        from nominal (a confounder: named, not confident; :func:`stride_jax.gap.admit.change_in_estimate`).
       form_tol: a named single refitted where each joint moves slowest and fastest (thirds) must
         not differ beyond both intervals and by more than this fraction of its departure from
         nominal, for a confident call (:mod:`stride_jax.gap.form`; 0: no check).
@@ -119,6 +122,7 @@ class DiagnoseConfig:
     alpha: float = 0.05
     pair_min: float = 0.1
     pair_material: float = 0.05
+    pair_confounds: float = 0.1
     form_tol: float = 0.25
     residual: ResidualConfig = ResidualConfig()
     calibrate: calibrate.CalibrateConfig = calibrate.CalibrateConfig()
