@@ -209,7 +209,9 @@ def markdown(cfg, rows: list[dict], summ: dict, command: str, seconds: float) ->
          "`not_nameable`: singles whose planted effect, at its planted value, closes less than 50% of the "
          "calibrated baseline's gap (the rule for naming an effect): the model-form difference outweighs it. "
          "`pairs_not_nameable`: pairs of which one effect, added last at its planted value, closes less than the "
-         "5% of the baseline's gap that the pair rule asks of a second effect.",
+         "5% of the baseline's gap that the pair rule asks of a second effect by its share (the diagnosis still "
+         "names such a second effect, not confidently, where leaving it out moves the first one's value by 10% "
+         "or more: a confounder).",
          "", "| metric | noise-free | noisy |", "|---|---|---|"]
     for k in ("top1_single", "top1_pairs", "median_shrink_single", "confident_false", "confident_partial",
               "top1_single_strict",
