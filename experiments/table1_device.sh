@@ -12,6 +12,8 @@
 # may run side by side (they share the compilation cache). LIMIT_S stops the driver after that
 # many seconds (0: never), so that what it made is still packed inside the device call's limit. EXTRA goes to experiments/table1.py:
 # --eval-only in a second call on the same (warm) machine evaluates what the first trained.
+# KEEP_SEEDS=all brings back every run's checkpoint (best/), not only seed 0's: closed-loop runs
+# over trained seeds in a later session then need no retraining (G1: ~2 MB a run).
 set -uo pipefail
 out=$1; robot=$2; steps=$3; minutes=$4; ablation=${5:-}; shift 5 || shift $#
 data=${DATA:-explore}
@@ -43,8 +45,9 @@ timeout -s INT "${LIMIT_S:-0}" python3 experiments/table1.py --robot "$robot" --
   --steps "$steps" --minutes "$minutes" --ablation "$ablation" --root "$root" --out "$res" "${twargs[@]}" "$@" \
   2>&1 | grep --line-buffered -v -i "warp\|warn" | tee "$out/${name}_driver.log" | tail -40
 suffix=""; [ "$data" = explore ] || suffix=_$data
+keep='*-s0'; [ "${KEEP_SEEDS:-0}" = all ] && keep='*'  # whose checkpoints come back (best/, configs)
 runs=$root/runs/$robot$suffix$tws-paper
 (cd "$runs" && tar -cf "$res/runs.tar" */metrics.csv */train.log */summary.json \
-  $(ls */eval.log 2>/dev/null) && tar -rf "$res/runs.tar" --exclude=ckpt --exclude=eval_out *-s0)
+  $(ls */eval.log 2>/dev/null) && tar -rf "$res/runs.tar" --exclude=ckpt --exclude=eval_out $keep)
 tar -C "$res" -cJf "$out/$name.tar.xz" .
 ls -la "$out" "$res"
