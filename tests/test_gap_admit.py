@@ -193,7 +193,8 @@ def test_a_significant_second_effect_that_moves_the_singles_estimate_by_10_perce
     S = {"effects": ["armature"], "heldout_loss": 10.0, "_boot": np.zeros(1000), "explained": 0.9,
          "params": {"armature": [0.065]}, "param_lo": {"armature": [0.062]}, "param_hi": {"armature": [0.066]}}
     P = {"effects": ["armature", "delay"], "heldout_loss": 8.9, "explained": 0.91,
-         "_boot": 0.01 + 0.002 * rng.standard_normal(1000), "params": {"armature": [0.047], "delay": [1.0]}}
+         "_boot": 0.01 + 0.002 * rng.standard_normal(1000), "params": {"armature": [0.047], "delay": [1.0]},
+         "param_lo": {"armature": [0.0464], "delay": [1.0]}, "param_hi": {"armature": [0.0476], "delay": [1.0]}}
     (t,) = admit.pair_tests(S, [P], left_S=0.02, floor_frac=0.0, M=100, L_nom=100.0, cfg=TINY)
     assert t["significant"] and not t["material"] and t["confounds"] and t["preferred"], t
     assert t["change_in_estimate"] == pytest.approx(0.018 / 0.065)
@@ -210,7 +211,11 @@ def test_a_significant_second_effect_that_moves_the_singles_estimate_by_10_perce
     # simulator's contact model); nor does a second effect the bootstrap cannot tell from nothing
     contact = P | {"effects": ["armature", "contact_softness"], "params": {"armature": [0.047], "contact_softness": [1.3]}}
     weak = P | {"_boot": 0.01 + 0.05 * rng.standard_normal(1000), "heldout_loss": 9.999}
-    for Q in (contact, weak):
+    # nor a partner collinear with the single: the pair's own interval then holds the single's value
+    collinear = P | {"effects": ["armature", "servo_damping"], "params": {"armature": [0.047], "servo_damping": [0.2]},
+                     "param_lo": {"armature": [0.03], "servo_damping": [0.0]},
+                     "param_hi": {"armature": [0.07], "servo_damping": [0.4]}}
+    for Q in (contact, weak, collinear):
         (u,) = admit.pair_tests(S, [Q], left_S=0.02, floor_frac=0.0, M=100, L_nom=100.0, cfg=TINY)
         assert u["moves"] and not u["confounds"] and not u["preferred"], u
     # and the rule can be switched off
