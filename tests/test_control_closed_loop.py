@@ -398,6 +398,23 @@ def test_a_run_logs_its_progress_writes_its_row_and_resumes(tmp_path):
     assert cl.run(cfg, log=again.append) == rows and not any("simulated" in x for x in again)
 
 
+def test_runs_of_one_kind_of_model_share_one_compiled_episode(tmp_path):
+    """A trained model's parameters are the episode's argument: runs with the same definition
+    (trained seeds) compile once, a run with another definition (other data's scales) once more,
+    and sharing changes no result."""
+    a, b = "results/models/go1_walk/onn-s0", "results/models/go1_walk_tw1_tf0.25/onn-s0"
+    cfg = cl.ClosedLoopConfig(models=f"onn={a},onn_again={a},onn_other={b}", scenarios="walk",
+                              seconds=0.1, settle_s=0.0, progress_s=0.1,
+                              mppi=mppi.MPPIConfig(samples=8, horizon=3), out=str(tmp_path))
+    lines = []
+    rows = cl.run(cfg, log=lines.append)
+    compiles = [x.strip() for x in lines if x.endswith("compiling")]
+    assert compiles == ["walk onn: compiling", "walk onn_other: compiling"]
+    by = {r["model"]: r for r in rows}
+    assert by["onn_again"]["vel_rmse"] == by["onn"]["vel_rmse"]
+    assert by["onn_other"]["vel_rmse"] != by["onn"]["vel_rmse"]
+
+
 def test_episodes_side_by_side_give_a_row_per_seed_and_the_first_equals_a_single_run(tmp_path):
     """``episodes``: one vmapped program runs a pair's episodes over the seeds; each seed gets
     its row and trace, the first seed's row is the row of a plain run at that seed, the others

@@ -189,9 +189,9 @@ def mjx_step_fn(sm: sim_model.SimModel, mx: mjx.Model) -> Callable:
     return envs.mjx_step_fn(sm.n_substeps, mx)
 
 
-def learned_step_fn(run: str, sm: sim_model.SimModel, kernel: str = "xla") -> Callable:
-    """``step(q, qd, ctrl, key)`` of a trained dynamics model (``stride train`` run folder),
-    its networks run as ``kernel`` (``StructuredConfig.kernel``)."""
+def learned_model(run: str, sm: sim_model.SimModel, kernel: str = "xla") -> tuple[object, object]:
+    """``(model, params)`` of a trained dynamics model (``stride train`` run folder), its
+    networks run as ``kernel`` (``StructuredConfig.kernel``), checked to model ``sm``'s robot."""
     from stride_jax.dynamics import checkpoint
     model, params = checkpoint.load(run, kernel=kernel)
     q0 = jnp.asarray(sm.info.qpos0)
@@ -200,4 +200,10 @@ def learned_step_fn(run: str, sm: sim_model.SimModel, kernel: str = "xla") -> Ca
                                           q0[7:], jax.random.key(0)))
     except ValueError as e:
         raise ValueError(f"{run} does not model robot {sm.robot.name}: {e}") from e
+    return model, params
+
+
+def learned_step_fn(run: str, sm: sim_model.SimModel, kernel: str = "xla") -> Callable:
+    """``step(q, qd, ctrl, key)`` of a trained dynamics model (:func:`learned_model`)."""
+    model, params = learned_model(run, sm, kernel)
     return lambda q, qd, ctrl, key: model.step(params, q, qd, ctrl, key)

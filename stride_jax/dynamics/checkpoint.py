@@ -61,6 +61,13 @@ def definition(model: Model) -> dict:
             "scales": {k: as_list(v) for k, v in model.scales._asdict().items()}}
 
 
+def definition_sha256(model: Model) -> str:
+    """The checksum of ``model``'s definition (everything but its parameters): two models with
+    the same one compute the same function of their parameters, so a program traced for one
+    runs the other (the closed loop compiles one episode per kind of model, not per run)."""
+    return _digest(definition(model))
+
+
 def _digest(d: dict) -> str:
     body = {k: v for k, v in d.items() if k not in ("definition_sha256", "params")}
     return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()

@@ -50,7 +50,7 @@ from stride_jax import config
 from stride_jax.control import envs
 # The library's episode, metrics and planner models, and the scenarios (re-exported: the job's
 # callers and tests take them from here).
-from stride_jax.control.episode import (Trace, learned_step_fn, metrics,  # noqa: F401
+from stride_jax.control.episode import (Trace, learned_model, learned_step_fn, metrics,  # noqa: F401
                                         mjx_step_fn, run_episode)
 from stride_jax.control.mppi import MPPIConfig
 from stride_jax.control.planning import PlanningConfig, make_planner, make_planning, mppi_config
@@ -184,7 +184,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     """Every (scenario, model) pair of ``cfg``; writes ``closed_loop.json``/``.md``, traces and
     plots to ``cfg.out`` after each pair, and skips pairs already there (resumable)."""
     from stride_jax.control import learned as learned_lib, ppo
-    from stride_jax.dynamics import fused
+    from stride_jax.dynamics import checkpoint, fused
 
     fused.kernel_dtype(cfg.kernel)  # a clear error for an unknown choice, before any work
     sm = sim_model.load(cfg.robot)
@@ -210,11 +210,13 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     seeds = list(range(cfg.seed, cfg.seed + cfg.episodes))
     batched = cfg.episodes > 1
     mx_nominal = mjx.put_model(sm.mj)
-    learned_steps = {name: learned_step_fn(run_dir, sm, cfg.kernel) for name, run_dir in models
-                     if run_dir}
+    # trained models: (model, params); the params are the episode's argument, so the runs of one
+    # kind of model (trained seeds: the same definition) share one compiled episode
+    learned = {name: learned_model(run_dir, sm, cfg.kernel) for name, run_dir in models if run_dir}
+    kind = {name: ("learned", checkpoint.definition_sha256(m)) for name, (m, _) in learned.items()}
     if any(name == "policy" for name, _ in models) and ppo_policy is None:
         raise ValueError("model 'policy' needs --policy RUN")
-    compiled = {}  # one executable per (model, episode length, model structures)
+    compiled = {}  # one executable per (kind of model, episode length, model structures)
     limits = env_cfg.commands.bounds() if cfg.govern else None
     every = max(1, int(round(cfg.progress_s / sm.robot.ctrl_dt))) if cfg.progress_s > 0 else 0
     now = {"label": "", "t0": 0.0, "n": 1}  # the running pair, for the progress callback
@@ -225,10 +227,14 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             f"({wall:.0f} s)")
 
     def episode_fn(name, n_steps, slots, sm_sim, batched):
-        def episode(mx_sim, mx_plan, starts, values, pushes, tilt, key):
-            step_fn = learned_steps.get(name) or mjx_step_fn(sm, mx_plan)
+        def episode(mx_sim, mx_plan, params, starts, values, pushes, tilt, key):
+            if name in learned:
+                model = learned[name][0]
+                step_fn = lambda q, qd, ctrl, k: model.step(params, q, qd, ctrl, k)  # noqa: E731
+            else:
+                step_fn = mjx_step_fn(sm, mx_plan)
             planning = make_planning(cfg.planning, env_cfg, sm, step_fn, ppo_policy, learned_params,
-                                     error_params=error_params if name in learned_steps
+                                     error_params=error_params if name in learned
                                      else None)  # the simulator has no model error
             planner = None
             if name != "policy":
@@ -239,7 +245,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                                progress=progress if every else None,
                                progress_every=every or 1)
         if batched:  # episodes side by side: only the key differs
-            episode = jax.vmap(episode, in_axes=(None,) * 6 + (0,))
+            episode = jax.vmap(episode, in_axes=(None,) * 7 + (0,))
         return jax.jit(episode)
 
     for sc_name in [s for s in cfg.scenarios.split(",") if s]:
@@ -257,11 +263,12 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             keys = (jax.vmap(jax.random.key)(jnp.asarray(todo)) if batched
                     else jax.random.key(todo[0]))
             mx_plan = mx_sim if name == "oracle" else mx_nominal
-            args = (mx_sim, mx_plan, jnp.asarray(starts), jnp.asarray(values),
+            args = (mx_sim, mx_plan, learned[name][1] if name in learned else (),
+                    jnp.asarray(starts), jnp.asarray(values),
                     jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum()))),
                     jnp.asarray(tilt_schedule(sc)), keys)
-            sig = (name, n_steps, tuple(slots[0]), sm_sim.geom_foot.tobytes(),
-                   jax.tree.structure(args[:2]), len(todo) if batched else 0)
+            sig = (kind.get(name, name), n_steps, tuple(slots[0]), sm_sim.geom_foot.tobytes(),
+                   jax.tree.structure(args[:3]), len(todo) if batched else 0)
             t0 = time.perf_counter()
             if sig not in compiled:
                 if every:
