@@ -28,12 +28,11 @@
   widens the pair's interval instead) *and* differ by at least ``pair_confounds`` (10%) of the
   single's departure from the nominal model (:func:`change_in_estimate`, epidemiology's
   change-in-estimate rule for confounders): the single alone then answers "which" and gets "how
-  much" wrong. Measured on the
-  independent Go1 benchmark (session 37's rows): armature + delay (delay 4.9-5.0% of the gap,
-  armature 0.065 -> 0.047, a 27% change), payload + torque_scale (payload 2.1-2.4%, torque_scale's
-  departure from 1 changed by 16-23%); no single case has a second effect that moves its estimate
-  by more than 0.3% (damping@calf beside mass@calf). A contact effect beside the single never
-  counts: it may stand for the simulator's contact model.
+  much" wrong. Measured on the independent Go1 benchmark (session 37's rows): armature + delay
+  (delay 4.9-5.0% of the gap, armature 0.065 -> 0.047, a 27% change), payload + torque_scale
+  (payload 2.1-2.4%, torque_scale's departure from 1 changed by 16-23%); no single case has a
+  second effect that moves its estimate by more than 0.3% (damping@calf beside mass@calf). A
+  contact effect beside the single never counts: it may stand for the simulator's contact model.
   A pair that moves the best single's *integer* effect (a delay: 2 steps alone, 1 in the pair) is
   tested once more (:func:`_trade`): its second effect, refitted with the integer held at the
   single's value, must pass (a)-(c) on its own; otherwise the second effect stands in for the
