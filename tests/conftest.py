@@ -99,3 +99,19 @@ def write_arm(folder: pathlib.Path, actuators: str = "", name: str = "arm.xml",
 def arm_mjcf():
     """:func:`write_arm`, the one arm the robot-file and log-import tests share."""
     return write_arm
+
+
+def _load_experiment(name: str):
+    """The script ``experiments/<name>.py`` as a module (the scripts are not a package)."""
+    import importlib.util
+    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"experiment_{name}", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="session")
+def experiment():
+    """``experiment(name)``: the script ``experiments/<name>.py`` as a module."""
+    return _load_experiment

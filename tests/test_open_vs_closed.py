@@ -1,21 +1,10 @@
 """experiments/open_vs_closed.py: open-loop metrics of trained models against their planners'
 closed-loop tracking, by rank correlation."""
 
-import importlib.util
 import json
-import pathlib
 
 import numpy as np
 import pytest
-
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("open_vs_closed", ROOT / "experiments" / "open_vs_closed.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _run(model, seed, rmse, energy):
@@ -23,8 +12,8 @@ def _run(model, seed, rmse, energy):
             "distribution": {"mean_of_samples": rmse + 1, "energy": energy, "crps": energy / 2}}
 
 
-def test_spearman_is_a_rank_correlation_with_a_permutation_p_value():
-    mod = _script()
+def test_spearman_is_a_rank_correlation_with_a_permutation_p_value(experiment):
+    mod = experiment("open_vs_closed")
     x = np.arange(8.0)
     rho, p = mod.spearman(x, x ** 3, permutations=2000)  # monotone: rank correlation 1
     assert rho == pytest.approx(1.0) and p < 0.01
@@ -35,8 +24,8 @@ def test_spearman_is_a_rank_correlation_with_a_permutation_p_value():
     assert mod.spearman([1, 1, 2, 3], [1, 2, 3, 4], permutations=100)[0] < 1  # ties share a rank
 
 
-def test_points_join_runs_and_rows_by_kind_and_seed_and_leave_falls_out(tmp_path):
-    mod = _script()
+def test_points_join_runs_and_rows_by_kind_and_seed_and_leave_falls_out(tmp_path, experiment):
+    mod = experiment("open_vs_closed")
     table = {"runs": [_run(m, s, 10 + i, 0.4 + 0.01 * i) for i, (m, s) in
                       enumerate([(m, s) for m in ("stride", "delan", "onn") for s in (0, 1)])]}
     seeds = {"groups": [

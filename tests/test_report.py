@@ -1,7 +1,6 @@
 """results/REPORT.md from synthetic result files: verdicts follow the numbers, absent inputs are
 'not run', a missing Table I is a clear error."""
 
-import importlib.util
 import json
 import pathlib
 
@@ -203,11 +202,8 @@ def test_paper_constants_match_claims():
     assert report.PAPER_TABLE1 == claims.PAPER_TABLE
 
 
-def test_script(results, tmp_path):
-    spec = importlib.util.spec_from_file_location("report_script",
-                                                  ROOT / "experiments" / "report.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+def test_script(results, tmp_path, experiment):
+    mod = experiment("report")
     out = tmp_path / "R.md"
     rep = mod.main(["--results", str(results), "--out", str(out)])
     assert out.read_text() == rep["markdown"]

@@ -1,20 +1,12 @@
 """The committed checkpoints are the ones results/SHA256SUMS lists (experiments/checksums.py)."""
 
-import importlib.util
 import pathlib
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
-def _checksums():
-    spec = importlib.util.spec_from_file_location("checksums", ROOT / "experiments" / "checksums.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_checkpoints_match_their_listed_sha256(tmp_path):
-    mod = _checksums()
+def test_checkpoints_match_their_listed_sha256(tmp_path, experiment):
+    mod = experiment("checksums")
     listed = (ROOT / "results" / "SHA256SUMS").read_text()
     assert listed == mod.listing(), ("results/SHA256SUMS is stale or a checkpoint changed: "
                                      "run `python experiments/checksums.py` after checking why")

@@ -1,29 +1,17 @@
 """experiments/trained_seeds.py: closed-loop rows of several trained seeds gathered per model kind."""
 
-import importlib.util
 import json
 import math
-import pathlib
 
 import pytest
-
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("trained_seeds",
-                                                  ROOT / "experiments" / "trained_seeds.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _row(scenario, model, vel, fell=False, run="", ms=10.0):
     return dict(scenario=scenario, model=model, run=run, vel_rmse=vel, fell=fell, ms_per_step=ms)
 
 
-def test_kind_and_seed_read_the_run_folder_first_then_the_name():
-    mod = _script()
+def test_kind_and_seed_read_the_run_folder_first_then_the_name(experiment):
+    mod = experiment("trained_seeds")
     assert mod.kind_and_seed(_row("push", "stride", 0.1, run="/x/stride-s0")) == ("stride", 0)
     assert mod.kind_and_seed(_row("push", "stride_s2", 0.1, run="/x/stride-s2")) == ("stride", 2)
     # the run's folder wins over a name that says otherwise; a merged name's @part is dropped
@@ -32,8 +20,8 @@ def test_kind_and_seed_read_the_run_folder_first_then_the_name():
     assert mod.kind_and_seed(_row("push", "policy", 0.1)) == ("policy", 0)
 
 
-def test_gather_keeps_each_seed_and_leaves_falls_out_of_the_mean():
-    mod = _script()
+def test_gather_keeps_each_seed_and_leaves_falls_out_of_the_mean(experiment):
+    mod = experiment("trained_seeds")
     rows = [_row("push", "stride", 0.10, run="r/stride-s0"),
             _row("push", "stride_s1", 0.30, fell=True, run="r/stride-s1"),
             _row("push", "stride_s2", 0.14, run="r/stride-s2"),
@@ -47,8 +35,8 @@ def test_gather_keeps_each_seed_and_leaves_falls_out_of_the_mean():
         mod.gather(rows + [_row("push", "stride@other", 0.2, run="q/stride-s0")])
 
 
-def test_the_script_writes_table_json_and_figure(tmp_path):
-    mod = _script()
+def test_the_script_writes_table_json_and_figure(tmp_path, experiment):
+    mod = experiment("trained_seeds")
     rows = [_row("push", "stride", 0.10, run="r/stride-s0"),
             _row("push", "stride_s1", 0.12, run="r/stride-s1"),
             _row("push", "onn", 0.2, run="r/onn-s0")]
