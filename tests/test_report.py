@@ -8,7 +8,6 @@ import pytest
 
 from stride_paper import report
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 def _run(model, seed, state, force=None, stance=60.0, growth=1.5):
