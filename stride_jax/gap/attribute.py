@@ -476,8 +476,8 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
     t = best.get("vs_best_single")
     if len(best["effects"]) == 2 and t and t.get("confounds") and not t["material"]:
         extra = "+".join(e for e in t["pair"] if e not in t["single"])
-        shifts = "; ".join(f"{m['param']} {_num(m['single'])} alone -> {_num(m['in_pair'])} beside it, interval "
-                           f"{_num(m['lo'])} to {_num(m['hi'])}" for m in t["moves"])
+        shifts = "; ".join(f"{_entry(m, best['params'])} {_num(m['single'])} alone -> {_num(m['in_pair'])} beside "
+                           f"it, interval {_num(m['lo'])} to {_num(m['hi'])}" for m in t["moves"])
         single = "+".join(t["single"])
         shortfalls.append(f"{extra} on top closes a further {t['gain_explained']:.2%} of the held-out gap, below the "
                           f"{t['material_min']:.2%} materiality bar: it is named as a confounder, not for its share: "
@@ -496,9 +496,8 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
         if (len(best["effects"]) == 1 and set(t["single"]) == set(best["effects"]) and t["significant"]
                 and t.get("moves")):
             extra = [e for e in t["pair"] if e not in t["single"]]
-            shifts = ", ".join(f"{m['param']}" + (f"[{m['index']}]" if len(best["params"][m["param"]]) > 1 else "")
-                               + f" {_num(m['single'])} -> {_num(m['in_pair'])} (interval {_num(m['lo'])} to "
-                               f"{_num(m['hi'])})" for m in t["moves"])
+            shifts = ", ".join(f"{_entry(m, best['params'])} {_num(m['single'])} -> {_num(m['in_pair'])} (interval "
+                               f"{_num(m['lo'])} to {_num(m['hi'])})" for m in t["moves"])
             if all(e in nominal.OVERLAPS for e in extra):
                 # a contact effect beside it may stand for the model-form difference the calibration
                 # left (the pair rule's surrogates): the value is uncertain, not the effect named
@@ -522,6 +521,12 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
                       + (f"confident: it beats the runner-up in {best['p_beats_next']:.0%} of resamples" if confident
                          else "not confident: " + "; ".join(shortfalls))
                       + "".join(f"; {n}" for n in value_notes) + pair_note + bounds + hint + tie_note}
+
+
+def _entry(m: dict, params: dict) -> str:
+    """A moved entry's name (:func:`stride_jax.gap.admit.moves`): the parameter, with its index
+    where the effect has several (``com_offset[0]``)."""
+    return m["param"] + (f"[{m['index']}]" if len(params[m["param"]]) > 1 else "")
 
 
 def _num(x) -> str:
