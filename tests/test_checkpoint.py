@@ -2,6 +2,7 @@
 and checksums, loads with nothing else, and a damaged one is refused with an error naming the
 file."""
 
+import dataclasses
 import json
 import pathlib
 
@@ -126,3 +127,24 @@ def test_training_runs_record_and_check_their_checksum(tmp_path):
     with pytest.raises(dyn.CheckpointError, match=r"best/\d+ is damaged: (its parameters do not "
                                                   "match the checksum|cannot restore it)"):
         dyn.load(run)
+
+
+def test_the_program_checksum_ignores_scale_values_and_with_scales_swaps_them():
+    """Two models of one recipe whose data scales differ share a program checksum (not a
+    definition checksum); another architecture does not; the model rebuilt with the other's
+    scales (traced too) computes what that model computes."""
+    ck = dyn.checkpoint
+    a = dyn.make("stride", SPEC, cfg=CFG, scales=dyn.Scales(qd=jnp.array([2.0, 3.0])))
+    b = dyn.make("stride", SPEC, cfg=CFG, scales=dyn.Scales(qd=jnp.array([2.0, 3.5])))
+    wider = dyn.make("stride", SPEC, scales=a.scales, cfg=dataclasses.replace(
+        CFG, net=dyn.MLPConfig(hidden=16, depth=1, activation="tanh")))
+    assert ck.definition_sha256(a) != ck.definition_sha256(b)
+    assert ck.program_sha256(a) == ck.program_sha256(b) != ck.program_sha256(wider)
+    params = jax.tree.map(lambda w: w + 0.1, a.init(jax.random.key(0)))
+    q, qd, tau = jnp.array([0.3, -0.2]), jnp.array([0.1, 0.5]), jnp.array([1.0, -1.0])
+    step = jax.jit(lambda p, s: ck.with_scales(a, s).step(p, q, qd, tau, jax.random.key(1)))
+    want = b.step(params, q, qd, tau, jax.random.key(1))
+    np.testing.assert_allclose(step(params, b.scales)[1], want[1], rtol=1e-6)
+    assert not np.allclose(step(params, a.scales)[1], want[1])
+    with pytest.raises(ValueError, match="must be a stride.Scales"):
+        ck.with_scales(a, {"qd": jnp.ones(2)})

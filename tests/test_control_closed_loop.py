@@ -3,6 +3,7 @@ parameters; scenario grounds; the planner state; gait parameters held per rollou
 
 import dataclasses
 import json
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -399,12 +400,20 @@ def test_a_run_logs_its_progress_writes_its_row_and_resumes(tmp_path):
 
 
 def test_runs_of_one_kind_of_model_share_one_compiled_episode(tmp_path):
-    """A trained model's parameters are the episode's argument: runs with the same definition
-    (trained seeds) compile once, a run with another definition (other data's scales) once more,
-    and sharing changes no result."""
+    """A trained model's parameters and data scales are the episode's argument: runs of one
+    recipe (trained seeds, whose scales differ in their last bits) compile once, a run with
+    another definition (another training configuration) once more, and sharing changes no
+    result."""
+    from stride_jax.dynamics import checkpoint
     a, b = "results/models/go1_walk/onn-s0", "results/models/go1_walk_tw1_tf0.25/onn-s0"
-    cfg = cl.ClosedLoopConfig(models=f"onn={a},onn_again={a},onn_other={b}", scenarios="walk",
-                              seconds=0.1, settle_s=0.0, progress_s=0.1,
+    c = tmp_path / "onn_scaled"  # the same run with its data scales moved by 1%
+    shutil.copytree(a, c)
+    d = json.loads((c / "model.json").read_text())
+    d["scales"]["qd"] = [1.01 * x for x in d["scales"]["qd"]]
+    d["definition_sha256"] = checkpoint._digest(d)
+    (c / "model.json").write_text(json.dumps(d))
+    cfg = cl.ClosedLoopConfig(models=f"onn={a},onn_again={a},onn_scaled={c},onn_other={b}",
+                              scenarios="walk", seconds=0.1, settle_s=0.0, progress_s=0.1,
                               mppi=mppi.MPPIConfig(samples=8, horizon=3), out=str(tmp_path))
     lines = []
     rows = cl.run(cfg, log=lines.append)
@@ -412,6 +421,10 @@ def test_runs_of_one_kind_of_model_share_one_compiled_episode(tmp_path):
     assert compiles == ["walk onn: compiling", "walk onn_other: compiling"]
     by = {r["model"]: r for r in rows}
     assert by["onn_again"]["vel_rmse"] == by["onn"]["vel_rmse"]
+    # the scales are read, not baked in: the scaled run, alone, gives the shared run's result
+    alone = cl.run(dataclasses.replace(cfg, models=f"onn_scaled={c}", out=str(tmp_path / "1")),
+                   log=lambda *_: None)
+    assert alone[0]["vel_rmse"] == by["onn_scaled"]["vel_rmse"] != by["onn"]["vel_rmse"]
     assert by["onn_other"]["vel_rmse"] != by["onn"]["vel_rmse"]
 
 

@@ -68,6 +68,25 @@ def definition_sha256(model: Model) -> str:
     return _digest(definition(model))
 
 
+def program_sha256(model: Model) -> str:
+    """The checksum of ``model``'s definition with its data scales reduced to their shapes: two
+    models with the same one compute the same function of ``(params, scales)``
+    (:func:`with_scales`), so a program traced for one runs the other. Trained seeds of one
+    recipe differ in their scales' last bits (statistics reduced in another order on a GPU),
+    so their :func:`definition_sha256` differ while this one does not."""
+    d = definition(model)
+    d["scales"] = {k: len(v) for k, v in d["scales"].items()}
+    return _digest(d)
+
+
+def with_scales(model: Model, scales: stride.Scales) -> Model:
+    """``model`` with other data scales (traced arrays too: a compiled program takes them as an
+    argument beside the parameters, :func:`program_sha256`)."""
+    if model.scales is None or jax.tree.structure(scales) != jax.tree.structure(model.scales):
+        raise ValueError(f"scales of model {model.name!r} must be a stride.Scales")
+    return make(model.name, model.spec, model.actuation, model.config, scales)
+
+
 def _digest(d: dict) -> str:
     body = {k: v for k, v in d.items() if k not in ("definition_sha256", "params")}
     return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()

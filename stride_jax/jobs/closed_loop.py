@@ -210,10 +210,11 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     seeds = list(range(cfg.seed, cfg.seed + cfg.episodes))
     batched = cfg.episodes > 1
     mx_nominal = mjx.put_model(sm.mj)
-    # trained models: (model, params); the params are the episode's argument, so the runs of one
-    # kind of model (trained seeds: the same definition) share one compiled episode
+    # trained models: (model, params); the params and the data scales are the episode's
+    # argument, so the runs of one kind of model (trained seeds of one recipe) share one
+    # compiled episode
     learned = {name: learned_model(run_dir, sm, cfg.kernel) for name, run_dir in models if run_dir}
-    kind = {name: ("learned", checkpoint.definition_sha256(m)) for name, (m, _) in learned.items()}
+    kind = {name: ("learned", checkpoint.program_sha256(m)) for name, (m, _) in learned.items()}
     if any(name == "policy" for name, _ in models) and ppo_policy is None:
         raise ValueError("model 'policy' needs --policy RUN")
     compiled = {}  # one executable per (kind of model, episode length, model structures)
@@ -227,9 +228,10 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             f"({wall:.0f} s)")
 
     def episode_fn(name, n_steps, slots, sm_sim, batched):
-        def episode(mx_sim, mx_plan, params, starts, values, pushes, tilt, key):
+        def episode(mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
             if name in learned:
-                model = learned[name][0]
+                params, scales = learned_args
+                model = checkpoint.with_scales(learned[name][0], scales)
                 step_fn = lambda q, qd, ctrl, k: model.step(params, q, qd, ctrl, k)  # noqa: E731
             else:
                 step_fn = mjx_step_fn(sm, mx_plan)
@@ -263,7 +265,8 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             keys = (jax.vmap(jax.random.key)(jnp.asarray(todo)) if batched
                     else jax.random.key(todo[0]))
             mx_plan = mx_sim if name == "oracle" else mx_nominal
-            args = (mx_sim, mx_plan, learned[name][1] if name in learned else (),
+            args = (mx_sim, mx_plan,
+                    (learned[name][1], learned[name][0].scales) if name in learned else (),
                     jnp.asarray(starts), jnp.asarray(values),
                     jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum()))),
                     jnp.asarray(tilt_schedule(sc)), keys)
