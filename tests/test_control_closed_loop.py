@@ -510,6 +510,26 @@ def test_merged_parts_keep_their_names_and_figures_and_bars_pick_by_part(tmp_pat
     assert [r["model"] for r in rows] == ["stride", "stride"]
 
 
+def test_a_merge_onto_an_earlier_one_keeps_its_rows_and_notes(tmp_path):
+    """``onto``: the earlier merge's rows stay as they are (a note added to one since
+    included), the new part's rows follow, renamed against the old ones; a part merged twice
+    is an error."""
+    a = _part(tmp_path / "a", [_row("walk", "stride", 0.07), _row("walk", "policy", 0.068)], "1")
+    first = tmp_path / "first"
+    cl.merge([str(a)], str(first), "t")
+    data = json.loads((first / "closed_loop.json").read_text())
+    data["rows"][0]["note"] = "checked by hand"
+    (first / "closed_loop.json").write_text(json.dumps(data))
+    b = _part(tmp_path / "b", [_row("walk", "stride", 0.05), _row("push", "stride", 0.2)], "2")
+    rows = cl.merge([str(b)], str(tmp_path / "second"), onto=str(first / "closed_loop.json"))
+    assert rows[:2] == data["rows"]
+    assert [(r["model"], r["part"]) for r in rows[2:]] == [("stride@b", "b"), ("stride", "b")]
+    back = json.loads((tmp_path / "second" / "closed_loop.json").read_text())
+    assert back["title"] == "t" and set(back["parts"]) == {"a", "b"}
+    with pytest.raises(ValueError, match="already merged"):
+        cl.merge([str(a)], str(tmp_path / "third"), onto=str(first / "closed_loop.json"))
+
+
 def test_the_recovery_alarm_fires_on_the_velocity_tracking_error(go1):
     """``alarm_speed``: the planner's alarm holds while the base's velocity is further from the
     command than that (the tracking term's error); the recovery candidates' noise is per action

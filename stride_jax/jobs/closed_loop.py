@@ -413,19 +413,28 @@ def _over_seeds_lines(rows: list[dict]) -> list[str]:
     return lines
 
 
-def merge(parts: list[str], out: str, title: str = "") -> list[dict]:
+def merge(parts: list[str], out: str, title: str = "", onto: str | None = None) -> list[dict]:
     """One table from several runs' folders (``closed_loop.json`` each: runs split over device
     calls, or variants of the planner): every row keeps its part's name (``part``) and the part's
     command and device go to ``closed_loop.json``'s ``parts``. A part may also be a JSON file of
     rows recovered from a run's log (``{"env": {...}, "rows": [...]}``, rows with at least
     ``scenario``, ``model``, ``vel_rmse``, ``fell``, ``ms_per_step``). Traces found beside a
     part are copied, so the plots show every row. A (scenario, model, seed) that an earlier part
-    already has is renamed ``model@part``."""
+    already has is renamed ``model@part``. ``onto``: a merged ``closed_loop.json`` whose rows
+    (with any notes added to them since) and parts are kept as they are, the new parts' rows
+    appended after them (its title unless ``title`` is given)."""
     import shutil
 
     out_dir = pathlib.Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     rows, envs_, seen = [], {}, set()
+    if onto is not None:
+        base = json.loads(pathlib.Path(onto).read_text())
+        rows, envs_ = list(base["rows"]), dict(base["parts"])
+        title = title or base.get("title", "")
+        for r in rows:
+            part_seed = ((envs_.get(r.get("part")) or {}).get("config") or {}).get("seed", 0)
+            seen.add((r["scenario"], r["model"], r.get("seed", part_seed)))
     for part in parts:
         path = pathlib.Path(part)
         src = path / "closed_loop.json" if path.is_dir() else path
@@ -433,6 +442,8 @@ def merge(parts: list[str], out: str, title: str = "") -> list[dict]:
             raise FileNotFoundError(f"{src}: no closed_loop.json to merge")
         data = json.loads(src.read_text())
         name = path.name if path.is_dir() else path.stem
+        if name in envs_:
+            raise ValueError(f"{part}: a part named {name!r} is already merged")
         envs_[name] = data["env"]
         # rows written before ``seed`` was: the part's --seed, as the run's resume reads them
         run_seed = (data["env"].get("config") or {}).get("seed", 0)
