@@ -2,14 +2,16 @@
 model (rows named MODEL, MODEL_s1, MODEL_s2, ...; the seed is read from the row's run folder,
 ``.../MODEL-sN``, or from the name) gathered per (scenario, model kind), beside reference rows of
 other controllers: a table (``OUT.md``, ``OUT.json``) and a figure (``OUT.png``, one dot per
-trained seed, a cross where it fell, the references as horizontal ticks).
+episode, a cross where it fell, the references as horizontal ticks).
 
     python experiments/trained_seeds.py PART/closed_loop.json [...] --out results/x/trained_seeds \\
         --reference results/closed_loop_g1_gpu/closed_loop.json \\
         --ref "policy=policy@walk_push,rough2_gov" --ref "oracle (MJX)=oracle@oracle_push"
 
 One trained model is one draw of its training (data order, initialisation): a closed-loop
-comparison of learned models needs the spread over trained seeds, which this table gives.
+comparison of learned models needs the spread over trained seeds, which this table gives; and
+one episode is one draw of the planner (a fall can hinge on float rounding): parts run with
+``--episodes N`` give each trained seed N planner draws, and the table their fall counts.
 """
 
 from __future__ import annotations
@@ -41,25 +43,40 @@ def kind_and_seed(row: dict) -> tuple[str, int]:
 
 
 def gather(rows: list[dict]) -> list[dict]:
-    """Per (scenario, model kind), in first-seen order: each trained seed's velocity RMSE and
-    fall, the mean and worst RMSE of the seeds that stayed up (NaN: none did). Two rows of the
-    same scenario, kind and seed are an error (two parts ran the same model: pick one)."""
-    groups: dict[tuple[str, str], dict[int, dict]] = {}
+    """Per (scenario, model kind), in first-seen order: each trained seed's episodes (planner
+    draws: the row's ``seed``, as ``--episodes N`` writes them), its mean velocity RMSE over the
+    draws that stayed up (over all where none did) and falls; the mean and worst RMSE over all
+    the episodes that stayed up (NaN: none did). Two rows of the same scenario, kind, trained
+    seed and planner seed are an error (two parts ran the same model: pick one)."""
+    groups: dict[tuple[str, str], dict[int, dict[int, dict]]] = {}
     for r in rows:
         kind, seed = kind_and_seed(r)
-        got = groups.setdefault((r["scenario"], kind), {})
-        if seed in got:
-            raise ValueError(f"scenario {r['scenario']!r}: two rows of {kind} seed {seed} "
-                             f"({got[seed]['model']} and {r['model']})")
-        got[seed] = r
+        draw = int(r.get("seed") or 0)
+        got = groups.setdefault((r["scenario"], kind), {}).setdefault(seed, {})
+        if draw in got:
+            at = f" at planner seed {draw}" if draw else ""
+            raise ValueError(f"scenario {r['scenario']!r}: two rows of {kind} seed {seed}{at} "
+                             f"({got[draw]['model']} and {r['model']})")
+        got[draw] = r
     out = []
     for (sc, kind), got in groups.items():
         seeds = sorted(got)
-        up = [got[s]["vel_rmse"] for s in seeds if not got[s]["fell"]]
+        episodes = [dict(seed=s, draw=d, vel_rmse=float(got[s][d]["vel_rmse"]),
+                         fell=bool(got[s][d]["fell"])) for s in seeds for d in sorted(got[s])]
+        per = {s: [e for e in episodes if e["seed"] == s] for s in seeds}
+        up = [e["vel_rmse"] for e in episodes if not e["fell"]]
+
+        def seed_rmse(eps):
+            kept = [e["vel_rmse"] for e in eps if not e["fell"]] or [e["vel_rmse"] for e in eps]
+            return float(np.mean(kept))
         out.append(dict(scenario=sc, model=kind, seeds=seeds,
-                        vel_rmse=[float(got[s]["vel_rmse"]) for s in seeds],
-                        fell=[bool(got[s]["fell"]) for s in seeds],
-                        ms_per_step=float(np.mean([got[s]["ms_per_step"] for s in seeds])),
+                        vel_rmse=[seed_rmse(per[s]) for s in seeds],
+                        fell=[all(e["fell"] for e in per[s]) for s in seeds],
+                        draws=[len(per[s]) for s in seeds],
+                        falls=[sum(e["fell"] for e in per[s]) for s in seeds],
+                        episodes=episodes,
+                        ms_per_step=float(np.mean([got[s][d]["ms_per_step"]
+                                                   for s in seeds for d in got[s]])),
                         vel_rmse_mean=float(np.mean(up)) if up else float("nan"),
                         vel_rmse_worst=float(max(up)) if up else float("nan")))
     return out
@@ -71,13 +88,14 @@ def table(groups: list[dict], refs: dict[str, dict[str, dict]]) -> list[str]:
              "ms/step | " + " | ".join(refs) + " |",
              "|---|---|---|---|---:|---:|---:|---:|" + "---:|" * len(refs)]
     for g in groups:
-        per = " / ".join(f"{v:.3f}" + (" (fell)" if f else "")
-                         for v, f in zip(g["vel_rmse"], g["fell"]))
+        per = " / ".join(f"{v:.3f}" + (f" ({k}/{n} fell)" if n > 1 and k else
+                                         " (fell)" if k else "")
+                         for v, k, n in zip(g["vel_rmse"], g["falls"], g["draws"]))
         ref = [refs[k].get(g["scenario"]) for k in refs]
         ref = [("falls" if r["fell"] else f"{r['vel_rmse']:.3f}") if r else "" for r in ref]
         lines.append(f"| {g['scenario']} | {g['model']} | {', '.join(map(str, g['seeds']))} | "
                      f"{per} | {g['vel_rmse_mean']:.3f} | {g['vel_rmse_worst']:.3f} | "
-                     f"{sum(g['fell'])}/{len(g['fell'])} | {g['ms_per_step']:.1f} | "
+                     f"{sum(g['falls'])}/{sum(g['draws'])} | {g['ms_per_step']:.1f} | "
                      + " | ".join(ref) + " |")
     return lines
 
@@ -97,9 +115,9 @@ def figure(groups: list[dict], refs: dict[str, dict[str, dict]], out: pathlib.Pa
     for g in groups:
         j, i = scenarios.index(g["scenario"]), kinds.index(g["model"])
         x = j - 0.4 + (i + 0.5) * width
-        for v, f in zip(g["vel_rmse"], g["fell"]):
-            ax.plot(x, v, "x" if f else "o", color=colors[i % len(colors)], ms=6,
-                    label=None if g["model"] in labelled else g["model"])
+        for e in g["episodes"]:
+            ax.plot(x, e["vel_rmse"], "x" if e["fell"] else "o", color=colors[i % len(colors)],
+                    ms=6, label=None if g["model"] in labelled else g["model"])
             labelled.add(g["model"])
         if np.isfinite(g["vel_rmse_mean"]):
             ax.hlines(g["vel_rmse_mean"], x - 0.3 * width, x + 0.3 * width,
@@ -163,7 +181,7 @@ def main(argv=None) -> int:
     md = [f"# {a.title or 'Closed loop over trained seeds'}", "",
           "Sources: " + ", ".join(f"`{s}`" for s in sources)
           + (f"; references from `{a.reference}` ({', '.join(a.ref)})" if a.ref else ""), "",
-          "Mean and worst over the seeds that stayed up.", ""]
+          "Per seed: the mean over its planner draws that stayed up (k/n fell: of its n draws); mean and worst: over every episode that stayed up; falls: of all episodes.", ""]
     io.atomic_write_text(stem.with_suffix(".md"), "\n".join(md + table(groups, refs)) + "\n")
     figure(groups, refs, stem.with_suffix(".png"), a.title)
     print(f"wrote {stem}.{{md,json,png}} ({len(groups)} groups)")

@@ -35,6 +35,26 @@ def test_gather_keeps_each_seed_and_leaves_falls_out_of_the_mean(experiment):
         mod.gather(rows + [_row("push", "stride@other", 0.2, run="q/stride-s0")])
 
 
+def test_planner_draws_of_one_trained_seed_are_its_episodes(experiment):
+    """Rows of ``--episodes N`` (the row's ``seed``: the planner's draw): each trained seed's
+    RMSE is the mean of its draws that stayed up, its falls counted; the group's mean and worst
+    run over every upright episode; the same draw twice is an error."""
+    mod = experiment("trained_seeds")
+    rows = [dict(_row("lowf", "stride", v, fell=f, run="r/stride-s0"), seed=d)
+            for d, v, f in ((0, 0.50, True), (1, 0.06, False), (2, 0.08, False))]
+    rows += [dict(_row("lowf", "stride_s1", 0.55, fell=True, run="r/stride-s1"), seed=d)
+             for d in (0, 1)]
+    (g,) = mod.gather(rows)
+    assert g["seeds"] == [0, 1] and g["draws"] == [3, 2] and g["falls"] == [1, 2]
+    assert g["vel_rmse"] == pytest.approx([0.07, 0.55]) and g["fell"] == [False, True]
+    assert g["vel_rmse_mean"] == pytest.approx(0.07) and g["vel_rmse_worst"] == pytest.approx(0.08)
+    assert len(g["episodes"]) == 5
+    line = mod.table([g], {})[2]
+    assert "| 0.070 (1/3 fell) / 0.550 (2/2 fell) | 0.070 | 0.080 | 3/5 |" in line
+    with pytest.raises(ValueError, match="two rows of stride seed 0 at planner seed 2"):
+        mod.gather(rows + [dict(_row("lowf", "stride@b", 0.1, run="q/stride-s0"), seed=2)])
+
+
 def test_the_script_writes_table_json_and_figure(tmp_path, experiment):
     mod = experiment("trained_seeds")
     rows = [_row("push", "stride", 0.10, run="r/stride-s0"),
