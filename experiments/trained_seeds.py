@@ -82,21 +82,55 @@ def gather(rows: list[dict]) -> list[dict]:
     return out
 
 
+def versus(groups: list[dict], against: str = "stride", level: float = 0.9) -> list[dict]:
+    """Adds to each group of another kind ``vs``: its mean RMSE minus ``against``'s in the same
+    scenario over the trained seeds that stayed up (each seed one draw of its training: the
+    mean over its planner draws), with Welch's ``level`` t-interval (None: fewer than two such
+    seeds on either side, or no ``against`` group). An interval that holds 0 says the kinds are
+    not told apart by these seeds."""
+    from scipy import stats
+
+    base = {g["scenario"]: g for g in groups if g["model"] == against}
+    for g in groups:
+        b = base.get(g["scenario"])
+        g["vs"] = None
+        if b is None or b is g:
+            continue
+        x = np.array([v for v, f in zip(g["vel_rmse"], g["fell"]) if not f])
+        y = np.array([v for v, f in zip(b["vel_rmse"], b["fell"]) if not f])
+        if len(x) < 2 or len(y) < 2:
+            continue
+        vx, vy = x.var(ddof=1) / len(x), y.var(ddof=1) / len(y)
+        se = float(np.sqrt(vx + vy))
+        df = (vx + vy) ** 2 / (vx ** 2 / (len(x) - 1) + vy ** 2 / (len(y) - 1)) if se else 1.0
+        half = float(stats.t.ppf(0.5 + level / 2, df)) * se
+        diff = float(x.mean() - y.mean())
+        g["vs"] = dict(against=against, level=level, diff=diff, lo=diff - half, hi=diff + half,
+                       seeds=[len(x), len(y)])
+    return groups
+
+
 def table(groups: list[dict], refs: dict[str, dict[str, dict]]) -> list[str]:
-    """Markdown lines: one row per (scenario, kind), the references of the scenario beside."""
-    lines = ["| scenario | model | trained seeds | vel RMSE per seed (m/s) | mean | worst | falls | "
-             "ms/step | " + " | ".join(refs) + " |",
-             "|---|---|---|---|---:|---:|---:|---:|" + "---:|" * len(refs)]
+    """Markdown lines: one row per (scenario, kind), its difference to the ``versus`` kind
+    where measured, the references of the scenario beside."""
+    vs = next((g["vs"] for g in groups if g.get("vs")), None)
+    vs_head = [f"minus {vs['against']} ({vs['level']:.0%} interval)"] if vs else []
+    lines = ["| scenario | model | trained seeds | vel RMSE per seed (m/s) | mean | worst | "
+             "falls | ms/step | " + " | ".join(vs_head + list(refs)) + " |",
+             "|---|---|---|---|---:|---:|---:|---:|" + "---:|" * (len(refs) + len(vs_head))]
     for g in groups:
         per = " / ".join(f"{v:.3f}" + (f" ({k}/{n} fell)" if n > 1 and k else
                                          " (fell)" if k else "")
                          for v, k, n in zip(g["vel_rmse"], g["falls"], g["draws"]))
         ref = [refs[k].get(g["scenario"]) for k in refs]
         ref = [("falls" if r["fell"] else f"{r['vel_rmse']:.3f}") if r else "" for r in ref]
+        d = g.get("vs")
+        cell = ([f"{d['diff']:+.3f} [{d['lo']:+.3f}, {d['hi']:+.3f}]" if d else ""]
+                if vs else [])
         lines.append(f"| {g['scenario']} | {g['model']} | {', '.join(map(str, g['seeds']))} | "
                      f"{per} | {g['vel_rmse_mean']:.3f} | {g['vel_rmse_worst']:.3f} | "
                      f"{sum(g['falls'])}/{sum(g['draws'])} | {g['ms_per_step']:.1f} | "
-                     + " | ".join(ref) + " |")
+                     + " | ".join(cell + ref) + " |")
     return lines
 
 
@@ -148,6 +182,8 @@ def main(argv=None) -> int:
     ap.add_argument("--reference", default="", help="a merged closed_loop.json for --ref")
     ap.add_argument("--ref", action="append", default=[],
                     help="LABEL=MODEL[@PART,PART...]: a reference controller's rows")
+    ap.add_argument("--versus", default="stride",
+                    help="the kind every other is compared with (mean difference, Welch interval)")
     ap.add_argument("--title", default="")
     a = ap.parse_args(argv)
     rows, sources = [], []
@@ -172,7 +208,7 @@ def main(argv=None) -> int:
         refs[label] = closed_loop.select(ref_rows, model, parts)
         if not refs[label]:
             raise SystemExit(f"--ref {spec!r}: no row of {model!r} in {a.reference}")
-    groups = gather(rows)
+    groups = versus(gather(rows), a.versus)
     stem = pathlib.Path(a.out)
     stem.parent.mkdir(parents=True, exist_ok=True)
     io.atomic_write_text(stem.with_suffix(".json"), json.dumps(
@@ -181,7 +217,11 @@ def main(argv=None) -> int:
     md = [f"# {a.title or 'Closed loop over trained seeds'}", "",
           "Sources: " + ", ".join(f"`{s}`" for s in sources)
           + (f"; references from `{a.reference}` ({', '.join(a.ref)})" if a.ref else ""), "",
-          "Per seed: the mean over its planner draws that stayed up (k/n fell: of its n draws); mean and worst: over every episode that stayed up; falls: of all episodes.", ""]
+          "Per seed: the mean over its planner draws that stayed up (k/n fell: of its n draws); "
+          "mean and worst: over every episode that stayed up; falls: of all episodes. "
+          f"Minus {a.versus}: the difference of the means over the trained seeds that stayed up, "
+          "with Welch's 90% t-interval (one value per trained seed; an interval holding 0 does "
+          "not tell the kinds apart).", ""]
     io.atomic_write_text(stem.with_suffix(".md"), "\n".join(md + table(groups, refs)) + "\n")
     figure(groups, refs, stem.with_suffix(".png"), a.title)
     print(f"wrote {stem}.{{md,json,png}} ({len(groups)} groups)")

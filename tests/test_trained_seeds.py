@@ -3,6 +3,7 @@
 import json
 import math
 
+import numpy as np
 import pytest
 
 
@@ -53,6 +54,33 @@ def test_planner_draws_of_one_trained_seed_are_its_episodes(experiment):
     assert "| 0.070 (1/3 fell) / 0.550 (2/2 fell) | 0.070 | 0.080 | 3/5 |" in line
     with pytest.raises(ValueError, match="two rows of stride seed 0 at planner seed 2"):
         mod.gather(rows + [dict(_row("lowf", "stride@b", 0.1, run="q/stride-s0"), seed=2)])
+
+
+def test_versus_gives_the_difference_of_means_with_welchs_interval(experiment):
+    """Against STRIDE over upright trained seeds: the difference of the means and Welch's 90%
+    interval (checked against scipy's own Welch test: the interval excludes 0 exactly when its
+    two-sided p is below 0.10); too few upright seeds, or no STRIDE group, give None."""
+    from scipy import stats
+    mod = experiment("trained_seeds")
+    st, de, on = [0.10, 0.12, 0.11], [0.20, 0.25, 0.18], [0.11, 0.13, 0.10]
+    rows = [_row("push", "stride" + (f"_s{i}" if i else ""), v) for i, v in enumerate(st)]
+    rows += [_row("push", "delan" + (f"_s{i}" if i else ""), v) for i, v in enumerate(de)]
+    rows += [_row("push", "onn" + (f"_s{i}" if i else ""), v) for i, v in enumerate(on)]
+    rows += [_row("push", f"policy_s{i}" if i else "policy", 0.3, fell=i > 0) for i in range(3)]
+    rows += [_row("rough", "onn", 0.2), _row("rough", "onn_s1", 0.3)]
+    got = {(g["scenario"], g["model"]): g["vs"] for g in mod.versus(mod.gather(rows))}
+    assert got["push", "stride"] is None and got["rough", "onn"] is None
+    assert got["push", "policy"] is None  # one seed stayed up
+    for kind, vals in (("delan", de), ("onn", on)):
+        v = got["push", kind]
+        assert v["diff"] == pytest.approx(np.mean(vals) - np.mean(st))
+        p = stats.ttest_ind(vals, st, equal_var=False).pvalue
+        assert (v["lo"] > 0 or v["hi"] < 0) == (p < 0.10)
+        assert v["lo"] < v["diff"] < v["hi"] and v["seeds"] == [3, 3]
+    assert got["push", "delan"]["lo"] > 0  # told apart
+    assert got["push", "onn"]["lo"] < 0 < got["push", "onn"]["hi"]  # not told apart
+    line = mod.table(mod.versus(mod.gather(rows)), {})
+    assert "minus stride (90% interval)" in line[0] and "| +0.100 [" in line[3]
 
 
 def test_the_script_writes_table_json_and_figure(tmp_path, experiment):
