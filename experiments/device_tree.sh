@@ -13,7 +13,8 @@ cd "$(git rev-parse --show-toplevel)"
 git_dir=$(git rev-parse --git-dir)
 state=$git_dir/device_tree_out
 exclude=$git_dir/info/exclude
-tree_size() { git ls-files -z | xargs -0 du -cb 2>/dev/null | tail -1 | cut -f1; }
+# (du -c over xargs prints one total per batch of names: sum the sizes instead)
+tree_size() { git ls-files -z | xargs -0 stat -c %s 2>/dev/null | awk '{s += $1} END {print s + 0}'; }
 
 case "${1:-}" in
   out)
