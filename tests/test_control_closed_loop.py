@@ -421,10 +421,9 @@ def test_runs_of_one_kind_of_model_share_one_compiled_episode(tmp_path):
     assert compiles == ["walk onn: compiling", "walk onn_other: compiling"]
     by = {r["model"]: r for r in rows}
     assert by["onn_again"]["vel_rmse"] == by["onn"]["vel_rmse"]
-    # the scales are read, not baked in: the scaled run, alone, gives the shared run's result
-    alone = cl.run(dataclasses.replace(cfg, models=f"onn_scaled={c}", out=str(tmp_path / "1")),
-                   log=lambda *_: None)
-    assert alone[0]["vel_rmse"] == by["onn_scaled"]["vel_rmse"] != by["onn"]["vel_rmse"]
+    # the scales are read, not baked in: the same parameters with other scales plan otherwise
+    # (that the rebuilt model computes what the scaled one does: test_checkpoint)
+    assert by["onn_scaled"]["vel_rmse"] != by["onn"]["vel_rmse"]
     assert by["onn_other"]["vel_rmse"] != by["onn"]["vel_rmse"]
 
 
