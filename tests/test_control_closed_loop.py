@@ -555,3 +555,20 @@ def test_the_recovery_alarm_fires_on_the_velocity_tracking_error(go1):
     assert planning_lib.mppi_config(mppi.MPPIConfig(), held, planning).alarm_hold == 15
     with pytest.raises(ValueError, match="alarm_hold_s"):
         planning_lib.PlanningConfig(alarm_hold_s=-0.1)
+
+
+def test_model_precision_reaches_the_learned_models_products(tmp_path):
+    """``model_precision``: the learned step's matrix products carry the asked precision in the
+    lowered program (a CPU computes float32 either way; a GPU's default is TF32); JAX's default
+    leaves them unmarked; an unknown name is a clear error."""
+    from stride_jax.dynamics import checkpoint
+    model, params = checkpoint.load("results/models/go1_walk/onn-s0")
+    q = jnp.zeros(model.spec.nq).at[3].set(1.0)
+    args = (q, jnp.zeros(model.spec.nv), jnp.zeros(12), jax.random.key(0))
+    text = {p: jax.jit(cl.learned_step(model, params, p)).lower(*args).as_text()
+            for p in (None, "highest")}
+    assert "HIGHEST" in text["highest"] and "HIGHEST" not in text[None]
+    with pytest.raises(ValueError, match="--model-precision is 'tf32'"):
+        cl.ClosedLoopConfig(model_precision="tf32")
+    with pytest.raises(ValueError, match="precision 'x'"):
+        cl.learned_step(model, params, "x")

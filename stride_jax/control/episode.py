@@ -203,7 +203,27 @@ def learned_model(run: str, sm: sim_model.SimModel, kernel: str = "xla") -> tupl
     return model, params
 
 
-def learned_step_fn(run: str, sm: sim_model.SimModel, kernel: str = "xla") -> Callable:
+# float32 matrix products of a learned model's step: "" JAX's default (TF32 on recent NVIDIA
+# GPUs), or one of jax.default_matmul_precision's names
+PRECISIONS = ("", "default", "high", "highest")
+
+
+def learned_step(model, params, precision: str | None = None) -> Callable:
+    """``step(q, qd, ctrl, key)`` of ``model`` with ``params``, its float32 products traced at
+    ``precision`` (:data:`PRECISIONS`; None: JAX's default)."""
+    if precision is not None and precision not in PRECISIONS:
+        raise ValueError(f"precision {precision!r}: use one of {PRECISIONS}")
+
+    def step(q, qd, ctrl, key):
+        if not precision:
+            return model.step(params, q, qd, ctrl, key)
+        with jax.default_matmul_precision(precision):
+            return model.step(params, q, qd, ctrl, key)
+    return step
+
+
+def learned_step_fn(run: str, sm: sim_model.SimModel, kernel: str = "xla",
+                    precision: str | None = None) -> Callable:
     """``step(q, qd, ctrl, key)`` of a trained dynamics model (:func:`learned_model`)."""
     model, params = learned_model(run, sm, kernel)
-    return lambda q, qd, ctrl, key: model.step(params, q, qd, ctrl, key)
+    return learned_step(model, params, precision)

@@ -50,8 +50,9 @@ from stride_jax import config
 from stride_jax.control import envs
 # The library's episode, metrics and planner models, and the scenarios (re-exported: the job's
 # callers and tests take them from here).
-from stride_jax.control.episode import (Trace, learned_model, learned_step_fn, metrics,  # noqa: F401
-                                        mjx_step_fn, run_episode)
+from stride_jax.control.episode import (PRECISIONS, Trace, learned_model,  # noqa: F401
+                                        learned_step, learned_step_fn, metrics, mjx_step_fn,
+                                        run_episode)
 from stride_jax.control.mppi import MPPIConfig
 from stride_jax.control.planning import PlanningConfig, make_planner, make_planning, mppi_config
 from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,  # noqa: F401
@@ -99,6 +100,10 @@ class ClosedLoopConfig:
       kernel: how learned structured models run their networks (``xla``; ``pallas`` or
         ``pallas-bf16``: fused kernels on GPUs, ``stride_jax.dynamics.fused``;
         ``pallas-step[-bf16]``: STRIDE's whole step as one kernel where it applies).
+      model_precision: the float32 matrix products of the learned models' steps (planner and
+        observer): "" leaves JAX's default, which on a recent NVIDIA GPU multiplies in TF32
+        (10-bit mantissas); ``highest`` multiplies in full float32, as a CPU always does and as
+        the simulator's physics here always runs (``rollout_mjx.PRECISION``).
       settle_s: tracking errors are counted from this long after each command change (s).
       govern: a command governor: the controller (policy and planner) sees each command clipped
         to the ranges its environment's policy was trained on (``envs`` commands: forward,
@@ -131,6 +136,7 @@ class ClosedLoopConfig:
     learned: str = ""
     error_model: str = ""
     kernel: str = "xla"
+    model_precision: str = ""
     settle_s: float = 0.5
     progress_s: float = 1.0
     govern: bool = False
@@ -141,6 +147,9 @@ class ClosedLoopConfig:
     def __post_init__(self):
         if self.episodes < 1:
             raise ValueError(f"--episodes is {self.episodes}: it must be >= 1")
+        if self.model_precision not in PRECISIONS:
+            raise ValueError(f"--model-precision is {self.model_precision!r}: use one of "
+                             f"{', '.join(repr(p) for p in PRECISIONS)}")
         for field in ("seconds", "slope_deg", "rough_cm", "push_scale", "friction"):
             if getattr(self, field) < 0:
                 raise ValueError(f"--{field.replace('_', '-')} is {getattr(self, field)}: it must be >= 0 "
@@ -231,8 +240,8 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         def episode(mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
             if name in learned:
                 params, scales = learned_args
-                model = checkpoint.with_scales(learned[name][0], scales)
-                step_fn = lambda q, qd, ctrl, k: model.step(params, q, qd, ctrl, k)  # noqa: E731
+                step_fn = learned_step(checkpoint.with_scales(learned[name][0], scales), params,
+                                       cfg.model_precision or None)
             else:
                 step_fn = mjx_step_fn(sm, mx_plan)
             planning = make_planning(cfg.planning, env_cfg, sm, step_fn, ppo_policy, learned_params,
