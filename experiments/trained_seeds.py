@@ -86,7 +86,7 @@ def versus(groups: list[dict], against: str = "stride", level: float = 0.9) -> l
     """Adds to each group of another kind ``vs``: its mean RMSE minus ``against``'s in the same
     scenario over the trained seeds that stayed up (each seed one draw of its training: the
     mean over its planner draws), with Welch's ``level`` t-interval (None: fewer than two such
-    seeds on either side, or no ``against`` group). An interval that holds 0 says the kinds are
+    seeds on either side, no spread on either, or no ``against`` group). An interval that holds 0 says the kinds are
     not told apart by these seeds."""
     from scipy import stats
 
@@ -100,13 +100,11 @@ def versus(groups: list[dict], against: str = "stride", level: float = 0.9) -> l
         y = np.array([v for v, f in zip(b["vel_rmse"], b["fell"]) if not f])
         if len(x) < 2 or len(y) < 2:
             continue
-        vx, vy = x.var(ddof=1) / len(x), y.var(ddof=1) / len(y)
-        se = float(np.sqrt(vx + vy))
-        df = (vx + vy) ** 2 / (vx ** 2 / (len(x) - 1) + vy ** 2 / (len(y) - 1)) if se else 1.0
-        half = float(stats.t.ppf(0.5 + level / 2, df)) * se
-        diff = float(x.mean() - y.mean())
-        g["vs"] = dict(against=against, level=level, diff=diff, lo=diff - half, hi=diff + half,
-                       seeds=[len(x), len(y)])
+        ci = stats.ttest_ind(x, y, equal_var=False).confidence_interval(level)
+        if not (np.isfinite(ci.low) and np.isfinite(ci.high)):  # no spread on either side
+            continue
+        g["vs"] = dict(against=against, level=level, diff=float(x.mean() - y.mean()),
+                       lo=float(ci.low), hi=float(ci.high), seeds=[len(x), len(y)])
     return groups
 
 
