@@ -13,8 +13,7 @@ cd "$(git rev-parse --show-toplevel)"
 [ -d .whl/site ] || { echo "no .whl/site: unpack the cp312 wheels first (docs/reproduce.md)"; exit 1; }
 [ -f .menagerie/menagerie_all.tar.xz ] || { echo "no .menagerie/menagerie_all.tar.xz (docs/reproduce.md)"; exit 1; }
 cap=${CAP:-64000000}
-# (du -c over xargs prints one total per batch of names: sum the sizes instead)
-tracked=$(git ls-files -z | xargs -0 stat -c %s 2>/dev/null | awk '{s += $1} END {print s + 0}')
+tracked=$(bash experiments/device_tree.sh size)
 part=$(( cap - tracked - 300000 ))
 if [ "$part" -lt 1000000 ]; then
   echo "the tracked tree ($tracked bytes) leaves $part bytes per call under the cap $cap:" \

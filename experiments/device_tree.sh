@@ -6,6 +6,7 @@
 #   bash experiments/device_tree.sh out [PATH...]   # default PATH: results/models
 #   bash experiments/device_tree.sh back            # the index and .git/info/exclude as before
 #   bash experiments/device_tree.sh status          # what is out, and the tracked tree's size
+#   bash experiments/device_tree.sh size            # the tracked tree's size in bytes, alone
 # While folders are out, `git status` shows them deleted from the index: commit only with paths
 # (`git commit -- PATH...`), or put them back first. `out` twice is refused (one set at a time).
 set -euo pipefail
@@ -43,11 +44,14 @@ case "${1:-}" in
     rm -f "$state"
     echo "back; tracked tree $(tree_size) bytes"
     ;;
+  size)
+    tree_size
+    ;;
   status)
     if [ -s "$state" ]; then echo "out: $(tr '\n' ' ' < "$state")"; else echo "nothing is out"; fi
     echo "tracked tree $(tree_size) bytes"
     ;;
   *)
-    echo "usage: bash experiments/device_tree.sh out [PATH...] | back | status" >&2; exit 2
+    echo "usage: bash experiments/device_tree.sh out [PATH...] | back | status | size" >&2; exit 2
     ;;
 esac

@@ -557,7 +557,7 @@ def test_the_recovery_alarm_fires_on_the_velocity_tracking_error(go1):
         planning_lib.PlanningConfig(alarm_hold_s=-0.1)
 
 
-def test_model_precision_reaches_the_learned_models_products(tmp_path):
+def test_model_precision_reaches_the_learned_models_products():
     """``model_precision``: the learned step's matrix products carry the asked precision in the
     lowered program (a CPU computes float32 either way; a GPU's default is TF32); JAX's default
     leaves them unmarked; an unknown name is a clear error."""
@@ -566,8 +566,8 @@ def test_model_precision_reaches_the_learned_models_products(tmp_path):
     q = jnp.zeros(model.spec.nq).at[3].set(1.0)
     args = (q, jnp.zeros(model.spec.nv), jnp.zeros(12), jax.random.key(0))
     text = {p: jax.jit(cl.learned_step(model, params, p)).lower(*args).as_text()
-            for p in (None, "highest")}
-    assert "HIGHEST" in text["highest"] and "HIGHEST" not in text[None]
+            for p in ("", "highest")}
+    assert "HIGHEST" in text["highest"] and "HIGHEST" not in text[""]
     with pytest.raises(ValueError, match="--model-precision is 'tf32'"):
         cl.ClosedLoopConfig(model_precision="tf32")
     with pytest.raises(ValueError, match="precision 'x'"):

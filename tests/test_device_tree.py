@@ -41,6 +41,7 @@ def test_out_leaves_the_folders_out_of_what_a_call_sends_and_back_restores_them(
     said = _run(repo, "out")
     kept = len("code.py") + len("results/table.md")  # each file holds its own name
     assert f"tracked tree now {kept} bytes" in said
+    assert _run(repo, "size").strip() == str(kept)
     tracked = _git(repo, "ls-files").split()
     assert tracked == ["code.py", "results/table.md"]
     # what a device call sends: tracked plus untracked-not-ignored files

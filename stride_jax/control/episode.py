@@ -208,10 +208,10 @@ def learned_model(run: str, sm: sim_model.SimModel, kernel: str = "xla") -> tupl
 PRECISIONS = ("", "default", "high", "highest")
 
 
-def learned_step(model, params, precision: str | None = None) -> Callable:
+def learned_step(model, params, precision: str = "") -> Callable:
     """``step(q, qd, ctrl, key)`` of ``model`` with ``params``, its float32 products traced at
-    ``precision`` (:data:`PRECISIONS`; None: JAX's default)."""
-    if precision is not None and precision not in PRECISIONS:
+    ``precision`` (:data:`PRECISIONS`; "": JAX's default)."""
+    if precision not in PRECISIONS:
         raise ValueError(f"precision {precision!r}: use one of {PRECISIONS}")
 
     def step(q, qd, ctrl, key):
@@ -223,7 +223,7 @@ def learned_step(model, params, precision: str | None = None) -> Callable:
 
 
 def learned_step_fn(run: str, sm: sim_model.SimModel, kernel: str = "xla",
-                    precision: str | None = None) -> Callable:
+                    precision: str = "") -> Callable:
     """``step(q, qd, ctrl, key)`` of a trained dynamics model (:func:`learned_model`)."""
     model, params = learned_model(run, sm, kernel)
     return learned_step(model, params, precision)

@@ -61,19 +61,13 @@ def definition(model: Model) -> dict:
             "scales": {k: as_list(v) for k, v in model.scales._asdict().items()}}
 
 
-def definition_sha256(model: Model) -> str:
-    """The checksum of ``model``'s definition (everything but its parameters): two models with
-    the same one compute the same function of their parameters, so a program traced for one
-    runs the other (the closed loop compiles one episode per kind of model, not per run)."""
-    return _digest(definition(model))
-
-
 def program_sha256(model: Model) -> str:
     """The checksum of ``model``'s definition with its data scales reduced to their shapes: two
     models with the same one compute the same function of ``(params, scales)``
     (:func:`with_scales`), so a program traced for one runs the other. Trained seeds of one
     recipe differ in their scales' last bits (statistics reduced in another order on a GPU),
-    so their :func:`definition_sha256` differ while this one does not."""
+    so the checksums of their definitions (``model.json``'s ``definition_sha256``) differ while
+    this one does not."""
     d = definition(model)
     d["scales"] = {k: len(v) for k, v in d["scales"].items()}
     return _digest(d)

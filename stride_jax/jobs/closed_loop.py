@@ -241,7 +241,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             if name in learned:
                 params, scales = learned_args
                 step_fn = learned_step(checkpoint.with_scales(learned[name][0], scales), params,
-                                       cfg.model_precision or None)
+                                       cfg.model_precision)
             else:
                 step_fn = mjx_step_fn(sm, mx_plan)
             planning = make_planning(cfg.planning, env_cfg, sm, step_fn, ppo_policy, learned_params,
@@ -422,6 +422,11 @@ def _over_seeds_lines(rows: list[dict]) -> list[str]:
     return lines
 
 
+def _run_seed(env: dict | None) -> int:
+    """A part's ``--seed`` (its ``env``'s config), the seed of rows written before rows had one."""
+    return ((env or {}).get("config") or {}).get("seed", 0)
+
+
 def merge(parts: list[str], out: str, title: str = "", onto: str | None = None) -> list[dict]:
     """One table from several runs' folders (``closed_loop.json`` each: runs split over device
     calls, or variants of the planner): every row keeps its part's name (``part``) and the part's
@@ -441,9 +446,8 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None) 
         base = json.loads(pathlib.Path(onto).read_text())
         rows, envs_ = list(base["rows"]), dict(base["parts"])
         title = title or base.get("title", "")
-        for r in rows:
-            part_seed = ((envs_.get(r.get("part")) or {}).get("config") or {}).get("seed", 0)
-            seen.add((r["scenario"], r["model"], r.get("seed", part_seed)))
+        seen = {(r["scenario"], r["model"], r.get("seed", _run_seed(envs_.get(r.get("part")))))
+                for r in rows}
     for part in parts:
         path = pathlib.Path(part)
         src = path / "closed_loop.json" if path.is_dir() else path
@@ -455,7 +459,7 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None) 
             raise ValueError(f"{part}: a part named {name!r} is already merged")
         envs_[name] = data["env"]
         # rows written before ``seed`` was: the part's --seed, as the run's resume reads them
-        run_seed = (data["env"].get("config") or {}).get("seed", 0)
+        run_seed = _run_seed(data["env"])
         for r in data["rows"]:
             missing = {"scenario", "model", "vel_rmse", "fell", "ms_per_step"} - set(r)
             if missing:

@@ -205,7 +205,7 @@ def train_value(cl_cfg: ClosedLoopConfig, cfg: planner_value.PlannerValueConfig,
     reward_params, value_params = learned.load(cl_cfg.learned)
     mx = mjx.put_model(sm.mj)
     true_step = episode_lib.mjx_step_fn(sm, mx)
-    step_fn = (episode_lib.learned_step_fn(run, sm, cl_cfg.kernel, cl_cfg.model_precision or None)
+    step_fn = (episode_lib.learned_step_fn(run, sm, cl_cfg.kernel, cl_cfg.model_precision)
                if run else true_step)
     planning = planning_lib.make_planning(cl_cfg.planning, env_cfg, sm, step_fn, ppo_policy,
                                           (reward_params, value_params))
