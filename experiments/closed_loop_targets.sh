@@ -32,5 +32,5 @@ else  # G1: closer to the policy (the settings that kept G1 planners up before,
 fi
 mkdir -p "$out"
 timeout "$limit" python -m stride_jax.jobs.closed_loop "${common[@]}" --models "${models%,}" \
-  --scenarios "$scen" --out "$out" "$@" 2>&1 | grep -v "import warp\|import mujoco_warp" | tee "$out/run.log"
+  --scenarios "$scen" --out "$out" "$@" 2>&1 | grep -v "import warp\|import mujoco_warp" | tee -a "$out/run.log"
 tar -czf "$out.tgz" -C "$(dirname "$out")" "$(basename "$out")"

@@ -32,11 +32,14 @@ _RUN_SEED = re.compile(r"-s(?P<seed>\d+)$")
 
 
 def kind_and_seed(row: dict) -> tuple[str, int]:
-    """A row's model kind (its name without a ``_sN`` suffix or ``@part``) and trained seed
-    (the run folder's ``-sN`` where the row names one, else the name's ``_sN``, else 0)."""
+    """A row's model kind (its name without a ``_sN`` suffix or ``@part``, then `` (VARIANT)``
+    where its table was given as ``VARIANT=PATH``) and trained seed (the run folder's ``-sN``
+    where the row names one, else the name's ``_sN``, else 0)."""
     name = row["model"].split("@")[0]
     m = _NAME_SEED.match(name)
     kind = m["kind"] if m else name
+    if row.get("variant"):
+        kind = f"{kind} ({row['variant']})"
     run = _RUN_SEED.search(pathlib.PurePath(str(row.get("run", ""))).name)
     seed = int(run["seed"]) if run else int(m["seed"]) if m else 0
     return kind, seed
@@ -143,14 +146,15 @@ def figure(groups: list[dict], refs: dict[str, dict[str, dict]], out: pathlib.Pa
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     fig, ax = plt.subplots(figsize=(max(6.0, 2.2 * len(scenarios) + 2), 4.0))
     width = 0.8 / max(len(kinds), 1)
-    labelled: set[str] = set()  # the legend names each kind once
+    for i, kind in enumerate(kinds):  # the legend names each kind once, as a dot
+        ax.plot([], [], "o", color=colors[i % len(colors)], ms=6, label=kind)
+    ax.plot([], [], "x", color="grey", ms=6, label="fell")
     for g in groups:
         j, i = scenarios.index(g["scenario"]), kinds.index(g["model"])
         x = j - 0.4 + (i + 0.5) * width
         for e in g["episodes"]:
             ax.plot(x, e["vel_rmse"], "x" if e["fell"] else "o", color=colors[i % len(colors)],
-                    ms=6, label=None if g["model"] in labelled else g["model"])
-            labelled.add(g["model"])
+                    ms=6)
         if np.isfinite(g["vel_rmse_mean"]):
             ax.hlines(g["vel_rmse_mean"], x - 0.3 * width, x + 0.3 * width,
                       color=colors[i % len(colors)], lw=2)
@@ -175,7 +179,9 @@ def figure(groups: list[dict], refs: dict[str, dict[str, dict]], out: pathlib.Pa
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("tables", nargs="+", help="closed_loop.json files (or their folders)")
+    ap.add_argument("tables", nargs="+",
+                    help="closed_loop.json files (or their folders); VARIANT=PATH names the "
+                         "planner its rows ran (their kinds read 'stride (VARIANT)', ...)")
     ap.add_argument("--out", required=True, help="path stem: writes STEM.md, .json, .png")
     ap.add_argument("--reference", default="", help="a merged closed_loop.json for --ref")
     ap.add_argument("--ref", action="append", default=[],
@@ -186,12 +192,14 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     rows, sources = [], []
     for t in a.tables:
-        path = pathlib.Path(t)
+        variant, _, where = t.rpartition("=")
+        path = pathlib.Path(where)
         path = path / "closed_loop.json" if path.is_dir() else path
         if not path.is_file():
             raise SystemExit(f"{path}: no closed-loop table")
-        rows += json.loads(path.read_text())["rows"]
-        sources.append(str(path))
+        rows += [dict(r, variant=variant) if variant else r
+                 for r in json.loads(path.read_text())["rows"]]
+        sources.append(f"{variant}={path}" if variant else str(path))
     refs: dict[str, dict[str, dict]] = {}
     if a.ref and not a.reference:
         raise SystemExit("--ref needs --reference (the table the reference rows come from)")

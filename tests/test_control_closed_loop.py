@@ -508,6 +508,14 @@ def test_merged_parts_keep_their_names_and_figures_and_bars_pick_by_part(tmp_pat
     rows = cl.merge([str(tmp_path / "s0"), str(tmp_path / "s3")], str(tmp_path / "m2"))
     assert [r["model"] for r in rows] == ["stride", "stride"]
 
+    # a part of several episodes (--episodes 3) whose first clashes with an earlier part's: all
+    # three are the variant's, not one renamed and two left among the earlier part's model
+    draws = [dict(_row("walk", "stride", 0.06 + s / 100), seed=s, episode=s) for s in range(3)]
+    _part(tmp_path / "draws", draws, "d")
+    rows = cl.merge([str(tmp_path / "s0"), str(tmp_path / "draws")], str(tmp_path / "m3"))
+    assert [(r["model"], r.get("seed")) for r in rows] == [
+        ("stride", None), ("stride@draws", 0), ("stride@draws", 1), ("stride@draws", 2)]
+
 
 def test_a_merge_onto_an_earlier_one_keeps_its_rows_and_notes(tmp_path):
     """``onto``: the earlier merge's rows stay as they are (a note added to one since
@@ -527,6 +535,15 @@ def test_a_merge_onto_an_earlier_one_keeps_its_rows_and_notes(tmp_path):
     assert back["title"] == "t" and set(back["parts"]) == {"a", "b"}
     with pytest.raises(ValueError, match="already merged"):
         cl.merge([str(a)], str(tmp_path / "third"), onto=str(first / "closed_loop.json"))
+    # the same part grown since (its run resumed): only the new rows come, renamed as before
+    data = json.loads((b / "closed_loop.json").read_text())
+    data["rows"].append(_row("walk", "onn", 0.06))
+    data["rows"].append(dict(_row("walk", "stride", 0.04), seed=1))
+    (b / "closed_loop.json").write_text(json.dumps(data))
+    again = cl.merge([str(b)], str(tmp_path / "third"),
+                     onto=str(tmp_path / "second" / "closed_loop.json"))
+    assert again[:4] == rows
+    assert [(r["model"], r["part"]) for r in again[4:]] == [("onn", "b"), ("stride@b", "b")]
 
 
 def test_the_recovery_alarm_fires_on_the_velocity_tracking_error(go1):

@@ -109,3 +109,24 @@ def test_the_script_writes_table_json_and_figure(tmp_path, experiment):
     with pytest.raises(SystemExit, match="no row of 'oracle'"):
         mod.main([str(tmp_path / "part"), "--out", str(out), "--reference",
                   str(tmp_path / "ref.json"), "--ref", "oracle=oracle"])
+
+
+def test_a_tables_variant_keeps_its_rows_apart_from_the_same_models_other_planner(tmp_path,
+                                                                                   experiment):
+    """The same trained models planned by two planners (e.g. mean-only and risk-aware): given
+    as PATH and VARIANT=PATH, their rows are two kinds, not a clash of the same seed twice."""
+    mod = experiment("trained_seeds")
+    for part, vel in (("mean", 0.10), ("risk", 0.20)):
+        rows = [_row("push", "stride", vel, run="r/stride-s0"),
+                _row("push", "stride_s1", vel + 0.02, run="r/stride-s1")]
+        (tmp_path / part).mkdir()
+        (tmp_path / part / "closed_loop.json").write_text(json.dumps(dict(rows=rows)))
+    out = tmp_path / "seeds"
+    with pytest.raises(ValueError, match="two rows of stride seed 0"):
+        mod.main([str(tmp_path / "mean"), str(tmp_path / "risk"), "--out", str(out)])
+    assert mod.main([str(tmp_path / "mean"), f"risk-aware={tmp_path / 'risk'}",
+                     "--out", str(out)]) == 0
+    groups = {g["model"]: g for g in json.loads(out.with_suffix(".json").read_text())["groups"]}
+    assert set(groups) == {"stride", "stride (risk-aware)"}
+    assert groups["stride (risk-aware)"]["vel_rmse_mean"] == pytest.approx(0.21)
+    assert "| push | stride (risk-aware) |" in out.with_suffix(".md").read_text()

@@ -433,10 +433,11 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None) 
     command and device go to ``closed_loop.json``'s ``parts``. A part may also be a JSON file of
     rows recovered from a run's log (``{"env": {...}, "rows": [...]}``, rows with at least
     ``scenario``, ``model``, ``vel_rmse``, ``fell``, ``ms_per_step``). Traces found beside a
-    part are copied, so the plots show every row. A (scenario, model, seed) that an earlier part
-    already has is renamed ``model@part``. ``onto``: a merged ``closed_loop.json`` whose rows
+    part are copied, so the plots show every row. A (scenario, model) pair of which an earlier
+    part already has an episode (same seed) is renamed ``model@part``, all its episodes. ``onto``: a merged ``closed_loop.json`` whose rows
     (with any notes added to them since) and parts are kept as they are, the new parts' rows
-    appended after them (its title unless ``title`` is given)."""
+    appended after them (its title unless ``title`` is given); a part merged there before adds
+    the rows its run has written since (a resumed run), and none new is an error."""
     import shutil
 
     out_dir = pathlib.Path(out)
@@ -455,18 +456,30 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None) 
             raise FileNotFoundError(f"{src}: no closed_loop.json to merge")
         data = json.loads(src.read_text())
         name = path.name if path.is_dir() else path.stem
-        if name in envs_:
-            raise ValueError(f"{part}: a part named {name!r} is already merged")
-        envs_[name] = data["env"]
         # rows written before ``seed`` was: the part's --seed, as the run's resume reads them
         run_seed = _run_seed(data["env"])
         for r in data["rows"]:
             missing = {"scenario", "model", "vel_rmse", "fell", "ms_per_step"} - set(r)
             if missing:
                 raise ValueError(f"{src}: a row lacks {sorted(missing)}")
+        part_rows, clash = data["rows"], set()
+        if name in envs_:  # merged before: only the rows its run has added since (a resume)
+            have = {(r["scenario"], r["model"].split("@")[0], r.get("seed", run_seed)): r
+                    for r in rows if r.get("part") == name}
+            part_rows = [r for r in part_rows
+                         if (r["scenario"], r["model"], r.get("seed", run_seed)) not in have]
+            if not part_rows:
+                raise ValueError(f"{part}: a part named {name!r} is already merged (no new rows)")
+            clash = {k[:2] for k, r in have.items() if r["model"] != k[1]}  # renamed then
+        envs_[name] = data["env"]
+        # a second part's variant of the same model: all of its episodes of that pair renamed
+        # (an episode clashing renames its pair, so one part's draws keep one name)
+        clash |= {(r["scenario"], r["model"]) for r in part_rows
+                  if (r["scenario"], r["model"], r.get("seed", run_seed)) in seen}
+        for r in part_rows:
             model, episode, seed = r["model"], r.get("episode", 0), r.get("seed", run_seed)
-            if (r["scenario"], model, seed) in seen:
-                model = f"{model}@{name}"  # a second part's variant of the same model
+            if (r["scenario"], model) in clash:
+                model = f"{model}@{name}"
             seen.add((r["scenario"], model, seed))
             rows.append({**r, "model": model, "part": name})
             trace = src.parent / trace_name(r["scenario"], r["model"], episode, seed)
