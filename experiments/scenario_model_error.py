@@ -1,0 +1,187 @@
+"""Where a learned model goes wrong in a scenario: each trained model's one-control-period
+prediction error along the PPO policy's own episode in the scenario's MJX world, before and after
+a time split (e.g. flat ground, then the slope built up from 2 s), issue 19's "find why".
+
+The closed-loop planner carries a disturbance observer: a constant base-acceleration offset
+absorbs a model's steady bias (the slope's gravity component along the ground, which no model
+trained on flat ground can know). What it cannot absorb is the error that varies from step to
+step. So per model and phase this writes the bias (mean error of the base's linear acceleration
+over one control period, m/s^2, per world axis: what the observer converges to), the spread
+around it (RMS after removing the bias: what is left to the planner), and the joint-velocity
+RMSE after one period (rad/s); STRIDE's residual is sampled ``--draws`` times per state.
+
+    python experiments/scenario_model_error.py --robot g1 --scenario tilt --slope-deg 15 \\
+        --models stride=results/models/g1_walk_tw1_tf0.25_b/stride-s0,... \\
+        --out results/planning_diagnosis/g1_tilt15_model_error
+
+Writes OUT.md and OUT.json (the command, per-model rows).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import shlex
+import sys
+import time
+
+import numpy as np
+
+import stride_jax
+
+
+def episode(sm, sc, policy_path: str):
+    """The policy alone in scenario ``sc`` (pushes and tilt as the closed loop runs them):
+    ``(t, q, qd, ctrl, q2, qd2, fallen)`` per control period, numpy."""
+    import jax
+    import jax.numpy as jnp
+    from mujoco import mjx
+
+    from stride_jax.control import envs, ppo
+    from stride_jax.control.planning import PlanningConfig, augment, make_planning
+    from stride_jax.control.scenarios import (command_at, push_schedule, scenario_model,
+                                              schedule, tilt_schedule, world_at)
+    from stride_jax.sim import rollout_mjx
+
+    policy, _, env_cfg = ppo.load_policy(policy_path)
+    mx = mjx.put_model(scenario_model(sm, sc, 0))
+    truth = make_planning(PlanningConfig(), env_cfg, sm, envs.mjx_step_fn(sm.n_substeps, mx),
+                          policy, None)
+    starts, values = map(jnp.asarray, schedule(sc))
+    pushes = jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum())))
+    tilt = jnp.asarray(tilt_schedule(sc))
+    base = int(sm.mj.jnt_bodyid[0])
+    dt = sm.robot.ctrl_dt
+    n_steps = max(1, int(round(sc.seconds / dt)))
+
+    @jax.jit
+    def run():
+        d0 = mjx.make_data(mx).replace(qpos=jnp.asarray(sm.info.qpos0).at[2].add(0.02))
+
+        def body(carry, step):
+            d, clock = carry
+            t = step * dt
+            q_aug = augment(d.qpos, command_at(starts, values, t), clock)
+            ctrl = truth.ctrl(q_aug, truth.policy(q_aug, d.qvel))
+            mx_t, d = world_at(mx, d, base, t, pushes, tilt)
+            d2 = envs.physics_step(mx_t, sm.n_substeps, d, ctrl)
+            clock = jnp.mod(clock + truth.clock_hz * dt, 1.0)
+            return (d2, clock), (t, d.qpos, d.qvel, ctrl, d2.qpos, d2.qvel,
+                                 rollout_mjx.fallen(sm, d2.qpos))
+        return jax.lax.scan(body, (d0, jnp.zeros(())), jnp.arange(n_steps))[1]
+
+    return [np.asarray(x) for x in jax.device_get(run())]
+
+
+def phase_errors(acc_err: np.ndarray, qd_err: np.ndarray, nu: int) -> dict:
+    """``acc_err [T, draws, 3]`` (true minus predicted base linear acceleration over one period,
+    m/s^2) and ``qd_err [T, draws, nv]`` of one phase -> bias, spread and joint RMSE."""
+    per_step = acc_err.mean(axis=1)  # the draws' mean: what the planner's rollouts average
+    bias = per_step.mean(axis=0)
+    spread = np.sqrt(((per_step - bias) ** 2).mean(axis=0))
+    joints = float(np.sqrt((qd_err[..., -nu:] ** 2).mean()))
+    return dict(steps=int(acc_err.shape[0]), bias=bias.tolist(), spread=spread.tolist(),
+                bias_norm=float(np.linalg.norm(bias)), spread_norm=float(np.linalg.norm(spread)),
+                joint_vel_rmse=joints)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    stride_jax.set_xla_flags()
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--robot", default="g1")
+    ap.add_argument("--scenario", default="tilt")
+    ap.add_argument("--slope-deg", type=float, default=0.0,
+                    help="override the scenario's slope (0: keep), as the closed loop's flag")
+    ap.add_argument("--models", required=True, help="NAME=RUN,... trained dynamics models")
+    ap.add_argument("--policy", default="")
+    ap.add_argument("--seconds", type=float, default=6.0)
+    ap.add_argument("--split-s", type=float, default=2.0,
+                    help="the phases: before and from this time (s)")
+    ap.add_argument("--draws", type=int, default=8, help="residual draws per state")
+    ap.add_argument("--out", required=True, help="path stem: writes OUT.md and OUT.json")
+    a = ap.parse_args(argv)
+    if a.draws < 1:
+        raise SystemExit(f"--draws is {a.draws}: it must be >= 1")
+    models = [tuple(m.split("=", 1)) for m in a.models.split(",") if m]
+    if not models or any(len(m) != 2 for m in models):
+        raise SystemExit(f"--models {a.models!r}: expected NAME=RUN,...")
+    for name, run in models:
+        if not (pathlib.Path(run) / "model.json").is_file():
+            raise SystemExit(f"--models {name}={run}: no trained model there (model.json)")
+
+    import jax
+
+    from stride_jax.control.episode import learned_step_fn
+    from stride_jax.control.scenarios import SCENARIOS
+    from stride_jax.io import atomic_write_text, code_version
+    from stride_jax.sim import model as sim_model
+
+    if a.scenario not in SCENARIOS:
+        raise SystemExit(f"--scenario {a.scenario!r}: one of {sorted(SCENARIOS)}")
+    sc = dataclasses.replace(SCENARIOS[a.scenario], seconds=a.seconds)
+    if a.slope_deg:
+        if not sc.slope_deg:
+            raise SystemExit(f"--slope-deg: scenario {a.scenario!r} has no slope")
+        sc = dataclasses.replace(sc, name=f"{sc.name}{a.slope_deg:g}", slope_deg=a.slope_deg)
+    sm = sim_model.load(a.robot)
+    policy = a.policy or f"results/policies/ppo_{a.robot}"
+    t0 = time.time()
+    t, q, qd, ctrl, q2, qd2, fallen = episode(sm, sc, policy)
+    if fallen.any():
+        cut = int(np.argmax(fallen))
+        print(f"the policy fell at {t[cut]:.2f} s: the states up to then are kept")
+        t, q, qd, ctrl, q2, qd2 = (x[:cut] for x in (t, q, qd, ctrl, q2, qd2))
+    print(f"policy episode: {len(t)} control periods ({time.time() - t0:.0f} s)")
+    dt, nu = sm.robot.ctrl_dt, sm.info.nu
+    phases = {f"before {a.split_s:g} s": t < a.split_s, f"from {a.split_s:g} s": t >= a.split_s}
+    rows = []
+    for name, run in models:
+        t1 = time.time()
+        step = learned_step_fn(run, sm)
+        keys = jax.random.split(jax.random.key(0), (len(t), a.draws))
+        over_draws = jax.vmap(step, in_axes=(None, None, None, 0))
+        _, qd_pred = jax.jit(jax.vmap(over_draws))(q, qd, ctrl, keys)
+        qd_pred = np.asarray(qd_pred, np.float64)
+        err = qd2[:, None, :] - qd_pred  # true minus predicted velocity after one period
+        acc_err = err[..., :3] / dt
+        row = dict(model=name, run=run)
+        for label, sel in phases.items():
+            if sel.any():
+                row[label] = phase_errors(acc_err[sel], err[sel], nu)
+        rows.append(row)
+        print(f"{name:>10}: " + "; ".join(
+            f"{k}: bias {v['bias_norm']:.2f}, spread {v['spread_norm']:.2f} m/s^2, joints "
+            f"{v['joint_vel_rmse']:.3f} rad/s" for k, v in row.items() if isinstance(v, dict))
+            + f" ({time.time() - t1:.0f} s)", flush=True)
+    command = "python " + " ".join(map(shlex.quote, [sys.argv[0], *(argv or sys.argv[1:])]))
+    stem = pathlib.Path(a.out)
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    env = dict(command=command, code=code_version(), backend=jax.default_backend(),
+               scenario=sc.name, policy=policy, draws=a.draws, seconds=a.seconds)
+    atomic_write_text(stem.with_suffix(".json"), json.dumps(dict(env=env, rows=rows), indent=1))
+    lines = [f"# One-period model error along the policy's episode: {a.robot}, {sc.name}", "",
+             f"Command: `{command}`", "",
+             "Base linear acceleration error over one control period (true minus predicted, "
+             "world axes x, y, z; m/s^2): the bias (its mean: what the planner's disturbance "
+             "observer converges to) and the spread around it (RMS: what the observer cannot "
+             f"absorb); joint-velocity RMSE after one period (rad/s). {a.draws} residual draws "
+             "per state, their mean error per step.", "",
+             "| model | phase | steps | bias x / y / z | spread x / y / z | joint vel RMSE |",
+             "|---|---|---:|---|---|---:|"]
+    for r in rows:
+        for label in phases:
+            if label in r:
+                v = r[label]
+                lines.append(f"| {r['model']} | {label} | {v['steps']} | "
+                             + " / ".join(f"{x:+.2f}" for x in v["bias"]) + " | "
+                             + " / ".join(f"{x:.2f}" for x in v["spread"])
+                             + f" | {v['joint_vel_rmse']:.3f} |")
+    atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
+    print(f"wrote {stem}.{{md,json}}")
+    return dict(rows=rows)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,33 @@
+"""experiments/scenario_model_error.py: a model's one-period error per phase of an episode."""
+
+import numpy as np
+import pytest
+
+
+def test_phase_errors_split_a_steady_bias_from_what_varies(experiment):
+    """A constant offset is the bias (what the planner's observer absorbs), a zero-mean
+    alternation is the spread; the residual draws are averaged per step first."""
+    mod = experiment("scenario_model_error")
+    T, draws, nv, nu = 40, 3, 8, 2
+    steady = np.array([-2.0, 0.0, 1.5])
+    wiggle = np.where(np.arange(T) % 2 == 0, 1.0, -1.0)[:, None] * np.array([0.0, 0.3, 0.0])
+    noise = np.random.default_rng(0).normal(size=(T, draws, 3))
+    noise -= noise.mean(axis=1, keepdims=True)  # the draws disagree, their mean does not move
+    acc = steady + wiggle[:, None, :] + noise
+    qd = np.zeros((T, draws, nv))
+    qd[..., -nu:] = 0.2
+    got = mod.phase_errors(acc, qd, nu)
+    np.testing.assert_allclose(got["bias"], steady, atol=1e-12)
+    np.testing.assert_allclose(got["spread"], [0.0, 0.3, 0.0], atol=1e-12)
+    assert got["bias_norm"] == pytest.approx(2.5) and got["steps"] == T
+    assert got["joint_vel_rmse"] == pytest.approx(0.2)  # the base's entries left out
+
+
+def test_bad_input_is_named(experiment, tmp_path):
+    mod = experiment("scenario_model_error")
+    with pytest.raises(SystemExit, match="expected NAME=RUN"):
+        mod.main(["--models", "stride", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit, match="no trained model there"):
+        mod.main(["--models", f"stride={tmp_path}", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit, match="--draws is 0"):
+        mod.main(["--models", f"stride={tmp_path}", "--draws", "0", "--out", str(tmp_path / "x")])
