@@ -64,9 +64,6 @@ class PlanningConfig:
         step the estimate moves by this fraction of the base's one-step acceleration error
         (observed minus predicted by the planner's model with the current estimate).
       observer_limit: bound of each disturbance entry (m/s^2, rad/s^2).
-      observer_vertical_limit: bound of the vertical entry alone (m/s^2; < 0: observer_limit).
-        A vertical estimate acts in every rollout as a force holding the base up: large, it may
-        hide the sinking that precedes a fall (G1's tilt: results/planning_diagnosis/README.md).
       observer_angular: estimate the base's angular acceleration too (default: the linear
         part only; the angular one-step errors of the learned models are dominated by contact
         transients, not by what persists).
@@ -95,7 +92,6 @@ class PlanningConfig:
     learned_track_weight: float = 0.0
     observer_gain: float = 0.0
     observer_limit: float = 6.0
-    observer_vertical_limit: float = -1.0
     observer_angular: bool = False
     family_std: float = 0.3
     alarm_speed: float = 0.0
@@ -134,7 +130,6 @@ class Planning(NamedTuple):
     alarm: Callable | None = None  # (q_aug, qd) -> bool []: plan the recovery candidates
     recovery_noise: tuple = ()  # per action entry: the recovery candidates' noise std
     alarm_hold: int = 0  # control steps the recovery candidates stay after the alarm last held
-    observer_vertical_limit: float = -1.0  # bound of the vertical entry (< 0: observer_limit)
 
 
 class Aug(NamedTuple):
@@ -184,8 +179,7 @@ def update_disturbance(planning: "Planning", q_aug: jax.Array, qd: jax.Array, u:
     """The disturbance observer's next estimate ``[6]`` after the real step ``(q_aug, qd) --u-->
     qd_real``: the planner's model predicts that step under the current estimate (in ``q_aug``)
     and the estimate moves by ``planning.observer_gain`` times the base's acceleration error,
-    bounded by ``planning.observer_limit`` (its vertical entry by ``observer_vertical_limit``
-    where that is >= 0; a non-finite prediction keeps the estimate).
+    bounded by ``planning.observer_limit`` (a non-finite prediction keeps the estimate).
     ``key=None``: a stochastic model predicts with its residual's central sample."""
     nq = q_aug.shape[-1] - N_AUG
     dist = split(q_aug, nq).disturbance
@@ -193,10 +187,8 @@ def update_disturbance(planning: "Planning", q_aug: jax.Array, qd: jax.Array, u:
     innovation = (qd_real[:N_DIST] - qd_pred[:N_DIST]) / dt
     if not planning.observer_angular:
         innovation = innovation.at[3:].set(0.0)
-    limit = jnp.full(N_DIST, planning.observer_limit)
-    if planning.observer_vertical_limit >= 0:
-        limit = limit.at[2].set(planning.observer_vertical_limit)
-    new = jnp.clip(dist + planning.observer_gain * innovation, -limit, limit)
+    new = jnp.clip(dist + planning.observer_gain * innovation, -planning.observer_limit,
+                   planning.observer_limit)
     return jnp.where(jnp.all(jnp.isfinite(new)), new, dist)
 
 
@@ -326,8 +318,7 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
                     0.0 if cfg.gait else env_cfg.gait_hz, obs_aug, disagreement, step_error,
                     reward_action, cfg.observer_gain, cfg.observer_limit, cfg.observer_angular,
                     family, alarm, recovery,
-                    int(round(cfg.alarm_hold_s / sm.robot.ctrl_dt)) if alarm else 0,
-                    observer_vertical_limit=cfg.observer_vertical_limit)
+                    int(round(cfg.alarm_hold_s / sm.robot.ctrl_dt)) if alarm else 0)
 
 
 def mppi_config(mppi_cfg: mppi.MPPIConfig, cfg: PlanningConfig,
