@@ -88,11 +88,10 @@ def run(cfg: DiagnosisConfig, command: str) -> dict:
     from mujoco import mjx
 
     from stride_jax.control import envs, learned as learned_lib, model_check, mppi, ppo
-    from stride_jax.control.episode import learned_step_fn
-    from stride_jax.control.planning import (PlanningConfig, augment, make_planner,
-                                             make_planning, mppi_config)
-    from stride_jax.control.scenarios import (SCENARIOS, command_at, push_schedule,
-                                              scenario_model, schedule, tilt_schedule, world_at)
+    from stride_jax.control.episode import learned_step_fn, policy_episode
+    from stride_jax.control.planning import (PlanningConfig, make_planner, make_planning,
+                                             mppi_config)
+    from stride_jax.control.scenarios import SCENARIOS, scenario_model
     from stride_jax.io import atomic_write_text, code_version
     from stride_jax.sim import model as sim_model
 
@@ -141,29 +140,9 @@ def run(cfg: DiagnosisConfig, command: str) -> dict:
         mx = mjx.put_model(scenario_model(sm, sc, seed))
         truth = make_planning(planning_cfg, env_cfg, sm, envs.mjx_step_fn(sm.n_substeps, mx),
                               policy, learned)
-        starts, values = map(jnp.asarray, schedule(sc))
-        pushes = jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum())))
-        tilt = jnp.asarray(tilt_schedule(sc))
-        base = int(sm.mj.jnt_bodyid[0])
-        n_steps = max(1, int(round(sc.seconds / sm.robot.ctrl_dt)))
-
-        @jax.jit
-        def policy_episode():
-            """The policy alone in the scenario: the states the planner would meet."""
-            d0 = mjx.make_data(mx).replace(qpos=jnp.asarray(sm.info.qpos0).at[2].add(0.02))
-
-            def body(carry, step):  # the scenario as the closed loop runs it: pushes, tilt
-                d, clock = carry
-                t = step * sm.robot.ctrl_dt
-                q_aug = augment(d.qpos, command_at(starts, values, t), clock)
-                u = truth.policy(q_aug, d.qvel)
-                mx_t, d = world_at(mx, d, base, t, pushes, tilt)
-                d2 = envs.physics_step(mx_t, sm.n_substeps, d, truth.ctrl(q_aug, u))
-                clock = jnp.mod(clock + truth.clock_hz * sm.robot.ctrl_dt, 1.0)
-                return (d2, clock), (q_aug, d.qvel, u)
-            return jax.lax.scan(body, (d0, jnp.zeros(())), jnp.arange(n_steps))[1]
-
-        q_aug, qd, actions = policy_episode()
+        ep = policy_episode(sm, mx, truth, sc)
+        q_aug, qd, actions = ep.q_aug, ep.qd, ep.u
+        n_steps = len(ep.t)
         pick = np.arange(cfg.every, n_steps, cfg.every)
         spread = float(np.asarray(actions).std(axis=0).mean())
         sig = (tuple(envs.contact_slots(mx)[0]), mx.opt.timestep.shape,

@@ -33,46 +33,25 @@ import stride_jax
 
 
 def episode(sm, sc, policy_path: str):
-    """The policy alone in scenario ``sc`` (pushes and tilt as the closed loop runs them):
-    ``(t, q, qd, ctrl, q2, qd2, fallen)`` per control period, numpy."""
+    """The policy of run ``policy_path`` alone in scenario ``sc``
+    (:func:`stride_jax.control.episode.policy_episode`): ``(t, q, qd, ctrl, q2, qd2, fallen)``
+    per control period, numpy."""
     import jax
-    import jax.numpy as jnp
     from mujoco import mjx
 
     from stride_jax.control import envs, ppo
-    from stride_jax.control.planning import PlanningConfig, augment, make_planning
-    from stride_jax.control.scenarios import (command_at, push_schedule, scenario_model,
-                                              schedule, tilt_schedule, world_at)
-    from stride_jax.sim import rollout_mjx
+    from stride_jax.control.episode import policy_episode
+    from stride_jax.control.planning import PlanningConfig, make_planning
+    from stride_jax.control.scenarios import scenario_model
 
     policy, _, env_cfg = ppo.load_policy(policy_path)
     mx = mjx.put_model(scenario_model(sm, sc, 0))
     truth = make_planning(PlanningConfig(), env_cfg, sm, envs.mjx_step_fn(sm.n_substeps, mx),
                           policy, None)
-    starts, values = map(jnp.asarray, schedule(sc))
-    pushes = jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum())))
-    tilt = jnp.asarray(tilt_schedule(sc))
-    base = int(sm.mj.jnt_bodyid[0])
-    dt = sm.robot.ctrl_dt
-    n_steps = max(1, int(round(sc.seconds / dt)))
-
-    @jax.jit
-    def run():
-        d0 = mjx.make_data(mx).replace(qpos=jnp.asarray(sm.info.qpos0).at[2].add(0.02))
-
-        def body(carry, step):
-            d, clock = carry
-            t = step * dt
-            q_aug = augment(d.qpos, command_at(starts, values, t), clock)
-            ctrl = truth.ctrl(q_aug, truth.policy(q_aug, d.qvel))
-            mx_t, d = world_at(mx, d, base, t, pushes, tilt)
-            d2 = envs.physics_step(mx_t, sm.n_substeps, d, ctrl)
-            clock = jnp.mod(clock + truth.clock_hz * dt, 1.0)
-            return (d2, clock), (t, d.qpos, d.qvel, ctrl, d2.qpos, d2.qvel,
-                                 rollout_mjx.fallen(sm, d2.qpos))
-        return jax.lax.scan(body, (d0, jnp.zeros(())), jnp.arange(n_steps))[1]
-
-    return [np.asarray(x) for x in jax.device_get(run())]
+    ep = jax.device_get(policy_episode(sm, mx, truth, sc))
+    nq = sm.mj.nq
+    return [np.asarray(x) for x in (ep.t, ep.q_aug[:, :nq], ep.qd, ep.ctrl, ep.q_next,
+                                    ep.qd_next, ep.fallen)]
 
 
 def phase_errors(acc_err: np.ndarray, qd_err: np.ndarray, nu: int) -> dict:

@@ -89,8 +89,8 @@ def versus(groups: list[dict], against: str = "stride", level: float = 0.9) -> l
     """Adds to each group of another kind ``vs``: its mean RMSE minus ``against``'s in the same
     scenario over the trained seeds that stayed up (each seed one draw of its training: the
     mean over its planner draws), with Welch's ``level`` t-interval (None: fewer than two such
-    seeds on either side, no spread on either, or no ``against`` group). An interval that holds 0 says the kinds are
-    not told apart by these seeds."""
+    seeds on either side, no spread on either, or no ``against`` group). An interval that holds
+    0 says the kinds are not told apart by these seeds."""
     from scipy import stats
 
     base = {g["scenario"]: g for g in groups if g["model"] == against}
@@ -193,6 +193,8 @@ def main(argv=None) -> int:
     rows, sources = [], []
     for t in a.tables:
         variant, _, where = t.rpartition("=")
+        if variant and pathlib.Path(t).exists():  # a path with "=" in it, no variant
+            variant, where = "", t
         path = pathlib.Path(where)
         path = path / "closed_loop.json" if path.is_dir() else path
         if not path.is_file():

@@ -589,3 +589,25 @@ def test_model_precision_reaches_the_learned_models_products():
         cl.ClosedLoopConfig(model_precision="tf32")
     with pytest.raises(ValueError, match="precision 'x'"):
         cl.learned_step(model, params, "x")
+
+
+def test_the_policy_episode_records_each_period_and_its_true_next_state(go1):
+    """``episode.policy_episode``: the policy alone in a scenario; each period's recorded next
+    state is the next period's state, and its joint targets are the policy's action through the
+    planning's ``ctrl``. A planning without a policy is refused."""
+    from stride_jax.control import episode as episode_lib
+    mx = mjx.put_model(go1.mj)
+    planning = planning_lib.make_planning(planning_lib.PlanningConfig(), envs.config("go1"), go1,
+                                          cl.mjx_step_fn(go1, mx))
+    nq = go1.mj.nq
+    planning = planning._replace(policy=lambda q, qd: jnp.asarray(planning.nominal_u) + 0.1 * q[nq])
+    sc = dataclasses.replace(cl.SCENARIOS["walk"], seconds=4 * go1.robot.ctrl_dt)
+    ep = jax.device_get(episode_lib.policy_episode(go1, mx, planning, sc))
+    assert ep.q_aug.shape == (4, nq + planning_lib.N_AUG) and ep.fallen.shape == (4,)
+    np.testing.assert_allclose(ep.t, np.arange(4) * go1.robot.ctrl_dt, rtol=1e-6)
+    np.testing.assert_array_equal(ep.q_next[:-1], ep.q_aug[1:, :nq])
+    np.testing.assert_array_equal(ep.qd_next[:-1], ep.qd[1:])
+    np.testing.assert_allclose(ep.ctrl, jax.vmap(planning.ctrl)(ep.q_aug, ep.u), atol=1e-6)
+    assert not np.allclose(ep.q_next[-1], ep.q_aug[0, :nq])  # the robot moved
+    with pytest.raises(ValueError, match="needs a planning with a policy"):
+        episode_lib.policy_episode(go1, mx, planning._replace(policy=None), sc)

@@ -67,11 +67,11 @@ def main(argv=None) -> None:
         gj = np.asarray(jax.jit(jax.vmap(linalg._gauss_jordan, in_axes=(0, 0)))(Mf, bf))
         ch = np.asarray(jax.jit(jax.vmap(linalg._solve_cholesky))(Mf, bf))
 
-        def rel(x):
-            return np.linalg.norm(x - x64, axis=-1) / np.maximum(np.linalg.norm(x64, axis=-1), 1e-12)
-        print(f"| {name} | {np.median(cond):.3g} | {np.percentile(cond, 95):.3g} | {cond.max():.3g} | "
-              f"{np.median(rel(gj)):.2g} / {rel(gj).max():.2g} | {np.median(rel(ch)):.2g} / "
-              f"{rel(ch).max():.2g} |", flush=True)
+        scale = np.maximum(np.linalg.norm(x64, axis=-1), 1e-12)
+        e_gj, e_ch = (np.linalg.norm(x - x64, axis=-1) / scale for x in (gj, ch))
+        print(f"| {name} | {np.median(cond):.3g} | {np.percentile(cond, 95):.3g} | "
+              f"{cond.max():.3g} | {np.median(e_gj):.2g} / {e_gj.max():.2g} | "
+              f"{np.median(e_ch):.2g} / {e_ch.max():.2g} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,8 @@ from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.control.planning import N_DIST, Planning, augment, update_disturbance
-from stride_jax.control.scenarios import command_at, world_at
+from stride_jax.control.scenarios import (Scenario, command_at, push_schedule, schedule,
+                                          tilt_schedule, world_at)
 from stride_jax.sim import model as sim_model, rollout_mjx
 
 
@@ -178,6 +179,53 @@ def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
         out["plan_freq"], out["plan_duty"] = float(g[0]), float(g[1])
         out["plan_gait"], out["plan_gait_dist"] = gait_lib.classify(g[2:])
     return out
+
+
+class PolicyEpisode(NamedTuple):
+    """The policy alone in a scenario, per control period (leading axis: the periods)."""
+
+    t: jax.Array  # [T] s
+    q_aug: jax.Array  # [T, nq + N_AUG] the state the policy saw (command and clock)
+    qd: jax.Array  # [T, nv]
+    u: jax.Array  # [T, nu] the policy's action
+    ctrl: jax.Array  # [T, nu] the joint targets it became
+    q_next: jax.Array  # [T, nq] the state one period later
+    qd_next: jax.Array  # [T, nv]
+    fallen: jax.Array  # [T] bool, after the period
+
+
+def policy_episode(sm: sim_model.SimModel, mx: mjx.Model, planning: Planning,
+                   sc: Scenario) -> PolicyEpisode:
+    """``planning``'s policy alone in scenario ``sc`` on ``mx`` (the scenario's MJX model), with
+    its commands, pushes and tilt as the closed loop runs them: the states a planner would meet
+    and the true step from each (issue 19's diagnoses)."""
+    if planning.policy is None:
+        raise ValueError("policy_episode needs a planning with a policy")
+    starts, values = map(jnp.asarray, schedule(sc))
+    pushes = jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum())))
+    tilt = jnp.asarray(tilt_schedule(sc))
+    base = int(sm.mj.jnt_bodyid[0])
+    dt = sm.robot.ctrl_dt
+    n_steps = max(1, int(round(sc.seconds / dt)))
+
+    @jax.jit
+    def run():
+        d0 = mjx.make_data(mx).replace(qpos=jnp.asarray(sm.info.qpos0).at[2].add(0.02))
+
+        def body(carry, step):
+            d, clock = carry
+            t = step * dt
+            q_aug = augment(d.qpos, command_at(starts, values, t), clock)
+            u = planning.policy(q_aug, d.qvel)
+            ctrl = planning.ctrl(q_aug, u)
+            mx_t, d = world_at(mx, d, base, t, pushes, tilt)
+            d2 = envs.physics_step(mx_t, sm.n_substeps, d, ctrl)
+            clock = jnp.mod(clock + planning.clock_hz * dt, 1.0)
+            return (d2, clock), PolicyEpisode(t, q_aug, d.qvel, u, ctrl, d2.qpos, d2.qvel,
+                                              rollout_mjx.fallen(sm, d2.qpos))
+        return jax.lax.scan(body, (d0, jnp.zeros(())), jnp.arange(n_steps))[1]
+
+    return run()
 
 
 # ---------------------------------------------------------------------------------------------

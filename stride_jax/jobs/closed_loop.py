@@ -434,10 +434,11 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None) 
     rows recovered from a run's log (``{"env": {...}, "rows": [...]}``, rows with at least
     ``scenario``, ``model``, ``vel_rmse``, ``fell``, ``ms_per_step``). Traces found beside a
     part are copied, so the plots show every row. A (scenario, model) pair of which an earlier
-    part already has an episode (same seed) is renamed ``model@part``, all its episodes. ``onto``: a merged ``closed_loop.json`` whose rows
-    (with any notes added to them since) and parts are kept as they are, the new parts' rows
-    appended after them (its title unless ``title`` is given); a part merged there before adds
-    the rows its run has written since (a resumed run), and none new is an error."""
+    part already has an episode (same seed) is renamed ``model@part``, all its episodes.
+    ``onto``: a merged ``closed_loop.json`` whose rows (with any notes added to them since) and
+    parts are kept as they are, the new parts' rows appended after them (its title unless
+    ``title`` is given); a part merged there before adds the rows its run has written since (a
+    resumed run), and none new is an error."""
     import shutil
 
     out_dir = pathlib.Path(out)
