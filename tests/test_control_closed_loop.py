@@ -574,6 +574,30 @@ def test_the_recovery_alarm_fires_on_the_velocity_tracking_error(go1):
         planning_lib.PlanningConfig(alarm_hold_s=-0.1)
 
 
+def test_the_trust_gate_reads_the_observers_linear_estimate(go1):
+    """``trust_limit``: the planner distrusts its model while the norm of the observer's linear
+    acceleration estimate exceeds it (the angular entries do not count); the hold is converted
+    to control steps for the MPPI settings; the gate needs the observer and a policy."""
+    cfg = planning_lib.PlanningConfig(observer_gain=0.1, trust_limit=3.5, trust_hold_s=0.2)
+    policy = lambda obs, key: jnp.zeros(go1.info.nu)
+    planning = planning_lib.make_planning(cfg, envs.config("go1"), go1, _fake_step, policy)
+    qd = jnp.zeros(go1.mj.nv)
+    at = lambda dist: planning_lib.augment(jnp.asarray(go1.info.qpos0), jnp.zeros(3),
+                                           disturbance=jnp.asarray(dist, jnp.float32))
+    assert not bool(planning.distrust(at([2.0, 2.0, 2.0, 9.0, 9.0, 9.0]), qd))  # |lin| 3.46
+    assert bool(planning.distrust(at([2.0, 2.0, 2.1, 0.0, 0.0, 0.0]), qd))  # |lin| 3.52
+    assert planning.distrust_hold == round(0.2 / go1.robot.ctrl_dt)
+    assert planning_lib.mppi_config(mppi.MPPIConfig(), cfg, planning).distrust_hold == 10
+    assert planning_lib.make_planning(planning_lib.PlanningConfig(), envs.config("go1"), go1,
+                                      _fake_step, policy).distrust is None
+    with pytest.raises(ValueError, match="needs a PPO policy"):
+        planning_lib.make_planning(cfg, envs.config("go1"), go1, _fake_step)
+    with pytest.raises(ValueError, match="observer_gain"):
+        planning_lib.PlanningConfig(trust_limit=3.5)
+    with pytest.raises(ValueError, match="trust_limit"):
+        planning_lib.PlanningConfig(observer_gain=0.1, trust_limit=-1.0)
+
+
 def test_model_precision_reaches_the_learned_models_products():
     """``model_precision``: the learned step's matrix products carry the asked precision in the
     lowered program (a CPU computes float32 either way; a GPU's default is TF32); JAX's default

@@ -377,6 +377,41 @@ def test_a_policy_family_finds_the_command_offset_its_policy_lacks():
         mppi.MPPIConfig(family_decay=1.5)
 
 
+def test_distrust_hands_the_action_to_the_policy_and_keeps_the_plan_warm():
+    """While ``distrust`` holds (and ``distrust_hold`` steps after) the step applies the policy's
+    action (clipped to the bounds) and says DISTRUSTED, but plans as without it: the same plan
+    is kept for when trust returns. A gate that never fires changes nothing; no policy, no gate."""
+    drift = lambda q, qd, u, key=None: (q + 0.1 * u, qd + 1.0)  # qd counts the steps
+    cost = lambda q, qd, u, t: (q[0] - 1.0) ** 2
+    policy = lambda q, qd: jnp.full(1, -3.0)  # beyond the bound of 2: clipped
+    cfg = mppi.MPPIConfig(samples=64, horizon=5, noise_std=0.5, temperature=0.1,
+                          distrust_hold=2)
+
+    def run(distrust, n=5):
+        planner = mppi.make(cfg, drift, cost, [-2.0], [2.0], policy=policy, distrust=distrust)
+        step, state = jax.jit(planner.step), planner.init(jax.random.key(0))
+        q, qd, out = jnp.zeros(1), jnp.zeros(1), []
+        for _ in range(n):
+            u, state, info = step(state, q, qd)
+            out.append((float(u[0]), int(info.status), np.asarray(state.plan)))
+            q, qd = drift(q, qd, jnp.asarray(state.plan[0]))  # the plan moves the state alike
+        return out
+
+    free = run(None)
+    quiet = run(lambda q, qd: qd[0] > 99.0)
+    gated = run(lambda q, qd: qd[0] < 0.5)  # the first step only, then held for two
+    assert [(u, s) for u, s, _ in quiet] == [(u, s) for u, s, _ in free]
+    assert [s for _, s, _ in gated] == [mppi.DISTRUSTED] * 3 + [mppi.PLANNED] * 2
+    assert [u for u, _, _ in gated[:3]] == [-2.0] * 3  # the policy's action, clipped
+    assert [u for u, _, _ in gated[3:]] == [u for u, _, _ in free[3:]]
+    for (_, _, p_gated), (_, _, p_free) in zip(gated, free):
+        np.testing.assert_array_equal(p_gated, p_free)  # planned as if trusted
+    with pytest.raises(ValueError, match="distrust needs a policy"):
+        mppi.make(cfg, drift, cost, [-2.0], [2.0], distrust=lambda q, qd: True)
+    with pytest.raises(ValueError, match="distrust_hold"):
+        mppi.MPPIConfig(distrust_hold=-1)
+
+
 def test_an_alarm_swaps_the_policy_prior_for_wide_noise_around_the_plan():
     """A policy that always pushes the wrong way: its prior candidates pull the plan towards
     it. While the alarm holds, those candidates leave the policy (the plan plus noise at

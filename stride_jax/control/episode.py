@@ -146,8 +146,9 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
 
 def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
     """Tracking RMSE while upright (after ``settle_s`` from each command change), fall, speed;
-    the planner's fallbacks, its share of rollouts cut, and the share of upright steps it drew
-    its recovery candidates (``alarm_share``)."""
+    the planner's fallbacks, its share of rollouts cut, the share of upright steps it drew
+    its recovery candidates (``alarm_share``) and the share in which it handed the action to the
+    policy (``distrust_share``, the model-trust gate)."""
     tr = jax.tree.map(np.asarray, trace)
     up = ~tr.fallen
     changed = np.r_[True, np.any(np.diff(tr.command, axis=0) != 0, axis=1)]
@@ -165,7 +166,9 @@ def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
                fall_s=float(tr.t[np.argmax(tr.fallen)]) if fell else None,
                mean_vx=float(tr.v_base[up, 0].mean()) if up.any() else float("nan"),
                upright_s=float(up.sum() * (tr.t[1] - tr.t[0]) if len(tr.t) > 1 else 0.0),
-               fallbacks=int((tr.status != mppi.PLANNED).sum()),
+               fallbacks=int(np.isin(tr.status, [mppi.BAD_STATE, mppi.NO_FINITE_ROLLOUT]).sum()),
+               distrust_share=float((tr.status[up] == mppi.DISTRUSTED).mean())
+               if up.any() else float("nan"),
                cut_share=float(tr.cut.mean()),
                alarm_share=float(tr.alarm[up].mean()) if up.any() else float("nan"))
     if np.any(tr.disturbance != 0) and up.any():  # the observer's mean estimate while upright

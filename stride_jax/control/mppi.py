@@ -67,6 +67,13 @@ if a caller's initial plan was not finite), keeps that as its plan, and says why
 ``Info.status`` (:data:`PLANNED`, :data:`BAD_STATE`, :data:`NO_FINITE_ROLLOUT`). The next valid
 state plans as usual.
 
+Handing back to the policy where the model is not to be trusted (``make(..., distrust=)``): while
+``distrust(q, qd)`` holds, and ``distrust_hold`` steps after it last held, the step still plans
+(the plan stays warm for when trust returns) but applies the policy's own action and says so
+(:data:`DISTRUSTED`). In the closed loop the predicate reads the disturbance observer's estimate:
+a model that needs a large constant correction to explain what the robot does is wrong where
+the robot now is (:class:`stride_jax.control.planning.PlanningConfig`'s ``trust_limit``).
+
 Several devices: ``make(..., sharding=sample_sharding())`` splits the rollouts over all local
 devices. On a CPU this is how a planner uses more than one core: XLA runs one device's small
 operations one after another (a model step at K=128 compiles to ~220 of them, each too small to
@@ -163,6 +170,8 @@ class MPPIConfig:
       alarm_hold: control steps the recovery candidates keep planning after the alarm last
         held (0: only while it holds): a recovery that has brought the error under the alarm's
         threshold is not handed back to the policy prior at once.
+      distrust_hold: control steps the policy keeps acting after the ``distrust`` given to
+        :func:`make` last held (0: only while it holds).
       unroll: horizon steps per loop iteration of the rollouts (``True``: the whole horizon,
         no loop, one CUDA graph on a GPU). Measured: Go1 STRIDE, K=1024, H=30 on an H100, 9.0 ms
         unrolled against 9.5 ms looped (within run-to-run noise); on a 2-core CPU no faster,
@@ -196,6 +205,7 @@ class MPPIConfig:
     family_cost: float = 0.0
     alarm_noise_std: float | tuple[float, ...] = 0.0
     alarm_hold: int = 0
+    distrust_hold: int = 0
     unroll: int | bool = 1
 
     def __post_init__(self):
@@ -251,6 +261,8 @@ class MPPIConfig:
                             f"{self.error_weight} must be >= 0")
         if self.alarm_hold < 0:
             problems.append(f"alarm_hold={self.alarm_hold} must be >= 0")
+        if self.distrust_hold < 0:
+            problems.append(f"distrust_hold={self.distrust_hold} must be >= 0")
         if np.any(np.asarray(self.alarm_noise_std) < 0):
             problems.append(f"alarm_noise_std={self.alarm_noise_std} must be >= 0")
         if self.policy_noise and np.any(np.asarray(self.alarm_noise_std) > 0):
@@ -267,10 +279,11 @@ class MPPIState(NamedTuple):
     key: jax.Array
     z: jax.Array | None = None  # [nz] the policy family's weighted mean offset (None: no family)
     held: jax.Array | None = None  # [] int32 recovery steps left after the alarm (None: no alarm)
+    distrusted: jax.Array | None = None  # [] int32 policy steps left (None: no distrust)
 
 
-# Info.status: what the step did.
-PLANNED, BAD_STATE, NO_FINITE_ROLLOUT = 0, 1, 2
+# Info.status: what the step did (DISTRUSTED: planned, but the policy's action applied).
+PLANNED, BAD_STATE, NO_FINITE_ROLLOUT, DISTRUSTED = 0, 1, 2, 3
 
 
 class Info(NamedTuple):
@@ -278,7 +291,8 @@ class Info(NamedTuple):
     weights: jax.Array  # [K]
     best_cost: jax.Array  # []
     plan: jax.Array  # [H, nu] after the update
-    status: jax.Array  # [] int32: PLANNED, or why the step fell back to the shifted plan
+    status: jax.Array  # [] int32: PLANNED, why the step fell back to the shifted plan, or
+    # DISTRUSTED (the policy acted)
     candidates: jax.Array  # [K, H, nu] the action sequences of the last iteration (costs' order)
     error: jax.Array  # [K] predicted model error at the rollout's end or cut (0 if unmeasured)
     kept: jax.Array  # [K] horizon steps each rollout kept before a cut (H: not cut)
@@ -304,7 +318,7 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
          terminal_value: Callable | None = None, policy: Callable | None = None,
          sharding: NamedSharding | None = None, disagreement: Callable | None = None,
          step_error: Callable | None = None, family: Callable | None = None,
-         alarm: Callable | None = None) -> Planner:
+         alarm: Callable | None = None, distrust: Callable | None = None) -> Planner:
     """An MPPI planner for ``dynamics(q, qd, action, key) -> (q', qd')``.
 
     ``running_cost(q, qd, action, t) -> []`` is the cost of taking ``action`` at ``(q, qd)`` at
@@ -318,6 +332,7 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
     ``step_error(q, qd, action) -> []`` (both: added in quadrature). ``family(q, qd, z) ->
     action``: a family of policies indexed by an offset ``z`` (``cfg.family_samples``).
     ``alarm(q, qd) -> bool []``: when the recovery candidates plan (``cfg.alarm_noise_std``).
+    ``distrust(q, qd) -> bool []``: when the policy acts instead of the plan (needs a policy).
     """
     lo, hi = jnp.asarray(action_lo, jnp.float32), jnp.asarray(action_hi, jnp.float32)
     if lo.ndim != 1 or lo.shape != hi.shape:
@@ -333,6 +348,8 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
                          f"follow the policy through the model)")
     if cfg.family_samples and family is None:
         raise ValueError(f"family_samples={cfg.family_samples} needs a family of policies")
+    if distrust is not None and policy is None:
+        raise ValueError("distrust needs a policy (it acts while the model is not trusted)")
     recovery = bool(np.any(np.asarray(cfg.alarm_noise_std) > 0))
     if recovery and alarm is None:
         raise ValueError(f"alarm_noise_std={cfg.alarm_noise_std} needs an alarm (when the "
@@ -373,7 +390,8 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
             raise ValueError(f"plan must have shape ({H}, {nu}), got {plan.shape}")
         return MPPIState(jnp.asarray(plan, jnp.float32), key,
                          jnp.zeros(z_std.shape, jnp.float32) if n_fam else None,
-                         jnp.zeros((), jnp.int32) if recovery else None)
+                         jnp.zeros((), jnp.int32) if recovery else None,
+                         jnp.zeros((), jnp.int32) if distrust is not None else None)
 
     def model_step(q, qd, u, key):
         """``(q', qd', sigma^2)``: the next state and the squared predicted one-step error."""
@@ -528,7 +546,18 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
         if n_fam:
             z = jnp.where(good_state, z, z_warm)
         status = jnp.where(good_state, info.status, BAD_STATE).astype(jnp.int32)
+        u = plan[0]
+        distrusted = state.distrusted
+        if distrust is not None:  # the model now, or the policy still held since it last failed
+            failing = jnp.asarray(distrust(q_in, qd_in), bool)
+            hand_over = good_state & (failing | (distrusted > 0))
+            distrusted = jnp.where(good_state, jnp.where(failing, cfg.distrust_hold,
+                                                         jnp.maximum(distrusted - 1, 0)),
+                                   distrusted)
+            u_policy = jnp.clip(policy(q_in, qd_in), lo, hi)
+            u = jnp.where(hand_over & jnp.all(jnp.isfinite(u_policy)), u_policy, u)
+            status = jnp.where(hand_over, DISTRUSTED, status).astype(jnp.int32)
         info = info._replace(plan=plan, status=status)
-        return plan[0], MPPIState(plan, key, z, held), info
+        return u, MPPIState(plan, key, z, held, distrusted), info
 
     return Planner(init, step, cfg.latents)

@@ -78,6 +78,17 @@ class PlanningConfig:
         planned gait parameters' noise scales by the same factor over ``noise_std``.
       alarm_hold_s: the recovery candidates keep planning this long (s) after the alarm last
         held (``MPPIConfig.alarm_hold``; 0: only while it holds).
+      trust_limit: the model-trust gate (m/s^2; 0: off; needs the observer and a policy): while
+        the norm of the observer's estimate of the base's linear acceleration disturbance
+        exceeds this, the policy's own action is applied instead of the plan (the planner keeps
+        planning, ``Info.status`` says ``DISTRUSTED``). A model that needs a large constant
+        correction to explain the robot's motion is wrong where the robot now is; a slope of
+        angle a asks ``g sin a`` of a right model (2.5 m/s^2 at 15 degrees). Measured on G1
+        (``results/closed_loop_g1_gpu/README.md``, session 41): every one of 57 falls of the
+        learned planners was preceded by an estimate above 3.5 (median 0.6 s before), which
+        0.4% of the upright steps of episodes that did not fall reached.
+      trust_hold_s: the policy keeps acting this long (s) after the gate last held
+        (``MPPIConfig.distrust_hold``; 0: only while it holds).
     """
 
     noise_std: float = 0.15
@@ -97,8 +108,16 @@ class PlanningConfig:
     alarm_speed: float = 0.0
     recovery_noise_std: float = 0.5
     alarm_hold_s: float = 0.0
+    trust_limit: float = 0.0
+    trust_hold_s: float = 0.0
 
     def __post_init__(self):
+        if self.trust_limit < 0 or self.trust_hold_s < 0:
+            raise ValueError(f"trust_limit={self.trust_limit} and trust_hold_s="
+                             f"{self.trust_hold_s} must be >= 0")
+        if self.trust_limit and not self.observer_gain:
+            raise ValueError(f"trust_limit={self.trust_limit} reads the disturbance observer's "
+                             f"estimate: it needs observer_gain > 0")
         if self.alarm_hold_s < 0:
             raise ValueError(f"alarm_hold_s={self.alarm_hold_s} must be >= 0")
         if self.alarm_speed < 0 or not self.recovery_noise_std > 0:
@@ -130,6 +149,8 @@ class Planning(NamedTuple):
     alarm: Callable | None = None  # (q_aug, qd) -> bool []: plan the recovery candidates
     recovery_noise: tuple = ()  # per action entry: the recovery candidates' noise std
     alarm_hold: int = 0  # control steps the recovery candidates stay after the alarm last held
+    distrust: Callable | None = None  # (q_aug, qd) -> bool []: the policy acts, not the plan
+    distrust_hold: int = 0  # control steps the policy keeps acting after distrust last held
 
 
 class Aug(NamedTuple):
@@ -301,6 +322,15 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
         def alarm(q_aug, qd):
             return track_error(q_aug, qd) > cfg.alarm_speed ** 2
 
+    distrust = None
+    if cfg.trust_limit:
+        if policy is None:
+            raise ValueError(f"trust_limit={cfg.trust_limit} hands control to the policy: it "
+                             f"needs a PPO policy (and no planned gait)")
+
+        def distrust(q_aug, qd):
+            return jnp.sum(split(q_aug, nq).disturbance[:3] ** 2) > cfg.trust_limit ** 2
+
     r = cfg.plan_range
     lo, hi = np.full(nu, -r, np.float32), np.full(nu, r, np.float32)
     noise = (cfg.noise_std,) * nu
@@ -318,7 +348,8 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
                     0.0 if cfg.gait else env_cfg.gait_hz, obs_aug, disagreement, step_error,
                     reward_action, cfg.observer_gain, cfg.observer_limit, cfg.observer_angular,
                     family, alarm, recovery,
-                    int(round(cfg.alarm_hold_s / sm.robot.ctrl_dt)) if alarm else 0)
+                    int(round(cfg.alarm_hold_s / sm.robot.ctrl_dt)) if alarm else 0, distrust,
+                    int(round(cfg.trust_hold_s / sm.robot.ctrl_dt)) if distrust else 0)
 
 
 def mppi_config(mppi_cfg: mppi.MPPIConfig, cfg: PlanningConfig,
@@ -336,7 +367,8 @@ def mppi_config(mppi_cfg: mppi.MPPIConfig, cfg: PlanningConfig,
                                family_samples=mppi_cfg.family_samples if planning.family else 0,
                                family_std=fam_std,
                                alarm_noise_std=planning.recovery_noise if planning.alarm else 0.0,
-                               alarm_hold=planning.alarm_hold)
+                               alarm_hold=planning.alarm_hold,
+                               distrust_hold=planning.distrust_hold)
 
 
 def make_planner(planning: Planning, mppi_cfg: mppi.MPPIConfig) -> mppi.Planner:
@@ -344,4 +376,4 @@ def make_planner(planning: Planning, mppi_cfg: mppi.MPPIConfig) -> mppi.Planner:
     return mppi.make(mppi_cfg, planning.dynamics, planning.cost, planning.lo, planning.hi,
                      planning.value, planning.policy, disagreement=planning.disagreement,
                      family=planning.family, step_error=planning.step_error,
-                     alarm=planning.alarm)
+                     alarm=planning.alarm, distrust=planning.distrust)

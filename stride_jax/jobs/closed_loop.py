@@ -376,6 +376,9 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
         f", tracking weight {pl.learned_track_weight:g} on the learned reward"
         if cfg.learned and pl.learned_track_weight else "",
         f", disturbance observer (gain {pl.observer_gain:g})" if pl.observer_gain else "",
+        f", the policy acts while the observer's linear estimate exceeds {pl.trust_limit:g} m/s^2"
+        f" (held {pl.trust_hold_s:g} s; the model-trust gate: share of upright steps in the last"
+        f" column)" if pl.trust_limit else "",
         f", {cfg.mppi.family_samples} candidates from the policy asked for command + z"
         if cfg.mppi.family_samples else ""])
     lines = [f"# Closed-loop MPPI on the MJX {robot}", "", f"Command: `{command}`", "",
@@ -390,8 +393,9 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
              "anti-phase contact correlation); with planned gaits, the median planned "
              "parameters too.", "",
              "| scenario | model | vel RMSE (m/s) | yaw RMSE (rad/s) | mean vx (m/s) | fell | "
-             "fall at (s) | contact gait (score) | planned gait | ms/step |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "fall at (s) | contact gait (score) | planned gait | ms/step |"
+             + (" policy acted |" if pl.trust_limit else ""),
+             "|---|---|---|---|---|---|---|---|---|---|" + ("---|" if pl.trust_limit else "")]
     for r in rows:
         planned = (f"{r['plan_gait']} ({r['plan_freq']:.1f} Hz, duty {r['plan_duty']:.2f})"
                    if "plan_gait" in r else "-")
@@ -401,7 +405,8 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
         lines.append(f"| {r['scenario']} | {model} | {_fmt(r['vel_rmse'])} | "
                      f"{_fmt(r['yaw_rmse'])} | {_fmt(r['mean_vx'], '{:.2f}')} | "
                      f"{'yes' if r['fell'] else 'no'} | {_fmt(r['fall_s'], '{:.2f}')} | "
-                     f"{contact} | {planned} | {r['ms_per_step']:.1f} |")
+                     f"{contact} | {planned} | {r['ms_per_step']:.1f} |"
+                     + (f" {_fmt(r.get('distrust_share'), '{:.0%}')} |" if pl.trust_limit else ""))
     lines += _over_seeds_lines(rows)
     atomic_write_text(out / "closed_loop.md", "\n".join(lines) + "\n")
 
