@@ -28,7 +28,10 @@ else  # G1: closer to the policy (the settings that kept G1 planners up before,
       # results/closed_loop/closed_loop_g1_gpu_policy_noise): 128 policy, 384 family, 512 prior
   common+=(--mppi.policy-samples 128 --mppi.family-samples 384 --mppi.prior-fraction 1.0
            --prior-noise-std 0.05 --mppi.family-decay 0.8 --planning.observer-gain 0.1
-           --planning.learned-track-weight 10)
+           --planning.learned-track-weight 10
+           # the model-trust gate since session 41 (results/closed_loop_g1_gpu/trust_gate.md;
+           # the runs before it ran without: TRUST=0 for those)
+           $([ "${TRUST:-1}" = 1 ] && echo --planning.trust-limit 3.5 --planning.trust-hold-s 1.0))
 fi
 mkdir -p "$out"
 timeout "$limit" python -m stride_jax.jobs.closed_loop "${common[@]}" --models "${models%,}" \

@@ -85,8 +85,10 @@ class PlanningConfig:
         correction to explain the robot's motion is wrong where the robot now is; a slope of
         angle a asks ``g sin a`` of a right model (2.5 m/s^2 at 15 degrees). Measured on G1
         (``results/closed_loop_g1_gpu/README.md``, session 41): every one of 57 falls of the
-        learned planners was preceded by an estimate above 3.5 (median 0.6 s before), which
-        0.4% of the upright steps of episodes that did not fall reached.
+        learned planners before it was preceded by an estimate above 3.5 (median 0.6 s
+        before), which 0.5% of the steps of the 104 episodes that stayed up reached
+        (``results/planning_diagnosis/g1_observer_marker.md``); with the gate at 3.5 (held
+        1 s) the three trained STRIDE seeds fell in none of 72 draws over six scenarios.
       trust_hold_s: the policy keeps acting this long (s) after the gate last held
         (``MPPIConfig.distrust_hold``; 0: only while it holds).
     """

@@ -1,0 +1,35 @@
+"""experiments/observer_marker.py: falls foretold by the observer's estimate, and false alarms."""
+
+import numpy as np
+
+
+def _trace(norms, fall_at=None, dt=0.02):
+    """A trace whose estimate's linear part has the given norms (along x; the angular entries
+    are large and must not count), fallen from step ``fall_at`` on."""
+    n = len(norms)
+    dist = np.zeros((n, 6))
+    dist[:, 0], dist[:, 3:] = norms, 50.0
+    fallen = np.zeros(n, bool)
+    if fall_at is not None:
+        fallen[fall_at:] = True
+    return dict(t=dt * np.arange(1, n + 1), fallen=fallen, disturbance=dist)
+
+
+def test_marker_counts_caught_and_missed_falls_and_the_upright_share_above(experiment):
+    mod = experiment("observer_marker")
+    rising = np.linspace(0.0, 5.0, 51)  # crosses 3.5 at step 36 (3.5 is not above)
+    traces = [_trace(rising, fall_at=46),  # caught, 10 steps before: 0.2 s
+              _trace(np.full(50, 1.0), fall_at=20),  # never above: missed
+              _trace(np.r_[np.full(45, 1.0), np.full(5, 4.0)]),  # up, 10% of steps above
+              _trace(np.full(50, 2.0))]  # up, never above
+    r = mod.marker(traces, 3.5)
+    assert (r["falls"], r["caught"], r["missed"]) == (2, 1, 1)
+    assert np.isclose(r["lead_median_s"], 0.2) and np.isclose(r["lead_min_s"], 0.2)
+    assert np.isclose(r["upright_share_above"], 0.05)  # mean of 10% and 0%
+    assert (r["upright_episodes"], r["upright_episodes_above"]) == (2, 1)
+    # a higher threshold misses the first fall too and raises no alarm where the robot stayed up
+    r = mod.marker(traces, 4.2)  # crossed at step 43: 0.06 s before the fall
+    assert (r["caught"], r["missed"], r["upright_episodes_above"]) == (1, 1, 0)
+    assert np.isclose(r["lead_min_s"], 0.06)
+    r = mod.marker(traces, 6.0)
+    assert (r["caught"], r["missed"], r["lead_median_s"]) == (0, 2, None)
