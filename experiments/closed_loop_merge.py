@@ -9,11 +9,18 @@ from stride_jax.jobs import closed_loop
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("parts", nargs="+")
+    ap.add_argument("parts", nargs="*", help="run folders or JSON files of rows (none: only "
+                                             "--onto's table, e.g. with a new --headline)")
     ap.add_argument("--out", required=True)
     ap.add_argument("--title", default="")
     ap.add_argument("--onto", default=None,
                     help="a merged closed_loop.json to append the parts to (its rows and notes kept)")
+    ap.add_argument("--headline", default=None,
+                    help="comma-separated parts holding the current planner's rows (the report's "
+                         "closed-loop claims read those alone)")
     a = ap.parse_args()
-    rows = closed_loop.merge(a.parts, a.out, a.title, a.onto)
+    if not a.parts and not a.onto:
+        ap.error("give parts to merge, or --onto a merged table")
+    rows = closed_loop.merge(a.parts, a.out, a.title, a.onto,
+                             a.headline.split(",") if a.headline else None)
     print(f"{len(rows)} rows -> {a.out}/closed_loop.{{json,md}}")

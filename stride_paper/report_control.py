@@ -111,6 +111,32 @@ def _row_key(r: dict) -> str:
     return "-"
 
 
+def _kind(model: str) -> str:
+    """A merged row's model kind: its name without ``@part`` and a trained seed's ``_sN``."""
+    return re.sub(r"_s\d+$", "", model.split("@")[0])
+
+
+def _claim_cells(files: list[tuple[pathlib.Path, dict]]) -> tuple[dict, list, str]:
+    """The closed-loop claims' cells ``(file, scenario, model) -> rows``: where a merged table
+    names its ``headline`` parts (the current planner: ``stride_jax.jobs.closed_loop.merge``),
+    those parts' rows only, every trained seed and planner draw under its model kind, and no
+    other file's; otherwise every row of every file under its own name (the history)."""
+    heads = [(p, d) for p, d in files if isinstance(d.get("headline"), dict)]
+    cells: dict[tuple, list[dict]] = {}
+    if not heads:
+        for p, d in files:
+            for r in d["rows"]:
+                cells.setdefault((p, _row_key(r), _row_model(r)), []).append(r)
+        return cells, files, ""
+    for p, d in heads:
+        parts = set(d["headline"].get("parts") or [])
+        for r in d["rows"]:
+            if r.get("part") in parts:
+                cells.setdefault((p, _row_key(r), _kind(_row_model(r))), []).append(r)
+    return cells, heads, "; the current planner: " + "; ".join(
+        f"{', '.join(d['headline'].get('parts') or [])} of {p.parent.name}" for p, d in heads)
+
+
 def _command(d: dict) -> str | None:
     """A run's command; a merged table's part commands joined."""
     parts = d.get("parts")
@@ -154,14 +180,11 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
         return [Row(claim_fall, WHERE_CLOSED, paper_fall, "not yet run", NOT_RUN, "missing"),
                 Row(claim_best, WHERE_CLOSED, paper_best, "not yet run", NOT_RUN, "missing")], \
             lines
-    cells: dict[tuple, list[dict]] = {}
-    for p, d in files:
-        for r in d["rows"]:
-            cells.setdefault((p, _row_key(r), _row_model(r)), []).append(r)
-    models = sorted({m for _, _, m in cells})
-    stride = {k: v for k, v in cells.items() if k[2] == "stride"}
-    srcs = ", ".join(rel(p) for p, _ in files)
-    cmd = "; ".join(filter(None, (_command(d) for _, d in files)))
+    claim_cells, claim_files, current = _claim_cells(files)
+    models = sorted({m for _, _, m in claim_cells})
+    stride = {k: v for k, v in claim_cells.items() if k[2] == "stride"}
+    srcs = ", ".join(rel(p) for p, _ in claim_files)
+    cmd = "; ".join(filter(None, (_command(d) for _, d in claim_files)))
     if not stride:
         why = f"not yet run (no STRIDE rows; models present: {', '.join(models)})"
         rows = [Row(claim_fall, WHERE_CLOSED, paper_fall, why, NOT_RUN, srcs, cmd),
@@ -170,29 +193,39 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
         runs = [r for v in stride.values() for r in v]
         falls = sum(bool(r.get("fell")) for r in runs)
         rows = [Row(claim_fall, WHERE_CLOSED, paper_fall,
-                    f"fell in {falls} of {len(runs)} runs over {len(stride)} scenarios",
+                    f"fell in {falls} of {len(runs)} runs over {len(stride)} scenarios{current}",
                     verdict(falls == 0), srcs, cmd)]
         # A run that falls is worse than one that stays up, whatever its error while upright
         # (measured until the fall); among equals, the lower velocity error wins.
         fell = lambda rs: sum(bool(r.get("fell")) for r in rs) / len(rs)
         comps = []
-        for (p, key, _), rs in stride.items():
-            s = _stats(r.get("vel_rmse") for r in rs)
+        for (p, key, _), rs_all in stride.items():
             for other in ("delan", "onn"):
-                os_ = cells.get((p, key, other), [])
+                # side by side: the parts (runs) that hold both (a merged table's rows name theirs)
+                os_all = claim_cells.get((p, key, other), [])
+                both = {r.get("part") for r in rs_all} & {r.get("part") for r in os_all}
+                rs = [r for r in rs_all if r.get("part") in both]
+                os_ = [r for r in os_all if r.get("part") in both]
+                s = _stats(r.get("vel_rmse") for r in rs)
                 o = _stats(r.get("vel_rmse") for r in os_)
-                if s is not None and o is not None:
-                    comps.append((key, other, (fell(rs), s["mean"]) <= (fell(os_), o["mean"])))
+                if rs and os_ and s is not None and o is not None:
+                    where = f" ({p.parent.name})" if len(claim_files) > 1 else ""
+                    comps.append((key + where, other,
+                                  (fell(rs), s["mean"]) <= (fell(os_), o["mean"])))
         if comps:
             worse = [f"{k} vs {NAMES[o]}" for k, o, ok in comps if not ok]
             rows.append(Row(claim_best, WHERE_CLOSED, paper_best,
                             f"at most in {len(comps) - len(worse)} of {len(comps)} comparisons"
-                            + (f" (worse: {', '.join(worse)})" if worse else ""),
+                            + (f" (worse: {', '.join(worse)})" if worse else "") + current,
                             verdict(not worse), srcs, cmd))
         else:
             rows.append(Row(claim_best, WHERE_CLOSED, paper_best,
                             "no scenario with STRIDE and DeLaN or ONN side by side", NOT_RUN,
                             srcs, cmd))
+    cells: dict[tuple, list[dict]] = {}  # the tables below: every row under its own name
+    for p, d in files:
+        for r in d["rows"]:
+            cells.setdefault((p, _row_key(r), _row_model(r)), []).append(r)
     for p, d in files:
         c = _command(d)
         git = _git_note(p)

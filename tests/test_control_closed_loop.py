@@ -544,6 +544,21 @@ def test_a_merge_onto_an_earlier_one_keeps_its_rows_and_notes(tmp_path):
                      onto=str(tmp_path / "second" / "closed_loop.json"))
     assert again[:4] == rows
     assert [(r["model"], r["part"]) for r in again[4:]] == [("onn", "b"), ("stride@b", "b")]
+    # the headline (the current planner's parts): set, kept by a later merge onto it, refused
+    # for a part the table does not hold; no parts at all re-marks the headline alone
+    cl.merge([], str(tmp_path / "fourth"), onto=str(tmp_path / "third" / "closed_loop.json"),
+             headline=["b"])
+    fourth = json.loads((tmp_path / "fourth" / "closed_loop.json").read_text())
+    assert fourth["headline"] == {"parts": ["b"]} and fourth["rows"] == again
+    assert "`b`" in (tmp_path / "fourth" / "closed_loop.md").read_text()
+    c = _part(tmp_path / "c", [_row("soft", "stride", 0.1)], "3")
+    fifth = cl.merge([str(c)], str(tmp_path / "fifth"),
+                     onto=str(tmp_path / "fourth" / "closed_loop.json"))
+    assert json.loads((tmp_path / "fifth" / "closed_loop.json").read_text())["headline"] == {
+        "parts": ["b"]} and fifth[-1]["part"] == "c"
+    with pytest.raises(ValueError, match="not parts of the table"):
+        cl.merge([], str(tmp_path / "sixth"), onto=str(tmp_path / "fifth" / "closed_loop.json"),
+                 headline=["b", "zz"])
 
 
 def test_the_recovery_alarm_fires_on_the_velocity_tracking_error(go1):

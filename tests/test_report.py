@@ -180,6 +180,37 @@ def test_missing_optional_inputs_are_not_run(results):
     assert _find(_verdicts(results), "without falling") == report.NOT_RUN
 
 
+def test_closed_loop_claims_read_the_headline_parts_alone(results):
+    """A merged table naming its ``headline`` parts (the current planner): the closed-loop claims
+    read those parts' rows alone, every trained seed and draw under its kind (``stride_s1``,
+    ``stride@part``), and no file without a headline; without one, every file's rows count."""
+    _full(results)
+    _write(results / "closed_loop_test" / "closed_loop.json", _closed(0.05, fell=True))  # old
+    row = lambda sc, m, v, part, fell=False: dict(scenario=sc, model=m, vel_rmse=v, fell=fell,
+                                                  part=part)
+    merged = {"parts": {"old": {"command": "a"}, "new": {"command": "b"}},
+              "headline": {"parts": ["new"]},
+              "rows": [row("tilt", "stride", 0.9, "old", fell=True), row("tilt", "onn", 0.5, "old"),
+                       row("tilt", "stride@new", 0.85, "new"), row("tilt", "stride_s1@new", 0.87, "new"),
+                       row("tilt", "onn@new", 0.8, "new", fell=True), row("tilt", "onn_s1@new", 0.7, "new"),
+                       row("soft", "stride@new", 0.15, "new"), row("soft", "delan@new", 0.2, "new")]}
+    _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
+    rows = {r.claim: r for r in report.build(results)["rows"]}
+    fall = _find({k: r for k, r in rows.items()}, "without falling")
+    assert fall.verdict == report.HOLDS and "fell in 0 of 3 runs over 2 scenarios" in fall.ours
+    assert "the current planner: new of closed_loop_g1_gpu" in fall.ours
+    best = _find({k: r for k, r in rows.items()}, "as good as DeLaN's and ONN's")
+    # tilt: STRIDE 0 of 2 fell, ONN 1 of 2; soft: 0.15 against DeLaN's 0.2
+    assert best.verdict == report.HOLDS and "at most in 2 of 2 comparisons" in best.ours
+    merged["rows"].append(row("soft", "onn_s2@new", 0.1, "new"))
+    _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
+    best = _find({r.claim: r for r in report.build(results)["rows"]}, "as good as DeLaN's")
+    assert best.verdict == report.FAILS and "soft vs ONN" in best.ours
+    del merged["headline"]  # no headline anywhere: the history, every file, names as they are
+    _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
+    assert _find(_verdicts(results), "without falling") == report.FAILS
+
+
 def test_all_seeds_diverged_is_not_measurable(results):
     t = _table("go1")
     for r in t["runs"]:

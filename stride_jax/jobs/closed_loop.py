@@ -432,7 +432,8 @@ def _run_seed(env: dict | None) -> int:
     return ((env or {}).get("config") or {}).get("seed", 0)
 
 
-def merge(parts: list[str], out: str, title: str = "", onto: str | None = None) -> list[dict]:
+def merge(parts: list[str], out: str, title: str = "", onto: str | None = None,
+          headline: list[str] | None = None) -> list[dict]:
     """One table from several runs' folders (``closed_loop.json`` each: runs split over device
     calls, or variants of the planner): every row keeps its part's name (``part``) and the part's
     command and device go to ``closed_loop.json``'s ``parts``. A part may also be a JSON file of
@@ -443,16 +444,19 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None) 
     ``onto``: a merged ``closed_loop.json`` whose rows (with any notes added to them since) and
     parts are kept as they are, the new parts' rows appended after them (its title unless
     ``title`` is given); a part merged there before adds the rows its run has written since (a
-    resumed run), and none new is an error."""
+    resumed run), and none new is an error. ``headline``: the parts that hold the current
+    planner's rows (the report's closed-loop claims read those alone; kept from ``onto`` when not
+    given); each must be a part of the table."""
     import shutil
 
     out_dir = pathlib.Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    rows, envs_, seen = [], {}, set()
+    rows, envs_, seen, head = [], {}, set(), None
     if onto is not None:
         base = json.loads(pathlib.Path(onto).read_text())
         rows, envs_ = list(base["rows"]), dict(base["parts"])
         title = title or base.get("title", "")
+        head = base.get("headline")
         seen = {(r["scenario"], r["model"], r.get("seed", _run_seed(envs_.get(r.get("part")))))
                 for r in rows}
     for part in parts:
@@ -491,11 +495,22 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None) 
             trace = src.parent / trace_name(r["scenario"], r["model"], episode, seed)
             if trace.is_file():
                 shutil.copy2(trace, out_dir / trace_name(r["scenario"], model, episode, seed))
-    atomic_write_text(out_dir / "closed_loop.json",
-                      json.dumps(dict(title=title, parts=envs_, rows=rows), indent=1))
+    if headline is not None:
+        unknown = [h for h in headline if h not in envs_]
+        if unknown:
+            raise ValueError(f"headline parts {unknown} are not parts of the table "
+                             f"(parts: {', '.join(envs_)})")
+        head = dict(parts=list(headline))
+    table = dict(title=title, parts=envs_, rows=rows)
+    if head is not None:
+        table["headline"] = head
+    atomic_write_text(out_dir / "closed_loop.json", json.dumps(table, indent=1))
     lines = [f"# {title or 'Closed-loop MPPI'}", "", "Parts (each row names its part):", ""]
     lines += [f"- `{k}`: `{v.get('command', '')}` ({v.get('device', '?')})"
               for k, v in envs_.items()]
+    if head is not None:
+        lines += ["", f"The current planner (the report's claims read these parts' rows alone): "
+                      f"{', '.join(f'`{h}`' for h in head['parts'])}."]
     lines += ["", "| scenario | model | part | vel RMSE (m/s) | yaw RMSE (rad/s) | mean vx (m/s) | "
               "fell | fall at (s) | ms/step |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
