@@ -89,6 +89,11 @@ class PlanningConfig:
         before), which 0.5% of the steps of the 104 episodes that stayed up reached
         (``results/planning_diagnosis/g1_observer_marker.md``); with the gate at 3.5 (held
         1 s) the three trained STRIDE seeds fell in none of 72 draws over six scenarios.
+        What it cannot tell apart: a large real disturbance from model error. A right model on
+        a slope steeper than ``asin(trust_limit / g)`` (21 degrees at 3.5), under a hard push or
+        with a heavy payload needs that much correction too, and the gate hands the robot to
+        the policy there as well (under G1's pushes a third of the time). The vertical entry
+        alone is no better marker (at 2.5 it preceded 35 of the 57 falls).
       trust_hold_s: the policy keeps acting this long (s) after the gate last held
         (``MPPIConfig.distrust_hold``; 0: only while it holds).
     """
