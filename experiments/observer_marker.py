@@ -54,10 +54,9 @@ def load(folders: list[str]) -> tuple[list[dict], list[str]]:
     """Every trace with a non-zero observer estimate under ``folders`` (ran with the observer)."""
     traces, names = [], []
     for folder in folders:
-        files = sorted(pathlib.Path(folder).glob("trace_*.npz"))
         if not pathlib.Path(folder).is_dir():
             raise FileNotFoundError(f"{folder}: not a folder of closed-loop traces")
-        for f in files:
+        for f in sorted(pathlib.Path(folder).glob("trace_*.npz")):
             with np.load(f) as d:
                 if "disturbance" not in d or not np.any(d["disturbance"]):
                     continue
