@@ -168,7 +168,7 @@ def load_closed_loop(results: pathlib.Path) -> list[tuple[pathlib.Path, dict]]:
 
 def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
     files = load_closed_loop(results)
-    lines = ["## Closed-loop tracking (MPPI in MJX, Go1)", ""]
+    lines = ["## Closed-loop tracking (MPPI in MJX, Go1 and G1)", ""]
     claim_fall = ("STRIDE in MPPI tracks its commands without falling (velocity steps and "
                   "changes, 20 deg slope, unseen ground)")
     claim_best = ("STRIDE's tracking at least as good as DeLaN's and ONN's in every scenario "
@@ -222,6 +222,10 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
             rows.append(Row(claim_best, WHERE_CLOSED, paper_best,
                             "no scenario with STRIDE and DeLaN or ONN side by side", NOT_RUN,
                             srcs, cmd))
+    if current:
+        lines += [f"Claims 24-25 read the current planner's rows alone{current} (a merged table's "
+                  "`headline`); every table below, the history of every planner tried, keeps "
+                  "each row under its own name.", ""]
     cells: dict[tuple, list[dict]] = {}  # the tables below: every row under its own name
     for p, d in files:
         for r in d["rows"]:
