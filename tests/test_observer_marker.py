@@ -33,3 +33,6 @@ def test_marker_counts_caught_and_missed_falls_and_the_upright_share_above(exper
     assert np.isclose(r["lead_min_s"], 0.06)
     r = mod.marker(traces, 6.0)
     assert (r["caught"], r["missed"], r["lead_median_s"]) == (0, 2, None)
+    # the upward entry alone: these traces' estimates lie along x, so nothing is caught
+    r = mod.marker(traces, 3.5, component="vertical")
+    assert (r["caught"], r["missed"], r["upright_episodes_above"]) == (0, 2, 0)
