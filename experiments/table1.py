@@ -81,6 +81,9 @@ class Table1Config:
         e.g. ``prior,sample``.
       ablation_seeds: train the ablation runs on every seed, not only the first.
       steps: training steps (0: the training preset's).
+      stop_at: stop every run after this many steps while its learning-rate schedule spans
+        ``steps`` (``stride train --stop-at``; 0: run to ``steps``): seeds trained to the step
+        where another seed of the same schedule stopped.
       transition_weight: ``stride train --transition-weight`` for every run (the structured
         models' one-control-period transition loss; 0: the paper's training). Non-zero weights
         get their own runs and results folders (``<robot>[_<data>]_tw<weight>``).
@@ -102,6 +105,7 @@ class Table1Config:
     ablation: str = ""
     ablation_seeds: bool = False
     steps: int = 0
+    stop_at: int = 0
     transition_weight: float = 0.0
     transition_fraction: float = 1.0
     parallel: int = 5
@@ -164,6 +168,7 @@ def main(argv: list[str] | None = None) -> None:
         *(["--steps", str(steps)] if steps else []),
         "--seed", str(s), "--data", str(data[r]), "--out", str(run_dir(r, m, s, v)),
         "--deadline", str(deadline), *(["--acc-through", v] if v else []),
+        *(["--stop-at", str(args.stop_at)] if args.stop_at else []),
         *(["--transition-weight", f"{args.transition_weight:g}"] if tw else []),
         *(["--transition-fraction", f"{tf:g}"] if tf < 1 else []))
         for r, m, s, v in jobs}

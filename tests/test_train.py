@@ -107,6 +107,28 @@ def test_chunked_steps_take_the_same_draws_as_one_scan():
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6), res.params, one)
 
 
+def test_stop_at_holds_a_run_at_that_step_on_the_full_schedule(tmp_path):
+    """``stop_at`` stops a run validated and saved at that step (off the validation grid too);
+    the same call again adds nothing, and going on lands where one uninterrupted run does: the
+    schedule spans ``steps`` throughout (seeds trained to where another seed stopped)."""
+    data = {"x": jnp.linspace(-1.0, 1.0, 50), "y": jnp.linspace(0.0, 3.0, 50)}
+    loss = lambda p, b, key: (jnp.mean((p["w"] * b["x"] + p["b"] - b["y"]) ** 2), {})
+    validate = lambda p: (float(jnp.mean((p["w"] * data["x"] + p["b"] - data["y"]) ** 2)), {})
+    opt = loop.optimizer(1e-2, 10)
+    p0, key = {"w": jnp.zeros(()), "b": jnp.zeros(())}, jax.random.key(0)
+    (one, _), _, _ = loop.scan_steps(loss, opt, p0, opt.init(p0), data, key, 0, 10, 8)
+    run = lambda stop_at: loop.run(loss, p0, data, loop.LoopConfig(
+        steps=10, batch=8, eval_every=3, ckpt_every=3, stop_at=stop_at), opt, key, validate,
+        out=tmp_path / "run", progress=None)
+    held = run(4)
+    assert held.steps_done == 4 and held.checked_at == [3, 4]
+    assert run(4).steps_done == 4 and run(4).checked_at == []
+    assert run(0).steps_done == 10
+    step, last = _latest_params(tmp_path / "run")
+    assert step == 10
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6), last, one)
+
+
 def test_missing_dataset_says_how_to_make_it(tmp_path):
     """Training makes no data unless asked (--make-data): the error names the command."""
     with pytest.raises(SystemExit, match="stride data --robot pendulum --preset tiny"):

@@ -61,6 +61,10 @@ class LoopConfig:
       seed: minibatch draws and initialisation.
       deadline: Unix time (0 for none): stop cleanly at the first validation after it, with a
         checkpoint to resume from (for machines lent by the hour).
+      stop_at: stop cleanly after this many steps (0: at ``steps``), validated and with a
+        checkpoint to resume from, while the learning-rate schedule still spans ``steps``: a run
+        trained in chunks, or one trained to the step where another run of the same schedule
+        stopped (equal training, not a shorter schedule).
     """
 
     steps: int = 2000
@@ -70,6 +74,7 @@ class LoopConfig:
     ckpt_every: int = 500
     seed: int = 0
     deadline: float = 0.0
+    stop_at: int = 0
 
 
 def optimizer(lr: float, steps: int, weight_decay: float = 0.0) -> optax.GradientTransformation:
@@ -162,6 +167,8 @@ def _next_stop(step: int, cfg: LoopConfig, validating: bool, saving: bool) -> in
     """Where the chunk that starts after ``step`` ends: the next validation, the next
     checkpoint or the last step."""
     stop = cfg.steps
+    if 0 < cfg.stop_at and step < cfg.stop_at:
+        stop = min(stop, cfg.stop_at)
     if validating:
         stop = min(stop, (step // cfg.eval_every + 1) * cfg.eval_every)
     if saving:
@@ -271,7 +278,8 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
     metrics_log = _Log(out / "metrics.csv" if out is not None and main else None)
     with tqdm(total=cfg.steps, initial=start, desc=progress, unit="step",
               disable=progress is None or not main) as bar:
-        while step < cfg.steps:
+        end = min(cfg.steps, cfg.stop_at) if cfg.stop_at > 0 else cfg.steps
+        while step < end:
             stop = _next_stop(step, cfg, validate is not None, ckpt is not None)
             (p, o), chunk_losses, parts = chunk(state["params"], state["opt"], data, key_data,
                                                 step, n=stop - step)
@@ -287,7 +295,8 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
                     f"the training loss became {bad} by step {step}{where}. Lower the "
                     f"learning rate ({cfg.lr}) or check the data for outliers.")
             last = step == cfg.steps
-            if validate is not None and (step % cfg.eval_every == 0 or last):
+            held = step == cfg.stop_at and not last  # stopped by stop_at: validated, saved
+            if validate is not None and (step % cfg.eval_every == 0 or last or held):
                 score, metrics = validate(host(state["params"]))
                 checked_at.append(step)
                 scores.append(float(score))
@@ -306,8 +315,12 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
                 kept, best_step = state["params"], step
             out_of_time = bool(cfg.deadline) and step % cfg.eval_every == 0 and \
                 time.time() > cfg.deadline
-            if ckpt is not None and (step % cfg.ckpt_every == 0 or last or out_of_time):
+            if ckpt is not None and (step % cfg.ckpt_every == 0 or last or out_of_time or held):
                 ckpt.save(step, args=ocp.args.StandardSave(host(state)), force=True)
+            if held:
+                log(f"stopped at step {step} of {cfg.steps} (stop_at); run again with a later "
+                    "stop_at (or none) to go on")
+                break
             if out_of_time and not last:
                 log(f"deadline reached: stopped at step {step} of {cfg.steps}; run again "
                     "to resume")
