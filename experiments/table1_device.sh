@@ -14,6 +14,8 @@
 # --eval-only in a second call on the same (warm) machine evaluates what the first trained.
 # KEEP_SEEDS=all brings back every run's checkpoint (best/), not only seed 0's: closed-loop runs
 # over trained seeds in a later session then need no retraining (G1: ~2 MB a run).
+# TAG (when set) is added to NAME: two calls of one data set side by side (one model per GPU)
+# then keep their tables and archives apart.
 set -uo pipefail
 out=$1; robot=$2; steps=$3; minutes=$4; ablation=${5:-}; shift 5 || shift $#
 data=${DATA:-explore}
@@ -38,6 +40,7 @@ if [ "$tw" != 0 ] && [ "$tf" != 1 ]; then twargs+=(--transition-fraction "$tf");
 [ -f /tmp/site/.done ] || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MENAGERIE_ROOT=$PWD/.menagerie/menagerie
 root=/tmp/table1
+[ -z "${TAG:-}" ] || name=${name}_$TAG
 res=/tmp/table1_results/$name
 mkdir -p "$res"
 timeout -s INT "${LIMIT_S:-0}" python3 experiments/table1.py --robot "$robot" --data "$data" \
