@@ -19,30 +19,13 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
-import re
 import textwrap
 
 import numpy as np
 
 from stride_jax import io
 from stride_jax.jobs import closed_loop
-
-_NAME_SEED = re.compile(r"^(?P<kind>.+?)_s(?P<seed>\d+)$")
-_RUN_SEED = re.compile(r"-s(?P<seed>\d+)$")
-
-
-def kind_and_seed(row: dict) -> tuple[str, int]:
-    """A row's model kind (its name without a ``_sN`` suffix or ``@part``, then `` (VARIANT)``
-    where its table was given as ``VARIANT=PATH``) and trained seed (the run folder's ``-sN``
-    where the row names one, else the name's ``_sN``, else 0)."""
-    name = row["model"].split("@")[0]
-    m = _NAME_SEED.match(name)
-    kind = m["kind"] if m else name
-    if row.get("variant"):
-        kind = f"{kind} ({row['variant']})"
-    run = _RUN_SEED.search(pathlib.PurePath(str(row.get("run", ""))).name)
-    seed = int(run["seed"]) if run else int(m["seed"]) if m else 0
-    return kind, seed
+from stride_paper.seeds import kind_and_seed, welch
 
 
 def gather(rows: list[dict]) -> list[dict]:
@@ -91,23 +74,18 @@ def versus(groups: list[dict], against: str = "stride", level: float = 0.9) -> l
     mean over its planner draws), with Welch's ``level`` t-interval (None: fewer than two such
     seeds on either side, no spread on either, or no ``against`` group). An interval that holds
     0 says the kinds are not told apart by these seeds."""
-    from scipy import stats
-
     base = {g["scenario"]: g for g in groups if g["model"] == against}
     for g in groups:
         b = base.get(g["scenario"])
         g["vs"] = None
         if b is None or b is g:
             continue
-        x = np.array([v for v, f in zip(g["vel_rmse"], g["fell"]) if not f])
-        y = np.array([v for v, f in zip(b["vel_rmse"], b["fell"]) if not f])
-        if len(x) < 2 or len(y) < 2:
-            continue
-        ci = stats.ttest_ind(x, y, equal_var=False).confidence_interval(level)
-        if not (np.isfinite(ci.low) and np.isfinite(ci.high)):  # no spread on either side
-            continue
-        g["vs"] = dict(against=against, level=level, diff=float(x.mean() - y.mean()),
-                       lo=float(ci.low), hi=float(ci.high), seeds=[len(x), len(y)])
+        x = [v for v, f in zip(g["vel_rmse"], g["fell"]) if not f]
+        y = [v for v, f in zip(b["vel_rmse"], b["fell"]) if not f]
+        w = welch(x, y, level)
+        if w is not None:
+            g["vs"] = dict(against=against, level=level, diff=w["diff"], lo=w["lo"], hi=w["hi"],
+                           seeds=w["n"])
     return groups
 
 

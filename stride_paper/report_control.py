@@ -13,6 +13,7 @@ from stride_paper.report_common import (
     WHERE_MPPI,
     Row, _dig, _finite, _git_note, _load_json, _num, _stats, _table, verdict,
 )
+from stride_paper.seeds import kind_and_seed, seed_means, welch
 
 # ---------------------------------------------------------------------------------- MPPI
 
@@ -111,11 +112,6 @@ def _row_key(r: dict) -> str:
     return "-"
 
 
-def _kind(model: str) -> str:
-    """A merged row's model kind: its name without ``@part`` and a trained seed's ``_sN``."""
-    return re.sub(r"_s\d+$", "", model.split("@")[0])
-
-
 def _claim_cells(files: list[tuple[pathlib.Path, dict]]) -> tuple[dict, list, str]:
     """The closed-loop claims' cells ``(file, scenario, model) -> rows``: where a merged table
     names its ``headline`` parts (the current planner: ``stride_jax.jobs.closed_loop.merge``),
@@ -132,7 +128,8 @@ def _claim_cells(files: list[tuple[pathlib.Path, dict]]) -> tuple[dict, list, st
         parts = set(d["headline"].get("parts") or [])
         for r in d["rows"]:
             if r.get("part") in parts:
-                cells.setdefault((p, _row_key(r), _kind(_row_model(r))), []).append(r)
+                cells.setdefault((p, _row_key(r), kind_and_seed({"model": _row_model(r)})[0]),
+                               []).append(r)
     return cells, heads, "; the current planner: " + "; ".join(
         f"{', '.join(d['headline'].get('parts') or [])} of {p.parent.name}" for p, d in heads)
 
@@ -210,13 +207,30 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
                 o = _stats(r.get("vel_rmse") for r in os_)
                 if rs and os_ and s is not None and o is not None:
                     where = f" ({p.parent.name})" if len(claim_files) > 1 else ""
+                    # over trained seeds (each one draw of its training): told apart or not
+                    w = welch(seed_means(os_).values(), seed_means(rs).values())
                     comps.append((key + where, other,
-                                  (fell(rs), s["mean"]) <= (fell(os_), o["mean"])))
+                                  (fell(rs), s["mean"]) <= (fell(os_), o["mean"]), w))
         if comps:
-            worse = [f"{k} vs {NAMES[o]}" for k, o, ok in comps if not ok]
+            def _worse(k, o, w):
+                if w is None:
+                    return f"{k} vs {NAMES[o]}"
+                apart = "told apart" if w["hi"] < 0 else "not told apart"
+                return (f"{k} vs {NAMES[o]} by {-w['diff']:.4f} m/s, 90% [{-w['hi']:+.4f}, "
+                        f"{-w['lo']:+.4f}] over {w['n'][1]} / {w['n'][0]} trained seeds: {apart}")
+            worse = [(k, o, w) for k, o, ok, w in comps if not ok]
+            apart = [x for x in worse if x[2] is not None and x[2]["hi"] < 0]
+            seeded = [x for x in worse if x[2] is not None]
             rows.append(Row(claim_best, WHERE_CLOSED, paper_best,
                             f"at most in {len(comps) - len(worse)} of {len(comps)} comparisons"
-                            + (f" (worse: {', '.join(worse)})" if worse else "") + current,
+                            + (f"; of the {len(worse)} worse, {len(apart)} told apart by the "
+                               "trained seeds (Welch's 90% interval of STRIDE minus the other "
+                               f"clear of 0), {len(seeded) - len(apart)} not"
+                               + (f", {len(worse) - len(seeded)} without seeds to tell"
+                                  if len(seeded) < len(worse) else "")
+                               if seeded else "")
+                            + (f" (worse: {'; '.join(_worse(*x) for x in worse)})"
+                               if worse else "") + current,
                             verdict(not worse), srcs, cmd))
         else:
             rows.append(Row(claim_best, WHERE_CLOSED, paper_best,

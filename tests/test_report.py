@@ -206,6 +206,18 @@ def test_closed_loop_claims_read_the_headline_parts_alone(results):
     _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
     best = _find({r.claim: r for r in report.build(results)["rows"]}, "as good as DeLaN's")
     assert best.verdict == report.FAILS and "soft vs ONN" in best.ours
+    # a loss over several trained seeds says whether the seeds tell the kinds apart
+    seeds = lambda m, vs: [row("push", f"{m}_s{i}@new" if i else f"{m}@new", v, "new")
+                           for i, v in enumerate(vs)]
+    for onn, apart in (([0.101, 0.103, 0.102], "told apart"),
+                       ([0.08, 0.125, 0.10], "not told apart")):
+        merged["rows"] = [r for r in merged["rows"] if r["scenario"] != "push"] + \
+            seeds("stride", [0.110, 0.112, 0.111]) + seeds("onn", onn)
+        _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
+        best = _find({r.claim: r for r in report.build(results)["rows"]}, "as good as DeLaN's")
+        assert f"over 3 / 3 trained seeds: {apart}" in best.ours, best.ours
+        if apart == "told apart":
+            assert "push vs ONN (plain MLP) by 0.0090 m/s" in best.ours
     del merged["headline"]  # no headline anywhere: the history, every file, names as they are
     _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
     assert _find(_verdicts(results), "without falling") == report.FAILS

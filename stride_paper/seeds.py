@@ -1,0 +1,59 @@
+"""Closed-loop rows over trained seeds, without JAX: which model kind and trained seed a row is,
+and whether two kinds are told apart by their seeds (the report and
+``experiments/trained_seeds.py`` read rows the same way).
+
+One trained model is one draw of its training (data order, initialisation), so a comparison of
+kinds is a comparison of their seeds: each seed's mean over its planner draws that stayed up is
+one value, and Welch's t-interval of the difference of the kinds' means says whether these seeds
+tell them apart (an interval holding 0 does not).
+"""
+
+from __future__ import annotations
+
+import pathlib
+import re
+from typing import Iterable
+
+import numpy as np
+
+_NAME_SEED = re.compile(r"^(?P<kind>.+?)_s(?P<seed>\d+)$")
+_RUN_SEED = re.compile(r"-s(?P<seed>\d+)$")
+
+
+def kind_and_seed(row: dict) -> tuple[str, int]:
+    """A row's model kind (its name without a ``_sN`` suffix or ``@part``, then `` (VARIANT)``
+    where its table was given as ``VARIANT=PATH``) and trained seed (the run folder's ``-sN``
+    where the row names one, else the name's ``_sN``, else 0)."""
+    name = str(row["model"]).split("@")[0]
+    m = _NAME_SEED.match(name)
+    kind = m["kind"] if m else name
+    if row.get("variant"):
+        kind = f"{kind} ({row['variant']})"
+    run = _RUN_SEED.search(pathlib.PurePath(str(row.get("run", ""))).name)
+    seed = int(run["seed"]) if run else int(m["seed"]) if m else 0
+    return kind, seed
+
+
+def seed_means(rows: Iterable[dict]) -> dict[int, float]:
+    """Each trained seed's mean velocity RMSE over its rows (planner draws) that stayed up;
+    seeds whose every draw fell are left out."""
+    per: dict[int, list[float]] = {}
+    for r in rows:
+        if not r.get("fell") and r.get("vel_rmse") is not None and np.isfinite(r["vel_rmse"]):
+            per.setdefault(kind_and_seed(r)[1], []).append(float(r["vel_rmse"]))
+    return {s: float(np.mean(v)) for s, v in sorted(per.items())}
+
+
+def welch(x: Iterable[float], y: Iterable[float], level: float = 0.9) -> dict | None:
+    """``mean(x) - mean(y)`` with Welch's ``level`` t-interval: ``{diff, lo, hi, n: [nx, ny]}``;
+    None with fewer than two values on either side or no spread on both."""
+    from scipy import stats
+
+    x, y = np.asarray(list(x), float), np.asarray(list(y), float)
+    if len(x) < 2 or len(y) < 2:
+        return None
+    ci = stats.ttest_ind(x, y, equal_var=False).confidence_interval(level)
+    if not (np.isfinite(ci.low) and np.isfinite(ci.high)):
+        return None
+    return dict(diff=float(x.mean() - y.mean()), lo=float(ci.low), hi=float(ci.high),
+                n=[len(x), len(y)])
