@@ -252,18 +252,19 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
                   "Cells: velocity tracking RMSE (m/s), mean ± std over runs; falls.", ""]
         keys = list(dict.fromkeys(_row_key(r) for r in d["rows"]))
         ms = list(dict.fromkeys(_row_model(r) for r in d["rows"]))
-        table = []
-        for k in keys:
-            row = [k]
-            for m in ms:
-                rs = cells.get((p, k, m), [])
-                s = _stats(r.get("vel_rmse") for r in rs)
-                fell = sum(bool(r.get("fell")) for r in rs)
-                row.append("-" if not rs else (f"{s['mean']:.2f}" if s else "n/a") + (
-                    f" ± {s['std']:.2f}" if s and s["n"] > 1 else "") + (
-                    f", fell {fell}/{len(rs)}" if fell else ""))
-            table.append(row)
-        lines += _table(["scenario"] + ms, table) + [""]
+
+        def cell(k, m):
+            rs = cells.get((p, k, m), [])
+            s = _stats(r.get("vel_rmse") for r in rs)
+            fell = sum(bool(r.get("fell")) for r in rs)
+            return "-" if not rs else (f"{s['mean']:.3f}" if s else "n/a") + (
+                f" ± {s['std']:.3f}" if s and s["n"] > 1 else "") + (
+                f", fell {fell}/{len(rs)}" if fell else "")
+        if len(ms) <= len(keys):  # one row per scenario, a column per model
+            lines += _table(["scenario"] + ms, [[k] + [cell(k, m) for m in ms] for k in keys])
+        else:  # a merged table's many models (and parts): a row per model, a column per scenario
+            lines += _table(["model"] + keys, [[m] + [cell(k, m) for k in keys] for m in ms])
+        lines.append("")
     return rows, lines
 
 

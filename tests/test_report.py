@@ -218,6 +218,9 @@ def test_closed_loop_claims_read_the_headline_parts_alone(results):
         assert f"over 3 / 3 trained seeds: {apart}" in best.ours, best.ours
         if apart == "told apart":
             assert "push vs ONN (plain MLP) by 0.0090 m/s" in best.ours
+    # a merged table with more models than scenarios: a row per model, a column per scenario
+    md = report.build(results)["markdown"]
+    assert "| model | tilt | soft | push |" in md and "| stride_s1@new | 0.870 | - | 0.112 |" in md
     del merged["headline"]  # no headline anywhere: the history, every file, names as they are
     _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
     assert _find(_verdicts(results), "without falling") == report.FAILS
