@@ -603,6 +603,10 @@ def test_the_trust_gate_reads_the_observers_linear_estimate(go1):
     assert bool(planning.distrust(at([2.0, 2.0, 2.1, 0.0, 0.0, 0.0]), qd))  # |lin| 3.52
     assert planning.distrust_hold == round(0.2 / go1.robot.ctrl_dt)
     assert planning_lib.mppi_config(mppi.MPPIConfig(), cfg, planning).distrust_hold == 10
+    # a hold in steps on the MPPI settings that the seconds would replace is refused, named
+    assert planning_lib.mppi_config(mppi.MPPIConfig(distrust_hold=10), cfg, planning)
+    with pytest.raises(ValueError, match="distrust_hold=25 .*trust_hold_s=0.2 s gives 10"):
+        planning_lib.mppi_config(mppi.MPPIConfig(distrust_hold=25), cfg, planning)
     assert planning_lib.make_planning(planning_lib.PlanningConfig(), envs.config("go1"), go1,
                                       _fake_step, policy).distrust is None
     with pytest.raises(ValueError, match="needs a PPO policy"):

@@ -364,7 +364,18 @@ def mppi_config(mppi_cfg: mppi.MPPIConfig, cfg: PlanningConfig,
     """The run's MPPI settings ``mppi_cfg`` with the task's exploration noise per action entry
     and the policy prior's noise, the policy family's command-offset noise, the recovery
     candidates' noise where the task has an alarm (and no policy candidates, prior or family
-    without a policy)."""
+    without a policy). The alarm's and the trust gate's holds come from ``cfg`` (seconds,
+    converted for the robot): a hold set in control steps on ``mppi_cfg`` that differs is an error,
+    not silently replaced."""
+    for steps, secs, got in (("alarm_hold", "alarm_hold_s", planning.alarm_hold),
+                             ("distrust_hold", "trust_hold_s", planning.distrust_hold)):
+        mine = getattr(mppi_cfg, steps)
+        if mine and mine != got:
+            raise ValueError(
+                f"MPPIConfig.{steps}={mine} control steps, but the planning's {secs}="
+                f"{getattr(cfg, secs):g} s gives {got}: set the hold in seconds "
+                f"(PlanningConfig.{secs}, --planning.{secs.replace('_', '-')}); "
+                f"MPPIConfig.{steps} is for planners built with mppi.make directly")
     nu = len(planning.lo)
     fam_std = (cfg.family_std, 0.5 * cfg.family_std, cfg.family_std)
     return dataclasses.replace(mppi_cfg, noise_std=planning.noise,
