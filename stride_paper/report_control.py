@@ -207,19 +207,20 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
                 o = _stats(r.get("vel_rmse") for r in os_)
                 if rs and os_ and s is not None and o is not None:
                     where = f" ({p.parent.name})" if len(claim_files) > 1 else ""
-                    # over trained seeds (each one draw of its training): told apart or not
-                    w = welch(seed_means(os_).values(), seed_means(rs).values())
+                    # STRIDE minus the other over trained seeds (each one draw of its
+                    # training): whether they tell the two apart
+                    w = welch(seed_means(rs).values(), seed_means(os_).values())
                     comps.append((key + where, other,
                                   (fell(rs), s["mean"]) <= (fell(os_), o["mean"]), w))
         if comps:
             def _worse(k, o, w):
                 if w is None:
                     return f"{k} vs {NAMES[o]}"
-                apart = "told apart" if w["hi"] < 0 else "not told apart"
-                return (f"{k} vs {NAMES[o]} by {-w['diff']:.4f} m/s, 90% [{-w['hi']:+.4f}, "
-                        f"{-w['lo']:+.4f}] over {w['n'][1]} / {w['n'][0]} trained seeds: {apart}")
+                apart = "told apart" if w["lo"] > 0 else "not told apart"
+                return (f"{k} vs {NAMES[o]} by {w['diff']:.4f} m/s, 90% [{w['lo']:+.4f}, "
+                        f"{w['hi']:+.4f}] over {w['n'][0]} / {w['n'][1]} trained seeds: {apart}")
             worse = [(k, o, w) for k, o, ok, w in comps if not ok]
-            apart = [x for x in worse if x[2] is not None and x[2]["hi"] < 0]
+            apart = [x for x in worse if x[2] is not None and x[2]["lo"] > 0]
             seeded = [x for x in worse if x[2] is not None]
             rows.append(Row(claim_best, WHERE_CLOSED, paper_best,
                             f"at most in {len(comps) - len(worse)} of {len(comps)} comparisons"
