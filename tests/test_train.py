@@ -129,6 +129,19 @@ def test_stop_at_holds_a_run_at_that_step_on_the_full_schedule(tmp_path):
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6), last, one)
 
 
+@pytest.mark.parametrize("bad, says", [
+    (dict(steps=0), "loop.steps=0: need a positive integer"),
+    (dict(eval_every=0), "loop.eval_every=0: need a positive integer"),
+    (dict(batch=2.5), "loop.batch=2.5: need a positive integer"),
+    (dict(stop_at=-1), "loop.stop_at=-1: need a step count >= 0"),
+    (dict(lr=float("nan")), "loop.lr=nan: need a positive, finite learning rate"),
+    (dict(lr=0.0), "loop.lr=0.0: need a positive"),
+])
+def test_bad_loop_settings_are_clear_errors(bad, says):
+    with pytest.raises(ValueError, match=says.replace(".", r"\.")):
+        loop.LoopConfig(**bad)
+
+
 def test_missing_dataset_says_how_to_make_it(tmp_path):
     """Training makes no data unless asked (--make-data): the error names the command."""
     with pytest.raises(SystemExit, match="stride data --robot pendulum --preset tiny"):

@@ -76,6 +76,19 @@ class LoopConfig:
     deadline: float = 0.0
     stop_at: int = 0
 
+    def __post_init__(self):
+        for name in ("steps", "batch", "eval_every", "ckpt_every"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"loop.{name}={v!r}: need a positive integer")
+        if isinstance(self.stop_at, bool) or not isinstance(self.stop_at, (int, np.integer)) \
+                or self.stop_at < 0:
+            raise ValueError(f"loop.stop_at={self.stop_at!r}: need a step count >= 0 (0: none)")
+        if not (np.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"loop.lr={self.lr!r}: need a positive, finite learning rate")
+        if not (np.isfinite(self.deadline) and self.deadline >= 0):
+            raise ValueError(f"loop.deadline={self.deadline!r}: need a Unix time (0: none)")
+
 
 def optimizer(lr: float, steps: int, weight_decay: float = 0.0) -> optax.GradientTransformation:
     """The house optimiser: gradients clipped at global norm 10, then Adam (AdamW with decoupled
