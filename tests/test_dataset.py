@@ -101,6 +101,18 @@ def test_cli_rejects_unknown_robot():
         cli.main(["data", "--robot", "spot"])
 
 
+@pytest.mark.parametrize("args, says", [
+    (["--episodes", "2"], "episodes must be >= 3"),
+    (["--seconds", "-1"], "seconds=-1.0: need an episode length >= 0"),
+    (["--seconds", "0.01"], r"seconds=0.01 is 1 control step\(s\) of 0.01 s: an episode needs at least 2"),
+])
+def test_cli_rejects_too_little_data(args, says, tmp_path):
+    with pytest.raises(SystemExit, match=says):
+        cli.main(["data", "--robot", "pendulum", "--preset", "tiny", "--out", str(tmp_path / "d"),
+                  *args])
+    assert not (tmp_path / "d").exists()
+
+
 def test_repeated_mjx_collections_reuse_one_compilation():
     """A second collection of the same model and length (data in chunks, a benchmark timing its
     second call) runs the compiled function of the first instead of tracing and compiling again."""

@@ -97,8 +97,14 @@ def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Datas
     randomized = cfg.randomized or cfg.stochastic
     if cfg.episodes < 3:
         raise ValueError(f"episodes must be >= 3 (train/val/test split), got {cfg.episodes}")
+    if not (cfg.seconds >= 0 and cfg.seconds < float("inf")):
+        raise ValueError(f"seconds={cfg.seconds!r}: need an episode length >= 0 "
+                         f"(0: the robot's own, {sm.robot.episode_s:g} s)")
     seconds = cfg.seconds or sm.robot.episode_s
-    n_steps = max(1, int(round(seconds / sm.robot.ctrl_dt)))
+    n_steps = int(round(seconds / sm.robot.ctrl_dt))
+    if n_steps < 2:
+        raise ValueError(f"seconds={seconds:g} is {n_steps} control step(s) of "
+                         f"{sm.robot.ctrl_dt:g} s: an episode needs at least 2")
     backend = resolve_backend(cfg.backend)
     key = jax.random.key(cfg.seed)
     part = distributed.share(cfg.episodes)  # all of them for a single process
