@@ -7,8 +7,9 @@ closed-loop velocity RMSE of planning through the same model, per scenario.
         --pair "Go1=results/table1/go1_walk_tw1_tf0.25/table.json:results/closed_loop_go1_gpu/trained_seeds.json" \\
         --out results/planning_diagnosis/open_vs_closed
 
-A pair joins a Table I (``table.json``: one run per model and seed) with the closed-loop rows of
-the same runs (``experiments/trained_seeds.py``'s JSON). Writes ``OUT.md`` / ``OUT.json`` (Spearman's
+A pair joins a Table I (``table.json``: one run per model and seed; several joined by ``+``, a
+later table's run replacing an earlier one's of the same model and seed: seeds retrained apart)
+with the closed-loop rows of the same runs (``experiments/trained_seeds.py``'s JSON). Writes ``OUT.md`` / ``OUT.json`` (Spearman's
 rho and a permutation p-value per robot, scenario and metric; the joined points) and ``OUT.png``
 (closed-loop RMSE against two of the metrics, one dot per trained model). With 8-9 models per
 scenario a rank correlation is a coarse measure: the p-values say how coarse.
@@ -67,6 +68,15 @@ def join(table: dict, seeds: dict) -> list[dict]:
     return points
 
 
+def merge_tables(tables: list[dict]) -> dict:
+    """Table I runs of several tables as one: a later table's run of the same model and seed
+    replaces an earlier one's."""
+    runs = {}
+    for t in tables:
+        runs.update({(r["model"], int(r["seed"])): r for r in t["runs"]})
+    return {"runs": list(runs.values())}
+
+
 def correlations(points: list[dict], permutations: int) -> list[dict]:
     out = []
     for sc in dict.fromkeys(p["scenario"] for p in points):
@@ -93,10 +103,11 @@ def main(argv: list[str] | None = None) -> None:
         table_path, _, seeds_path = paths.partition(":")
         if not (robot and table_path and seeds_path):
             raise SystemExit(f"--pair {spec!r}: expected ROBOT=TABLE_JSON:TRAINED_SEEDS_JSON")
-        for p in (table_path, seeds_path):
+        tables = table_path.split("+")
+        for p in (*tables, seeds_path):
             if not pathlib.Path(p).is_file():
                 raise SystemExit(f"--pair {spec!r}: {p} does not exist")
-        points = join(json.loads(pathlib.Path(table_path).read_text()),
+        points = join(merge_tables([json.loads(pathlib.Path(t).read_text()) for t in tables]),
                       json.loads(pathlib.Path(seeds_path).read_text()))
         if not points:
             raise SystemExit(f"--pair {spec!r}: no run of the table has closed-loop rows")

@@ -43,3 +43,12 @@ def test_points_join_runs_and_rows_by_kind_and_seed_and_leave_falls_out(tmp_path
     assert (tmp_path / "out.png").stat().st_size > 0
     with pytest.raises(SystemExit, match="does not exist"):
         mod.main(["--pair", f"R={tmp_path / 'missing.json'}:{sp}", "--out", str(tmp_path / "x")])
+    # seeds retrained apart: a later table's run replaces the earlier one of the same model and seed
+    again = {"runs": [_run("stride", 1, 99, 0.9)]}
+    merged = mod.merge_tables([table, again])
+    assert len(merged["runs"]) == 6
+    assert [r for r in merged["runs"] if (r["model"], r["seed"]) == ("stride", 1)] == again["runs"]
+    (ap := tmp_path / "again.json").write_text(json.dumps(again))
+    mod.main(["--pair", f"R={tp}+{ap}:{sp}", "--out", str(tmp_path / "both"), "--permutations", "200"])
+    both = json.loads((tmp_path / "both.json").read_text())["robots"]["R"]["points"]
+    assert [p["energy"] for p in both if (p["model"], p["seed"]) == ("stride", 1)] == [0.9]
