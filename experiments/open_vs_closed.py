@@ -160,8 +160,10 @@ def _plot(result: dict, path: pathlib.Path) -> None:
             if j == 0:
                 ax.set_ylabel("closed-loop vel RMSE (m/s)", fontsize=8)
             ax.tick_params(labelsize=7)
-    handles, labels = axes[0, 0].get_legend_handles_labels()
-    seen = dict(zip(labels, handles))
+    seen = {}  # every kind in any panel (the first may lack one: rough ground ran two kinds)
+    for ax in axes.flat:
+        for h, label in zip(*ax.get_legend_handles_labels()):
+            seen.setdefault(label, h)
     fig.legend(seen.values(), seen.keys(), loc="upper right", fontsize=8)
     fig.tight_layout(rect=(0, 0, 0.93, 1))
     fig.savefig(path, dpi=120)
