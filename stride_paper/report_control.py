@@ -112,6 +112,17 @@ def _row_key(r: dict) -> str:
     return "-"
 
 
+def _worse(key: str, other: str, w: dict | None) -> str:
+    """One comparison STRIDE loses: the scenario and the other kind, with (where both have
+    several trained seeds) STRIDE's margin, Welch's 90% interval and whether the seeds tell
+    the kinds apart."""
+    if w is None:
+        return f"{key} vs {NAMES[other]}"
+    apart = "told apart" if w["lo"] > 0 else "not told apart"
+    return (f"{key} vs {NAMES[other]} by {w['diff']:.4f} m/s, 90% [{w['lo']:+.4f}, "
+            f"{w['hi']:+.4f}] over {w['n'][0]} / {w['n'][1]} trained seeds: {apart}")
+
+
 def _claim_cells(files: list[tuple[pathlib.Path, dict]]) -> tuple[dict, list, str]:
     """The closed-loop claims' cells ``(file, scenario, model) -> rows``: where a merged table
     names its ``headline`` parts (the current planner: ``stride_jax.jobs.closed_loop.merge``),
@@ -213,12 +224,6 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
                     comps.append((key + where, other,
                                   (fell(rs), s["mean"]) <= (fell(os_), o["mean"]), w))
         if comps:
-            def _worse(k, o, w):
-                if w is None:
-                    return f"{k} vs {NAMES[o]}"
-                apart = "told apart" if w["lo"] > 0 else "not told apart"
-                return (f"{k} vs {NAMES[o]} by {w['diff']:.4f} m/s, 90% [{w['lo']:+.4f}, "
-                        f"{w['hi']:+.4f}] over {w['n'][0]} / {w['n'][1]} trained seeds: {apart}")
             worse = [(k, o, w) for k, o, ok, w in comps if not ok]
             apart = [x for x in worse if x[2] is not None and x[2]["lo"] > 0]
             seeded = [x for x in worse if x[2] is not None]

@@ -9,6 +9,7 @@ robot's description (:func:`stride_jax.sim.model.robot_meta`).
 from __future__ import annotations
 
 import dataclasses
+import math
 import pathlib
 import time
 
@@ -97,7 +98,7 @@ def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Datas
     randomized = cfg.randomized or cfg.stochastic
     if cfg.episodes < 3:
         raise ValueError(f"episodes must be >= 3 (train/val/test split), got {cfg.episodes}")
-    if not (cfg.seconds >= 0 and cfg.seconds < float("inf")):
+    if not math.isfinite(cfg.seconds) or cfg.seconds < 0:
         raise ValueError(f"seconds={cfg.seconds!r}: need an episode length >= 0 "
                          f"(0: the robot's own, {sm.robot.episode_s:g} s)")
     seconds = cfg.seconds or sm.robot.episode_s

@@ -77,17 +77,23 @@ class LoopConfig:
     stop_at: int = 0
 
     def __post_init__(self):
-        for name in ("steps", "batch", "eval_every", "ckpt_every"):
+        for name, least, need in (("steps", 1, "a positive integer"),
+                                  ("batch", 1, "a positive integer"),
+                                  ("eval_every", 1, "a positive integer"),
+                                  ("ckpt_every", 1, "a positive integer"),
+                                  ("stop_at", 0, "a step count >= 0 (0: none)")):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise ValueError(f"loop.{name}={v!r}: need a positive integer")
-        if isinstance(self.stop_at, bool) or not isinstance(self.stop_at, (int, np.integer)) \
-                or self.stop_at < 0:
-            raise ValueError(f"loop.stop_at={self.stop_at!r}: need a step count >= 0 (0: none)")
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
+                raise ValueError(f"loop.{name}={v!r}: need {need}")
         if not (np.isfinite(self.lr) and self.lr > 0):
             raise ValueError(f"loop.lr={self.lr!r}: need a positive, finite learning rate")
         if not (np.isfinite(self.deadline) and self.deadline >= 0):
             raise ValueError(f"loop.deadline={self.deadline!r}: need a Unix time (0: none)")
+
+
+def _end(cfg: LoopConfig) -> int:
+    """The step a call of :func:`run` trains to: ``steps``, or ``stop_at`` before it."""
+    return min(cfg.steps, cfg.stop_at) if cfg.stop_at > 0 else cfg.steps
 
 
 def optimizer(lr: float, steps: int, weight_decay: float = 0.0) -> optax.GradientTransformation:
@@ -178,10 +184,8 @@ def _manager(path: pathlib.Path, max_to_keep: int) -> ocp.CheckpointManager:
 
 def _next_stop(step: int, cfg: LoopConfig, validating: bool, saving: bool) -> int:
     """Where the chunk that starts after ``step`` ends: the next validation, the next
-    checkpoint or the last step."""
-    stop = cfg.steps
-    if 0 < cfg.stop_at and step < cfg.stop_at:
-        stop = min(stop, cfg.stop_at)
+    checkpoint or the last step of this call (``stop_at``)."""
+    stop = _end(cfg)
     if validating:
         stop = min(stop, (step // cfg.eval_every + 1) * cfg.eval_every)
     if saving:
@@ -291,7 +295,7 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
     metrics_log = _Log(out / "metrics.csv" if out is not None and main else None)
     with tqdm(total=cfg.steps, initial=start, desc=progress, unit="step",
               disable=progress is None or not main) as bar:
-        end = min(cfg.steps, cfg.stop_at) if cfg.stop_at > 0 else cfg.steps
+        end = _end(cfg)
         while step < end:
             stop = _next_stop(step, cfg, validate is not None, ckpt is not None)
             (p, o), chunk_losses, parts = chunk(state["params"], state["opt"], data, key_data,
@@ -308,7 +312,7 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
                     f"the training loss became {bad} by step {step}{where}. Lower the "
                     f"learning rate ({cfg.lr}) or check the data for outliers.")
             last = step == cfg.steps
-            held = step == cfg.stop_at and not last  # stopped by stop_at: validated, saved
+            held = step == end < cfg.steps  # stopped by stop_at: validated, saved
             if validate is not None and (step % cfg.eval_every == 0 or last or held):
                 score, metrics = validate(host(state["params"]))
                 checked_at.append(step)
