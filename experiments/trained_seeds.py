@@ -25,7 +25,7 @@ import numpy as np
 
 from stride_jax import io
 from stride_jax.jobs import closed_loop
-from stride_paper.seeds import kind_and_seed, welch
+from stride_paper.seeds import kind_and_seed, seed_means, welch
 
 
 def gather(rows: list[dict]) -> list[dict]:
@@ -52,11 +52,9 @@ def gather(rows: list[dict]) -> list[dict]:
         per = {s: [e for e in episodes if e["seed"] == s] for s in seeds}
         up = [e["vel_rmse"] for e in episodes if not e["fell"]]
 
-        def seed_rmse(eps):
-            kept = [e["vel_rmse"] for e in eps if not e["fell"]] or [e["vel_rmse"] for e in eps]
-            return float(np.mean(kept))
+        means = seed_means([r for s in seeds for r in got[s].values()], fallen="all")
         out.append(dict(scenario=sc, model=kind, seeds=seeds,
-                        vel_rmse=[seed_rmse(per[s]) for s in seeds],
+                        vel_rmse=[means.get(s, float("nan")) for s in seeds],
                         fell=[all(e["fell"] for e in per[s]) for s in seeds],
                         draws=[len(per[s]) for s in seeds],
                         falls=[sum(e["fell"] for e in per[s]) for s in seeds],

@@ -34,14 +34,24 @@ def kind_and_seed(row: dict) -> tuple[str, int]:
     return kind, seed
 
 
-def seed_means(rows: Iterable[dict]) -> dict[int, float]:
-    """Each trained seed's mean velocity RMSE over its rows (planner draws) that stayed up;
-    seeds whose every draw fell are left out."""
-    per: dict[int, list[float]] = {}
+def seed_means(rows: Iterable[dict], fallen: str = "drop") -> dict[int, float]:
+    """Each trained seed's mean velocity RMSE over its rows (planner draws) that stayed up.
+    A seed whose every draw fell is left out (``fallen="drop"``: it has no tracking to compare)
+    or given the mean over all its draws, the error until each fall (``fallen="all"``: for a
+    table that shows every seed)."""
+    if fallen not in ("drop", "all"):
+        raise ValueError(f"fallen must be 'drop' or 'all', got {fallen!r}")
+    up: dict[int, list[float]] = {}
+    every: dict[int, list[float]] = {}
     for r in rows:
-        if not r.get("fell") and r.get("vel_rmse") is not None and np.isfinite(r["vel_rmse"]):
-            per.setdefault(kind_and_seed(r)[1], []).append(float(r["vel_rmse"]))
-    return {s: float(np.mean(v)) for s, v in sorted(per.items())}
+        if r.get("vel_rmse") is None or not np.isfinite(r["vel_rmse"]):
+            continue
+        seed = kind_and_seed(r)[1]
+        every.setdefault(seed, []).append(float(r["vel_rmse"]))
+        if not r.get("fell"):
+            up.setdefault(seed, []).append(float(r["vel_rmse"]))
+    kept = up if fallen == "drop" else {s: up.get(s) or v for s, v in every.items()}
+    return {s: float(np.mean(v)) for s, v in sorted(kept.items())}
 
 
 def welch(x: Iterable[float], y: Iterable[float], level: float = 0.9) -> dict | None:

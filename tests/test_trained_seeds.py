@@ -36,6 +36,21 @@ def test_gather_keeps_each_seed_and_leaves_falls_out_of_the_mean(experiment):
         mod.gather(rows + [_row("push", "stride@other", 0.2, run="q/stride-s0")])
 
 
+def test_seed_means_drop_or_keep_the_seeds_whose_every_draw_fell():
+    """The report's comparison leaves out a seed that never stayed up; the table shows it with
+    its error until the falls; non-finite errors count nowhere; another choice is refused."""
+    from stride_paper.seeds import seed_means
+    rows = [_row("push", "stride", 0.1, run="r/stride-s0"),
+            _row("push", "stride", 0.3, fell=True, run="r/stride-s0"),
+            _row("push", "stride_s1", 0.5, fell=True, run="r/stride-s1"),
+            _row("push", "stride_s1", 0.7, fell=True, run="r/stride-s1"),
+            _row("push", "stride_s2", float("nan"), run="r/stride-s2")]
+    assert seed_means(rows) == {0: pytest.approx(0.1)}
+    assert seed_means(rows, fallen="all") == {0: pytest.approx(0.1), 1: pytest.approx(0.6)}
+    with pytest.raises(ValueError, match="fallen must be"):
+        seed_means(rows, fallen="keep")
+
+
 def test_planner_draws_of_one_trained_seed_are_its_episodes(experiment):
     """Rows of ``--episodes N`` (the row's ``seed``: the planner's draw): each trained seed's
     RMSE is the mean of its draws that stayed up, its falls counted; the group's mean and worst
