@@ -56,7 +56,7 @@ def _alone(args: list[str], tmp: pathlib.Path, devices: int = 1) -> None:
 
 
 DATA = ["data", "--robot", "pendulum", "--preset", "tiny"]
-TRAIN = ["train", "--robot", "pendulum", "--model", "delan", "--preset", "tiny", "--steps", "30"]
+TRAIN = ["train", "--robot", "pendulum", "--model", "stride", "--preset", "tiny", "--steps", "30"]
 
 
 @pytest.fixture(scope="module")
