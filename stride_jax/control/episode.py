@@ -144,6 +144,15 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     return trace
 
 
+def tracked(trace, settle_s: float = 0.5) -> np.ndarray:
+    """The steps the tracking error is scored on: upright, and ``settle_s`` or more after the
+    last command change (a trace's ``t``, ``command`` and ``fallen``; arrays or a saved trace)."""
+    t, command = np.asarray(trace.t), np.asarray(trace.command)
+    changed = np.r_[True, np.any(np.diff(command, axis=0) != 0, axis=1)]
+    last = np.maximum.accumulate(np.where(changed, t, -np.inf))  # time of the latest change
+    return ~np.asarray(trace.fallen) & (t - last >= settle_s)
+
+
 def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
     """Tracking RMSE while upright (after ``settle_s`` from each command change), fall, speed;
     the planner's fallbacks, its share of rollouts cut, the share of upright steps it drew
@@ -151,13 +160,7 @@ def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
     policy (``distrust_share``, the model-trust gate)."""
     tr = jax.tree.map(np.asarray, trace)
     up = ~tr.fallen
-    changed = np.r_[True, np.any(np.diff(tr.command, axis=0) != 0, axis=1)]
-    since = np.zeros(len(tr.t))
-    last = 0.0
-    for i, (t, c) in enumerate(zip(tr.t, changed)):
-        last = t if c else last
-        since[i] = t - last
-    use = up & (since >= settle_s)
+    use = tracked(tr, settle_s)
     v_err = np.linalg.norm(tr.v_base[:, :2] - tr.command[:, :2], axis=1)
     w_err = np.abs(tr.w_base[:, 2] - tr.command[:, 2])
     rmse = lambda e: float(np.sqrt(np.mean(e[use] ** 2))) if use.any() else float("nan")

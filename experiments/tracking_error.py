@@ -1,0 +1,145 @@
+"""Where a planner's velocity tracking error comes from: the closed loop's saved traces split
+into a steady offset (forward and lateral mean of velocity minus command) and what varies about
+it (the gait's sway, oscillation), over the steps the RMSE is scored on (upright, 0.5 s or more
+after a command change: ``stride_jax.control.episode.tracked``).
+
+    python experiments/tracking_error.py --scenario changes \\
+        "STRIDE=results/closed_loop_go1_gpu/parts/full_changes:stride" \\
+        "DeLaN + MLP=results/closed_loop_go1_gpu/parts/full_changes:delan" \\
+        "ONN=results/closed_loop_go1_gpu/parts/eq_changes:onn" \\
+        --out results/planning_diagnosis/changes_error_go1
+
+A ``LABEL=FOLDER:MODEL`` picks the folder's traces of that model in the scenario: every trained
+seed (``MODEL_sN``) and planner draw (``..._seedN``). The mean square error of the pooled steps is
+the squared offset plus the variance about it, per axis; each trained seed's forward offset is
+listed so that a difference between kinds can be read against the spread of their seeds. Writes
+``OUT.md``, ``OUT.json`` and ``OUT.png``. Needs the traces (``trace_*.npz``), which stay out of
+the repository: run it where the closed loop ran.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import re
+import types
+
+import numpy as np
+
+from stride_jax.control.episode import tracked
+from stride_jax.io import atomic_write, atomic_write_text
+
+
+def traces(folder: pathlib.Path, scenario: str, model: str) -> dict[int, list[pathlib.Path]]:
+    """The folder's trace files of ``model`` in ``scenario`` per trained seed (0 for ``MODEL``,
+    N for ``MODEL_sN``), every planner draw of each."""
+    name = re.compile(rf"^trace_{re.escape(scenario)}_{re.escape(model)}(?:_s(\d+))?"
+                      r"(?:_seed\d+)?\.npz$")
+    out: dict[int, list[pathlib.Path]] = {}
+    for f in sorted(folder.glob("trace_*.npz")):
+        m = name.match(f.name)
+        if m:
+            out.setdefault(int(m.group(1) or 0), []).append(f)
+    return out
+
+
+def errors(path: pathlib.Path, settle_s: float = 0.5) -> np.ndarray:
+    """Velocity minus command (x, y in the base frame) on a trace's scored steps."""
+    with np.load(path) as z:
+        tr = types.SimpleNamespace(**{k: z[k] for k in ("t", "command", "fallen", "v_base")})
+    return (tr.v_base[:, :2] - tr.command[:, :2])[tracked(tr, settle_s)]
+
+
+def split(e: np.ndarray) -> dict:
+    """Offset and variance per axis of pooled errors ``[n, 2]``; ``mse`` is their sum."""
+    if len(e) == 0:
+        raise ValueError("no scored steps (every step fell or followed a command change)")
+    bias, var = e.mean(0), e.var(0)
+    return dict(steps=int(len(e)), offset_x=float(bias[0]), offset_y=float(bias[1]),
+                var_x=float(var[0]), var_y=float(var[1]),
+                mse=float(np.mean(np.sum(e ** 2, axis=1))),
+                rmse=float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)))))
+
+
+def decompose(folder: pathlib.Path, scenario: str, model: str, settle_s: float = 0.5) -> dict:
+    seeds = traces(folder, scenario, model)
+    if not seeds:
+        raise FileNotFoundError(f"{folder}: no trace_{scenario}_{model}*.npz (the traces stay "
+                                "where the closed loop ran)")
+    per = {s: np.concatenate([errors(f, settle_s) for f in fs]) for s, fs in seeds.items()}
+    return dict(split(np.concatenate(list(per.values()))),
+                episodes=sum(len(fs) for fs in seeds.values()), seeds=sorted(seeds),
+                seed_offset_x=[float(per[s][:, 0].mean()) for s in sorted(per)])
+
+
+def figure(rows: dict[str, dict], out: pathlib.Path, title: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    labels = list(rows)
+    parts = [("forward offset^2", lambda r: r["offset_x"] ** 2),
+             ("lateral offset^2", lambda r: r["offset_y"] ** 2),
+             ("forward variance", lambda r: r["var_x"]), ("lateral variance", lambda r: r["var_y"])]
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.4 * len(labels) + 2), 3.6))
+    bottom = np.zeros(len(labels))
+    for name, get in parts:
+        h = np.array([get(rows[k]) for k in labels])
+        ax.bar(labels, h, bottom=bottom, label=name)
+        bottom += h
+    ax.set_ylabel("mean square velocity error (m/s)^2")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    atomic_write(out, lambda f: fig.savefig(f, format="png", dpi=130))
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("picks", nargs="+", help="LABEL=FOLDER:MODEL")
+    ap.add_argument("--scenario", required=True)
+    ap.add_argument("--settle-s", type=float, default=0.5)
+    ap.add_argument("--out", required=True, help="path stem: writes STEM.md, .json, .png")
+    ap.add_argument("--title", default="")
+    a = ap.parse_args(argv)
+    rows = {}
+    for pick in a.picks:
+        label, eq, rest = pick.partition("=")
+        folder, colon, model = rest.rpartition(":")
+        if not (eq and colon and label and folder and model):
+            raise SystemExit(f"{pick!r}: expected LABEL=FOLDER:MODEL")
+        if not pathlib.Path(folder).is_dir():
+            raise SystemExit(f"{pick!r}: no folder {folder}")
+        try:
+            rows[label] = dict(decompose(pathlib.Path(folder), a.scenario, model, a.settle_s),
+                               source=f"{folder}:{model}")
+        except (FileNotFoundError, ValueError) as e:
+            raise SystemExit(f"{pick!r}: {e}") from None
+    stem = pathlib.Path(a.out)
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    title = a.title or f"Velocity tracking error in '{a.scenario}': offset and variance"
+    atomic_write_text(stem.with_suffix(".json"), json.dumps(
+        dict(title=title, scenario=a.scenario, settle_s=a.settle_s, rows=rows), indent=1))
+    md = [f"# {title}", "",
+          f"Scored steps pooled over every trace of a model (upright, {a.settle_s:g} s or more "
+          "after a command change); MSE = offset_x^2 + offset_y^2 + var_x + var_y (m/s, "
+          "(m/s)^2); x forward, y lateral in the base frame. Per seed: each trained seed's "
+          "forward offset.", "",
+          "| model | episodes | steps | RMSE (pooled) | forward offset | lateral offset | "
+          "forward var | lateral var | offsets' share of MSE | forward offset per seed |",
+          "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+    for label, r in rows.items():
+        share = (r["offset_x"] ** 2 + r["offset_y"] ** 2) / r["mse"]
+        md.append(f"| {label} | {r['episodes']} | {r['steps']} | {r['rmse']:.4f} | "
+                  f"{r['offset_x']:+.4f} | {r['offset_y']:+.4f} | {r['var_x']:.2e} | "
+                  f"{r['var_y']:.2e} | {share:.0%} | "
+                  + " / ".join(f"{v:+.4f}" for v in r["seed_offset_x"]) + " |")
+    atomic_write_text(stem.with_suffix(".md"), "\n".join(md) + "\n")
+    figure(rows, stem.with_suffix(".png"), title)
+    print(f"wrote {stem}.{{md,json,png}}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
