@@ -45,7 +45,7 @@ def test_offsets_and_variance_add_up_to_the_mean_square_error(tmp_path, experime
     _trace(tmp_path / "trace_push_stride.npz", np.array([1.0, 0.0]), sway=0.0)  # another scenario
     r = mod.decompose(tmp_path, "changes", "stride")
     assert r["seeds"] == [0, 1] and r["episodes"] == 3
-    # seed 0 twice (two draws) at -0.01, seed 1 at -0.03: pooled -0.5/3 * 0.1
+    # seed 0 twice (two draws) at -0.01, seed 1 at -0.03, equal steps each: (-0.01 - 0.01 - 0.03) / 3
     assert r["offset_x"] == pytest.approx(-0.05 / 3, abs=1e-6)
     assert r["seed_offset_x"] == pytest.approx([-0.01, -0.03], abs=1e-6)
     assert r["offset_y"] == pytest.approx(0.0, abs=2e-3)
