@@ -1,7 +1,7 @@
 """Where a planner's velocity tracking error comes from: the closed loop's saved traces split
 into a steady offset (forward and lateral mean of velocity minus command) and what varies about
-it (the gait's sway, oscillation), over the steps the RMSE is scored on (upright, 0.5 s or more
-after a command change: ``stride_jax.control.episode.tracked``).
+it (the gait's sway, oscillation), over the steps the RMSE is scored on (upright, the run's
+settle time or more after a command change: ``stride_jax.control.episode.tracked``).
 
     python experiments/tracking_error.py --scenario changes \\
         "STRIDE=results/closed_loop_go1_gpu/parts/full_changes:stride" \\
@@ -9,8 +9,9 @@ after a command change: ``stride_jax.control.episode.tracked``).
         "ONN=results/closed_loop_go1_gpu/parts/eq_changes:onn" \\
         --out results/planning_diagnosis/changes_error_go1
 
-A ``LABEL=FOLDER:MODEL`` picks the folder's traces of that model in the scenario: every trained
-seed (``MODEL_sN``) and planner draw (``..._seedN``). The mean square error of the pooled steps is
+A ``LABEL=FOLDER:MODEL`` picks, from a closed-loop run's folder (``closed_loop.json`` and its
+traces), the rows of that model kind in the scenario: every trained seed (``MODEL``,
+``MODEL_sN``) and planner draw. The mean square error of the pooled steps is
 the squared offset plus the variance about it, per axis; each trained seed's forward offset is
 listed so that a difference between kinds can be read against the spread of their seeds. Writes
 ``OUT.md``, ``OUT.json`` and ``OUT.png``. Needs the traces (``trace_*.npz``), which stay out of
@@ -22,29 +23,38 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
-import re
 import types
 
 import numpy as np
 
 from stride_jax.control.episode import tracked
 from stride_jax.io import atomic_write, atomic_write_text
+from stride_jax.jobs import closed_loop
+from stride_paper.seeds import kind_and_seed
 
 
 def traces(folder: pathlib.Path, scenario: str, model: str) -> dict[int, list[pathlib.Path]]:
-    """The folder's trace files of ``model`` in ``scenario`` per trained seed (0 for ``MODEL``,
-    N for ``MODEL_sN``), every planner draw of each."""
-    name = re.compile(rf"^trace_{re.escape(scenario)}_{re.escape(model)}(?:_s(\d+))?"
-                      r"(?:_seed\d+)?\.npz$")
+    """The trace files of ``model``'s rows in ``scenario`` (the folder's ``closed_loop.json``)
+    per trained seed, every planner draw of each: a row's kind and seed as the report reads
+    them (``stride_paper.seeds.kind_and_seed``), its file as the closed loop names it."""
+    table = folder / "closed_loop.json"
+    if not table.is_file():
+        raise FileNotFoundError(f"{folder}: no closed_loop.json (a closed-loop run's folder)")
     out: dict[int, list[pathlib.Path]] = {}
-    for f in sorted(folder.glob("trace_*.npz")):
-        m = name.match(f.name)
-        if m:
-            out.setdefault(int(m.group(1) or 0), []).append(f)
+    for r in json.loads(table.read_text())["rows"]:
+        kind, seed = kind_and_seed(r)
+        if r["scenario"] != scenario or kind != model:
+            continue
+        path = folder / closed_loop.trace_name(r["scenario"], r["model"], r.get("episode", 0),
+                                   r.get("seed", 0))
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no trace of the row {r['model']} (the traces "
+                                    "stay where the closed loop ran)")
+        out.setdefault(seed, []).append(path)
     return out
 
 
-def errors(path: pathlib.Path, settle_s: float = 0.5) -> np.ndarray:
+def errors(path: pathlib.Path, settle_s: float) -> np.ndarray:
     """Velocity minus command (x, y in the base frame) on a trace's scored steps."""
     with np.load(path) as z:
         tr = types.SimpleNamespace(**{k: z[k] for k in ("t", "command", "fallen", "v_base")})
@@ -62,13 +72,23 @@ def split(e: np.ndarray) -> dict:
                 rmse=float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)))))
 
 
-def decompose(folder: pathlib.Path, scenario: str, model: str, settle_s: float = 0.5) -> dict:
+def run_settle_s(folder: pathlib.Path) -> float:
+    """The settle time the run scored its rows with (its config in ``closed_loop.json``)."""
+    env = json.loads((folder / "closed_loop.json").read_text()).get("env", {})
+    default = closed_loop.ClosedLoopConfig.settle_s  # a run that recorded none ran the default
+    return float((env.get("config") or {}).get("settle_s", default))
+
+
+def decompose(folder: pathlib.Path, scenario: str, model: str,
+              settle_s: float | None = None) -> dict:
+    """The pooled split of ``model``'s traces in ``scenario`` (:func:`split`), its episodes,
+    trained seeds and each seed's forward offset; ``settle_s``: the run's own unless given."""
     seeds = traces(folder, scenario, model)
+    settle_s = run_settle_s(folder) if settle_s is None else settle_s
     if not seeds:
-        raise FileNotFoundError(f"{folder}: no trace_{scenario}_{model}*.npz (the traces stay "
-                                "where the closed loop ran)")
+        raise FileNotFoundError(f"{folder}: no row of {model} in {scenario!r}")
     per = {s: np.concatenate([errors(f, settle_s) for f in fs]) for s, fs in seeds.items()}
-    return dict(split(np.concatenate(list(per.values()))),
+    return dict(split(np.concatenate(list(per.values()))), settle_s=settle_s,
                 episodes=sum(len(fs) for fs in seeds.values()), seeds=sorted(seeds),
                 seed_offset_x=[float(per[s][:, 0].mean()) for s in sorted(per)])
 
@@ -99,7 +119,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("picks", nargs="+", help="LABEL=FOLDER:MODEL")
     ap.add_argument("--scenario", required=True)
-    ap.add_argument("--settle-s", type=float, default=0.5)
+    ap.add_argument("--settle-s", type=float, default=None,
+                    help="score from this long after a command change (default: each run's own)")
     ap.add_argument("--out", required=True, help="path stem: writes STEM.md, .json, .png")
     ap.add_argument("--title", default="")
     a = ap.parse_args(argv)
@@ -120,10 +141,12 @@ def main(argv=None) -> int:
     stem.parent.mkdir(parents=True, exist_ok=True)
     title = a.title or f"Velocity tracking error in '{a.scenario}': offset and variance"
     atomic_write_text(stem.with_suffix(".json"), json.dumps(
-        dict(title=title, scenario=a.scenario, settle_s=a.settle_s, rows=rows), indent=1))
+        dict(title=title, scenario=a.scenario, rows=rows), indent=1))
+    settle = sorted({r["settle_s"] for r in rows.values()})
     md = [f"# {title}", "",
-          f"Scored steps pooled over every trace of a model (upright, {a.settle_s:g} s or more "
-          "after a command change); MSE = offset_x^2 + offset_y^2 + var_x + var_y (m/s, "
+          "Scored steps pooled over every trace of a model (upright, "
+          f"{' / '.join(f'{x:g}' for x in settle)} s or more after a command change, as the "
+          "runs scored them); MSE = offset_x^2 + offset_y^2 + var_x + var_y (m/s, "
           "(m/s)^2); x forward, y lateral in the base frame. Per seed: each trained seed's "
           "forward offset.", "",
           "| model | episodes | steps | RMSE (pooled) | forward offset | lateral offset | "

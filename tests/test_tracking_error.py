@@ -9,9 +9,12 @@ import pytest
 from stride_jax.control.episode import tracked
 
 
-def _trace(path, offset, sway, n=200, dt=0.02, change_at=100, fall_at=None):
-    """A trace whose velocity is the command plus ``offset`` plus a lateral sine of amplitude
-    ``sway``, the command stepping once at ``change_at``."""
+def _trace(folder, model, offset, sway, scenario="changes", draw=0, n=200, dt=0.02,
+           change_at=100, fall_at=None):
+    """A closed-loop row and its trace, as the closed loop writes them: velocity = command +
+    ``offset`` + a lateral sine of amplitude ``sway``, the command stepping once at
+    ``change_at``; ``draw`` is the planner's draw (the row's ``seed``, ``episode``)."""
+    from stride_jax.jobs.closed_loop import trace_name
     t = dt * np.arange(n, dtype=np.float32)
     command = np.zeros((n, 3), np.float32)
     command[:, 0] = 0.5
@@ -22,7 +25,13 @@ def _trace(path, offset, sway, n=200, dt=0.02, change_at=100, fall_at=None):
     fallen = np.zeros(n, bool)
     if fall_at is not None:
         fallen[fall_at:] = True
-    np.savez(path, t=t, command=command, v_base=v, fallen=fallen)
+    np.savez(folder / trace_name(scenario, model, draw, draw), t=t, command=command, v_base=v,
+             fallen=fallen)
+    table = folder / "closed_loop.json"
+    rows = json.loads(table.read_text())["rows"] if table.is_file() else []
+    rows.append(dict(scenario=scenario, model=model, seed=draw, episode=draw,
+                     fell=fall_at is not None, vel_rmse=0.0, ms_per_step=1.0))
+    table.write_text(json.dumps(dict(env={}, rows=rows)))
 
 
 def test_scored_steps_follow_the_settle_time_and_the_fall():
@@ -39,10 +48,10 @@ def test_scored_steps_follow_the_settle_time_and_the_fall():
 def test_offsets_and_variance_add_up_to_the_mean_square_error(tmp_path, experiment):
     mod = experiment("tracking_error")
     for name, off in (("stride", -0.01), ("stride_s1", -0.03), ("delan", 0.0)):
-        _trace(tmp_path / f"trace_changes_{name}.npz", np.array([off, 0.0]), sway=0.04)
-    _trace(tmp_path / "trace_changes_stride_seed1.npz", np.array([-0.01, 0.0]), sway=0.04)
-    _trace(tmp_path / "trace_changes_stride_shared.npz", np.array([1.0, 0.0]), sway=0.0)  # not stride's
-    _trace(tmp_path / "trace_push_stride.npz", np.array([1.0, 0.0]), sway=0.0)  # another scenario
+        _trace(tmp_path, name, np.array([off, 0.0]), sway=0.04)
+    _trace(tmp_path, "stride", np.array([-0.01, 0.0]), sway=0.04, draw=1)
+    _trace(tmp_path, "stride_shared", np.array([1.0, 0.0]), sway=0.0)  # not stride's
+    _trace(tmp_path, "stride", np.array([1.0, 0.0]), sway=0.0, scenario="push")  # another scenario
     r = mod.decompose(tmp_path, "changes", "stride")
     assert r["seeds"] == [0, 1] and r["episodes"] == 3
     # seed 0 twice (two draws) at -0.01, seed 1 at -0.03, equal steps each: (-0.01 - 0.01 - 0.03) / 3
@@ -54,12 +63,18 @@ def test_offsets_and_variance_add_up_to_the_mean_square_error(tmp_path, experime
                                      + r["var_y"], rel=1e-5)
     # the steps within 0.5 s of a change are not scored: 200 - 25 - 25 per trace
     assert r["steps"] == 3 * 150
+    # the settle time is the run's own (its config), unless given
+    table = tmp_path / "closed_loop.json"
+    table.write_text(json.dumps(dict(json.loads(table.read_text()),
+                                     env={"config": {"settle_s": 1.0}})))
+    assert mod.decompose(tmp_path, "changes", "stride")["steps"] == 3 * 100
+    assert mod.decompose(tmp_path, "changes", "stride", settle_s=0.5)["steps"] == 3 * 150
 
 
 def test_the_script_writes_table_json_and_figure_and_names_bad_picks(tmp_path, experiment):
     mod = experiment("tracking_error")
-    _trace(tmp_path / "trace_changes_stride.npz", np.array([-0.01, 0.0]), sway=0.04)
-    _trace(tmp_path / "trace_changes_delan.npz", np.array([0.0, 0.0]), sway=0.04, fall_at=60)
+    _trace(tmp_path, "stride", np.array([-0.01, 0.0]), sway=0.04)
+    _trace(tmp_path, "delan", np.array([0.0, 0.0]), sway=0.04, fall_at=60)
     out = tmp_path / "out" / "err"
     assert mod.main(["--scenario", "changes", f"STRIDE={tmp_path}:stride",
                      f"DeLaN={tmp_path}:delan", "--out", str(out)]) == 0
@@ -67,7 +82,10 @@ def test_the_script_writes_table_json_and_figure_and_names_bad_picks(tmp_path, e
     assert rows["DeLaN"]["steps"] == 60 - 25  # up to the fall
     assert "| STRIDE | 1 | 150 |" in out.with_suffix(".md").read_text()
     assert out.with_suffix(".png").stat().st_size > 1000
-    with pytest.raises(SystemExit, match="no trace_changes_onn"):
+    with pytest.raises(SystemExit, match="no row of onn in 'changes'"):
         mod.main(["--scenario", "changes", f"ONN={tmp_path}:onn", "--out", str(out)])
     with pytest.raises(SystemExit, match="expected LABEL=FOLDER:MODEL"):
         mod.main(["--scenario", "changes", str(tmp_path), "--out", str(out)])
+    (tmp_path / "trace_changes_stride.npz").unlink()
+    with pytest.raises(SystemExit, match="trace_changes_stride.npz: no trace of the row stride"):
+        mod.main(["--scenario", "changes", f"STRIDE={tmp_path}:stride", "--out", str(out)])
