@@ -12,8 +12,14 @@ import stride_jax
 # flags; only where the user set no XLA_FLAGS. Measured by clean-clone .ci/run on 2 cores, same
 # day, same split: workers 16.9 / 19.3 and 16.5 / 18.3 min with it (7072ba1, 91ab006), 21.7 / 23.3
 # without (8b5ecd2).
+# XLA:CPU's new fusion emitters and LLVM's expensive passes off as well: compile time is most of
+# the suite's (test_record.py: 66 of 93 s in XLA's backend compile, 19 in tracing), and without
+# them test_models.py took 54 s instead of 83, test_record.py 46 instead of 56 (quiet 2-core
+# machine, one process each, same day).
+TEST_XLA_FLAGS = (" --xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false"
+                  " --xla_llvm_disable_expensive_passes=true")
 if "XLA_FLAGS" not in os.environ and os.environ.get("STRIDE_REQUIRE_GPU") != "1":
-    os.environ["XLA_FLAGS"] = stride_jax.CPU_SAFE_XLA_FLAGS + " --xla_backend_optimization_level=0"
+    os.environ["XLA_FLAGS"] = stride_jax.CPU_SAFE_XLA_FLAGS + TEST_XLA_FLAGS
 stride_jax.set_xla_flags()  # before JAX starts: the 2-core CPU deadlocks in XLA without
 
 SHARED = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "menagerie"
