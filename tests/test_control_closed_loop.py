@@ -617,6 +617,45 @@ def test_the_trust_gate_reads_the_observers_linear_estimate(go1):
         planning_lib.PlanningConfig(observer_gain=0.1, trust_limit=-1.0)
 
 
+def test_the_trust_gate_also_reads_a_forward_overshoot_of_the_command(go1):
+    """``trust_overshoot``: the policy also acts while the base's forward velocity (base frame)
+    exceeds the commanded one by more than it; with both triggers either one holds the gate;
+    alone it needs no observer, but a policy; the run's summary names what trips the gate."""
+    from stride_jax.jobs import closed_loop as cl
+    policy = lambda obs, key: jnp.zeros(go1.info.nu)
+    q0 = jnp.asarray(go1.info.qpos0)
+    yaw90 = q0.at[3:7].set(jnp.array([np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)]))
+
+    def state(vx_world, vy_world=0.0, q=q0, dist=(0.0,) * 6):
+        q_aug = planning_lib.augment(q, jnp.array([1.0, 0.0, 0.0]),
+                                     disturbance=jnp.asarray(dist, jnp.float32))
+        return q_aug, jnp.zeros(go1.mj.nv).at[0].set(vx_world).at[1].set(vy_world)
+
+    over = planning_lib.make_planning(planning_lib.PlanningConfig(trust_overshoot=0.15),
+                                      envs.config("go1"), go1, _fake_step, policy)
+    assert not bool(over.distrust(*state(1.14)))
+    assert bool(over.distrust(*state(1.16)))
+    assert not bool(over.distrust(*state(0.0)))  # behind the command: the tracking's business
+    # the base frame: turned 90 degrees, the world's y velocity is the forward one
+    assert bool(over.distrust(*state(0.0, 1.2, q=yaw90)))
+    assert not bool(over.distrust(*state(1.2, 0.0, q=yaw90)))
+    both = planning_lib.make_planning(
+        planning_lib.PlanningConfig(observer_gain=0.1, trust_limit=3.5, trust_overshoot=0.15),
+        envs.config("go1"), go1, _fake_step, policy)
+    assert bool(both.distrust(*state(1.2)))
+    assert bool(both.distrust(*state(1.0, dist=(4.0, 0.0, 0.0, 0.0, 0.0, 0.0))))
+    assert not bool(both.distrust(*state(1.0, dist=(3.0, 0.0, 0.0, 0.0, 0.0, 0.0))))
+    with pytest.raises(ValueError, match="trust_overshoot=0.15 hands control to the policy"):
+        planning_lib.make_planning(planning_lib.PlanningConfig(trust_overshoot=0.15),
+                                   envs.config("go1"), go1, _fake_step)
+    with pytest.raises(ValueError, match="trust_overshoot=-0.1"):
+        planning_lib.PlanningConfig(trust_overshoot=-0.1)
+    assert cl._gate_words(planning_lib.PlanningConfig(
+        observer_gain=0.1, trust_limit=3.5, trust_overshoot=0.15)) == (
+        "the observer's linear estimate exceeds 3.5 m/s^2 or the forward velocity exceeds the "
+        "command by 0.15 m/s")
+
+
 def test_model_precision_reaches_the_learned_models_products():
     """``model_precision``: the learned step's matrix products carry the asked precision in the
     lowered program (a CPU computes float32 either way; a GPU's default is TF32); JAX's default

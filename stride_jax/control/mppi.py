@@ -70,9 +70,10 @@ state plans as usual.
 Handing back to the policy where the model is not to be trusted (``make(..., distrust=)``): while
 ``distrust(q, qd)`` holds, and ``distrust_hold`` steps after it last held, the step still plans
 (the plan stays warm for when trust returns) but applies the policy's own action and says so
-(:data:`DISTRUSTED`). In the closed loop the predicate reads the disturbance observer's estimate:
-a model that needs a large constant correction to explain what the robot does is wrong where
-the robot now is (:class:`stride_jax.control.planning.PlanningConfig`'s ``trust_limit``).
+(:data:`DISTRUSTED`). In the closed loop the predicate reads the disturbance observer's estimate
+(a model that needs a large constant correction to explain what the robot does is wrong where
+the robot now is) and, optionally, the base's forward overshoot of the command
+(:class:`stride_jax.control.planning.PlanningConfig`'s ``trust_limit`` and ``trust_overshoot``).
 
 Several devices: ``make(..., sharding=sample_sharding())`` splits the rollouts over all local
 devices. On a CPU this is how a planner uses more than one core: XLA runs one device's small

@@ -96,6 +96,16 @@ class PlanningConfig:
         alone is no better marker (at 2.5 it preceded 35 of the 57 falls).
       trust_hold_s: the policy keeps acting this long (s) after the gate last held
         (``MPPIConfig.distrust_hold``; 0: only while it holds).
+      trust_overshoot: a second trigger of the model-trust gate (m/s; 0: off; needs a policy):
+        the policy also acts while the base's forward velocity (base frame) exceeds the
+        commanded one the planner sees by more than this. A planner that drives the robot
+        faster than asked is acting on a model that expects less speed from its action than
+        the robot gives: on G1's low friction both falls of session 44's 12 STRIDE draws began
+        with the forward velocity 0.15 m/s above the command, 0.24-0.40 s before the
+        observer's estimate reached ``trust_limit`` (the ten draws that stayed up never passed
+        0.15; ``results/closed_loop_g1_gpu/README.md``, read off those traces, so in sample).
+        What it cannot tell apart: a commanded slow-down (the robot is faster than the new
+        command until it has braked) and a push from behind; there the policy acts too.
     """
 
     noise_std: float = 0.15
@@ -117,11 +127,13 @@ class PlanningConfig:
     alarm_hold_s: float = 0.0
     trust_limit: float = 0.0
     trust_hold_s: float = 0.0
+    trust_overshoot: float = 0.0
 
     def __post_init__(self):
-        if self.trust_limit < 0 or self.trust_hold_s < 0:
-            raise ValueError(f"trust_limit={self.trust_limit} and trust_hold_s="
-                             f"{self.trust_hold_s} must be >= 0")
+        if self.trust_limit < 0 or self.trust_hold_s < 0 or self.trust_overshoot < 0:
+            raise ValueError(f"trust_limit={self.trust_limit}, trust_hold_s="
+                             f"{self.trust_hold_s} and trust_overshoot={self.trust_overshoot} "
+                             f"must be >= 0")
         if self.trust_limit and not self.observer_gain:
             raise ValueError(f"trust_limit={self.trust_limit} reads the disturbance observer's "
                              f"estimate: it needs observer_gain > 0")
@@ -330,13 +342,22 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
             return track_error(q_aug, qd) > cfg.alarm_speed ** 2
 
     distrust = None
-    if cfg.trust_limit:
+    if cfg.trust_limit or cfg.trust_overshoot:
         if policy is None:
-            raise ValueError(f"trust_limit={cfg.trust_limit} hands control to the policy: it "
-                             f"needs a PPO policy (and no planned gait)")
+            which = (f"trust_limit={cfg.trust_limit}" if cfg.trust_limit
+                     else f"trust_overshoot={cfg.trust_overshoot}")
+            raise ValueError(f"{which} hands control to the policy: it needs a PPO policy (and "
+                             f"no planned gait)")
 
         def distrust(q_aug, qd):
-            return jnp.sum(split(q_aug, nq).disturbance[:3] ** 2) > cfg.trust_limit ** 2
+            a = split(q_aug, nq)
+            out = jnp.zeros((), bool)
+            if cfg.trust_limit:
+                out |= jnp.sum(a.disturbance[:3] ** 2) > cfg.trust_limit ** 2
+            if cfg.trust_overshoot:
+                v, _, _ = envs.base_signals(a.q, qd)
+                out |= v[0] - a.command[0] > cfg.trust_overshoot
+            return out
 
     r = cfg.plan_range
     lo, hi = np.full(nu, -r, np.float32), np.full(nu, r, np.float32)

@@ -366,19 +366,28 @@ def _fmt(x, f: str = "{:.3f}") -> str:
     return "-" if x is None or (isinstance(x, float) and np.isnan(x)) else f.format(x)
 
 
+def _gate_words(pl) -> str:
+    """What trips the model-trust gate, in words (the run's summary line)."""
+    return " or ".join(
+        ([f"the observer's linear estimate exceeds {pl.trust_limit:g} m/s^2"] if pl.trust_limit
+         else [])
+        + ([f"the forward velocity exceeds the command by {pl.trust_overshoot:g} m/s"]
+           if pl.trust_overshoot else []))
+
+
 def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Path) -> None:
     env = dict(command=command, backend=jax.default_backend(), device=jax.devices()[0].device_kind,
                jax=jax.__version__, code=code_version(), config=dataclasses.asdict(cfg))
     atomic_write_text(out / "closed_loop.json", json.dumps(dict(env=env, rows=rows), indent=1))
     robot = {"go1": "Go1", "g1": "G1"}.get(cfg.robot, cfg.robot)
     pl = cfg.planning
+    gated = bool(pl.trust_limit or pl.trust_overshoot)
     extras = "".join([
         f", tracking weight {pl.learned_track_weight:g} on the learned reward"
         if cfg.learned and pl.learned_track_weight else "",
         f", disturbance observer (gain {pl.observer_gain:g})" if pl.observer_gain else "",
-        f", the policy acts while the observer's linear estimate exceeds {pl.trust_limit:g} m/s^2"
-        f" (held {pl.trust_hold_s:g} s; the model-trust gate: share of upright steps in the last"
-        f" column)" if pl.trust_limit else "",
+        f", the policy acts while {_gate_words(pl)} (held {pl.trust_hold_s:g} s; the model-trust"
+        f" gate: share of upright steps in the last column)" if gated else "",
         f", {cfg.mppi.family_samples} candidates from the policy asked for command + z"
         if cfg.mppi.family_samples else ""])
     lines = [f"# Closed-loop MPPI on the MJX {robot}", "", f"Command: `{command}`", "",
@@ -394,8 +403,8 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
              "parameters too.", "",
              "| scenario | model | vel RMSE (m/s) | yaw RMSE (rad/s) | mean vx (m/s) | fell | "
              "fall at (s) | contact gait (score) | planned gait | ms/step |"
-             + (" policy acted |" if pl.trust_limit else ""),
-             "|---|---|---|---|---|---|---|---|---|---|" + ("---|" if pl.trust_limit else "")]
+             + (" policy acted |" if gated else ""),
+             "|---|---|---|---|---|---|---|---|---|---|" + ("---|" if gated else "")]
     for r in rows:
         planned = (f"{r['plan_gait']} ({r['plan_freq']:.1f} Hz, duty {r['plan_duty']:.2f})"
                    if "plan_gait" in r else "-")
@@ -406,7 +415,7 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
                      f"{_fmt(r['yaw_rmse'])} | {_fmt(r['mean_vx'], '{:.2f}')} | "
                      f"{'yes' if r['fell'] else 'no'} | {_fmt(r['fall_s'], '{:.2f}')} | "
                      f"{contact} | {planned} | {r['ms_per_step']:.1f} |"
-                     + (f" {_fmt(r.get('distrust_share'), '{:.0%}')} |" if pl.trust_limit else ""))
+                     + (f" {_fmt(r.get('distrust_share'), '{:.0%}')} |" if gated else ""))
     lines += _over_seeds_lines(rows)
     atomic_write_text(out / "closed_loop.md", "\n".join(lines) + "\n")
 
