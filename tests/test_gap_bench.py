@@ -59,3 +59,21 @@ def test_rows_from_another_config_are_refused(tmp_path, capsys, monkeypatch):
     assert "another benchmark config (steps: 60 there, 80 now)" in err and "fresh --out folder" in err
     with pytest.raises(bench.BenchError, match="workers and threads must be at least 1"):
         bench.run(CFG, tmp_path, workers=0)
+
+
+def test_a_row_written_before_a_setting_existed_counts_as_that_settings_default(tmp_path):
+    """A benchmark setting added later (its default reproducing what ran before) does not orphan
+    the rows already on disk: a row whose stored config lacks it loads under the default and is
+    refused under any other value, named."""
+    from stride_jax.jobs import gap_bench_independent as bi
+    cfg = bi.PRESETS["tiny"]
+    folder = bench.rows_dir(cfg, tmp_path)
+    row = {"case": 0, "noisy": False, "kind": "control", "verdict": "no significant gap"}
+    path = bench.row_path(folder, 0, False)
+    bench.save_row(folder, cfg, row, "test")
+    rec = json.loads(path.read_text())
+    del rec["config"]["sensor_spec"]  # as written before session 44
+    path.write_text(json.dumps(rec))
+    assert set(bench.load_rows(folder, cfg)) == {(0, False)}
+    with pytest.raises(bench.BenchError, match="sensor_spec: False there, True now"):
+        bench.load_rows(folder, dataclasses.replace(cfg, sensor_spec=True))

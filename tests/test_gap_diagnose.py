@@ -107,3 +107,40 @@ def test_an_effect_that_is_not_the_identity_at_its_nominal_value_stops_the_diagn
         diagnose.PRESETS["tiny"].calibrate, mode="off"), nominal_check=20, progress=False)
     with pytest.raises(RuntimeError, match="do not reproduce the nominal model.*'damping'"):
         diagnose.diagnose(sm, logged, cfg, log=lambda s: None)
+
+
+def test_a_noise_level_given_with_the_logs_sets_the_floor_to_what_the_noise_adds(tmp_path):
+    """With the logged velocities' noise level known, the held-out data carry the floor it gives
+    (its variance in each replay's target plus its effect through the replay's start, by replaying
+    with more of it), and that floor is what the noise adds to the gap of the same replays over the
+    clean twin of the logs; the residuals' autocovariance is the fallback. The diagnosis says which
+    it used; a level of the wrong shape is refused; the CLI reads it from the log header."""
+    import numpy as np
+    from stride_jax.gap import effects, regions
+    sm = model.load("pendulum")
+    noise = real.SensorNoise(encoder_bits=0, encoder_std=0.0, velocity_std=0.05, torque_std=0.0,
+                             outlier_rate=0.0)
+    clean, logged = real.generate(sm, {"damping": 0.3}, 6, 150, seed=3, noise=noise)
+    cfg = diagnose.PRESETS["tiny"]
+    std = np.full(sm.mj.nv, 0.05)
+    pn, pc = diagnose.prepare(sm, logged, cfg, std), diagnose.prepare(sm, clean, cfg)
+    assert diagnose.prepare(sm, logged, cfg).test_k.noise_floor is None
+    nom = effects.build(pn.sm)
+    for split in ("test_k", "test"):
+        dn, dc = getattr(pn, split), getattr(pc, split)
+        adds = fit.gap(fit.residual(pn.sm, nom, dn, pn.scale)) - fit.gap(fit.residual(pn.sm, nom, dc, pn.scale))
+        assert 0.7 < dn.noise_floor / adds < 1.4, (split, dn.noise_floor, adds)
+        assert regions.noise_floor(np.zeros((3, sm.mj.nv)), dn) == dn.noise_floor  # given, not read off r
+    out = diagnose.diagnose(sm, logged, cfg, log=lambda s: None, velocity_std=std)
+    assert out["noise_floor"]["source"] == "the velocity noise given with the logs"
+    assert out["noise_floor"]["heldout_k_step"] == pn.test_k.noise_floor
+    assert "autocovariance" in diagnose.diagnose(sm, logged, cfg, log=lambda s: None)["noise_floor"]["source"]
+    with pytest.raises(ValueError, match="velocity_std must be 1 finite numbers"):
+        diagnose.prepare(sm, logged, cfg, np.array([0.05, 0.05]))
+    # the command line: the level in the log header reaches the diagnosis
+    logdir, outdir = tmp_path / "logs", tmp_path / "out"
+    logs.write(logdir, sm, logged, velocity_noise={"qd": 0.05})
+    assert cli.main(["diagnose", "--robot", "pendulum", "--logs", str(logdir), "--out", str(outdir),
+                     "--preset", "tiny"]) == 0
+    d = json.loads((outdir / "diagnosis.json").read_text())
+    assert d["noise_floor"]["velocity_std"] == [0.05]

@@ -87,3 +87,36 @@ def test_bad_logs_are_rejected_clearly(go1, go1_logs, tmp_path):
         logs.read(path, model.load("pendulum"))
     with pytest.raises(logs.LogError, match="header.json: missing"):
         logs.read(tmp_path, go1)
+
+
+def test_velocity_noise_round_trips_and_bad_levels_are_named(go1, go1_logs, tmp_path):
+    """The header's optional ``velocity_noise``: per velocity channel (joints at once, one joint over
+    that, the base's linear and angular velocity), written and read back as a per-dof level; absent,
+    None; an unknown key, a bad level or an uncovered channel is an error naming it."""
+    _, clean = go1_logs
+    assert logs.velocity_std(logs.read(go1_logs[0], go1)[0], go1) is None
+    spec = {"qd": 0.04, "qd_FR_calf_joint": 0.1, "base_linvel": 0.03, "base_angvel": 0.01}
+    h, _ = logs.read(logs.write(tmp_path / "spec", go1, clean, velocity_noise=spec), go1)
+    assert h.velocity_noise == spec
+    std = logs.velocity_std(h, go1)
+    lay = logs.layout(go1)
+    calf = lay.vadr[lay.joints.index("FR_calf_joint")]
+    np.testing.assert_allclose(std[:3], 0.03)
+    np.testing.assert_allclose(std[3:6], 0.01)
+    assert std[calf] == 0.1
+    assert np.allclose(np.delete(std[6:], calf - 6), 0.04)
+    for bad, match in (({"qd": 0.04, "base_linvel": 0.03, "base_angvel": 0.01, "qd_nope": 1.0}, r"\['qd_nope'\]"),
+                       ({"qd": -0.04, "base_linvel": 0.03, "base_angvel": 0.01}, r"velocity_noise\['qd'\].*-0.04"),
+                       ({"qd": float("nan"), "base_linvel": 0.03, "base_angvel": 0.01}, r"velocity_noise\['qd'\]"),
+                       ({"qd": 0.04}, r"leaves \['base_linvel', 'base_angvel'\] uncovered")):
+        with pytest.raises(logs.LogError, match=match):
+            logs.write(tmp_path / "bad", go1, clean, velocity_noise=bad)
+    # the reader checks a hand-edited header the same way, naming the file
+    hdr = tmp_path / "spec" / "header.json"
+    d = json.loads(hdr.read_text())
+    hdr.write_text(json.dumps(d | {"velocity_noise": {"qd": 0.04}}))
+    with pytest.raises(logs.LogError, match=r"header.json.*uncovered"):
+        logs.read(tmp_path / "spec", go1)
+    hdr.write_text(json.dumps(d | {"velocity_noise": [0.04]}))
+    with pytest.raises(logs.LogError, match=r"header.json.*velocity_noise must be an object"):
+        logs.read(tmp_path / "spec", go1)

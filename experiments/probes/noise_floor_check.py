@@ -11,7 +11,9 @@ noise adds ``sigma^2 (1 + J^2)`` while the autocovariance reads ``-J sigma^2`` p
 error's own autocovariance (positive where the model's error persists, which hides the noise's).
 Printed beside the tool's estimate: ``2 sigma^2`` (``J = 1``) with the true ``sigma^2`` (from the
 twins) and with the level the noisy logs show (``filters.noise_std``, second differences), and
-per dof the larger of that ``sigma^2`` and the tool's ``-2 acov``.
+per dof the larger of that ``sigma^2`` and the tool's ``-2 acov``; last, the floor the diagnosis
+computes when the logs' header gives the sensors' noise levels (``velocity_noise``:
+:func:`stride_jax.gap.regions.noise_floor_of`, session 44).
 
     python experiments/probes/noise_floor_check.py 0 1 2 ...   # case indices (0: the control)
 """
@@ -20,8 +22,8 @@ import sys
 
 import numpy as np
 
-from stride_jax.gap import diagnose, effects, filters, fit, regions
-from stride_jax.jobs import gap_bench_independent as gbi
+from stride_jax.gap import diagnose, effects, filters, fit, logs, regions
+from stride_jax.jobs import gap_bench_independent as gbi, gap_bench_real as real
 
 
 def acov_k(r: np.ndarray, data: fit.Data) -> np.ndarray:
@@ -36,10 +38,12 @@ def main(indices: list[int]) -> None:
     cfg = gbi.PRESETS["default"]
     dcfg = diagnose.PRESETS[cfg.diagnose]
     for index in indices:
-        sm, noisy, clean, settings, form = gbi.as_read(cfg, index, True)
+        sm, noisy, clean, settings, form, _ = gbi.as_read(cfg, index, True)
+        spec = logs.velocity_std(logs.header_for(sm, False, False, velocity_noise=real.Go1Sensors().velocity_noise(sm)), sm)
         by = {t.name: t for t in clean}
         clean = [by[t.name] for t in noisy]
         pn, pc = diagnose.prepare(sm, noisy, dcfg), diagnose.prepare(sm, clean, dcfg)
+        ps = diagnose.prepare(sm, noisy, dcfg, spec)  # the floor from the sensors' noise levels
         assert pn.te_idx == pc.te_idx
         plan = effects.build(pn.sm, {})
         dn, dc = pn.test_k, pc.test_k
@@ -56,7 +60,8 @@ def main(indices: list[int]) -> None:
                    # J = 1 (an initial velocity error kept over the replay): 2 sigma^2 per dof
                    floor_2sigma_true=round(float(2 * true_s2.sum()), 4),
                    floor_2sigma_logs=round(float(2 * est_s2.sum()), 4),
-                   floor_max_logs=round(float(np.maximum(est_s2, -2 * ac).sum()), 4))
+                   floor_max_logs=round(float(np.maximum(est_s2, -2 * ac).sum()), 4),
+                   floor_from_spec=round(ps.test_k.noise_floor, 4))
         print(json.dumps(out), flush=True)
 
 

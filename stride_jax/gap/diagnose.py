@@ -233,8 +233,17 @@ class Prepared:
     test_k: fit.Data
 
 
-def prepare(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig) -> Prepared:
-    """The first step of :func:`diagnose` (also for probes that replay its stages on their own)."""
+def prepare(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig,
+            velocity_std: np.ndarray | None = None) -> Prepared:
+    """The first step of :func:`diagnose` (also for probes that replay its stages on their own).
+    ``velocity_std [nv]``: the logged velocities' noise level when known (the log header's
+    ``velocity_noise``): the held-out data then carry the noise floor it gives
+    (:func:`stride_jax.gap.regions.noise_floor_of`, through the nominal model)."""
+    if velocity_std is not None:
+        velocity_std = np.asarray(velocity_std, float)
+        if velocity_std.shape != (sm.mj.nv,) or not np.all(np.isfinite(velocity_std)) or np.any(velocity_std < 0):
+            raise ValueError(f"velocity_std must be {sm.mj.nv} finite numbers >= 0 (one per velocity), got "
+                             f"shape {velocity_std.shape}")
     sm = sim.for_replay(sm)
     prep = [filters.preprocess(tr, sm.robot.ctrl_dt, cfg.preprocess) for tr in trajs]
     trajs = [q[0] for q in prep]
@@ -242,16 +251,22 @@ def prepare(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig) -> 
     data = fit.make_data(trajs)
     train, test = fit.subset(data, tr_idx), fit.subset(data, te_idx)
     train_k, test_k = (fit.make_data([trajs[i] for i in ix], cfg.steps) for ix in (tr_idx, te_idx))
+    if velocity_std is not None:
+        nom, scale = effects.build(sm), scale_of(sm, train)
+        test, test_k = (d._replace(noise_floor=regions.noise_floor_of(sm, nom, d, scale, velocity_std, seed=cfg.seed))
+                        for d in (test, test_k))
     return Prepared(sm, trajs, int(sum(q[1]["outliers_replaced"] for q in prep)), tr_idx, te_idx, data, train, test,
                     scale_of(sm, train), train_k, test_k)
 
 
 def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = DiagnoseConfig(),
-             log=print) -> dict[str, Any]:
+             log=print, velocity_std: np.ndarray | None = None) -> dict[str, Any]:
     """Runs where / which / how far on logged trajectories. Returns a JSON-able dict (plus a few
-    arrays under keys starting with ``_`` for the plots)."""
+    arrays under keys starting with ``_`` for the plots). ``velocity_std [nv]``: the logged
+    velocities' noise level when known (:func:`stride_jax.gap.logs.velocity_std` of the log
+    header): the noise floor is then computed from it rather than read off the residuals."""
     t_start = time.time()
-    p = prepare(sm, trajs, cfg)
+    p = prepare(sm, trajs, cfg, velocity_std)
     sm, dt, trajs, tr_idx, te_idx, data = p.sm, p.sm.robot.ctrl_dt, p.trajs, p.tr_idx, p.te_idx, p.data
     train, test, scale, train_k, test_k = p.train, p.test, p.scale, p.train_k, p.test_k
     nom = effects.build(sm)
@@ -264,6 +279,10 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
         "config": dataclasses.asdict(cfg),
         "preprocess": {"outliers_replaced": p.outliers_replaced,
                        "smoothing_bandwidth_hz": cfg.preprocess.bandwidth_hz(dt)},
+        "noise_floor": ({"source": "the velocity noise given with the logs", "velocity_std": velocity_std.tolist(),
+                         "heldout_k_step": p.test_k.noise_floor, "heldout_one_step": p.test.noise_floor}
+                        if velocity_std is not None else
+                        {"source": "the residuals' lag-k autocovariance (no noise level given with the logs)"}),
         "residual_definition": "(logged next velocity - nominal one-step prediction) / control period; "
                                "'scaled' divides each dof by the spread of its logged velocity changes",
     }

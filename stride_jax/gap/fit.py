@@ -53,7 +53,9 @@ class Data(NamedTuple):
     ``q [N, nq]``, ``qd [N, nv]``, ``cmd [N, nu]``; ``bounds [n + 1]`` trajectory starts;
     ``k`` control periods per replay; ``start [M]`` replayed samples (``start + k`` inside the
     trajectory), ``first [M]`` the first sample of their trajectory, ``target [M, nv]`` the logged
-    velocity ``k`` periods later, ``traj [M]`` their trajectory; ``names`` of the trajectories.
+    velocity ``k`` periods later, ``traj [M]`` their trajectory; ``names`` of the trajectories;
+    ``noise_floor``: the gap the logged velocities' noise adds to these replays when it is known
+    (:func:`stride_jax.gap.regions.noise_floor_of`; None: read off the residuals).
     """
 
     q: np.ndarray
@@ -66,6 +68,7 @@ class Data(NamedTuple):
     target: np.ndarray
     traj: np.ndarray
     names: tuple[str, ...]
+    noise_floor: float | None = None
 
     @property
     def n(self) -> int:

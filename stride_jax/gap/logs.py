@@ -11,7 +11,14 @@ Format (``stride-gap-log`` version 1): one folder per log set,
      "command_kind": "position" | "torque",       # servo targets (rad) or motor torques (N m)
      "control_period_s": 0.02,                    # nominal period of the command updates
      "floating_base": true, "has_torque": true, "has_imu": true,
-     "units": {...}, "notes": "free text"}
+     "units": {...}, "notes": "free text",
+     "velocity_noise": {"qd": 0.04, "base_linvel": 0.03, "base_angvel": 0.01}}   # optional
+
+  ``velocity_noise`` (optional): the standard deviation of the logged velocities' white noise,
+  in their columns' units: ``qd`` for every joint, ``qd_<j>`` for one (over ``qd``),
+  ``base_linvel`` and ``base_angvel`` for a floating base; when given, every velocity column
+  must be covered. The diagnosis then computes its noise floor from it instead of reading it
+  off the residuals (:func:`velocity_std`, :func:`stride_jax.gap.regions.noise_floor_of`).
 
 * one CSV per trajectory (any ``*.csv`` in the folder), comma separated, one header row, one
   row per sample, columns (``<j>`` is a joint name):
@@ -82,6 +89,7 @@ class Header:
     has_torque: bool
     has_imu: bool
     notes: str = ""
+    velocity_noise: dict = dataclasses.field(default_factory=dict)
 
     def columns(self) -> list[str]:
         """The CSV columns this header requires, in the order the writer writes them."""
@@ -135,27 +143,75 @@ def layout(sm: SimModel) -> Layout:
                   m.jnt_dofadr[js].astype(int), tuple(sm.robot.joints))
 
 
-def header_for(sm: SimModel, has_torque: bool, has_imu: bool, notes: str = "") -> Header:
+def header_for(sm: SimModel, has_torque: bool, has_imu: bool, notes: str = "",
+               velocity_noise: dict | None = None) -> Header:
     lay = layout(sm)
     return Header(robot=sm.robot.name, joint_names=lay.joints, command_joints=lay.cmd_joints,
                   command_kind="position" if sm.robot.kp is not None else "torque",
                   control_period_s=sm.robot.ctrl_dt, floating_base=sm.robot.floating_base,
-                  has_torque=has_torque, has_imu=has_imu and sm.robot.floating_base, notes=notes)
+                  has_torque=has_torque, has_imu=has_imu and sm.robot.floating_base, notes=notes,
+                  velocity_noise=dict(velocity_noise or {}))
+
+
+def velocity_std(h: Header, sm: SimModel, where: str = "header.json") -> np.ndarray | None:
+    """``[nv]`` standard deviation of each logged velocity's noise (qvel order) from the header's
+    ``velocity_noise``; None when the header gives none. :class:`LogError` naming the key or the
+    channel on an unknown key, a value that is not a finite number >= 0, or a velocity column
+    left uncovered."""
+    spec = h.velocity_noise
+    if not spec:
+        return None
+    lay = layout(sm)
+    known = {"qd", *(f"qd_{j}" for j in lay.joints)}
+    if sm.robot.floating_base:
+        known |= {"base_linvel", "base_angvel"}
+    unknown = sorted(set(spec) - known)
+    if unknown:
+        raise LogError(f"{where}: velocity_noise keys {unknown} are not velocity channels of robot "
+                       f"{sm.robot.name!r} (use 'qd', 'qd_<joint>'"
+                       + (", 'base_linvel', 'base_angvel')" if sm.robot.floating_base else ")"))
+    for k, v in spec.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            raise LogError(f"{where}: velocity_noise[{k!r}] must be a finite number >= 0, got {v!r}")
+    std = np.full(sm.mj.nv, np.nan)
+    for j, a in zip(lay.joints, lay.vadr, strict=True):
+        std[a] = spec.get(f"qd_{j}", spec.get("qd", np.nan))
+    if sm.robot.floating_base:
+        std[:3] = spec.get("base_linvel", np.nan)
+        std[3:6] = spec.get("base_angvel", np.nan)
+    missing = list(dict.fromkeys(n for n, s in zip(_velocity_channels(sm, lay), std, strict=True)
+                                 if np.isnan(s)))
+    if missing:
+        raise LogError(f"{where}: velocity_noise leaves {missing} uncovered (give every velocity "
+                       f"channel a noise level, or none)")
+    return std
+
+
+def _velocity_channels(sm: SimModel, lay: Layout) -> list[str]:
+    """The name of each qvel entry as ``velocity_noise`` keys it."""
+    names = [""] * sm.mj.nv
+    if sm.robot.floating_base:
+        names[:6] = ["base_linvel"] * 3 + ["base_angvel"] * 3
+    for j, a in zip(lay.joints, lay.vadr, strict=True):
+        names[a] = f"qd_{j}"
+    return names
 
 
 # ----------------------------------------------------------------------------- writing
 
 
 def write(out_dir: str | os.PathLike, sm: SimModel, trajs: list[Trajectory], notes: str = "",
-          ) -> pathlib.Path:
-    """Writes ``trajs`` as a log folder (``header.json`` + ``traj_<name>.csv``), atomically per file."""
+          velocity_noise: dict | None = None) -> pathlib.Path:
+    """Writes ``trajs`` as a log folder (``header.json`` + ``traj_<name>.csv``), atomically per
+    file; ``velocity_noise``: the header's optional noise levels (checked as the reader checks)."""
     if not trajs:
         raise LogError("no trajectories to write")
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     has_tau = all(tr.tau is not None for tr in trajs)
     has_imu = all(tr.imu is not None for tr in trajs)
-    h = header_for(sm, has_tau, has_imu, notes)
+    h = header_for(sm, has_tau, has_imu, notes, velocity_noise)
+    velocity_std(h, sm, "the log's header to write")
     lay = layout(sm)
     hdr = dataclasses.asdict(h) | {"format": FORMAT, "version": VERSION, "units": UNITS}
     for tr in trajs:
@@ -190,7 +246,7 @@ def read_header(folder: str | os.PathLike) -> Header:
         raise LogError(f"{path}: format {d.get('format')!r} version {d.get('version')!r}; this reader "
                        f"reads {FORMAT!r} version {VERSION}")
     fields = [f.name for f in dataclasses.fields(Header)]
-    missing = [f for f in fields if f not in d and f != "notes"]
+    missing = [f for f in fields if f not in d and f not in ("notes", "velocity_noise")]
     if missing:
         raise LogError(f"{path}: missing keys {missing}")
     h = Header(**{k: d[k] for k in fields if k in d})
@@ -199,6 +255,9 @@ def read_header(folder: str | os.PathLike) -> Header:
         raise LogError(f"{path}: command_kind must be 'position' or 'torque', got {h.command_kind!r}")
     if not (h.control_period_s > 0):
         raise LogError(f"{path}: control_period_s must be positive, got {h.control_period_s}")
+    if not isinstance(h.velocity_noise, dict):
+        raise LogError(f"{path}: velocity_noise must be an object of noise levels by channel, got "
+                       f"{h.velocity_noise!r}")
     return h
 
 
@@ -295,6 +354,7 @@ def read(folder: str | os.PathLike, sm: SimModel) -> tuple[Header, list[Trajecto
         raise LogError(f"{folder}: not a folder")
     h = read_header(folder)
     lay = check_header(h, sm, str(folder / "header.json"))
+    velocity_std(h, sm, str(folder / "header.json"))
     files = sorted(folder.glob("*.csv"))
     if not files:
         raise LogError(f"{folder}: no trajectory CSV files")

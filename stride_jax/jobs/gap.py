@@ -174,8 +174,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"error: {err}", file=sys.stderr)
                 return 2
             sm = nominal.load(j.robot, j.nominal)
-            _, trajs = logs.read(j.logs, sm)
-            d = diagnose.diagnose(sm, trajs, cfg)
+            h, trajs = logs.read(j.logs, sm)
+            d = diagnose.diagnose(sm, trajs, cfg, velocity_std=logs.velocity_std(h, sm))
             path = report.write(d, j.out, "stride gap " + shlex.join(argv))
             print(f"report: {path}")
         elif args.cmd == "simulate":

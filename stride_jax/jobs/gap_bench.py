@@ -306,10 +306,15 @@ def load_rows(folder: pathlib.Path, cfg: BenchConfig) -> dict[tuple[int, bool], 
     Raises :class:`BenchError` naming the fields that differ when a row was written with another
     config: mixing them would score one benchmark from two."""
     want, done = config_record(cfg), {}
+    # a row written before a setting existed ran with that setting's default
+    defaults = config_record(type(cfg)(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)
+                                          if f.default is dataclasses.MISSING
+                                          and f.default_factory is dataclasses.MISSING}))
     for p in sorted(folder.glob("[0-9]*-*.json")):
         try:
             rec = json.loads(p.read_text())
             got, row = rec["config"], rec["row"]
+            got = {k: defaults[k] for k in defaults.keys() - got.keys()} | got
             key = (int(row["case"]), bool(row["noisy"]))
         except (ValueError, KeyError, TypeError) as err:
             raise BenchError(f"{p} is not a benchmark row ({err}); remove it or use a fresh --out folder") from None

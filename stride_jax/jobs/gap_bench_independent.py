@@ -47,6 +47,9 @@ class IndependentConfig:
       pairs_of: override of the diagnosis's ``pairs_of`` (-1: the preset's).
       seed: of the cases (settings, controller, noise).
       name: of the result files.
+      sensor_spec: the noisy logs carry the sensors' noise levels in their header
+        (``velocity_noise``, as a real robot's logs can from its sensors' specification), and the
+        diagnosis computes its noise floor from them instead of reading it off the residuals.
     """
 
     robot: str
@@ -60,6 +63,7 @@ class IndependentConfig:
     pairs_of: int = -1
     seed: int = 1
     name: str = "gap_bench_go1_independent"
+    sensor_spec: bool = False
 
 
 PRESETS = {
@@ -82,6 +86,10 @@ PRESETS = {
 # the same cases on shorter logs: what a 2-core CPU can run in a few hours
 PRESETS["small"] = dataclasses.replace(PRESETS["default"], trajectories=5, steps=100,
                                        name="gap_bench_go1_independent_small")
+# the noisy cases again with the sensors' noise levels in the logs' header (session 44: the floor
+# read off the residuals is off by 0.08-3.1 x, results/gap_noise_floor_check.md)
+PRESETS["sensor_spec"] = dataclasses.replace(PRESETS["default"], noise=(True,), sensor_spec=True,
+                                             name="gap_bench_go1_independent_sensor_spec")
 
 
 def cases(cfg: IndependentConfig) -> list[dict[str, Any]]:
@@ -115,9 +123,10 @@ def as_read(cfg: IndependentConfig, index: int, noisy: bool):
     sm = nominal.load(cfg.robot, "shipped")
     clean, logged, settings, form = real_logs(cfg, index, noisy)
     with tempfile.TemporaryDirectory() as tmp:
-        logs.write(tmp, sm, logged, notes=f"independent benchmark case {index}")
-        _, trajs = logs.read(tmp, sm)
-    return sm, trajs, clean, settings, form
+        logs.write(tmp, sm, logged, notes=f"independent benchmark case {index}",
+                   velocity_noise=real.Go1Sensors().velocity_noise(sm) if noisy and cfg.sensor_spec else None)
+        h, trajs = logs.read(tmp, sm)
+    return sm, trajs, clean, settings, form, logs.velocity_std(h, sm)
 
 
 def diagnose_case(cfg: IndependentConfig, index: int, noisy: bool
@@ -125,11 +134,11 @@ def diagnose_case(cfg: IndependentConfig, index: int, noisy: bool
     """:func:`diagnose_row`'s scored row and the whole diagnosis it scored
     (``experiments/gap_one_row.py`` keeps both, to read a verdict without the benchmark)."""
     t0 = time.time()
-    sm, trajs, clean, settings, form = as_read(cfg, index, noisy)
+    sm, trajs, clean, settings, form, velocity_std = as_read(cfg, index, noisy)
     dcfg = diagnose.PRESETS[cfg.diagnose]
     if cfg.pairs_of >= 0:
         dcfg = dataclasses.replace(dcfg, pairs_of=cfg.pairs_of)
-    res = diagnose.diagnose(sm, trajs, dcfg, log=lambda s: None)
+    res = diagnose.diagnose(sm, trajs, dcfg, log=lambda s: None, velocity_std=velocity_std)
     held = [t for t in clean if t.name in set(res["heldout"])]
     row = scoring.score(sm, cases(cfg)[index], res, held, settings, form, dcfg.attribute_min, dcfg.pair_material,
                         dcfg.fit)

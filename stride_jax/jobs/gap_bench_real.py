@@ -296,6 +296,15 @@ class Go1Sensors:
     linvel_std: float = 0.03
     gyro_std: float = 0.01
 
+    def velocity_noise(self, sm) -> dict:
+        """The log header's ``velocity_noise`` of these sensors (:mod:`stride_jax.gap.logs`):
+        what a datasheet says of the white noise, not the glitches (the diagnosis's
+        preprocessing takes those out)."""
+        out = {"qd": self.velocity_std}
+        if sm.robot.floating_base:
+            out |= {"base_linvel": self.linvel_std, "base_angvel": self.gyro_std}
+        return out
+
 
 def sense(tr: logs.Trajectory, noise: Go1Sensors, floating: bool, qadr: np.ndarray, vadr: np.ndarray,
           rng: np.random.Generator) -> logs.Trajectory:
