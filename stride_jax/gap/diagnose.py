@@ -251,12 +251,13 @@ def prepare(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig,
     data = fit.make_data(trajs)
     train, test = fit.subset(data, tr_idx), fit.subset(data, te_idx)
     train_k, test_k = (fit.make_data([trajs[i] for i in ix], cfg.steps) for ix in (tr_idx, te_idx))
+    scale = scale_of(sm, train)
     if velocity_std is not None:
-        nom, scale = effects.build(sm), scale_of(sm, train)
+        nom = effects.build(sm)
         test, test_k = (d._replace(noise_floor=regions.noise_floor_of(sm, nom, d, scale, velocity_std, seed=cfg.seed))
                         for d in (test, test_k))
     return Prepared(sm, trajs, int(sum(q[1]["outliers_replaced"] for q in prep)), tr_idx, te_idx, data, train, test,
-                    scale_of(sm, train), train_k, test_k)
+                    scale, train_k, test_k)
 
 
 def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = DiagnoseConfig(),
