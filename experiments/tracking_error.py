@@ -66,10 +66,9 @@ def split(e: np.ndarray) -> dict:
     if len(e) == 0:
         raise ValueError("no scored steps (every step fell or followed a command change)")
     bias, var = e.mean(0), e.var(0)
+    mse = float(np.mean(np.sum(e ** 2, axis=1)))
     return dict(steps=int(len(e)), offset_x=float(bias[0]), offset_y=float(bias[1]),
-                var_x=float(var[0]), var_y=float(var[1]),
-                mse=float(np.mean(np.sum(e ** 2, axis=1))),
-                rmse=float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)))))
+                var_x=float(var[0]), var_y=float(var[1]), mse=mse, rmse=float(np.sqrt(mse)))
 
 
 def run_settle_s(folder: pathlib.Path) -> float:

@@ -102,7 +102,7 @@ def test_the_pair_screen_always_proposes_the_best_partner():
 
 
 # a held-out split of one sample: its noise floor is zero (``regions.noise_floor`` reads these)
-_ONE_SAMPLE = types.SimpleNamespace(k=1, traj=np.zeros(1, int))
+_ONE_SAMPLE = types.SimpleNamespace(k=1, traj=np.zeros(1, int), noise_floor=None)
 
 
 def _w(pair_test: dict) -> dict:

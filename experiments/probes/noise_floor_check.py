@@ -17,13 +17,14 @@ computes when the logs' header gives the sensors' noise levels (``velocity_noise
 
     python experiments/probes/noise_floor_check.py 0 1 2 ...   # case indices (0: the control)
 """
+import dataclasses
 import json
 import sys
 
 import numpy as np
 
-from stride_jax.gap import diagnose, effects, filters, fit, logs, regions
-from stride_jax.jobs import gap_bench_independent as gbi, gap_bench_real as real
+from stride_jax.gap import diagnose, effects, filters, fit, regions
+from stride_jax.jobs import gap_bench_independent as gbi
 
 
 def acov_k(r: np.ndarray, data: fit.Data) -> np.ndarray:
@@ -35,18 +36,17 @@ def acov_k(r: np.ndarray, data: fit.Data) -> np.ndarray:
 
 
 def main(indices: list[int]) -> None:
-    cfg = gbi.PRESETS["default"]
+    cfg = dataclasses.replace(gbi.PRESETS["default"], sensor_spec=True)  # the levels in the header
     dcfg = diagnose.PRESETS[cfg.diagnose]
     for index in indices:
-        sm, noisy, clean, settings, form, _ = gbi.as_read(cfg, index, True)
-        spec = logs.velocity_std(logs.header_for(sm, False, False, velocity_noise=real.Go1Sensors().velocity_noise(sm)), sm)
+        sm, noisy, clean, settings, form, spec = gbi.as_read(cfg, index, True)
         by = {t.name: t for t in clean}
         clean = [by[t.name] for t in noisy]
-        pn, pc = diagnose.prepare(sm, noisy, dcfg), diagnose.prepare(sm, clean, dcfg)
-        ps = diagnose.prepare(sm, noisy, dcfg, spec)  # the floor from the sensors' noise levels
+        pn, pc = diagnose.prepare(sm, noisy, dcfg, spec), diagnose.prepare(sm, clean, dcfg)
         assert pn.te_idx == pc.te_idx
         plan = effects.build(pn.sm, {})
-        dn, dc = pn.test_k, pc.test_k
+        floor_from_spec = pn.test_k.noise_floor
+        dn, dc = pn.test_k._replace(noise_floor=None), pc.test_k  # dn: the floor read off residuals
         unit = dn.k * pn.sm.robot.ctrl_dt * pn.scale  # the residual's per-dof scaling
         rn, rc = fit.residual(pn.sm, plan, dn, pn.scale), fit.residual(pn.sm, plan, dc, pn.scale)
         gn, gc = fit.gap(rn), fit.gap(rc)
@@ -61,7 +61,7 @@ def main(indices: list[int]) -> None:
                    floor_2sigma_true=round(float(2 * true_s2.sum()), 4),
                    floor_2sigma_logs=round(float(2 * est_s2.sum()), 4),
                    floor_max_logs=round(float(np.maximum(est_s2, -2 * ac).sum()), 4),
-                   floor_from_spec=round(ps.test_k.noise_floor, 4))
+                   floor_from_spec=round(floor_from_spec, 4))
         print(json.dumps(out), flush=True)
 
 

@@ -143,6 +143,11 @@ class PlanningConfig:
             raise ValueError(f"alarm_speed={self.alarm_speed} must be >= 0 and "
                              f"recovery_noise_std={self.recovery_noise_std} > 0")
 
+    @property
+    def trust_gated(self) -> bool:
+        """Whether the model-trust gate is on (either of its triggers)."""
+        return bool(self.trust_limit or self.trust_overshoot)
+
 
 class Planning(NamedTuple):
     """The planner-side functions of one configuration (all pure, for one world)."""
@@ -342,7 +347,7 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
             return track_error(q_aug, qd) > cfg.alarm_speed ** 2
 
     distrust = None
-    if cfg.trust_limit or cfg.trust_overshoot:
+    if cfg.trust_gated:
         if policy is None:
             which = (f"trust_limit={cfg.trust_limit}" if cfg.trust_limit
                      else f"trust_overshoot={cfg.trust_overshoot}")

@@ -161,11 +161,8 @@ def velocity_std(h: Header, sm: SimModel, where: str = "header.json") -> np.ndar
     spec = h.velocity_noise
     if not spec:
         return None
-    lay = layout(sm)
-    known = {"qd", *(f"qd_{j}" for j in lay.joints)}
-    if sm.robot.floating_base:
-        known |= {"base_linvel", "base_angvel"}
-    unknown = sorted(set(spec) - known)
+    names = _velocity_channels(sm, layout(sm))
+    unknown = sorted(set(spec) - set(names) - {"qd"})
     if unknown:
         raise LogError(f"{where}: velocity_noise keys {unknown} are not velocity channels of robot "
                        f"{sm.robot.name!r} (use 'qd', 'qd_<joint>'"
@@ -173,14 +170,10 @@ def velocity_std(h: Header, sm: SimModel, where: str = "header.json") -> np.ndar
     for k, v in spec.items():
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
             raise LogError(f"{where}: velocity_noise[{k!r}] must be a finite number >= 0, got {v!r}")
-    std = np.full(sm.mj.nv, np.nan)
-    for j, a in zip(lay.joints, lay.vadr, strict=True):
-        std[a] = spec.get(f"qd_{j}", spec.get("qd", np.nan))
-    if sm.robot.floating_base:
-        std[:3] = spec.get("base_linvel", np.nan)
-        std[3:6] = spec.get("base_angvel", np.nan)
-    missing = list(dict.fromkeys(n for n, s in zip(_velocity_channels(sm, lay), std, strict=True)
-                                 if np.isnan(s)))
+    # a joint's own level over the joints' common one
+    std = np.array([spec.get(n, spec.get("qd", np.nan) if n.startswith("qd_") else np.nan)
+                    for n in names], float)
+    missing = list(dict.fromkeys(n for n, s in zip(names, std, strict=True) if np.isnan(s)))
     if missing:
         raise LogError(f"{where}: velocity_noise leaves {missing} uncovered (give every velocity "
                        f"channel a noise level, or none)")

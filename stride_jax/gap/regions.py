@@ -48,9 +48,8 @@ def noise_floor(r: np.ndarray, data: fit.Data) -> float:
     error's own autocovariance mixes in (measured on the independent benchmark's noisy cases
     against their clean twins: 0.08-3.1 x what the noise adds, ``results/
     gap_noise_floor_check.md``)."""
-    known = getattr(data, "noise_floor", None)  # fit.Data's; a stand-in without the field reads r
-    if known is not None:
-        return known
+    if data.noise_floor is not None:
+        return data.noise_floor
     k = data.k
     same = data.traj[k:] == data.traj[:-k]
     if not same.any():

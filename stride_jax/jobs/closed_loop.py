@@ -381,7 +381,7 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
     atomic_write_text(out / "closed_loop.json", json.dumps(dict(env=env, rows=rows), indent=1))
     robot = {"go1": "Go1", "g1": "G1"}.get(cfg.robot, cfg.robot)
     pl = cfg.planning
-    gated = bool(pl.trust_limit or pl.trust_overshoot)
+    gated = pl.trust_gated
     extras = "".join([
         f", tracking weight {pl.learned_track_weight:g} on the learned reward"
         if cfg.learned and pl.learned_track_weight else "",
