@@ -112,10 +112,13 @@ def _row_key(r: dict) -> str:
     return "-"
 
 
-def _worse(key: str, other: str, w: dict | None) -> str:
-    """One comparison STRIDE loses: the scenario and the other kind, with (where both have
-    several trained seeds) STRIDE's margin, Welch's 90% interval and whether the seeds tell
-    the kinds apart."""
+def _worse(key: str, other: str, w: dict | None, falls: tuple[int, int, int, int]) -> str:
+    """One comparison STRIDE loses: the scenario and the other kind; lost on falls (``falls``:
+    STRIDE's falls and runs, the other's), their counts; else (where both have several trained
+    seeds) STRIDE's margin, Welch's 90% interval and whether the seeds tell the kinds apart."""
+    a, n, b, m = falls
+    if a * m != b * n:
+        return f"{key} vs {NAMES[other]}: fell {a} of {n} against {b} of {m}"
     if w is None:
         return f"{key} vs {NAMES[other]}"
     apart = "told apart" if w["lo"] > 0 else "not told apart"
@@ -221,19 +224,25 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
                     # STRIDE minus the other over trained seeds (each one draw of its
                     # training): whether they tell the two apart
                     w = welch(seed_means(rs).values(), seed_means(os_).values())
+                    counts = (round(fell(rs) * len(rs)), len(rs),
+                              round(fell(os_) * len(os_)), len(os_))
                     comps.append((key + where, other,
-                                  (fell(rs), s["mean"]) <= (fell(os_), o["mean"]), w))
+                                  (fell(rs), s["mean"]) <= (fell(os_), o["mean"]), w, counts))
         if comps:
-            worse = [(k, o, w) for k, o, ok, w in comps if not ok]
-            apart = [x for x in worse if x[2] is not None and x[2]["lo"] > 0]
-            seeded = [x for x in worse if x[2] is not None]
+            worse = [(k, o, w, c) for k, o, ok, w, c in comps if not ok]
+            # lost on falls: counted apart (the seeds' interval is of the upright error)
+            on_falls = [x for x in worse if x[3][0] * x[3][3] != x[3][2] * x[3][1]]
+            on_error = [x for x in worse if x not in on_falls]
+            apart = [x for x in on_error if x[2] is not None and x[2]["lo"] > 0]
+            seeded = [x for x in on_error if x[2] is not None]
             rows.append(Row(claim_best, WHERE_CLOSED, paper_best,
                             f"at most in {len(comps) - len(worse)} of {len(comps)} comparisons"
-                            + (f"; of the {len(worse)} worse, {len(apart)} told apart by the "
-                               "trained seeds (Welch's 90% interval of STRIDE minus the other "
-                               f"clear of 0), {len(seeded) - len(apart)} not"
-                               + (f", {len(worse) - len(seeded)} without seeds to tell"
-                                  if len(seeded) < len(worse) else "")
+                            + (f"; {len(on_falls)} worse on falls" if on_falls else "")
+                            + (f"; of the {len(on_error)} worse in velocity error, {len(apart)} "
+                               "told apart by the trained seeds (Welch's 90% interval of STRIDE "
+                               f"minus the other clear of 0), {len(seeded) - len(apart)} not"
+                               + (f", {len(on_error) - len(seeded)} without seeds to tell"
+                                  if len(seeded) < len(on_error) else "")
                                if seeded else "")
                             + (f" (worse: {'; '.join(_worse(*x) for x in worse)})"
                                if worse else "") + current,

@@ -507,6 +507,19 @@ def test_merged_parts_keep_their_names_and_figures_and_bars_pick_by_part(tmp_pat
         (tmp_path / name / "closed_loop.json").write_text(json.dumps(data))
     rows = cl.merge([str(tmp_path / "s0"), str(tmp_path / "s3")], str(tmp_path / "m2"))
     assert [r["model"] for r in rows] == ["stride", "stride"]
+    # ... but draws of another planner (a flag, or the model's file, differs) are a variant even
+    # at new seeds; a setting only one of them records (added since) does not count
+    for name, seed, gate, path in (("g0", 0, 0.0, "m/a"), ("g4", 4, 0.0, "m/a"),
+                                   ("gate", 8, 3.5, "m/a"), ("file", 9, 0.0, "m/b")):
+        _part(tmp_path / name, [dict(_row("walk", "stride", 0.07), seed=seed)], "c")
+        data = json.loads((tmp_path / name / "closed_loop.json").read_text())
+        planning = dict(trust_limit=gate) | (dict(trust_overshoot=0.0) if seed else {})
+        data["env"]["config"] = dict(seed=seed, out=f"/o/{name}", models=f"stride={path}",
+                                     planning=planning)
+        (tmp_path / name / "closed_loop.json").write_text(json.dumps(data))
+    rows = cl.merge([str(tmp_path / n) for n in ("g0", "g4", "gate", "file")],
+                    str(tmp_path / "m4"))
+    assert [r["model"] for r in rows] == ["stride", "stride", "stride@gate", "stride@file"]
 
     # a part of several episodes (--episodes 3) whose first clashes with an earlier part's: all
     # three are the variant's, not one renamed and two left among the earlier part's model

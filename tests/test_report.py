@@ -221,6 +221,14 @@ def test_closed_loop_claims_read_the_headline_parts_alone(results):
     # a merged table with more models than scenarios: a row per model, a column per scenario
     md = report.build(results)["markdown"]
     assert "| model | tilt | soft | push |" in md and "| stride_s1@new | 0.870 | - | 0.112 |" in md
+    # lost on falls (its upright error lower): said in falls, not as a velocity margin
+    merged["rows"] = [r for r in merged["rows"] if r["scenario"] != "push"] + \
+        seeds("stride", [0.05, 0.05, 0.05]) + seeds("onn", [0.1, 0.1, 0.1])
+    merged["rows"][-4]["fell"] = True
+    _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
+    best = _find({r.claim: r for r in report.build(results)["rows"]}, "as good as DeLaN's")
+    assert "push vs ONN (plain MLP): fell 1 of 3 against 0 of 3" in best.ours, best.ours
+    assert "1 worse on falls" in best.ours
     del merged["headline"]  # no headline anywhere: the history, every file, names as they are
     _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
     assert _find(_verdicts(results), "without falling") == report.FAILS

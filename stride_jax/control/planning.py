@@ -100,12 +100,14 @@ class PlanningConfig:
         the policy also acts while the base's forward velocity (base frame) exceeds the
         commanded one the planner sees by more than this. A planner that drives the robot
         faster than asked is acting on a model that expects less speed from its action than
-        the robot gives: on G1's low friction both falls of session 44's 12 STRIDE draws began
-        with the forward velocity 0.15 m/s above the command, 0.24-0.40 s before the
-        observer's estimate reached ``trust_limit`` (the ten draws that stayed up never passed
-        0.15; ``results/closed_loop_g1_gpu/README.md``, read off those traces, so in sample).
-        What it cannot tell apart: a commanded slow-down (the robot is faster than the new
-        command until it has braked) and a push from behind; there the policy acts too.
+        the robot gives. Read off session 44's two G1 low-friction falls (in sample), and
+        refuted on new draws (session 45, ``results/closed_loop_g1_gpu/lowf_fall_onset.md``):
+        at 0.15 it handed G1 to the policy 0.3-0.5 s before each fall, and 7 of 24 draws fell
+        anyway (6 of 24 without it; the policy could not recover the runaway either), while
+        upright STRIDE draws and every DeLaN draw (none fell) passed 0.15 too. Kept, off, for
+        other robots and scenarios. What it cannot tell apart: a commanded slow-down (the
+        robot is faster than the new command until it has braked) and a push from behind;
+        there the policy acts too.
     """
 
     noise_std: float = 0.15

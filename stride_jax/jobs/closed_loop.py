@@ -441,6 +441,33 @@ def _run_seed(env: dict | None) -> int:
     return ((env or {}).get("config") or {}).get("seed", 0)
 
 
+# a run's settings that say which draws it took or where it wrote, not which planner it was
+_PER_RUN = frozenset({"seed", "episodes", "out", "models", "scenarios", "progress_s"})
+
+
+def _settings(env: dict | None, model: str) -> dict:
+    """What makes a part's row of ``model`` one planner: its run's config (``env['config']``)
+    less the keys that only pick draws, scenarios or the output (``_PER_RUN``), plus the file
+    the model was loaded from (``--models NAME=PATH``; None for ``policy``, ``oracle``, ...)."""
+    config = dict((env or {}).get("config") or {})
+    paths = dict(m.split("=", 1) for m in str(config.get("models", "")).split(",") if "=" in m)
+    kept = {k: v for k, v in config.items() if k not in _PER_RUN}
+    return {**kept, "model_file": paths.get(model.split("@")[0])}
+
+
+def _same_settings(a: dict, b: dict) -> bool:
+    """Two runs' :func:`_settings` agree on every key both carry (nested: ``mppi``,
+    ``planning``); a key one lacks is a setting added since the older run, at its default."""
+    for k in a.keys() & b.keys():
+        x, y = a[k], b[k]
+        if isinstance(x, dict) and isinstance(y, dict):
+            if not _same_settings(x, y):
+                return False
+        elif x != y:
+            return False
+    return True
+
+
 def merge(parts: list[str], out: str, title: str = "", onto: str | None = None,
           headline: list[str] | None = None) -> list[dict]:
     """One table from several runs' folders (``closed_loop.json`` each: runs split over device
@@ -449,7 +476,9 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None,
     rows recovered from a run's log (``{"env": {...}, "rows": [...]}``, rows with at least
     ``scenario``, ``model``, ``vel_rmse``, ``fell``, ``ms_per_step``). Traces found beside a
     part are copied, so the plots show every row. A (scenario, model) pair of which an earlier
-    part already has an episode (same seed) is renamed ``model@part``, all its episodes.
+    part already has an episode (same seed), or which an earlier part ran with other settings
+    (:func:`_settings`: another model file or planner flag), is renamed ``model@part``, all its
+    episodes; parts that differ only in their seeds are draws of one planner and keep one name.
     ``onto``: a merged ``closed_loop.json`` whose rows (with any notes added to them since) and
     parts are kept as they are, the new parts' rows appended after them (its title unless
     ``title`` is given); a part merged there before adds the rows its run has written since (a
@@ -468,6 +497,11 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None,
         head = base.get("headline")
         seen = {(r["scenario"], r["model"], r.get("seed", _run_seed(envs_.get(r.get("part")))))
                 for r in rows}
+    # the settings each (scenario, model) name has run with so far
+    settings: dict[tuple[str, str], list[dict]] = {}
+    for r in rows:
+        settings.setdefault((r["scenario"], r["model"]), []).append(
+            _settings(envs_.get(r.get("part")), r["model"]))
     for part in parts:
         path = pathlib.Path(part)
         src = path / "closed_loop.json" if path.is_dir() else path
@@ -494,12 +528,16 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None,
         # a second part's variant of the same model: all of its episodes of that pair renamed
         # (an episode clashing renames its pair, so one part's draws keep one name)
         clash |= {(r["scenario"], r["model"]) for r in part_rows
-                  if (r["scenario"], r["model"], r.get("seed", run_seed)) in seen}
+                  if (r["scenario"], r["model"], r.get("seed", run_seed)) in seen
+                  or not all(_same_settings(_settings(data["env"], r["model"]), other)
+                             for other in settings.get((r["scenario"], r["model"]), []))}
         for r in part_rows:
             model, episode, seed = r["model"], r.get("episode", 0), r.get("seed", run_seed)
             if (r["scenario"], model) in clash:
                 model = f"{model}@{name}"
             seen.add((r["scenario"], model, seed))
+            settings.setdefault((r["scenario"], model), []).append(
+                _settings(data["env"], r["model"]))
             rows.append({**r, "model": model, "part": name})
             trace = src.parent / trace_name(r["scenario"], r["model"], episode, seed)
             if trace.is_file():
