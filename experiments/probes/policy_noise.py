@@ -1,0 +1,115 @@
+"""Is the policy's own walk at a knife edge in a scenario? The PPO policy alone, its action
+perturbed each control step by Gaussian noise (the planner samples around the policy's actions;
+this is the simplest such controller), over many draws: how many fall, and when.
+
+    python experiments/probes/policy_noise.py --robot g1 --policy results/policies/ppo_g1 \\
+        --scenario low_friction --noise 0,0.05,0.1,0.2 --draws 16 --seconds 3 \\
+        --out results/planning_diagnosis/policy_noise_g1_lowf
+
+The noise is in the planner's action units (``planning.lo``/``hi``: G1's planner samples its
+policy prior with std 0.05 there, ``closed_loop_targets.sh``); the action is clipped to the
+bounds as the planner's is. Runs on a CPU (the draws vmapped; MJX there: tens of seconds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from mujoco import mjx
+
+from stride_jax import io
+from stride_jax.control import envs, mppi, ppo
+from stride_jax.control.episode import run_episode
+from stride_jax.control.planning import PlanningConfig, make_planning
+from stride_jax.control.scenarios import push_schedule, schedule, tilt_schedule
+from stride_jax.jobs.closed_loop import ClosedLoopConfig, scenario, scenario_model
+from stride_jax.sim import model as sim_model
+
+
+def noisy_policy(planning, std: float) -> mppi.Planner:
+    """A one-step "planner" that applies the policy's action plus N(0, std^2) noise."""
+    lo, hi = jnp.asarray(planning.lo), jnp.asarray(planning.hi)
+
+    def init(key, plan=None):
+        return mppi.MPPIState(jnp.zeros((1, len(planning.lo))) if plan is None else plan, key)
+
+    def step(state, q, qd):
+        key, k = jax.random.split(state.key)
+        u = planning.policy(q, qd)
+        u = jnp.clip(u + std * jax.random.normal(k, u.shape), lo, hi)
+        z = jnp.zeros(1)
+        info = mppi.Info(z, z, z[0], u[None], jnp.zeros((), jnp.int32), u[None, None], z,
+                         jnp.ones(1, jnp.int32), jnp.zeros((), bool))
+        return u, mppi.MPPIState(u[None], key), info
+
+    return mppi.Planner(init, step)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--robot", default="g1")
+    ap.add_argument("--policy", required=True)
+    ap.add_argument("--scenario", default="low_friction")
+    ap.add_argument("--noise", default="0,0.05,0.1")
+    ap.add_argument("--draws", type=int, default=16)
+    ap.add_argument("--seconds", type=float, default=3.0)
+    ap.add_argument("--govern", action=argparse.BooleanOptionalAction, default=True)
+    ap.add_argument("--out", required=True, help="output stem (.md, .json)")
+    a = ap.parse_args()
+    policy, _, env_cfg = ppo.load_policy(a.policy)
+    if env_cfg.robot != a.robot:
+        raise SystemExit(f"the policy {a.policy} drives {env_cfg.robot}, not {a.robot}")
+    cfg = ClosedLoopConfig(robot=a.robot, seconds=a.seconds, govern=a.govern)
+    sm = sim_model.load(a.robot)
+    sc = scenario(cfg, a.scenario)
+    m_sim = scenario_model(sm, sc, 0)
+    mx_sim, sm_sim = mjx.put_model(m_sim), sim_model.on_model(sm, m_sim)
+    slots = envs.contact_slots(mx_sim)
+    starts, values = (jnp.asarray(x) for x in schedule(sc))
+    pushes = jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum())))
+    tilt = jnp.asarray(tilt_schedule(sc))
+    limits = env_cfg.commands.bounds() if a.govern else None
+    n_steps = int(round(sc.seconds / sm.robot.ctrl_dt))
+    planning = make_planning(PlanningConfig(), env_cfg, sm, lambda q, qd, u, k: (q, qd), policy)
+
+    def episode(std, key):
+        return run_episode(sm_sim, mx_sim, slots, planning, noisy_policy(planning, std),
+                           n_steps, starts, values, key, pushes=pushes, limits=limits, tilt=tilt)
+
+    run = jax.jit(jax.vmap(episode, in_axes=(None, 0)))
+    keys = jax.vmap(jax.random.key)(jnp.arange(a.draws))
+    rows = []
+    for std in (float(s) for s in a.noise.split(",")):
+        t0 = time.perf_counter()
+        tr = jax.tree.map(np.asarray, run(jnp.asarray(std), keys))
+        t = tr.t[0]
+        fall = [float(t[f.argmax()]) if f.any() else None for f in tr.fallen]
+        rows.append(dict(noise=std, draws=a.draws, falls=sum(f is not None for f in fall),
+                         fall_s=[f for f in fall if f is not None],
+                         vx_at_1s=float(np.median(tr.v_base[:, int(1.0 / (t[1] - t[0])) - 1, 0]))))
+        print(f"noise {std}: {rows[-1]['falls']} of {a.draws} fell "
+              f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    out = pathlib.Path(a.out)
+    cmd = ("python experiments/probes/policy_noise.py --robot {} --policy {} --scenario {} "
+           "--noise {} --draws {} --seconds {} --out {}").format(
+        a.robot, a.policy, a.scenario, a.noise, a.draws, a.seconds, a.out)
+    io.atomic_write_text(out.with_suffix(".json"), json.dumps(
+        dict(command=cmd, scenario=sc.name, rows=rows), indent=1))
+    lines = [f"# The {a.robot} policy alone with action noise: {sc.name}", "", f"`{cmd}`", "",
+             "| noise std | fell | fall times (s) | median forward velocity at 1 s (m/s) |",
+             "|---:|---:|---|---:|"]
+    lines += [f"| {r['noise']:g} | {r['falls']} of {r['draws']} | "
+              f"{', '.join(f'{f:.2f}' for f in r['fall_s']) or '-'} | {r['vx_at_1s']:.2f} |"
+              for r in rows]
+    io.atomic_write_text(out.with_suffix(".md"), "\n".join(lines) + "\n")
+    print(f"wrote {out}.{{md,json}}")
+
+
+if __name__ == "__main__":
+    main()
