@@ -448,11 +448,13 @@ _PER_RUN = frozenset({"seed", "episodes", "out", "models", "scenarios", "progres
 def _settings(env: dict | None, model: str) -> dict:
     """What makes a part's row of ``model`` one planner: its run's config (``env['config']``)
     less the keys that only pick draws, scenarios or the output (``_PER_RUN``), plus the file
-    the model was loaded from (``--models NAME=PATH``; None for ``policy``, ``oracle``, ...)."""
+    the model was loaded from where the run names one (``--models NAME=PATH``; not ``policy``,
+    ``oracle``, ...; nor a run that kept no config: what it lacks is not compared)."""
     config = dict((env or {}).get("config") or {})
     paths = dict(m.split("=", 1) for m in str(config.get("models", "")).split(",") if "=" in m)
     kept = {k: v for k, v in config.items() if k not in _PER_RUN}
-    return {**kept, "model_file": paths.get(model.split("@")[0])}
+    path = paths.get(model.split("@")[0])
+    return {**kept, "model_file": path} if path else kept
 
 
 def _same_settings(a: dict, b: dict) -> bool:
