@@ -2,6 +2,7 @@
 row and the whole diagnosis, to investigate a verdict without rerunning the benchmark.
 
     python experiments/gap_one_row.py --case 1 [--noisy] [--preset default] [--out /tmp/gap_rows]
+        [--no-step-cost]   # the calibration takes a finer time step at min_gain alone
 
 Writes ``<out>/<case>-<clean|noisy>.json`` (``row``: as the benchmark scores it; ``diagnosis``:
 the diagnosis's JSON-able result). Run it under the CPU lock: one Go1 row takes 2-8 minutes.
@@ -20,12 +21,22 @@ def main() -> None:
     ap.add_argument("--noisy", action="store_true")
     ap.add_argument("--preset", default="default")
     ap.add_argument("--out", default="/tmp/gap_rows")
+    ap.add_argument("--no-step-cost", action="store_true",
+                    help="CalibrateConfig.step_cost off in the benchmark's diagnosis preset")
     a = ap.parse_args()
+    import dataclasses
+
+    from stride_jax.gap import diagnose
     from stride_jax.jobs import gap_bench_independent as bi
     from stride_jax.io import atomic_write_text
     from stride_jax.jobs.gap_report import json_default
 
-    row, res = bi.diagnose_case(bi.PRESETS[a.preset], a.case, a.noisy)
+    cfg = bi.PRESETS[a.preset]
+    if a.no_step_cost:  # the diagnosis preset is looked up by name: replace it for this process
+        d = diagnose.PRESETS[cfg.diagnose]
+        diagnose.PRESETS[cfg.diagnose] = dataclasses.replace(
+            d, calibrate=dataclasses.replace(d.calibrate, step_cost=False))
+    row, res = bi.diagnose_case(cfg, a.case, a.noisy)
     out = pathlib.Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     keep = {k: v for k, v in res.items() if not k.startswith("_")}
