@@ -32,21 +32,23 @@ from stride_jax.jobs.closed_loop import ClosedLoopConfig, scenario, scenario_mod
 from stride_jax.sim import model as sim_model
 
 
-def noisy_policy(planning, std: float) -> mppi.Planner:
-    """A one-step "planner" that applies the policy's action plus N(0, std^2) noise."""
+def noisy_policy(planning, std: float, ar: float = 0.0) -> mppi.Planner:
+    """A one-step "planner" that applies the policy's action plus noise of std ``std`` per entry:
+    i.i.d. per step (``ar`` 0) or AR(1), ``e_t = ar e_(t-1) + sqrt(1 - ar^2) std xi_t`` (as
+    smooth as a plan's noise; the state's ``plan`` row carries ``e``)."""
     lo, hi = jnp.asarray(planning.lo), jnp.asarray(planning.hi)
 
     def init(key, plan=None):
-        return mppi.MPPIState(jnp.zeros((1, len(planning.lo))) if plan is None else plan, key)
+        return mppi.MPPIState(jnp.zeros((1, len(planning.lo))), key)
 
     def step(state, q, qd):
         key, k = jax.random.split(state.key)
-        u = planning.policy(q, qd)
-        u = jnp.clip(u + std * jax.random.normal(k, u.shape), lo, hi)
+        e = ar * state.plan[0] + jnp.sqrt(1 - ar ** 2) * std * jax.random.normal(k, lo.shape)
+        u = jnp.clip(planning.policy(q, qd) + e, lo, hi)
         z = jnp.zeros(1)
         info = mppi.Info(z, z, z[0], u[None], jnp.zeros((), jnp.int32), u[None, None], z,
                          jnp.ones(1, jnp.int32), jnp.zeros((), bool))
-        return u, mppi.MPPIState(u[None], key), info
+        return u, mppi.MPPIState(e[None], key), info
 
     return mppi.Planner(init, step)
 
@@ -57,6 +59,8 @@ def main() -> None:
     ap.add_argument("--policy", required=True)
     ap.add_argument("--scenario", default="low_friction")
     ap.add_argument("--noise", default="0,0.05,0.1")
+    ap.add_argument("--ar", type=float, default=0.0,
+                    help="AR(1) coefficient of the noise per control step (0: i.i.d.)")
     ap.add_argument("--draws", type=int, default=16)
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--govern", action=argparse.BooleanOptionalAction, default=True)
@@ -78,8 +82,11 @@ def main() -> None:
     n_steps = int(round(sc.seconds / sm.robot.ctrl_dt))
     planning = make_planning(PlanningConfig(), env_cfg, sm, lambda q, qd, u, k: (q, qd), policy)
 
+    if not 0 <= a.ar < 1:
+        raise SystemExit(f"--ar {a.ar}: the AR(1) coefficient must be in [0, 1)")
+
     def episode(std, key):
-        return run_episode(sm_sim, mx_sim, slots, planning, noisy_policy(planning, std),
+        return run_episode(sm_sim, mx_sim, slots, planning, noisy_policy(planning, std, a.ar),
                            n_steps, starts, values, key, pushes=pushes, limits=limits, tilt=tilt)
 
     run = jax.jit(jax.vmap(episode, in_axes=(None, 0)))
@@ -97,11 +104,13 @@ def main() -> None:
               f"({time.perf_counter() - t0:.0f} s)", flush=True)
     out = pathlib.Path(a.out)
     cmd = ("python experiments/probes/policy_noise.py --robot {} --policy {} --scenario {} "
-           "--noise {} --draws {} --seconds {} --out {}").format(
-        a.robot, a.policy, a.scenario, a.noise, a.draws, a.seconds, a.out)
+           "--noise {}{} --draws {} --seconds {} --out {}").format(
+        a.robot, a.policy, a.scenario, a.noise, f" --ar {a.ar:g}" if a.ar else "", a.draws,
+        a.seconds, a.out)
     io.atomic_write_text(out.with_suffix(".json"), json.dumps(
-        dict(command=cmd, scenario=sc.name, rows=rows), indent=1))
-    lines = [f"# The {a.robot} policy alone with action noise: {sc.name}", "", f"`{cmd}`", "",
+        dict(command=cmd, scenario=sc.name, ar=a.ar, rows=rows), indent=1))
+    kind = f"AR(1) noise, coefficient {a.ar:g} per step" if a.ar else "i.i.d. noise"
+    lines = [f"# The {a.robot} policy alone with action noise: {sc.name} ({kind})", "", f"`{cmd}`", "",
              "| noise std | fell | fall times (s) | median forward velocity at 1 s (m/s) |",
              "|---:|---:|---|---:|"]
     lines += [f"| {r['noise']:g} | {r['falls']} of {r['draws']} | "
