@@ -106,3 +106,40 @@ def test_bad_configs_are_clear_errors():
     bad = dataclasses.replace(envs.PRESETS["go1"])
     with pytest.raises(ValueError, match="without a scale"):
         envs.total_reward(bad, {"not_a_term": jnp.ones(())}, 0.02)
+
+
+def test_domain_randomisation_draws_friction_and_perturbs_the_targets(g1, go1):
+    """``friction_min``/``max``: each reset draws the episode's friction factor in the range
+    (1 without randomisation), and :func:`envs.with_friction` scales the model as the closed
+    loop's low-friction scenario does (G1's contact pairs included); ``action_noise``: the same
+    state and action step to different states under different keys."""
+    from mujoco import mjx
+
+    from stride_jax.control.scenarios import WALK, Scenario, scenario_model
+
+    for sm in (g1, go1):
+        low = scenario_model(sm, Scenario("low", WALK, friction=0.3))
+        mx = envs.with_friction(mjx.put_model(sm.mj), 0.3)
+        np.testing.assert_allclose(mx.geom_friction, low.geom_friction, rtol=1e-6)
+        np.testing.assert_allclose(mx.pair_friction, low.pair_friction, rtol=1e-6)
+    assert g1.mj.npair > 0  # the pairs are checked on a model that has them
+
+    env = envs.make("go1", friction_min=0.3, friction_max=0.5, action_noise=0.05)
+    keys = jax.random.key_data(jax.random.split(jax.random.key(0), 8))
+    states = jax.jit(jax.vmap(env.reset))(keys)
+    f = np.asarray(states.info["friction"])
+    assert ((f >= 0.3) & (f <= 0.5)).all() and np.ptp(f) > 0.05
+    assert float(envs.make("go1").reset(keys[0]).info["friction"]) == 1.0
+
+    s0 = jax.tree.map(lambda x: x[0], states)
+    other = s0.replace(info={**s0.info, "rng": jax.random.key_data(jax.random.key(7))})
+    step = jax.jit(env.step)
+    a = jnp.zeros(env.action_size)
+    q1, q2 = step(s0, a).pipeline_state.qpos, step(other, a).pipeline_state.qpos
+    assert float(jnp.abs(q1 - q2).max()) > 1e-6  # the noise differs with the key
+    np.testing.assert_array_equal(q1, step(s0, a).pipeline_state.qpos)  # and is the key's
+
+    for bad in (dict(friction_min=0.0), dict(friction_min=0.6, friction_max=0.5),
+                dict(action_noise=-0.1)):
+        with pytest.raises(ValueError, match="friction|action_noise"):
+            envs.config("go1", **bad)

@@ -104,6 +104,23 @@ def test_the_ppo_and_fit_reward_value_jobs_at_tiny_size(tmp_path, capsys):
     assert env_cfg.robot == "go1"
     with pytest.raises(SystemExit, match="another robot, network or environment"):
         cli.main(["ppo", "--preset", "tiny", "--policy-width", "32", "--out", str(run)])
+    # the domain randomisation flags reach the environment: another friction is another run
+    with pytest.raises(SystemExit, match="another robot, network or environment"):
+        cli.main(["ppo", "--preset", "tiny", "--friction-min", "0.5", "--out", str(run)])
+    # a run started before those fields existed resumes (they read back at their defaults)
+    import json
+
+    from stride_jax.jobs import ppo as ppo_job
+    path = run / "config.json"
+    old = json.loads(path.read_text())
+    for key in ("friction_min", "friction_max", "action_noise"):
+        del old["env"][key], old["ppo"][key]
+    path.write_text(json.dumps(old))
+    cfg, env_cfg = ppo.read_config(run)
+    assert (env_cfg.friction_min, env_cfg.action_noise) == (1.0, 0.0)
+    ppo_job._write_config(run, cfg, env_cfg)
+    with pytest.raises(ValueError, match="environment"):
+        ppo_job._write_config(run, cfg, dataclasses.replace(env_cfg, action_noise=0.02))
     out = tmp_path / "learned"
     cli.main(["fit-reward-value", "--preset", "tiny", "--policy", str(run), "--out", str(out)])
     reward, value = learned.load(out / "reward_value.msgpack")

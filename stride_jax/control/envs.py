@@ -106,6 +106,15 @@ class EnvConfig:
       swing_height: scheduled swing height of the feet (m).
       init_joint_noise: std of the initial joint offsets (rad).
       init_height: added to the home pose's base height at reset (m).
+      friction_min, friction_max: each episode's ground friction is the model's scaled by a
+        factor drawn uniformly in this range at reset (:func:`with_friction`: the sliding
+        friction of every geom and contact pair, as the closed loop's low-friction scenario
+        scales it); 1, 1: the model's own, no randomisation. A policy trained on one friction
+        walks on a knife edge on another (G1 at 0.3 of it falls from 0.01 rad of smooth action
+        noise, ``results/planning_diagnosis/README.md``).
+      action_noise: std (rad) of Gaussian noise added to every joint target in every control
+        period while training (0: none): the policy learns to walk while its actions are
+        perturbed, as a planner sampling around it (or an actuator) perturbs them.
     """
 
     robot: str = "go1"
@@ -120,8 +129,20 @@ class EnvConfig:
     swing_height: float = 0.08
     init_joint_noise: float = 0.1
     init_height: float = 0.02
+    friction_min: float = 1.0
+    friction_max: float = 1.0
+    action_noise: float = 0.0
+
+    @property
+    def randomises_friction(self) -> bool:
+        return (self.friction_min, self.friction_max) != (1.0, 1.0)
 
     def __post_init__(self):
+        if not 0 < self.friction_min <= self.friction_max:
+            raise ValueError(f"friction_min={self.friction_min}, friction_max={self.friction_max}: "
+                             "need 0 < friction_min <= friction_max (factors on the model's friction)")
+        if self.action_noise < 0:
+            raise ValueError(f"action_noise={self.action_noise} must be >= 0 (rad)")
         if self.action_scale <= 0:
             raise ValueError(f"action_scale={self.action_scale} must be > 0")
         if self.tracking_sigma <= 0:
@@ -279,7 +300,8 @@ class VelocityEnv(brax_base.Env):
         return "mjx"
 
     def reset(self, rng: jax.Array) -> brax_base.State:
-        """A fresh world: home pose with joint noise, a random heading, a drawn command."""
+        """A fresh world: home pose with joint noise, a random heading, a drawn command (and,
+        where the config randomises it, the episode's ground friction factor)."""
         rng, k_joint, k_yaw, k_cmd, k_clock = jax.random.split(rng, 5)
         yaw = jax.random.uniform(k_yaw, minval=-jnp.pi, maxval=jnp.pi)
         qpos = self.qpos0.at[3:7].set(jnp.array([jnp.cos(yaw / 2), 0, 0, jnp.sin(yaw / 2)]))
@@ -289,9 +311,13 @@ class VelocityEnv(brax_base.Env):
         command = sample_command(self.cfg.commands, k_cmd)
         clock = jax.random.uniform(k_clock) if self.cfg.gait_hz > 0 else jnp.zeros(())
         nf = self.sm.nfeet
+        # (keys folded from one already drawn: without randomisation the streams stay as before)
+        friction = (jax.random.uniform(jax.random.fold_in(k_clock, 1), minval=self.cfg.friction_min,
+                                       maxval=self.cfg.friction_max)
+                    if self.cfg.randomises_friction else jnp.ones(()))
         info = {"rng": rng, "command": command, "last_action": jnp.zeros(self.nu),
                 "air_time": jnp.zeros(nf), "last_contact": jnp.ones(nf, bool),
-                "clock": clock, "t": jnp.zeros((), jnp.int32)}
+                "clock": clock, "t": jnp.zeros((), jnp.int32), "friction": friction}
         obs = observe(self.cfg, self.home, d.qpos, d.qvel, command, clock)
         _, parts = total_reward(self.cfg, self._terms_zero(), self.dt)
         metrics = {f"reward/{k}": jnp.zeros(()) for k in parts}
@@ -302,8 +328,14 @@ class VelocityEnv(brax_base.Env):
         """One control period under ``action`` ``[nu]`` in [-1, 1]."""
         cfg, info = self.cfg, dict(state.info)
         action = jnp.clip(action, -1.0, 1.0)
-        ctrl = jnp.clip(self.home + cfg.action_scale * action, self.lo, self.hi)
-        d = physics_step(self.mx, self.sm.n_substeps, state.pipeline_state, ctrl)
+        target = self.home + cfg.action_scale * action
+        rng, k_cmd = jax.random.split(info["rng"])
+        if cfg.action_noise:
+            target = target + cfg.action_noise * jax.random.normal(jax.random.fold_in(k_cmd, 1),
+                                                                   target.shape)
+        ctrl = jnp.clip(target, self.lo, self.hi)
+        mx = with_friction(self.mx, info["friction"]) if cfg.randomises_friction else self.mx
+        d = physics_step(mx, self.sm.n_substeps, state.pipeline_state, ctrl)
         q, qd = d.qpos, d.qvel
         finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd))
         fallen = rollout_mjx.fallen(self.sm, q) | ~finite
@@ -326,7 +358,6 @@ class VelocityEnv(brax_base.Env):
         reward = jnp.where(finite, reward, 0.0)
 
         t = info["t"] + 1
-        rng, k_cmd = jax.random.split(info["rng"])
         resample = (t % self.resample_steps) == 0
         command = jnp.where(resample, sample_command(cfg.commands, k_cmd), command)
         info.update(rng=rng, command=command, last_action=action,
@@ -352,6 +383,16 @@ class VelocityEnv(brax_base.Env):
         """Joint targets ``[nu]`` (rad) of a normalised action ``[nu]``."""
         return jnp.clip(self.home + self.cfg.action_scale * jnp.clip(action, -1, 1),
                         self.lo, self.hi)
+
+
+def with_friction(mx: mjx.Model, factor: jax.Array) -> mjx.Model:
+    """``mx`` with the sliding friction of every geom and of every explicit contact pair (G1's
+    feet meet the floor through pairs, which ignore the geoms' friction) scaled by ``factor``:
+    what :func:`stride_jax.control.scenarios.scenario_model` does to an ``MjModel`` for its
+    friction, on the device (``factor`` may be traced: one per world under ``vmap``)."""
+    factor = jnp.asarray(factor, mx.geom_friction.dtype)
+    return mx.replace(geom_friction=mx.geom_friction.at[:, 0].multiply(factor),
+                      pair_friction=mx.pair_friction.at[:, :2].multiply(factor))
 
 
 def physics_step(mx: mjx.Model, n_substeps: int, d: mjx.Data, ctrl: jax.Array) -> mjx.Data:

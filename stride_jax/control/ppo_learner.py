@@ -36,6 +36,10 @@ class PPOConfig:
       reward_scaling: as in ``brax.training.agents.ppo.train``.
       policy_width, policy_depth, value_width, value_depth: MLP sizes (swish).
       seed: base seed (chunk ``i`` trains with ``seed + i``).
+      friction_min, friction_max, action_noise: the environment's domain randomisation
+        (:class:`stride_jax.control.envs.EnvConfig`'s fields of these names: each episode's
+        ground friction factor, and noise on the joint targets); the defaults train on the
+        robot's own model without noise.
     """
 
     robot: str = "go1"
@@ -62,6 +66,9 @@ class PPOConfig:
     value_width: int = 256
     value_depth: int = 5
     seed: int = 0
+    friction_min: float = 1.0
+    friction_max: float = 1.0
+    action_noise: float = 0.0
 
     @property
     def steps_per_update(self) -> int:

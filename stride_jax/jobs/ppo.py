@@ -23,7 +23,7 @@ import stride_jax
 from stride_jax import config
 from stride_jax.control import envs
 from stride_jax.control.ppo import (PRESETS, PPOConfig, RunState, load,  # noqa: F401
-                                    save, train_chunk)
+                                    read_config, save, train_chunk)
 from stride_jax.io import atomic_write_text, code_version
 
 
@@ -37,7 +37,9 @@ def _write_config(out: pathlib.Path, cfg: PPOConfig, env_cfg: envs.EnvConfig) ->
     old = json.loads(path.read_text())
     fixed = ("robot", "policy_width", "policy_depth", "value_width", "value_depth")
     diff = [k for k in fixed if old["ppo"][k] != mine["ppo"][k]]
-    if diff or old["env"] != json.loads(json.dumps(mine["env"])):
+    # the run's environment as it reads back (fields added since take their defaults)
+    old_env = dataclasses.asdict(read_config(out)[1])
+    if diff or json.loads(json.dumps(old_env)) != json.loads(json.dumps(mine["env"])):
         raise ValueError(f"{out} was started with another robot, network or environment "
                          f"({', '.join(diff) or 'env'}); use a new --out")
 
@@ -46,7 +48,8 @@ def run(cfg: PPOConfig, env_cfg: envs.EnvConfig | None = None, log=print) -> Run
     """One chunk into ``cfg.out``: resumes from its checkpoint, saves at every checkpoint."""
     t0 = time.monotonic()
     deadline = t0 + 60 * cfg.minutes if cfg.minutes else None
-    env_cfg = env_cfg or envs.config(cfg.robot)
+    env_cfg = env_cfg or envs.config(cfg.robot, friction_min=cfg.friction_min,
+                                     friction_max=cfg.friction_max, action_noise=cfg.action_noise)
     if env_cfg.robot != cfg.robot:
         raise ValueError(f"environment robot {env_cfg.robot!r} != PPO robot {cfg.robot!r}")
     out = pathlib.Path(cfg.out)
