@@ -94,7 +94,7 @@ def test_the_ppo_and_fit_reward_value_jobs_at_tiny_size(tmp_path, capsys):
     """`stride ppo` writes a run folder (config, checkpoint, progress) and refuses another
     network on it; `stride fit-reward-value` fits the learned models from that run."""
     from stride_jax import cli
-    from stride_jax.control import learned
+    from stride_jax.control import envs, learned
 
     run = tmp_path / "ppo"
     cli.main(["ppo", "--robot", "go1", "--preset", "tiny", "--out", str(run)])
@@ -121,6 +121,25 @@ def test_the_ppo_and_fit_reward_value_jobs_at_tiny_size(tmp_path, capsys):
     ppo_job._write_config(run, cfg, env_cfg)
     with pytest.raises(ValueError, match="environment"):
         ppo_job._write_config(run, cfg, dataclasses.replace(env_cfg, action_noise=0.02))
+    # --init-from: a new run (here under action noise) starts from that run's networks, at 0 steps
+    started = []
+
+    def first_chunk(cfg, env, restore, *args, **kw):
+        started.append(restore)
+        return restore
+
+    env = envs.VelocityEnv(env_cfg)
+    trained = ppo.load(run, cfg, env.observation_size, env.action_size)
+    with pytest.MonkeyPatch.context() as monkey:
+        monkey.setattr(ppo_job, "train_chunk", first_chunk)
+        cli.main(["ppo", "--preset", "tiny", "--init-from", str(run), "--action-noise", "0.02",
+                  "--out", str(tmp_path / "robust")])
+        with pytest.raises(SystemExit, match="no checkpoint.msgpack"):
+            cli.main(["ppo", "--preset", "tiny", "--init-from", str(tmp_path),
+                      "--out", str(tmp_path / "other")])
+    assert (started[0].env_steps, started[0].chunks) == (0, 0)
+    same = jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b)), started[0].train, trained.train)
+    assert all(jax.tree.leaves(same))
     out = tmp_path / "learned"
     cli.main(["fit-reward-value", "--preset", "tiny", "--policy", str(run), "--out", str(out)])
     reward, value = learned.load(out / "reward_value.msgpack")

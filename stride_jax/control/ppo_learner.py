@@ -40,6 +40,10 @@ class PPOConfig:
         (:class:`stride_jax.control.envs.EnvConfig`'s fields of these names: each episode's
         ground friction factor, and noise on the joint targets); the defaults train on the
         robot's own model without noise.
+      init_from: a PPO run folder whose checkpoint (networks, observation normaliser, optimiser
+        state) starts this run, counted from 0 env steps (fine-tuning: a trained walking policy
+        made robust under domain randomisation costs a chunk, not a run); read by the first
+        chunk only, its networks must match these; "" (default): fresh networks.
     """
 
     robot: str = "go1"
@@ -69,6 +73,7 @@ class PPOConfig:
     friction_min: float = 1.0
     friction_max: float = 1.0
     action_noise: float = 0.0
+    init_from: str = ""
 
     @property
     def steps_per_update(self) -> int:

@@ -57,6 +57,14 @@ def run(cfg: PPOConfig, env_cfg: envs.EnvConfig | None = None, log=print) -> Run
     _write_config(out, cfg, env_cfg)
     env = envs.VelocityEnv(env_cfg)
     restore = load(out, cfg, env.observation_size, env.action_size)
+    if restore is None and cfg.init_from:
+        start = pathlib.Path(cfg.init_from)
+        if not (start / "checkpoint.msgpack").is_file():
+            raise FileNotFoundError(f"--init-from {start}: no checkpoint.msgpack there (a PPO run "
+                                    "folder, as `stride ppo --out` writes)")
+        first = load(start, cfg, env.observation_size, env.action_size)
+        restore = RunState(first.train, 0, 0)
+        log(f"{out}: starting from {start}'s networks ({first.env_steps} env steps trained there)")
     if restore and restore.env_steps >= cfg.total_steps:
         log(f"{out}: complete ({restore.env_steps} >= total_steps {cfg.total_steps} env steps)")
         return restore
