@@ -112,12 +112,18 @@ def _row_key(r: dict) -> str:
     return "-"
 
 
+def _fall_rates_differ(falls: tuple[int, int, int, int]) -> bool:
+    """``falls``: STRIDE's falls and runs, the other's."""
+    a, n, b, m = falls
+    return a * m != b * n
+
+
 def _worse(key: str, other: str, w: dict | None, falls: tuple[int, int, int, int]) -> str:
     """One comparison STRIDE loses: the scenario and the other kind; lost on falls (``falls``:
     STRIDE's falls and runs, the other's), their counts; else (where both have several trained
     seeds) STRIDE's margin, Welch's 90% interval and whether the seeds tell the kinds apart."""
-    a, n, b, m = falls
-    if a * m != b * n:
+    if _fall_rates_differ(falls):
+        a, n, b, m = falls
         return f"{key} vs {NAMES[other]}: fell {a} of {n} against {b} of {m}"
     if w is None:
         return f"{key} vs {NAMES[other]}"
@@ -208,7 +214,7 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
                     verdict(falls == 0), srcs, cmd)]
         # A run that falls is worse than one that stays up, whatever its error while upright
         # (measured until the fall); among equals, the lower velocity error wins.
-        fell = lambda rs: sum(bool(r.get("fell")) for r in rs) / len(rs)
+        falls = lambda rs: sum(bool(r.get("fell")) for r in rs)
         comps = []
         for (p, key, _), rs_all in stride.items():
             for other in ("delan", "onn"):
@@ -224,14 +230,13 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
                     # STRIDE minus the other over trained seeds (each one draw of its
                     # training): whether they tell the two apart
                     w = welch(seed_means(rs).values(), seed_means(os_).values())
-                    counts = (round(fell(rs) * len(rs)), len(rs),
-                              round(fell(os_) * len(os_)), len(os_))
-                    comps.append((key + where, other,
-                                  (fell(rs), s["mean"]) <= (fell(os_), o["mean"]), w, counts))
+                    counts = (falls(rs), len(rs), falls(os_), len(os_))
+                    comps.append((key + where, other, (falls(rs) / len(rs), s["mean"])
+                                  <= (falls(os_) / len(os_), o["mean"]), w, counts))
         if comps:
             worse = [(k, o, w, c) for k, o, ok, w, c in comps if not ok]
             # lost on falls: counted apart (the seeds' interval is of the upright error)
-            on_falls = [x for x in worse if x[3][0] * x[3][3] != x[3][2] * x[3][1]]
+            on_falls = [x for x in worse if _fall_rates_differ(x[3])]
             on_error = [x for x in worse if x not in on_falls]
             apart = [x for x in on_error if x[2] is not None and x[2]["lo"] > 0]
             seeded = [x for x in on_error if x[2] is not None]
