@@ -62,14 +62,17 @@ def main() -> None:
     ap.add_argument("--ar", type=float, default=0.0,
                     help="AR(1) coefficient of the noise per control step (0: i.i.d.)")
     ap.add_argument("--draws", type=int, default=16)
-    ap.add_argument("--seconds", type=float, default=3.0)
+    ap.add_argument("--seconds", type=float, default=3.0, help="episode length (0: the scenario's)")
+    ap.add_argument("--slope-deg", type=float, default=0.0, help="as the closed-loop job's")
+    ap.add_argument("--rough-cm", type=float, default=0.0, help="as the closed-loop job's")
     ap.add_argument("--govern", action=argparse.BooleanOptionalAction, default=True)
     ap.add_argument("--out", required=True, help="output stem (.md, .json)")
     a = ap.parse_args()
     policy, _, env_cfg = ppo.load_policy(a.policy)
     if env_cfg.robot != a.robot:
         raise SystemExit(f"the policy {a.policy} drives {env_cfg.robot}, not {a.robot}")
-    cfg = ClosedLoopConfig(robot=a.robot, seconds=a.seconds, govern=a.govern)
+    cfg = ClosedLoopConfig(robot=a.robot, seconds=a.seconds, govern=a.govern,
+                           slope_deg=a.slope_deg, rough_cm=a.rough_cm)
     sm = sim_model.load(a.robot)
     sc = scenario(cfg, a.scenario)
     m_sim = scenario_model(sm, sc, 0)
@@ -103,10 +106,11 @@ def main() -> None:
         print(f"noise {std}: {rows[-1]['falls']} of {a.draws} fell "
               f"({time.perf_counter() - t0:.0f} s)", flush=True)
     out = pathlib.Path(a.out)
+    extra = "".join(f" --{k} {v:g}" for k, v in (("ar", a.ar), ("slope-deg", a.slope_deg),
+                                                   ("rough-cm", a.rough_cm)) if v)
     cmd = ("python experiments/probes/policy_noise.py --robot {} --policy {} --scenario {} "
            "--noise {}{} --draws {} --seconds {} --out {}").format(
-        a.robot, a.policy, a.scenario, a.noise, f" --ar {a.ar:g}" if a.ar else "", a.draws,
-        a.seconds, a.out)
+        a.robot, a.policy, a.scenario, a.noise, extra, a.draws, a.seconds, a.out)
     io.atomic_write_text(out.with_suffix(".json"), json.dumps(
         dict(command=cmd, scenario=sc.name, ar=a.ar, rows=rows), indent=1))
     kind = f"AR(1) noise, coefficient {a.ar:g} per step" if a.ar else "i.i.d. noise"
