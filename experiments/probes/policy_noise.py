@@ -68,6 +68,8 @@ def main() -> None:
     ap.add_argument("--govern", action=argparse.BooleanOptionalAction, default=True)
     ap.add_argument("--out", required=True, help="output stem (.md, .json)")
     a = ap.parse_args()
+    if not 0 <= a.ar < 1:
+        raise SystemExit(f"--ar {a.ar}: the AR(1) coefficient must be in [0, 1)")
     policy, _, env_cfg = ppo.load_policy(a.policy)
     if env_cfg.robot != a.robot:
         raise SystemExit(f"the policy {a.policy} drives {env_cfg.robot}, not {a.robot}")
@@ -84,9 +86,6 @@ def main() -> None:
     limits = env_cfg.commands.bounds() if a.govern else None
     n_steps = int(round(sc.seconds / sm.robot.ctrl_dt))
     planning = make_planning(PlanningConfig(), env_cfg, sm, lambda q, qd, u, k: (q, qd), policy)
-
-    if not 0 <= a.ar < 1:
-        raise SystemExit(f"--ar {a.ar}: the AR(1) coefficient must be in [0, 1)")
 
     def episode(std, key):
         return run_episode(sm_sim, mx_sim, slots, planning, noisy_policy(planning, std, a.ar),
@@ -108,6 +107,7 @@ def main() -> None:
     out = pathlib.Path(a.out)
     extra = "".join(f" --{k} {v:g}" for k, v in (("ar", a.ar), ("slope-deg", a.slope_deg),
                                                    ("rough-cm", a.rough_cm)) if v)
+    extra += "" if a.govern else " --no-govern"
     cmd = ("python experiments/probes/policy_noise.py --robot {} --policy {} --scenario {} "
            "--noise {}{} --draws {} --seconds {} --out {}").format(
         a.robot, a.policy, a.scenario, a.noise, extra, a.draws, a.seconds, a.out)
