@@ -31,7 +31,6 @@ import numpy as np
 
 from stride_jax import config, io
 from stride_jax.jobs import closed_loop as cl
-from stride_jax.sim import model as sim_model
 
 
 def main() -> None:
@@ -41,10 +40,12 @@ def main() -> None:
     i = argv.index("--gap-out")
     stem = pathlib.Path(argv[i + 1])
     argv = argv[:i] + argv[i + 2:]
-    steps: list[tuple[float, float, int]] = []
+    steps: list[tuple[float, float, int, bool]] = []
+    control_dt: list[float] = []
     original = cl.run_episode
 
     def with_gap(sm, mx_sim, slots, planning, planner, *args, **kw):
+        control_dt.append(sm.robot.ctrl_dt)
         if planner is None:
             return original(sm, mx_sim, slots, planning, planner, *args, **kw)
         lo, hi = jnp.asarray(planning.lo), jnp.asarray(planning.hi)
@@ -67,8 +68,7 @@ def main() -> None:
                          "in --out: use a fresh --out)")
     rms = np.array([s[0] for s in steps])
     up = ~np.array([s[3] for s in steps])
-    robot = argv[argv.index("--robot") + 1] if "--robot" in argv else cl.ClosedLoopConfig.robot
-    dt = sim_model.load(robot).robot.ctrl_dt
+    dt = control_dt[0]
     lines = ["# How far the planner's action is from the policy's", "",
              f"`python experiments/probes/planner_policy_gap.py --gap-out {stem} {' '.join(argv)}`",
              "", "RMS over the action's entries of (planner - policy) per control step, while upright "

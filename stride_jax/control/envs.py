@@ -39,7 +39,7 @@ from brax.envs import base as brax_base
 from mujoco import mjx
 
 from stride_jax.control import gait as gait_lib
-from stride_jax.sim import rollout_mjx
+from stride_jax.sim import randomize, rollout_mjx
 from stride_jax.sim import model as sim_model
 
 
@@ -387,12 +387,12 @@ class VelocityEnv(brax_base.Env):
 
 def with_friction(mx: mjx.Model, factor: jax.Array) -> mjx.Model:
     """``mx`` with the sliding friction of every geom and of every explicit contact pair (G1's
-    feet meet the floor through pairs, which ignore the geoms' friction) scaled by ``factor``:
-    what :func:`stride_jax.control.scenarios.scenario_model` does to an ``MjModel`` for its
-    friction, on the device (``factor`` may be traced: one per world under ``vmap``)."""
-    factor = jnp.asarray(factor, mx.geom_friction.dtype)
-    return mx.replace(geom_friction=mx.geom_friction.at[:, 0].multiply(factor),
-                      pair_friction=mx.pair_friction.at[:, :2].multiply(factor))
+    feet meet the floor through pairs, which ignore the geoms' friction) scaled by ``factor``
+    (:func:`stride_jax.sim.randomize.sliding_friction`, as the low-friction scenario scales an
+    ``MjModel``), on the device (``factor`` may be traced: one per world under ``vmap``)."""
+    geom, pair = randomize.sliding_friction(mx.geom_friction, mx.pair_friction,
+                                            jnp.asarray(factor, mx.geom_friction.dtype))
+    return mx.replace(geom_friction=geom, pair_friction=pair)
 
 
 def physics_step(mx: mjx.Model, n_substeps: int, d: mjx.Data, ctrl: jax.Array) -> mjx.Data:

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from stride_jax.sim import model as sim_model, terrain
+from stride_jax.sim import model as sim_model, randomize, terrain
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,9 +88,9 @@ def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoc
     if sc.slope_deg:
         th = np.deg2rad(sc.slope_deg)
         m.opt.gravity[:] = 9.81 * np.array([-np.sin(th), 0.0, -np.cos(th)])
-    m.geom_friction[:, 0] *= sc.friction
+    m.geom_friction[:], m.pair_friction[:] = randomize.sliding_friction(
+        m.geom_friction, m.pair_friction, np.float64(sc.friction), np)
     m.geom_solref[:, 0] *= sc.softness
-    m.pair_friction[:, :2] *= sc.friction
     m.pair_solref[:, 0] *= sc.softness
     return m
 

@@ -499,11 +499,15 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None,
         head = base.get("headline")
         seen = {(r["scenario"], r["model"], r.get("seed", _run_seed(envs_.get(r.get("part")))))
                 for r in rows}
-    # the settings each (scenario, model) name has run with so far
+    # the settings each (scenario, model) name has run with so far (each distinct one once)
     settings: dict[tuple[str, str], list[dict]] = {}
+
+    def ran(pair: tuple[str, str], setting: dict) -> None:
+        if setting not in settings.setdefault(pair, []):
+            settings[pair].append(setting)
+
     for r in rows:
-        settings.setdefault((r["scenario"], r["model"]), []).append(
-            _settings(envs_.get(r.get("part")), r["model"]))
+        ran((r["scenario"], r["model"]), _settings(envs_.get(r.get("part")), r["model"]))
     for part in parts:
         path = pathlib.Path(part)
         src = path / "closed_loop.json" if path.is_dir() else path
@@ -527,19 +531,19 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None,
                 raise ValueError(f"{part}: a part named {name!r} is already merged (no new rows)")
             clash = {k[:2] for k, r in have.items() if r["model"] != k[1]}  # renamed then
         envs_[name] = data["env"]
+        mine = {m: _settings(data["env"], m) for m in {r["model"] for r in part_rows}}
         # a second part's variant of the same model: all of its episodes of that pair renamed
         # (an episode clashing renames its pair, so one part's draws keep one name)
         clash |= {(r["scenario"], r["model"]) for r in part_rows
                   if (r["scenario"], r["model"], r.get("seed", run_seed)) in seen
-                  or not all(_same_settings(_settings(data["env"], r["model"]), other)
+                  or not all(_same_settings(mine[r["model"]], other)
                              for other in settings.get((r["scenario"], r["model"]), []))}
         for r in part_rows:
             model, episode, seed = r["model"], r.get("episode", 0), r.get("seed", run_seed)
             if (r["scenario"], model) in clash:
                 model = f"{model}@{name}"
             seen.add((r["scenario"], model, seed))
-            settings.setdefault((r["scenario"], model), []).append(
-                _settings(data["env"], r["model"]))
+            ran((r["scenario"], model), mine[r["model"]])
             rows.append({**r, "model": model, "part": name})
             trace = src.parent / trace_name(r["scenario"], r["model"], episode, seed)
             if trace.is_file():

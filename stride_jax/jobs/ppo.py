@@ -34,12 +34,11 @@ def _write_config(out: pathlib.Path, cfg: PPOConfig, env_cfg: envs.EnvConfig) ->
     if not path.is_file():
         atomic_write_text(path, json.dumps(mine, indent=1))
         return
-    old = json.loads(path.read_text())
+    # the run's configs as they read back (fields added since take their defaults)
+    old_cfg, old_env = read_config(out)
     fixed = ("robot", "policy_width", "policy_depth", "value_width", "value_depth")
-    diff = [k for k in fixed if old["ppo"][k] != mine["ppo"][k]]
-    # the run's environment as it reads back (fields added since take their defaults)
-    old_env = dataclasses.asdict(read_config(out)[1])
-    if diff or json.loads(json.dumps(old_env)) != json.loads(json.dumps(mine["env"])):
+    diff = [k for k in fixed if getattr(old_cfg, k) != mine["ppo"][k]]
+    if diff or dataclasses.asdict(old_env) != dataclasses.asdict(env_cfg):
         raise ValueError(f"{out} was started with another robot, network or environment "
                          f"({', '.join(diff) or 'env'}); use a new --out")
 

@@ -74,13 +74,21 @@ def sample(key: jax.Array, r: Randomization, episode_s: float) -> RandValues:
     )
 
 
+def sliding_friction(geom_friction, pair_friction, factor, xp=jnp):
+    """``(geom_friction, pair_friction)`` with their sliding friction scaled by ``factor`` (a
+    scalar, traced or not): geoms hold (slide, spin, roll), explicit contact pairs (slide1,
+    slide2, spin, roll1, roll2). The one place the project scales a ground's friction: the
+    hidden randomisation, the closed loop's low-friction scenario and PPO's randomised ground."""
+    one = xp.ones_like(factor)
+    return (geom_friction * xp.stack([factor, one, one]),
+            pair_friction * xp.stack([factor, factor, one, one, one]))
+
+
 def apply_fields(fields: dict, v: RandValues, base_body: int, xp=jnp) -> dict:
     """Returns the model arrays of :data:`FIELDS` with the episode's values applied."""
     f = dict(fields)
-    one = xp.ones_like(v.friction)
-    # Sliding friction only: geoms hold (slide, spin, roll), pairs (slide1, slide2, spin, roll1, roll2).
-    f["geom_friction"] = fields["geom_friction"] * xp.stack([v.friction, one, one])
-    f["pair_friction"] = fields["pair_friction"] * xp.stack([v.friction, v.friction, one, one, one])
+    f["geom_friction"], f["pair_friction"] = sliding_friction(
+        fields["geom_friction"], fields["pair_friction"], v.friction, xp)
     f["geom_solref"] = fields["geom_solref"] * xp.asarray([v.softness, 1.0])
     f["pair_solref"] = fields["pair_solref"] * xp.asarray([v.softness, 1.0])
     f["body_mass"] = fields["body_mass"] + v.payload_kg * (xp.arange(fields["body_mass"].shape[0])
