@@ -70,6 +70,28 @@ def test_scenario_grounds(go1):
         cl.run(cl.ClosedLoopConfig(kernel="triton"))
 
 
+def test_scenario_world_is_the_scenario_as_the_closed_loop_runs_it(go1):
+    """One call gives what an episode in a scenario needs: the scenario's ground in MJX, the
+    robot on that model (its own geom ids), the feet's contact slots and the schedules."""
+    from stride_jax.sim import model as sim_model
+    sc = dataclasses.replace(cl.SCENARIOS["rough"], seconds=0.5, slope_deg=10.0, tilt_s=1.0,
+                             pushes=((0.1, 0.2, 0.5, 0.0),))
+    w = cl.scenario_world(go1, sc, seed=3)
+    m = cl.scenario_model(go1, sc, 3)
+    assert w.n_steps == 25  # 0.5 s of 20 ms periods
+    np.testing.assert_array_equal(np.asarray(w.mx.hfield_data), m.hfield_data)  # seed 3's draw
+    assert not np.array_equal(np.asarray(cl.scenario_world(go1, sc).mx.hfield_data),
+                              m.hfield_data)
+    np.testing.assert_array_equal(w.sm.geom_foot, sim_model.on_model(go1, m).geom_foot)
+    for a, b in zip(w.slots, envs.contact_slots(w.mx)):
+        np.testing.assert_array_equal(a, b)
+    starts, values = cl.schedule(sc)
+    np.testing.assert_array_equal(w.starts, starts)
+    np.testing.assert_array_equal(w.values, values)
+    np.testing.assert_allclose(w.pushes, cl.push_schedule(sc, float(go1.mj.body_mass.sum())))
+    np.testing.assert_allclose(w.tilt, [np.deg2rad(10.0), 1.0], rtol=1e-6)
+
+
 def test_rough_ground_takes_the_floors_contact_pairs(g1):
     """G1's feet collide with the floor through explicit pairs, which ignore contype: the rough
     scenario moves them to the heightfield (before, G1's "rough" rows walked on the flat floor)."""

@@ -3,6 +3,7 @@ the in-memory run does. The toy environment (one velocity that follows the actio
 track) keeps compilation to seconds; the Go1 environment is checked in test_control_envs."""
 
 import dataclasses
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -140,6 +141,29 @@ def test_the_ppo_and_fit_reward_value_jobs_at_tiny_size(tmp_path, capsys):
     assert (started[0].env_steps, started[0].chunks) == (0, 0)
     same = jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b)), started[0].train, trained.train)
     assert all(jax.tree.leaves(same))
+    # fit-reward-value rolls a randomised run out in the nominal environment unless asked
+    from stride_jax.jobs import fit_reward_value as fit_job
+    robust = tmp_path / "robust_run"
+    shutil.copytree(run, robust)
+    conf = json.loads((robust / "config.json").read_text())
+    conf["env"].update(friction_min=0.3, friction_max=1.2, action_noise=0.02)
+    (robust / "config.json").write_text(json.dumps(conf))
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def stop(env, *args):
+        seen.append((env.cfg.friction_min, env.cfg.friction_max, env.cfg.action_noise))
+        raise Stop
+
+    with pytest.MonkeyPatch.context() as monkey:
+        monkey.setattr(fit_job.learned_lib, "rollouts", stop)
+        for flags in ([], ["--randomised"]):
+            with pytest.raises(Stop):
+                cli.main(["fit-reward-value", "--preset", "tiny", "--policy", str(robust),
+                          "--out", str(tmp_path / "unused"), *flags])
+    assert seen == [(1.0, 1.0, 0.0), (0.3, 1.2, 0.02)]
     out = tmp_path / "learned"
     cli.main(["fit-reward-value", "--preset", "tiny", "--policy", str(run), "--out", str(out)])
     reward, value = learned.load(out / "reward_value.msgpack")

@@ -21,14 +21,12 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from mujoco import mjx
 
 from stride_jax import io
-from stride_jax.control import envs, mppi, ppo
-from stride_jax.control.episode import run_episode
+from stride_jax.control import mppi, ppo
+from stride_jax.control.episode import run_episode, scenario_world
 from stride_jax.control.planning import PlanningConfig, make_planning
-from stride_jax.control.scenarios import push_schedule, schedule, tilt_schedule
-from stride_jax.jobs.closed_loop import ClosedLoopConfig, scenario, scenario_model
+from stride_jax.jobs.closed_loop import ClosedLoopConfig, scenario
 from stride_jax.sim import model as sim_model
 
 
@@ -77,19 +75,14 @@ def main() -> None:
                            slope_deg=a.slope_deg, rough_cm=a.rough_cm)
     sm = sim_model.load(a.robot)
     sc = scenario(cfg, a.scenario)
-    m_sim = scenario_model(sm, sc, 0)
-    mx_sim, sm_sim = mjx.put_model(m_sim), sim_model.on_model(sm, m_sim)
-    slots = envs.contact_slots(mx_sim)
-    starts, values = (jnp.asarray(x) for x in schedule(sc))
-    pushes = jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum())))
-    tilt = jnp.asarray(tilt_schedule(sc))
+    w = scenario_world(sm, sc)
     limits = env_cfg.commands.bounds() if a.govern else None
-    n_steps = int(round(sc.seconds / sm.robot.ctrl_dt))
     planning = make_planning(PlanningConfig(), env_cfg, sm, lambda q, qd, u, k: (q, qd), policy)
 
     def episode(std, key):
-        return run_episode(sm_sim, mx_sim, slots, planning, noisy_policy(planning, std, a.ar),
-                           n_steps, starts, values, key, pushes=pushes, limits=limits, tilt=tilt)
+        return run_episode(w.sm, w.mx, w.slots, planning, noisy_policy(planning, std, a.ar),
+                           w.n_steps, w.starts, w.values, key, pushes=w.pushes, limits=limits,
+                           tilt=w.tilt)
 
     run = jax.jit(jax.vmap(episode, in_axes=(None, 0)))
     keys = jax.vmap(jax.random.key)(jnp.arange(a.draws))

@@ -23,8 +23,8 @@ from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.control.planning import N_DIST, Planning, augment, update_disturbance
-from stride_jax.control.scenarios import (Scenario, command_at, push_schedule, schedule,
-                                          tilt_schedule, world_at)
+from stride_jax.control.scenarios import (Scenario, command_at, push_schedule, scenario_model,
+                                          schedule, tilt_schedule, world_at)
 from stride_jax.sim import model as sim_model, rollout_mjx
 
 
@@ -43,6 +43,33 @@ class Trace(NamedTuple):
     cut: jax.Array  # [T] share of the planner's rollouts cut for predicted model error
     disturbance: jax.Array  # [T, 6] the observer's base-acceleration estimate after the step
     alarm: jax.Array  # [T] bool: the planner drew its recovery candidates (``alarm_noise_std``)
+
+
+class World(NamedTuple):
+    """A scenario made ready for :func:`run_episode`: ``sm`` the robot on the scenario's model
+    (its geom ids: the feet's contact flags), ``mx`` that model in MJX, ``slots`` its feet's
+    contact slots, ``n_steps`` control periods, and the command, push and tilt schedules as
+    arrays (so that scenarios share one compiled episode)."""
+
+    sm: sim_model.SimModel
+    mx: mjx.Model
+    slots: tuple
+    n_steps: int
+    starts: jax.Array
+    values: jax.Array
+    pushes: jax.Array
+    tilt: jax.Array
+
+
+def scenario_world(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> World:
+    """Scenario ``sc``'s :class:`World` for robot ``sm`` (``seed``: its rough ground's draw)."""
+    m = scenario_model(sm, sc, seed)
+    mx = mjx.put_model(m)
+    starts, values = schedule(sc)
+    return World(sim_model.on_model(sm, m), mx, envs.contact_slots(mx),
+                 max(1, int(round(sc.seconds / sm.robot.ctrl_dt))), jnp.asarray(starts),
+                 jnp.asarray(values), jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum()))),
+                 jnp.asarray(tilt_schedule(sc)))
 
 
 def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Planning,

@@ -50,9 +50,9 @@ from stride_jax import config
 from stride_jax.control import envs
 # The library's episode, metrics and planner models, and the scenarios (re-exported: the job's
 # callers and tests take them from here).
-from stride_jax.control.episode import (PRECISIONS, Trace, learned_model,  # noqa: F401
-                                        learned_step, learned_step_fn, metrics, mjx_step_fn,
-                                        run_episode)
+from stride_jax.control.episode import (PRECISIONS, Trace, World,  # noqa: F401
+                                        learned_model, learned_step, learned_step_fn, metrics,
+                                        mjx_step_fn, run_episode, scenario_world)
 from stride_jax.control.mppi import MPPIConfig
 from stride_jax.control.planning import PlanningConfig, make_planner, make_planning, mppi_config
 from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,  # noqa: F401
@@ -261,12 +261,8 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
 
     for sc_name in [s for s in cfg.scenarios.split(",") if s]:
         sc = scenario(cfg, sc_name)
-        n_steps = max(1, int(round(sc.seconds / sm.robot.ctrl_dt)))
-        m_sim = scenario_model(sm, sc, cfg.seed)
-        mx_sim = mjx.put_model(m_sim)
-        sm_sim = sim_model.on_model(sm, m_sim)  # the robot in the scenario's model (geom ids)
-        slots = envs.contact_slots(mx_sim)
-        starts, values = schedule(sc)
+        world = scenario_world(sm, sc, cfg.seed)
+        n_steps, mx_sim, sm_sim, slots = world.n_steps, world.mx, world.sm, world.slots
         for name, run_dir in models:
             todo = [seed for seed in seeds if (sc.name, name, seed) not in done]
             if not todo:
@@ -276,9 +272,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             mx_plan = mx_sim if name == "oracle" else mx_nominal
             args = (mx_sim, mx_plan,
                     (learned[name][1], learned[name][0].scales) if name in learned else (),
-                    jnp.asarray(starts), jnp.asarray(values),
-                    jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum()))),
-                    jnp.asarray(tilt_schedule(sc)), keys)
+                    world.starts, world.values, world.pushes, world.tilt, keys)
             sig = (kind.get(name, name), n_steps, tuple(slots[0]), sm_sim.geom_foot.tobytes(),
                    jax.tree.structure(args[:3]), len(todo) if batched else 0)
             t0 = time.perf_counter()

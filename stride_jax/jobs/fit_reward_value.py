@@ -35,6 +35,11 @@ class FitConfig:
       rollout_steps: control steps per world.
       holdout: fraction of the worlds held out for the report.
       seed: rollouts' and fits' key.
+      randomised: roll out in the run's training environment with its randomisation (each
+        episode's friction factor, the noise on the joint targets: ``stride ppo
+        --friction-min/--friction-max/--action-noise``); off (the default): in the robot's
+        nominal environment, the task the planner plans (its rollouts carry neither). A run
+        trained without randomisation rolls out the same either way.
       learned: the models' sizes and training
         (:class:`~stride_jax.control.learned.LearnedConfig`: ``--learned.width``,
         ``--learned.steps`` ...; the older flat ``--width``, ``--steps`` ... still answer).
@@ -46,6 +51,7 @@ class FitConfig:
     rollout_steps: int = 400
     holdout: float = 0.1
     seed: int = 0
+    randomised: bool = False
     learned: learned_lib.LearnedConfig = learned_lib.LearnedConfig()
 
     # The flat flags of earlier commands still answer.
@@ -66,6 +72,9 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     held-out report."""
     t0 = time.monotonic()
     policy, _, env_cfg = ppo.load_policy(cfg.policy, deterministic=False)
+    if not cfg.randomised:
+        env_cfg = dataclasses.replace(env_cfg, friction_min=1.0, friction_max=1.0,
+                                      action_noise=0.0)
     env = envs_lib.VelocityEnv(env_cfg)
     key_roll, key_r, key_v = jax.random.split(jax.random.key(cfg.seed), 3)
     data = jax.jit(lambda k: learned_lib.rollouts(env, policy, k, cfg.envs, cfg.rollout_steps))(
