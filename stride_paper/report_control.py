@@ -183,6 +183,17 @@ def load_closed_loop(results: pathlib.Path) -> list[tuple[pathlib.Path, dict]]:
     return out
 
 
+def slope_unseen(d: dict, r: dict) -> bool:
+    """Whether row ``r`` of closed-loop table ``d`` is on an emulated slope (``slope*``,
+    ``tilt*``: gravity tilted under a level floor) with a controller that read world down, not
+    the slope: runs whose config has no ``sense_gravity`` (before session 46) or has it off."""
+    if not str(r.get("scenario", "")).startswith(("slope", "tilt")):
+        return False
+    parts = d.get("parts") if isinstance(d.get("parts"), dict) else {}
+    env = parts.get(r.get("part")) or d.get("env") or {}
+    return not (env.get("config") or {}).get("sense_gravity", False)
+
+
 def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
     files = load_closed_loop(results)
     lines = ["## Closed-loop tracking (MPPI in MJX, Go1 and G1)", ""]
@@ -209,9 +220,14 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
     else:
         runs = [r for v in stride.values() for r in v]
         falls = sum(bool(r.get("fell")) for r in runs)
+        tables = {p: d for p, d in claim_files}
+        unseen = sum(slope_unseen(tables[p], r) for (p, _, _), v in stride.items() for r in v)
+        hidden = (f"; {unseen} of these runs are on slopes their controller could not sense "
+                  "(world-down gravity, before session 46: results/planning_diagnosis/README.md)"
+                  if unseen else "")
         rows = [Row(claim_fall, WHERE_CLOSED, paper_fall,
-                    f"fell in {falls} of {len(runs)} runs over {len(stride)} scenarios{current}",
-                    verdict(falls == 0), srcs, cmd)]
+                    f"fell in {falls} of {len(runs)} runs over {len(stride)} scenarios{hidden}"
+                    f"{current}", verdict(falls == 0), srcs, cmd)]
         # A run that falls is worse than one that stays up, whatever its error while upright
         # (measured until the fall); among equals, the lower velocity error wins.
         falls = lambda rs: sum(bool(r.get("fell")) for r in rs)

@@ -728,3 +728,57 @@ def test_the_policy_episode_records_each_period_and_its_true_next_state(go1):
     assert not np.allclose(ep.q_next[-1], ep.q_aug[0, :nq])  # the robot moved
     with pytest.raises(ValueError, match="needs a planning with a policy"):
         episode_lib.policy_episode(go1, mx, planning._replace(policy=None), sc)
+
+
+def test_the_controller_senses_the_scenarios_gravity(go1):
+    """A slope emulated by tilting gravity under a level floor: an IMU on a real slope reads the
+    slope, so the policy and the planner observe the simulation's gravity direction (before
+    session 46 they read world down, which hid the slope). A base pitched with the tilted
+    gravity reads upright; flat ground is unchanged bit for bit; a run that kept no such setting
+    merges as world down."""
+    from stride_jax.control import episode as episode_lib
+    th = np.deg2rad(15.0)
+    g_hat = jnp.array([-np.sin(th), 0.0, -np.cos(th)], jnp.float32)
+    q = jnp.asarray(go1.info.qpos0).at[3:7].set(jnp.array([np.cos(th / 2), 0, np.sin(th / 2), 0]))
+    qd = jnp.zeros(go1.mj.nv)
+    np.testing.assert_allclose(envs.base_signals(q, qd, g_hat)[2], [0, 0, -1], atol=1e-6)
+    np.testing.assert_allclose(envs.base_signals(q, qd)[2], [np.sin(th), 0, -np.cos(th)],
+                               atol=1e-6)  # world down: the base reads pitched
+    # the planning's policy and cost see the gravity carried in the planner's state
+    nu = go1.info.nu
+    env_cfg = envs.config("go1")
+    mx = mjx.put_model(go1.mj)
+    planning = planning_lib.make_planning(
+        planning_lib.PlanningConfig(), env_cfg, go1, cl.mjx_step_fn(go1, mx),
+        ppo_policy=lambda obs, key: jnp.zeros(nu).at[:3].set(obs[6:9]))
+    for g, seen in ((g_hat, [0, 0, -1]), (None, [np.sin(th), 0, -np.cos(th)])):
+        q_aug = planning_lib.augment(q, jnp.zeros(3), gravity=g)
+        np.testing.assert_allclose(planning.policy(q_aug, qd)[:3],
+                                   env_cfg.action_scale * np.asarray(seen), atol=1e-6)
+        nxt, _ = planning.dynamics(q_aug, qd, jnp.zeros(nu), jax.random.key(0))
+        np.testing.assert_array_equal(planning_lib.split(nxt, go1.mj.nq).gravity,
+                                      planning_lib.split(q_aug, go1.mj.nq).gravity)  # held
+    # the episode hands the scenario's gravity to the controller, or world down when told not to
+    nq = go1.mj.nq
+    slope = dataclasses.replace(cl.SCENARIOS["slope"], seconds=3 * go1.robot.ctrl_dt,
+                                slope_deg=15.0)
+    w = cl.scenario_world(go1, slope)
+    on, off = (jax.device_get(episode_lib.policy_episode(go1, w.mx, planning, slope, sense))
+               for sense in (True, False))
+    np.testing.assert_allclose(on.q_aug[:, nq + planning_lib.N_AUG - 3:],
+                               np.tile(g_hat, (3, 1)), atol=1e-6)
+    np.testing.assert_array_equal(off.q_aug[:, nq + planning_lib.N_AUG - 3:],
+                                  np.tile([0, 0, -1], (3, 1)))
+    assert not np.allclose(on.u, off.u)
+    flat = dataclasses.replace(cl.SCENARIOS["walk"], seconds=3 * go1.robot.ctrl_dt)
+    on, off = (jax.device_get(episode_lib.policy_episode(go1, mx, planning, flat, sense))
+               for sense in (True, False))
+    for a, b in zip(jax.tree.leaves(on), jax.tree.leaves(off)):
+        np.testing.assert_array_equal(a, b)
+    # merging: a run without the key ran with world down
+    old = {"config": {"robot": "go1"}}
+    new = {"config": {"robot": "go1", "sense_gravity": True}}
+    assert not cl._same_settings(cl._settings(old, "stride"), cl._settings(new, "stride"))
+    assert cl._same_settings(cl._settings(old, "stride"),
+                             cl._settings({"config": {"robot": "go1", "sense_gravity": False}},
+                                          "stride"))

@@ -140,6 +140,37 @@ def test_domain_randomisation_draws_friction_and_perturbs_the_targets(g1, go1):
     np.testing.assert_array_equal(q1, step(s0, a).pipeline_state.qpos)  # and is the key's
 
     for bad in (dict(friction_min=0.0), dict(friction_min=0.6, friction_max=0.5),
-                dict(action_noise=-0.1)):
-        with pytest.raises(ValueError, match="friction|action_noise"):
+                dict(action_noise=-0.1), dict(tilt_max_deg=90.0), dict(tilt_s=0.0)):
+        with pytest.raises(ValueError, match="friction|action_noise|tilt"):
             envs.config("go1", **bad)
+    assert env.cfg.nominal() == envs.config("go1")
+
+
+def test_a_randomised_slope_builds_up_and_the_policy_senses_it(go1):
+    """``tilt_max_deg``: each reset draws the episode's slope and uphill heading; gravity tilts
+    linearly over ``tilt_s`` (level at the start, as the closed loop's ``tilt`` scenario) and the
+    observation's gravity is the tilted one in the base frame; without it the streams and
+    states are those of level ground."""
+    env = envs.make("go1", tilt_max_deg=20.0, tilt_s=0.1)
+    keys = jax.random.key_data(jax.random.split(jax.random.key(0), 8))
+    states = jax.jit(jax.vmap(env.reset))(keys)
+    tilt = np.asarray(states.info["tilt"])
+    assert ((tilt[:, 0] >= 0) & (tilt[:, 0] <= np.deg2rad(20.0))).all() and np.ptp(tilt[:, 1]) > 1
+    level = envs.make("go1")
+    np.testing.assert_array_equal(level.reset(keys[0]).info["tilt"], [0, 0])
+    np.testing.assert_array_equal(level.reset(keys[0]).obs, env.reset(keys[0]).obs)  # level at 0
+    g = np.asarray(go1.mj.opt.gravity)
+    np.testing.assert_allclose(envs.tilted_gravity(g, jnp.array([0.3, 0.0]), 0.05, 0.1),
+                               9.81 * np.array([-np.sin(0.15), 0, -np.cos(0.15)]), rtol=1e-5)
+    s = jax.tree.map(lambda x: x[0], states)
+    step = jax.jit(env.step)
+    a = jnp.zeros(env.action_size)
+    for _ in range(6):  # past tilt_s: the full slope
+        s = step(s, a)
+    up = envs.tilted_gravity(g, s.info["tilt"], 1.0, 0.1) / 9.81
+    q, qd = s.pipeline_state.qpos, s.pipeline_state.qvel
+    np.testing.assert_allclose(s.obs[6:9], envs.base_signals(q, qd, up)[2], atol=1e-5)
+    flat = level.reset(keys[0])
+    for _ in range(6):
+        flat = jax.jit(level.step)(flat, a)
+    assert float(jnp.abs(flat.pipeline_state.qpos - q).max()) > 1e-4  # the slope moved it

@@ -199,6 +199,12 @@ def test_closed_loop_claims_read_the_headline_parts_alone(results):
     fall = _find({k: r for k, r in rows.items()}, "without falling")
     assert fall.verdict == report.HOLDS and "fell in 0 of 3 runs over 2 scenarios" in fall.ours
     assert "the current planner: new of closed_loop_g1_gpu" in fall.ours
+    # the tilt runs kept no sense_gravity: their controller read world down, and the claim says so
+    assert "2 of these runs are on slopes their controller could not sense" in fall.ours
+    merged["parts"]["new"]["config"] = {"sense_gravity": True}
+    _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
+    fall = _find({r.claim: r for r in report.build(results)["rows"]}, "without falling")
+    assert "could not sense" not in fall.ours and "fell in 0 of 3 runs" in fall.ours
     best = _find({k: r for k, r in rows.items()}, "as good as DeLaN's and ONN's")
     # tilt: STRIDE 0 of 2 fell, ONN 1 of 2; soft: 0.15 against DeLaN's 0.2
     assert best.verdict == report.HOLDS and "at most in 2 of 2 comparisons" in best.ours

@@ -64,6 +64,9 @@ def main() -> None:
     ap.add_argument("--slope-deg", type=float, default=0.0, help="as the closed-loop job's")
     ap.add_argument("--rough-cm", type=float, default=0.0, help="as the closed-loop job's")
     ap.add_argument("--govern", action=argparse.BooleanOptionalAction, default=True)
+    ap.add_argument("--sense-gravity", action=argparse.BooleanOptionalAction, default=True,
+                    help="the policy observes the scenario's gravity (as the closed loop's "
+                         "--sense-gravity; the probes before session 46 ran without)")
     ap.add_argument("--out", required=True, help="output stem (.md, .json)")
     a = ap.parse_args()
     if not 0 <= a.ar < 1:
@@ -82,7 +85,7 @@ def main() -> None:
     def episode(std, key):
         return run_episode(w.sm, w.mx, w.slots, planning, noisy_policy(planning, std, a.ar),
                            w.n_steps, w.starts, w.values, key, pushes=w.pushes, limits=limits,
-                           tilt=w.tilt)
+                           tilt=w.tilt, sense_gravity=a.sense_gravity)
 
     run = jax.jit(jax.vmap(episode, in_axes=(None, 0)))
     keys = jax.vmap(jax.random.key)(jnp.arange(a.draws))
@@ -100,7 +103,8 @@ def main() -> None:
     out = pathlib.Path(a.out)
     extra = "".join(f" --{k} {v:g}" for k, v in (("ar", a.ar), ("slope-deg", a.slope_deg),
                                                    ("rough-cm", a.rough_cm)) if v)
-    extra += "" if a.govern else " --no-govern"
+    extra += ("" if a.govern else " --no-govern") + ("" if a.sense_gravity
+                                                     else " --no-sense-gravity")
     cmd = ("python experiments/probes/policy_noise.py --robot {} --policy {} --scenario {} "
            "--noise {}{} --draws {} --seconds {} --out {}").format(
         a.robot, a.policy, a.scenario, a.noise, extra, a.draws, a.seconds, a.out)

@@ -115,6 +115,12 @@ class EnvConfig:
       action_noise: std (rad) of Gaussian noise added to every joint target in every control
         period while training (0: none): the policy learns to walk while its actions are
         perturbed, as a planner sampling around it (or an actuator) perturbs them.
+      tilt_max_deg: each episode's ground slope is drawn uniformly in [0, this] degrees, uphill
+        in a random direction, and built up linearly over the first ``tilt_s`` seconds (gravity
+        tilted under the level floor, as the closed loop's ``tilt`` scenario does, so that a
+        humanoid starts upright); the policy senses the tilted gravity (:func:`base_signals`).
+        0: level ground.
+      tilt_s: seconds over which an episode's slope builds up.
     """
 
     robot: str = "go1"
@@ -132,10 +138,20 @@ class EnvConfig:
     friction_min: float = 1.0
     friction_max: float = 1.0
     action_noise: float = 0.0
+    tilt_max_deg: float = 0.0
+    tilt_s: float = 2.0
 
     @property
     def randomises_friction(self) -> bool:
         return (self.friction_min, self.friction_max) != (1.0, 1.0)
+
+    @property
+    def randomises_tilt(self) -> bool:
+        return self.tilt_max_deg > 0
+
+    def nominal(self) -> "EnvConfig":
+        """This task without its domain randomisation (:data:`RANDOMISATION` at defaults)."""
+        return dataclasses.replace(self, **{k: getattr(EnvConfig, k) for k in RANDOMISATION})
 
     def __post_init__(self):
         if not 0 < self.friction_min <= self.friction_max:
@@ -143,6 +159,10 @@ class EnvConfig:
                              "need 0 < friction_min <= friction_max (factors on the model's friction)")
         if self.action_noise < 0:
             raise ValueError(f"action_noise={self.action_noise} must be >= 0 (rad)")
+        if not 0 <= self.tilt_max_deg < 90:
+            raise ValueError(f"tilt_max_deg={self.tilt_max_deg} must be in [0, 90) (degrees)")
+        if self.tilt_s <= 0:
+            raise ValueError(f"tilt_s={self.tilt_s} must be > 0 (s)")
         if self.action_scale <= 0:
             raise ValueError(f"action_scale={self.action_scale} must be > 0")
         if self.tracking_sigma <= 0:
@@ -170,6 +190,10 @@ PRESETS = {
 }
 
 
+# The EnvConfig fields of the domain randomisation (`stride ppo`'s flags of the same names).
+RANDOMISATION = ("friction_min", "friction_max", "action_noise", "tilt_max_deg")
+
+
 def config(robot: str, **overrides) -> EnvConfig:
     """The preset task of ``robot`` with fields replaced by ``overrides``."""
     if robot not in PRESETS:
@@ -189,18 +213,28 @@ def rotate_inv(quat: jax.Array, v: jax.Array) -> jax.Array:
     return v + w * t + jnp.cross(u, t)
 
 
-def base_signals(q: jax.Array, qd: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+DOWN = (0.0, 0.0, -1.0)
+
+
+def base_signals(q: jax.Array, qd: jax.Array, gravity: jax.Array | None = None
+                 ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Base-frame linear velocity ``[3]`` (m/s), angular velocity ``[3]`` (rad/s), and gravity
-    direction ``[3]`` (unit) of a floating-base state (MJX: world linear, body angular)."""
+    direction ``[3]`` (unit) of a floating-base state (MJX: world linear, body angular).
+    ``gravity``: the world's gravity direction ``[3]`` (unit) as an IMU senses it; default world
+    down, ``-z``. A slope emulated by tilting gravity under a level floor (the closed loop's
+    ``slope``, ``tilt``) must pass its gravity: a real robot's IMU on a real slope reads the
+    slope, and world down would hide it."""
     quat = q[3:7]
-    return rotate_inv(quat, qd[0:3]), qd[3:6], rotate_inv(quat, jnp.array([0.0, 0.0, -1.0]))
+    down = jnp.asarray(DOWN if gravity is None else gravity, q.dtype)
+    return rotate_inv(quat, qd[0:3]), qd[3:6], rotate_inv(quat, down)
 
 
 def observe(cfg: EnvConfig, home: jax.Array, q: jax.Array, qd: jax.Array, command: jax.Array,
-            clock: jax.Array | None = None) -> jax.Array:
+            clock: jax.Array | None = None, gravity: jax.Array | None = None) -> jax.Array:
     """The policy's observation ``[obs_size]`` of state ``(q [nq], qd [nv])`` under ``command``
-    ``[3]``; ``clock`` (cycles) is required when ``cfg.gait_hz > 0``. ``home`` ``[nu]``."""
-    v, w, g = base_signals(q, qd)
+    ``[3]``; ``clock`` (cycles) is required when ``cfg.gait_hz > 0``. ``home`` ``[nu]``;
+    ``gravity``: the sensed gravity direction (:func:`base_signals`)."""
+    v, w, g = base_signals(q, qd, gravity)
     parts = [v, w, g, q[7:] - home, qd[6:], command]
     if cfg.gait_hz > 0:
         if clock is None:
@@ -215,10 +249,13 @@ def obs_size(cfg: EnvConfig, nu: int) -> int:
 
 
 def state_terms(cfg: EnvConfig, home: jax.Array, q: jax.Array, qd: jax.Array,
-                command: jax.Array, torque: jax.Array, fallen: jax.Array) -> dict[str, jax.Array]:
+                command: jax.Array, torque: jax.Array, fallen: jax.Array,
+                gravity: jax.Array | None = None) -> dict[str, jax.Array]:
     """The reward terms that depend on the state, command and joint torques ``[nu]`` (N m) only
-    (unscaled). A planner scores its rollouts with the same functions as the environment."""
-    v, w, g = base_signals(q, qd)
+    (unscaled). A planner scores its rollouts with the same functions as the environment.
+    ``gravity``: the sensed gravity direction (:func:`base_signals`; the orientation term keeps
+    the base upright against it)."""
+    v, w, g = base_signals(q, qd, gravity)
     sig = cfg.tracking_sigma
     moving = jnp.linalg.norm(command) > 0.1
     return {
@@ -315,9 +352,17 @@ class VelocityEnv(brax_base.Env):
         friction = (jax.random.uniform(jax.random.fold_in(k_clock, 1), minval=self.cfg.friction_min,
                                        maxval=self.cfg.friction_max)
                     if self.cfg.randomises_friction else jnp.ones(()))
+        tilt = jnp.zeros(2)  # (slope rad, uphill heading rad); level at t = 0 either way
+        if self.cfg.randomises_tilt:
+            tilt = jnp.stack([
+                jnp.deg2rad(self.cfg.tilt_max_deg) * jax.random.uniform(
+                    jax.random.fold_in(k_clock, 2)),
+                jax.random.uniform(jax.random.fold_in(k_clock, 3), minval=-jnp.pi,
+                                   maxval=jnp.pi)])
         info = {"rng": rng, "command": command, "last_action": jnp.zeros(self.nu),
                 "air_time": jnp.zeros(nf), "last_contact": jnp.ones(nf, bool),
-                "clock": clock, "t": jnp.zeros((), jnp.int32), "friction": friction}
+                "clock": clock, "t": jnp.zeros((), jnp.int32), "friction": friction,
+                "tilt": tilt}
         obs = observe(self.cfg, self.home, d.qpos, d.qvel, command, clock)
         _, parts = total_reward(self.cfg, self._terms_zero(), self.dt)
         metrics = {f"reward/{k}": jnp.zeros(()) for k in parts}
@@ -335,6 +380,14 @@ class VelocityEnv(brax_base.Env):
                                                                    target.shape)
         ctrl = jnp.clip(target, self.lo, self.hi)
         mx = with_friction(self.mx, info["friction"]) if cfg.randomises_friction else self.mx
+        up = None  # the sensed gravity after the step (world down on level ground)
+        if cfg.randomises_tilt:
+            g_now = tilted_gravity(self.mx.opt.gravity, info["tilt"], info["t"] * self.dt,
+                                   cfg.tilt_s)
+            mx = mx.replace(opt=mx.opt.replace(gravity=g_now))
+            g_next = tilted_gravity(self.mx.opt.gravity, info["tilt"],
+                                    (info["t"] + 1) * self.dt, cfg.tilt_s)
+            up = g_next / jnp.linalg.norm(g_next)
         d = physics_step(mx, self.sm.n_substeps, state.pipeline_state, ctrl)
         q, qd = d.qpos, d.qvel
         finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd))
@@ -345,7 +398,7 @@ class VelocityEnv(brax_base.Env):
         air = info["air_time"] + self.dt
         clock = jnp.mod(info["clock"] + cfg.gait_hz * self.dt, 1.0)
         command = info["command"]
-        terms = state_terms(cfg, self.home, q, qd, command, d.actuator_force, fallen)
+        terms = state_terms(cfg, self.home, q, qd, command, d.actuator_force, fallen, up)
         moving = jnp.linalg.norm(command) > 0.1
         terms["action_rate"] = jnp.sum((action - info["last_action"]) ** 2)
         terms["feet_air_time"] = jnp.where(
@@ -362,7 +415,7 @@ class VelocityEnv(brax_base.Env):
         command = jnp.where(resample, sample_command(cfg.commands, k_cmd), command)
         info.update(rng=rng, command=command, last_action=action,
                     air_time=jnp.where(contact, 0.0, air), last_contact=contact, clock=clock, t=t)
-        obs = observe(cfg, self.home, q, qd, command, clock)
+        obs = observe(cfg, self.home, q, qd, command, clock, up)
         metrics = {f"reward/{k}": jnp.where(finite, v, 0.0) for k, v in parts.items()}
         metrics["fallen"] = fallen.astype(jnp.float32)
         return state.replace(pipeline_state=d, obs=obs, reward=reward,
@@ -383,6 +436,18 @@ class VelocityEnv(brax_base.Env):
         """Joint targets ``[nu]`` (rad) of a normalised action ``[nu]``."""
         return jnp.clip(self.home + self.cfg.action_scale * jnp.clip(action, -1, 1),
                         self.lo, self.hi)
+
+
+def tilted_gravity(gravity: jax.Array, tilt: jax.Array, t: jax.Array,
+                   tilt_s: float) -> jax.Array:
+    """The world gravity ``[3]`` at time ``t`` (s) of an episode whose ground slope ``tilt`` =
+    ``(slope rad, uphill heading rad)`` builds up linearly over ``tilt_s`` seconds: level
+    ``gravity``'s magnitude, tilted so that walking along the heading is uphill (heading 0: as
+    the closed loop's ``tilt`` scenario, :func:`stride_jax.control.scenarios.gravity_at`)."""
+    th = tilt[0] * jnp.clip(t / tilt_s, 0.0, 1.0)
+    g = jnp.linalg.norm(gravity)
+    return (g * jnp.stack([-jnp.sin(th) * jnp.cos(tilt[1]), -jnp.sin(th) * jnp.sin(tilt[1]),
+                           -jnp.cos(th)])).astype(gravity.dtype)
 
 
 def with_friction(mx: mjx.Model, factor: jax.Array) -> mjx.Model:

@@ -23,8 +23,8 @@ from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.control.planning import N_DIST, Planning, augment, update_disturbance
-from stride_jax.control.scenarios import (Scenario, command_at, push_schedule, scenario_model,
-                                          schedule, tilt_schedule, world_at)
+from stride_jax.control.scenarios import (Scenario, command_at, gravity_at, push_schedule,
+                                          scenario_model, schedule, tilt_schedule, world_at)
 from stride_jax.sim import model as sim_model, rollout_mjx
 
 
@@ -43,6 +43,13 @@ class Trace(NamedTuple):
     cut: jax.Array  # [T] share of the planner's rollouts cut for predicted model error
     disturbance: jax.Array  # [T, 6] the observer's base-acceleration estimate after the step
     alarm: jax.Array  # [T] bool: the planner drew its recovery candidates (``alarm_noise_std``)
+
+
+def sensed_gravity(mx: mjx.Model, t: jax.Array, tilt: jax.Array | None = None) -> jax.Array:
+    """The gravity direction ``[3]`` (world, unit) an IMU senses at time ``t`` (s) in the
+    scenario's model ``mx``: its own gravity, tilted by a :func:`tilt_schedule` where given."""
+    g = mx.opt.gravity if tilt is None else gravity_at(tilt, t, mx.opt.gravity)
+    return g / jnp.maximum(jnp.linalg.norm(g), 1e-9)
 
 
 class World(NamedTuple):
@@ -78,7 +85,8 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
                 pushes: jax.Array | None = None,
                 limits: tuple[jax.Array, jax.Array] | None = None,
                 tilt: jax.Array | None = None, progress: Callable | None = None,
-                progress_every: int = 50) -> Trace | tuple[Trace, object]:
+                progress_every: int = 50, sense_gravity: bool = True
+                ) -> Trace | tuple[Trace, object]:
     """A closed-loop episode of ``n_steps`` control steps from the home pose (heading +x) under
     the command :func:`schedule` ``(starts, values)``. ``planner=None`` lets ``planning.policy``
     act alone. Pure; jit it.
@@ -103,7 +111,12 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     (bounded by ``planning.observer_limit``, held while fallen or after a non-finite step). The
     planner sees ``d`` in its state and adds it to every rollout step
     (:func:`stride_jax.control.planning.apply_disturbance`): integral action, so a persistent
-    model error (a slope, a payload) stops biasing the plan."""
+    model error (a slope, a payload) stops biasing the plan.
+
+    ``sense_gravity``: the policy and the planner observe the simulation's gravity direction
+    (:func:`sensed_gravity`), as an IMU on a real slope senses the slope; ``False``: world down,
+    as every run before session 46 did, which hides an emulated slope from them (the floor stays
+    level while gravity tilts)."""
     nu = sm.info.nu
     gait = len(planning.lo) > nu
     qpos0 = jnp.asarray(sm.info.qpos0).at[2].add(0.02)
@@ -131,7 +144,8 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
         t = step * dt
         command = command_at(starts, values, t)
         seen = command if limits is None else jnp.clip(command, limits[0], limits[1])
-        q_aug = augment(d.qpos, seen, clock, disturbance=dist)
+        up = sensed_gravity(mx_sim, t, tilt) if sense_gravity else None
+        q_aug = augment(d.qpos, seen, clock, disturbance=dist, gravity=up)
         status, cut, info = jnp.zeros((), jnp.int32), jnp.zeros(()), None
         alarm = jnp.zeros((), bool)
         if planner is not None:
@@ -159,7 +173,7 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
                     u, status, cut, dist, alarm)
         if record is not None:
             rec = (rec, record(q_aug, d.qvel, u, info,
-                               augment(d2.qpos, seen, clock, disturbance=dist),
+                               augment(d2.qpos, seen, clock, disturbance=dist, gravity=up),
                                d2.qvel, down, jax.random.fold_in(key, step)))
         if progress is not None:
             jax.lax.cond((step + 1) % progress_every == 0,
@@ -228,10 +242,11 @@ class PolicyEpisode(NamedTuple):
 
 
 def policy_episode(sm: sim_model.SimModel, mx: mjx.Model, planning: Planning,
-                   sc: Scenario) -> PolicyEpisode:
+                   sc: Scenario, sense_gravity: bool = True) -> PolicyEpisode:
     """``planning``'s policy alone in scenario ``sc`` on ``mx`` (the scenario's MJX model), with
-    its commands, pushes and tilt as the closed loop runs them: the states a planner would meet
-    and the true step from each (issue 19's diagnoses)."""
+    its commands, pushes and tilt as the closed loop runs them (``sense_gravity`` as
+    :func:`run_episode`'s): the states a planner would meet and the true step from each (issue
+    19's diagnoses)."""
     if planning.policy is None:
         raise ValueError("policy_episode needs a planning with a policy")
     starts, values = map(jnp.asarray, schedule(sc))
@@ -248,7 +263,8 @@ def policy_episode(sm: sim_model.SimModel, mx: mjx.Model, planning: Planning,
         def body(carry, step):
             d, clock = carry
             t = step * dt
-            q_aug = augment(d.qpos, command_at(starts, values, t), clock)
+            q_aug = augment(d.qpos, command_at(starts, values, t), clock,
+                            gravity=sensed_gravity(mx, t, tilt) if sense_gravity else None)
             u = planning.policy(q_aug, d.qvel)
             ctrl = planning.ctrl(q_aug, u)
             mx_t, d = world_at(mx, d, base, t, pushes, tilt)

@@ -188,20 +188,24 @@ class Aug(NamedTuple):
     gait: jax.Array  # [6] gait parameters latched at a rollout's first step
     latched: jax.Array  # [] 1 inside a rollout (after its first step), 0 in the real state
     disturbance: jax.Array  # [6] estimated base acceleration the model misses, held constant
+    gravity: jax.Array  # [3] the sensed gravity direction (world, unit), held over a rollout
 
 
 N_DIST = 6
-N_AUG = 3 + 1 + gait_lib.N_GAIT + 1 + N_DIST
+N_AUG = 3 + 1 + gait_lib.N_GAIT + 1 + N_DIST + 3
 
 
 def augment(q: jax.Array, command: jax.Array, clock: jax.Array | float = 0.0,
             gait: jax.Array | None = None, latched: jax.Array | float = 0.0,
-            disturbance: jax.Array | None = None) -> jax.Array:
-    """``[nq + 17]``: the robot state with the command, clock, latched gait and disturbance."""
+            disturbance: jax.Array | None = None, gravity: jax.Array | None = None) -> jax.Array:
+    """``[nq + N_AUG]``: the robot state with the command, clock, latched gait, disturbance and
+    sensed gravity direction (default world down: :func:`stride_jax.control.envs.base_signals`)."""
     gait = jnp.zeros(gait_lib.N_GAIT) if gait is None else gait
     disturbance = jnp.zeros(N_DIST, q.dtype) if disturbance is None else disturbance
+    gravity = jnp.asarray(envs.DOWN if gravity is None else gravity, q.dtype)
     return jnp.concatenate([q, command, jnp.reshape(clock, (1,)), gait,
-                            jnp.reshape(jnp.asarray(latched, q.dtype), (1,)), disturbance])
+                            jnp.reshape(jnp.asarray(latched, q.dtype), (1,)), disturbance,
+                            gravity])
 
 
 def split(q_aug: jax.Array, nq: int) -> Aug:
@@ -210,7 +214,8 @@ def split(q_aug: jax.Array, nq: int) -> Aug:
     g0 = nq + 4
     d0 = g0 + gait_lib.N_GAIT + 1
     return Aug(q_aug[:nq], q_aug[nq:nq + 3], q_aug[nq + 3], q_aug[g0:g0 + gait_lib.N_GAIT],
-               q_aug[g0 + gait_lib.N_GAIT], q_aug[d0:d0 + N_DIST])
+               q_aug[g0 + gait_lib.N_GAIT], q_aug[d0:d0 + N_DIST],
+               q_aug[d0 + N_DIST:d0 + N_DIST + 3])
 
 
 def apply_disturbance(q: jax.Array, qd: jax.Array, disturbance: jax.Array, dt: float):
@@ -283,10 +288,10 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
             q2, qd2 = apply_disturbance(q2, qd2, a.disturbance, dt)
         if not cfg.gait:  # the task's clock runs on inside rollouts (the policy candidates see it)
             return augment(q2, a.command, jnp.mod(a.clock + env_cfg.gait_hz * dt, 1.0),
-                           disturbance=a.disturbance), qd2
+                           disturbance=a.disturbance, gravity=a.gravity), qd2
         g = gait_of(q_aug, u)
         return augment(q2, a.command, jnp.mod(a.clock + g[0] * dt, 1.0), g, 1.0,
-                       a.disturbance), qd2
+                       a.disturbance, a.gravity), qd2
 
     def track_error(q_aug, qd):  # squared velocity-tracking error (yaw rate at half weight)
         q, command = split(q_aug, nq)[:2]
@@ -294,17 +299,18 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
         return jnp.sum((command[:2] - v[:2]) ** 2) + 0.5 * (command[2] - w[2]) ** 2
 
     def analytic_cost(q_aug, qd, u, t):
-        q, command = split(q_aug, nq)[:2]
+        a = split(q_aug, nq)
+        q, command = a.q, a.command
         fallen = rollout_mjx.fallen(sm, q)
         terms = envs.state_terms(env_cfg, home, q, qd, command,
-                                 servo_torque(sm, q, qd, ctrl(q_aug, u)), fallen)
+                                 servo_torque(sm, q, qd, ctrl(q_aug, u)), fallen, a.gravity)
         _, parts = envs.total_reward(env_cfg, terms, dt)
         return (-sum(parts.values()) + cfg.track_weight * dt * track_error(q_aug, qd)
                 + cfg.fall_cost * fallen)
 
     def obs_aug(q_aug, qd):
         a = split(q_aug, nq)
-        return obs_of(a.q, qd, a.command, a.clock)
+        return obs_of(a.q, qd, a.command, a.clock, a.gravity)
 
     def reward_action(q_aug, u):  # the learned models score the normalised policy action
         return (ctrl(q_aug, u) - home) / env_cfg.action_scale
@@ -337,8 +343,8 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
 
         def family(q_aug, qd, z):  # the policy asked for the command + z (vx, vy, yaw rate)
             a = split(q_aug, nq)
-            return env_cfg.action_scale * ppo_policy(obs_of(a.q, qd, a.command + z, a.clock),
-                                                     key0)
+            return env_cfg.action_scale * ppo_policy(
+                obs_of(a.q, qd, a.command + z, a.clock, a.gravity), key0)
 
         def policy(q_aug, qd):
             return family(q_aug, qd, jnp.zeros(3, q_aug.dtype))

@@ -109,6 +109,10 @@ class ClosedLoopConfig:
         to the ranges its environment's policy was trained on (``envs`` commands: forward,
         lateral, yaw), as a robot's operator interface would saturate it; the metrics still
         compare with the command asked for, so they count what the governor gives up.
+      sense_gravity: the policy and the planner observe the simulation's gravity direction, as
+        an IMU senses a real slope (the ``slope`` and ``tilt`` scenarios tilt gravity under a
+        level floor); ``--no-sense-gravity``: world down, as every run before session 46 (a run
+        that kept no such key is read so). Flat scenarios are the same either way.
       out: results folder (``closed_loop.json``/``.md`` and plots).
       progress_s: log the episode's progress every this many simulated seconds (0: only when
         a pair finishes).
@@ -140,6 +144,7 @@ class ClosedLoopConfig:
     settle_s: float = 0.5
     progress_s: float = 1.0
     govern: bool = False
+    sense_gravity: bool = True
     out: str = "results/closed_loop"
     seed: int = 0
     episodes: int = 1
@@ -254,7 +259,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             return run_episode(sm_sim, mx_sim, slots, planning, planner, n_steps, starts, values,
                                key, pushes=pushes, limits=limits, tilt=tilt,
                                progress=progress if every else None,
-                               progress_every=every or 1)
+                               progress_every=every or 1, sense_gravity=cfg.sense_gravity)
         if batched:  # episodes side by side: only the key differs
             episode = jax.vmap(episode, in_axes=(None,) * 7 + (0,))
         return jax.jit(episode)
@@ -439,6 +444,11 @@ def _run_seed(env: dict | None) -> int:
 _PER_RUN = frozenset({"seed", "episodes", "out", "models", "scenarios", "progress_s"})
 
 
+# Settings added with a default other than the behaviour of the runs before them: a run's
+# config without the key ran as the value here.
+_BEFORE = {"sense_gravity": False}
+
+
 def _settings(env: dict | None, model: str) -> dict:
     """What makes a part's row of ``model`` one planner: its run's config (``env['config']``)
     less the keys that only pick draws, scenarios or the output (``_PER_RUN``), plus the file
@@ -447,6 +457,8 @@ def _settings(env: dict | None, model: str) -> dict:
     config = dict((env or {}).get("config") or {})
     paths = dict(m.split("=", 1) for m in str(config.get("models", "")).split(",") if "=" in m)
     kept = {k: v for k, v in config.items() if k not in _PER_RUN}
+    if config:  # settings whose absence means the behaviour before them, not today's default
+        kept = {**_BEFORE, **kept}
     path = paths.get(model.split("@")[0])
     return {**kept, "model_file": path} if path else kept
 

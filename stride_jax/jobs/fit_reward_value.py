@@ -36,10 +36,11 @@ class FitConfig:
       holdout: fraction of the worlds held out for the report.
       seed: rollouts' and fits' key.
       randomised: roll out in the run's training environment with its randomisation (each
-        episode's friction factor, the noise on the joint targets: ``stride ppo
-        --friction-min/--friction-max/--action-noise``); off (the default): in the robot's
-        nominal environment, the task the planner plans (its rollouts carry neither). A run
-        trained without randomisation rolls out the same either way.
+        episode's friction factor, the noise on the joint targets, the slope: ``stride ppo
+        --friction-min/--friction-max/--action-noise/--tilt-max-deg``); off (the default): in
+        the robot's nominal environment (:meth:`~stride_jax.control.envs.EnvConfig.nominal`),
+        the task the planner plans. A run trained without randomisation rolls out the same
+        either way.
       learned: the models' sizes and training
         (:class:`~stride_jax.control.learned.LearnedConfig`: ``--learned.width``,
         ``--learned.steps`` ...; the older flat ``--width``, ``--steps`` ... still answer).
@@ -73,8 +74,7 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     t0 = time.monotonic()
     policy, _, env_cfg = ppo.load_policy(cfg.policy, deterministic=False)
     if not cfg.randomised:
-        env_cfg = dataclasses.replace(env_cfg, friction_min=1.0, friction_max=1.0,
-                                      action_noise=0.0)
+        env_cfg = env_cfg.nominal()
     env = envs_lib.VelocityEnv(env_cfg)
     key_roll, key_r, key_v = jax.random.split(jax.random.key(cfg.seed), 3)
     data = jax.jit(lambda k: learned_lib.rollouts(env, policy, k, cfg.envs, cfg.rollout_steps))(

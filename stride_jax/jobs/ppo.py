@@ -47,8 +47,8 @@ def run(cfg: PPOConfig, env_cfg: envs.EnvConfig | None = None, log=print) -> Run
     """One chunk into ``cfg.out``: resumes from its checkpoint, saves at every checkpoint."""
     t0 = time.monotonic()
     deadline = t0 + 60 * cfg.minutes if cfg.minutes else None
-    env_cfg = env_cfg or envs.config(cfg.robot, friction_min=cfg.friction_min,
-                                     friction_max=cfg.friction_max, action_noise=cfg.action_noise)
+    env_cfg = env_cfg or envs.config(cfg.robot,
+                                     **{k: getattr(cfg, k) for k in envs.RANDOMISATION})
     if env_cfg.robot != cfg.robot:
         raise ValueError(f"environment robot {env_cfg.robot!r} != PPO robot {cfg.robot!r}")
     out = pathlib.Path(cfg.out)
