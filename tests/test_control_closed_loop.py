@@ -770,6 +770,11 @@ def test_the_controller_senses_the_scenarios_gravity(go1):
     np.testing.assert_array_equal(off.q_aug[:, nq + planning_lib.N_AUG - 3:],
                                   np.tile([0, 0, -1], (3, 1)))
     assert not np.allclose(on.u, off.u)
+    acts = [jax.device_get(cl.run_episode(w.sm, w.mx, w.slots, planning, None, 3, w.starts,
+                                          w.values, jax.random.key(0), tilt=w.tilt,
+                                          sense_gravity=sense)).action for sense in (True, False)]
+    np.testing.assert_allclose(acts[0], on.u, atol=1e-6)  # the closed loop's episode: the same
+    np.testing.assert_allclose(acts[1], off.u, atol=1e-6)
     flat = dataclasses.replace(cl.SCENARIOS["walk"], seconds=3 * go1.robot.ctrl_dt)
     on, off = (jax.device_get(episode_lib.policy_episode(go1, mx, planning, flat, sense))
                for sense in (True, False))
