@@ -141,7 +141,7 @@ def test_the_ppo_and_fit_reward_value_jobs_at_tiny_size(tmp_path, capsys):
     assert (started[0].env_steps, started[0].chunks) == (0, 0)
     same = jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b)), started[0].train, trained.train)
     assert all(jax.tree.leaves(same))
-    # fit-reward-value rolls a randomised run out in the nominal environment unless asked
+    # fit-reward-value rolls a randomised run out without its action noise unless asked
     from stride_jax.jobs import fit_reward_value as fit_job
     robust = tmp_path / "robust_run"
     shutil.copytree(run, robust)
@@ -159,11 +159,11 @@ def test_the_ppo_and_fit_reward_value_jobs_at_tiny_size(tmp_path, capsys):
 
     with pytest.MonkeyPatch.context() as monkey:
         monkey.setattr(fit_job.learned_lib, "rollouts", stop)
-        for flags in ([], ["--randomised"]):
+        for flags in ([], ["--keep-action-noise"]):
             with pytest.raises(Stop):
                 cli.main(["fit-reward-value", "--preset", "tiny", "--policy", str(robust),
                           "--out", str(tmp_path / "unused"), *flags])
-    assert seen == [(1.0, 1.0, 0.0), (0.3, 1.2, 0.02)]
+    assert seen == [(0.3, 1.2, 0.0), (0.3, 1.2, 0.02)]
     out = tmp_path / "learned"
     cli.main(["fit-reward-value", "--preset", "tiny", "--policy", str(run), "--out", str(out)])
     reward, value = learned.load(out / "reward_value.msgpack")

@@ -149,10 +149,6 @@ class EnvConfig:
     def randomises_tilt(self) -> bool:
         return self.tilt_max_deg > 0
 
-    def nominal(self) -> "EnvConfig":
-        """This task without its domain randomisation (:data:`RANDOMISATION` at defaults)."""
-        return dataclasses.replace(self, **{k: getattr(EnvConfig, k) for k in RANDOMISATION})
-
     def __post_init__(self):
         if not 0 < self.friction_min <= self.friction_max:
             raise ValueError(f"friction_min={self.friction_min}, friction_max={self.friction_max}: "

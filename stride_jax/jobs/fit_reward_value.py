@@ -35,12 +35,12 @@ class FitConfig:
       rollout_steps: control steps per world.
       holdout: fraction of the worlds held out for the report.
       seed: rollouts' and fits' key.
-      randomised: roll out in the run's training environment with its randomisation (each
-        episode's friction factor, the noise on the joint targets, the slope: ``stride ppo
-        --friction-min/--friction-max/--action-noise/--tilt-max-deg``); off (the default): in
-        the robot's nominal environment (:meth:`~stride_jax.control.envs.EnvConfig.nominal`),
-        the task the planner plans. A run trained without randomisation rolls out the same
-        either way.
+      keep_action_noise: roll out with the run's training noise on the joint targets
+        (``stride ppo --action-noise``). Off (the default): without it, since the reward model
+        takes the applied action as its input and under that noise the environment applied
+        another (nor does the planner add any). The run's other randomisation (each episode's
+        friction, slope) is kept: it is the variety of states the planner meets, and the value
+        under it is the policy's.
       learned: the models' sizes and training
         (:class:`~stride_jax.control.learned.LearnedConfig`: ``--learned.width``,
         ``--learned.steps`` ...; the older flat ``--width``, ``--steps`` ... still answer).
@@ -52,7 +52,7 @@ class FitConfig:
     rollout_steps: int = 400
     holdout: float = 0.1
     seed: int = 0
-    randomised: bool = False
+    keep_action_noise: bool = False
     learned: learned_lib.LearnedConfig = learned_lib.LearnedConfig()
 
     # The flat flags of earlier commands still answer.
@@ -73,8 +73,8 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     held-out report."""
     t0 = time.monotonic()
     policy, _, env_cfg = ppo.load_policy(cfg.policy, deterministic=False)
-    if not cfg.randomised:
-        env_cfg = env_cfg.nominal()
+    if not cfg.keep_action_noise:
+        env_cfg = dataclasses.replace(env_cfg, action_noise=0.0)
     env = envs_lib.VelocityEnv(env_cfg)
     key_roll, key_r, key_v = jax.random.split(jax.random.key(cfg.seed), 3)
     data = jax.jit(lambda k: learned_lib.rollouts(env, policy, k, cfg.envs, cfg.rollout_steps))(
