@@ -85,13 +85,12 @@ def run(cfg: DiagnosisConfig, command: str) -> dict:
     import jax
     import jax.numpy as jnp
     import numpy as np
-    from mujoco import mjx
 
     from stride_jax.control import envs, learned as learned_lib, model_check, mppi, ppo
-    from stride_jax.control.episode import learned_step_fn, policy_episode
+    from stride_jax.control.episode import learned_step_fn, policy_episode, scenario_world
     from stride_jax.control.planning import (PlanningConfig, make_planner, make_planning,
                                              mppi_config)
-    from stride_jax.control.scenarios import SCENARIOS, scenario_model
+    from stride_jax.control.scenarios import SCENARIOS
     from stride_jax.io import atomic_write_text, code_version
     from stride_jax.sim import model as sim_model
 
@@ -137,10 +136,11 @@ def run(cfg: DiagnosisConfig, command: str) -> dict:
 
     for sc_name in [s for s in cfg.scenarios.split(",") if s]:
         sc = dataclasses.replace(SCENARIOS[sc_name], seconds=cfg.seconds)
-        mx = mjx.put_model(scenario_model(sm, sc, seed))
+        world = scenario_world(sm, sc, seed)
+        mx = world.mx
         truth = make_planning(planning_cfg, env_cfg, sm, envs.mjx_step_fn(sm.n_substeps, mx),
                               policy, learned)
-        ep = policy_episode(sm, mx, truth, sc)
+        ep = policy_episode(world, truth)
         q_aug, qd, actions = ep.q_aug, ep.qd, ep.u
         n_steps = len(ep.t)
         pick = np.arange(cfg.every, n_steps, cfg.every)

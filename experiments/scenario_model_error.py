@@ -37,18 +37,15 @@ def episode(sm, sc, policy_path: str):
     (:func:`stride_jax.control.episode.policy_episode`): ``(t, q, qd, ctrl, q2, qd2, fallen)``
     per control period, numpy."""
     import jax
-    from mujoco import mjx
-
     from stride_jax.control import envs, ppo
-    from stride_jax.control.episode import policy_episode
+    from stride_jax.control.episode import policy_episode, scenario_world
     from stride_jax.control.planning import PlanningConfig, make_planning
-    from stride_jax.control.scenarios import scenario_model
 
     policy, _, env_cfg = ppo.load_policy(policy_path)
-    mx = mjx.put_model(scenario_model(sm, sc, 0))
-    truth = make_planning(PlanningConfig(), env_cfg, sm, envs.mjx_step_fn(sm.n_substeps, mx),
-                          policy, None)
-    ep = jax.device_get(policy_episode(sm, mx, truth, sc))
+    world = scenario_world(sm, sc)
+    truth = make_planning(PlanningConfig(), env_cfg, sm,
+                          envs.mjx_step_fn(sm.n_substeps, world.mx), policy, None)
+    ep = jax.device_get(policy_episode(world, truth))
     nq = sm.mj.nq
     return [np.asarray(x) for x in (ep.t, ep.q_aug[:, :nq], ep.qd, ep.ctrl, ep.q_next,
                                     ep.qd_next, ep.fallen)]

@@ -713,13 +713,13 @@ def test_the_policy_episode_records_each_period_and_its_true_next_state(go1):
     state is the next period's state, and its joint targets are the policy's action through the
     planning's ``ctrl``. A planning without a policy is refused."""
     from stride_jax.control import episode as episode_lib
-    mx = mjx.put_model(go1.mj)
+    sc = dataclasses.replace(cl.SCENARIOS["walk"], seconds=4 * go1.robot.ctrl_dt)
+    world = cl.scenario_world(go1, sc)
     planning = planning_lib.make_planning(planning_lib.PlanningConfig(), envs.config("go1"), go1,
-                                          cl.mjx_step_fn(go1, mx))
+                                          cl.mjx_step_fn(go1, world.mx))
     nq = go1.mj.nq
     planning = planning._replace(policy=lambda q, qd: jnp.asarray(planning.nominal_u) + 0.1 * q[nq])
-    sc = dataclasses.replace(cl.SCENARIOS["walk"], seconds=4 * go1.robot.ctrl_dt)
-    ep = jax.device_get(episode_lib.policy_episode(go1, mx, planning, sc))
+    ep = jax.device_get(episode_lib.policy_episode(world, planning))
     assert ep.q_aug.shape == (4, nq + planning_lib.N_AUG) and ep.fallen.shape == (4,)
     np.testing.assert_allclose(ep.t, np.arange(4) * go1.robot.ctrl_dt, rtol=1e-6)
     np.testing.assert_array_equal(ep.q_next[:-1], ep.q_aug[1:, :nq])
@@ -727,7 +727,7 @@ def test_the_policy_episode_records_each_period_and_its_true_next_state(go1):
     np.testing.assert_allclose(ep.ctrl, jax.vmap(planning.ctrl)(ep.q_aug, ep.u), atol=1e-6)
     assert not np.allclose(ep.q_next[-1], ep.q_aug[0, :nq])  # the robot moved
     with pytest.raises(ValueError, match="needs a planning with a policy"):
-        episode_lib.policy_episode(go1, mx, planning._replace(policy=None), sc)
+        episode_lib.policy_episode(world, planning._replace(policy=None))
 
 
 def test_the_controller_senses_the_scenarios_gravity(go1):
@@ -763,7 +763,7 @@ def test_the_controller_senses_the_scenarios_gravity(go1):
     slope = dataclasses.replace(cl.SCENARIOS["slope"], seconds=3 * go1.robot.ctrl_dt,
                                 slope_deg=15.0)
     w = cl.scenario_world(go1, slope)
-    on, off = (jax.device_get(episode_lib.policy_episode(go1, w.mx, planning, slope, sense))
+    on, off = (jax.device_get(episode_lib.policy_episode(w, planning, sense))
                for sense in (True, False))
     np.testing.assert_allclose(on.q_aug[:, nq + planning_lib.N_AUG - 3:],
                                np.tile(g_hat, (3, 1)), atol=1e-6)
@@ -776,8 +776,8 @@ def test_the_controller_senses_the_scenarios_gravity(go1):
     np.testing.assert_allclose(acts[0], on.u, atol=1e-6)  # the closed loop's episode: the same
     np.testing.assert_allclose(acts[1], off.u, atol=1e-6)
     flat = dataclasses.replace(cl.SCENARIOS["walk"], seconds=3 * go1.robot.ctrl_dt)
-    on, off = (jax.device_get(episode_lib.policy_episode(go1, mx, planning, flat, sense))
-               for sense in (True, False))
+    on, off = (jax.device_get(episode_lib.policy_episode(cl.scenario_world(go1, flat), planning,
+                                                         sense)) for sense in (True, False))
     for a, b in zip(jax.tree.leaves(on), jax.tree.leaves(off)):
         np.testing.assert_array_equal(a, b)
     # merging: a run without the key ran with world down

@@ -241,20 +241,18 @@ class PolicyEpisode(NamedTuple):
     fallen: jax.Array  # [T] bool, after the period
 
 
-def policy_episode(sm: sim_model.SimModel, mx: mjx.Model, planning: Planning,
-                   sc: Scenario, sense_gravity: bool = True) -> PolicyEpisode:
-    """``planning``'s policy alone in scenario ``sc`` on ``mx`` (the scenario's MJX model), with
+def policy_episode(world: World, planning: Planning,
+                   sense_gravity: bool = True) -> PolicyEpisode:
+    """``planning``'s policy alone in a scenario's :class:`World` (:func:`scenario_world`), with
     its commands, pushes and tilt as the closed loop runs them (``sense_gravity`` as
     :func:`run_episode`'s): the states a planner would meet and the true step from each (issue
     19's diagnoses)."""
     if planning.policy is None:
         raise ValueError("policy_episode needs a planning with a policy")
-    starts, values = map(jnp.asarray, schedule(sc))
-    pushes = jnp.asarray(push_schedule(sc, float(sm.mj.body_mass.sum())))
-    tilt = jnp.asarray(tilt_schedule(sc))
+    sm, mx, n_steps = world.sm, world.mx, world.n_steps
+    starts, values, pushes, tilt = world.starts, world.values, world.pushes, world.tilt
     base = int(sm.mj.jnt_bodyid[0])
     dt = sm.robot.ctrl_dt
-    n_steps = max(1, int(round(sc.seconds / dt)))
 
     @jax.jit
     def run():
