@@ -218,19 +218,18 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
         rows = [Row(claim_fall, WHERE_CLOSED, paper_fall, why, NOT_RUN, srcs, cmd),
                 Row(claim_best, WHERE_CLOSED, paper_best, why, NOT_RUN, srcs, cmd)]
     else:
+        # A run that falls is worse than one that stays up, whatever its error while upright
+        # (measured until the fall); among equals, the lower velocity error wins.
+        falls = lambda rs: sum(bool(r.get("fell")) for r in rs)
         runs = [r for v in stride.values() for r in v]
-        falls = sum(bool(r.get("fell")) for r in runs)
         tables = {p: d for p, d in claim_files}
         unseen = sum(slope_unseen(tables[p], r) for (p, _, _), v in stride.items() for r in v)
         hidden = (f"; {unseen} of these runs are on slopes their controller could not sense "
                   "(world-down gravity, before session 46: results/planning_diagnosis/README.md)"
                   if unseen else "")
         rows = [Row(claim_fall, WHERE_CLOSED, paper_fall,
-                    f"fell in {falls} of {len(runs)} runs over {len(stride)} scenarios{hidden}"
-                    f"{current}", verdict(falls == 0), srcs, cmd)]
-        # A run that falls is worse than one that stays up, whatever its error while upright
-        # (measured until the fall); among equals, the lower velocity error wins.
-        falls = lambda rs: sum(bool(r.get("fell")) for r in rs)
+                    f"fell in {falls(runs)} of {len(runs)} runs over {len(stride)} scenarios"
+                    f"{hidden}{current}", verdict(falls(runs) == 0), srcs, cmd)]
         comps = []
         for (p, key, _), rs_all in stride.items():
             for other in ("delan", "onn"):

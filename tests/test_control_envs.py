@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from stride_jax.control import envs, wrappers
+from stride_jax.control import envs, scenarios, wrappers
 
 
 @pytest.fixture(scope="module")
@@ -159,14 +159,15 @@ def test_a_randomised_slope_builds_up_and_the_policy_senses_it(go1):
     np.testing.assert_array_equal(level.reset(keys[0]).info["tilt"], [0, 0])
     np.testing.assert_array_equal(level.reset(keys[0]).obs, env.reset(keys[0]).obs)  # level at 0
     g = np.asarray(go1.mj.opt.gravity)
-    np.testing.assert_allclose(envs.tilted_gravity(g, jnp.array([0.3, 0.0]), 0.05, 0.1),
+    np.testing.assert_allclose(scenarios.gravity_at(jnp.array([0.3, 0.1]), 0.05, g),
                                9.81 * np.array([-np.sin(0.15), 0, -np.cos(0.15)]), rtol=1e-5)
     s = jax.tree.map(lambda x: x[0], states)
     step = jax.jit(env.step)
     a = jnp.zeros(env.action_size)
     for _ in range(6):  # past tilt_s: the full slope
         s = step(s, a)
-    up = envs.tilted_gravity(g, s.info["tilt"], 1.0, 0.1) / 9.81
+    slope, heading = s.info["tilt"]
+    up = scenarios.gravity_at(jnp.array([slope, 0.1]), 1.0, g, heading) / 9.81
     q, qd = s.pipeline_state.qpos, s.pipeline_state.qvel
     np.testing.assert_allclose(s.obs[6:9], envs.base_signals(q, qd, up)[2], atol=1e-5)
     flat = level.reset(keys[0])

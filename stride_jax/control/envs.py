@@ -38,7 +38,7 @@ import numpy as np
 from brax.envs import base as brax_base
 from mujoco import mjx
 
-from stride_jax.control import gait as gait_lib
+from stride_jax.control import gait as gait_lib, scenarios
 from stride_jax.sim import randomize, rollout_mjx
 from stride_jax.sim import model as sim_model
 
@@ -377,12 +377,14 @@ class VelocityEnv(brax_base.Env):
         ctrl = jnp.clip(target, self.lo, self.hi)
         mx = with_friction(self.mx, info["friction"]) if cfg.randomises_friction else self.mx
         up = None  # the sensed gravity after the step (world down on level ground)
-        if cfg.randomises_tilt:
-            g_now = tilted_gravity(self.mx.opt.gravity, info["tilt"], info["t"] * self.dt,
-                                   cfg.tilt_s)
-            mx = mx.replace(opt=mx.opt.replace(gravity=g_now))
-            g_next = tilted_gravity(self.mx.opt.gravity, info["tilt"],
-                                    (info["t"] + 1) * self.dt, cfg.tilt_s)
+        if cfg.randomises_tilt:  # the slope built up over tilt_s, as the ``tilt`` scenario's
+            ramp = jnp.stack([info["tilt"][0], jnp.asarray(cfg.tilt_s, info["tilt"].dtype)])
+
+            def gravity(step):
+                return scenarios.gravity_at(ramp, step * self.dt, self.mx.opt.gravity,
+                                            info["tilt"][1])
+            mx = mx.replace(opt=mx.opt.replace(gravity=gravity(info["t"])))
+            g_next = gravity(info["t"] + 1)
             up = g_next / jnp.linalg.norm(g_next)
         d = physics_step(mx, self.sm.n_substeps, state.pipeline_state, ctrl)
         q, qd = d.qpos, d.qvel
@@ -432,18 +434,6 @@ class VelocityEnv(brax_base.Env):
         """Joint targets ``[nu]`` (rad) of a normalised action ``[nu]``."""
         return jnp.clip(self.home + self.cfg.action_scale * jnp.clip(action, -1, 1),
                         self.lo, self.hi)
-
-
-def tilted_gravity(gravity: jax.Array, tilt: jax.Array, t: jax.Array,
-                   tilt_s: float) -> jax.Array:
-    """The world gravity ``[3]`` at time ``t`` (s) of an episode whose ground slope ``tilt`` =
-    ``(slope rad, uphill heading rad)`` builds up linearly over ``tilt_s`` seconds: level
-    ``gravity``'s magnitude, tilted so that walking along the heading is uphill (heading 0: as
-    the closed loop's ``tilt`` scenario, :func:`stride_jax.control.scenarios.gravity_at`)."""
-    th = tilt[0] * jnp.clip(t / tilt_s, 0.0, 1.0)
-    g = jnp.linalg.norm(gravity)
-    return (g * jnp.stack([-jnp.sin(th) * jnp.cos(tilt[1]), -jnp.sin(th) * jnp.sin(tilt[1]),
-                           -jnp.cos(th)])).astype(gravity.dtype)
 
 
 def with_friction(mx: mjx.Model, factor: jax.Array) -> mjx.Model:

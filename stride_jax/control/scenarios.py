@@ -86,8 +86,7 @@ def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoc
     else:
         m = copy.copy(sm.mj)
     if sc.slope_deg:
-        th = np.deg2rad(sc.slope_deg)
-        m.opt.gravity[:] = 9.81 * np.array([-np.sin(th), 0.0, -np.cos(th)])
+        m.opt.gravity[:] = tilted(m.opt.gravity, np.deg2rad(sc.slope_deg), xp=np)
     m.geom_friction[:], m.pair_friction[:] = randomize.sliding_friction(
         m.geom_friction, m.pair_friction, np.float64(sc.friction), np)
     m.geom_solref[:, 0] *= sc.softness
@@ -101,16 +100,26 @@ def tilt_schedule(sc: Scenario) -> np.ndarray:
     return np.array([np.deg2rad(sc.slope_deg), sc.tilt_s], np.float32)
 
 
-def gravity_at(tilt: jax.Array, t: jax.Array, gravity: jax.Array) -> jax.Array:
+def tilted(gravity, slope, heading=0.0, xp=jnp):
+    """The gravity ``[3]`` (``gravity``'s magnitude) under which a level floor is a slope of
+    ``slope`` rad, uphill along ``heading`` rad from +x (0: about y, walking +x is uphill). The
+    one place the project tilts gravity: the ``slope`` scenario's model, the ``tilt`` scenario's
+    ramp (:func:`gravity_at`) and PPO's randomised slopes."""
+    s = xp.sin(slope)
+    return xp.linalg.norm(gravity) * xp.stack([-s * xp.cos(heading), -s * xp.sin(heading),
+                                               -xp.cos(slope)])
+
+
+def gravity_at(tilt: jax.Array, t: jax.Array, gravity: jax.Array,
+               heading: jax.Array | float = 0.0) -> jax.Array:
     """The gravity ``[3]`` at time ``t`` (s) of a :func:`tilt_schedule`: level gravity (the
-    magnitude of ``gravity``, the scenario model's own) tilted about y by the slope times
-    ``min(1, t / seconds)``; ``gravity`` itself where the slope does not build up (seconds 0)."""
+    magnitude of ``gravity``, the scenario model's own) :func:`tilted` by the slope times
+    ``min(1, t / seconds)`` (uphill along ``heading``); ``gravity`` itself where the slope does
+    not build up (seconds 0)."""
     tilt, gravity = jnp.asarray(tilt), jnp.asarray(gravity)
     slope, seconds = tilt[0], tilt[1]
     th = slope * jnp.clip(t / jnp.maximum(seconds, 1e-9), 0.0, 1.0)
-    g = jnp.linalg.norm(gravity)
-    ramped = g * jnp.stack([-jnp.sin(th), jnp.zeros_like(th), -jnp.cos(th)])
-    return jnp.where(seconds > 0, ramped.astype(gravity.dtype), gravity)
+    return jnp.where(seconds > 0, tilted(gravity, th, heading).astype(gravity.dtype), gravity)
 
 
 def world_at(mx, d, base: int, t: jax.Array, pushes: jax.Array | None = None,
