@@ -14,6 +14,10 @@ RMSE after one period (rad/s); STRIDE's residual is sampled ``--draws`` times pe
         --models stride=results/models/g1_walk_tw1_tf0.25_b/stride-s0,... \\
         --out results/planning_diagnosis/g1_tilt15_model_error
 
+``--model-gravity`` adds a row per model that takes a gravity direction, told the sensed one at
+each state (as the closed loop's ``--planning.model-gravity``): what a Lagrangian model's turned
+potential buys on an emulated slope.
+
 Writes OUT.md and OUT.json (the command, per-model rows).
 """
 
@@ -34,12 +38,12 @@ import stride_jax
 
 def episode(sm, sc, policy_path: str):
     """The policy of run ``policy_path`` alone in scenario ``sc``
-    (:func:`stride_jax.control.episode.policy_episode`): ``(t, q, qd, ctrl, q2, qd2, fallen)``
-    per control period, numpy."""
+    (:func:`stride_jax.control.episode.policy_episode`): ``(t, q, qd, ctrl, q2, qd2, fallen,
+    down)`` per control period, numpy (``down``: the sensed gravity direction)."""
     import jax
     from stride_jax.control import envs, ppo
     from stride_jax.control.episode import policy_episode, scenario_world
-    from stride_jax.control.planning import PlanningConfig, make_planning
+    from stride_jax.control.planning import PlanningConfig, make_planning, split
 
     policy, _, env_cfg = ppo.load_policy(policy_path)
     world = scenario_world(sm, sc)
@@ -47,8 +51,9 @@ def episode(sm, sc, policy_path: str):
                           envs.mjx_step_fn(sm.n_substeps, world.mx), policy, None)
     ep = jax.device_get(policy_episode(world, truth))
     nq = sm.mj.nq
+    down = jax.vmap(lambda qa: split(qa, nq).gravity)(ep.q_aug)
     return [np.asarray(x) for x in (ep.t, ep.q_aug[:, :nq], ep.qd, ep.ctrl, ep.q_next,
-                                    ep.qd_next, ep.fallen)]
+                                    ep.qd_next, ep.fallen, down)]
 
 
 def phase_errors(acc_err: np.ndarray, qd_err: np.ndarray, nu: int) -> dict:
@@ -76,6 +81,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--split-s", type=float, default=2.0,
                     help="the phases: before and from this time (s)")
     ap.add_argument("--draws", type=int, default=8, help="residual draws per state")
+    ap.add_argument("--model-gravity", action="store_true",
+                    help="a second row per model that takes a gravity direction, told the "
+                         "sensed one (as the closed loop's --planning.model-gravity)")
     ap.add_argument("--out", required=True, help="path stem: writes OUT.md and OUT.json")
     a = ap.parse_args(argv)
     if a.draws < 1:
@@ -89,7 +97,8 @@ def main(argv: list[str] | None = None) -> dict:
 
     import jax
 
-    from stride_jax.control.episode import learned_step_fn
+    from stride_jax.control.episode import learned_model, learned_step_fn
+    from stride_jax.dynamics import models as dyn_models
     from stride_jax.control.scenarios import SCENARIOS
     from stride_jax.io import atomic_write_text, code_version
     from stride_jax.sim import model as sim_model
@@ -104,25 +113,30 @@ def main(argv: list[str] | None = None) -> dict:
     sm = sim_model.load(a.robot)
     policy = a.policy or f"results/policies/ppo_{a.robot}"
     t0 = time.time()
-    t, q, qd, ctrl, q2, qd2, fallen = episode(sm, sc, policy)
+    t, q, qd, ctrl, q2, qd2, fallen, down = episode(sm, sc, policy)
     if fallen.any():
         cut = int(np.argmax(fallen))
         print(f"the policy fell at {t[cut]:.2f} s: the states up to then are kept")
-        t, q, qd, ctrl, q2, qd2 = (x[:cut] for x in (t, q, qd, ctrl, q2, qd2))
+        t, q, qd, ctrl, q2, qd2, down = (x[:cut] for x in (t, q, qd, ctrl, q2, qd2, down))
     print(f"policy episode: {len(t)} control periods ({time.time() - t0:.0f} s)")
     dt, nu = sm.robot.ctrl_dt, sm.info.nu
     phases = {f"before {a.split_s:g} s": t < a.split_s, f"from {a.split_s:g} s": t >= a.split_s}
     rows = []
-    for name, run in models:
+    runs = [(name, run, False) for name, run in models]
+    if a.model_gravity:
+        runs += [(f"{name} (told gravity)", run, True) for name, run in models
+                 if dyn_models.takes_gravity(learned_model(run, sm)[0])]
+    for name, run, told in runs:
         t1 = time.time()
         step = learned_step_fn(run, sm)
         keys = jax.random.split(jax.random.key(0), (len(t), a.draws))
-        over_draws = jax.vmap(step, in_axes=(None, None, None, 0))
-        _, qd_pred = jax.jit(jax.vmap(over_draws))(q, qd, ctrl, keys)
+        over_draws = jax.vmap(lambda q, qd, u, k, g: step(q, qd, u, k, down=g if told else None),
+                              in_axes=(None, None, None, 0, None))
+        _, qd_pred = jax.jit(jax.vmap(over_draws))(q, qd, ctrl, keys, down)
         qd_pred = np.asarray(qd_pred, np.float64)
         err = qd2[:, None, :] - qd_pred  # true minus predicted velocity after one period
         acc_err = err[..., :3] / dt
-        row = dict(model=name, run=run)
+        row = dict(model=name, run=run, told_gravity=told)
         for label, sel in phases.items():
             if sel.any():
                 row[label] = phase_errors(acc_err[sel], err[sel], nu)

@@ -89,6 +89,9 @@ class Table1Config:
         get their own runs and results folders (``<robot>[_<data>]_tw<weight>``).
       transition_fraction: ``stride train --transition-fraction``: the share of each minibatch
         the transition term is computed on (1: all; below 1 the folders gain ``_tf<fraction>``).
+      potential: ``stride train --potential`` for the structured runs (``net``, the paper's
+        ``V = m g z + V_net``, or ``com``: gravity's multibody form, ``LNNConfig.potential``);
+        ``com`` gets its own runs and results folders (``..._com``).
       parallel: processes at once.
       minutes: wall-clock budget for training, from when the data exist (0: none); runs stop
         cleanly at it.
@@ -108,6 +111,7 @@ class Table1Config:
     stop_at: int = 0
     transition_weight: float = 0.0
     transition_fraction: float = 1.0
+    potential: str = "net"
     parallel: int = 5
     minutes: float = 0.0
     eval_only: bool = False
@@ -134,6 +138,7 @@ def main(argv: list[str] | None = None) -> None:
                          "--transition-weight above 0")
     tf = args.transition_fraction
     tw += f"_tf{tf:g}" if tf < 1 else ""
+    tw += f"_{args.potential}" if args.potential != "net" else ""
     data = {r: root / "data" / f"{r}{suffix}-{args.preset}" for r in robots}
     runs = {r: root / "runs" / f"{r}{suffix}{tw}-{args.preset}" for r in robots}
 
@@ -169,8 +174,9 @@ def main(argv: list[str] | None = None) -> None:
         "--seed", str(s), "--data", str(data[r]), "--out", str(run_dir(r, m, s, v)),
         "--deadline", str(deadline), *(["--acc-through", v] if v else []),
         *(["--stop-at", str(args.stop_at)] if args.stop_at else []),
-        *(["--transition-weight", f"{args.transition_weight:g}"] if tw else []),
-        *(["--transition-fraction", f"{tf:g}"] if tf < 1 else []))
+        *(["--transition-weight", f"{args.transition_weight:g}"] if args.transition_weight else []),
+        *(["--transition-fraction", f"{tf:g}"] if tf < 1 else []),
+        *(["--potential", args.potential] if args.potential != "net" else []))
         for r, m, s, v in jobs}
     folders = {name(*j): run_dir(*j) for j in jobs}
     follows = lambda n, marker: (lambda: leader[n] == folders[n] or (leader[n] / marker).exists())

@@ -8,7 +8,8 @@
 #   [DATA=walk] bash experiments/table1_device.sh OUT ROBOT STEPS TRAIN_MINUTES [ABLATION [EXTRA...]]
 # DATA picks experiments/table1.py's --data (explore: default); TW (when set and not 0) its
 # --transition-weight, and NAME gains _twTW; TF (below 1, with TW) its --transition-fraction, and
-# NAME gains _tfTF; two calls with different DATA
+# NAME gains _tfTF; POT (when set and not net) its --potential, and NAME gains _POT (com: the
+# prior's potential in gravity's multibody form); two calls with different DATA
 # may run side by side (they share the compilation cache). LIMIT_S stops the driver after that
 # many seconds (0: never), so that what it made is still packed inside the device call's limit. EXTRA goes to experiments/table1.py:
 # --eval-only in a second call on the same (warm) machine evaluates what the first trained.
@@ -25,6 +26,8 @@ twargs=(); tws=""
 if [ "$tw" != 0 ]; then twargs=(--transition-weight "$tw"); tws=_tw$tw; name=${name}$tws; fi
 tf=${TF:-1}
 if [ "$tw" != 0 ] && [ "$tf" != 1 ]; then twargs+=(--transition-fraction "$tf"); tws=${tws}_tf$tf; name=${name}_tf$tf; fi
+pot=${POT:-net}
+if [ "$pot" != net ]; then twargs+=(--potential "$pot"); tws=${tws}_$pot; name=${name}_$pot; fi
 (
   flock 9
   if [ ! -f /tmp/site/.done ]; then

@@ -134,8 +134,10 @@ class Model(Protocol):
         contact_jac``) and its named parts (``select``: the part that picks the best step)."""
 
     def step(self, params: Params, q: Q, qd: Qd, ctrl: Ctrl, key: Key,
-             nfe: int | None = None) -> tuple[Q, Qd]:
-        """One control period under command ``ctrl`` (the servo model at every substep)."""
+             nfe: int | None = None, down: jax.Array | None = None) -> tuple[Q, Qd]:
+        """One control period under command ``ctrl`` (the servo model at every substep);
+        ``down``: gravity's direction in ``q``'s frame where the model takes one
+        (``dynamics.models.takes_gravity``; ``None``: world -z)."""
 
     def rollout(self, params: Params, q: Q, qd: Qd, ctrls: Ctrls, key: Key,
                 nfe: int | None = None, latents: str = "step") -> tuple[Qs, Qds]:

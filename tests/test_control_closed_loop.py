@@ -328,6 +328,40 @@ def test_disturbance_observer_finds_a_persistent_push_and_rollouts_carry_it(go1)
     np.testing.assert_array_equal(qd_off, qd)
 
 
+def test_model_gravity_tells_the_planners_model_the_sensed_gravity(go1):
+    """``model_gravity``: the planner's model step receives the state's sensed gravity (held in
+    the planner state over a rollout); off, it is called as before (no ``down``). Through
+    :func:`learned_step` a Lagrangian model takes it and a next-observation model is called
+    without it."""
+    from stride_jax.control.episode import learned_step
+    from stride_jax.dynamics import models
+    from stride_jax.types import ModelSpec
+    nq, nv = go1.mj.nq, go1.mj.nv
+    seen = []
+
+    def step(q, qd, ctrl, key, **told):
+        seen.append(told)
+        return q, qd
+
+    tilt = jnp.asarray(scenarios.tilted(jnp.array([0.0, 0.0, -9.81]), 0.3) / 9.81)
+    q_aug = planning_lib.augment(jnp.asarray(go1.info.qpos0), jnp.array([1.0, 0, 0]),
+                                 gravity=tilt)
+    for on in (True, False):
+        planning = planning_lib.make_planning(planning_lib.PlanningConfig(model_gravity=on),
+                                              envs.config("go1"), go1, step)
+        q2, _ = planning.dynamics(q_aug, jnp.zeros(nv), jnp.zeros(12), jax.random.key(0))
+        np.testing.assert_array_equal(planning_lib.split(q2, nq).gravity, tilt)  # held
+    assert set(seen[0]) == {"down"} and seen[1] == {}
+    np.testing.assert_array_equal(seen[0]["down"], tilt)
+
+    calls = []
+    for name in ("delan", "onn"):
+        m = models.make(name, ModelSpec(nq=nq, nv=nv, floating_base=True))
+        fake = m._replace(step=lambda p, q, qd, c, k, nfe=None, **kw: calls.append(kw) or (q, qd))
+        learned_step(fake, {})(q_aug[:nq], jnp.zeros(nv), jnp.zeros(nv), None, down=tilt)
+    assert set(calls[0]) == {"down"} and calls[1] == {}
+
+
 _NO_LIMITS = (jnp.full(3, -jnp.inf, jnp.float32), jnp.full(3, jnp.inf, jnp.float32))  # clips nothing
 _LEVEL = np.zeros(2, np.float32)  # no tilt schedule: the model's own gravity
 

@@ -456,8 +456,9 @@ def physics_step(mx: mjx.Model, n_substeps: int, d: mjx.Data, ctrl: jax.Array) -
 
 def mjx_step_fn(n_substeps: int, mx: mjx.Model) -> Callable:
     """``step(q, qd, ctrl, key) -> (q', qd')``: one control period of an MJX model, the
-    planner's dynamics when it plans through the simulator (the oracle; ``key`` is unused)."""
-    def step(q, qd, ctrl, key):
+    planner's dynamics when it plans through the simulator (the oracle; ``key`` is unused, and
+    so is a gravity direction ``down``: the model has its own world's gravity)."""
+    def step(q, qd, ctrl, key, down=None):
         d = physics_step(mx, n_substeps, mjx.make_data(mx).replace(qpos=q, qvel=qd), ctrl)
         return d.qpos, d.qvel
     return step

@@ -304,16 +304,21 @@ PRECISIONS = ("", "default", "high", "highest")
 
 
 def learned_step(model, params, precision: str = "") -> Callable:
-    """``step(q, qd, ctrl, key)`` of ``model`` with ``params``, its float32 products traced at
-    ``precision`` (:data:`PRECISIONS`; "": JAX's default)."""
+    """``step(q, qd, ctrl, key, down=None)`` of ``model`` with ``params``, its float32 products
+    traced at ``precision`` (:data:`PRECISIONS`; "": JAX's default); a gravity direction
+    ``down`` reaches the models that take one (``models.takes_gravity``) and is left out for
+    the others (``PlanningConfig.model_gravity``)."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision {precision!r}: use one of {PRECISIONS}")
+    from stride_jax.dynamics import models
+    told = models.takes_gravity(model)
 
-    def step(q, qd, ctrl, key):
+    def step(q, qd, ctrl, key, down=None):
+        kw = {"down": down} if told and down is not None else {}
         if not precision:
-            return model.step(params, q, qd, ctrl, key)
+            return model.step(params, q, qd, ctrl, key, **kw)
         with jax.default_matmul_precision(precision):
-            return model.step(params, q, qd, ctrl, key)
+            return model.step(params, q, qd, ctrl, key, **kw)
     return step
 
 

@@ -67,6 +67,13 @@ class PlanningConfig:
       observer_angular: estimate the base's angular acceleration too (default: the linear
         part only; the angular one-step errors of the learned models are dominated by contact
         transients, not by what persists).
+      model_gravity: tell the planner's model the sensed gravity direction (``Aug.gravity``)
+        where it takes one: the Lagrangian models turn their potential to it
+        (:func:`stride_jax.dynamics.models.takes_gravity`), so that a model trained on level
+        ground knows the gravity of a slope emulated by tilting it, as a real robot's world
+        frame would be gravity-aligned; the next-observation models cannot be told (they run
+        as without) and MJX runs its own model's gravity (the oracle's: the world's; the
+        nominal model's: level). Off: every model as trained.
       family_std: std of the command offsets of the policy family's candidates
         (``--mppi.family-samples``): vx (m/s) and yaw rate (rad/s); vy gets half.
       alarm_speed: the recovery alarm (0: off): while the base's velocity-tracking error
@@ -123,6 +130,7 @@ class PlanningConfig:
     observer_gain: float = 0.0
     observer_limit: float = 6.0
     observer_angular: bool = False
+    model_gravity: bool = False
     family_std: float = 0.3
     alarm_speed: float = 0.0
     recovery_noise_std: float = 0.5
@@ -257,7 +265,8 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
                   learned_params: tuple | None = None,
                   gait_cfg: gait_lib.GaitConfig = gait_lib.GaitConfig(),
                   error_params: dict | None = None) -> Planning:
-    """Planner functions around ``model_step(q, qd, ctrl, key) -> (q', qd')``; ``error_params``:
+    """Planner functions around ``model_step(q, qd, ctrl, key) -> (q', qd')`` (with
+    ``cfg.model_gravity``: ``model_step(q, qd, ctrl, key, down=...)``); ``error_params``:
     a learned one-step error model (:mod:`stride_jax.control.planner_value`) of this model."""
     nq, nu = sm.mj.nq, sm.info.nu
     home = jnp.asarray(sm.info.qpos0[7:])
@@ -283,7 +292,8 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
 
     def dynamics(q_aug, qd, u, key):
         a = split(q_aug, nq)
-        q2, qd2 = model_step(a.q, qd, ctrl(q_aug, u), key)
+        told = {"down": a.gravity} if cfg.model_gravity else {}
+        q2, qd2 = model_step(a.q, qd, ctrl(q_aug, u), key, **told)
         if cfg.observer_gain:  # off: the model's own step, bit for bit
             q2, qd2 = apply_disturbance(q2, qd2, a.disturbance, dt)
         if not cfg.gait:  # the task's clock runs on inside rollouts (the policy candidates see it)

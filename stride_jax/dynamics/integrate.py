@@ -50,6 +50,22 @@ def quat_log(quat: jax.Array) -> jax.Array:
     return jnp.where(small, 2.0 * quat[1:], angle / jnp.where(small, 1.0, s) * quat[1:])
 
 
+def quat_between(a: jax.Array, b: jax.Array) -> jax.Array:
+    """The unit quaternion of the shortest rotation taking direction ``a`` [3] to ``b`` [3]
+    (normalised here); for opposite directions, half a turn about an axis normal to ``a``."""
+    a = a / jnp.linalg.norm(a)
+    b = b / jnp.linalg.norm(b)
+    w = 1.0 + a @ b
+    axis = jnp.cross(a, b)
+    # opposite: any normal of a (x's, or y's where a is along x) turned half a turn
+    normal = jnp.cross(a, jnp.where(jnp.abs(a[0]) < 0.9, jnp.array([1.0, 0.0, 0.0], a.dtype),
+                                    jnp.array([0.0, 1.0, 0.0], a.dtype)))
+    opposite = w < 1e-6
+    quat = jnp.where(opposite, jnp.concatenate([jnp.zeros(1, a.dtype), normal]),
+                     jnp.concatenate([w[None], axis]))
+    return quat / jnp.linalg.norm(quat)
+
+
 def quat_conj(quat: jax.Array) -> jax.Array:
     return quat * jnp.array([1.0, -1.0, -1.0, -1.0])
 

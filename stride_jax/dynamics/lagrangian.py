@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stride_jax.dynamics import fused, linalg, mlp
-from stride_jax.dynamics.integrate import quat_to_mat, retract
+from stride_jax.dynamics.integrate import quat_between, quat_mul, quat_to_mat, retract
 from stride_jax.types import ModelSpec, check_shape
 
 MassFn = Callable[[jax.Array], jax.Array]  # q [nq] -> M [nv, nv]
@@ -90,6 +90,14 @@ class LNNConfig:
     one network pass where it was two: the planner's model step costs less (measured in
     ``results/mppi_latency/README.md``), at the accuracy ``experiments/probes/planning_shared.sh`` measures.
 
+    ``potential`` (floating bases with ``base_structure``): ``"net"`` (the default, as trained
+    until session 47), ``V = m g z + V_net(orientation, joints)``; or ``"com"``, gravity's exact
+    multibody form ``V = m g e_z . (p + R c(joints)) + s(joints)`` with the centre-of-mass offset
+    ``c`` [3] (base frame, m) and a gravity-free joint potential ``s`` (springs) learned from the
+    joint angles alone: no extrapolation over orientations, and exact under any gravity
+    direction (:func:`potential_energy`'s ``down``; ``V_net`` was fitted on the orientations of
+    the data, near upright on level ground). Two networks (not ``shared``).
+
     ``base_structure`` (floating bases; the default): what rigid-body physics fixes is built in --
     M's translational block is exactly ``m I`` (L's first three rows ``sqrt(m) I``), neither
     network sees the base's position, and ``V = m g z_base + V_net(orientation, joints)``. Off
@@ -106,10 +114,34 @@ class LNNConfig:
     learn_mass: bool = False
     shared: bool = False
     base_structure: bool = True
+    potential: str = "net"
 
     def __post_init__(self):
         check_diag_floor(self.diag_floor)
         check_base_structure(self.base_structure, self.learn_mass)
+        check_potential(self.potential, self.shared, self.base_structure)
+
+
+POTENTIALS = ("net", "com")
+
+
+def check_potential(potential: str, shared: bool, base_structure: bool) -> None:
+    """``potential`` is one of :data:`POTENTIALS`; ``"com"`` takes two networks and the
+    floating-base structure (a fixed base's potential stays ``V_net(joints)``: see
+    :func:`check_com`)."""
+    if potential not in POTENTIALS:
+        raise ValueError(f"potential {potential!r}: use one of {POTENTIALS}")
+    if potential == "com" and (shared or not base_structure):
+        raise ValueError("potential 'com' (V = m g e_z . (p + R c(joints)) + s(joints)) needs "
+                         "two networks (not shared: its network sees the joints alone) and the "
+                         "floating-base structure")
+
+
+def check_com(spec: ModelSpec, cfg: "LNNConfig") -> None:
+    """The ``"com"`` potential needs a floating base (it is the base's pose under gravity)."""
+    if cfg.potential == "com" and not spec.floating_base:
+        raise ValueError("potential 'com' needs a floating base: a fixed base's potential is "
+                         "V_net(joints) (potential 'net')")
 
 
 def check_base_structure(base_structure: bool, learn_mass: bool) -> None:
@@ -144,15 +176,20 @@ def q_features(spec: ModelSpec, q: jax.Array, height: bool = True) -> jax.Array:
     """
     check_shape("q_features", "q", q, (spec.nq,))
     if spec.floating_base:
-        joints = q[7:]
         head = ([q[2:3]] if height else []) + [quat_to_mat(q[3:7]).reshape(9)]
     else:
-        joints, head = q, []
+        head = []
+    return jnp.concatenate(head + [joint_features(spec, q)])
+
+
+def joint_features(spec: ModelSpec, q: jax.Array) -> jax.Array:
+    """The joint angles of ``q`` as network input (periodic hinges as sin, cos)."""
+    joints = q[7:] if spec.floating_base else q
     if spec.periodic:
         periodic = np.asarray(spec.periodic)  # static mask
         joints = jnp.concatenate([jnp.where(periodic, jnp.sin(joints), joints),
                                   jnp.cos(joints)[periodic]])
-    return jnp.concatenate(head + [joints])
+    return joints
 
 
 def _prior_features(spec: ModelSpec, q: jax.Array, cfg: LNNConfig) -> jax.Array:
@@ -175,10 +212,15 @@ def _n_mass_outputs(spec: ModelSpec, cfg: LNNConfig) -> int:
 def lnn_init(key: jax.Array, spec: ModelSpec, cfg: LNNConfig = LNNConfig()) -> dict:
     """Parameters of the Cholesky-factor network and of V(q) (``shared``: of the one network
     with both) and, for a floating base with ``learn_mass``, the log of the total mass."""
+    check_com(spec, cfg)
     key_m, key_v = jax.random.split(key)
     n_out, n_in = _n_mass_outputs(spec, cfg), _n_features(spec, cfg)
     if cfg.shared:
         params = {"shared": mlp.mlp(cfg.net, n_out + 1)[0](key_m, n_in)}
+    elif cfg.potential == "com":  # c and s from the joints, starting at 0 (mass at the base)
+        n_joints = joint_features(spec, jnp.zeros(spec.nq)).shape[0]
+        params = {"mass": mlp.mlp(cfg.net, n_out)[0](key_m, n_in),
+                  "potential": mlp.mlp(cfg.net, 4, zero_last=True)[0](key_v, n_joints)}
     else:
         params = {"mass": mlp.mlp(cfg.net, n_out)[0](key_m, n_in),
                   "potential": mlp.mlp(cfg.net, 1)[0](key_v, n_in)}
@@ -237,8 +279,10 @@ def _networks(params: dict, spec: ModelSpec, x: jax.Array, cfg: LNNConfig
     if cfg.shared:
         out = mlp.mlp(cfg.net, n_out + 1)[1](params["shared"], x)
         return out[:n_out], out[n_out]
-    return (mlp.mlp(cfg.net, n_out)[1](params["mass"], x),
-            mlp.mlp(cfg.net, 1)[1](params["potential"], x)[0])
+    raw = mlp.mlp(cfg.net, n_out)[1](params["mass"], x)
+    if cfg.potential == "com":  # V is not a function of these features (potential_energy)
+        return raw, jnp.zeros((), raw.dtype)
+    return raw, mlp.mlp(cfg.net, 1)[1](params["potential"], x)[0]
 
 
 def _factor_from_features(params: dict, spec: ModelSpec, x: jax.Array, cfg: LNNConfig
@@ -276,8 +320,34 @@ def _mass_from_factor(L: jax.Array, cfg: LNNConfig) -> jax.Array:
     return L @ L.T + cfg.diag_floor * jnp.eye(L.shape[0], dtype=L.dtype)
 
 
+WORLD_DOWN = (0.0, 0.0, -1.0)
+
+
+def check_down(spec: ModelSpec, cfg: LNNConfig, down) -> None:
+    """A gravity direction needs the floating-base structure: it rotates the base's pose inside
+    ``V = m g z + V_net(orientation, joints)``; a potential learned over a fixed base's joint
+    angles (or over the base's raw coordinates) has no frame to turn."""
+    if down is None:
+        return
+    if not structured_base(spec, cfg):
+        raise ValueError("a gravity direction (down) needs a floating base with base_structure: "
+                         "the learned potential is turned by rotating the base's pose, and this "
+                         "prior's potential has no such frame")
+    if jnp.shape(down) != (3,):
+        raise ValueError(f"down must be a direction [3] (world frame), got shape "
+                         f"{jnp.shape(down)}")
+
+
+def gravity_frame(q: jax.Array, down: jax.Array) -> jax.Array:
+    """``q`` of a floating base with the base's pose rotated into the frame in which ``down``
+    (world, any length) points along -z: by the shortest rotation between the two, about the
+    world origin (joints unchanged; body-frame velocities are the same in either frame)."""
+    r = quat_between(jnp.asarray(down, q.dtype), jnp.asarray(WORLD_DOWN, q.dtype))
+    return q.at[:3].set(quat_to_mat(r) @ q[:3]).at[3:7].set(quat_mul(r, q[3:7]))
+
+
 def potential_energy(params: dict, spec: ModelSpec, q: jax.Array,
-                     cfg: LNNConfig = LNNConfig()) -> jax.Array:
+                     cfg: LNNConfig = LNNConfig(), down: jax.Array | None = None) -> jax.Array:
     """Scalar ``V(q)`` (J).
 
     Floating base with ``base_structure``: ``V = m g z_base + V_net(orientation, joints)``, the
@@ -285,7 +355,19 @@ def potential_energy(params: dict, spec: ModelSpec, q: jax.Array,
     centre of mass offset), with the same ``m`` as M's translational block. Without this tie the
     prior can fold the mean contact force of standing into a weaker "gravity" and leave the feet
     unloaded. Without the structure: ``V = V_net(height, orientation, joints)``.
+
+    ``down``: the direction of gravity in the world frame ``q`` is expressed in (default world
+    -z, as trained). The potential of uniform gravity along ``down`` is the trained one of the
+    pose seen from a frame where ``down`` is -z (:func:`gravity_frame`): a model trained on
+    level ground then knows the gravity of a world whose frame is not gravity-aligned (a slope
+    emulated by tilting gravity under a level floor). Floating base with ``base_structure``
+    only (:func:`check_down`).
     """
+    check_down(spec, cfg, down)
+    if cfg.potential == "com":
+        return _com_potential(params, spec, q, cfg, down)
+    if down is not None:
+        q = gravity_frame(q, down)
     x = _prior_features(spec, q, cfg)
     if cfg.shared:
         v = _networks(params, spec, x, cfg)[1]
@@ -296,18 +378,32 @@ def potential_energy(params: dict, spec: ModelSpec, q: jax.Array,
     return v
 
 
-def gravity(params: dict, spec: ModelSpec, q: jax.Array, cfg: LNNConfig = LNNConfig()
-            ) -> jax.Array:
+def _com_potential(params: dict, spec: ModelSpec, q: jax.Array, cfg: LNNConfig,
+                   down: jax.Array | None) -> jax.Array:
+    """``m g up . (p + R c(joints)) + s(joints)`` (``up``: against ``down``, default +z): the
+    ``"com"`` potential (:class:`LNNConfig`)."""
+    out = mlp.mlp(cfg.net, 4, zero_last=True)[1](params["potential"], joint_features(spec, q))
+    c, springs = out[:3], out[3]
+    up = (jnp.array([0.0, 0.0, 1.0], q.dtype) if down is None
+          else -jnp.asarray(down, q.dtype) / jnp.linalg.norm(down))
+    com = q[:3] + quat_to_mat(q[3:7]) @ c.astype(q.dtype)
+    return total_mass(params, cfg) * cfg.gravity * (up @ com) + springs
+
+
+def gravity(params: dict, spec: ModelSpec, q: jax.Array, cfg: LNNConfig = LNNConfig(),
+            down: jax.Array | None = None) -> jax.Array:
     """``g(q) = dV/dq`` ``[nv]`` (N, N m): the generalised gravity force of the learned prior,
     the derivative of :func:`potential_energy` along ``q (+) delta`` at ``delta = 0`` (for a
-    floating base, along the world translation and the body-frame rotation)."""
+    floating base, along the world translation and the body-frame rotation); ``down`` as
+    there."""
     zero = jnp.zeros(spec.nv, jnp.result_type(q, float))
     return jax.grad(lambda d: potential_energy(params, spec, retract(q, d, spec.floating_base),
-                                               cfg))(zero)
+                                               cfg, down))(zero)
 
 
 def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
-              cfg: LNNConfig = LNNConfig(), kernel: str = "xla") -> tuple[jax.Array, jax.Array]:
+              cfg: LNNConfig = LNNConfig(), kernel: str = "xla", down: jax.Array | None = None
+              ) -> tuple[jax.Array, jax.Array]:
     """``(M(q), C(q, v) v + g(q))`` of the learned Lagrangian: :func:`bias_force` of
     :func:`mass_matrix` and :func:`potential_energy`, computed in the networks' feature space.
 
@@ -323,12 +419,20 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
     ``kernel``: ``"xla"`` (JAX's own differentiation, differentiable again: training uses it)
     or a fused-kernel choice of :data:`fused.KERNELS` for inference: the networks' forward and
     tangent passes as one kernel and the transposed pass as another (on GPUs, under ``vmap``).
+
+    ``down``: gravity's direction in the world frame (:func:`potential_energy`; ``None``: world
+    -z, the terms above unchanged). The potential's part of ``b`` then comes from one more
+    transposed pass of the potential network, at the pose in the gravity-aligned frame.
     """
+    check_down(spec, cfg, down)
     fb = spec.floating_base
     zero = jnp.zeros(spec.nv, v.dtype)
     features = lambda delta: _prior_features(spec, retract(q, delta, fb), cfg)
     x0, dx = jax.linearize(features, zero)  # dx(delta) = T delta
     dtype = fused.kernel_dtype(kernel)
+    # V's cotangent in the pass below: -1 (its derivative joins the kinetic term's), or 0 where
+    # the potential comes apart (the "com" form, or taken at another pose: added after)
+    v_cot = 0.0 if down is not None or cfg.potential == "com" else -1.0
     if dtype is None:
         def factor_and_potential(x):
             raw, v_net = _networks(params, spec, x, cfg)
@@ -337,9 +441,10 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
         (L, _), d_terms = jax.linearize(factor_and_potential, x0)
         dL = d_terms(dx(v))[0]  # L's rate of change along the motion
         # dL/dx of 1/2 |L^T v|^2 - V: the transposed linear map at the cotangent (g_L, -1)
-        transpose = lambda g_L: jax.linear_transpose(d_terms, x0)((g_L, -jnp.ones((), v.dtype)))[0]
+        transpose = lambda g_L: jax.linear_transpose(d_terms, x0)(
+            (g_L, jnp.full((), v_cot, v.dtype)))[0]
     else:
-        L, dL, transpose = _fused_passes(params, spec, cfg, x0, dx(v), dtype)
+        L, dL, transpose = _fused_passes(params, spec, cfg, x0, dx(v), dtype, v_cot)
     # With M = L L^T + floor I every derivative is a product with v (no derivative of M is
     # formed: matrix-vector work, where differentiating L L^T costs batched matrix products).
     u = L.T @ v
@@ -349,20 +454,50 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
     dl_dx = transpose(jnp.outer(v, u))  # the cotangent of 1/2 |L^T v|^2 on L is v u^T
     (dl_dq,) = jax.linear_transpose(dx, zero)(dl_dx)  # T^T dl_dx
     b = mdot_v - dl_dq
-    if structured_base(spec, cfg):
-        # V's exact gravity term m g z (world z: the first three tangents translate the base)
+    if cfg.potential == "com":  # the whole potential's force, its m g term included
+        b = b + gravity(params, spec, q, cfg, down).astype(v.dtype)
+    elif down is not None:
+        b = b + _turned_potential_force(params, spec, cfg, q, down, dtype)
+    if structured_base(spec, cfg) and cfg.potential == "net":
+        # V's exact gravity term m g z (world z: the first three tangents translate the base),
+        # m g (-down) under a gravity direction
         up = np.zeros(spec.nv, v.dtype)
         up[2] = 1.0
+        if down is not None:
+            d = jnp.asarray(down, v.dtype)
+            up = jnp.zeros(spec.nv, v.dtype).at[:3].set(-d / jnp.linalg.norm(d))
         b = b + total_mass(params, cfg) * cfg.gravity * up
     if fb:
         b = b.at[3:6].add(jnp.cross(v[3:6], p[3:6]))
     return M, b
 
 
+def _turned_potential_force(params: dict, spec: ModelSpec, cfg: LNNConfig, q: jax.Array,
+                            down: jax.Array, dtype) -> jax.Array:
+    """``dV_net/dq`` ``[nv]`` at the pose in the frame where ``down`` is -z
+    (:func:`gravity_frame`), along the same tangents as at ``q`` (world translation, body-frame
+    rotation, joints: the rotation that aligns gravity acts on the left of the orientation, so
+    a body-frame turn of one is a body-frame turn of the other). ``dtype``: the fused kernels'
+    (``None``: XLA)."""
+    zero = jnp.zeros(spec.nv, q.dtype)
+    qg = gravity_frame(q, down)
+    xg, dxg = jax.linearize(lambda delta: _prior_features(spec, retract(qg, delta, True), cfg),
+                            zero)
+    if dtype is None:
+        g_x = jax.grad(lambda x: _networks(params, spec, x, cfg)[1])(xg)
+    elif cfg.shared:
+        cot = jnp.zeros(_n_mass_outputs(spec, cfg) + 1, xg.dtype).at[-1].set(1.0)
+        g_x = fused.vjp(params["shared"], xg, cot, dtype)
+    else:
+        g_x = fused.vjp(params["potential"], xg, jnp.ones((1,), xg.dtype), dtype)
+    return jax.linear_transpose(dxg, zero)(g_x.astype(q.dtype))[0]
+
+
 def _fused_passes(params: dict, spec: ModelSpec, cfg: LNNConfig, x: jax.Array, t: jax.Array,
-                  dtype) -> tuple[jax.Array, jax.Array, Callable]:
+                  dtype, v_cot: float = -1.0) -> tuple[jax.Array, jax.Array, Callable]:
     """``(L, dL, transpose)`` of :func:`lnn_terms` by the fused kernels: L and its derivative
-    along the features' tangent ``t``, and ``g_L -> d(<g_L, L> - V)/dx``."""
+    along the features' tangent ``t``, and ``g_L -> d(<g_L, L> + v_cot V)/dx`` (``v_cot`` -1,
+    or 0 to leave the potential out)."""
     n_out = _n_mass_outputs(spec, cfg)
     factor = lambda raw: _factor_from_raw(params, spec, raw, cfg)
     if cfg.shared:
@@ -375,18 +510,20 @@ def _fused_passes(params: dict, spec: ModelSpec, cfg: LNNConfig, x: jax.Array, t
 
     def transpose(g_L):
         (g_raw,) = factor_vjp(g_L)
-        minus_one = -jnp.ones((1,), g_raw.dtype)
+        cot = jnp.full((1,), v_cot, g_raw.dtype)
         if cfg.shared:
-            return fused.vjp(params["shared"], x, jnp.concatenate([g_raw, minus_one]), dtype)
-        return (fused.vjp(params["mass"], x, g_raw, dtype)
-                + fused.vjp(params["potential"], x, minus_one, dtype))
+            return fused.vjp(params["shared"], x, jnp.concatenate([g_raw, cot]), dtype)
+        g_x = fused.vjp(params["mass"], x, g_raw, dtype)
+        return g_x if v_cot == 0 else g_x + fused.vjp(params["potential"], x, cot, dtype)
 
     return L, dL, transpose
 
 
 def lnn_terms_reference(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
-                        cfg: LNNConfig = LNNConfig()) -> tuple[jax.Array, jax.Array]:
+                        cfg: LNNConfig = LNNConfig(), down: jax.Array | None = None
+                        ) -> tuple[jax.Array, jax.Array]:
     """:func:`lnn_terms` by :func:`bias_force` through the retraction (the reference the
     feature-space version is tested against)."""
     return bias_force(lambda x: mass_matrix(params, spec, x, cfg),
-                      lambda x: potential_energy(params, spec, x, cfg), q, v, spec.floating_base)
+                      lambda x: potential_energy(params, spec, x, cfg, down), q, v,
+                      spec.floating_base)

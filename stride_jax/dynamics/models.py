@@ -11,8 +11,10 @@ batch with ``vmap``):
 * ``terms(params, q, qd, tau, key) -> {'prior', 'residual', 'eps'}``: structured models only,
   the split of the acceleration into the Lagrangian prior and the residual
 * every sampling function takes an optional ``nfe`` (residual or generator evaluations)
-* ``step(params, q, qd, ctrl, key) -> (q', qd')``: one control period from a command, with the
-  robot's servo model turning commands into joint torques at every substep, as the simulator does
+* ``step(params, q, qd, ctrl, key, down=None) -> (q', qd')``: one control period from a command,
+  with the robot's servo model turning commands into joint torques at every substep, as the
+  simulator does; ``down``: gravity's direction in the frame ``q`` is expressed in, for the
+  models that can be told it (:func:`takes_gravity`; ``None``: world -z, as trained)
 * ``rollout(params, q, qd, ctrls [H, nu], key, latents="step") -> (qs [H, nq], qds [H, nv])``:
   a stochastic model's latents drawn afresh at every control step (``"step"``), once for
   the whole rollout (``"rollout"``), or not at all (``"central"``: the residual's central
@@ -152,6 +154,15 @@ class Model(NamedTuple):
     batch_loss: Callable | None = None
 
 
+def takes_gravity(model: Model) -> bool:
+    """Whether ``model.step`` takes a gravity direction (``down``): the Lagrangian models of a
+    floating base with the base structure, whose potential is the pose's height under gravity
+    (:func:`stride_jax.dynamics.lagrangian.potential_energy`). A next-observation model learned
+    its world's gravity with everything else and cannot be told another."""
+    return (model.residual is not None and model.spec is not None and model.config is not None
+            and lagrangian.structured_base(model.spec, model.config.lnn))
+
+
 # name -> (family, kind): structured models pair the Lagrangian prior with a residual of ``kind``;
 # next-observation models predict the change of observation with an MLP (None) or a generator.
 # The names are those of the paper's tables and of saved runs (``model.json``): ``delan`` is the
@@ -269,20 +280,20 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
     def substep_in(c: stride.StructuredConfig) -> Callable:
         """One simulation substep under config ``c``: the servo law's torques, the acceleration
         (``key=None``: the residual's central sample), semi-implicit Euler."""
-        def substep(params, q, qd, ctrl, key, nfe):
+        def substep(params, q, qd, ctrl, key, nfe, down=None):
             tau = act.torque(q, qd, ctrl, spec)
             servo = act.implicit(q, qd, ctrl, spec) if cfg.implicit_servo else None
             qdd = stride.acceleration(params, spec, c, residual, q, qd, tau, key, nfe, scales,
-                                      servo)[0]
+                                      servo, down)[0]
             return integrate.semi_implicit_euler(q, qd, qdd, act.dt, spec.floating_base)
         return substep
 
     xla_substep = substep_in(cfg)
     train_substep = substep_in(dataclasses.replace(cfg, kernel="xla"))  # training: XLA, f32
 
-    def central_period(substep, params, q, qd, ctrl, nfe=None):
+    def central_period(substep, params, q, qd, ctrl, nfe=None, down=None):
         """One control period of ``substep`` with the residual's central sample throughout."""
-        body = lambda carry, _: (substep(params, *carry, ctrl, None, nfe), None)
+        body = lambda carry, _: (substep(params, *carry, ctrl, None, nfe, down), None)
         return jax.lax.scan(body, (q, qd), None, length=act.n_substeps)[0]
 
     def transition_error(params, ex):
@@ -303,25 +314,26 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
 
     whole = residual == "flow" and _whole_step_applies(spec, act, cfg)
 
-    def _step(params, q, qd, ctrl, key, nfe):
+    def _step(params, q, qd, ctrl, key, nfe, down=None):
         if key is None:  # the residual's central sample at every substep: deterministic (the
             # whole-step kernel draws its latents from keys, so XLA runs this step)
-            return central_period(xla_substep, params, q, qd, ctrl, nfe)
+            return central_period(xla_substep, params, q, qd, ctrl, nfe, down)
 
         def substep(carry, k):
-            if whole:
+            if whole and down is None:  # the whole-step kernel knows world-down gravity only
                 return _fused_substep(xla_substep, spec, act, cfg, scales, params, *carry, ctrl,
                                       k, nfe), None
-            return xla_substep(params, *carry, ctrl, k, nfe), None
+            return xla_substep(params, *carry, ctrl, k, nfe, down), None
 
         if act.n_substeps == 1:  # planners integrate at the control period: no loop of one
             return substep((q, qd), key)[0]
         (q, qd), _ = jax.lax.scan(substep, (q, qd), jax.random.split(key, act.n_substeps))
         return q, qd
 
-    def step(params, q, qd, ctrl, key, nfe=None):
+    def step(params, q, qd, ctrl, key, nfe=None, down=None):
         _check_inputs(name, spec, nu, q=q, qd=qd, ctrl=ctrl)
-        return _step(params, q, qd, ctrl, key, nfe)
+        lagrangian.check_down(spec, cfg.lnn, down)
+        return _step(params, q, qd, ctrl, key, nfe, down)
 
     def rollout(params, q, qd, ctrls, key, nfe=None, latents="step"):
         _check_inputs(name, spec, nu, q=q, qd=qd, ctrls=ctrls)
@@ -405,8 +417,12 @@ def next_observation(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Str
     def _step(params, q, qd, ctrl, key, nfe):
         return next_obs.step(params, spec, cfg, scales, q, qd, ctrl, key, nfe, kind)
 
-    def step(params, q, qd, ctrl, key=None, nfe=None):
+    def step(params, q, qd, ctrl, key=None, nfe=None, down=None):
         _check_inputs(name, spec, nu, q=q, qd=qd, ctrl=ctrl)
+        if down is not None:
+            raise ValueError(f"{name} has no gravity input: a next-observation model learned "
+                             "its world's gravity with everything else, and cannot be told "
+                             "another (gravity directions: the Lagrangian models)")
         return _step(params, q, qd, ctrl, key, nfe)
 
     def rollout(params, q, qd, ctrls, key=None, nfe=None, latents="step"):

@@ -116,6 +116,9 @@ class StructuredConfig:
     # floating bases: M's translational block m I, V = m g z + V_net, no base position among
     # the prior's inputs (LNNConfig.base_structure); off: a generic Lagrangian (an ablation)
     base_structure: bool = True
+    # floating bases with the structure: V_net(orientation, joints) ("net") or gravity's exact
+    # multibody form with a learned centre-of-mass offset ("com"; LNNConfig.potential)
+    potential: str = "net"
     implicit_servo: bool = True  # rollouts: servo PD at the next state (Actuation.implicit)
     fm_weight: float = 1.0
     residual_weight: float = 0.1
@@ -134,6 +137,7 @@ class StructuredConfig:
         fused.kernel_dtype(self.kernel)  # a clear error for an unknown choice
         lagrangian.check_diag_floor(self.diag_floor)
         lagrangian.check_base_structure(self.base_structure, self.learn_mass)
+        lagrangian.check_potential(self.potential, self.shared_lnn, self.base_structure)
         if fused.fused(self.kernel) and self.net.activation != "silu":
             raise ValueError(f"kernel {self.kernel!r} implements SiLU networks only, not "
                              f"{self.net.activation!r}; use kernel='xla'")
@@ -162,7 +166,8 @@ class StructuredConfig:
     def lnn(self) -> lagrangian.LNNConfig:
         return lagrangian.LNNConfig(net=self.inference_net, diag_floor=self.diag_floor,
                                     mass_init=self.mass_init, learn_mass=self.learn_mass,
-                                    shared=self.shared_lnn, base_structure=self.base_structure)
+                                    shared=self.shared_lnn, base_structure=self.base_structure,
+                                    potential=self.potential)
 
     @property
     def diffusion(self) -> diffusion.DiffusionConfig:
@@ -248,14 +253,16 @@ def residual_force(params: dict, spec: ModelSpec, cfg: StructuredConfig, residua
 
 def acceleration(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
                  q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales(),
-                 servo: tuple[jax.Array, jax.Array] | None = None
+                 servo: tuple[jax.Array, jax.Array] | None = None, down: jax.Array | None = None
                  ) -> tuple[jax.Array, jax.Array]:
     """``(qdd [nv], eps [nv])``: predicted acceleration and the generalised residual used.
 
     ``servo = (tau0, extra)`` integrates the actuators implicitly (``Actuation.implicit``):
-    ``(M + diag(extra)) qdd = tau0 - b + eps``; the residual still sees ``tau``.
+    ``(M + diag(extra)) qdd = tau0 - b + eps``; the residual still sees ``tau``. ``down``:
+    gravity's direction in the world frame (:func:`lagrangian.potential_energy`; ``None``:
+    world -z); the residual, learned in the floor's frame, is left as it is.
     """
-    M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn, cfg.kernel)
+    M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn, cfg.kernel, down)
     eps = residual_force(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
     if servo is not None:
         tau, extra = servo

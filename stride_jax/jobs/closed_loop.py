@@ -198,7 +198,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     """Every (scenario, model) pair of ``cfg``; writes ``closed_loop.json``/``.md``, traces and
     plots to ``cfg.out`` after each pair, and skips pairs already there (resumable)."""
     from stride_jax.control import learned as learned_lib, ppo
-    from stride_jax.dynamics import checkpoint, fused
+    from stride_jax.dynamics import checkpoint, fused, models as dyn_models
 
     fused.kernel_dtype(cfg.kernel)  # a clear error for an unknown choice, before any work
     sm = sim_model.load(cfg.robot)
@@ -229,6 +229,12 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     # compiled episode
     learned = {name: learned_model(run_dir, sm, cfg.kernel) for name, run_dir in models if run_dir}
     kind = {name: ("learned", checkpoint.program_sha256(m)) for name, (m, _) in learned.items()}
+    if cfg.planning.model_gravity:
+        told = [n for n, (m, _) in learned.items() if dyn_models.takes_gravity(m)]
+        untold = [n for n in learned if n not in told]
+        log("--planning.model-gravity: the sensed gravity reaches "
+            + (", ".join(told) or "no model")
+            + (f"; {', '.join(untold)} cannot take it (run as trained)" if untold else ""))
     if any(name == "policy" for name, _ in models) and ppo_policy is None:
         raise ValueError("model 'policy' needs --policy RUN")
     compiled = {}  # one executable per (kind of model, episode length, model structures)

@@ -112,6 +112,8 @@ def _label(name: str, train: dict) -> str:
     variant += ["learn_mass"] if structured and train.get("learn_mass") else []
     variant += ["no_base_structure"] if structured and not train.get("base_structure", True) \
         else []
+    variant += [f"potential={train['potential']}"] if structured and train.get(
+        "potential", "net") != "net" else []
     return f"{name}[{','.join(variant)}]" if variant else name
 
 

@@ -58,6 +58,10 @@ class TrainConfig:
         ``V = m g z + V_net`` and no base position among the prior's inputs
         (``LNNConfig.base_structure``); ``--no-base-structure`` learns a generic Lagrangian of
         the base's coordinates instead (an ablation of the structure).
+      potential: structured models on a floating base with the structure: ``net`` (``V = m g z
+        + V_net(orientation, joints)``, as trained until session 47) or ``com``, gravity's exact
+        multibody form with a centre-of-mass offset learned from the joints
+        (``LNNConfig.potential``: exact under any gravity direction, ``--planning.model-gravity``).
       transition_weight: structured models: weight of the one-control-period transition loss
         (``StructuredConfig.transition_weight``: the model's own step through the period's
         substeps against the logged next state, in the one-step changes' units); 0, the
@@ -81,6 +85,7 @@ class TrainConfig:
     acc_through: str = "central"
     learn_mass: bool = False
     base_structure: bool = True
+    potential: str = "net"
     transition_weight: float = 0.0
     transition_fraction: float = 1.0
     out: str = ""
@@ -131,7 +136,7 @@ def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.P
     model_cfg = model_config(cfg.model, ds.meta, cfg.net.hidden, cfg.net.depth, cfg.nfe,
                              cfg.shared_lnn, cfg.acc_through, cfg.learn_mass, cfg.net.activation,
                              cfg.net.init, cfg.base_structure, cfg.transition_weight,
-                             cfg.transition_fraction)
+                             cfg.transition_fraction, cfg.potential)
     act = models.Actuation.from_meta(ds.meta)
     sc = scales(ds)
     model = models.make(cfg.model, spec, act, model_cfg, sc)
