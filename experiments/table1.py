@@ -61,7 +61,7 @@ PRESETS = {
     "paper": Table1Preset(episodes=1024, train="paper", data="paper"),
 }
 MODELS = ("stride", "delan", "delan_prior", "lnn_diffusion", "onn", "diffusion")
-DATA = {"explore": [], "walk": ["--stochastic", "--policy", "results/policies/ppo_{robot}",
+DATA = {"explore": [], "walk": ["--stochastic", "--policy", "{policy}",
                                  "--action-noise", "{noise}"]}
 # Largest per-episode action noise of the walking data: on stochastic ground the G1 fell in 3 of 6
 # episodes at 0.3 (valid fraction 0.78) and kept a valid fraction of 0.99 at 0.1 (6 x 6 s each).
@@ -76,6 +76,10 @@ class Table1Config:
       robot: robots.
       preset: one of :data:`PRESETS` (data size, training and evaluation presets).
       data: the dataset kind, one of :data:`DATA`.
+      data_policy: the PPO run whose walk makes the ``walk`` data (default
+        ``results/policies/ppo_<robot>``); another gets data and runs folders of its own
+        (``<robot>_walk_<its folder's name>``): models trained on the gait of the policy the
+        planner will sample around.
       seeds, models: training seeds and models.
       ablation: extra STRIDE runs (first seed) trained with these ``--acc-through`` choices,
         e.g. ``prior,sample``.
@@ -103,6 +107,7 @@ class Table1Config:
     robot: str = "go1"
     preset: str = "paper"
     data: str = "explore"
+    data_policy: str = ""
     seeds: str = "0,1,2"
     models: str = ",".join(MODELS)
     ablation: str = ""
@@ -132,6 +137,9 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.time()
     env = pool.shared_env(root)
     suffix = "" if args.data == "explore" else f"_{args.data}"
+    if args.data_policy and args.data != "walk":
+        raise SystemExit(f"--data-policy needs --data walk (the {args.data} data has no policy)")
+    suffix += f"_{pathlib.Path(args.data_policy).name}" if args.data_policy else ""
     tw = f"_tw{args.transition_weight:g}" if args.transition_weight else ""
     if args.transition_fraction < 1 and not tw:
         raise SystemExit(f"--transition-fraction {args.transition_fraction:g} needs "
@@ -144,7 +152,9 @@ def main(argv: list[str] | None = None) -> None:
 
     gen = {f"data-{r}": pool.stride_command("data", "--robot", r, "--preset", preset.data,
                                             "--episodes", str(preset.episodes),
-                                            *[a.format(robot=r, noise=WALK_NOISE.get(r, 0.3))
+                                            *[a.format(robot=r, noise=WALK_NOISE.get(r, 0.3),
+                                                       policy=args.data_policy
+                                                       or f"results/policies/ppo_{r}")
                                               for a in DATA[args.data]],
                                             "--out", str(data[r]))
            for r in robots if not (data[r] / "meta.json").exists() and not args.eval_only}

@@ -6,7 +6,8 @@
 # ROBOT or ROBOT_DATA. Usage (repository root, on the GPU machine, with .whl and .menagerie
 # carried: the cp312 wheels, or .whl/site.tar.xz, them installed into a folder and packed):
 #   [DATA=walk] bash experiments/table1_device.sh OUT ROBOT STEPS TRAIN_MINUTES [ABLATION [EXTRA...]]
-# DATA picks experiments/table1.py's --data (explore: default); TW (when set and not 0) its
+# DATA picks experiments/table1.py's --data (explore: default); DATA_POLICY (with DATA=walk) its
+# --data-policy, and NAME gains _<the policy folder's name>; TW (when set and not 0) its
 # --transition-weight, and NAME gains _twTW; TF (below 1, with TW) its --transition-fraction, and
 # NAME gains _tfTF; POT (when set and not net) its --potential, and NAME gains _POT (com: the
 # prior's potential in gravity's multibody form); two calls with different DATA
@@ -22,6 +23,8 @@ out=$1; robot=$2; steps=$3; minutes=$4; ablation=${5:-}; shift 5 || shift $#
 data=${DATA:-explore}
 tw=${TW:-0}
 name=$robot; [ "$data" = explore ] || name=${robot}_$data
+dpol=${DATA_POLICY:-}; dargs=()
+if [ -n "$dpol" ]; then dargs=(--data-policy "$dpol"); name=${name}_$(basename "$dpol"); fi
 twargs=(); tws=""
 if [ "$tw" != 0 ]; then twargs=(--transition-weight "$tw"); tws=_tw$tw; name=${name}$tws; fi
 tf=${TF:-1}
@@ -48,9 +51,10 @@ res=/tmp/table1_results/$name
 mkdir -p "$res"
 timeout -s INT "${LIMIT_S:-0}" python3 experiments/table1.py --robot "$robot" --data "$data" \
   --preset paper --parallel 17 \
-  --steps "$steps" --minutes "$minutes" --ablation "$ablation" --root "$root" --out "$res" "${twargs[@]}" "$@" \
+  --steps "$steps" --minutes "$minutes" --ablation "$ablation" --root "$root" --out "$res" "${dargs[@]}" "${twargs[@]}" "$@" \
   2>&1 | grep --line-buffered -v -i "warp\|warn" | tee "$out/${name}_driver.log" | tail -40
 suffix=""; [ "$data" = explore ] || suffix=_$data
+[ -z "$dpol" ] || suffix=${suffix}_$(basename "$dpol")
 keep='*-s0'; [ "${KEEP_SEEDS:-0}" = all ] && keep='*'  # whose checkpoints come back (best/, configs)
 runs=$root/runs/$robot$suffix$tws-paper
 (cd "$runs" && tar -cf "$res/runs.tar" */metrics.csv */train.log */summary.json \

@@ -73,7 +73,11 @@ class PlanningConfig:
         ground knows the gravity of a slope emulated by tilting it, as a real robot's world
         frame would be gravity-aligned; the next-observation models cannot be told (they run
         as without) and MJX runs its own model's gravity (the oracle's: the world's; the
-        nominal model's: level). Off: every model as trained.
+        nominal model's: level). Off: every model as trained. Measured (session 47,
+        ``results/planning_diagnosis/README.md``): with ``V_net`` trained on level ground it
+        makes things worse (the base pitched 20 degrees is outside what ``V_net`` was fitted
+        on; STRIDE fell on the Go1 slope); meant for the ``"com"`` potential
+        (``LNNConfig.potential``) or models trained over the orientations told.
       family_std: std of the command offsets of the policy family's candidates
         (``--mppi.family-samples``): vx (m/s) and yaw rate (rad/s); vy gets half.
       alarm_speed: the recovery alarm (0: off): while the base's velocity-tracking error
