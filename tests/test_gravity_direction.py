@@ -1,8 +1,9 @@
 """A gravity direction told to the Lagrangian prior (``down``): the potential of uniform gravity
 along ``down`` is the trained one of the pose seen from a gravity-aligned frame. Checked against
 MuJoCo under tilted gravity (with MuJoCo's own potential turned so), against autodiff through the
-retraction and by energy balance for the learned prior, in the fused kernels, through the model
-interface and the planner's ``model_gravity``."""
+retraction and by energy balance for the learned prior, in the fused kernels and through the
+model interface; the centre-of-mass potential (``"com"``) against its closed form, and trained.
+(The planner's ``model_gravity``: ``tests/test_control_closed_loop.py``.)"""
 
 import copy
 import dataclasses
@@ -13,14 +14,12 @@ import mujoco
 import numpy as np
 import pytest
 from precision import assert_close, exact
+from test_base_structure import BASE, MASS, TINY_NET, train_on_a_known_prior
 from test_lagrangian import _mujoco_energy, _random_states
 
 import stride_jax.dynamics as dyn
 from stride_jax.dynamics import integrate, lagrangian, mlp, models, stride
 from stride_jax.sim import model as sim_model
-
-BASE = dyn.ModelSpec(nq=10, nv=9, floating_base=True)  # a floating base with three joints
-MASS = 4.0
 
 
 def _down(slope_deg=20.0, heading_deg=30.0):
@@ -249,28 +248,9 @@ def test_a_com_potential_trains_saves_and_loads(tmp_path):
     known prior: the loss falls, the run records the choice and loads as the same model (told a
     gravity direction too); eval gives it a row of its own."""
     from stride_jax.jobs import eval as table
-    from stride_jax.train import dynamics as train_dynamics
-    from stride_jax.train import loop
 
-    act = models.Actuation(dof=(6, 7, 8), kp=None, kd=None, force_range=((0.0, 0.0),) * 3,
-                           dt=0.01, n_substeps=1)
-    net = mlp.MLPConfig(hidden=16, depth=1)
-    truth = models.make("delan_prior", BASE, act, stride.StructuredConfig(net=net, mass_init=MASS))
-    t_params = truth.init(jax.random.key(7))
-    n = 512
-    q, qd = _states(n, jnp.float32)
-    tau = 3.0 * jax.random.normal(jax.random.key(10), (n, BASE.nv))
-    qdd = jax.vmap(lambda *a: truth.acceleration(t_params, *a, None))(q, qd, tau)
-    examples = {"q": q, "qd": qd, "tau": tau, "qdd": qdd}
-    split = lambda a, b: {k: np.asarray(x[a:b]) for k, x in examples.items()}
-    cfg = stride.StructuredConfig(net=net, mass_init=MASS, potential="com")
-    model = models.make("stride", BASE, act, cfg)
-    dyn.checkpoint.save_definition(tmp_path, model)
-    train_dynamics.train_examples(model.loss, model.init, split(0, 448), split(448, n),
-                                  loop.LoopConfig(steps=60, batch=64, lr=3e-3, eval_every=20,
-                                                  ckpt_every=20), tmp_path, log=lambda _: None)
-    rows = np.genfromtxt(tmp_path / "metrics.csv", delimiter=",", names=True)
-    assert np.isfinite(rows["val_loss"]).all() and rows["val_acc"][-1] < rows["val_acc"][0]
+    cfg = stride.StructuredConfig(net=TINY_NET, mass_init=MASS, potential="com")
+    q, qd = train_on_a_known_prior(tmp_path, "stride", cfg)
     back, params = dyn.load(tmp_path)
     assert back.config.potential == "com" and back.config == cfg and models.takes_gravity(back)
     step = back.step(params, q[0], qd[0], jnp.zeros(3), jax.random.key(0),
