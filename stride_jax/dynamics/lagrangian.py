@@ -324,9 +324,9 @@ WORLD_DOWN = (0.0, 0.0, -1.0)
 
 
 def check_down(spec: ModelSpec, cfg: LNNConfig, down) -> None:
-    """A gravity direction needs the floating-base structure: it rotates the base's pose inside
-    ``V = m g z + V_net(orientation, joints)``; a potential learned over a fixed base's joint
-    angles (or over the base's raw coordinates) has no frame to turn."""
+    """A gravity direction needs the floating-base structure: it acts through the base's pose
+    in ``V`` (:func:`potential_energy`); a potential learned over a fixed base's joint angles
+    (or over the base's raw coordinates) has no frame to turn."""
     if down is None:
         return
     if not structured_base(spec, cfg):
@@ -361,7 +361,8 @@ def potential_energy(params: dict, spec: ModelSpec, q: jax.Array,
     pose seen from a frame where ``down`` is -z (:func:`gravity_frame`): a model trained on
     level ground then knows the gravity of a world whose frame is not gravity-aligned (a slope
     emulated by tilting gravity under a level floor). Floating base with ``base_structure``
-    only (:func:`check_down`).
+    only (:func:`check_down`). With ``cfg.potential == "com"`` the potential is gravity's
+    multibody form (:class:`LNNConfig`), which needs no turn: exact along any ``down``.
     """
     check_down(spec, cfg, down)
     if cfg.potential == "com":
@@ -422,7 +423,8 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
 
     ``down``: gravity's direction in the world frame (:func:`potential_energy`; ``None``: world
     -z, the terms above unchanged). The potential's part of ``b`` then comes from one more
-    transposed pass of the potential network, at the pose in the gravity-aligned frame.
+    transposed pass of the potential network, at the pose in the gravity-aligned frame; for the
+    ``"com"`` potential always from its own gradient (a network of the joints alone, in XLA).
     """
     check_down(spec, cfg, down)
     fb = spec.floating_base
