@@ -97,9 +97,9 @@ def main(argv: list[str] | None = None) -> dict:
 
     import jax
 
-    from stride_jax.control.episode import learned_model, learned_step_fn
-    from stride_jax.dynamics import models as dyn_models
+    from stride_jax.control.episode import learned_model, learned_step
     from stride_jax.control.scenarios import SCENARIOS
+    from stride_jax.dynamics import models as dyn_models
     from stride_jax.io import atomic_write_text, code_version
     from stride_jax.sim import model as sim_model
 
@@ -122,13 +122,14 @@ def main(argv: list[str] | None = None) -> dict:
     dt, nu = sm.robot.ctrl_dt, sm.info.nu
     phases = {f"before {a.split_s:g} s": t < a.split_s, f"from {a.split_s:g} s": t >= a.split_s}
     rows = []
+    loaded = {run: learned_model(run, sm) for _, run in models}
     runs = [(name, run, False) for name, run in models]
     if a.model_gravity:
         runs += [(f"{name} (told gravity)", run, True) for name, run in models
-                 if dyn_models.takes_gravity(learned_model(run, sm)[0])]
+                 if dyn_models.takes_gravity(loaded[run][0])]
     for name, run, told in runs:
         t1 = time.time()
-        step = learned_step_fn(run, sm)
+        step = learned_step(*loaded[run])
         keys = jax.random.split(jax.random.key(0), (len(t), a.draws))
         over_draws = jax.vmap(lambda q, qd, u, k, g: step(q, qd, u, k, down=g if told else None),
                               in_axes=(None, None, None, 0, None))
