@@ -809,6 +809,23 @@ def test_the_controller_senses_the_scenarios_gravity(go1):
                                           sense_gravity=sense)).action for sense in (True, False)]
     np.testing.assert_allclose(acts[0], on.u, atol=1e-6)  # the closed loop's episode: the same
     np.testing.assert_allclose(acts[1], off.u, atol=1e-6)
+    # a recorded step's next state carries the gravity sensed at its time (a tilting ground)
+    tilt = dataclasses.replace(cl.SCENARIOS["tilt"], seconds=3 * go1.robot.ctrl_dt)
+    wt = cl.scenario_world(go1, tilt)
+    grav = lambda qa: planning_lib.split(qa, nq).gravity
+
+
+    def step(state, q_aug, qd):  # a one-step "planner": the policy's action
+        u, z = planning.policy(q_aug, qd), jnp.zeros(1)
+        return u, state, mppi.Info(z, z, z[0], u[None], jnp.zeros((), jnp.int32), u[None, None],
+                                   z, jnp.ones(1, jnp.int32), jnp.zeros((), bool))
+
+    acting = mppi.Planner(lambda key, plan=None: mppi.MPPIState(jnp.zeros((1, nu)), key), step)
+    _, (now, nxt) = jax.device_get(cl.run_episode(
+        wt.sm, wt.mx, wt.slots, planning, acting, 3, wt.starts, wt.values, jax.random.key(0),
+        tilt=wt.tilt, record=lambda qa, qd, u, info, qa2, *_: (grav(qa), grav(qa2))))
+    assert not np.allclose(now[1], now[0])  # the ground tilts step by step
+    np.testing.assert_allclose(nxt[:-1], now[1:], atol=1e-7)
     flat = dataclasses.replace(cl.SCENARIOS["walk"], seconds=3 * go1.robot.ctrl_dt)
     on, off = (jax.device_get(episode_lib.policy_episode(cl.scenario_world(go1, flat), planning,
                                                          sense)) for sense in (True, False))

@@ -93,15 +93,16 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
 
     ``record(q_aug, qd, u, info, q_aug_next, qd_next, down, key) -> pytree`` (with a planner)
     adds what it returns per step, stacked ``[T, ...]``: the episode then returns ``(trace,
-    recorded)``. ``q_aug_next`` is the state reached under the step's command, ``down`` whether
-    the robot was down before the step. ``pushes`` (:func:`stride_jax.control.scenarios.
+    recorded)``. ``q_aug_next`` is the state reached under the step's command (with the gravity
+    sensed at its time), ``down`` whether the robot was down before the step. ``pushes`` (:func:`stride_jax.control.scenarios.
     push_schedule`) applies horizontal forces to the base body (unknown to the planner's model).
     ``limits = (lo [3], hi [3])`` is a command governor: the controller (policy and planner) sees
     the command clipped to them, the trace keeps the command asked for, so the tracking metrics
     count what the clipping gives up. ``tilt`` (:func:`stride_jax.control.scenarios.
     tilt_schedule`) builds the slope up over the episode's first seconds: the simulation's gravity
     at each step is :func:`stride_jax.control.scenarios.gravity_at` (``mx_sim``'s own where the
-    schedule does not build up); the planner's model is not told. ``progress(steps_done)`` is
+    schedule does not build up); the planner's model is told it only under ``planning``'s
+    ``model_gravity`` (``PlanningConfig.model_gravity``). ``progress(steps_done)`` is
     called on the host every ``progress_every`` control steps (``jax.debug.callback``; long
     episodes, e.g. planning through MJX, otherwise run silent for minutes).
 
@@ -172,8 +173,9 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
         rec = Trace(t + dt, command, v, w, d2.qpos[2], down2, envs.foot_contact(sm, slots, d2),
                     u, status, cut, dist, alarm)
         if record is not None:
+            up2 = sensed_gravity(mx_sim, t + dt, tilt) if sense_gravity else None
             rec = (rec, record(q_aug, d.qvel, u, info,
-                               augment(d2.qpos, seen, clock, disturbance=dist, gravity=up),
+                               augment(d2.qpos, seen, clock, disturbance=dist, gravity=up2),
                                d2.qvel, down, jax.random.fold_in(key, step)))
         if progress is not None:
             jax.lax.cond((step + 1) % progress_every == 0,
