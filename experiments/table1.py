@@ -140,15 +140,16 @@ def main(argv: list[str] | None = None) -> None:
     if args.data_policy and args.data != "walk":
         raise SystemExit(f"--data-policy needs --data walk (the {args.data} data has no policy)")
     suffix += f"_{pathlib.Path(args.data_policy).name}" if args.data_policy else ""
-    tw = f"_tw{args.transition_weight:g}" if args.transition_weight else ""
-    if args.transition_fraction < 1 and not tw:
+    # the training variant's folder suffix: transition loss, its fraction, the potential
+    variant = f"_tw{args.transition_weight:g}" if args.transition_weight else ""
+    if args.transition_fraction < 1 and not args.transition_weight:
         raise SystemExit(f"--transition-fraction {args.transition_fraction:g} needs "
                          "--transition-weight above 0")
     tf = args.transition_fraction
-    tw += f"_tf{tf:g}" if tf < 1 else ""
-    tw += f"_{args.potential}" if args.potential != "net" else ""
+    variant += f"_tf{tf:g}" if tf < 1 else ""
+    variant += f"_{args.potential}" if args.potential != "net" else ""
     data = {r: root / "data" / f"{r}{suffix}-{args.preset}" for r in robots}
-    runs = {r: root / "runs" / f"{r}{suffix}{tw}-{args.preset}" for r in robots}
+    runs = {r: root / "runs" / f"{r}{suffix}{variant}-{args.preset}" for r in robots}
 
     gen = {f"data-{r}": pool.stride_command("data", "--robot", r, "--preset", preset.data,
                                             "--episodes", str(preset.episodes),
@@ -213,7 +214,7 @@ def main(argv: list[str] | None = None) -> None:
         mine = [str(folders[n]) for n in ok if n.startswith(f"{r}/") and n not in failed]
         if not mine:
             continue
-        out = args.out or f"results/table1/{r}{suffix}{tw}"
+        out = args.out or f"results/table1/{r}{suffix}{variant}"
         subprocess.run(pool.stride_command("eval", "--preset", preset.eval, "--runs",
                                            ",".join(mine), "--out", out, "--label", command),
                        check=True, env=env)

@@ -25,12 +25,12 @@ tw=${TW:-0}
 name=$robot; [ "$data" = explore ] || name=${robot}_$data
 dpol=${DATA_POLICY:-}; dargs=()
 if [ -n "$dpol" ]; then dargs=(--data-policy "$dpol"); name=${name}_$(basename "$dpol"); fi
-twargs=(); tws=""
-if [ "$tw" != 0 ]; then twargs=(--transition-weight "$tw"); tws=_tw$tw; name=${name}$tws; fi
+vargs=(); vsuffix=""
+if [ "$tw" != 0 ]; then vargs=(--transition-weight "$tw"); vsuffix=_tw$tw; name=${name}$vsuffix; fi
 tf=${TF:-1}
-if [ "$tw" != 0 ] && [ "$tf" != 1 ]; then twargs+=(--transition-fraction "$tf"); tws=${tws}_tf$tf; name=${name}_tf$tf; fi
+if [ "$tw" != 0 ] && [ "$tf" != 1 ]; then vargs+=(--transition-fraction "$tf"); vsuffix=${vsuffix}_tf$tf; name=${name}_tf$tf; fi
 pot=${POT:-net}
-if [ "$pot" != net ]; then twargs+=(--potential "$pot"); tws=${tws}_$pot; name=${name}_$pot; fi
+if [ "$pot" != net ]; then vargs+=(--potential "$pot"); vsuffix=${vsuffix}_$pot; name=${name}_$pot; fi
 (
   flock 9
   if [ ! -f /tmp/site/.done ]; then
@@ -51,12 +51,12 @@ res=/tmp/table1_results/$name
 mkdir -p "$res"
 timeout -s INT "${LIMIT_S:-0}" python3 experiments/table1.py --robot "$robot" --data "$data" \
   --preset paper --parallel 17 \
-  --steps "$steps" --minutes "$minutes" --ablation "$ablation" --root "$root" --out "$res" "${dargs[@]}" "${twargs[@]}" "$@" \
+  --steps "$steps" --minutes "$minutes" --ablation "$ablation" --root "$root" --out "$res" "${dargs[@]}" "${vargs[@]}" "$@" \
   2>&1 | grep --line-buffered -v -i "warp\|warn" | tee "$out/${name}_driver.log" | tail -40
 suffix=""; [ "$data" = explore ] || suffix=_$data
 [ -z "$dpol" ] || suffix=${suffix}_$(basename "$dpol")
 keep='*-s0'; [ "${KEEP_SEEDS:-0}" = all ] && keep='*'  # whose checkpoints come back (best/, configs)
-runs=$root/runs/$robot$suffix$tws-paper
+runs=$root/runs/$robot$suffix$vsuffix-paper
 (cd "$runs" && tar -cf "$res/runs.tar" */metrics.csv */train.log */summary.json \
   $(ls */eval.log 2>/dev/null) && tar -rf "$res/runs.tar" --exclude=ckpt --exclude=eval_out $keep)
 tar -C "$res" -cJf "$out/$name.tar.xz" .

@@ -14,7 +14,8 @@ import mujoco
 import numpy as np
 import pytest
 from precision import assert_close, exact
-from test_base_structure import BASE, MASS, TINY_NET, train_on_a_known_prior
+from test_base_structure import (BASE, MASS, TINY_NET, _configurations, _robot,
+                                 train_on_a_known_prior)
 from test_lagrangian import _mujoco_energy, _random_states
 
 import stride_jax.dynamics as dyn
@@ -74,10 +75,9 @@ PRIORS = pytest.mark.parametrize("shared,potential", [(False, "net"), (True, "ne
 
 
 def _states(n, dtype):
-    q = jax.random.normal(jax.random.key(1), (n, BASE.nq), dtype)
-    q = q.at[:, 2].set(0.3 + 0.1 * q[:, 2])
-    q = q.at[:, 3:7].set(q[:, 3:7] / jnp.linalg.norm(q[:, 3:7], axis=1, keepdims=True))
-    return q, 2.0 * jax.random.normal(jax.random.key(2), (n, BASE.nv), dtype)
+    """``n`` configurations of ``BASE`` (test_base_structure's) and velocities."""
+    return (_configurations(BASE, n, dtype),
+            2.0 * jax.random.normal(jax.random.key(2), (n, BASE.nv), dtype))
 
 
 @PRIORS
@@ -181,15 +181,6 @@ def test_the_com_potential_is_refused_where_it_does_not_apply():
         lagrangian.lnn_init(jax.random.key(0), fixed, _lnn(potential="com"))
 
 
-def _robot():
-    act = models.Actuation(dof=(6, 7, 8), kp=(20.0,) * 3, kd=(0.5,) * 3,
-                           force_range=((-5.0, 5.0),) * 3, dt=0.01, n_substeps=1)
-    q, qd = _states(16, jnp.float32)
-    ctrl = 0.2 * jax.random.normal(jax.random.key(5), (16, 3))
-    keys = jax.random.split(jax.random.key(4), 16)
-    return act, (q.at[:, 7:].multiply(0.3), 0.25 * qd, ctrl, keys)
-
-
 @PRIORS
 def test_fused_kernels_turn_the_potential_as_xla_does(shared, potential, kernels):
     """With ``down`` the per-pass kernels give XLA's terms within the products' rounding (the
@@ -228,12 +219,16 @@ def test_the_model_interface_takes_a_gravity_direction_where_it_can():
     for name in ("stride", "delan"):
         m = models.make(name, BASE, act, cfg)
         assert models.takes_gravity(m)
-        p = m.init(jax.random.key(0))
-        step = lambda down: jax.jit(jax.vmap(lambda *a: m.step(p, *a, down=down)))(*states)
-        plain = jax.jit(jax.vmap(lambda *a: m.step(p, *a)))(*states)
-        for a, b in zip(step(jnp.array([0.0, 0.0, -1.0])), plain):
-            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
-        assert float(jnp.abs(step(jnp.asarray(_down(), jnp.float32))[1] - plain[1]).max()) > 1e-3
+        with jax.enable_x64(True):  # the maths, free of float32 summation order
+            p = jax.tree.map(lambda w: jnp.asarray(w, jnp.float64), m.init(jax.random.key(0)))
+            s64 = [jnp.asarray(x, jnp.float64) for x in states[:3]] + [states[3]]
+            step = lambda down: jax.jit(jax.vmap(lambda *a: m.step(p, *a, down=down)))(*s64)
+            plain = jax.jit(jax.vmap(lambda *a: m.step(p, *a)))(*s64)
+            level = step(jnp.array([0.0, 0.0, -1.0]))
+            tilted = step(jnp.asarray(_down()))
+        for a, b in zip(level, plain):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-10)
+        assert np.abs(np.asarray(tilted[1] - plain[1])).max() > 1e-3
     generic = models.make("stride", BASE, act, dataclasses.replace(cfg, base_structure=False))
     assert not models.takes_gravity(generic)
     onn = models.make("onn", BASE, act, cfg)

@@ -39,6 +39,7 @@ from brax.envs import base as brax_base
 from mujoco import mjx
 
 from stride_jax.control import gait as gait_lib, scenarios
+from stride_jax.dynamics.lagrangian import WORLD_DOWN
 from stride_jax.sim import randomize, rollout_mjx
 from stride_jax.sim import model as sim_model
 
@@ -209,9 +210,6 @@ def rotate_inv(quat: jax.Array, v: jax.Array) -> jax.Array:
     return v + w * t + jnp.cross(u, t)
 
 
-DOWN = (0.0, 0.0, -1.0)
-
-
 def base_signals(q: jax.Array, qd: jax.Array, gravity: jax.Array | None = None
                  ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Base-frame linear velocity ``[3]`` (m/s), angular velocity ``[3]`` (rad/s), and gravity
@@ -221,7 +219,7 @@ def base_signals(q: jax.Array, qd: jax.Array, gravity: jax.Array | None = None
     ``slope``, ``tilt``) must pass its gravity: a real robot's IMU on a real slope reads the
     slope, and world down would hide it."""
     quat = q[3:7]
-    down = jnp.asarray(DOWN if gravity is None else gravity, q.dtype)
+    down = jnp.asarray(WORLD_DOWN if gravity is None else gravity, q.dtype)
     return rotate_inv(quat, qd[0:3]), qd[3:6], rotate_inv(quat, down)
 
 

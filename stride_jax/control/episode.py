@@ -94,8 +94,9 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     ``record(q_aug, qd, u, info, q_aug_next, qd_next, down, key) -> pytree`` (with a planner)
     adds what it returns per step, stacked ``[T, ...]``: the episode then returns ``(trace,
     recorded)``. ``q_aug_next`` is the state reached under the step's command (with the gravity
-    sensed at its time), ``down`` whether the robot was down before the step. ``pushes`` (:func:`stride_jax.control.scenarios.
-    push_schedule`) applies horizontal forces to the base body (unknown to the planner's model).
+    sensed at its time), ``down`` whether the robot was down before the step. ``pushes``
+    (:func:`stride_jax.control.scenarios.push_schedule`) applies horizontal forces to the base
+    body (unknown to the planner's model).
     ``limits = (lo [3], hi [3])`` is a command governor: the controller (policy and planner) sees
     the command clipped to them, the trace keeps the command asked for, so the tracking metrics
     count what the clipping gives up. ``tilt`` (:func:`stride_jax.control.scenarios.

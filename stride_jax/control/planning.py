@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stride_jax.control import envs, gait as gait_lib, mppi
+from stride_jax.dynamics.lagrangian import WORLD_DOWN
 from stride_jax.sim import model as sim_model, rollout_mjx
 
 
@@ -214,7 +215,7 @@ def augment(q: jax.Array, command: jax.Array, clock: jax.Array | float = 0.0,
     sensed gravity direction (default world down: :func:`stride_jax.control.envs.base_signals`)."""
     gait = jnp.zeros(gait_lib.N_GAIT) if gait is None else gait
     disturbance = jnp.zeros(N_DIST, q.dtype) if disturbance is None else disturbance
-    gravity = jnp.asarray(envs.DOWN if gravity is None else gravity, q.dtype)
+    gravity = jnp.asarray(WORLD_DOWN if gravity is None else gravity, q.dtype)
     return jnp.concatenate([q, command, jnp.reshape(clock, (1,)), gait,
                             jnp.reshape(jnp.asarray(latched, q.dtype), (1,)), disturbance,
                             gravity])

@@ -338,6 +338,14 @@ def check_down(spec: ModelSpec, cfg: LNNConfig, down) -> None:
                          f"{jnp.shape(down)}")
 
 
+def _up(down: jax.Array | None, dtype) -> jax.Array:
+    """The unit vector ``[3]`` against gravity: +z, or against ``down`` (any length)."""
+    if down is None:
+        return -jnp.asarray(WORLD_DOWN, dtype)
+    d = jnp.asarray(down, dtype)
+    return -d / jnp.linalg.norm(d)
+
+
 def gravity_frame(q: jax.Array, down: jax.Array) -> jax.Array:
     """``q`` of a floating base with the base's pose rotated into the frame in which ``down``
     (world, any length) points along -z: by the shortest rotation between the two, about the
@@ -385,10 +393,8 @@ def _com_potential(params: dict, spec: ModelSpec, q: jax.Array, cfg: LNNConfig,
     ``"com"`` potential (:class:`LNNConfig`)."""
     out = mlp.mlp(cfg.net, 4, zero_last=True)[1](params["potential"], joint_features(spec, q))
     c, springs = out[:3], out[3]
-    up = (jnp.array([0.0, 0.0, 1.0], q.dtype) if down is None
-          else -jnp.asarray(down, q.dtype) / jnp.linalg.norm(down))
     com = q[:3] + quat_to_mat(q[3:7]) @ c.astype(q.dtype)
-    return total_mass(params, cfg) * cfg.gravity * (up @ com) + springs
+    return total_mass(params, cfg) * cfg.gravity * (_up(down, q.dtype) @ com) + springs
 
 
 def gravity(params: dict, spec: ModelSpec, q: jax.Array, cfg: LNNConfig = LNNConfig(),
@@ -463,12 +469,7 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
     if structured_base(spec, cfg) and cfg.potential == "net":
         # V's exact gravity term m g z (world z: the first three tangents translate the base),
         # m g (-down) under a gravity direction
-        up = np.zeros(spec.nv, v.dtype)
-        up[2] = 1.0
-        if down is not None:
-            d = jnp.asarray(down, v.dtype)
-            up = jnp.zeros(spec.nv, v.dtype).at[:3].set(-d / jnp.linalg.norm(d))
-        b = b + total_mass(params, cfg) * cfg.gravity * up
+        b = b.at[:3].add(total_mass(params, cfg) * cfg.gravity * _up(down, v.dtype))
     if fb:
         b = b.at[3:6].add(jnp.cross(v[3:6], p[3:6]))
     return M, b
