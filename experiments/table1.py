@@ -96,6 +96,9 @@ class Table1Config:
       potential: ``stride train --potential`` for the structured runs (``net``, the paper's
         ``V = m g z + V_net``, or ``com``: gravity's multibody form, ``LNNConfig.potential``);
         ``com`` gets its own runs and results folders (``..._com``).
+      slope_deg: sloped data (``stride data --slope-deg``: each episode's gravity tilted under
+        the floor by up to this many degrees) and every model trained with
+        ``--gravity-context`` (its networks see the slope); data and folders ``..._slope<deg>``.
       parallel: processes at once.
       minutes: wall-clock budget for training, from when the data exist (0: none); runs stop
         cleanly at it.
@@ -117,6 +120,7 @@ class Table1Config:
     transition_weight: float = 0.0
     transition_fraction: float = 1.0
     potential: str = "net"
+    slope_deg: float = 0.0
     parallel: int = 5
     minutes: float = 0.0
     eval_only: bool = False
@@ -140,6 +144,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.data_policy and args.data != "walk":
         raise SystemExit(f"--data-policy needs --data walk (the {args.data} data has no policy)")
     suffix += f"_{pathlib.Path(args.data_policy).name}" if args.data_policy else ""
+    suffix += f"_slope{args.slope_deg:g}" if args.slope_deg else ""
     # the training variant's folder suffix: transition loss, its fraction, the potential
     variant = f"_tw{args.transition_weight:g}" if args.transition_weight else ""
     if args.transition_fraction < 1 and not args.transition_weight:
@@ -157,6 +162,8 @@ def main(argv: list[str] | None = None) -> None:
                                                        policy=args.data_policy
                                                        or f"results/policies/ppo_{r}")
                                               for a in DATA[args.data]],
+                                            *(["--slope-deg", f"{args.slope_deg:g}"]
+                                              if args.slope_deg else []),
                                             "--out", str(data[r]))
            for r in robots if not (data[r] / "meta.json").exists() and not args.eval_only}
     failed = pool.run(gen, {n: root / "logs" / f"{n}.log" for n in gen}, args.parallel, env,
@@ -187,7 +194,8 @@ def main(argv: list[str] | None = None) -> None:
         *(["--stop-at", str(args.stop_at)] if args.stop_at else []),
         *(["--transition-weight", f"{args.transition_weight:g}"] if args.transition_weight else []),
         *(["--transition-fraction", f"{tf:g}"] if tf < 1 else []),
-        *(["--potential", args.potential] if args.potential != "net" else []))
+        *(["--potential", args.potential] if args.potential != "net" else []),
+        *(["--gravity-context"] if args.slope_deg else []))
         for r, m, s, v in jobs}
     folders = {name(*j): run_dir(*j) for j in jobs}
     follows = lambda n, marker: (lambda: leader[n] == folders[n] or (leader[n] / marker).exists())

@@ -10,7 +10,8 @@
 # --data-policy, and NAME gains _<the policy folder's name>; TW (when set and not 0) its
 # --transition-weight, and NAME gains _twTW; TF (below 1, with TW) its --transition-fraction, and
 # NAME gains _tfTF; POT (when set and not net) its --potential, and NAME gains _POT (com: the
-# prior's potential in gravity's multibody form); two calls with different DATA
+# prior's potential in gravity's multibody form); SLOPE (when set and not 0) its --slope-deg
+# (sloped data, every model told the slope), and NAME gains _slopeSLOPE; two calls with different DATA
 # may run side by side (they share the compilation cache). LIMIT_S stops the driver after that
 # many seconds (0: never), so that what it made is still packed inside the device call's limit. EXTRA goes to experiments/table1.py:
 # --eval-only in a second call on the same (warm) machine evaluates what the first trained.
@@ -25,6 +26,8 @@ tw=${TW:-0}
 name=$robot; [ "$data" = explore ] || name=${robot}_$data
 dpol=${DATA_POLICY:-}; dargs=()
 if [ -n "$dpol" ]; then dargs=(--data-policy "$dpol"); name=${name}_$(basename "$dpol"); fi
+slope=${SLOPE:-0}
+if [ "$slope" != 0 ]; then dargs+=(--slope-deg "$slope"); name=${name}_slope$slope; fi
 vargs=(); vsuffix=""
 if [ "$tw" != 0 ]; then vargs=(--transition-weight "$tw"); vsuffix=_tw$tw; name=${name}$vsuffix; fi
 tf=${TF:-1}
@@ -55,6 +58,7 @@ timeout -s INT "${LIMIT_S:-0}" python3 experiments/table1.py --robot "$robot" --
   2>&1 | grep --line-buffered -v -i "warp\|warn" | tee "$out/${name}_driver.log" | tail -40
 suffix=""; [ "$data" = explore ] || suffix=_$data
 [ -z "$dpol" ] || suffix=${suffix}_$(basename "$dpol")
+[ "$slope" = 0 ] || suffix=${suffix}_slope$slope
 keep='*-s0'; [ "${KEEP_SEEDS:-0}" = all ] && keep='*'  # whose checkpoints come back (best/, configs)
 runs=$root/runs/$robot$suffix$vsuffix-paper
 (cd "$runs" && tar -cf "$res/runs.tar" */metrics.csv */train.log */summary.json \

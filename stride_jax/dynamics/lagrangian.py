@@ -338,7 +338,7 @@ def check_down(spec: ModelSpec, cfg: LNNConfig, down) -> None:
                          f"{jnp.shape(down)}")
 
 
-def _up(down: jax.Array | None, dtype) -> jax.Array:
+def up_of(down: jax.Array | None, dtype) -> jax.Array:
     """The unit vector ``[3]`` against gravity: +z, or against ``down`` (any length)."""
     if down is None:
         return -jnp.asarray(WORLD_DOWN, dtype)
@@ -394,7 +394,7 @@ def _com_potential(params: dict, spec: ModelSpec, q: jax.Array, cfg: LNNConfig,
     out = mlp.mlp(cfg.net, 4, zero_last=True)[1](params["potential"], joint_features(spec, q))
     c, springs = out[:3], out[3]
     com = q[:3] + quat_to_mat(q[3:7]) @ c.astype(q.dtype)
-    return total_mass(params, cfg) * cfg.gravity * (_up(down, q.dtype) @ com) + springs
+    return total_mass(params, cfg) * cfg.gravity * (up_of(down, q.dtype) @ com) + springs
 
 
 def gravity(params: dict, spec: ModelSpec, q: jax.Array, cfg: LNNConfig = LNNConfig(),
@@ -469,7 +469,7 @@ def lnn_terms(params: dict, spec: ModelSpec, q: jax.Array, v: jax.Array,
     if structured_base(spec, cfg) and cfg.potential == "net":
         # V's exact gravity term m g z (world z: the first three tangents translate the base),
         # m g (-down) under a gravity direction
-        b = b.at[:3].add(total_mass(params, cfg) * cfg.gravity * _up(down, v.dtype))
+        b = b.at[:3].add(total_mass(params, cfg) * cfg.gravity * up_of(down, v.dtype))
     if fb:
         b = b.at[3:6].add(jnp.cross(v[3:6], p[3:6]))
     return M, b

@@ -157,10 +157,14 @@ class Model(NamedTuple):
 def takes_gravity(model: Model) -> bool:
     """Whether ``model.step`` takes a gravity direction (``down``): the Lagrangian models of a
     floating base with the base structure, whose potential is the pose's height under gravity
-    (:func:`stride_jax.dynamics.lagrangian.potential_energy`). A next-observation model learned
-    its world's gravity with everything else and cannot be told another."""
-    return (model.residual is not None and model.spec is not None and model.config is not None
-            and lagrangian.structured_base(model.spec, model.config.lnn))
+    (:func:`stride_jax.dynamics.lagrangian.potential_energy`), and any model trained with
+    ``gravity_context`` (its networks see the direction). A next-observation model trained
+    without it learned its world's gravity with everything else and cannot be told another."""
+    if model.spec is None or model.config is None:
+        return False
+    if model.residual is None:
+        return bool(getattr(model.config, "gravity_context", False))
+    return lagrangian.structured_base(model.spec, model.config.lnn)
 
 
 # name -> (family, kind): structured models pair the Lagrangian prior with a residual of ``kind``;
@@ -257,7 +261,8 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
 
     def loss(params, ex, key, transition: bool = True):
         total, parts = stride.loss(params, spec, cfg, residual, ex["q"], ex["qd"], ex["tau"],
-                                   ex["qdd"], key, scales, ex.get("contact_jac"))
+                                   ex["qdd"], key, scales, ex.get("contact_jac"),
+                                   ex.get("down"))
         if cfg.transition_weight and transition:
             return with_transition(total, parts, transition_error(params, ex))
         return total, parts
@@ -304,7 +309,8 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         next-observation models are trained. The acceleration loss fits ``qacc`` at the
         recorded instants only (the start of each control period, where a new servo target has
         just been applied); this term fits what the rollout integrates over the whole period."""
-        q1, qd1 = central_period(train_substep, params, ex["q"], ex["qd"], ex["ctrl"])
+        q1, qd1 = central_period(train_substep, params, ex["q"], ex["qd"], ex["ctrl"],
+                                 down=ex.get("down"))
         dq = integrate.difference(q1, ex["q_next"], spec.floating_base) / scales.dq
         return jnp.sum(dq ** 2) + jnp.sum(((qd1 - ex["qd_next"]) / scales.dqd) ** 2)
 
@@ -335,20 +341,21 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         lagrangian.check_down(spec, cfg.lnn, down)
         return _step(params, q, qd, ctrl, key, nfe, down)
 
-    def rollout(params, q, qd, ctrls, key, nfe=None, latents="step"):
+    def rollout(params, q, qd, ctrls, key, nfe=None, latents="step", down=None):
         _check_inputs(name, spec, nu, q=q, qd=qd, ctrls=ctrls)
+        lagrangian.check_down(spec, cfg.lnn, down)
 
         def body(carry, inp):
             ctrl, k = inp
-            nxt = _step(params, *carry, ctrl, step_key(k, latents), nfe)
+            nxt = _step(params, *carry, ctrl, step_key(k, latents), nfe, down)
             return nxt, nxt
 
         _, (qs, qds) = jax.lax.scan(body, (q, qd), (ctrls, rollout_keys(key, len(ctrls), latents)))
         return qs, qds
 
-    def terms(params, q, qd, tau, key, nfe=None):
+    def terms(params, q, qd, tau, key, nfe=None, down=None):
         _check_inputs(name, spec, nu, q=q, qd=qd, tau=tau)
-        return stride.terms(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
+        return stride.terms(params, spec, cfg, residual, q, qd, tau, key, nfe, scales, down)
 
     subset = cfg.transition_weight and cfg.transition_fraction < 1
     return Model(name, residual not in ("mlp", "none"), init, loss, acceleration, step, rollout,
@@ -414,24 +421,32 @@ def next_observation(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Str
     kind = kind if kind is not None else MODELS[name][1]
     nu = len(act.dof)
 
-    def _step(params, q, qd, ctrl, key, nfe):
-        return next_obs.step(params, spec, cfg, scales, q, qd, ctrl, key, nfe, kind)
+    def _step(params, q, qd, ctrl, key, nfe, down=None):
+        return next_obs.step(params, spec, cfg, scales, q, qd, ctrl, key, nfe, kind, down)
+
+    def check_down(down):
+        if down is not None and not cfg.gravity_context:
+            raise ValueError(f"{name} has no gravity input: a next-observation model learned "
+                             "its world's gravity with everything else, and cannot be told "
+                             "another unless trained with gravity_context (on data whose "
+                             "gravity varies)")
+        if down is not None and jnp.shape(down) != (3,):
+            raise ValueError(f"down must be a direction [3] (world frame), got shape "
+                             f"{jnp.shape(down)}")
 
     def step(params, q, qd, ctrl, key=None, nfe=None, down=None):
         _check_inputs(name, spec, nu, q=q, qd=qd, ctrl=ctrl)
-        if down is not None:
-            raise ValueError(f"{name} has no gravity input: a next-observation model learned "
-                             "its world's gravity with everything else, and cannot be told "
-                             "another (gravity directions: the Lagrangian models)")
-        return _step(params, q, qd, ctrl, key, nfe)
+        check_down(down)
+        return _step(params, q, qd, ctrl, key, nfe, down)
 
-    def rollout(params, q, qd, ctrls, key=None, nfe=None, latents="step"):
+    def rollout(params, q, qd, ctrls, key=None, nfe=None, latents="step", down=None):
         _check_inputs(name, spec, nu, q=q, qd=qd, ctrls=ctrls)
+        check_down(down)
         keys = rollout_keys(key if key is not None else jax.random.key(0), len(ctrls), latents)
 
         def body(carry, inp):
             ctrl, k = inp
-            nxt = _step(params, *carry, ctrl, step_key(k, latents), nfe)
+            nxt = _step(params, *carry, ctrl, step_key(k, latents), nfe, down)
             return nxt, nxt
 
         _, (qs, qds) = jax.lax.scan(body, (q, qd), (ctrls, keys))

@@ -15,12 +15,17 @@ import jax
 import jax.numpy as jnp
 
 from stride_jax.dynamics import integrate, lagrangian, mlp
-from stride_jax.dynamics.stride import Scales, StructuredConfig
+from stride_jax.dynamics.stride import Scales, StructuredConfig, gravity_features
 from stride_jax.types import ModelSpec
 
 
-def _context(spec: ModelSpec, q, qd, ctrl, scales: Scales):
-    return jnp.concatenate([lagrangian.q_features(spec, q), qd / scales.qd, ctrl / scales.ctrl])
+def _context(spec: ModelSpec, q, qd, ctrl, scales: Scales, down=None, gravity: bool = False):
+    """``(features(q), qd, ctrl)`` normalised; ``gravity`` (``gravity_context``): and gravity's
+    direction in the base's frame (:func:`stride.gravity_features` of ``down``)."""
+    parts = [lagrangian.q_features(spec, q), qd / scales.qd, ctrl / scales.ctrl]
+    if gravity:
+        parts.append(gravity_features(spec, q, down))
+    return jnp.concatenate(parts)
 
 
 def _target(spec: ModelSpec, scales: Scales, ex: dict) -> jax.Array:
@@ -33,17 +38,19 @@ def init(key: jax.Array, spec: ModelSpec, cfg: StructuredConfig, nu: int, scales
          generative_kind: str | None = None) -> dict:
     """Parameters of the regressor (``generative_kind=None``) or of the generator."""
     q0 = jnp.zeros(spec.nq).at[3].set(1.0) if spec.floating_base else jnp.zeros(spec.nq)
-    n_in = _context(spec, q0, jnp.zeros(spec.nv), jnp.zeros(nu), scales).shape[0]
+    n_in = _context(spec, q0, jnp.zeros(spec.nv), jnp.zeros(nu), scales,
+                    gravity=cfg.gravity_context).shape[0]
     if generative_kind is None:
         return mlp.mlp(cfg.net, 2 * spec.nv, zero_last=True)[0](key, n_in)
     return cfg.generator(generative_kind).init(key, 2 * spec.nv, n_in)
 
 
 def step(params: dict, spec: ModelSpec, cfg: StructuredConfig, scales: Scales, q, qd, ctrl,
-         key=None, nfe: int | None = None, generative_kind: str | None = None):
+         key=None, nfe: int | None = None, generative_kind: str | None = None, down=None):
     """Next ``(q', qd')`` after one control period under ``ctrl`` (a generator's sample;
-    ``key=None``: its central sample)."""
-    c = _context(spec, q, qd, ctrl, scales)
+    ``key=None``: its central sample); ``down``: gravity's direction, seen with
+    ``cfg.gravity_context``."""
+    c = _context(spec, q, qd, ctrl, scales, down, cfg.gravity_context)
     if generative_kind is None:
         out = mlp.mlp(cfg.inference_net, 2 * spec.nv, zero_last=True)[1](params, c)
     elif key is None:
@@ -57,7 +64,8 @@ def step(params: dict, spec: ModelSpec, cfg: StructuredConfig, scales: Scales, q
 def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, scales: Scales, ex: dict,
          key=None, generative_kind: str | None = None):
     cfg = dataclasses.replace(cfg, kernel="xla")  # training differentiates in float32 XLA
-    c = _context(spec, ex["q"], ex["qd"], ex["ctrl"], scales)
+    c = _context(spec, ex["q"], ex["qd"], ex["ctrl"], scales, ex.get("down"),
+                 cfg.gravity_context)
     target = _target(spec, scales, ex)
     if generative_kind is None:
         out = mlp.mlp(cfg.net, 2 * spec.nv, zero_last=True)[1](params, c)

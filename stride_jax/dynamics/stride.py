@@ -80,7 +80,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from stride_jax.dynamics import diffusion, fused, generative, lagrangian, linalg, mlp
+from stride_jax.dynamics import diffusion, fused, generative, integrate, lagrangian, linalg, mlp
 from stride_jax.types import ModelSpec
 
 
@@ -119,6 +119,12 @@ class StructuredConfig:
     # floating bases with the structure: V_net(orientation, joints) ("net") or gravity's exact
     # multibody form with a learned centre-of-mass offset ("com"; LNNConfig.potential)
     potential: str = "net"
+    # floating bases: the networks' context also carries gravity's direction in the base's
+    # frame (``gravity_features``), for data whose gravity varies (sloped episodes,
+    # ``stride data --slope-deg``): the residual's contact forces, and a next-observation
+    # model's whole step, then depend on the slope as the prior's potential does. Off: the
+    # paper's context (a model trained on level ground has nothing to learn from it).
+    gravity_context: bool = False
     implicit_servo: bool = True  # rollouts: servo PD at the next state (Actuation.implicit)
     fm_weight: float = 1.0
     residual_weight: float = 0.1
@@ -199,15 +205,31 @@ class Scales(NamedTuple):
     ctrl: jax.Array | float = 1.0
 
 
+def gravity_features(spec: ModelSpec, q: jax.Array, down: jax.Array | None) -> jax.Array:
+    """Gravity's unit direction ``[3]`` in the base's frame, ``R(q)^T down`` (``None``: world
+    down, where it is a function of ``q`` alone): what an IMU's accelerometer reads at rest."""
+    if not spec.floating_base:
+        raise ValueError("gravity_context needs a floating base (a fixed base's gravity is "
+                         "its model's, a constant)")
+    return integrate.quat_to_mat(q[3:7]).T @ -lagrangian.up_of(down, q.dtype)
+
+
 def context(spec: ModelSpec, q: jax.Array, qd: jax.Array, tau: jax.Array,
-            scales: Scales = Scales()) -> jax.Array:
-    """The residual's conditioning ``c = (features(q), qd, tau)``, normalised."""
-    return jnp.concatenate([lagrangian.q_features(spec, q), qd / scales.qd, tau / scales.tau])
+            scales: Scales = Scales(), down: jax.Array | None = None,
+            gravity: bool = False) -> jax.Array:
+    """The residual's conditioning ``c = (features(q), qd, tau)``, normalised; ``gravity``
+    (``StructuredConfig.gravity_context``): and gravity's direction in the base's frame
+    (:func:`gravity_features` of ``down``)."""
+    parts = [lagrangian.q_features(spec, q), qd / scales.qd, tau / scales.tau]
+    if gravity:
+        parts.append(gravity_features(spec, q, down))
+    return jnp.concatenate(parts)
 
 
-def _context_dim(spec: ModelSpec) -> int:
+def _context_dim(spec: ModelSpec, gravity: bool = False) -> int:
     return context(spec, jnp.zeros(spec.nq).at[3].set(1.0) if spec.floating_base
-                   else jnp.zeros(spec.nq), jnp.zeros(spec.nv), jnp.zeros(spec.nv)).shape[0]
+                   else jnp.zeros(spec.nq), jnp.zeros(spec.nv), jnp.zeros(spec.nv),
+                   gravity=gravity).shape[0]
 
 
 def _check(residual: str) -> None:
@@ -219,7 +241,7 @@ def init(key: jax.Array, spec: ModelSpec, cfg: StructuredConfig, residual: str) 
     """Parameters ``{'lnn': ..., 'residual': ...}`` with a residual of the given kind."""
     _check(residual)
     key_lnn, key_res = jax.random.split(key)
-    c_dim = _context_dim(spec)
+    c_dim = _context_dim(spec, cfg.gravity_context)
     if residual == "mlp":
         res = mlp.mlp(cfg.net, spec.nv, zero_last=True)[0](key_res, c_dim)
     elif residual == "none":
@@ -242,12 +264,13 @@ def _residual(res_params, spec, cfg, residual, c, key, nfe=None):
 
 
 def residual_force(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
-                   q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales()
-                   ) -> jax.Array:
+                   q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales(),
+                   down: jax.Array | None = None) -> jax.Array:
     """``eps`` [nv]: a sample of the generative residual (``key=None``: its central sample, the
-    transport of the latent's centre), or the MLP's (``key`` unused)."""
+    transport of the latent's centre), or the MLP's (``key`` unused). ``down``: gravity's
+    direction, seen by a residual with ``cfg.gravity_context`` (ignored otherwise)."""
     _check(residual)
-    c = context(spec, q, qd, tau, scales)
+    c = context(spec, q, qd, tau, scales, down, cfg.gravity_context)
     return scales.force * _residual(params["residual"], spec, cfg, residual, c, key, nfe)
 
 
@@ -260,10 +283,11 @@ def acceleration(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual:
     ``servo = (tau0, extra)`` integrates the actuators implicitly (``Actuation.implicit``):
     ``(M + diag(extra)) qdd = tau0 - b + eps``; the residual still sees ``tau``. ``down``:
     gravity's direction in the world frame (:func:`lagrangian.potential_energy`; ``None``:
-    world -z); the residual, learned in the floor's frame, is left as it is.
+    world -z); a residual with ``cfg.gravity_context`` sees it too, any other is left as it
+    was learned.
     """
     M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn, cfg.kernel, down)
-    eps = residual_force(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
+    eps = residual_force(params, spec, cfg, residual, q, qd, tau, key, nfe, scales, down)
     if servo is not None:
         tau, extra = servo
         M = M + jnp.diag(extra)
@@ -271,12 +295,13 @@ def acceleration(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual:
 
 
 def terms(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
-          q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales()) -> dict:
+          q, qd, tau, key, nfe: int | None = None, scales: Scales = Scales(),
+          down: jax.Array | None = None) -> dict:
     """The split ``qdd = prior + residual``: ``{'prior': f_LNN, 'residual': M^-1 eps, 'eps': eps,
     'mass': M}`` (``[nv]``, ``[nv, nv]``), for evaluation and analysis. With the true ``qdd``,
     ``mass @ (qdd - prior)`` is the residual force the prior implies (its inverse dynamics)."""
-    M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn, cfg.kernel)
-    eps = residual_force(params, spec, cfg, residual, q, qd, tau, key, nfe, scales)
+    M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn, cfg.kernel, down)
+    eps = residual_force(params, spec, cfg, residual, q, qd, tau, key, nfe, scales, down)
     return {"prior": linalg.spd_solve(M, tau - b), "residual": linalg.spd_solve(M, eps),
             "eps": eps, "mass": M}
 
@@ -295,15 +320,17 @@ def non_contact_part(force: jax.Array, jac: jax.Array | None) -> jax.Array:
 
 def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, residual: str,
          q, qd, tau, qdd, key, scales: Scales = Scales(),
-         contact_jac: jax.Array | None = None) -> tuple[jax.Array, dict]:
+         contact_jac: jax.Array | None = None, down: jax.Array | None = None
+         ) -> tuple[jax.Array, dict]:
     """One example's training loss and its parts (see the module docstring). ``contact_jac``
     ``[R, nv]``: the sole Jacobians of the feet in contact (rows of zeros for feet in swing;
-    ``None`` or no rows: free motion)."""
+    ``None`` or no rows: free motion). ``down``: the example's gravity direction (sloped data;
+    ``None``: world down), for the prior's potential and a ``gravity_context`` residual."""
     _check(residual)
     cfg = dataclasses.replace(cfg, kernel="xla")  # training differentiates through everything
     key_sample, key_gen = jax.random.split(key)
-    M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn)
-    c = context(spec, q, qd, tau, scales)
+    M, b = lagrangian.lnn_terms(params["lnn"], spec, q, qd, cfg.lnn, down=down)
+    c = context(spec, q, qd, tau, scales, down, cfg.gravity_context)
     generative_kind = residual not in ("mlp", "none")
     if not generative_kind:
         eps = _residual(params["residual"], spec, cfg, residual, c, key_sample)

@@ -132,7 +132,8 @@ def true_trajectories(sm: sim_model.SimModel, starts: np.ndarray, steps: int, bu
                                 extra_push_t=np.zeros((2 * k, 0)),
                                 extra_push_s=np.zeros((2 * k, 0)),
                                 extra_push_force=np.zeros((2 * k, 0, 3)),
-                                terrain_seed=np.zeros(2 * k, np.uint32))
+                                terrain_seed=np.zeros(2 * k, np.uint32),
+                                down=np.tile([0.0, 0.0, -1.0], (2 * k, 1)))
     recs, _ = rollout_cpu.run(sm, [sm.mj] * (2 * k), np.tile(starts[:, :1], (2, 1)),
                               np.tile(starts[:, 1:], (2, 1)), steps,
                               lambda step, qq, qv: np.zeros((len(qq), sm.mj.nu)),

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stride_jax.dynamics import integrate
+from stride_jax.sim import record
 from stride_jax.types import ModelSpec
 
 
@@ -57,19 +58,30 @@ def rollout_error_vectors(rollout_fn, params, split: dict, spec: ModelSpec, hori
     ctrls, key)`` from ``N`` windows against the logged futures, one independent sample per key
     of ``keys [S]``, all in one compiled call. The parameters and windows are arguments of the
     compiled program, not constants in it, so runs of one model (seeds) share a compilation
-    (and JAX's persistent cache)."""
+    (and JAX's persistent cache). On sloped data (:func:`window_down` not ``None``) each
+    window's gravity direction is passed too: ``rollout_fn(..., key, down=[3])``."""
     q, qd, ctrl = window_arrays(split, starts, horizon)
+    down = window_down(split, starts)
     fb = spec.floating_base
 
-    def per_key(params, q, qd, ctrl, scales, keys):
-        def one(q, qd, ctrl, k):
-            q_pred, qd_pred = rollout_fn(params, q[0], qd[0], ctrl, k)
+    def per_key(params, q, qd, ctrl, down, scales, keys):
+        def one(q, qd, ctrl, d, k):
+            told = {} if d is None else {"down": d}
+            q_pred, qd_pred = rollout_fn(params, q[0], qd[0], ctrl, k, **told)
             return normalised_errors(q_pred, qd_pred, q[1:], qd[1:], scales, fb)
 
-        return jax.vmap(lambda k: jax.vmap(one)(q, qd, ctrl, jax.random.split(k, len(q))))(keys)
+        return jax.vmap(lambda k: jax.vmap(one)(q, qd, ctrl, down,
+                                                jax.random.split(k, len(q))))(keys)
 
     scales = tuple(jnp.asarray(x) for x in scales)
-    return np.asarray(jax.jit(per_key)(params, q, qd, ctrl, scales, keys))
+    return np.asarray(jax.jit(per_key)(params, q, qd, ctrl, down, scales, keys))
+
+
+def window_down(split: dict, starts: np.ndarray) -> jax.Array | None:
+    """``[N, 3]``: gravity's direction at each window's start on sloped data (constant over an
+    episode), ``None`` on level data (:func:`stride_jax.sim.record.down_of`)."""
+    down = record.down_of(split)
+    return None if down is None else jnp.asarray(down[starts[:, 0], starts[:, 1]])
 
 
 def window_arrays(split: dict, starts: np.ndarray, horizon: int):

@@ -43,6 +43,10 @@ class DataConfig:
       policy: a PPO run folder whose policy explores (walking under velocity commands,
         :class:`stride_jax.control.walk.PolicyExplorer`); empty: the robot's own explorer.
       action_noise: with ``policy``, the largest per-episode std of the noise on its actions.
+      slope_deg: the largest slope (degrees): each episode tilts gravity under the floor by an
+        angle uniform in [0, slope_deg] towards a uniform heading
+        (:attr:`stride_jax.robots.Randomization.slope_deg`; implies ``randomized``); the records
+        carry the gravity (``gravity``), the models trained on them are told it. 0: level.
       out: output folder; empty means ``data/<robot>``.
       distributed: several processes share the episodes (:mod:`stride_jax.distributed`).
     """
@@ -57,6 +61,7 @@ class DataConfig:
     stochastic: bool = False
     policy: str = ""
     action_noise: float = 0.3
+    slope_deg: float = 0.0
     out: str = ""
     distributed: DistributedConfig = DistributedConfig()
 
@@ -91,11 +96,20 @@ def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Datas
     robot = sm.robot
     if cfg.stochastic:
         robot = dataclasses.replace(robot, randomization=stochastic(robot.randomization))
+    if not 0 <= cfg.slope_deg < 90:
+        raise ValueError(f"slope_deg={cfg.slope_deg!r}: need a slope in [0, 90) degrees")
+    if cfg.slope_deg and not robot.floating_base:
+        raise ValueError(f"slope_deg={cfg.slope_deg!r}: {cfg.robot} has a fixed base (a slope "
+                         "is the tilt of a walking robot's ground; a fixed base's gravity is "
+                         "its model's)")
+    if cfg.slope_deg:
+        robot = dataclasses.replace(robot, randomization=dataclasses.replace(
+            robot.randomization, slope_deg=(0.0, float(cfg.slope_deg))))
     if explorer is not None:
         robot = dataclasses.replace(robot, explorer=explorer)
     if robot is not sm.robot:
         sm = dataclasses.replace(sm, robot=robot)
-    randomized = cfg.randomized or cfg.stochastic
+    randomized = cfg.randomized or cfg.stochastic or cfg.slope_deg > 0
     if cfg.episodes < 3:
         raise ValueError(f"episodes must be >= 3 (train/val/test split), got {cfg.episodes}")
     if not math.isfinite(cfg.seconds) or cfg.seconds < 0:

@@ -40,7 +40,7 @@ from tqdm import tqdm
 
 from stride_jax.dynamics import checkpoint, models
 from stride_jax.eval import distribution, forces, rollout, runs as runs_lib
-from stride_jax.sim import continuations, dataset, model as sim_model
+from stride_jax.sim import continuations, dataset, model as sim_model, record
 from stride_jax.io import atomic_write, atomic_write_text, code_version
 
 
@@ -141,7 +141,8 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     # State: cumulative open-loop RMSE, per sample.
     starts = rollout.windows(test["valid"], cfg.horizon, cfg.windows, cfg.seed)
     obs_scales = rollout.observation_scales(train, spec, cfg.horizon)
-    rollout_fn = lambda p, q, qd, u, k: model.rollout(p, q, qd, u, k, nfe, cfg.latents)
+    rollout_fn = lambda p, q, qd, u, k, down=None: model.rollout(p, q, qd, u, k, nfe,
+                                                                cfg.latents, down)
     sample_keys = jax.vmap(lambda s: jax.random.fold_in(key, s))(jnp.arange(n_samples))
     vectors = rollout.rollout_error_vectors(rollout_fn, params, test, spec, cfg.horizon, starts,
                                             obs_scales, sample_keys)  # [S, N, H, D]
@@ -169,9 +170,12 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     idx = valid[rng.permutation(len(valid))[:cfg.force_steps]]
     pick = lambda k: np.asarray(test[k][idx[:, 0], idx[:, 1]], np.float32)
     q, qd, tau = pick("q"), pick("qd"), pick("tau")
-    terms_fn = jax.jit(jax.vmap(lambda q, qd, tau, k: model.terms(params, q, qd, tau, k, nfe)))
-    terms = [terms_fn(q, qd, tau, jax.random.split(jax.random.fold_in(key, 1000 + s), len(q)))
-             for s in range(n_samples)]
+    down = record.down_of(test)  # sloped data: each step's gravity, told to the models
+    down = None if down is None else np.asarray(down[idx[:, 0], idx[:, 1]])
+    terms_fn = jax.jit(jax.vmap(lambda q, qd, tau, k, d: model.terms(params, q, qd, tau, k, nfe,
+                                                                     d)))
+    terms = [terms_fn(q, qd, tau, jax.random.split(jax.random.fold_in(key, 1000 + s), len(q)),
+                      down) for s in range(n_samples)]
     for t in terms[1:]:  # M is the same for every sample: keep one copy ([N, nv, nv] each)
         t.pop("mass", None)
     qdd_scale = np.asarray(train["qdd"][train["valid"]].std(0)) + 1e-6
@@ -196,9 +200,10 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     oracle = forces.normal_force_errors(jac, stance, true_eps, true_normal)
     mean_eps = np.mean([np.asarray(t["eps"]) for t in terms], axis=0)
     of_mean = forces.normal_force_errors(jac, stance, mean_eps, true_normal)
-    central = jax.jit(jax.vmap(lambda q, qd, tau: model.terms(params, q, qd, tau, None, nfe)))
-    of_central = forces.normal_force_errors(jac, stance, np.asarray(central(q, qd, tau)["eps"]),
-                                            true_normal)
+    central = jax.jit(jax.vmap(lambda q, qd, tau, d: model.terms(params, q, qd, tau, None, nfe,
+                                                                 d)))
+    of_central = forces.normal_force_errors(
+        jac, stance, np.asarray(central(q, qd, tau, down)["eps"]), true_normal)
     # The prior's own inverse dynamics with the true acceleration: r* = M (qdd - f_LNN), read
     # through the same map (no residual involved; the only force readout of a prior-only model).
     implied = np.einsum("nij,nj->ni", np.asarray(terms[0]["mass"]),
@@ -235,7 +240,7 @@ def true_futures(ds: dataset.Dataset, split: dict, spec, starts: np.ndarray, cfg
     futures = continuations.simulate(
         sm, continuations.randomization_of(ds.meta), q[:, 0], qd[:, 0], ctrl,
         starts[:, 1] * ctrl_dt, split["q"].shape[1] * ctrl_dt, cfg.continuations,
-        jax.random.key(cfg.seed + 7919))
+        jax.random.key(cfg.seed + 7919), down=rollout.window_down(split, starts))
     err = jax.jit(jax.vmap(jax.vmap(
         lambda a, b, c, d: rollout.normalised_errors(a, b, c, d, obs_scales, spec.floating_base),
         in_axes=(0, 0, None, None))))

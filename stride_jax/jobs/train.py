@@ -62,6 +62,10 @@ class TrainConfig:
         + V_net(orientation, joints)``, as trained until session 47) or ``com``, gravity's exact
         multibody form with a centre-of-mass offset learned from the joints
         (``LNNConfig.potential``: exact under any gravity direction, ``--planning.model-gravity``).
+      gravity_context: every model's networks also see gravity's direction in the base's frame
+        (``StructuredConfig.gravity_context``): for data whose gravity varies (``stride data
+        --slope-deg``), where the residual's contact forces (and a next-observation model's
+        whole step) depend on the slope; the structured models' prior is told it either way.
       transition_weight: structured models: weight of the one-control-period transition loss
         (``StructuredConfig.transition_weight``: the model's own step through the period's
         substeps against the logged next state, in the one-step changes' units); 0, the
@@ -86,6 +90,7 @@ class TrainConfig:
     learn_mass: bool = False
     base_structure: bool = True
     potential: str = "net"
+    gravity_context: bool = False
     transition_weight: float = 0.0
     transition_fraction: float = 1.0
     out: str = ""
@@ -136,7 +141,7 @@ def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.P
     model_cfg = model_config(cfg.model, ds.meta, cfg.net.hidden, cfg.net.depth, cfg.nfe,
                              cfg.shared_lnn, cfg.acc_through, cfg.learn_mass, cfg.net.activation,
                              cfg.net.init, cfg.base_structure, cfg.transition_weight,
-                             cfg.transition_fraction, cfg.potential)
+                             cfg.transition_fraction, cfg.potential, cfg.gravity_context)
     act = models.Actuation.from_meta(ds.meta)
     sc = scales(ds)
     model = models.make(cfg.model, spec, act, model_cfg, sc)

@@ -62,6 +62,10 @@ class Randomization:
       rough_extent_m: half side of the square heightfield (m), centred on the start; a robot
         that leaves it falls.
       rough_cell_m: spacing of the heightfield's samples (m).
+      slope_deg: tilt of gravity under the floor (degrees), (lo, hi), drawn per episode with a
+        downhill heading uniform in any direction: the robot walks a slope of that angle with
+        the world frame the floor's (as the closed loop's slope scenarios emulate one). The
+        records carry each step's gravity (``Record.gravity``). (0, 0): gravity as modelled.
     """
 
     friction: tuple[float, float] = (1.0, 1.0)
@@ -82,6 +86,7 @@ class Randomization:
     rough_scale_m: tuple[float, float] = (0.2, 0.5)
     rough_extent_m: float = 10.0
     rough_cell_m: float = 0.05
+    slope_deg: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self):
         if self.pushes < 0 or self.patch_m < 0:
@@ -92,6 +97,10 @@ class Randomization:
             if not 0 < lo <= hi:
                 raise ValueError(f"randomisation: {name} range ({lo}, {hi}) must satisfy "
                                  "0 < lo <= hi")
+        lo, hi = self.slope_deg
+        if not 0 <= lo <= hi < 90:
+            raise ValueError(f"randomisation: slope_deg range ({lo}, {hi}) must satisfy "
+                             "0 <= lo <= hi < 90")
         lo, hi = self.rough_m
         if not 0 <= lo <= hi:
             raise ValueError(f"randomisation: rough_m range ({lo}, {hi}) must satisfy "
@@ -108,6 +117,11 @@ class Randomization:
     def patches(self) -> bool:
         """Whether the ground varies along the path."""
         return self.patch_m > 0
+
+    @property
+    def sloped(self) -> bool:
+        """Whether gravity is tilted under the floor in some episodes."""
+        return self.slope_deg[1] > 0
 
     @property
     def rough(self) -> bool:

@@ -46,13 +46,14 @@ def randomization_of(meta: dict) -> Randomization | None:
 
 def simulate(sm: SimModel, r: Randomization | None, q0: np.ndarray, qd0: np.ndarray,
              ctrls: np.ndarray, t0: np.ndarray, episode_s: float, k: int, key: jax.Array,
-             nthread: int | None = None) -> Continuations:
+             nthread: int | None = None, down: np.ndarray | None = None) -> Continuations:
     """``k`` continuations of each of ``N`` windows.
 
     ``q0 [N, nq]``, ``qd0 [N, nv]``: start states; ``ctrls [N, H, nu]``: the logged commands;
     ``t0 [N]``: the windows' start times in their episodes (s); ``episode_s``: the episodes'
     length (s), over which pushes are drawn. ``r=None``: the nominal model, ``k`` identical
-    futures.
+    futures. ``down [N, 3]``: each window's gravity direction on sloped data (the slope is the
+    logged world's, not hidden: every continuation keeps its window's), with ``r.slope_deg``.
     """
     n, h = ctrls.shape[:2]
     if r is not None and r.rough:  # new draws of the ground too: the heightfield's model
@@ -67,6 +68,8 @@ def simulate(sm: SimModel, r: Randomization | None, q0: np.ndarray, qd0: np.ndar
     if r is not None:
         draw = jax.jit(jax.vmap(lambda kk: randomize.sample(kk, r, episode_s)))
         rand = jax.tree.map(np.asarray, draw(jax.random.split(key, n * k)))
+        if down is not None:
+            rand = rand._replace(down=rep(down))
         worlds, ground = rollout_cpu.randomized_worlds(sm, r, rand)
         per_world = jax.jit(jax.vmap(lambda v, t, q: randomize.disturbance(v, r, t, q,
                                                                             sm.mj.nv)))

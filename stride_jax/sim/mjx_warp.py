@@ -130,6 +130,6 @@ def control_step(sm: SimModel, lay: WarpLayout, mx: mjx.Model, d: mjx.Data, ctrl
     xfrc = d.xfrc_applied.at[sm.base_body, :3].set(push)
     d = d.replace(ctrl=ctrl, xfrc_applied=xfrc, qfrc_applied=qfrc)
     d1 = mjx.step(mx, d)
-    rec = record.from_forward(sm, d1, foot_force(sm, lay, d1), before=d)
+    rec = record.from_forward(sm, d1, foot_force(sm, lay, d1), mx.opt.gravity, before=d)
     d1 = jax.lax.fori_loop(1, sm.n_substeps, lambda _, dd: mjx.step(mx, dd), d1)
     return d1, rec

@@ -42,6 +42,7 @@ class RandValues(NamedTuple):
     extra_push_s: jax.Array  # [pushes - 1] durations (s)
     extra_push_force: jax.Array  # [pushes - 1, 3] world-frame forces (N)
     terrain_seed: jax.Array  # uint32: the episode's ground patches (see foot_patches)
+    down: jax.Array  # [3] gravity's direction in the floor's frame (unit; -z unless sloped)
 
 
 def sample(key: jax.Array, r: Randomization, episode_s: float) -> RandValues:
@@ -56,6 +57,9 @@ def sample(key: jax.Array, r: Randomization, episode_s: float) -> RandValues:
     n = max(r.pushes - 1, 0)
     ux = lambda k, rng: jax.random.uniform(k, (n,), minval=rng[0], maxval=rng[1])
     heading_x = ux(kx[0], (-jnp.pi, jnp.pi))
+    ks_slope = jax.random.split(jax.random.fold_in(key, 2), 2)
+    tilt = jnp.deg2rad(u(ks_slope[0], r.slope_deg))
+    downhill = jax.random.uniform(ks_slope[1], minval=-jnp.pi, maxval=jnp.pi)
     return RandValues(
         friction=u(ks[0], r.friction),
         softness=u(ks[1], r.softness),
@@ -71,6 +75,8 @@ def sample(key: jax.Array, r: Randomization, episode_s: float) -> RandValues:
         extra_push_force=ux(kx[3], r.push_n)[:, None] * jnp.stack(
             [jnp.cos(heading_x), jnp.sin(heading_x), jnp.zeros(n)], axis=-1),
         terrain_seed=jax.random.bits(kx[4], (), jnp.uint32),
+        down=jnp.stack([jnp.sin(tilt) * jnp.cos(downhill), jnp.sin(tilt) * jnp.sin(downhill),
+                        -jnp.cos(tilt)]),
     )
 
 
@@ -96,6 +102,25 @@ def apply_fields(fields: dict, v: RandValues, base_body: int, xp=jnp) -> dict:
     f["dof_damping"] = fields["dof_damping"] * v.damping
     f["dof_frictionloss"] = fields["dof_frictionloss"] * v.frictionloss
     return f
+
+
+def tilted_gravity(gravity, down, xp=jnp):
+    """The gravity vector (m/s^2) of a model whose ``gravity`` is tilted to point along the
+    unit vector ``down`` (its magnitude kept): the slope of
+    :attr:`~stride_jax.robots.Randomization.slope_deg`, under a floor that stays the world's
+    x-y plane."""
+    return xp.linalg.norm(xp.asarray(gravity)) * down
+
+
+def tilt_mjx(mx, v: RandValues):
+    """``mx`` with its gravity along the episode's ``v.down``."""
+    g = tilted_gravity(mx.opt.gravity, v.down).astype(mx.opt.gravity.dtype)
+    return mx.replace(opt=mx.opt.replace(gravity=g))
+
+
+def tilt_mujoco(m: mujoco.MjModel, v: RandValues) -> None:
+    """Tilts the gravity of ``m`` (a copy of its own: :func:`apply_mujoco`'s) in place."""
+    m.opt.gravity[:] = tilted_gravity(m.opt.gravity, np.asarray(v.down, np.float64), np)
 
 
 def nominal_fields(m: mujoco.MjModel) -> dict:

@@ -43,6 +43,9 @@ class Record(NamedTuple):
     base_quat: np.ndarray  # [4] its orientation (w x y z)
     base_linvel: np.ndarray  # [3] world-frame linear velocity (m/s); zeros for fixed bases
     base_angvel: np.ndarray  # [3] body-frame angular velocity (rad/s); zeros for fixed bases
+    gravity: np.ndarray  # [3] the model's gravity at this step (m/s^2, world frame): tilted
+    # under the floor on a sloped episode (Randomization.slope_deg); datasets written before it
+    # lack the field (:func:`down_of`)
 
 
 FIELDS = Record._fields
@@ -94,8 +97,9 @@ def mjx_contact_layout(sm: SimModel, mx) -> ContactLayout:
                          n_rows=np.where(dim == 1, 1, 2 * (dim - 1)), sign=sign)
 
 
-def from_mjx(sm: SimModel, d, layout: ContactLayout) -> Record:
-    """Extracts a record from MJX data after ``mjx.forward``."""
+def from_mjx(sm: SimModel, d, layout: ContactLayout, gravity) -> Record:
+    """Extracts a record from MJX data after ``mjx.forward`` of a model whose gravity is
+    ``gravity`` [3] (its ``opt.gravity``)."""
     efc_force = d._impl.efc_force
     foot_force = [jnp.zeros(())] * sm.nfeet
     for c, (f, adr, n) in enumerate(zip(layout.owner, layout.efc_address, layout.n_rows)):
@@ -110,11 +114,12 @@ def from_mjx(sm: SimModel, d, layout: ContactLayout) -> Record:
                 up = local @ con.frame[c, :len(local), 2]
                 foot_force[f] = foot_force[f] + layout.sign[c] * up
     foot_force = jnp.stack(foot_force) if sm.nfeet else jnp.zeros((0,))
-    return from_forward(sm, d, foot_force)
+    return from_forward(sm, d, foot_force, gravity)
 
 
-def from_forward(sm: SimModel, d, foot_force: jnp.ndarray, before=None) -> Record:
-    """A record from MJX data holding a forward pass's quantities and the feet's normal forces.
+def from_forward(sm: SimModel, d, foot_force: jnp.ndarray, gravity, before=None) -> Record:
+    """A record from MJX data holding a forward pass's quantities and the feet's normal forces,
+    of a model whose gravity is ``gravity`` [3].
 
     ``before``: the data whose state (time, qpos, qvel, ctrl) the forward pass was run at, when
     ``d`` is the data after a whole step (MuJoCo Warp: the step's forward-pass quantities stay in
@@ -132,6 +137,7 @@ def from_forward(sm: SimModel, d, foot_force: jnp.ndarray, before=None) -> Recor
         base_pos=d.xpos[b], base_quat=d.xquat[b],
         base_linvel=s.qvel[0:3] if floating else jnp.zeros(3),
         base_angvel=s.qvel[3:6] if floating else jnp.zeros(3),
+        gravity=jnp.asarray(gravity, d.qpos.dtype),
     )
 
 
@@ -161,4 +167,20 @@ def from_mujoco(sm: SimModel, m: mujoco.MjModel, d: mujoco.MjData) -> Record:
         base_pos=d.xpos[b].copy(), base_quat=d.xquat[b].copy(),
         base_linvel=d.qvel[0:3].copy() if floating else np.zeros(3),
         base_angvel=d.qvel[3:6].copy() if floating else np.zeros(3),
+        gravity=m.opt.gravity.copy(),
     )
+
+
+
+def down_of(arrays: dict) -> np.ndarray | None:
+    """Gravity's unit direction ``[..., 3]`` at every step of a dataset's arrays (or a split's)
+    whose gravity is tilted somewhere (sloped episodes), else ``None``: world down throughout,
+    or a dataset written before ``Record.gravity`` existed. The models are told it where it is
+    not ``None`` (training examples, evaluation windows)."""
+    if "gravity" not in arrays:
+        return None
+    g = np.asarray(arrays["gravity"], np.float64)
+    down = g / np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-12)
+    if np.all(np.abs(down - np.array([0.0, 0.0, -1.0])) < 1e-6):
+        return None
+    return down.astype(np.float32)

@@ -67,7 +67,7 @@ def control_step(sm: SimModel, layout: record.ContactLayout, mx: mjx.Model, d: m
         xfrc = d.xfrc_applied.at[sm.base_body, :3].set(dist.push)
         d = d.replace(ctrl=ctrl, xfrc_applied=xfrc, qfrc_applied=dist.qfrc)
         d = mjx.forward(mx, d)
-        rec = record.from_mjx(sm, d, layout)
+        rec = record.from_mjx(sm, d, layout, mx.opt.gravity)
         d = _integrate(mx, d)
         d = jax.lax.fori_loop(1, sm.n_substeps, lambda _, dd: mjx.step(mx, dd), d)
     return d, rec
@@ -148,6 +148,8 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True, impl: s
         key_rand, key_explore = jax.random.split(key)
         rand = randomize.sample(key_rand, robot.randomization, episode_s)
         mx = randomize.apply_mjx(mx0, fields, rand, sm.base_body) if randomized else mx0
+        if randomized and r.sloped:
+            mx = randomize.tilt_mjx(mx, rand)
         if rough:
             mx = mx.replace(hfield_data=terrain.heights(rand.terrain_seed, r).astype(
                 mx0.hfield_data.dtype))

@@ -3,7 +3,8 @@
 best validation ``select`` part of the loss.
 
 * :func:`examples` -- consecutive valid steps of a dataset split as flat examples (the step's
-  ``q, qd, tau, qdd, ctrl``, the next step's ``q, qd`` and the feet's contact Jacobians);
+  ``q, qd, tau, qdd, ctrl``, the next step's ``q, qd``, the feet's contact Jacobians and, on
+  sloped data, gravity's direction);
 * :func:`train` -- a model on a dataset's train and validation splits (``stride train``);
 * :func:`train_examples` -- a model on examples given directly (``stride_jax.train.fit``: a
   robot known only from arrays), writing ``summary.json`` beside the run's checkpoints.
@@ -25,6 +26,7 @@ import numpy as np
 from stride_jax import distributed
 from stride_jax.dynamics.checkpoint import params_sha256
 from stride_jax.io import atomic_write_text
+from stride_jax.sim import record
 from stride_jax.train.loop import LoopConfig, TrainingError, optimizer, run
 
 
@@ -35,7 +37,9 @@ def examples(split: dict, jacobians: Callable | None = None) -> dict:
     """Transitions between consecutive valid steps as flat examples [N, ...]: the step's
     ``q, qd, tau, qdd, ctrl``, the next step's ``q_next, qd_next``, and ``contact_jac``
     ``[N, nfeet * k, nv]``, the sole Jacobians of the feet in contact (zero rows for feet in
-    swing; training-time supervision only, see ``stride.loss``).
+    swing; training-time supervision only, see ``stride.loss``), and ``down`` ``[N, 3]``,
+    gravity's direction at the step, where the split's gravity is tilted somewhere
+    (:func:`stride_jax.sim.record.down_of`; sloped data).
 
     ``jacobians(q [N, nq]) -> [N, nfeet, k, nv]`` (``eval.forces.foot_jacobians``); without it
     (robots without feet) ``contact_jac`` has no rows.
@@ -56,6 +60,9 @@ def examples(split: dict, jacobians: Callable | None = None) -> dict:
             jac[some] = j * stance[some][:, :, None, None]
         jac = jac.reshape(n, -1, nv)
     ex.update(q_next=split["q"][:, 1:][v], qd_next=split["qd"][:, 1:][v], contact_jac=jac)
+    down = record.down_of(split)
+    if down is not None:  # sloped episodes: the models are told each example's gravity
+        ex["down"] = down[:, :-1][v]
     ex = {k: np.asarray(a, np.float32) for k, a in ex.items()}
     bad = {k: int((~np.isfinite(a.reshape(len(a), -1))).any(-1).sum()) for k, a in ex.items()}
     if any(bad.values()):

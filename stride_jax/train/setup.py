@@ -19,15 +19,16 @@ def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0,
                  learn_mass: bool = False, activation: str = "silu",
                  weight_init: str = "lecun_normal", base_structure: bool = True,
                  transition_weight: float = 0.0,
-                 transition_fraction: float = 1.0, potential: str = "net"
-                 ) -> stride.StructuredConfig:
+                 transition_fraction: float = 1.0, potential: str = "net",
+                 gravity_context: bool = False) -> stride.StructuredConfig:
     """Sizes for ``model`` on the robot ``meta`` describes (a dataset's ``meta.json`` or
     :func:`stride_jax.sim.model.robot_meta`); ``nfe=0`` takes its default. Floating bases start
     the learned total mass at the nominal model's (a spec-sheet number); ``base_structure=False``
     drops the floating-base structure (``LNNConfig.base_structure``, an ablation);
     ``transition_weight`` adds the one-control-period transition loss (structured models), on
     ``transition_fraction`` of each minibatch; ``potential``: the prior's potential
-    (``LNNConfig.potential``)."""
+    (``LNNConfig.potential``); ``gravity_context``: the networks see gravity's direction
+    (``StructuredConfig.gravity_context``, for sloped data)."""
     if model not in models.MODELS:
         raise ValueError(f"unknown model {model!r}; available: {', '.join(models.MODELS)}")
     nfe = nfe or models.DEFAULT_NFE.get(models.MODELS[model][1], 2)
@@ -39,7 +40,7 @@ def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0,
                                    learn_mass=learn_mass, base_structure=base_structure,
                                    transition_weight=transition_weight,
                                    transition_fraction=transition_fraction,
-                                   potential=potential)
+                                   potential=potential, gravity_context=gravity_context)
 
 
 def floored_std(x: np.ndarray, dtype=np.float32) -> np.ndarray:
