@@ -192,4 +192,7 @@ class Explorer(Protocol):
         """Initial ``(qpos [nq], qvel [nv])`` of the episode."""
 
     def act(self, params: Any, info: ModelInfo, step: jax.Array, qpos: Q, qvel: Qd) -> Ctrl:
-        """Control ``[nu]`` at control step ``step`` from the current state."""
+        """Control ``[nu]`` at control step ``step`` from the current state. An explorer whose
+        class sets ``senses_gravity = True`` also takes ``gravity=`` (the world's gravity
+        direction ``[3]``, as an IMU senses it): on sloped data (``Randomization.slope_deg``)
+        the backends pass each world's."""

@@ -11,11 +11,11 @@ from stride_jax.sim import model, randomize, rollout_cpu
 def _forced(sm, key, n, T, **overrides):
     """CPU episodes with some explorer parameters overridden (no randomisation)."""
     draw, act, _ = rollout_cpu._jitted(sm)
-    _, params, qpos, qvel = draw(jax.random.split(key, n), T * sm.robot.ctrl_dt)
+    rand, params, qpos, qvel = draw(jax.random.split(key, n), T * sm.robot.ctrl_dt)
     params = params._replace(**{k: jax.numpy.full_like(getattr(params, k), v)
                                 for k, v in overrides.items()})
     policy = lambda step, q, qd: act(params, step, jax.numpy.asarray(q, "float32"),
-                                     jax.numpy.asarray(qd, "float32"))
+                                     jax.numpy.asarray(qd, "float32"), rand.down)
     return rollout_cpu.run(sm, [sm.mj] * n, np.asarray(qpos, float), np.asarray(qvel, float), T,
                            policy)
 

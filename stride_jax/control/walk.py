@@ -35,7 +35,9 @@ class WalkParams(NamedTuple):
 
 
 class PolicyExplorer:
-    """Velocity commands tracked by a trained policy, with noise on its actions.
+    """Velocity commands tracked by a trained policy, with noise on its actions. It senses the
+    world's gravity direction as the policy's IMU would (``senses_gravity``): on sloped data it
+    sees the slope, as in the closed loop's sensed slope scenarios.
 
     Args:
       run: a PPO run folder (``config.json`` and a checkpoint).
@@ -43,6 +45,8 @@ class PolicyExplorer:
         action units: ``action_noise * action_scale`` rad on the joint targets).
       max_seconds: the longest episode the commands are drawn for (s).
     """
+
+    senses_gravity = True  # act(..., gravity=): the backends pass each world's on sloped data
 
     def __init__(self, run: str | pathlib.Path, action_noise: float = 0.3,
                  max_seconds: float = 60.0):
@@ -80,11 +84,14 @@ class PolicyExplorer:
         per = max(1, round(self.cfg.commands.resample_s / info.ctrl_dt))
         return params.commands[jnp.minimum(step // per, self.segments - 1)]
 
-    def act(self, params: WalkParams, info: ModelInfo, step, qpos, qvel):
+    def act(self, params: WalkParams, info: ModelInfo, step, qpos, qvel, gravity=None):
+        """The policy's noisy action at ``(qpos, qvel)``; ``gravity``: the world's gravity
+        direction ``[3]`` as its IMU senses it (default: world down)."""
         cfg = self.cfg
         clock = jnp.mod(params.clock0 + cfg.gait_hz * info.ctrl_dt * step, 1.0)
         home = jnp.asarray(info.qpos0[7:])
-        obs = envs.observe(cfg, home, qpos, qvel, self.command(params, info, step), clock)
+        obs = envs.observe(cfg, home, qpos, qvel, self.command(params, info, step), clock,
+                           gravity)
         key = jax.random.fold_in(params.key, step)  # the deterministic policy draws nothing
         action = self.policy(obs, key) + params.noise * jax.random.normal(key, (info.nu,))
         ctrl = home + cfg.action_scale * jnp.clip(action, -1.0, 1.0)

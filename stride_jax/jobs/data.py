@@ -47,6 +47,9 @@ class DataConfig:
         angle uniform in [0, slope_deg] towards a uniform heading
         (:attr:`stride_jax.robots.Randomization.slope_deg`; implies ``randomized``); the records
         carry the gravity (``gravity``), the models trained on them are told it. 0: level.
+        Explorers read the state alone: a ``policy`` senses gravity from world down, blind to
+        the slope (it walks as it would on level ground; how often it falls there was not
+        measured).
       out: output folder; empty means ``data/<robot>``.
       distributed: several processes share the episodes (:mod:`stride_jax.distributed`).
     """

@@ -23,7 +23,7 @@ from mujoco import mjx
 
 from stride_jax.sim import randomize, record, terrain
 from stride_jax.sim.model import SimModel, check_open_loop
-from stride_jax.sim.rollout_mjx import Episode, _keys_to_data, fallen
+from stride_jax.sim.rollout_mjx import Episode, _keys_to_data, fallen, sensing_act
 
 _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
 # Control vector layout (MuJoCo's state order): ctrl, qfrc_applied, xfrc_applied.
@@ -179,9 +179,12 @@ def _loop(sm, models, qpos, qvel, n_steps, policy, disturb, nthread, progress, r
 
 
 @functools.lru_cache(maxsize=None)
-def _jitted(sm: SimModel):
-    """The per-episode draws, the vmapped explorer and the pushes, jitted once per robot."""
+def _jitted(sm: SimModel, sloped: bool = False):
+    """The per-episode draws, the vmapped explorer (told each world's gravity on ``sloped``
+    data, where it senses it: :func:`sensing_act`) and the pushes, jitted once per
+    robot."""
     robot, info, explorer = sm.robot, sm.info, sm.robot.explorer
+    sensing = sensing_act(explorer, sloped)
 
     def draw(k, episode_s):
         key_rand, key_explore = jax.random.split(k)
@@ -190,7 +193,8 @@ def _jitted(sm: SimModel):
         qpos, qvel = explorer.reset(params, info)
         return rand, params, qpos, qvel
 
-    act = jax.vmap(lambda p, s, q, qd: explorer.act(p, info, s, q, qd), in_axes=(0, None, 0, 0))
+    act = jax.vmap(lambda p, s, q, qd, down: sensing(p, info, s, q, qd, down),
+                   in_axes=(0, None, 0, 0, 0))
     disturb = jax.vmap(lambda v, t, q: randomize.disturbance(v, robot.randomization, t, q,
                                                              sm.mj.nv))
     return jax.jit(jax.vmap(draw, in_axes=(0, None))), jax.jit(act), jax.jit(disturb)
@@ -273,7 +277,7 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, randomi
     """
     if randomized and sm.robot.randomization.rough:
         sm = terrain.rough_model(sm, sm.robot.randomization)
-    draw, act, disturb_fn = _jitted(sm)
+    draw, act, disturb_fn = _jitted(sm, randomized and sm.robot.randomization.sloped)
     episode_s = n_steps * sm.robot.ctrl_dt
     keys = jax.random.split(key, n_episodes)[part]
     n_episodes = keys.shape[0]
@@ -282,7 +286,7 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, randomi
     models, ground = (randomized_worlds(sm, sm.robot.randomization, rand_np) if randomized
                       else ([sm.mj] * n_episodes, None))
     policy = lambda step, q, qd: act(params, step, jnp.asarray(q, jnp.float32),
-                                     jnp.asarray(qd, jnp.float32))
+                                     jnp.asarray(qd, jnp.float32), rand.down)
     disturb = (lambda t, q: disturb_fn(rand, jnp.asarray(t, jnp.float32),
                                        jnp.asarray(q, jnp.float32))) if randomized else None
     recs, valid = run(sm, models, np.asarray(qpos, np.float64), np.asarray(qvel, np.float64),

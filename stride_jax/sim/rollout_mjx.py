@@ -33,6 +33,16 @@ class Episode(NamedTuple):
     explore: Any  # the explorer's episode parameters
 
 
+def sensing_act(explorer, sloped: bool) -> Callable:
+    """``act(params, info, step, q, qd, down)``: the explorer's ``act``, told each world's
+    gravity direction ``down`` where the data are ``sloped`` and it senses gravity
+    (``senses_gravity``: :class:`stride_jax.control.walk.PolicyExplorer`); otherwise ``down``
+    is dropped."""
+    if sloped and getattr(explorer, "senses_gravity", False):
+        return lambda p, info, s, q, qd, down: explorer.act(p, info, s, q, qd, gravity=down)
+    return lambda p, info, s, q, qd, down: explorer.act(p, info, s, q, qd)
+
+
 def _integrate(mx: mjx.Model, d: mjx.Data) -> mjx.Data:
     if mx.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER:
         return mjx.euler(mx, d)
@@ -143,6 +153,7 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True, impl: s
     fields = randomize.nominal_fields(mj)
     pair_foot = randomize.pair_feet(mj, sm.geom_foot)
     episode_s = n_steps * robot.ctrl_dt
+    act = sensing_act(explorer, randomized and r.sloped)
 
     def episode(key: jax.Array) -> Episode:
         key_rand, key_explore = jax.random.split(key)
@@ -155,7 +166,7 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True, impl: s
                 mx0.hfield_data.dtype))
         params = explorer.sample(key_explore, info)
         qpos, qvel = explorer.reset(params, info)
-        policy = lambda step, q, qd: explorer.act(params, info, step, q, qd)
+        policy = lambda step, q, qd: act(params, info, step, q, qd, rand.down)
         disturb = functools.partial(_disturbance, sm, rand if randomized else None)
         ground = None
         if patches:
