@@ -90,7 +90,7 @@ def test_a_bump_under_one_foot_lifts_that_foot_in_both_backends(name):
         mx = mjx.put_model(m).replace(hfield_data=jnp.asarray(data, jnp.float32))
         qpos = jnp.asarray(d.qpos, jnp.float32)
         dx = jax.jit(mjx.forward)(mx, mjx.make_data(mx).replace(qpos=qpos))
-        gpu = record.from_mjx(rs, dx, record.mjx_contact_layout(rs, mx))
+        gpu = record.from_mjx(rs, dx, record.mjx_contact_layout(rs, mx), mx.opt.gravity)
         forces[label] = (cpu.foot_contact, np.asarray(gpu.foot_contact))
     for contact in forces["flat"]:
         assert not contact.any()

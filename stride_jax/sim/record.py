@@ -171,7 +171,6 @@ def from_mujoco(sm: SimModel, m: mujoco.MjModel, d: mujoco.MjData) -> Record:
     )
 
 
-
 def down_of(arrays: dict) -> np.ndarray | None:
     """Gravity's unit direction ``[..., 3]`` at every step of a dataset's arrays (or a split's)
     whose gravity is tilted somewhere (sloped episodes), else ``None``: world down throughout,
