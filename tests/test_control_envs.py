@@ -140,7 +140,8 @@ def test_domain_randomisation_draws_friction_and_perturbs_the_targets(g1, go1):
     np.testing.assert_array_equal(q1, step(s0, a).pipeline_state.qpos)  # and is the key's
 
     for bad in (dict(friction_min=0.0), dict(friction_min=0.6, friction_max=0.5),
-                dict(action_noise=-0.1), dict(tilt_max_deg=90.0), dict(tilt_s=0.0)):
+                dict(action_noise=-0.1), dict(tilt_max_deg=90.0), dict(tilt_s=0.0),
+                dict(tilt_friction_margin=-0.5), dict(tilt_friction_margin=float("nan"))):
         with pytest.raises(ValueError, match="friction|action_noise|tilt"):
             envs.config("go1", **bad)
 
@@ -174,3 +175,23 @@ def test_a_randomised_slope_builds_up_and_the_policy_senses_it(go1):
     for _ in range(6):
         flat = jax.jit(level.step)(flat, a)
     assert float(jnp.abs(flat.pipeline_state.qpos - q).max()) > 1e-4  # the slope moved it
+
+
+def test_a_slope_is_drawn_no_steeper_than_the_episodes_friction_holds(go1):
+    """``tilt_friction_margin``: with friction and slope both randomised each episode's slope
+    satisfies ``tan(slope) <= margin * mu * factor`` (``mu`` the feet's friction on the floor,
+    0.8 for the Go1), the same key drawing the same fraction of the reachable range; apart
+    (margin 0), slippery episodes get slopes no stance holds."""
+    kw = dict(friction_min=0.3, friction_max=1.2, tilt_max_deg=25.0)
+    apart, bound = envs.make("go1", **kw), envs.make("go1", tilt_friction_margin=0.9, **kw)
+    assert bound.foot_mu == pytest.approx(0.8)  # the Menagerie Go1's feet (MuJoCo's max rule)
+    keys = jax.random.key_data(jax.random.split(jax.random.key(0), 256))
+    a, b = (jax.jit(jax.vmap(e.reset))(keys).info for e in (apart, bound))
+    np.testing.assert_array_equal(a["friction"], b["friction"])
+    holds = 0.9 * 0.8 * np.asarray(b["friction"])
+    assert (np.tan(np.asarray(b["tilt"][:, 0])) <= holds * (1 + 1e-5)).all()
+    assert (np.tan(np.asarray(a["tilt"][:, 0])) > 0.8 * np.asarray(a["friction"])).any()
+    steepest = np.minimum(np.deg2rad(25.0), np.arctan(holds))
+    np.testing.assert_allclose(np.asarray(b["tilt"][:, 0]) / steepest,
+                               np.asarray(a["tilt"][:, 0]) / np.deg2rad(25.0), rtol=1e-5)
+
