@@ -260,6 +260,7 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         return total + cfg.transition_weight * nxt, parts
 
     def loss(params, ex, key, transition: bool = True):
+        lagrangian.check_down(spec, cfg.lnn, ex.get("down"))  # sloped data: the prior is told
         total, parts = stride.loss(params, spec, cfg, residual, ex["q"], ex["qd"], ex["tau"],
                                    ex["qdd"], key, scales, ex.get("contact_jac"),
                                    ex.get("down"))

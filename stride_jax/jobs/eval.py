@@ -141,8 +141,9 @@ def evaluate_run(run: pathlib.Path, cfg: EvalConfig) -> dict:
     # State: cumulative open-loop RMSE, per sample.
     starts = rollout.windows(test["valid"], cfg.horizon, cfg.windows, cfg.seed)
     obs_scales = rollout.observation_scales(train, spec, cfg.horizon)
-    rollout_fn = lambda p, q, qd, u, k, down=None: model.rollout(p, q, qd, u, k, nfe,
-                                                                cfg.latents, down)
+    told = models.takes_gravity(model)  # sloped data: each window's gravity, where it can
+    rollout_fn = lambda p, q, qd, u, k, down=None: model.rollout(
+        p, q, qd, u, k, nfe, cfg.latents, down if told else None)
     sample_keys = jax.vmap(lambda s: jax.random.fold_in(key, s))(jnp.arange(n_samples))
     vectors = rollout.rollout_error_vectors(rollout_fn, params, test, spec, cfg.horizon, starts,
                                             obs_scales, sample_keys)  # [S, N, H, D]
