@@ -252,3 +252,26 @@ def test_a_policy_explorer_senses_each_worlds_slope(go1_sloped):
     assert (gap[tilted] > 1e-3).all()
     m = rollout_mjx.collect(sensing, key, 3, 3)
     np.testing.assert_allclose(m.records.ctrl[:, 0], ep.records.ctrl[:, 0], atol=1e-4)
+
+
+def test_sloped_data_end_to_end_every_model_evaluated_as_it_can_be_told(tmp_path):
+    """``stride train`` and ``stride eval`` on sloped data: a model trained with the gravity
+    context is evaluated told each window's slope; one trained without it (a next-observation
+    model, blind to gravity) is evaluated as trained, not refused."""
+    import json
+
+    from stride_jax import cli
+    data = tmp_path / "d"
+    cli.main(["data", "--robot", "go1", "--backend", "cpu", "--episodes", "4", "--seconds",
+              "0.5", "--slope-deg", str(SLOPE), "--out", str(data)])
+    for name, extra in (("stride", ["--gravity-context"]), ("onn", [])):
+        cli.main(["train", "--robot", "go1", "--model", name, "--preset", "tiny", "--steps", "20",
+                  "--data", str(data), "--out", str(tmp_path / "runs" / name), *extra])
+    out = tmp_path / "res"
+    cli.main(["eval", "--runs", f"{tmp_path / 'runs'}/*", "--preset", "tiny", "--out", str(out)])
+    rows = {r["model"]: r for r in json.loads((out / "table.json").read_text())["runs"]}
+    assert set(rows) == {"stride", "onn"}
+    for r in rows.values():
+        assert np.isfinite(r["state"]["mean"])
+    assert json.loads((tmp_path / "runs" / "stride" / "model.json").read_text())[
+        "config"]["gravity_context"]
