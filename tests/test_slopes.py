@@ -149,6 +149,10 @@ def test_continuations_keep_their_windows_slope(go1_sloped):
 # --------------------------------------------------------------------------------------------
 # The models told the slope.
 
+ACT = models.Actuation(dof=(6, 7, 8), kp=(20.0,) * 3, kd=(0.5,) * 3,
+                       force_range=((-5.0, 5.0),) * 3, dt=0.01, n_substeps=1)
+
+
 def _down(deg=20.0):
     return jnp.array([np.sin(np.radians(deg)), 0.0, -np.cos(np.radians(deg))])
 
@@ -170,13 +174,11 @@ def test_gravity_features_are_what_the_base_reads(go1):
 
 @pytest.mark.parametrize("name", ["stride", "onn"])
 def test_a_model_with_gravity_context_is_told_the_slope_and_one_without_is_not(name):
-    act = models.Actuation(dof=(6, 7, 8), kp=(20.0,) * 3, kd=(0.5,) * 3,
-                           force_range=((-5.0, 5.0),) * 3, dt=0.01, n_substeps=1)
     q = _configurations(BASE, 1, seed=3)[0].at[7:].multiply(0.3)
     qd, ctrl = 0.3 * jnp.ones(BASE.nv), 0.1 * jnp.ones(3)
-    told = models.make(name, BASE, act, stride.StructuredConfig(net=TINY_NET,
+    told = models.make(name, BASE, ACT, stride.StructuredConfig(net=TINY_NET,
                                                                 gravity_context=True))
-    plain = models.make(name, BASE, act, stride.StructuredConfig(net=TINY_NET))
+    plain = models.make(name, BASE, ACT, stride.StructuredConfig(net=TINY_NET))
     p_told, p_plain = told.init(jax.random.key(0)), plain.init(jax.random.key(0))
     assert models.takes_gravity(told)
     assert models.takes_gravity(plain) == (name == "stride")  # the prior takes it anyway
@@ -206,11 +208,18 @@ def test_a_model_with_gravity_context_is_told_the_slope_and_one_without_is_not(n
         assert float(jnp.abs(t0 - t1).max()) > 1e-5
 
 
+def test_the_whole_step_kernel_is_left_to_models_with_the_papers_context():
+    """The fused whole-step kernel builds the residual's context itself, without gravity: a
+    gravity-context STRIDE runs the per-pass kernels or XLA instead."""
+    cfg = stride.StructuredConfig(net=TINY_NET, shared_lnn=True, kernel="pallas-step")
+    assert models._whole_step_applies(BASE, ACT, cfg)
+    assert not models._whole_step_applies(BASE, ACT, dataclasses.replace(cfg,
+                                                                       gravity_context=True))
+
+
 @pytest.mark.parametrize("name", ["stride", "onn"])
 def test_the_loss_reads_the_examples_gravity(name):
-    act = models.Actuation(dof=(6, 7, 8), kp=(20.0,) * 3, kd=(0.5,) * 3,
-                           force_range=((-5.0, 5.0),) * 3, dt=0.01, n_substeps=1)
-    m = models.make(name, BASE, act, stride.StructuredConfig(net=TINY_NET, gravity_context=True,
+    m = models.make(name, BASE, ACT, stride.StructuredConfig(net=TINY_NET, gravity_context=True,
                                                              transition_weight=1.0))
     p = jax.tree.map(lambda a: a + 0.05, m.init(jax.random.key(0)))
     q = _configurations(BASE, 1, seed=5)[0]

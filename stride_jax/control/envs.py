@@ -325,7 +325,8 @@ class VelocityEnv(brax_base.Env):
         d.qpos[:] = info.qpos0
         mujoco.mj_kinematics(self.sm.mj, d)
         self.foot_z0 = jnp.asarray(d.site_xpos[self.sm.foot_sites, 2], jnp.float32)
-        self.foot_mu = foot_friction(self.sm, self.mj)
+        # the feet's friction on the floor, where it bounds the slopes drawn
+        self.foot_mu = foot_friction(self.sm, self.mj) if cfg.tilt_friction_margin else None
 
     # -- Brax Env API -------------------------------------------------------------------------
     @property

@@ -333,7 +333,12 @@ def check_down(spec: ModelSpec, cfg: LNNConfig, down) -> None:
         raise ValueError("a gravity direction (down) needs a floating base with base_structure: "
                          "the learned potential is turned by rotating the base's pose, and this "
                          "prior's potential has no such frame")
-    if jnp.shape(down) != (3,):
+    check_direction(down)
+
+
+def check_direction(down) -> None:
+    """``down`` must be ``None`` or a direction ``[3]`` (world frame)."""
+    if down is not None and jnp.shape(down) != (3,):
         raise ValueError(f"down must be a direction [3] (world frame), got shape "
                          f"{jnp.shape(down)}")
 

@@ -163,7 +163,7 @@ def takes_gravity(model: Model) -> bool:
     if model.spec is None or model.config is None:
         return False
     if model.residual is None:
-        return bool(getattr(model.config, "gravity_context", False))
+        return model.config.gravity_context
     return lagrangian.structured_base(model.spec, model.config.lnn)
 
 
@@ -378,11 +378,13 @@ def _whole_step_applies(spec: ModelSpec, act: Actuation, cfg: stride.StructuredC
     one network for L and V and Euler flow steps (the planning configuration), no mean head
     (the kernel holds the flow alone), the floating-base structure (the kernel's layout fixes
     L's first rows to ``sqrt(m) I`` and adds ``m g z``; without it the per-pass kernels or XLA
-    run the step) and a size that fits shared memory (:func:`whole_step_fits`)."""
+    run the step), the paper's residual context (the kernel builds it; ``gravity_context``
+    adds inputs it does not hold) and a size that fits shared memory (:func:`whole_step_fits`)."""
     return (fused.whole_step(cfg.kernel) and spec.floating_base and not any(spec.periodic)
             and cfg.base_structure
             and act.kp is not None and cfg.implicit_servo and cfg.shared_lnn
             and cfg.integrator == "euler" and cfg.acc_through != "mean"
+            and not cfg.gravity_context
             and whole_step_fits(spec.nv, cfg.net.hidden))
 
 
@@ -431,9 +433,7 @@ def next_observation(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Str
                              "its world's gravity with everything else, and cannot be told "
                              "another unless trained with gravity_context (on data whose "
                              "gravity varies)")
-        if down is not None and jnp.shape(down) != (3,):
-            raise ValueError(f"down must be a direction [3] (world frame), got shape "
-                             f"{jnp.shape(down)}")
+        lagrangian.check_direction(down)
 
     def step(params, q, qd, ctrl, key=None, nfe=None, down=None):
         _check_inputs(name, spec, nu, q=q, qd=qd, ctrl=ctrl)

@@ -229,8 +229,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     # compiled episode
     learned = {name: learned_model(run_dir, sm, cfg.kernel) for name, run_dir in models if run_dir}
     kind = {name: ("learned", checkpoint.program_sha256(m)) for name, (m, _) in learned.items()}
-    context = [n for n, (m, _) in learned.items()
-               if getattr(m.config, "gravity_context", False)]
+    context = [n for n, (m, _) in learned.items() if m.config.gravity_context]
     if context and not cfg.planning.model_gravity:
         log(f"{', '.join(context)}: trained with gravity_context (on sloped data), here told "
             "world down; --planning.model-gravity tells them the sensed gravity")

@@ -47,9 +47,9 @@ class DataConfig:
         angle uniform in [0, slope_deg] towards a uniform heading
         (:attr:`stride_jax.robots.Randomization.slope_deg`; implies ``randomized``); the records
         carry the gravity (``gravity``), the models trained on them are told it. 0: level.
-        Explorers read the state alone: a ``policy`` senses gravity from world down, blind to
-        the slope (it walks as it would on level ground; how often it falls there was not
-        measured).
+        A ``policy`` senses each episode's gravity, as its IMU would (explorers with
+        ``senses_gravity``, :func:`stride_jax.sim.rollout_mjx.sensing_act`); the robots' own
+        explorers act on the state alone.
       out: output folder; empty means ``data/<robot>``.
       distributed: several processes share the episodes (:mod:`stride_jax.distributed`).
     """

@@ -112,15 +112,16 @@ def tilted_gravity(gravity, down, xp=jnp):
     return xp.linalg.norm(xp.asarray(gravity)) * down
 
 
-def tilt_mjx(mx, v: RandValues):
-    """``mx`` with its gravity along the episode's ``v.down``."""
-    g = tilted_gravity(mx.opt.gravity, v.down).astype(mx.opt.gravity.dtype)
+def tilt_mjx(mx, down: jax.Array):
+    """``mx`` with its gravity along ``down`` (an episode's ``RandValues.down``)."""
+    g = tilted_gravity(mx.opt.gravity, down).astype(mx.opt.gravity.dtype)
     return mx.replace(opt=mx.opt.replace(gravity=g))
 
 
-def tilt_mujoco(m: mujoco.MjModel, v: RandValues) -> None:
-    """Tilts the gravity of ``m`` (a copy of its own: :func:`apply_mujoco`'s) in place."""
-    m.opt.gravity[:] = tilted_gravity(m.opt.gravity, np.asarray(v.down, np.float64), np)
+def tilt_mujoco(m: mujoco.MjModel, down: np.ndarray) -> None:
+    """Tilts the gravity of ``m`` (a copy of its own: :func:`apply_mujoco`'s) along ``down``
+    in place."""
+    m.opt.gravity[:] = tilted_gravity(m.opt.gravity, np.asarray(down, np.float64), np)
 
 
 def nominal_fields(m: mujoco.MjModel) -> dict:

@@ -261,8 +261,8 @@ def randomized_worlds(sm: SimModel, r, rand: randomize.RandValues
         for m, h in zip(models, _height_data(r, rand_np.terrain_seed)):
             m.hfield_data[...] = h
     if r.sloped:
-        for i, m in enumerate(models):
-            randomize.tilt_mujoco(m, jax.tree.map(lambda a: a[i], rand_np))
+        for m, down in zip(models, rand_np.down):
+            randomize.tilt_mujoco(m, down)
     return models, (ground_fn(sm, r, rand_np) if r.patches else None)
 
 

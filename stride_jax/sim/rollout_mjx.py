@@ -160,7 +160,7 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True, impl: s
         rand = randomize.sample(key_rand, robot.randomization, episode_s)
         mx = randomize.apply_mjx(mx0, fields, rand, sm.base_body) if randomized else mx0
         if randomized and r.sloped:
-            mx = randomize.tilt_mjx(mx, rand)
+            mx = randomize.tilt_mjx(mx, rand.down)
         if rough:
             mx = mx.replace(hfield_data=terrain.heights(rand.terrain_seed, r).astype(
                 mx0.hfield_data.dtype))
