@@ -233,9 +233,13 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
         comps = []
         for (p, key, _), rs_all in stride.items():
             for other in ("delan", "onn"):
-                # side by side: the parts (runs) that hold both (a merged table's rows name theirs)
+                # side by side: a headline's parts are one planner (what the headline declares,
+                # each model may have run in its own part); else the parts (runs) that hold both
+                # (a merged table's rows name theirs)
                 os_all = claim_cells.get((p, key, other), [])
-                both = {r.get("part") for r in rs_all} & {r.get("part") for r in os_all}
+                both = ({r.get("part") for r in rs_all} | {r.get("part") for r in os_all}
+                        if current else
+                        {r.get("part") for r in rs_all} & {r.get("part") for r in os_all})
                 rs = [r for r in rs_all if r.get("part") in both]
                 os_ = [r for r in os_all if r.get("part") in both]
                 s = _stats(r.get("vel_rmse") for r in rs)

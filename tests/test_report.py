@@ -235,6 +235,15 @@ def test_closed_loop_claims_read_the_headline_parts_alone(results):
     best = _find({r.claim: r for r in report.build(results)["rows"]}, "as good as DeLaN's")
     assert "push vs ONN (plain MLP): fell 1 of 3 against 0 of 3" in best.ours, best.ours
     assert "1 worse on falls" in best.ours
+    # a headline of several parts, each model run in its own (one planner, split over device
+    # calls): compared across them
+    merged["parts"]["new_b"] = {"command": "c"}
+    merged["headline"]["parts"].append("new_b")
+    merged["rows"] = [r for r in merged["rows"] if r["scenario"] != "push"] + \
+        [row("lowf", "stride@new", 0.05, "new"), row("lowf", "delan@new_b", 0.04, "new_b")]
+    _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
+    best = _find({r.claim: r for r in report.build(results)["rows"]}, "as good as DeLaN's")
+    assert "lowf vs DeLaN" in best.ours, best.ours
     del merged["headline"]  # no headline anywhere: the history, every file, names as they are
     _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
     assert _find(_verdicts(results), "without falling") == report.FAILS
