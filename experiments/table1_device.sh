@@ -21,19 +21,18 @@
 # then keep their tables and archives apart.
 set -uo pipefail
 out=$1; robot=$2; steps=$3; minutes=$4; ablation=${5:-}; shift 5 || shift $#
-data=${DATA:-explore}
-tw=${TW:-0}
-name=$robot; [ "$data" = explore ] || name=${robot}_$data
-dpol=${DATA_POLICY:-}; dargs=()
-if [ -n "$dpol" ]; then dargs=(--data-policy "$dpol"); name=${name}_$(basename "$dpol"); fi
+# the data's folder suffix and the training variant's, as experiments/table1.py names them
+data=${DATA:-explore}; dargs=(); dsuffix=""
+[ "$data" = explore ] || dsuffix=_$data
+dpol=${DATA_POLICY:-}
+if [ -n "$dpol" ]; then dargs=(--data-policy "$dpol"); dsuffix=${dsuffix}_$(basename "$dpol"); fi
 slope=${SLOPE:-0}
-if [ "$slope" != 0 ]; then dargs+=(--slope-deg "$slope"); name=${name}_slope$slope; fi
-vargs=(); vsuffix=""
-if [ "$tw" != 0 ]; then vargs=(--transition-weight "$tw"); vsuffix=_tw$tw; name=${name}$vsuffix; fi
-tf=${TF:-1}
-if [ "$tw" != 0 ] && [ "$tf" != 1 ]; then vargs+=(--transition-fraction "$tf"); vsuffix=${vsuffix}_tf$tf; name=${name}_tf$tf; fi
-pot=${POT:-net}
-if [ "$pot" != net ]; then vargs+=(--potential "$pot"); vsuffix=${vsuffix}_$pot; name=${name}_$pot; fi
+if [ "$slope" != 0 ]; then dargs+=(--slope-deg "$slope"); dsuffix=${dsuffix}_slope$slope; fi
+tw=${TW:-0}; tf=${TF:-1}; pot=${POT:-net}; vargs=(); vsuffix=""
+if [ "$tw" != 0 ]; then vargs=(--transition-weight "$tw"); vsuffix=_tw$tw; fi
+if [ "$tw" != 0 ] && [ "$tf" != 1 ]; then vargs+=(--transition-fraction "$tf"); vsuffix=${vsuffix}_tf$tf; fi
+if [ "$pot" != net ]; then vargs+=(--potential "$pot"); vsuffix=${vsuffix}_$pot; fi
+name=$robot$dsuffix$vsuffix
 (
   flock 9
   if [ ! -f /tmp/site/.done ]; then
@@ -56,11 +55,8 @@ timeout -s INT "${LIMIT_S:-0}" python3 experiments/table1.py --robot "$robot" --
   --preset paper --parallel 17 \
   --steps "$steps" --minutes "$minutes" --ablation "$ablation" --root "$root" --out "$res" "${dargs[@]}" "${vargs[@]}" "$@" \
   2>&1 | grep --line-buffered -v -i "warp\|warn" | tee "$out/${name}_driver.log" | tail -40
-suffix=""; [ "$data" = explore ] || suffix=_$data
-[ -z "$dpol" ] || suffix=${suffix}_$(basename "$dpol")
-[ "$slope" = 0 ] || suffix=${suffix}_slope$slope
 keep='*-s0'; [ "${KEEP_SEEDS:-0}" = all ] && keep='*'  # whose checkpoints come back (best/, configs)
-runs=$root/runs/$robot$suffix$vsuffix-paper
+runs=$root/runs/$robot$dsuffix$vsuffix-paper
 (cd "$runs" && tar -cf "$res/runs.tar" */metrics.csv */train.log */summary.json \
   $(ls */eval.log 2>/dev/null) && tar -rf "$res/runs.tar" --exclude=ckpt --exclude=eval_out $keep)
 tar -C "$res" -cJf "$out/$name.tar.xz" .

@@ -1,0 +1,210 @@
+"""Issue 19's closed-loop targets, read off each robot's merged table (its ``headline`` parts: the
+current planner), in one table per robot (``OUT.md``, ``OUT.json``):
+
+- no falls: every headline episode stays up;
+- STRIDE's velocity RMSE at most the policy's in at least 3 of 4 scenarios (here: in at least
+  75% of the scenarios both ran);
+- at most DeLaN's and ONN's in every scenario (fewer falls first, then the mean error);
+- at most 1/5 of the oracle's (planning through MJX) time per control step.
+
+    python experiments/closed_loop_targets.py \\
+        go1=results/closed_loop_go1_gpu/closed_loop.json \\
+        g1=results/closed_loop_g1_gpu/closed_loop.json --g1-policy policy@walk_push,rough2_gov,tilt15_gov,walk \\
+        --out results/closed_loop_targets
+
+A model kind's value in a scenario is the mean over its trained seeds (each the mean of its
+planner draws that stayed up: ``stride_paper.seeds``); its falls count every episode. The
+policy's rows are the headline's own, or ``--ROBOT-policy MODEL@PART,...`` where the headline
+holds none (the first listed part holding a scenario wins); the oracle's time is the mean of the
+table's oracle rows of the same scenario (any part: its time does not depend on the policy
+beside it), else of all its oracle rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+
+import numpy as np
+
+from stride_jax import io
+from stride_jax.jobs import closed_loop
+from stride_paper.report_control import slope_unseen
+from stride_paper.seeds import kind_and_seed, seed_means, welch
+
+KINDS = ("policy", "stride", "delan", "onn")
+
+
+def _cell(rows: list[dict]) -> dict | None:
+    """A kind's rows in one scenario: seeds' mean RMSE (over the seeds with an upright draw;
+    NaN: none), falls of all episodes, mean ms per step."""
+    if not rows:
+        return None
+    means = seed_means(rows)
+    return dict(vel_rmse=float(np.mean(list(means.values()))) if means else float("nan"),
+                seed_means=[float(v) for v in means.values()],
+                seeds=len({kind_and_seed(r)[1] for r in rows}), episodes=len(rows),
+                falls=sum(bool(r["fell"]) for r in rows),
+                ms_per_step=float(np.mean([r["ms_per_step"] for r in rows])))
+
+
+def _at_most(a: dict | None, b: dict | None) -> bool | None:
+    """Whether ``a`` is at most ``b``: its fall rate lower, or equal and its error at most
+    (None: either missing)."""
+    if a is None or b is None:
+        return None
+    ka, kb = (a["falls"] / a["episodes"], a["vel_rmse"]), (b["falls"] / b["episodes"], b["vel_rmse"])
+    if ka[0] != kb[0]:
+        return ka[0] < kb[0]
+    return bool(np.nan_to_num(ka[1], nan=np.inf) <= np.nan_to_num(kb[1], nan=np.inf))
+
+
+def robot_targets(table: dict, policy_pick: str = "") -> dict:
+    """The scenarios' cells and the targets' verdicts of one merged table (``headline`` needed)."""
+    head = (table.get("headline") or {}).get("parts")
+    if not head:
+        raise ValueError("the table names no headline parts (stride_jax.jobs.closed_loop.merge "
+                         "--headline): nothing says which rows are the current planner")
+    rows = [r for r in table["rows"] if r.get("part") in head]
+    scenarios = list(dict.fromkeys(r["scenario"] for r in rows))
+    by = {(sc, k): [r for r in rows if r["scenario"] == sc and kind_and_seed(r)[0] == k]
+          for sc in scenarios for k in KINDS}
+    if policy_pick:
+        model, _, parts = policy_pick.partition("@")
+        picked = closed_loop.select(table["rows"], model, tuple(p for p in parts.split(",") if p))
+        for sc in scenarios:
+            by[(sc, "policy")] = [picked[sc]] if sc in picked else []
+    oracle = [r for r in table["rows"] if r["model"].split("@")[0] == "oracle"]
+    cells = []
+    for sc in scenarios:
+        c = {k: _cell(by[(sc, k)]) for k in KINDS}
+        orc = [r["ms_per_step"] for r in oracle if r["scenario"] == sc] or \
+              [r["ms_per_step"] for r in oracle]
+        c["oracle_ms"] = float(np.mean(orc)) if orc else None
+        c["oracle_ms_from"] = ("this scenario" if any(r["scenario"] == sc for r in oracle)
+                               else "all scenarios" if oracle else None)
+        s = c["stride"]
+        c["stride_vs"] = {k: _at_most(s, c[k]) for k in ("policy", "delan", "onn")}
+        # a loss in error alone, over trained seeds on both sides: whether the seeds tell it apart
+        c["apart"] = {k: (w["lo"] > 0) if (w := welch(s["seed_means"], c[k]["seed_means"])) else None
+                      for k in ("policy", "delan", "onn")
+                      if c["stride_vs"][k] is False and s["falls"] * c[k]["episodes"]
+                      == c[k]["falls"] * s["episodes"]}
+        c["time_ratio"] = (s["ms_per_step"] / c["oracle_ms"]) if s and c["oracle_ms"] else None
+        # a slope the controller could not sense (world-down gravity, runs before session 46)
+        c["slope_unseen"] = any(slope_unseen(table, r) for k in KINDS for r in by[(sc, k)])
+        cells.append(dict(scenario=sc, **c))
+    runs = [c["stride"] for c in cells if c["stride"]]
+    vs_policy = [c["stride_vs"]["policy"] for c in cells if c["stride_vs"]["policy"] is not None]
+    base = [c["stride_vs"][k] for c in cells for k in ("delan", "onn")
+            if c["stride_vs"][k] is not None]
+    ratios = [c["time_ratio"] for c in cells if c["time_ratio"] is not None]
+    falls = sum(c[k]["falls"] for c in cells for k in ("stride", "delan", "onn") if c[k])
+    episodes = sum(c[k]["episodes"] for c in cells for k in ("stride", "delan", "onn") if c[k])
+    targets = {
+        "no_falls": dict(met=sum(r["falls"] for r in runs) == 0 if runs else None,
+                         stride_falls=sum(r["falls"] for r in runs),
+                         stride_episodes=sum(r["episodes"] for r in runs),
+                         all_models_falls=falls, all_models_episodes=episodes),
+        "at_most_policy": dict(met=(sum(vs_policy) >= 0.75 * len(vs_policy)) if vs_policy else None,
+                               scenarios=sum(vs_policy), of=len(vs_policy)),
+        "at_most_baselines": dict(met=all(base) if base else None, comparisons=sum(base),
+                                  of=len(base)),
+        "time_fifth_of_oracle": dict(met=(max(ratios) <= 0.2) if ratios else None,
+                                     worst_ratio=max(ratios) if ratios else None),
+    }
+    return dict(headline=head, policy=policy_pick or "the headline's own rows", cells=cells,
+                targets=targets)
+
+
+def _fmt(c: dict | None) -> str:
+    if c is None:
+        return "-"
+    v = "n/a" if not np.isfinite(c["vel_rmse"]) else f"{c['vel_rmse']:.3f}"
+    return v + (f" ({c['falls']}/{c['episodes']} fell)" if c["falls"] else "")
+
+
+def markdown(results: dict[str, dict], command: str) -> str:
+    yes = {True: "**met**", False: "not met", None: "not measured"}
+    lines = ["# Issue 19's closed-loop targets, per robot (the merged tables' headline parts)", "",
+             f"Command: `{command}`", "",
+             "Velocity RMSE (m/s): mean over trained seeds (each its planner draws that stayed up); "
+             "falls over all episodes. STRIDE <= X: fewer falls, else the mean error at most X's; a loss "
+             "in error alone says whether the trained seeds tell it apart (Welch's 90% interval of "
+             "STRIDE minus X clear of 0; nothing said: one value on a side).", ""]
+    for robot, res in results.items():
+        t = res["targets"]
+        lines += [f"## {robot}", "", f"Headline parts: {', '.join(res['headline'])}; policy rows: "
+                  f"{res['policy']}.", "",
+                  "| scenario | policy | STRIDE | DeLaN + MLP | ONN | STRIDE <= policy | <= DeLaN | "
+                  "<= ONN | STRIDE ms/step | oracle ms/step | ratio |",
+                  "|---|---:|---:|---:|---:|---|---|---|---:|---:|---:|"]
+        for c in res["cells"]:
+            vs = c["stride_vs"]
+            apart = c["apart"]
+            mark = lambda k: ("-" if vs[k] is None else "yes" if vs[k] else
+                              "no" + {True: " (told apart)", False: " (not told apart)"}.get(apart.get(k), ""))
+            ms = c["stride"]["ms_per_step"] if c["stride"] else None
+            lines.append(
+                f"| {c['scenario']}{' *' if c['slope_unseen'] else ''} | {_fmt(c['policy'])} | {_fmt(c['stride'])} | {_fmt(c['delan'])} | "
+                f"{_fmt(c['onn'])} | {mark('policy')} | {mark('delan')} | {mark('onn')} | "
+                + (f"{ms:.1f}" if ms is not None else "-") + " | "
+                + (f"{c['oracle_ms']:.0f}" + (" (all scenarios)" if c["oracle_ms_from"] == "all scenarios" else "")
+                   if c["oracle_ms"] else "-") + " | "
+                + (f"{c['time_ratio']:.2f}" if c["time_ratio"] is not None else "-") + " |")
+        if any(c["slope_unseen"] for c in res["cells"]):
+            lines += ["", "\\* rows on a slope their controller could not sense (world-down gravity, runs "
+                          "before session 46: `results/planning_diagnosis/README.md`)"]
+        nf, ap, ab, tf = (t["no_falls"], t["at_most_policy"], t["at_most_baselines"],
+                          t["time_fifth_of_oracle"])
+        lines += ["", f"- no falls: {yes[nf['met']]} (STRIDE fell in {nf['stride_falls']} of "
+                      f"{nf['stride_episodes']} episodes; all learned models {nf['all_models_falls']} of "
+                      f"{nf['all_models_episodes']})",
+                  f"- STRIDE at most the policy in at least 3 of 4 scenarios: {yes[ap['met']]} "
+                  f"({ap['scenarios']} of {ap['of']})",
+                  f"- at most DeLaN + MLP's and ONN's: {yes[ab['met']]} ({ab['comparisons']} of {ab['of']} "
+                  "comparisons)",
+                  f"- at most 1/5 of the oracle's time per step: {yes[tf['met']]}"
+                  + (f" (worst ratio {tf['worst_ratio']:.2f})" if tf["worst_ratio"] is not None else ""), ""]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("tables", nargs="+", help="ROBOT=PATH of a merged closed_loop.json")
+    ap.add_argument("--out", required=True, help="path stem: writes STEM.md and STEM.json")
+    a, rest = ap.parse_known_args(argv)
+    picks = {}
+    it = iter(rest)
+    for flag in it:  # --ROBOT-policy MODEL@PART,...
+        if not (flag.startswith("--") and flag.endswith("-policy")):
+            ap.error(f"unknown argument {flag!r} (expected --ROBOT-policy MODEL@PART,...)")
+        picks[flag[2:-len("-policy")]] = next(it, "")
+    results = {}
+    for spec in a.tables:
+        robot, sep, path = spec.partition("=")
+        if not sep or not robot or not path:
+            ap.error(f"{spec!r}: expected ROBOT=PATH")
+        p = pathlib.Path(path)
+        if not p.is_file():
+            ap.error(f"{p}: no such closed-loop table")
+        try:
+            results[robot] = robot_targets(json.loads(p.read_text()), picks.pop(robot, ""))
+        except ValueError as e:
+            ap.error(f"{p}: {e}")
+    if picks:
+        ap.error(f"--{'/'.join(picks)}-policy names no table given")
+    command = "python experiments/closed_loop_targets.py " + " ".join(
+        argv if argv is not None else __import__("sys").argv[1:])
+    stem = pathlib.Path(a.out)
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    io.atomic_write_text(stem.with_suffix(".json"), json.dumps(dict(command=command, robots=results),
+                                                               indent=1))
+    io.atomic_write_text(stem.with_suffix(".md"), markdown(results, command))
+    print(f"wrote {stem}.{{md,json}}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,68 @@
+"""experiments/closed_loop_targets.py: issue 19's targets read off a merged table's headline."""
+
+import json
+
+import pytest
+
+
+def _row(sc, model, v, part, fell=False, ms=80.0):
+    return dict(scenario=sc, model=model, vel_rmse=v, fell=fell, ms_per_step=ms, part=part)
+
+
+def _table():
+    rows = [_row("rough", "policy", 0.09, "pol", ms=10.0), _row("soft", "policy", 0.05, "pol", ms=10.0)]
+    for i, (rough, soft) in enumerate([(0.060, 0.051), (0.062, 0.052), (0.064, 0.053)]):
+        sfx = f"_s{i}" if i else ""
+        rows += [_row("rough", f"stride{sfx}@a", rough, "a"), _row("soft", f"stride{sfx}@a", soft, "a"),
+                 _row("rough", f"onn{sfx}@b", rough + 0.01, "b", ms=15.0),
+                 _row("soft", f"onn{sfx}@b", soft - 0.005, "b", ms=15.0)]
+    # a row outside the headline is not read; the oracle's time is, from any part
+    rows += [_row("rough", "stride@old", 0.5, "old", fell=True), _row("rough", "oracle", 0.07, "old", ms=500.0)]
+    return {"parts": {p: {} for p in ("pol", "a", "b", "old")},
+            "headline": {"parts": ["pol", "a", "b"]}, "rows": rows}
+
+
+def test_targets_read_the_headline_seeds_and_the_oracle_time(experiment):
+    mod = experiment("closed_loop_targets")
+    r = mod.robot_targets(_table())
+    cells = {c["scenario"]: c for c in r["cells"]}
+    assert cells["rough"]["stride"]["vel_rmse"] == pytest.approx(0.062)
+    assert cells["rough"]["stride"]["seeds"] == 3 and cells["rough"]["stride"]["falls"] == 0
+    assert cells["rough"]["stride_vs"] == {"policy": True, "delan": None, "onn": True}
+    # soft: above the policy and ONN; ONN's three seeds sit 0.005 below STRIDE's: told apart
+    assert cells["soft"]["stride_vs"]["policy"] is False and cells["soft"]["apart"]["onn"] is True
+    assert cells["rough"]["time_ratio"] == pytest.approx(80.0 / 500.0)
+    assert cells["soft"]["oracle_ms_from"] == "all scenarios"
+    t = r["targets"]
+    assert t["no_falls"]["met"] and t["no_falls"]["stride_episodes"] == 6
+    assert (t["at_most_policy"]["scenarios"], t["at_most_policy"]["of"]) == (1, 2)
+    assert t["at_most_policy"]["met"] is False  # 1 of 2 is below 3 of 4
+    assert t["at_most_baselines"]["met"] is False and t["time_fifth_of_oracle"]["met"]
+    # a fall outweighs any error: STRIDE falling once on rough loses to the policy
+    tab = _table()
+    tab["rows"][2]["fell"] = True  # stride@a on rough (seed 0)
+    r = mod.robot_targets(tab)
+    rough = next(c for c in r["cells"] if c["scenario"] == "rough")
+    assert rough["stride"]["falls"] == 1 and rough["stride_vs"]["policy"] is False
+    assert r["targets"]["no_falls"]["met"] is False
+
+
+def test_policy_rows_picked_from_other_parts_and_a_table_without_headline(experiment, tmp_path):
+    mod = experiment("closed_loop_targets")
+    tab = _table()
+    tab["rows"] = [r for r in tab["rows"] if r["part"] != "pol"]
+    tab["rows"].append(_row("soft", "policy", 0.06, "old"))
+    r = mod.robot_targets(tab, "policy@old")
+    soft = next(c for c in r["cells"] if c["scenario"] == "soft")
+    assert soft["policy"]["vel_rmse"] == 0.06 and soft["stride_vs"]["policy"] is True
+    assert next(c for c in r["cells"] if c["scenario"] == "rough")["policy"] is None
+    del tab["headline"]
+    with pytest.raises(ValueError, match="no headline"):
+        mod.robot_targets(tab)
+    p = tmp_path / "t.json"
+    p.write_text(json.dumps(_table()))
+    assert mod.main([f"x={p}", "--out", str(tmp_path / "out")]) == 0
+    md = (tmp_path / "out.md").read_text()
+    assert "## x" in md and "| rough | 0.090 | 0.062 |" in md
+    with pytest.raises(SystemExit):
+        mod.main([f"x={p}", "--out", str(tmp_path / "o2"), "--y-policy", "policy@old"])
