@@ -128,6 +128,20 @@ class Table1Config:
     out: str = ""
 
 
+def folder_suffixes(args: Table1Config) -> tuple[str, str]:
+    """``(data, variant)``: the suffixes of the data's folder (``<robot><data>-<preset>``: the
+    data kind, the data policy's folder name, the slope) and of the runs' (``<robot><data>
+    <variant>-<preset>``: the transition loss, its fraction, the potential).
+    ``experiments/table1_device.sh`` builds the same names (tested)."""
+    data = "" if args.data == "explore" else f"_{args.data}"
+    data += f"_{pathlib.Path(args.data_policy).name}" if args.data_policy else ""
+    data += f"_slope{args.slope_deg:g}" if args.slope_deg else ""
+    variant = f"_tw{args.transition_weight:g}" if args.transition_weight else ""
+    variant += f"_tf{args.transition_fraction:g}" if args.transition_fraction < 1 else ""
+    variant += f"_{args.potential}" if args.potential != "net" else ""
+    return data, variant
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -140,19 +154,13 @@ def main(argv: list[str] | None = None) -> None:
     command = "python experiments/table1.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     t0 = time.time()
     env = pool.shared_env(root)
-    suffix = "" if args.data == "explore" else f"_{args.data}"
     if args.data_policy and args.data != "walk":
         raise SystemExit(f"--data-policy needs --data walk (the {args.data} data has no policy)")
-    suffix += f"_{pathlib.Path(args.data_policy).name}" if args.data_policy else ""
-    suffix += f"_slope{args.slope_deg:g}" if args.slope_deg else ""
-    # the training variant's folder suffix: transition loss, its fraction, the potential
-    variant = f"_tw{args.transition_weight:g}" if args.transition_weight else ""
     if args.transition_fraction < 1 and not args.transition_weight:
         raise SystemExit(f"--transition-fraction {args.transition_fraction:g} needs "
                          "--transition-weight above 0")
+    suffix, variant = folder_suffixes(args)
     tf = args.transition_fraction
-    variant += f"_tf{tf:g}" if tf < 1 else ""
-    variant += f"_{args.potential}" if args.potential != "net" else ""
     data = {r: root / "data" / f"{r}{suffix}-{args.preset}" for r in robots}
     runs = {r: root / "runs" / f"{r}{suffix}{variant}-{args.preset}" for r in robots}
 

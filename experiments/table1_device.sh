@@ -26,13 +26,17 @@ data=${DATA:-explore}; dargs=(); dsuffix=""
 [ "$data" = explore ] || dsuffix=_$data
 dpol=${DATA_POLICY:-}
 if [ -n "$dpol" ]; then dargs=(--data-policy "$dpol"); dsuffix=${dsuffix}_$(basename "$dpol"); fi
-slope=${SLOPE:-0}
+slope=$(printf '%g' "${SLOPE:-0}")  # numbers as table1.py writes them (%g: 1.0 -> 1)
 if [ "$slope" != 0 ]; then dargs+=(--slope-deg "$slope"); dsuffix=${dsuffix}_slope$slope; fi
-tw=${TW:-0}; tf=${TF:-1}; pot=${POT:-net}; vargs=(); vsuffix=""
+tw=$(printf '%g' "${TW:-0}"); tf=$(printf '%g' "${TF:-1}"); pot=${POT:-net}; vargs=(); vsuffix=""
 if [ "$tw" != 0 ]; then vargs=(--transition-weight "$tw"); vsuffix=_tw$tw; fi
 if [ "$tw" != 0 ] && [ "$tf" != 1 ]; then vargs+=(--transition-fraction "$tf"); vsuffix=${vsuffix}_tf$tf; fi
 if [ "$pot" != net ]; then vargs+=(--potential "$pot"); vsuffix=${vsuffix}_$pot; fi
 name=$robot$dsuffix$vsuffix
+runs_name=$robot$dsuffix$vsuffix-paper  # the runs folder experiments/table1.py makes
+# NAMES_ONLY=1: print the archive's NAME and the runs folder's name, nothing run (tested against
+# experiments/table1.py's folder_suffixes)
+[ "${NAMES_ONLY:-0}" = 1 ] && { echo "$name $runs_name"; exit 0; }
 (
   flock 9
   if [ ! -f /tmp/site/.done ]; then
@@ -56,7 +60,7 @@ timeout -s INT "${LIMIT_S:-0}" python3 experiments/table1.py --robot "$robot" --
   --steps "$steps" --minutes "$minutes" --ablation "$ablation" --root "$root" --out "$res" "${dargs[@]}" "${vargs[@]}" "$@" \
   2>&1 | grep --line-buffered -v -i "warp\|warn" | tee "$out/${name}_driver.log" | tail -40
 keep='*-s0'; [ "${KEEP_SEEDS:-0}" = all ] && keep='*'  # whose checkpoints come back (best/, configs)
-runs=$root/runs/$robot$dsuffix$vsuffix-paper
+runs=$root/runs/$runs_name
 (cd "$runs" && tar -cf "$res/runs.tar" */metrics.csv */train.log */summary.json \
   $(ls */eval.log 2>/dev/null) && tar -rf "$res/runs.tar" --exclude=ckpt --exclude=eval_out $keep)
 tar -C "$res" -cJf "$out/$name.tar.xz" .
