@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Table I on a lent GPU machine: carried wheels and Menagerie, data, every model x seeds (plus
 # STRIDE ablations), evaluation. What comes back, in OUT (a device call returns at most 8 files):
-# NAME_driver.log as it goes, then NAME.tar.xz with the table (md, json), every run's
+# NAME_driver.log as it goes, then NAME.tar.xz (in 15 MiB parts NAME.tar.xz.part.* where larger:
+# a call returns files of at most 16 MiB) with the table (md, json), every run's
 # metrics.csv / train.log / summary.json / eval.log and the seed-0 checkpoints, where NAME is
 # ROBOT or ROBOT_DATA. Usage (repository root, on the GPU machine, with .whl and .menagerie
 # carried: the cp312 wheels, or .whl/site.tar.xz, them installed into a folder and packed):
@@ -64,4 +65,9 @@ runs=$root/runs/$runs_name
 (cd "$runs" && tar -cf "$res/runs.tar" */metrics.csv */train.log */summary.json \
   $(ls */eval.log 2>/dev/null) && tar -rf "$res/runs.tar" --exclude=ckpt --exclude=eval_out $keep)
 tar -C "$res" -cJf "$out/$name.tar.xz" .
+# a device call returns files of at most 16 MiB: a larger archive comes back in 15 MiB parts
+# (join: cat NAME.tar.xz.part.* > NAME.tar.xz)
+if [ "$(stat -c %s "$out/$name.tar.xz")" -gt $((15 * 1024 * 1024)) ]; then
+  split -b 15m "$out/$name.tar.xz" "$out/$name.tar.xz.part." && rm "$out/$name.tar.xz"
+fi
 ls -la "$out" "$res"
