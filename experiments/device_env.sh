@@ -4,26 +4,28 @@
 # machine, and exports what the jobs read. Returns non-zero (the call should stop) where either
 # is missing.
 #   source experiments/device_env.sh [COMMIT]   # COMMIT: this checkout's, for the results' code field
+# (DEVICE_SITE: where the site goes, /tmp/site by default, where table1_device.sh looks.)
 # The call then carries [".whl/split/site.part.aa", ".menagerie/menagerie_all.tar.xz"] (15.6 MB)
 # beside a tree cut by `experiments/device_tree.sh out ...`; docs/reproduce.md.
 _device_env() {
-  if [ ! -f /tmp/site/.done ]; then
-    mkdir -p /tmp/site
+  local site=${DEVICE_SITE:-/tmp/site}
+  if [ ! -f "$site/.done" ]; then
+    mkdir -p "$site"
     if ls .whl/split/site.part.* >/dev/null 2>&1; then
-      cat .whl/split/site.part.* | tar -C /tmp/site -xJ || return 3
+      cat .whl/split/site.part.* | tar -C "$site" -xJ || return 3
     elif [ -f .whl/site.tar.xz ]; then
-      tar -C /tmp/site -xJf .whl/site.tar.xz || return 3
+      tar -C "$site" -xJf .whl/site.tar.xz || return 3
     else
       echo "device_env: no carried site (.whl/split/site.part.* or .whl/site.tar.xz)" >&2; return 3
     fi
-    touch /tmp/site/.done
+    touch "$site/.done"
   fi
   if [ ! -d .menagerie/menagerie ]; then
     [ -f .menagerie/menagerie_all.tar.xz ] || {
       echo "device_env: no carried .menagerie/menagerie_all.tar.xz" >&2; return 3; }
     tar -C .menagerie -xJf .menagerie/menagerie_all.tar.xz || return 3
   fi
-  export PYTHONPATH=/tmp/site:$PWD MENAGERIE_ROOT=$PWD/.menagerie/menagerie PYTHONUNBUFFERED=1
+  export PYTHONPATH=$site:$PWD MENAGERIE_ROOT=$PWD/.menagerie/menagerie PYTHONUNBUFFERED=1
   export STRIDE_COMMIT=${1:-${STRIDE_COMMIT:-}}
 }
 _device_env "$@"
