@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import sys
 
 import numpy as np
 
@@ -68,8 +69,11 @@ def robot_targets(table: dict, policy_pick: str = "") -> dict:
                          "--headline): nothing says which rows are the current planner")
     rows = [r for r in table["rows"] if r.get("part") in head]
     scenarios = list(dict.fromkeys(r["scenario"] for r in rows))
-    by = {(sc, k): [r for r in rows if r["scenario"] == sc and kind_and_seed(r)[0] == k]
-          for sc in scenarios for k in KINDS}
+    by: dict[tuple[str, str], list[dict]] = {(sc, k): [] for sc in scenarios for k in KINDS}
+    for r in rows:
+        kind = kind_and_seed(r)[0]
+        if kind in KINDS:
+            by[(r["scenario"], kind)].append(r)
     if policy_pick:
         model, _, parts = policy_pick.partition("@")
         picked = closed_loop.select(table["rows"], model, tuple(p for p in parts.split(",") if p))
@@ -196,7 +200,7 @@ def main(argv=None) -> int:
     if picks:
         ap.error(f"--{'/'.join(picks)}-policy names no table given")
     command = "python experiments/closed_loop_targets.py " + " ".join(
-        argv if argv is not None else __import__("sys").argv[1:])
+        argv if argv is not None else sys.argv[1:])
     stem = pathlib.Path(a.out)
     stem.parent.mkdir(parents=True, exist_ok=True)
     io.atomic_write_text(stem.with_suffix(".json"), json.dumps(dict(command=command, robots=results),

@@ -1,5 +1,6 @@
 # Sourced at the start of a lent GPU machine's call (repository root): unpacks what the call
-# carried -- the trimmed site archive (.whl/split/site.part.*, joined; or .whl/site.tar.xz) into
+# carried -- the trimmed site archive (.whl/split/site.part.*, joined; or .whl/site.tar.xz, or the
+# wheels .whl/*.whl installed) into
 # /tmp/site and the Menagerie archive (.menagerie/menagerie_all.tar.xz) beside it -- once per
 # machine, and exports what the jobs read. Returns non-zero (the call should stop) where either
 # is missing.
@@ -15,15 +16,22 @@ _device_env() {
       cat .whl/split/site.part.* | tar -C "$site" -xJ || return 3
     elif [ -f .whl/site.tar.xz ]; then
       tar -C "$site" -xJf .whl/site.tar.xz || return 3
+    elif ls .whl/*.whl >/dev/null 2>&1; then  # the cp312 wheels themselves
+      python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target "$site" .whl/*.whl || return 3
     else
-      echo "device_env: no carried site (.whl/split/site.part.* or .whl/site.tar.xz)" >&2; return 3
+      echo "device_env: no carried site (.whl/split/site.part.*, .whl/site.tar.xz or .whl/*.whl)" >&2
+      return 3
     fi
     touch "$site/.done"
   fi
   if [ ! -d .menagerie/menagerie ]; then
-    [ -f .menagerie/menagerie_all.tar.xz ] || {
-      echo "device_env: no carried .menagerie/menagerie_all.tar.xz" >&2; return 3; }
-    tar -C .menagerie -xJf .menagerie/menagerie_all.tar.xz || return 3
+    local mn="" f
+    for f in .menagerie/menagerie_all.tar.xz .menagerie/menagerie.tar.xz; do
+      [ -f "$f" ] && { mn=$f; break; }
+    done
+    [ -n "$mn" ] || { echo "device_env: no carried .menagerie/menagerie_all.tar.xz" >&2; return 3; }
+    tar -C .menagerie -xJf "$mn" || return 3
   fi
   export PYTHONPATH=$site:$PWD MENAGERIE_ROOT=$PWD/.menagerie/menagerie PYTHONUNBUFFERED=1
   export STRIDE_COMMIT=${1:-${STRIDE_COMMIT:-}}

@@ -38,20 +38,9 @@ runs_name=$robot$dsuffix$vsuffix-paper  # the runs folder experiments/table1.py 
 # NAMES_ONLY=1: print the archive's NAME and the runs folder's name, nothing run (tested against
 # experiments/table1.py's folder_suffixes)
 [ "${NAMES_ONLY:-0}" = 1 ] && { echo "$name $runs_name"; exit 0; }
-(
-  flock 9
-  if [ ! -f /tmp/site/.done ]; then
-    if [ -f .whl/site.tar.xz ]; then  # the wheels installed and packed here (one carried file)
-      mkdir -p /tmp/site && tar -C /tmp/site -xJf .whl/site.tar.xz && touch /tmp/site/.done
-    else
-      python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-        --target /tmp/site .whl/*.whl && touch /tmp/site/.done
-    fi
-  fi
-  [ -d .menagerie/menagerie ] || tar -C .menagerie -xJf .menagerie/menagerie.tar.xz
-) 9>/tmp/table1_setup.lock
-[ -f /tmp/site/.done ] || exit 1
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 MENAGERIE_ROOT=$PWD/.menagerie/menagerie
+# the carried site and Menagerie, unpacked once per machine (two calls side by side take turns)
+( flock 9; source experiments/device_env.sh ) 9>/tmp/table1_setup.lock || exit 1
+source experiments/device_env.sh || exit 1  # (unpacked now: exports the jobs' environment)
 root=/tmp/table1
 [ -z "${TAG:-}" ] || name=${name}_$TAG
 res=/tmp/table1_results/$name

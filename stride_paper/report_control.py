@@ -237,10 +237,12 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
                 # each model may have run in its own part); else the parts (runs) that hold both
                 # (a merged table's rows name theirs)
                 os_all = claim_cells.get((p, key, other), [])
-                both = {r.get("part") for r in rs_all} & {r.get("part") for r in os_all}
-                rs, os_ = (rs_all, os_all) if current else (
-                    [r for r in rs_all if r.get("part") in both],
-                    [r for r in os_all if r.get("part") in both])
+                if current:
+                    rs, os_ = rs_all, os_all
+                else:
+                    both = {r.get("part") for r in rs_all} & {r.get("part") for r in os_all}
+                    rs = [r for r in rs_all if r.get("part") in both]
+                    os_ = [r for r in os_all if r.get("part") in both]
                 s = _stats(r.get("vel_rmse") for r in rs)
                 o = _stats(r.get("vel_rmse") for r in os_)
                 if rs and os_ and s is not None and o is not None:

@@ -44,6 +44,20 @@ def test_unpacks_once_and_exports(tmp_path):
     assert _source(repo, site).returncode == 0
 
 
+def test_the_older_archive_names(tmp_path):
+    """``.whl/site.tar.xz`` and ``.menagerie/menagerie.tar.xz`` (what table1_device.sh took
+    before it used this script) still do."""
+    if shutil.which("bash") is None or shutil.which("xz") is None:
+        pytest.skip("bash and xz needed")
+    repo, site = tmp_path / "repo", tmp_path / "site"
+    _txz(repo / ".whl" / "site.tar.xz", "pkg/mod.py", "y = 2")
+    _txz(repo / ".menagerie" / "menagerie.tar.xz", "menagerie/unitree_g1/g1.xml", "<mujoco/>")
+    out = _source(repo, site)
+    assert out.returncode == 0, out.stderr
+    assert (site / "pkg" / "mod.py").read_text() == "y = 2"
+    assert (repo / ".menagerie" / "menagerie" / "unitree_g1" / "g1.xml").exists()
+
+
 def test_stops_where_nothing_was_carried(tmp_path):
     if shutil.which("bash") is None:
         pytest.skip("bash needed")
