@@ -9,8 +9,7 @@ current planner), in one table per robot (``OUT.md``, ``OUT.json``):
 
     python experiments/closed_loop_targets.py \\
         go1=results/closed_loop_go1_gpu/closed_loop.json \\
-        g1=results/closed_loop_g1_gpu/closed_loop.json --g1-policy policy@walk_push,rough2_gov,tilt15_gov,walk \\
-        --out results/closed_loop_targets
+        g1=results/closed_loop_g1_gpu/closed_loop.json --out results/closed_loop_targets
 
 A model kind's value in a scenario is the mean over its trained seeds (each the mean of its
 planner draws that stayed up: ``stride_paper.seeds``); its falls count every episode. The
