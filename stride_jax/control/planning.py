@@ -105,7 +105,13 @@ class PlanningConfig:
         a slope steeper than ``asin(trust_limit / g)`` (21 degrees at 3.5), under a hard push or
         with a heavy payload needs that much correction too, and the gate hands the robot to
         the policy there as well (under G1's pushes a third of the time). The vertical entry
-        alone is no better marker (at 2.5 it preceded 35 of the 57 falls).
+        alone is no better marker (at 2.5 it preceded 35 of the 57 falls). Told the gravity
+        (``model_gravity``), a right model needs no slope correction, so the limit need not
+        leave room for one: over G1's sloped-data models told the gravity (session 50,
+        ``results/planning_diagnosis/g1_observer_marker_sloped.md``, 57 episodes gated at 3.5)
+        an estimate above 2.5 preceded all 5 falls by 2.7 s (median; 3.5: 4 of 5, 0.4 s) and
+        held on 2.0% of the upright episodes' steps (1.4 points of it on the tilt, where STRIDE's
+        and ONN's models are biased, 0.6 under pushes).
       trust_hold_s: the policy keeps acting this long (s) after the gate last held
         (``MPPIConfig.distrust_hold``; 0: only while it holds).
       trust_overshoot: a second trigger of the model-trust gate (m/s; 0: off; needs a policy):
