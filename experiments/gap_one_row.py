@@ -3,6 +3,7 @@ row and the whole diagnosis, to investigate a verdict without rerunning the benc
 
     python experiments/gap_one_row.py --case 1 [--noisy] [--preset default] [--out /tmp/gap_rows]
         [--no-step-cost]   # the calibration takes a finer time step at min_gain alone
+        [--trajectories 12 --steps 400 --diagnose default]   # longer logs, another diagnosis preset
 
 Writes ``<out>/<case>-<clean|noisy>.json`` (``row``: as the benchmark scores it; ``diagnosis``:
 the diagnosis's JSON-able result). Run it under the CPU lock: one Go1 row takes 2-8 minutes.
@@ -23,6 +24,9 @@ def main() -> None:
     ap.add_argument("--out", default="/tmp/gap_rows")
     ap.add_argument("--no-step-cost", action="store_true",
                     help="CalibrateConfig.step_cost off in the benchmark's diagnosis preset")
+    ap.add_argument("--trajectories", type=int, default=0, help="per case (0: the preset's)")
+    ap.add_argument("--steps", type=int, default=0, help="control steps per trajectory (0: the preset's)")
+    ap.add_argument("--diagnose", default="", help="the diagnosis's preset (empty: the benchmark's)")
     a = ap.parse_args()
     import dataclasses
 
@@ -32,6 +36,8 @@ def main() -> None:
     from stride_jax.jobs.gap_report import json_default
 
     cfg = bi.PRESETS[a.preset]
+    cfg = dataclasses.replace(cfg, **{k: v for k, v in (("trajectories", a.trajectories), ("steps", a.steps),
+                                                         ("diagnose", a.diagnose)) if v})
     if a.no_step_cost:  # the diagnosis preset is looked up by name: replace it for this process
         d = diagnose.PRESETS[cfg.diagnose]
         diagnose.PRESETS[cfg.diagnose] = dataclasses.replace(
