@@ -81,6 +81,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--split-s", type=float, default=2.0,
                     help="the phases: before and from this time (s)")
     ap.add_argument("--draws", type=int, default=8, help="residual draws per state")
+    ap.add_argument("--nfe", type=int, default=0,
+                    help="a generative residual's evaluations per sample (0: as trained)")
     ap.add_argument("--model-gravity", action="store_true",
                     help="a second row per model that takes a gravity direction, told the "
                          "sensed one (as the closed loop's --planning.model-gravity)")
@@ -88,6 +90,8 @@ def main(argv: list[str] | None = None) -> dict:
     a = ap.parse_args(argv)
     if a.draws < 1:
         raise SystemExit(f"--draws is {a.draws}: it must be >= 1")
+    if a.nfe < 0:
+        raise SystemExit(f"--nfe is {a.nfe}: it must be >= 1 (0: as trained)")
     models = [tuple(m.split("=", 1)) for m in a.models.split(",") if m]
     if not models or any(len(m) != 2 for m in models):
         raise SystemExit(f"--models {a.models!r}: expected NAME=RUN,...")
@@ -129,7 +133,7 @@ def main(argv: list[str] | None = None) -> dict:
                  if dyn_models.takes_gravity(loaded[run][0])]
     for name, run, told in runs:
         t1 = time.time()
-        step = learned_step(*loaded[run])
+        step = learned_step(*loaded[run], nfe=a.nfe or None)
         keys = jax.random.split(jax.random.key(0), (len(t), a.draws))
         over_draws = jax.vmap(lambda q, qd, u, k, g: step(q, qd, u, k, down=g if told else None),
                               in_axes=(None, None, None, 0, None))
@@ -150,7 +154,7 @@ def main(argv: list[str] | None = None) -> dict:
     stem = pathlib.Path(a.out)
     stem.parent.mkdir(parents=True, exist_ok=True)
     env = dict(command=command, code=code_version(), backend=jax.default_backend(),
-               scenario=sc.name, policy=policy, draws=a.draws, seconds=a.seconds)
+               scenario=sc.name, policy=policy, draws=a.draws, nfe=a.nfe or None, seconds=a.seconds)
     atomic_write_text(stem.with_suffix(".json"), json.dumps(dict(env=env, rows=rows), indent=1))
     lines = [f"# One-period model error along the policy's episode: {a.robot}, {sc.name}", "",
              f"Command: `{command}`", "",
@@ -158,7 +162,8 @@ def main(argv: list[str] | None = None) -> dict:
              "world axes x, y, z; m/s^2): the bias (its mean: what the planner's disturbance "
              "observer converges to) and the spread around it (RMS: what the observer cannot "
              f"absorb); joint-velocity RMSE after one period (rad/s). {a.draws} residual draws "
-             "per state, their mean error per step.", "",
+             "per state, their mean error per step"
+             + (f"; {a.nfe} evaluations per residual sample." if a.nfe else "."), "",
              "| model | phase | steps | bias x / y / z | spread x / y / z | joint vel RMSE |",
              "|---|---|---:|---|---|---:|"]
     for r in rows:

@@ -362,6 +362,28 @@ def test_model_gravity_tells_the_planners_model_the_sensed_gravity(go1):
     assert set(calls[0]) == {"down"} and calls[1] == {}
 
 
+def test_learned_step_sets_a_generative_residuals_evaluations(go1):
+    """``nfe`` reaches a stochastic model's step and not a deterministic one's (which has no
+    residual samples); unset, neither is given one (each model as trained); below 1 it is an
+    error."""
+    from stride_jax.control.episode import learned_step
+    from stride_jax.dynamics import models
+    from stride_jax.types import ModelSpec
+    nq, nv = go1.mj.nq, go1.mj.nv
+    q = jnp.zeros(nq).at[3].set(1.0)
+    got = {}
+    for name in ("stride", "delan"):
+        m = models.make(name, ModelSpec(nq=nq, nv=nv, floating_base=True))
+        fake = m._replace(step=lambda p, q, qd, c, k, n=name, **kw: got.setdefault(n, []).append(kw)
+                          or (q, qd))
+        for nfe in (8, None):
+            learned_step(fake, {}, nfe=nfe)(q, jnp.zeros(nv), jnp.zeros(nv), None)
+    assert models.make("stride", ModelSpec(nq=nq, nv=nv, floating_base=True)).stochastic
+    assert got["stride"] == [{"nfe": 8}, {}] and got["delan"] == [{}, {}]
+    with pytest.raises(ValueError, match="nfe=0"):
+        learned_step(fake, {}, nfe=0)
+
+
 _NO_LIMITS = (jnp.full(3, -jnp.inf, jnp.float32), jnp.full(3, jnp.inf, jnp.float32))  # clips nothing
 _LEVEL = np.zeros(2, np.float32)  # no tilt schedule: the model's own gravity
 

@@ -31,3 +31,5 @@ def test_bad_input_is_named(experiment, tmp_path):
         mod.main(["--models", f"stride={tmp_path}", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit, match="--draws is 0"):
         mod.main(["--models", f"stride={tmp_path}", "--draws", "0", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit, match="--nfe is -1"):
+        mod.main(["--models", f"stride={tmp_path}", "--nfe", "-1", "--out", str(tmp_path / "x")])

@@ -306,18 +306,23 @@ def learned_model(run: str, sm: sim_model.SimModel, kernel: str = "xla") -> tupl
 PRECISIONS = ("", "default", "high", "highest")
 
 
-def learned_step(model, params, precision: str = "") -> Callable:
+def learned_step(model, params, precision: str = "", nfe: int | None = None) -> Callable:
     """``step(q, qd, ctrl, key, down=None)`` of ``model`` with ``params``, its float32 products
     traced at ``precision`` (:data:`PRECISIONS`; "": JAX's default); a gravity direction
     ``down`` reaches the models that take one (``models.takes_gravity``) and is left out for
-    the others (``PlanningConfig.model_gravity``)."""
+    the others (``PlanningConfig.model_gravity``); ``nfe``: a generative model's evaluations per
+    residual sample (None: as trained)."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision {precision!r}: use one of {PRECISIONS}")
+    if nfe is not None and nfe < 1:
+        raise ValueError(f"nfe={nfe}: a residual sample needs at least one evaluation")
     from stride_jax.dynamics import models
     told = models.takes_gravity(model)
 
     def step(q, qd, ctrl, key, down=None):
         kw = {"down": down} if told and down is not None else {}
+        if nfe is not None and model.stochastic:
+            kw["nfe"] = nfe
         if not precision:
             return model.step(params, q, qd, ctrl, key, **kw)
         with jax.default_matmul_precision(precision):
