@@ -35,6 +35,9 @@ def main() -> None:
     from stride_jax.io import atomic_write_text
     from stride_jax.jobs.gap_report import json_default
 
+    if a.preset not in bi.PRESETS or (a.diagnose and a.diagnose not in diagnose.PRESETS):
+        raise SystemExit(f"--preset {a.preset!r} / --diagnose {a.diagnose!r}: the benchmark's presets are "
+                         f"{sorted(bi.PRESETS)}, the diagnosis's {sorted(diagnose.PRESETS)}")
     cfg = bi.PRESETS[a.preset]
     cfg = dataclasses.replace(cfg, **{k: v for k, v in (("trajectories", a.trajectories), ("steps", a.steps),
                                                          ("diagnose", a.diagnose)) if v})
