@@ -154,12 +154,27 @@ def _claim_cells(files: list[tuple[pathlib.Path, dict]]) -> tuple[dict, list, st
         f"{', '.join(d['headline'].get('parts') or [])} of {p.parent.name}" for p, d in heads)
 
 
-def _command(d: dict) -> str | None:
-    """A run's command; a merged table's part commands joined."""
+MAX_PART_COMMANDS = 4  # a merged table's commands written out in full; above: where they are
+
+
+def _command(d: dict, headline: bool = False) -> str | None:
+    """A run's command; a merged table's part commands joined: with ``headline`` its headline's
+    parts' alone (what the claims read), else every part's, or None where there are more than
+    :data:`MAX_PART_COMMANDS` (a merged table is the history of every planner tried: tens of
+    parts; :func:`_commands_kept` says where they are)."""
     parts = d.get("parts")
-    if isinstance(parts, dict):
-        return " ; ".join(str(v.get("command", "")) for v in parts.values()) or None
-    return d.get("command") or _dig(d, "env", "command")
+    if not isinstance(parts, dict):
+        return d.get("command") or _dig(d, "env", "command")
+    head = (d.get("headline") or {}).get("parts") or []
+    names = [n for n in parts if n in head] if headline and head else list(parts)
+    if not headline and len(names) > MAX_PART_COMMANDS:
+        return None
+    return " ; ".join(str(parts[n].get("command", "")) for n in names) or None
+
+
+def _commands_kept(d: dict) -> str:
+    return (f"merged from {len(d.get('parts') or {})} parts (`experiments/closed_loop_merge.py`), "
+            "each part's command kept in the file under `parts`")
 
 
 def _part_devices(d: dict) -> str | None:
@@ -212,7 +227,7 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
     models = sorted({m for _, _, m in claim_cells})
     stride = {k: v for k, v in claim_cells.items() if k[2] == "stride"}
     srcs = ", ".join(rel(p) for p, _ in claim_files)
-    cmd = "; ".join(filter(None, (_command(d) for _, d in claim_files)))
+    cmd = "; ".join(filter(None, (_command(d, headline=True) for _, d in claim_files)))
     if not stride:
         why = f"not yet run (no STRIDE rows; models present: {', '.join(models)})"
         rows = [Row(claim_fall, WHERE_CLOSED, paper_fall, why, NOT_RUN, srcs, cmd),
@@ -287,7 +302,8 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
     for p, d in files:
         c = _command(d)
         git = _git_note(p)
-        lines += [f"`{rel(p)}`{' (' + git + ')' if git else ''}: `{c}`; "
+        lines += [f"`{rel(p)}`{' (' + git + ')' if git else ''}: "
+                  f"{f'`{c}`' if c else _commands_kept(d)}; "
                   f"device {d.get('device') or _dig(d, 'env', 'device') or _part_devices(d)}. "
                   "Cells: velocity tracking RMSE (m/s), mean ± std over runs; falls.", ""]
         keys = list(dict.fromkeys(_row_key(r) for r in d["rows"]))

@@ -199,6 +199,7 @@ def test_closed_loop_claims_read_the_headline_parts_alone(results):
     fall = _find({k: r for k, r in rows.items()}, "without falling")
     assert fall.verdict == report.HOLDS and "fell in 0 of 3 runs over 2 scenarios" in fall.ours
     assert "the current planner: new of closed_loop_g1_gpu" in fall.ours
+    assert fall.command == "b"  # the headline part's command, not the history's
     # the tilt runs kept no sense_gravity: their controller read world down, and the claim says so
     assert "2 of these runs are on slopes their controller could not sense" in fall.ours
     merged["parts"]["new"]["config"] = {"sense_gravity": True}
@@ -244,6 +245,14 @@ def test_closed_loop_claims_read_the_headline_parts_alone(results):
     _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
     best = _find({r.claim: r for r in report.build(results)["rows"]}, "as good as DeLaN's")
     assert "lowf vs DeLaN" in best.ours, best.ours
+    assert best.command == "b ; c"
+    # a history of many parts: the table's line says where their commands are instead
+    merged["parts"].update({f"old_{i}": {"command": f"x{i}"} for i in range(4)})
+    _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
+    built = report.build(results)
+    assert "merged from 7 parts (`experiments/closed_loop_merge.py`), each part's command kept" in built["markdown"]
+    assert " ; x0" not in built["markdown"]
+    assert _find({r.claim: r for r in built["rows"]}, "as good as DeLaN's").command == "b ; c"
     del merged["headline"]  # no headline anywhere: the history, every file, names as they are
     _write(results / "closed_loop_g1_gpu" / "closed_loop.json", merged)
     assert _find(_verdicts(results), "without falling") == report.FAILS
