@@ -173,7 +173,10 @@ def _command(d: dict, headline: bool = False) -> str | None:
 
 
 def _commands_kept(d: dict) -> str:
-    return (f"merged from {len(d.get('parts') or {})} parts (`experiments/closed_loop_merge.py`), "
+    """Where a table's commands are when :func:`_command` does not write them out."""
+    if not isinstance(d.get("parts"), dict):
+        return "no command recorded"
+    return (f"merged from {len(d['parts'])} parts (`experiments/closed_loop_merge.py`), "
             "each part's command kept in the file under `parts`")
 
 
