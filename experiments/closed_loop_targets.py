@@ -31,7 +31,7 @@ import numpy as np
 from stride_jax import io
 from stride_jax.jobs import closed_loop
 from stride_paper.report_control import slope_unseen
-from stride_paper.seeds import kind_and_seed, seed_means, welch
+from stride_paper.seeds import at_most, fall_rates_differ, kind_and_seed, seed_means, welch
 
 KINDS = ("policy", "stride", "delan", "onn")
 
@@ -50,14 +50,11 @@ def _cell(rows: list[dict]) -> dict | None:
 
 
 def _at_most(a: dict | None, b: dict | None) -> bool | None:
-    """Whether ``a`` is at most ``b``: its fall rate lower, or equal and its error at most
-    (None: either missing)."""
+    """Whether cell ``a`` is at most cell ``b`` (``stride_paper.seeds.at_most``, the report's
+    claim-25 order; None: either missing)."""
     if a is None or b is None:
         return None
-    ka, kb = (a["falls"] / a["episodes"], a["vel_rmse"]), (b["falls"] / b["episodes"], b["vel_rmse"])
-    if ka[0] != kb[0]:
-        return ka[0] < kb[0]
-    return bool(np.nan_to_num(ka[1], nan=np.inf) <= np.nan_to_num(kb[1], nan=np.inf))
+    return at_most(a["falls"], a["episodes"], a["vel_rmse"], b["falls"], b["episodes"], b["vel_rmse"])
 
 
 def robot_targets(table: dict, policy_pick: str = "") -> dict:
@@ -92,8 +89,8 @@ def robot_targets(table: dict, policy_pick: str = "") -> dict:
         # a loss in error alone, over trained seeds on both sides: whether the seeds tell it apart
         c["apart"] = {k: (w["lo"] > 0) if (w := welch(s["seed_means"], c[k]["seed_means"])) else None
                       for k in ("policy", "delan", "onn")
-                      if c["stride_vs"][k] is False and s["falls"] * c[k]["episodes"]
-                      == c[k]["falls"] * s["episodes"]}
+                      if c["stride_vs"][k] is False
+                      and not fall_rates_differ(s["falls"], s["episodes"], c[k]["falls"], c[k]["episodes"])}
         c["time_ratio"] = (s["ms_per_step"] / c["oracle_ms"]) if s and c["oracle_ms"] else None
         # a slope the controller could not sense (world-down gravity, runs before session 46)
         c["slope_unseen"] = any(slope_unseen(table, r) for k in KINDS for r in by[(sc, k)])

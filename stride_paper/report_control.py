@@ -13,7 +13,7 @@ from stride_paper.report_common import (
     WHERE_MPPI,
     Row, _dig, _finite, _git_note, _load_json, _num, _stats, _table, verdict,
 )
-from stride_paper.seeds import kind_and_seed, seed_means, welch
+from stride_paper.seeds import at_most, fall_rates_differ, kind_and_seed, seed_means, welch
 
 # ---------------------------------------------------------------------------------- MPPI
 
@@ -112,17 +112,11 @@ def _row_key(r: dict) -> str:
     return "-"
 
 
-def _fall_rates_differ(falls: tuple[int, int, int, int]) -> bool:
-    """``falls``: STRIDE's falls and runs, the other's."""
-    a, n, b, m = falls
-    return a * m != b * n
-
-
 def _worse(key: str, other: str, w: dict | None, falls: tuple[int, int, int, int]) -> str:
     """One comparison STRIDE loses: the scenario and the other kind; lost on falls (``falls``:
     STRIDE's falls and runs, the other's), their counts; else (where both have several trained
     seeds) STRIDE's margin, Welch's 90% interval and whether the seeds tell the kinds apart."""
-    if _fall_rates_differ(falls):
+    if fall_rates_differ(*falls):
         a, n, b, m = falls
         return f"{key} vs {NAMES[other]}: fell {a} of {n} against {b} of {m}"
     if w is None:
@@ -236,8 +230,7 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
         rows = [Row(claim_fall, WHERE_CLOSED, paper_fall, why, NOT_RUN, srcs, cmd),
                 Row(claim_best, WHERE_CLOSED, paper_best, why, NOT_RUN, srcs, cmd)]
     else:
-        # A run that falls is worse than one that stays up, whatever its error while upright
-        # (measured until the fall); among equals, the lower velocity error wins.
+        # a run that falls is worse than one that stays up (stride_paper.seeds.at_most)
         falls = lambda rs: sum(bool(r.get("fell")) for r in rs)
         runs = [r for v in stride.values() for r in v]
         tables = {p: d for p, d in claim_files}
@@ -269,12 +262,13 @@ def closed_loop_rows(results: pathlib.Path, rel) -> tuple[list[Row], list[str]]:
                     # training): whether they tell the two apart
                     w = welch(seed_means(rs).values(), seed_means(os_).values())
                     counts = (falls(rs), len(rs), falls(os_), len(os_))
-                    comps.append((key + where, other, (falls(rs) / len(rs), s["mean"])
-                                  <= (falls(os_) / len(os_), o["mean"]), w, counts))
+                    comps.append((key + where, other,
+                                  at_most(*counts[:2], s["mean"], *counts[2:], o["mean"]), w,
+                                  counts))
         if comps:
             worse = [(k, o, w, c) for k, o, ok, w, c in comps if not ok]
             # lost on falls: counted apart (the seeds' interval is of the upright error)
-            on_falls = [x for x in worse if _fall_rates_differ(x[3])]
+            on_falls = [x for x in worse if fall_rates_differ(*x[3])]
             on_error = [x for x in worse if x not in on_falls]
             apart = [x for x in on_error if x[2] is not None and x[2]["lo"] > 0]
             seeded = [x for x in on_error if x[2] is not None]

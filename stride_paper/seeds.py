@@ -67,3 +67,19 @@ def welch(x: Iterable[float], y: Iterable[float], level: float = 0.9) -> dict | 
         return None
     return dict(diff=float(x.mean() - y.mean()), lo=float(ci.low), hi=float(ci.high),
                 n=[len(x), len(y)])
+
+
+def fall_rates_differ(falls: int, runs: int, other_falls: int, other_runs: int) -> bool:
+    """Whether ``falls`` of ``runs`` and ``other_falls`` of ``other_runs`` are different rates."""
+    return falls * other_runs != other_falls * runs
+
+
+def at_most(falls: int, runs: int, error: float, other_falls: int, other_runs: int,
+            other_error: float) -> bool:
+    """The closed-loop order of two model kinds in a scenario: the one that falls less often is
+    better, whatever its error while upright (measured until each fall); at equal fall rates the
+    lower velocity error (a NaN error, no upright draw, loses to any). Whether the first is at
+    most the second."""
+    if fall_rates_differ(falls, runs, other_falls, other_runs):
+        return falls * other_runs < other_falls * runs
+    return bool(np.nan_to_num(error, nan=np.inf) <= np.nan_to_num(other_error, nan=np.inf))

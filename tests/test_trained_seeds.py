@@ -51,6 +51,16 @@ def test_seed_means_drop_or_keep_the_seeds_whose_every_draw_fell():
         seed_means(rows, fallen="keep")
 
 
+def test_at_most_orders_by_fall_rate_then_error():
+    """Falling less often wins whatever the upright error; equal rates (1 of 3 and 2 of 6) go to
+    the error; no upright draw (NaN) loses to any error."""
+    from stride_paper.seeds import at_most, fall_rates_differ
+    assert at_most(0, 3, 0.9, 1, 3, 0.1) and not at_most(1, 3, 0.1, 0, 3, 0.9)
+    assert not fall_rates_differ(1, 3, 2, 6) and fall_rates_differ(1, 3, 1, 6)
+    assert at_most(1, 3, 0.2, 2, 6, 0.2) and not at_most(1, 3, 0.21, 2, 6, 0.2)
+    assert at_most(3, 3, math.nan, 3, 3, math.nan) and not at_most(3, 3, math.nan, 3, 3, 0.5)
+
+
 def test_planner_draws_of_one_trained_seed_are_its_episodes(experiment):
     """Rows of ``--episodes N`` (the row's ``seed``: the planner's draw): each trained seed's
     RMSE is the mean of its draws that stayed up, its falls counted; the group's mean and worst
