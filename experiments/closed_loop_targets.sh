@@ -19,6 +19,8 @@ for n in ${names//,/ }; do
 done
 common=(--preset gpu --robot "$robot" --policy "results/policies/ppo_$robot"
         --learned "results/learned_$robot/reward_value.msgpack")
+gate=3.5
+for f in "$@"; do [ "$f" = --planning.model-gravity ] && gate=2.5; done
 if [ "$robot" = go1 ]; then  # K = 1024: 64 policy, 256 command-family, 352 prior, 352 plan
   # observer gain 0.3 and tracking weight 30 since session 21 (results/closed_loop_go1_gpu/
   # parts/tw30_obs03; the rows @walk ran with 0.1 and 10)
@@ -30,8 +32,12 @@ else  # G1: closer to the policy (the settings that kept G1 planners up before,
            --prior-noise-std 0.05 --mppi.family-decay 0.8 --planning.observer-gain 0.1
            --planning.learned-track-weight 10
            # the model-trust gate since session 41 (results/closed_loop_g1_gpu/trust_gate.md;
-           # the runs before it ran without: TRUST=0 for those)
-           $([ "${TRUST:-1}" = 1 ] && echo --planning.trust-limit 3.5 --planning.trust-hold-s 1.0))
+           # the runs before it ran without: TRUST=0 for those): 3.5 m/s^2 where the models are
+           # not told the slope (a right model then needs g sin 15 deg = 2.5 of correction on the
+           # tilt); 2.5 where they are (--planning.model-gravity; since session 51, chosen on the
+           # tilt and kept out of sample: results/closed_loop_g1_gpu/gate25.md). A later
+           # --planning.trust-limit among the flags wins.
+           $([ "${TRUST:-1}" = 1 ] && echo --planning.trust-limit "$gate" --planning.trust-hold-s 1.0))
 fi
 mkdir -p "$out"
 timeout "$limit" python -m stride_jax.jobs.closed_loop "${common[@]}" --models "${models%,}" \

@@ -5,7 +5,8 @@
 # machine, and exports what the jobs read. Returns non-zero (the call should stop) where either
 # is missing.
 #   source experiments/device_env.sh [COMMIT]   # COMMIT: this checkout's, for the results' code field
-# (DEVICE_SITE: where the site goes, /tmp/site by default, where table1_device.sh looks.)
+# (DEVICE_SITE: where the site goes, /tmp/site by default, where table1_device.sh looks;
+# JAX_COMPILATION_CACHE_DIR: JAX's persistent compilation cache, /tmp/jax_cache by default.)
 # The call then carries [".whl/split/site.part.aa", ".menagerie/menagerie_all.tar.xz"] (15.6 MB)
 # beside a tree cut by `experiments/device_tree.sh out ...`; docs/reproduce.md.
 _device_env() {
@@ -34,6 +35,10 @@ _device_env() {
     tar -C .menagerie -xJf "$mn" || return 3
   fi
   export PYTHONPATH=$site:$PWD MENAGERIE_ROOT=$PWD/.menagerie/menagerie PYTHONUNBUFFERED=1
+  # JAX's persistent compilation cache on the machine: a later call on the same warm machine
+  # (or a resumed part) reuses what an earlier one compiled (G1's closed loop: 25-45 s per
+  # model kind and terrain, recompiled by every call before this); jobs that set their own keep it
+  export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-/tmp/jax_cache}
   export STRIDE_COMMIT=${1:-${STRIDE_COMMIT:-}}
 }
 _device_env "$@"

@@ -16,7 +16,11 @@ RMSE after one period (rad/s); STRIDE's residual is sampled ``--draws`` times pe
 
 ``--model-gravity`` adds a row per model that takes a gravity direction, told the sensed one at
 each state (as the closed loop's ``--planning.model-gravity``): what a Lagrangian model's turned
-potential buys on an emulated slope.
+potential buys on an emulated slope. ``--prior`` adds, per model with a Lagrangian prior and a
+residual (STRIDE, DeLaN + MLP), rows of its prior alone (the residual force left out; its own
+trained prior, told the gravity where the model is): which part carries a bias. ``--govern``
+clips the scenario's commands to the policy's training range (the closed loop's ``--govern``;
+the policy alone falls in G1's ungoverned command changes).
 
 Writes OUT.md and OUT.json (the command, per-model rows).
 """
@@ -36,24 +40,31 @@ import numpy as np
 import stride_jax
 
 
-def episode(sm, sc, policy_path: str):
+def episode(sm, sc, policy_path: str, govern: bool = False):
     """The policy of run ``policy_path`` alone in scenario ``sc``
-    (:func:`stride_jax.control.episode.policy_episode`): ``(t, q, qd, ctrl, q2, qd2, fallen,
+    (:func:`stride_jax.control.episode.policy_alone`): ``(t, q, qd, ctrl, q2, qd2, fallen,
     down)`` per control period, numpy (``down``: the sensed gravity direction)."""
     import jax
-    from stride_jax.control import envs, ppo
-    from stride_jax.control.episode import policy_episode, scenario_world
-    from stride_jax.control.planning import PlanningConfig, make_planning, split
+    from stride_jax.control.episode import policy_alone
+    from stride_jax.control.planning import split
 
-    policy, _, env_cfg = ppo.load_policy(policy_path)
-    world = scenario_world(sm, sc)
-    truth = make_planning(PlanningConfig(), env_cfg, sm,
-                          envs.mjx_step_fn(sm.n_substeps, world.mx), policy, None)
-    ep = jax.device_get(policy_episode(world, truth))
+    ep, _ = policy_alone(sm, sc, policy_path, govern)
     nq = sm.mj.nq
     down = jax.vmap(lambda qa: split(qa, nq).gravity)(ep.q_aug)
     return [np.asarray(x) for x in (ep.t, ep.q_aug[:, :nq], ep.qd, ep.ctrl, ep.q_next,
                                     ep.qd_next, ep.fallen, down)]
+
+
+def prior_alone(model, params):
+    """``(model, params)`` of a structured model's Lagrangian prior alone: the same prior
+    networks and configuration, the residual force left out (``dynamics.models`` kind
+    ``delan_prior``)."""
+    from stride_jax.dynamics import models
+    if model.residual in (None, "none"):
+        raise ValueError(f"{model.name} has no residual to leave out")
+    prior = models.structured("delan_prior", model.spec, model.actuation, model.config,
+                              model.scales, residual="none")
+    return prior, {"lnn": params["lnn"], "residual": {}}
 
 
 def phase_errors(acc_err: np.ndarray, qd_err: np.ndarray, nu: int) -> dict:
@@ -86,6 +97,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--model-gravity", action="store_true",
                     help="a second row per model that takes a gravity direction, told the "
                          "sensed one (as the closed loop's --planning.model-gravity)")
+    ap.add_argument("--govern", action="store_true",
+                    help="the commands clipped to the policy's training range, as the closed "
+                         "loop's --govern shows them to the controller")
+    ap.add_argument("--prior", action="store_true",
+                    help="rows of each structured model's Lagrangian prior alone (its residual "
+                         "force left out)")
     ap.add_argument("--out", required=True, help="path stem: writes OUT.md and OUT.json")
     a = ap.parse_args(argv)
     if a.draws < 1:
@@ -117,7 +134,7 @@ def main(argv: list[str] | None = None) -> dict:
     sm = sim_model.load(a.robot)
     policy = a.policy or f"results/policies/ppo_{a.robot}"
     t0 = time.time()
-    t, q, qd, ctrl, q2, qd2, fallen, down = episode(sm, sc, policy)
+    t, q, qd, ctrl, q2, qd2, fallen, down = episode(sm, sc, policy, a.govern)
     if fallen.any():
         cut = int(np.argmax(fallen))
         print(f"the policy fell at {t[cut]:.2f} s: the states up to then are kept")
@@ -127,13 +144,18 @@ def main(argv: list[str] | None = None) -> dict:
     phases = {f"before {a.split_s:g} s": t < a.split_s, f"from {a.split_s:g} s": t >= a.split_s}
     rows = []
     loaded = {run: learned_model(run, sm) for _, run in models}
-    runs = [(name, run, False) for name, run in models]
+    runs = [(name, run, False, False) for name, run in models]
     if a.model_gravity:
-        runs += [(f"{name} (told gravity)", run, True) for name, run in models
+        runs += [(name, run, True, False) for name, run in models
                  if dyn_models.takes_gravity(loaded[run][0])]
-    for name, run, told in runs:
+    if a.prior:
+        runs += [(name, run, told, True) for name, run, told, _ in list(runs)
+                 if loaded[run][0].residual not in (None, "none")]
+    for base, run, told, prior in runs:
+        name = base + (" prior alone" if prior else "") + (" (told gravity)" if told else "")
         t1 = time.time()
-        step = learned_step(*loaded[run], nfe=a.nfe or None)
+        step = learned_step(*(prior_alone(*loaded[run]) if prior else loaded[run]),
+                            nfe=a.nfe or None)
         keys = jax.random.split(jax.random.key(0), (len(t), a.draws))
         over_draws = jax.vmap(lambda q, qd, u, k, g: step(q, qd, u, k, down=g if told else None),
                               in_axes=(None, None, None, 0, None))
@@ -141,7 +163,7 @@ def main(argv: list[str] | None = None) -> dict:
         qd_pred = np.asarray(qd_pred, np.float64)
         err = qd2[:, None, :] - qd_pred  # true minus predicted velocity after one period
         acc_err = err[..., :3] / dt
-        row = dict(model=name, run=run, told_gravity=told)
+        row = dict(model=name, run=run, told_gravity=told, prior_alone=prior)
         for label, sel in phases.items():
             if sel.any():
                 row[label] = phase_errors(acc_err[sel], err[sel], nu)
@@ -154,7 +176,8 @@ def main(argv: list[str] | None = None) -> dict:
     stem = pathlib.Path(a.out)
     stem.parent.mkdir(parents=True, exist_ok=True)
     env = dict(command=command, code=code_version(), backend=jax.default_backend(),
-               scenario=sc.name, policy=policy, draws=a.draws, nfe=a.nfe or None, seconds=a.seconds)
+               scenario=sc.name, policy=policy, draws=a.draws, nfe=a.nfe or None, seconds=a.seconds,
+               commands=sc.commands, govern=a.govern)
     atomic_write_text(stem.with_suffix(".json"), json.dumps(dict(env=env, rows=rows), indent=1))
     lines = [f"# One-period model error along the policy's episode: {a.robot}, {sc.name}", "",
              f"Command: `{command}`", "",

@@ -786,6 +786,26 @@ def test_the_policy_episode_records_each_period_and_its_true_next_state(go1):
         episode_lib.policy_episode(world, planning._replace(policy=None))
 
 
+def test_the_policy_alone_reads_its_run_and_governs_the_commands(go1, monkeypatch):
+    """``episode.policy_alone``: the run's policy and task settings in the scenario's world; with
+    ``govern`` the commands it sees are clipped to the task's range (as the closed loop's
+    ``--govern``), without it they are the scenario's."""
+    from stride_jax.control import episode as episode_lib, ppo
+    env_cfg = envs.config("go1")
+    read = []
+    monkeypatch.setattr(ppo, "load_policy", lambda run: read.append(run) or (
+        lambda obs, key: jnp.zeros(go1.info.nu), None, env_cfg))
+    sc = scenarios.Scenario("fast", ((0.0, 9.0, 0.0, 0.0),), seconds=3 * go1.robot.ctrl_dt)
+    ep, cfg = episode_lib.policy_alone(go1, sc, "some/run", govern=True)
+    assert read == ["some/run"] and cfg is env_cfg
+    nq = go1.mj.nq
+    seen = np.asarray(jax.vmap(lambda qa: planning_lib.split(qa, nq).command)(ep.q_aug))
+    hi = np.asarray(env_cfg.commands.bounds()[1])
+    np.testing.assert_allclose(seen, np.tile([hi[0], 0.0, 0.0], (3, 1)), atol=1e-6)
+    assert hi[0] < 9.0 and ep.fallen.shape == (3,)
+    assert scenarios.governed(sc, env_cfg.commands.bounds()).commands[0][1] == hi[0]
+
+
 def test_the_controller_senses_the_scenarios_gravity(go1):
     """A slope emulated by tilting gravity under a level floor: an IMU on a real slope reads the
     slope, so the policy and the planner observe the simulation's gravity direction (before

@@ -21,10 +21,11 @@ def _txz(path: pathlib.Path, name: str, text: str) -> None:
     shutil.rmtree(src)
 
 
-def _source(cwd, site, *args):
-    cmd = f'source "{SCRIPT}" {" ".join(args)} && echo "$PYTHONPATH|$MENAGERIE_ROOT|$STRIDE_COMMIT"'
+def _source(cwd, site, *args, env=None):
+    cmd = (f'source "{SCRIPT}" {" ".join(args)} && '
+           'echo "$PYTHONPATH|$MENAGERIE_ROOT|$STRIDE_COMMIT|$JAX_COMPILATION_CACHE_DIR"')
     return subprocess.run(["bash", "-c", cmd], cwd=cwd, capture_output=True, text=True,
-                          env={"PATH": "/usr/bin:/bin", "DEVICE_SITE": str(site)})
+                          env={"PATH": "/usr/bin:/bin", "DEVICE_SITE": str(site), **(env or {})})
 
 
 def test_unpacks_once_and_exports(tmp_path):
@@ -35,13 +36,15 @@ def test_unpacks_once_and_exports(tmp_path):
     _txz(repo / ".menagerie" / "menagerie_all.tar.xz", "menagerie/unitree_go1/go1.xml", "<mujoco/>")
     out = _source(repo, site, "abc1234")
     assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == f"{site}:{repo}|{repo}/.menagerie/menagerie|abc1234"
+    assert out.stdout.strip() == (f"{site}:{repo}|{repo}/.menagerie/menagerie|abc1234"
+                                  "|/tmp/jax_cache")  # JAX's persistent compilation cache
     assert (site / "pkg" / "mod.py").read_text() == "x = 1" and (site / ".done").exists()
     assert (repo / ".menagerie" / "menagerie" / "unitree_go1" / "go1.xml").exists()
     # once per machine: a second call finds both and unpacks nothing (the archives may be gone)
     (repo / ".whl" / "split" / "site.part.aa").unlink()
     (repo / ".menagerie" / "menagerie_all.tar.xz").unlink()
-    assert _source(repo, site).returncode == 0
+    again = _source(repo, site, env={"JAX_COMPILATION_CACHE_DIR": "/x/cache"})
+    assert again.returncode == 0 and again.stdout.strip().endswith("|/x/cache")  # a set one kept
 
 
 def test_the_older_archive_names(tmp_path):

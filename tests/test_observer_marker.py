@@ -36,3 +36,21 @@ def test_marker_counts_caught_and_missed_falls_and_the_upright_share_above(exper
     # the upward entry alone: these traces' estimates lie along x, so nothing is caught
     r = mod.marker(traces, 3.5, component="vertical")
     assert (r["caught"], r["missed"], r["upright_episodes_above"]) == (0, 2, 0)
+
+
+def test_the_replayed_gate_holds_as_the_planner_does_and_shares_grow_with_the_hold(experiment):
+    """``handed``: step i reads the estimate after step i - 1, the policy acts while it is above
+    the threshold and ``hold`` steps after; ``hand_over_shares`` averages over upright episodes
+    only, the hold given in seconds."""
+    mod = experiment("observer_marker")
+    est = np.array([0.0, 3.0, 1.0, 1.0, 1.0, 1.0, 3.0, 3.0, 1.0, 1.0])
+    np.testing.assert_array_equal(mod.handed(est, 2.5, 0),
+                                  [0, 0, 1, 0, 0, 0, 0, 1, 1, 0])
+    np.testing.assert_array_equal(mod.handed(est, 2.5, 2),
+                                  [0, 0, 1, 1, 1, 0, 0, 1, 1, 1])
+    assert not mod.handed(est, 3.0, 5).any()  # never above (3.0 is not)
+    traces = [_trace(np.r_[0.0, 4.0, np.zeros(98)]),  # up: one crossing
+              _trace(np.full(100, 4.0), fall_at=50)]  # fell: not counted
+    got = mod.hand_over_shares(traces, 3.5, [0.0, 0.2, 1.0])  # dt 0.02: 0, 10, 50 steps
+    assert got == {"0": 0.01, "0.2": 0.11, "1": 0.51}
+    assert mod.hand_over_shares(traces[1:], 3.5, [1.0]) == {"1": None}

@@ -33,3 +33,30 @@ def test_bad_input_is_named(experiment, tmp_path):
         mod.main(["--models", f"stride={tmp_path}", "--draws", "0", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit, match="--nfe is -1"):
         mod.main(["--models", f"stride={tmp_path}", "--nfe", "-1", "--out", str(tmp_path / "x")])
+
+
+def test_the_prior_alone_is_the_models_prior_term(experiment):
+    """``prior_alone`` keeps the trained prior and leaves the residual force out: its
+    acceleration is the model's own ``terms(...)['prior']``, not the full prediction; a model
+    without a residual is refused by name."""
+    import jax
+    import jax.numpy as jnp
+
+    import stride_jax.dynamics as dyn
+    from stride_jax.dynamics import mlp, models, stride
+
+    mod = experiment("scenario_model_error")
+    spec = dyn.ModelSpec(nq=3, nv=3, floating_base=False)
+    cfg = stride.StructuredConfig(net=mlp.MLPConfig(hidden=16, depth=2))
+    model = models.make("delan", spec, None, cfg)
+    params = model.init(jax.random.key(0))
+    # a residual that pushes: the last layer is zero at init, so scale everything up
+    params["residual"] = jax.tree.map(lambda w: w + 0.5, params["residual"])
+    q, qd, tau = jnp.array([0.3, -0.2, 0.1]), jnp.array([0.5, 0.0, -0.4]), jnp.ones(3)
+    prior, p_params = mod.prior_alone(model, params)
+    got = prior.acceleration(p_params, q, qd, tau, None)
+    split = model.terms(params, q, qd, tau, None)
+    np.testing.assert_allclose(got, split["prior"], rtol=1e-5, atol=1e-6)
+    assert float(jnp.abs(split["residual"]).max()) > 1e-2  # the full model differs
+    with pytest.raises(ValueError, match="no residual"):
+        mod.prior_alone(prior, p_params)

@@ -22,9 +22,11 @@ import numpy as np
 from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
-from stride_jax.control.planning import N_DIST, Planning, augment, update_disturbance
-from stride_jax.control.scenarios import (Scenario, command_at, gravity_at, push_schedule,
-                                          scenario_model, schedule, tilt_schedule, world_at)
+from stride_jax.control.planning import (N_DIST, Planning, PlanningConfig, augment,
+                                         make_planning, update_disturbance)
+from stride_jax.control.scenarios import (Scenario, command_at, governed, gravity_at,
+                                          push_schedule, scenario_model, schedule, tilt_schedule,
+                                          world_at)
 from stride_jax.sim import model as sim_model, rollout_mjx
 
 
@@ -276,6 +278,22 @@ def policy_episode(world: World, planning: Planning,
         return jax.lax.scan(body, (d0, jnp.zeros(())), jnp.arange(n_steps))[1]
 
     return run()
+
+
+def policy_alone(sm: sim_model.SimModel, sc: Scenario, policy_run: str, govern: bool = False
+                 ) -> tuple[PolicyEpisode, envs.EnvConfig]:
+    """The PPO policy of run ``policy_run`` alone in scenario ``sc`` (:func:`policy_episode` in
+    its :func:`scenario_world`; ``govern``: the commands clipped to the policy's training range,
+    :func:`stride_jax.control.scenarios.governed`, as the closed loop's ``--govern`` shows them):
+    the episode, on the host, and the policy's task settings."""
+    from stride_jax.control import ppo  # (the PPO stack loads only where a policy is read)
+    policy, _, env_cfg = ppo.load_policy(policy_run)
+    if govern:
+        sc = governed(sc, env_cfg.commands.bounds())
+    world = scenario_world(sm, sc)
+    truth = make_planning(PlanningConfig(), env_cfg, sm,
+                          envs.mjx_step_fn(sm.n_substeps, world.mx), policy, None)
+    return jax.device_get(policy_episode(world, truth)), env_cfg
 
 
 # ---------------------------------------------------------------------------------------------

@@ -306,6 +306,13 @@ class Planner(NamedTuple):
     latents: str = "step"  # how its rollouts draw a stochastic model's latents (MPPIConfig's)
 
 
+def hold(trigger: jax.Array, left: jax.Array, steps: int) -> tuple[jax.Array, jax.Array]:
+    """A trigger held ``steps`` control steps after it last fired (the recovery alarm's
+    ``alarm_hold``, the trust gate's ``distrust_hold``): ``(active, left')`` from this step's
+    ``trigger`` and the steps ``left`` of the hold before it."""
+    return trigger | (left > 0), jnp.where(trigger, steps, jnp.maximum(left - 1, 0))
+
+
 def sample_sharding() -> NamedSharding | None:
     """The samples split over all local devices (None on one device)."""
     devices = jax.local_devices()
@@ -537,10 +544,8 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
         held = state.held
         wide = jnp.zeros((), bool)
         if recovery:  # the alarm now, or a recovery still held since it last rang
-            ringing = jnp.asarray(alarm(q_in, qd_in), bool)
-            wide = ringing | (held > 0)
-            held = jnp.where(good_state, jnp.where(ringing, cfg.alarm_hold,
-                                                   jnp.maximum(held - 1, 0)), held)
+            wide, left = hold(jnp.asarray(alarm(q_in, qd_in), bool), held, cfg.alarm_hold)
+            held = jnp.where(good_state, left, held)
         for i in range(cfg.iterations):
             plan, z, info = iterate(plan, z, q_in, qd_in, jax.random.fold_in(key_step, i), wide)
         plan = jnp.where(good_state, plan, warm)
@@ -550,11 +555,10 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
         u = plan[0]
         distrusted = state.distrusted
         if distrust is not None:  # the model now, or the policy still held since it last failed
-            failing = jnp.asarray(distrust(q_in, qd_in), bool)
-            hand_over = good_state & (failing | (distrusted > 0))
-            distrusted = jnp.where(good_state, jnp.where(failing, cfg.distrust_hold,
-                                                         jnp.maximum(distrusted - 1, 0)),
-                                   distrusted)
+            failing, left = hold(jnp.asarray(distrust(q_in, qd_in), bool), distrusted,
+                                 cfg.distrust_hold)
+            hand_over = good_state & failing
+            distrusted = jnp.where(good_state, left, distrusted)
             u_policy = jnp.clip(policy(q_in, qd_in), lo, hi)
             u = jnp.where(hand_over & jnp.all(jnp.isfinite(u_policy)), u_policy, u)
             status = jnp.where(hand_over, DISTRUSTED, status).astype(jnp.int32)

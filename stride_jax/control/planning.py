@@ -111,7 +111,11 @@ class PlanningConfig:
         ``results/planning_diagnosis/g1_observer_marker_sloped.md``, 57 episodes gated at 3.5)
         an estimate above 2.5 preceded all 5 falls by 2.7 s (median; 3.5: 4 of 5, 0.4 s) and
         held on 2.0% of the upright episodes' steps (1.4 points of it on the tilt, where STRIDE's
-        and ONN's models are biased, 0.6 under pushes).
+        and ONN's models are biased, 0.6 under pushes). At 2.5 on new draws (session 51,
+        ``results/closed_loop_g1_gpu/gate25.md``) STRIDE fell in none of 18 episodes over six
+        scenarios, but the 1 s hold made the policy act on 12-47% of its steps outside soft
+        ground (the estimate above 2.5 on 0-10%): the hold, not the limit, sets the share
+        (``experiments/observer_marker.py --holds``).
       trust_hold_s: the policy keeps acting this long (s) after the gate last held
         (``MPPIConfig.distrust_hold``; 0: only while it holds).
       trust_overshoot: a second trigger of the model-trust gate (m/s; 0: off; needs a policy):

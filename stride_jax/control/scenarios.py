@@ -66,6 +66,15 @@ SCENARIOS = {
 }
 
 
+def governed(sc: Scenario, bounds) -> Scenario:
+    """``sc`` with every command clipped to ``bounds = (lo [3], hi [3])``: what the closed
+    loop's command governor (``--govern``) shows the controller, as a schedule, for analyses that
+    replay the policy alone (its scores still compare with the command asked for)."""
+    lo, hi = (np.asarray(b, float) for b in bounds)
+    return dataclasses.replace(sc, commands=tuple(
+        (c[0],) + tuple(float(x) for x in np.clip(c[1:], lo, hi)) for c in sc.commands))
+
+
 def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoco.MjModel:
     """The robot's MjModel with the scenario's ground (a copy; the nominal model is untouched)."""
     if sc.rough_m > 0:
