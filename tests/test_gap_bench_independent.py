@@ -54,6 +54,24 @@ def test_drawn_settings_differ_from_the_model_and_planting_edits_what_it_says():
     assert m.body_mass[trunk] - m0.body_mass[trunk] == 1.0
 
 
+def test_controls_are_cases_of_their_own_draws_and_keep_the_other_cases_draws():
+    cfg = bi.PRESETS["default"]
+    many = dataclasses.replace(cfg, controls=3)
+    assert [c["kind"] for c in bi.cases(many)[:4]] == ["control"] * 3 + ["single"]
+    assert bi.cases(many)[3:] == bi.cases(cfg)[1:]
+    assert bi.PRESETS["controls"].controls > 1 and {c["kind"] for c in bi.cases(bi.PRESETS["controls"])} == {"control"}
+    # each control index draws its own simulator settings
+    robot, m0 = robots.get("go1"), gen.robot_spec("go1").compile()
+    draws = [gen.draw_settings(m0, np.random.default_rng([cfg.seed, i]), robot.ctrl_dt) for i in range(3)]
+    assert draws[0] != draws[1] != draws[2]
+    try:
+        bi.cases(dataclasses.replace(cfg, controls=0))
+    except ValueError as err:
+        assert "controls" in str(err)
+    else:
+        raise AssertionError("no error for zero controls")
+
+
 def test_tiny_preset_end_to_end(tmp_path):
     assert cli.main(["bench-independent", "--preset", "tiny", "--out", str(tmp_path)]) == 0
     name = bi.PRESETS["tiny"].name
@@ -66,6 +84,9 @@ def test_tiny_preset_end_to_end(tmp_path):
     (ctrl,) = [r for r in res["cases"] if r["kind"] == "control"]
     assert ctrl["calibration"] and ctrl["verdict"] == "no significant gap"
     assert "simulator settings found" in res["control_verdict"]["noise_free"][0]
+    assert ctrl["detection"]["significant"] is False and ctrl["detection"]["rule"] == "detection"
+    assert ctrl["detection"]["p_value"] >= ctrl["detection"]["level"]
+    assert (res["summary"]["noise_free"]["controls_detected"], res["summary"]["noise_free"]["controls"]) == (0, 1)
     (single,) = [r for r in res["cases"] if r["kind"] == "single"]
     assert single["shrink_ratio"] > 0.8 and single["clean"]["shrink_vs_nominal"] > 0.9
     assert (tmp_path / f"{name}.md").read_text().startswith("# Sim-to-real gap: independent benchmark")

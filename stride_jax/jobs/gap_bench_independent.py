@@ -50,6 +50,9 @@ class IndependentConfig:
       sensor_spec: the noisy logs carry the sensors' noise levels in their header
         (``velocity_noise``, as a real robot's logs can from its sensors' specification), and the
         diagnosis computes its noise floor from them instead of reading it off the residuals.
+      controls: no-effect cases, each with its own drawn simulator settings (cases ``0 ..
+        controls - 1``; with one, the other cases keep their draws): how often the tool calls a
+        physical effect where only the simulator's form differs.
     """
 
     robot: str
@@ -64,6 +67,7 @@ class IndependentConfig:
     seed: int = 1
     name: str = "gap_bench_go1_independent"
     sensor_spec: bool = False
+    controls: int = 1
 
 
 PRESETS = {
@@ -90,11 +94,17 @@ PRESETS["small"] = dataclasses.replace(PRESETS["default"], trajectories=5, steps
 # read off the residuals is off by 0.08-3.1 x, results/gap_noise_floor_check.md)
 PRESETS["sensor_spec"] = dataclasses.replace(PRESETS["default"], noise=(True,), sensor_spec=True,
                                              name="gap_bench_go1_independent_sensor_spec")
+# the detection's level on the Go1 (issue 18, item 3): 20 no-effect cases, each with its own drawn
+# simulator settings, clean and noisy; a call of a physical effect on any of them is a false one
+PRESETS["controls"] = dataclasses.replace(PRESETS["default"], singles=(), pairs=(), out_of_library=(), controls=20,
+                                          name="gap_bench_go1_independent_controls")
 
 
 def cases(cfg: IndependentConfig) -> list[dict[str, Any]]:
     """Every case: ``{"kind", "planted"}`` (control, single, pair, out_of_library)."""
-    out = [{"kind": "control", "planted": {}}]
+    if cfg.controls < 1:
+        raise ValueError(f"controls must be at least 1 (the benchmark's control case), got {cfg.controls}")
+    out = [{"kind": "control", "planted": {}} for _ in range(cfg.controls)]
     out += [{"kind": "single", "planted": {n: v}} for n, v in cfg.singles]
     out += [{"kind": "pair", "planted": dict(p)} for p in cfg.pairs]
     out += [{"kind": "out_of_library", "planted": {n: v}} for n, v in cfg.out_of_library]

@@ -104,6 +104,9 @@ def score(sm: SimModel, case: dict, res: dict, clean_held: list, settings: dict,
     wh = res.get("which")
     if not wh:
         return row
+    det = wh["detection"]
+    row["detection"] = {"p_value": det["p_value"], "level": det["level"], "significant": bool(det["significant"]),
+                        "probe_explained": wh["probe_explained_nominal"], "rule": v.get("rule")}
     best = wh["ranking"][0]
     row["best"] = {"effects": best["effects"], "params": best["params"], "lo": best["param_lo"],
                    "hi": best["param_hi"], "explained": best["explained"]}
@@ -175,7 +178,9 @@ def summary(rows: list[dict]) -> dict[str, Any]:
             "median_shrink_single": med([r["shrink_ratio"] for r in singles if "shrink_ratio" in r]),
             "confident_false": int(sum(confident_false(r)[0] for r in rs)),
             "confident_partial": int(sum(confident_false(r)[1] for r in rs)),
-            "control_verdict": [f"{r['verdict']}; simulator settings found: {'; '.join(r['calibration']) or 'none'} "
+            "control_verdict": [f"{r['verdict']}" + (f" (sign-flip p = {r['detection']['p_value']:.3g})"
+                                                     if "detection" in r else "")
+                                + f"; simulator settings found: {'; '.join(r['calibration']) or 'none'} "
                                 f"(drawn: {r['real_settings']})" for r in ctrl],
             "top1_single_strict": mean([r["correct_strict"] for r in singles]),
             "right_as_set": sorted("+".join(r["planted"]) for r in rs if r["correct_as_set"]),
@@ -187,6 +192,9 @@ def summary(rows: list[dict]) -> dict[str, Any]:
             "median_shrink_vs_nominal_single": med([r["clean"]["shrink_vs_nominal"] for r in singles if "clean" in r]),
             "median_calibration_shrink": med([r["clean"]["calibration_shrink"] for r in rs if "clean" in r]),
             "out_of_library_verdicts": [r["verdict"] for r in kind["out_of_library"]],
+            # the detection's level: controls on which it called a gap on top of the calibrated settings
+            "controls_detected": int(sum(r["verdict"] != "no significant gap" for r in ctrl)),
+            "controls": len(ctrl),
             "cases": len(rs),
         }
     return out
@@ -217,7 +225,8 @@ def markdown(cfg, rows: list[dict], summ: dict, command: str, seconds: float) ->
               "top1_single_strict",
               "right_as_set", "not_nameable", "top1_single_nameable", "pairs_not_nameable",
               "top1_pairs_nameable", "median_share_ratio_single",
-              "median_shrink_vs_nominal_single", "median_calibration_shrink", "out_of_library_verdicts"):
+              "median_shrink_vs_nominal_single", "median_calibration_shrink", "out_of_library_verdicts",
+              "controls_detected", "controls"):
         L.append(f"| {k} | {f(summ.get('noise_free', {}).get(k))} | {f(summ.get('noisy', {}).get(k))} |")
     L += ["", "Control:", ""]
     for key in ("noise_free", "noisy"):
