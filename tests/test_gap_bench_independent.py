@@ -86,7 +86,8 @@ def test_tiny_preset_end_to_end(tmp_path):
     assert "simulator settings found" in res["control_verdict"]["noise_free"][0]
     assert ctrl["detection"]["significant"] is False and ctrl["detection"]["rule"] == "detection"
     assert ctrl["detection"]["p_value"] >= ctrl["detection"]["level"]
-    assert (res["summary"]["noise_free"]["controls_detected"], res["summary"]["noise_free"]["controls"]) == (0, 1)
+    summ = res["summary"]["noise_free"]
+    assert (summ["controls_detected"], summ["controls_named"], summ["controls"]) == (0, 0, 1)
     (single,) = [r for r in res["cases"] if r["kind"] == "single"]
     assert single["shrink_ratio"] > 0.8 and single["clean"]["shrink_vs_nominal"] > 0.9
     assert (tmp_path / f"{name}.md").read_text().startswith("# Sim-to-real gap: independent benchmark")

@@ -192,8 +192,11 @@ def summary(rows: list[dict]) -> dict[str, Any]:
             "median_shrink_vs_nominal_single": med([r["clean"]["shrink_vs_nominal"] for r in singles if "clean" in r]),
             "median_calibration_shrink": med([r["clean"]["calibration_shrink"] for r in rs if "clean" in r]),
             "out_of_library_verdicts": [r["verdict"] for r in kind["out_of_library"]],
-            # the detection's level: controls on which it called a gap on top of the calibrated settings
+            # no-effect cases: on how many a gap was left on top of the calibrated settings (detected:
+            # the calibration did not take up all of the simulator's form), and on how many a physical
+            # effect was named for it (a false attribution, confident or not)
             "controls_detected": int(sum(r["verdict"] != "no significant gap" for r in ctrl)),
+            "controls_named": int(sum(r["verdict"] == "explained" for r in ctrl)),
             "controls": len(ctrl),
             "cases": len(rs),
         }
@@ -226,7 +229,7 @@ def markdown(cfg, rows: list[dict], summ: dict, command: str, seconds: float) ->
               "right_as_set", "not_nameable", "top1_single_nameable", "pairs_not_nameable",
               "top1_pairs_nameable", "median_share_ratio_single",
               "median_shrink_vs_nominal_single", "median_calibration_shrink", "out_of_library_verdicts",
-              "controls_detected", "controls"):
+              "controls_detected", "controls_named", "controls"):
         L.append(f"| {k} | {f(summ.get('noise_free', {}).get(k))} | {f(summ.get('noisy', {}).get(k))} |")
     L += ["", "Control:", ""]
     for key in ("noise_free", "noisy"):
