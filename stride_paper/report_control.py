@@ -350,6 +350,16 @@ def gap_lines(results: pathlib.Path, rel) -> list[str]:
                          f"median shrink of the truth's own {_num(s.get('median_shrink_single'))}, confident false "
                          f"{s.get('confident_false')}, confident partial {s.get('confident_partial')} "
                          f"({s.get('cases')} cases)")
+    q = results / "gap_bench_go1_independent_controls.json"
+    if q.is_file():  # the detection's level: no-effect cases with drawn simulator settings
+        d = _load_json(q)
+        md = q.with_suffix(".md")
+        lines += ["", f"No-effect controls with drawn simulator settings, `{rel(q)}` (command `{d.get('command')}`"
+                  + (f"; details in [{md.name}]({rel(md)})" if md.is_file() else "") + "):"]
+        for k, s in (d.get("summary") or {}).items():
+            lines.append(f"- {k}: a gap called on top of the calibrated settings in {s.get('controls_detected')} of "
+                         f"{s.get('controls')}, a physical effect named in {s.get('controls_named')}, confidently "
+                         f"in {s.get('confident_false')}")
     return lines + [""]
 
 

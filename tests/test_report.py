@@ -308,3 +308,19 @@ def test_further_data_sets_get_their_own_ratios_and_targets(results):
     assert "0.95" in mean_state[0] and "does not hold" in mean_state[0]
     energy = [r for r in rows if r.startswith("| stride | energy score")][0]
     assert "0.60" in energy and "(better)" in energy
+
+
+def test_gap_controls_are_reported_from_their_own_file(results):
+    from stride_paper import report_control
+
+    rel = lambda p: p.relative_to(results).as_posix()
+    _write(results / "gap_bench.json", {"command": "stride gap bench", "summary": {}})
+    assert not any("No-effect controls" in x for x in report_control.gap_lines(results, rel))
+    _write(results / "gap_bench_go1_independent_controls.json",
+           {"command": "stride gap bench-independent --preset controls",
+            "summary": {"noise_free": {"controls_detected": 4, "controls_named": 1, "controls": 20,
+                                       "confident_false": 0}}})
+    text = "\n".join(report_control.gap_lines(results, rel))
+    assert "No-effect controls" in text and "--preset controls" in text
+    assert "noise_free: a gap called on top of the calibrated settings in 4 of 20, a physical effect named in 1, " \
+           "confidently in 0" in text
