@@ -69,6 +69,10 @@ class IndependentConfig:
     sensor_spec: bool = False
     controls: int = 1
 
+    def __post_init__(self):
+        if self.controls < 1:
+            raise ValueError(f"controls must be at least 1 (the benchmark's control case), got {self.controls}")
+
 
 PRESETS = {
     # CI: the pendulum, a control and one effect, clean logs, the tiny diagnosis without pairs
@@ -102,8 +106,6 @@ PRESETS["controls"] = dataclasses.replace(PRESETS["default"], singles=(), pairs=
 
 def cases(cfg: IndependentConfig) -> list[dict[str, Any]]:
     """Every case: ``{"kind", "planted"}`` (control, single, pair, out_of_library)."""
-    if cfg.controls < 1:
-        raise ValueError(f"controls must be at least 1 (the benchmark's control case), got {cfg.controls}")
     out = [{"kind": "control", "planted": {}} for _ in range(cfg.controls)]
     out += [{"kind": "single", "planted": {n: v}} for n, v in cfg.singles]
     out += [{"kind": "pair", "planted": dict(p)} for p in cfg.pairs]
