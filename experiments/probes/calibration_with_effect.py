@@ -29,9 +29,9 @@ from stride_jax.jobs import gap_bench_independent as bi
 def row_data(bcfg, case: int, noisy: bool):
     """A benchmark row's logs as ``diagnose`` prepares them, its diagnosis config and the drawn
     settings."""
-    sm, trajs, _, settings, _ = bi.as_read(bcfg, case, noisy)
+    sm, trajs, _, settings, _, velocity_std = bi.as_read(bcfg, case, noisy)
     cfg = diagnose.PRESETS[bcfg.diagnose]
-    return diagnose.prepare(sm, trajs, cfg), cfg, settings
+    return diagnose.prepare(sm, trajs, cfg, velocity_std), cfg, settings
 
 
 def shares(bcfg) -> None:
