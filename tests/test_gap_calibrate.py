@@ -210,6 +210,34 @@ def test_discrete_and_continuous_settings_in_turns_revisit_a_discrete_pick():
     assert best.timestep == 0.002 and cont == {}
 
 
+def test_a_second_start_fits_the_contact_first_where_the_discrete_sweep_takes_a_wrong_turn():
+    # a synthetic training loss: at the model's own contact time constant (factor 1) the
+    # pyramidal cone looks better, so the discrete-first search keeps it; the elliptic cone with
+    # its own fitted constant is far better, which only the continuous-first start finds
+    opt = {"elliptic": 2.0, "pyramidal": 1.2}
+    floor = {"elliptic": 0.01, "pyramidal": 1.0}
+    weight = {"elliptic": 50.0, "pyramidal": 1.0}
+    cone = lambda s: s.cone or "elliptic"
+    loss = lambda s: floor[cone(s)] + weight[cone(s)] * (s.solref_timeconst - opt[cone(s)]) ** 2
+    fit_cont = lambda s: (dataclasses.replace(s, solref_timeconst=opt[cone(s)]), floor[cone(s)])
+    values = {"timestep": [], "integrator": [], "cone": ["elliptic", "pyramidal"], "contacts": [],
+              "foot_condim": [], "iterations": []}
+    own, start = {"cone": "elliptic"}, Settings(cone="elliptic")
+    runs = {}
+    for first in (False, True):
+        cfg = calibrate.CalibrateConfig(continuous_first=first)
+        best, _, cont, path, search = calibrate.two_starts(start, start, values, own, loss, fit_cont,
+                                                           ["solref_timeconst"], cfg)
+        runs[first] = (cone(best), best.solref_timeconst, search, [p["setting"] for p in path])
+    assert runs[False] == ("pyramidal", 1.2, "discrete first", ["cone"])
+    assert runs[True] == ("elliptic", 2.0, "continuous first", [])
+    # where the second start finds nothing better, the first search's result stays
+    flat = lambda s: floor[cone(s)]  # the constant does not matter: the sweep keeps elliptic
+    best, _, _, _, search = calibrate.two_starts(start, start, values, own, flat, fit_cont, ["solref_timeconst"],
+                                                 calibrate.CalibrateConfig())
+    assert (cone(best), search) == ("elliptic", "discrete first")
+
+
 def test_a_finer_time_step_must_pay_for_the_replays_it_multiplies():
     # from 2 ms: 1 ms doubles every later replay, so it must lower the loss by 2 x min_gain (2%);
     # from 4 ms, 2 ms likewise; a coarser step needs min_gain alone
