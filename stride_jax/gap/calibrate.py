@@ -112,7 +112,8 @@ class CalibrateConfig:
       second_start: the share of the nominal model's training loss that contact effect must close
         on its own for that second start (1 or more: never).
       continuous_first: also search from the continuous settings fitted first (step 3c), keeping
-        the lower training loss (costs one more search: 16-28 s on the shipped Go1's 6 x 4 s logs).
+        the lower training loss (one more search: 16-28 s on the shipped Go1's 6 x 4 s logs, ~33 s
+        on 12 x 8 s; only in a first pass, not in a pass started from its settings).
     """
 
     mode: str = "fit"
@@ -483,7 +484,11 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
     cont = _names(cfg.continuous) if contacts else []  # nothing collides: contact parameters change nothing
     fit_cont = lambda s: fit_continuous(sm, s, sub, scale, cont, cfg.max_nfev, applied, cache, evals)[:2]
     nominal_discrete = dataclasses.replace(Settings(), **{n: own[n] for n in DISCRETE if own.get(n) is not None})
-    best, ties, cont_fit, path, search = two_starts(best, nominal_discrete, values, own, loss, fit_cont, cont, cfg)
+    # a later pass (``start``: the first pass's settings, which came from the better of the two
+    # starts) searches from there alone: its second start would repeat the first pass's (+33 s of
+    # a 5-minute Go1 diagnosis, results/gap_speed.md)
+    once = dataclasses.replace(cfg, continuous_first=False) if start is not None else cfg
+    best, ties, cont_fit, path, search = two_starts(best, nominal_discrete, values, own, loss, fit_cont, cont, once)
     # held-out check
     base = nominal.apply(sm, best)
     best = _neutral(best, own)
