@@ -24,6 +24,9 @@ for f in "$@"; do [ "$f" = --planning.model-gravity ] && gate=2.5; done
 if [ "$robot" = go1 ]; then  # K = 1024: 64 policy, 256 command-family, 352 prior, 352 plan
   # observer gain 0.3 and tracking weight 30 since session 21 (results/closed_loop_go1_gpu/
   # parts/tw30_obs03; the rows @walk ran with 0.1 and 10)
+  # No trust gate: G1's 2.5 (below), tried on Go1's sloped-data models in session 53, handed
+  # 85-93% of the rough ground to the policy and lost the planner's gain there
+  # (results/closed_loop_go1_gpu/gate25.md); a later --planning.trust-limit among the flags sets one.
   common+=(--mppi.policy-samples 64 --mppi.family-samples 256 --mppi.prior-fraction 0.5
            --prior-noise-std 0.08 --planning.observer-gain 0.3 --planning.learned-track-weight 30)
 else  # G1: closer to the policy (the settings that kept G1 planners up before,
