@@ -708,6 +708,26 @@ def test_the_trust_gate_reads_the_observers_linear_estimate(go1):
         planning_lib.PlanningConfig(observer_gain=0.1, trust_limit=-1.0)
 
 
+def test_the_stop_prior_prices_the_familys_offsets_at_a_stop_command_only(go1):
+    """``family_cost_stop``: the offsets' prior the planning hands MPPI is the full cost at a
+    stop command and fades with the command's size (``stop_speed``); it needs the policy
+    family, and bad settings are named."""
+    policy = lambda obs, key: jnp.zeros(go1.info.nu)
+    cfg = planning_lib.PlanningConfig(family_cost_stop=0.3, stop_speed=0.1)
+    planning = planning_lib.make_planning(cfg, envs.config("go1"), go1, _fake_step, policy)
+    q0, qd = jnp.asarray(go1.info.qpos0), jnp.zeros(go1.mj.nv)
+    at = lambda cmd: float(planning.family_prior(planning_lib.augment(q0, jnp.asarray(cmd)), qd))
+    assert at([0.0, 0.0, 0.0]) == pytest.approx(0.3)
+    assert at([0.05, 0.0, 0.0]) == pytest.approx(0.3 * np.exp(-0.25), rel=1e-5)
+    assert at([1.0, 0.0, 0.0]) < 1e-30 and at([0.0, 0.0, 0.5]) < 1e-9  # walking or turning
+    assert planning_lib.make_planning(planning_lib.PlanningConfig(), envs.config("go1"), go1,
+                                      _fake_step, policy).family_prior is None
+    with pytest.raises(ValueError, match="family_cost_stop=0.3 .*needs a PPO policy"):
+        planning_lib.make_planning(cfg, envs.config("go1"), go1, _fake_step)
+    with pytest.raises(ValueError, match="stop_speed=0"):
+        planning_lib.PlanningConfig(family_cost_stop=0.3, stop_speed=0.0)
+
+
 def test_the_trust_gate_also_reads_a_forward_overshoot_of_the_command(go1):
     """``trust_overshoot``: the policy also acts while the base's forward velocity (base frame)
     exceeds the commanded one by more than it; with both triggers either one holds the gate;

@@ -377,6 +377,32 @@ def test_a_policy_family_finds_the_command_offset_its_policy_lacks():
         mppi.MPPIConfig(family_decay=1.5)
 
 
+def test_a_state_dependent_family_prior_prices_offsets_only_where_it_acts():
+    """``family_prior(q, qd)`` adds to the offsets' prior where the state asks for it (the
+    closed loop's stop command): the same planner finds the drift's offset where the prior is
+    off and keeps the plain policy where it is on."""
+    drift = lambda q, qd, u, key=None: (q + u - 0.5, qd)
+    family = lambda q, qd, z: (1.0 + z) - q
+    policy = lambda q, qd: family(q, qd, jnp.zeros(1))
+    cost = lambda q, qd, u, t: (q[0] - 1.0) ** 2
+    prior = lambda q, qd: 100.0 * qd[0]  # qd[0]: a flag the task carries (1: a stop)
+    cfg = mppi.MPPIConfig(samples=64, horizon=4, family_samples=56, policy_samples=8,
+                          family_std=(0.3,), family_range=2.0, temperature=0.1)
+    planner = mppi.make(cfg, drift, cost, [-5.0], [5.0], policy=policy, family=family,
+                        family_prior=prior)
+    step = jax.jit(planner.step)
+    z = {}
+    for flag in (0.0, 1.0):
+        state, q = planner.init(jax.random.key(0)), jnp.full(1, 0.5)
+        for _ in range(8):
+            _, state, _ = step(state, q, jnp.full(1, flag))
+        z[flag] = float(state.z[0])
+    assert z[0.0] > 0.3 and abs(z[1.0]) < 0.1, z
+    with pytest.raises(ValueError, match="family_prior"):
+        mppi.make(dataclasses.replace(cfg, family_samples=0, policy_samples=0), drift, cost,
+                  [-5.0], [5.0], family_prior=prior)
+
+
 def test_distrust_hands_the_action_to_the_policy_and_keeps_the_plan_warm():
     """While ``distrust`` holds (and ``distrust_hold`` steps after) the step applies the policy's
     action (clipped to the bounds) and says DISTRUSTED, but plans as without it: the same plan

@@ -326,7 +326,8 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
          terminal_value: Callable | None = None, policy: Callable | None = None,
          sharding: NamedSharding | None = None, disagreement: Callable | None = None,
          step_error: Callable | None = None, family: Callable | None = None,
-         alarm: Callable | None = None, distrust: Callable | None = None) -> Planner:
+         alarm: Callable | None = None, distrust: Callable | None = None,
+         family_prior: Callable | None = None) -> Planner:
     """An MPPI planner for ``dynamics(q, qd, action, key) -> (q', qd')``.
 
     ``running_cost(q, qd, action, t) -> []`` is the cost of taking ``action`` at ``(q, qd)`` at
@@ -338,7 +339,9 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
     over them. The model's predicted error per step: ``disagreement(qs [E, nq], qds [E, nv]) ->
     []`` of ``cfg.error_draws`` draws (default :func:`velocity_spread`), and/or a learned
     ``step_error(q, qd, action) -> []`` (both: added in quadrature). ``family(q, qd, z) ->
-    action``: a family of policies indexed by an offset ``z`` (``cfg.family_samples``).
+    action``: a family of policies indexed by an offset ``z`` (``cfg.family_samples``);
+    ``family_prior(q, qd) -> []``: a coefficient of the offsets' prior that depends on the
+    state (the command a task carries in it), added to ``cfg.family_cost``.
     ``alarm(q, qd) -> bool []``: when the recovery candidates plan (``cfg.alarm_noise_std``).
     ``distrust(q, qd) -> bool []``: when the policy acts instead of the plan (needs a policy).
     """
@@ -356,6 +359,8 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
                          f"follow the policy through the model)")
     if cfg.family_samples and family is None:
         raise ValueError(f"family_samples={cfg.family_samples} needs a family of policies")
+    if family_prior is not None and family is None:
+        raise ValueError("family_prior prices the family's offsets: it needs a family of policies")
     if distrust is not None and policy is None:
         raise ValueError("distrust needs a policy (it acts while the model is not trusted)")
     recovery = bool(np.any(np.asarray(cfg.alarm_noise_std) > 0))
@@ -513,8 +518,9 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
             zs = jnp.clip(zs.at[0].set(z_mean), -cfg.family_range, cfg.family_range)
             fam = batch(closed_loop, q, qd, jax.random.split(key_fam, n_fam),
                         jnp.zeros((n_fam, H, nu)), zs)
-            if cfg.family_cost:
-                prior = cfg.family_cost * jnp.sum((zs / jnp.maximum(z_std, 1e-6)) ** 2, axis=1)
+            if cfg.family_cost or family_prior is not None:
+                coef = cfg.family_cost + (0.0 if family_prior is None else family_prior(q, qd))
+                prior = coef * jnp.sum((zs / jnp.maximum(z_std, 1e-6)) ** 2, axis=1)
                 fam = (fam[0] + prior,) + tuple(fam[1:])
             groups.append(fam)
         costs, actions, err, kept = (jnp.concatenate(x) for x in zip(*groups))

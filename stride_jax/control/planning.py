@@ -81,6 +81,18 @@ class PlanningConfig:
         (``LNNConfig.potential``) or models trained over the orientations told.
       family_std: std of the command offsets of the policy family's candidates
         (``--mppi.family-samples``): vx (m/s) and yaw rate (rad/s); vy gets half.
+      family_cost_stop: a prior on the family's offsets that acts at a stop command:
+        ``family_cost_stop * exp(-|command|^2 / stop_speed^2)`` is added to
+        ``MPPIConfig.family_cost`` (``mppi.make``'s ``family_prior``; ``|command|`` over vx, vy
+        in m/s and the yaw rate in rad/s). Why: after G1's stop command its planners creep on
+        (+0.11-0.24 m/s over the last second, the policy +0.05): through the learned model the
+        plain policy is predicted to drift backward at a stop, and an offset asking it to walk
+        wins the tracking cost (``results/planning_diagnosis/README.md``, session 51). A
+        constant ``--mppi.family-cost 0.3`` halved that creep in closed loop but gave back the
+        planner's gains on soft ground and the tilt, where offsets help at speed
+        (``results/closed_loop_g1_gpu/family_cost.md``, session 53); this one prices them at a
+        stop only. 0: off; needs a policy family.
+      stop_speed: the command magnitude below which ``family_cost_stop`` acts (the exp's scale).
       alarm_speed: the recovery alarm (0: off): while the base's velocity-tracking error
         (``sqrt((vx - vx*)^2 + (vy - vy*)^2 + (yaw rate - yaw rate*)^2 / 2)``, the tracking
         term's, in the planner's state) exceeds this (m/s), the planner draws its recovery
@@ -147,6 +159,8 @@ class PlanningConfig:
     observer_angular: bool = False
     model_gravity: bool = False
     family_std: float = 0.3
+    family_cost_stop: float = 0.0
+    stop_speed: float = 0.1
     alarm_speed: float = 0.0
     recovery_noise_std: float = 0.5
     alarm_hold_s: float = 0.0
@@ -162,6 +176,9 @@ class PlanningConfig:
         if self.trust_limit and not self.observer_gain:
             raise ValueError(f"trust_limit={self.trust_limit} reads the disturbance observer's "
                              f"estimate: it needs observer_gain > 0")
+        if self.family_cost_stop < 0 or not self.stop_speed > 0:
+            raise ValueError(f"family_cost_stop={self.family_cost_stop} must be >= 0 and "
+                             f"stop_speed={self.stop_speed} > 0")
         if self.alarm_hold_s < 0:
             raise ValueError(f"alarm_hold_s={self.alarm_hold_s} must be >= 0")
         if self.alarm_speed < 0 or not self.recovery_noise_std > 0:
@@ -200,6 +217,7 @@ class Planning(NamedTuple):
     alarm_hold: int = 0  # control steps the recovery candidates stay after the alarm last held
     distrust: Callable | None = None  # (q_aug, qd) -> bool []: the policy acts, not the plan
     distrust_hold: int = 0  # control steps the policy keeps acting after distrust last held
+    family_prior: Callable | None = None  # (q_aug, qd) -> []: the offsets' prior, state-dependent
 
 
 class Aug(NamedTuple):
@@ -374,6 +392,16 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
         def policy(q_aug, qd):
             return family(q_aug, qd, jnp.zeros(3, q_aug.dtype))
 
+    family_prior = None
+    if cfg.family_cost_stop:
+        if family is None:
+            raise ValueError(f"family_cost_stop={cfg.family_cost_stop} prices the policy "
+                             f"family's offsets: it needs a PPO policy (and no planned gait)")
+
+        def family_prior(q_aug, qd):  # the offsets' prior at a stop command
+            command = split(q_aug, nq).command
+            return cfg.family_cost_stop * jnp.exp(-jnp.sum(command ** 2) / cfg.stop_speed ** 2)
+
     alarm = None
     if cfg.alarm_speed:
         def alarm(q_aug, qd):
@@ -415,7 +443,8 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
                     reward_action, cfg.observer_gain, cfg.observer_limit, cfg.observer_angular,
                     family, alarm, recovery,
                     int(round(cfg.alarm_hold_s / sm.robot.ctrl_dt)) if alarm else 0, distrust,
-                    int(round(cfg.trust_hold_s / sm.robot.ctrl_dt)) if distrust else 0)
+                    int(round(cfg.trust_hold_s / sm.robot.ctrl_dt)) if distrust else 0,
+                    family_prior)
 
 
 def mppi_config(mppi_cfg: mppi.MPPIConfig, cfg: PlanningConfig,
@@ -453,4 +482,5 @@ def make_planner(planning: Planning, mppi_cfg: mppi.MPPIConfig) -> mppi.Planner:
     return mppi.make(mppi_cfg, planning.dynamics, planning.cost, planning.lo, planning.hi,
                      planning.value, planning.policy, disagreement=planning.disagreement,
                      family=planning.family, step_error=planning.step_error,
-                     alarm=planning.alarm, distrust=planning.distrust)
+                     alarm=planning.alarm, distrust=planning.distrust,
+                     family_prior=planning.family_prior)
