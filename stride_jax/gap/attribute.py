@@ -23,7 +23,7 @@ import numpy as np
 from scipy import stats
 
 from stride_jax.gap import (admit, effects, fit, form, granularity, linear_probe, nominal, progress, regions,
-                            replay, sim, simex)
+                            replay, sim)
 from stride_jax.gap.regions import noise_floor
 from stride_jax.gap.screen import fit_stride_of
 from stride_jax.sim.model import SimModel
@@ -64,18 +64,6 @@ def _with_interval(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict, 
     if not row["interval"]:
         f = fit.with_interval(sm, train, scale, row["_fit"], cfg.fit, cache=cache)
         row.update(param_lo=_jsonable(f.lo), param_hi=_jsonable(f.hi), interval=True, _fit=f)
-
-
-def _simex(sm: SimModel, train: fit.Data, scale: np.ndarray, row: dict, cfg: DiagnoseConfig) -> None:
-    """Moves a ranking row's values and interval by SIMEX (:mod:`stride_jax.gap.simex`): the
-    row keeps the fitted values in ``simex["fitted"]`` beside the correction's path."""
-    f = row["_fit"]
-    refit = lambda d: fit.fit(sm, d, scale, f.names, cfg.fit, f.params, interval=False).params
-    corrected, path = simex.correct(refit, train, f.params, cfg.simex)
-    est, lo, hi = simex.shifted(f.params, f.lo, f.hi, corrected,
-                                {n: effects.ALL[n].bounds(sm) for n in f.names})
-    row.update(params=_jsonable(est), param_lo=_jsonable(lo), param_hi=_jsonable(hi),
-               simex={"fitted": _jsonable(f.params), **path})
 
 
 FAR_BEHIND = 4.0
@@ -237,8 +225,6 @@ def which(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, cfg:
     _, S, pair_tests, nuisance_tests = admit.choose(rows, r_te, test, M, L_nom, blocks, Wb, boot_nom, cfg,
                                                     nuisance)
     _with_interval(sm, train, scale, rows[0], cfg, replays)  # the named hypothesis always has its interval
-    if cfg.simex.draws and not any(effects.ALL[n].integer for n in rows[0]["effects"]):
-        _simex(sm, train, scale, rows[0], cfg)
     # bootstrap probability that the chosen hypothesis beats the runner-up (for a chosen single:
     # by penalised score, against the best hypothesis that is not a superset of it; for a chosen
     # pair: unpenalised, against the best single)

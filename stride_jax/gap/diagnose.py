@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from stride_jax.gap import (baseline, calibrate, effects, filters, fit, granularity, logs, nuisance,
-                            progress, regions, residual, screen, sim, simex)
+                            progress, regions, residual, screen, sim)
 from stride_jax.gap.attribute import check_form, check_nominal, verdict, which
 from stride_jax.gap.localise import divergence, where
 from stride_jax.gap.regions import PHASES, dof_names, foot_phases, noise_floor  # noqa: F401 (re-exported)
@@ -98,11 +98,6 @@ class DiagnoseConfig:
         (:mod:`stride_jax.gap.calibrate`; ``mode = "off"``: the nominal model is the baseline).
       screen: the screen that picks the effects fitted in full, the finer effects and the finer
         choice's margin (:mod:`stride_jax.gap.screen`; ``screen.shortlist 0``: fit every candidate).
-      simex: the named hypothesis's values and intervals corrected for the bias that velocity
-        noise in the replayed start states puts into them (:mod:`stride_jax.gap.simex`;
-        ``simex.draws`` refits per added noise level, 0: off, the default: on noisy logs the
-        plain estimate's interval can miss the truth as logs grow, and the correction costs
-        ``draws x 4`` refits of the named effects). The held-out scores stay the fitted values'.
       progress: show a progress bar per stage (stderr).
     """
 
@@ -132,7 +127,6 @@ class DiagnoseConfig:
     residual: ResidualConfig = ResidualConfig()
     calibrate: calibrate.CalibrateConfig = calibrate.CalibrateConfig()
     screen: ScreenConfig = ScreenConfig()
-    simex: simex.SimexConfig = simex.SimexConfig(draws=0)
     progress: bool = True
 
 
