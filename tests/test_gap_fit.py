@@ -25,8 +25,8 @@ def _data(sm, applied, n, steps, seed, noise=True):
 
 def test_damping_interval_covers_the_truth_in_repeated_noisy_draws(pend):
     # 30 draws of 4 x 100 noisy steps; the 90% profile interval must contain its estimate, stay in
-    # the bounds and cover the planted value in about 90% of draws (measured: 26/30; the estimate's
-    # noise bias, +0.6 standard errors here, is what keeps it below 90%)
+    # the bounds and cover the planted value in about 90% of draws (measured: 26/30 while the line
+    # search stopped at the grid's tolerance, a +0.6 standard-error offset read then as noise bias)
     true, hits = 0.3, 0
     lo_b, hi_b = (float(b[0]) for b in effects.ALL["damping"].bounds(pend))
     for seed in range(30):
@@ -184,6 +184,17 @@ def test_the_parabolic_line_search_finds_the_minimum_within_its_tolerance_in_few
     assert abs(x - 0.99) < 1e-3, x
     x, n = search(lambda v: -np.cos(40 * v) - v)  # rough: still the best evaluated point, at most 25 steps
     assert n <= 25
+
+
+def test_a_scalar_fit_ends_at_its_own_standard_error_not_the_grids(pend):
+    """On noise-free logs the k-step replay at the planted value is exact, so the fit must land
+    on it: the grid's tolerance (read where the grid's nodes are far from the minimum) stopped the
+    search at 0.3042 for 0.3, outside the interval's 0.0002 half width; a second search with the
+    tolerance read at the first one's end lands within 0.0005, and the interval covers 0.3."""
+    data, scale = _data(pend, {"damping": 0.3}, 8, 150, 1000, noise=False)
+    f = fit.fit(pend, data, scale, ("damping",), CFG.fit)
+    x, lo, hi = f.params["damping"][0], f.lo["damping"][0], f.hi["damping"][0]
+    assert abs(x - 0.3) < 5e-4 and lo <= 0.3 <= hi, (lo, x, hi)
 
 
 def test_a_fit_replays_no_parameter_vector_twice(pend, monkeypatch):

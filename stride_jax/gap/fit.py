@@ -348,10 +348,41 @@ def fit_scalar(obj: Objective, cfg: FitConfig, integer: bool, lo: float, hi: flo
     k = int(np.argmin(L))
     if grid_only_above is not None and L[k] > grid_only_above:
         return float(xs[k]), float(L[k]), float(xs[k]), float(xs[k])
-    x, f, _ = line_search(lambda v: float(obj.losses(np.array([v])).sum()), dict(zip(xs.tolist(), L.tolist())),
-                          float(xs[max(k - 1, 0)]), float(xs[min(k + 1, len(xs) - 1)]),
-                          line_tol(obj, xs, B, k, hi - lo))
+    seen = dict(zip(xs.tolist(), L.tolist()))  # every point evaluated (their replays are cached)
+
+    def loss(v: float) -> float:
+        seen[float(v)] = float(obj.losses(np.array([v])).sum())
+        return seen[float(v)]
+
+    a, b = float(xs[max(k - 1, 0)]), float(xs[min(k + 1, len(xs) - 1)])
+    tol = line_tol(obj, xs, B, k, hi - lo)
+    for _ in range(REFINE):
+        x, f, _ = line_search(loss, seen, a, b, tol)
+        near = np.array(sorted(v for v in seen if a <= v <= b))
+        i = int(np.searchsorted(near, x))
+        if not 0 < i < len(near) - 1:
+            break
+        finer = line_tol(obj, near[i - 1:i + 2], obj.block_losses_many([[v] for v in near[i - 1:i + 2]]), 1,
+                         hi - lo)
+        if not finer < 0.5 * tol:
+            break
+        a, b, tol = float(near[i - 1]), float(near[i + 1]), finer
     return x, f, x, x
+
+
+REFINE = 3
+"""Line searches per scalar fit, each with the tolerance the last one's end implies (:func:`fit_scalar`).
+
+The first search's tolerance (:func:`line_tol`) is read off the grid's best node and its
+neighbours, which on a wide grid sit far from the minimum: there the per-block gradients vary
+with the distance to it, not with the noise, and the tolerance comes out many standard errors
+wide. Measured on noise-free pendulum logs (damping 0.3, 8 x 150 steps; bounds [-0.05, 5]): the
+grid's tolerance was 0.0196, the search stopped at 0.3042, and on noisy logs that stop gave every
+estimate a +0.9 standard-error offset, read until session 53 as an errors-in-variables bias
+(``results/gap_coverage/long``: 82% coverage). The tolerance read again at the end of a search,
+from the three points evaluated nearest its estimate (cached replays: no new ones), is the
+estimate's own; where it is under half the one used, the search goes on inside those points
+with it."""
 
 
 _GOLDEN = 0.3819660112501051
