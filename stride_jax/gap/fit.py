@@ -377,9 +377,9 @@ The first search's tolerance (:func:`line_tol`) is read off the grid's best node
 neighbours, which on a wide grid sit far from the minimum: there the per-block gradients vary
 with the distance to it, not with the noise, and the tolerance comes out many standard errors
 wide. Measured on noise-free pendulum logs (damping 0.3, 8 x 150 steps; bounds [-0.05, 5]): the
-grid's tolerance was 0.0196, the search stopped at 0.3042, and on noisy logs that stop gave every
-estimate a +0.9 standard-error offset, read until session 53 as an errors-in-variables bias
-(``results/gap_coverage/long``: 82% coverage). The tolerance read again at the end of a search,
+grid's tolerance was 0.0196 and the search stopped at 0.3042 (now 0.3001). On noisy logs this
+changed nothing measurable: damping's +0.9 standard-error offset there (``results/gap_coverage/
+long``, 82% coverage, rerun with this) has another cause, not established (docs/gap.md). The tolerance read again at the end of a search,
 from the three points evaluated nearest its estimate (cached replays: no new ones), is the
 estimate's own; where it is under half the one used, the search goes on inside those points
 with it."""
