@@ -11,10 +11,11 @@ kinked or few blocks inform it, the test inversion), the delay its integer set, 
 of mass offset, one row per component) and a pair the sandwich interval; a pair is fitted as a
 diagnosis fits it, from its two singles' estimates. Besides the coverage each row gives the
 estimate's bias in standard errors (median estimate minus truth, over the median half width /
-1.645): the intervals hold sampling noise only, so a bias from noise in the replayed start states
-(errors in variables) lowers coverage as the logs grow. ``--simex N`` corrects that bias by
-simulation-extrapolation (:mod:`stride_jax.gap.simex`: N refits per added noise level) and moves the
-interval with the estimate (continuous effects; a delay is left as fitted). Writes
+1.645): the intervals hold sampling noise only, so a bias lowers coverage as the logs grow.
+``--simex N`` tests whether that bias is the velocity noise in the replayed start states (errors in
+variables) by simulation-extrapolation (:mod:`stride_jax.gap.simex`: N refits per added noise
+level), moving the interval with the estimate (continuous effects; a delay is left as fitted);
+measured in session 53 for damping and frictionloss: it is not (coverage fell). Writes
 ``<out>/coverage.{md,json}``.
 """
 

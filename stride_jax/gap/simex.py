@@ -1,13 +1,14 @@
-"""Simulation-extrapolation (SIMEX, Cook and Stefanski 1994) of the bias that sensor noise in the
-logged velocities puts into a fitted effect.
+"""Simulation-extrapolation (SIMEX, Cook and Stefanski 1994) of a bias that sensor noise in the
+logged velocities would put into a fitted effect: an experiment's tool, not part of a diagnosis.
 
 A k-step replay starts from the logged state, so the velocity noise enters the replay's start as
-well as its target (errors in variables): the fit then prefers values that shrink the start's
-noise on its way to the target -- more damping, say -- and the estimate is biased by an amount
-that grows with the noise's variance. Its interval holds the sampling spread only, so as logs
-grow the interval narrows around the biased value (measured on the pendulum, damping 0.3 under a
-real robot's sensor noise, 8 x 150 steps: the estimate +0.9 standard errors off, the 90% interval
-covering the truth in 82% of draws; ``results/gap_coverage/long``).
+well as its target (errors in variables), which can bias an estimate by an amount that grows with
+the noise's variance. The hypothesis it was built to test: that this is why noisy pendulum damping
+(0.3, 8 x 150 steps) is fitted +0.9 standard errors high, its 90% interval covering the truth in
+82% of draws (``results/gap_coverage/long``). Measured (session 53,
+``results/gap_coverage/long_simex``): no. The estimate's mean over added noise stays flat within
+its spread, and the correction moved damping the wrong way (coverage 28%): the offset has another
+cause, not established, so the diagnosis has no SIMEX option.
 
 SIMEX measures that bias on the logs themselves: the fit is repeated with extra white noise of
 variance ``lambda sigma^2`` added to the logged velocities (``sigma``: the logs' own noise level per
