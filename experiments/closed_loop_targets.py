@@ -38,15 +38,18 @@ KINDS = ("policy", "stride", "delan", "onn")
 
 def _cell(rows: list[dict]) -> dict | None:
     """A kind's rows in one scenario: seeds' mean RMSE (over the seeds with an upright draw;
-    NaN: none), falls of all episodes, mean ms per step."""
+    NaN: none), falls of all episodes, mean ms per step of the episodes that ran alone (a
+    vmapped part's ``--episodes N`` draws share each control step: their time is N episodes',
+    not one planner's; all rows where none ran alone)."""
     if not rows:
         return None
     means = seed_means(rows)
+    alone = [r for r in rows if int(r.get("side_by_side") or 1) == 1] or rows
     return dict(vel_rmse=float(np.mean(list(means.values()))) if means else float("nan"),
                 seed_means=[float(v) for v in means.values()],
                 seeds=len({kind_and_seed(r)[1] for r in rows}), episodes=len(rows),
                 falls=sum(bool(r["fell"]) for r in rows),
-                ms_per_step=float(np.mean([r["ms_per_step"] for r in rows])))
+                ms_per_step=float(np.mean([r["ms_per_step"] for r in alone])))
 
 
 def _at_most(a: dict | None, b: dict | None) -> bool | None:

@@ -66,3 +66,20 @@ def test_policy_rows_picked_from_other_parts_and_a_table_without_headline(experi
     assert "## x" in md and "| rough | 0.090 | 0.062 |" in md
     with pytest.raises(SystemExit):
         mod.main([f"x={p}", "--out", str(tmp_path / "o2"), "--y-policy", "policy@old"])
+
+
+def test_time_per_step_is_read_off_the_episodes_that_ran_alone(experiment):
+    """A vmapped part's draws share each control step (four episodes' time in one row): the
+    planner's time is the single episodes', and the draws' only where no single one ran."""
+    mod = experiment("closed_loop_targets")
+    tab = _table()
+    for d in range(4):  # four vmapped draws of seed 0 on rough, 160 ms for the four together
+        tab["rows"].append(dict(_row("rough", "stride@a", 0.061, "a", ms=160.0), seed=2 + d,
+                                side_by_side=4))
+    rough = next(c for c in mod.robot_targets(tab)["cells"] if c["scenario"] == "rough")
+    assert rough["stride"]["ms_per_step"] == pytest.approx(80.0)
+    assert rough["stride"]["episodes"] == 7
+    tab["rows"] = [r for r in tab["rows"] if not (r["scenario"] == "rough" and r["model"].startswith("stride")
+                                                   and "side_by_side" not in r)]
+    rough = next(c for c in mod.robot_targets(tab)["cells"] if c["scenario"] == "rough")
+    assert rough["stride"]["ms_per_step"] == pytest.approx(160.0)
