@@ -2,6 +2,7 @@
 
     python experiments/gap_coverage.py --draws 30 --out results/gap_coverage [--trajectories 4 --steps 100]
         [--effects damping,delay,com_offset,damping+delay,payload+torque_scale] [--simex 4]
+        [--noise outlier_rate=0,torque_std=0 | --noise none]
 
 For each planted effect or pair (one case at a time, on the pendulum, through a real robot's
 sensors: ``real.SensorNoise``), ``--draws`` independent logs are generated and the case's effects are
@@ -14,9 +15,12 @@ estimate's bias in standard errors (median estimate minus truth, over the median
 1.645): the intervals hold sampling noise only, so a bias lowers coverage as the logs grow.
 ``--simex N`` tests whether that bias is the velocity noise in the replayed start states (errors in
 variables) by simulation-extrapolation (:mod:`stride_jax.gap.simex`: N refits per added noise
-level), moving the interval with the estimate (continuous effects; a delay is left as fitted);
-measured in session 53 for damping and frictionloss: it is not (coverage fell). Writes
-``<out>/coverage.{md,json}``.
+level, ``--simex-degree``: a quadratic or a line in the added variance), moving the interval with
+the estimate (continuous effects; a delay is left as fitted); session 53 read its run as "it is
+not"; session 55 measured that it is (the bias grows with the velocity noise's variance, and a
+line's SIMEX removes it: ``results/gap_coverage/noise_terms``). ``--noise``
+changes terms of ``real.SensorNoise`` (``name=value,...``; ``none``: noise-free logs), to find
+which sensor term a bias comes from. Writes ``<out>/coverage.{md,json}``.
 """
 
 from __future__ import annotations
@@ -41,14 +45,20 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--effects", default=SCALARS, help="comma-separated effects of PLANTED, or pairs a+b")
     ap.add_argument("--simex", type=int, default=0, help="SIMEX refits per noise level (0: none)")
+    ap.add_argument("--simex-degree", type=int, default=2, choices=(1, 2),
+                    help="SIMEX's extrapolant in the added variance: a quadratic (2) or a line (1)")
+    ap.add_argument("--noise", default="",
+                    help="changes to real.SensorNoise's terms, name=value,... ('none': no noise)")
     ap.add_argument("--out", default="results/gap_coverage")
     a = ap.parse_args()
     from tqdm import tqdm
 
     from stride_jax.gap import diagnose, effects, filters, fit, real, simex
-    from stride_jax.io import atomic_write_text
+    from stride_jax.io import atomic_write_text, code_version
     from stride_jax.sim import model
 
+    noise = sensor_noise(real, a.noise)
+    version = code_version()  # before the run: the checkout may change while it runs
     cfg = diagnose.PRESETS["tiny"]
     sm = model.load("pendulum")
     rows = []
@@ -62,7 +72,7 @@ def main() -> None:
         draws = []  # per draw: {name: (estimate, lo, hi)} vectors
         for seed in tqdm(range(a.draws), desc=case):
             _, logged = real.generate(sm, {n: PLANTED[n] for n in names}, a.trajectories, a.steps,
-                                      seed=1000 + seed, noise=real.SensorNoise())
+                                      seed=1000 + seed, noise=noise)
             logged = [filters.preprocess(t, sm.robot.ctrl_dt, cfg.preprocess)[0] for t in logged]
             data = fit.make_data(logged, cfg.steps)
             scale = diagnose.scale_of(sm, data)
@@ -73,7 +83,8 @@ def main() -> None:
             est, lo, hi = f.params, f.lo, f.hi
             if a.simex and not any(effects.ALL[n].integer for n in names):
                 refit = lambda d: fit.fit(sm, d, scale, names, cfg.fit, f.params, interval=False).params
-                corrected, _ = simex.correct(refit, data, f.params, simex.SimexConfig(draws=a.simex, seed=seed))
+                corrected, _ = simex.correct(refit, data, f.params, simex.SimexConfig(draws=a.simex, seed=seed,
+                                                                                         degree=a.simex_degree))
                 est, lo, hi = simex.shifted(f.params, f.lo, f.hi, corrected,
                                             {n: effects.ALL[n].bounds(sm) for n in names})
             draws.append({n: tuple(np.asarray(v[n], float) for v in (est, lo, hi)) for n in names})
@@ -100,13 +111,16 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     cmd = (f"python experiments/gap_coverage.py --draws {a.draws} --trajectories {a.trajectories} "
            f"--steps {a.steps} --effects {a.effects}" + (f" --simex {a.simex}" if a.simex else "")
-           + f" --out {a.out}")
+           + (f" --simex-degree {a.simex_degree}" if a.simex and a.simex_degree != 2 else "")
+           + (f" --noise {a.noise}" if a.noise else "") + f" --out {a.out}")
     lines = ["# Coverage of the gap tool's 90% parameter intervals (pendulum, sensor noise)", "",
-             f"Command: `{cmd}` ({time.time() - t0:.0f} s)", "",
+             f"Sensor noise: {noise_text(noise)}", "",
+             f"Command: `{cmd}` ({time.time() - t0:.0f} s; code {version})", "",
              f"{a.draws} independent noisy draws of {a.trajectories} x {a.steps} control steps per case, "
              "the case's effects fitted with the `tiny` preset's fit settings (a pair jointly, from its singles' "
              "estimates)" + (f"; estimates and intervals corrected by SIMEX ({a.simex} refits per added noise "
-                            "level; a delay as fitted)" if a.simex else "") + ". Bias: median estimate minus the "
+                            f"level, {'a line' if a.simex_degree == 1 else 'a quadratic'} in the added "
+                            "variance; a delay as fitted)" if a.simex else "") + ". Bias: median estimate minus the "
              "planted value, in standard errors (median half width / 1.645); sd: the estimates' spread over "
              "the draws (1.4826 x their median absolute deviation: a failed fit does not dominate it), which a "
              "right interval's half width / 1.645 matches. Misses below / above: the "
@@ -121,8 +135,39 @@ def main() -> None:
                      f"{r['median_half_width']:.3g} | "
                      f"{r['bias_in_se']:+.2f} | {r['low_misses']} / {r['high_misses']} |")
     atomic_write_text(out / "coverage.md", "\n".join(lines) + "\n")
-    atomic_write_text(out / "coverage.json", json.dumps({"command": cmd, "rows": rows}, indent=1))
+    atomic_write_text(out / "coverage.json", json.dumps({"command": cmd, "code": version, "rows": rows}, indent=1))
     print("\n".join(lines))
+
+
+def sensor_noise(real, spec: str):
+    """``real.SensorNoise`` with the terms of ``spec`` (``name=value,...``) changed; None for
+    ``none`` (noise-free logs). An unknown term or a value that is not a number is an error
+    naming it."""
+    import dataclasses
+
+    if spec.strip().lower() == "none":
+        return None
+    noise = real.SensorNoise()
+    fields = {f.name: f.type for f in dataclasses.fields(noise)}
+    changes = {}
+    for item in filter(None, (x.strip() for x in spec.split(","))):
+        name, eq, value = item.partition("=")
+        if not eq or name not in fields:
+            raise SystemExit(f"--noise: {item!r} is not NAME=VALUE with NAME one of {', '.join(fields)}")
+        try:
+            changes[name] = int(value) if name == "encoder_bits" else float(value)
+        except ValueError:
+            raise SystemExit(f"--noise: {name}={value!r} is not a number") from None
+    return dataclasses.replace(noise, **changes)
+
+
+def noise_text(noise) -> str:
+    """The sensor noise a run used, in words (every term, the defaults included)."""
+    import dataclasses
+
+    if noise is None:
+        return "none (noise-free logs)"
+    return ", ".join(f"{f.name} {getattr(noise, f.name):g}" for f in dataclasses.fields(noise))
 
 
 if __name__ == "__main__":

@@ -47,6 +47,13 @@ def test_extrapolation_and_the_moved_interval():
     lv = np.array([0.0, 0.5, 1.0, 2.0])
     np.testing.assert_allclose(simex.extrapolate(lv, (1 + 0.2 * lv + 0.05 * lv ** 2)[:, None]), [0.85])
     np.testing.assert_allclose(simex.extrapolate(lv[:2], (1 + 0.2 * lv[:2])[:, None]), [0.8])
+    # degree 1: the least-squares line through the levels, read at -1 (a quadratic path's
+    # curvature is then not followed: 0.85 exactly with degree 2, not with a line)
+    line = 1 + 0.2 * lv
+    np.testing.assert_allclose(simex.extrapolate(lv, line[:, None], degree=1), [0.8])
+    assert simex.extrapolate(lv, (line + 0.05 * lv ** 2)[:, None], degree=1)[0] != pytest.approx(0.85)
+    with pytest.raises(ValueError, match="degree=3"):
+        simex.SimexConfig(degree=3)
     est, lo, hi = simex.shifted({"d": np.array([0.31])}, {"d": np.array([0.30])}, {"d": np.array([0.32])},
                                 {"d": np.array([0.305])}, {"d": (np.array([0.0]), np.array([2.0]))})
     np.testing.assert_allclose([est["d"][0], lo["d"][0], hi["d"][0]], [0.305, 0.295, 0.315])

@@ -379,7 +379,8 @@ with the distance to it, not with the noise, and the tolerance comes out many st
 wide. Measured on noise-free pendulum logs (damping 0.3, 8 x 150 steps; bounds [-0.05, 5]): the
 grid's tolerance was 0.0196 and the search stopped at 0.3042 (now 0.3001). On noisy logs this
 changed nothing measurable: damping's +0.9 standard-error offset there (``results/gap_coverage/
-long``, 82% coverage, rerun with this) has another cause, not established (docs/gap.md). The
+long``, 82% coverage, rerun with this) has another cause: the joint velocity noise in the
+replays' starts, errors in variables (session 55, ``results/gap_coverage/noise_terms``). The
 tolerance read again at the end of a search, from the three points evaluated nearest its
 estimate (cached replays: no new ones), is the
 estimate's own; where it is under half the one used, the search goes on inside those points

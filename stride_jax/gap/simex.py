@@ -5,10 +5,13 @@ A k-step replay starts from the logged state, so the velocity noise enters the r
 well as its target (errors in variables), which can bias an estimate by an amount that grows with
 the noise's variance. The hypothesis it was built to test: that this is why noisy pendulum damping
 (0.3, 8 x 150 steps) is fitted +0.9 standard errors high, its 90% interval covering the truth in
-82% of draws (``results/gap_coverage/long``). Measured (session 53,
-``results/gap_coverage/long_simex``): no. The estimate's mean over added noise stays flat within
-its spread, and the correction moved damping the wrong way (coverage 28%): the offset has another
-cause, not established, so the diagnosis has no SIMEX option.
+82% of draws (``results/gap_coverage/long``). Session 53's run (``results/gap_coverage/long_simex``)
+said no (a flat path, coverage 28%); session 55 measured yes: the offset is the joint velocity
+noise alone and grows with its variance (``results/gap_coverage/noise_terms``), and at the code
+since ``fit.REFINE`` the refits rise with the added noise; with ``degree=1`` the correction
+removes the offset (median 0.2999 for 0.3, ``results/gap_coverage/long_simex_line``), the
+quadratic part of it (0.3013). The diagnosis has no SIMEX option yet (the offset is 0.6% of the
+value at a real Go1's noise).
 
 SIMEX measures that bias on the logs themselves: the fit is repeated with extra white noise of
 variance ``lambda sigma^2`` added to the logged velocities (``sigma``: the logs' own noise level per
@@ -41,15 +44,22 @@ class SimexConfig:
       draws: refits per noise level (0: no correction).
       levels: the added noise variances, in units of the logs' own (``lambda``).
       seed: of the added noise.
+      degree: of the extrapolant in ``lambda``: 2 (Cook and Stefanski's quadratic) or 1 (a line:
+        the errors-in-variables bias of a k-step replay grows with the noise's variance, i.e.
+        linearly in ``lambda``, measured on the pendulum's damping in session 55; a line's
+        extrapolation to -1 has a fraction of the quadratic's variance).
     """
 
     draws: int = 4
     levels: tuple[float, ...] = (0.5, 1.0, 1.5, 2.0)
     seed: int = 0
+    degree: int = 2
 
     def __post_init__(self):
         if self.draws < 0:
             raise ValueError(f"draws={self.draws} must be >= 0")
+        if self.degree not in (1, 2):
+            raise ValueError(f"degree={self.degree}: the extrapolant is a line (1) or a quadratic (2)")
         if len(self.levels) < 2 or min(self.levels) <= 0:
             raise ValueError(f"levels={self.levels}: at least two, each > 0 (variances added in "
                              f"units of the logs' own)")
@@ -75,11 +85,11 @@ def with_noise(data: Data, sd: np.ndarray, level: float, rng: np.random.Generato
     return data._replace(qd=qd, target=qd[data.start + data.k])
 
 
-def extrapolate(levels: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """The quadratic in ``lambda`` through (least squares) ``values [L, p]`` at ``levels [L]``,
-    read at ``lambda = -1`` (a line where only two levels are given)."""
+def extrapolate(levels: np.ndarray, values: np.ndarray, degree: int = 2) -> np.ndarray:
+    """The polynomial of ``degree`` (at most 2) in ``lambda`` through (least squares) ``values
+    [L, p]`` at ``levels [L]``, read at ``lambda = -1`` (a line where only two levels are given)."""
     levels, values = np.asarray(levels, float), np.asarray(values, float)
-    deg = min(2, len(levels) - 1)
+    deg = min(degree, len(levels) - 1)
     A = np.vander(levels, deg + 1)
     coef, *_ = np.linalg.lstsq(A, values.reshape(len(levels), -1), rcond=None)
     return (np.vander(np.array([-1.0]), deg + 1) @ coef)[0].reshape(values.shape[1:])
@@ -103,7 +113,7 @@ def correct(refit: Callable[[Data], dict], data: Data, estimate: dict, cfg: Sime
         for n in means:
             means[n].append(np.mean([np.asarray(g[n], float) for g in got], axis=0))
     levels = np.array((0.0,) + tuple(cfg.levels))
-    corrected = {n: extrapolate(levels, np.stack(m)) for n, m in means.items()}
+    corrected = {n: extrapolate(levels, np.stack(m), cfg.degree) for n, m in means.items()}
     path = {"levels": levels.tolist(), "sd": sd.tolist(),
             "means": {n: np.stack(m).tolist() for n, m in means.items()}}
     return corrected, path
