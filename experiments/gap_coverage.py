@@ -26,11 +26,14 @@ which sensor term a bias comes from. Writes ``<out>/coverage.{md,json}``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import pathlib
 import time
 
 import numpy as np
+
+from stride_jax import config
 
 # planted values: the tiny benchmark's smaller magnitudes (stride_jax/jobs/gap_bench.py)
 PLANTED = {"damping": 0.3, "frictionloss": 0.15, "armature": 0.05, "torque_scale": 0.85, "payload": 0.15,
@@ -140,31 +143,26 @@ def main() -> None:
 
 
 def sensor_noise(real, spec: str):
-    """``real.SensorNoise`` with the terms of ``spec`` (``name=value,...``) changed; None for
-    ``none`` (noise-free logs). An unknown term or a value that is not a number is an error
-    naming it."""
-    import dataclasses
-
+    """``real.SensorNoise`` with the terms of ``spec`` (``name=value,...``, each value read as its
+    field's type: ``stride_jax.config.flag_names``) changed; None for ``none`` (noise-free logs).
+    An unknown term or a value of the wrong type is an error naming it."""
     if spec.strip().lower() == "none":
         return None
-    noise = real.SensorNoise()
-    fields = {f.name: f.type for f in dataclasses.fields(noise)}
+    kinds = {dest: kind for dest, (_, kind, _) in config.flag_names(real.SensorNoise).items()}
     changes = {}
     for item in filter(None, (x.strip() for x in spec.split(","))):
         name, eq, value = item.partition("=")
-        if not eq or name not in fields:
-            raise SystemExit(f"--noise: {item!r} is not NAME=VALUE with NAME one of {', '.join(fields)}")
+        if not eq or name not in kinds:
+            raise SystemExit(f"--noise: {item!r} is not NAME=VALUE with NAME one of {', '.join(kinds)}")
         try:
-            changes[name] = int(value) if name == "encoder_bits" else float(value)
+            changes[name] = kinds[name](value)
         except ValueError:
-            raise SystemExit(f"--noise: {name}={value!r} is not a number") from None
-    return dataclasses.replace(noise, **changes)
+            raise SystemExit(f"--noise: {name}={value!r} is not a number ({kinds[name].__name__})") from None
+    return config.replace(real.SensorNoise(), changes)
 
 
 def noise_text(noise) -> str:
     """The sensor noise a run used, in words (every term, the defaults included)."""
-    import dataclasses
-
     if noise is None:
         return "none (noise-free logs)"
     return ", ".join(f"{f.name} {getattr(noise, f.name):g}" for f in dataclasses.fields(noise))
