@@ -109,9 +109,10 @@ def test_bad_configs_are_clear_errors():
 
 
 def test_domain_randomisation_draws_friction_and_perturbs_the_targets(g1, go1):
-    """``friction_min``/``max``: each reset draws the episode's friction factor in the range
-    (1 without randomisation), and :func:`envs.with_friction` scales the model as the closed
-    loop's low-friction scenario does (G1's contact pairs included); ``action_noise``: the same
+    """``friction_min``/``max`` (``softness_min``/``max``): each reset draws the episode's
+    friction (softness) factor in the range (1 without randomisation), and
+    :func:`envs.with_friction` (:func:`envs.with_softness`) scales the model as the closed loop's
+    low-friction (soft) scenario does (G1's contact pairs included); ``action_noise``: the same
     state and action step to different states under different keys."""
     from mujoco import mjx
 
@@ -122,14 +123,22 @@ def test_domain_randomisation_draws_friction_and_perturbs_the_targets(g1, go1):
         mx = envs.with_friction(mjx.put_model(sm.mj), 0.3)
         np.testing.assert_allclose(mx.geom_friction, low.geom_friction, rtol=1e-6)
         np.testing.assert_allclose(mx.pair_friction, low.pair_friction, rtol=1e-6)
+        soft = scenario_model(sm, Scenario("soft", WALK, softness=4.0))
+        mx = envs.with_softness(mjx.put_model(sm.mj), 4.0)
+        np.testing.assert_allclose(mx.geom_solref, soft.geom_solref, rtol=1e-6)
+        np.testing.assert_allclose(mx.pair_solref, soft.pair_solref, rtol=1e-6)
+        assert not np.allclose(soft.geom_solref, sm.mj.geom_solref)
     assert g1.mj.npair > 0  # the pairs are checked on a model that has them
 
-    env = envs.make("go1", friction_min=0.3, friction_max=0.5, action_noise=0.05)
+    env = envs.make("go1", friction_min=0.3, friction_max=0.5, action_noise=0.05,
+                    softness_min=1.0, softness_max=5.0)
     keys = jax.random.key_data(jax.random.split(jax.random.key(0), 8))
     states = jax.jit(jax.vmap(env.reset))(keys)
-    f = np.asarray(states.info["friction"])
+    f, k = np.asarray(states.info["friction"]), np.asarray(states.info["softness"])
     assert ((f >= 0.3) & (f <= 0.5)).all() and np.ptp(f) > 0.05
-    assert float(envs.make("go1").reset(keys[0]).info["friction"]) == 1.0
+    assert ((k >= 1.0) & (k <= 5.0)).all() and np.ptp(k) > 0.5
+    plain = envs.make("go1").reset(keys[0]).info
+    assert (float(plain["friction"]), float(plain["softness"])) == (1.0, 1.0)
 
     s0 = jax.tree.map(lambda x: x[0], states)
     other = s0.replace(info={**s0.info, "rng": jax.random.key_data(jax.random.key(7))})
@@ -140,9 +149,10 @@ def test_domain_randomisation_draws_friction_and_perturbs_the_targets(g1, go1):
     np.testing.assert_array_equal(q1, step(s0, a).pipeline_state.qpos)  # and is the key's
 
     for bad in (dict(friction_min=0.0), dict(friction_min=0.6, friction_max=0.5),
+                dict(softness_min=0.0), dict(softness_min=3.0, softness_max=2.0),
                 dict(action_noise=-0.1), dict(tilt_max_deg=90.0), dict(tilt_s=0.0),
                 dict(tilt_friction_margin=-0.5), dict(tilt_friction_margin=float("nan"))):
-        with pytest.raises(ValueError, match="friction|action_noise|tilt"):
+        with pytest.raises(ValueError, match="friction|softness|action_noise|tilt"):
             envs.config("go1", **bad)
 
 

@@ -116,6 +116,12 @@ class EnvConfig:
       action_noise: std (rad) of Gaussian noise added to every joint target in every control
         period while training (0: none): the policy learns to walk while its actions are
         perturbed, as a planner sampling around it (or an actuator) perturbs them.
+      softness_min, softness_max: each episode's ground contact time constant (``solref[0]`` of
+        every geom and contact pair) is the model's scaled by a factor drawn uniformly in this
+        range at reset (:func:`with_softness`, as the closed loop's soft scenario scales it, 4
+        there); 1, 1: the model's own. A G1 policy trained on hard ground only falls on the
+        soft scenario in about one draw in five from floating-point differences alone
+        (``results/planning_diagnosis/slope_policies/g1_soft_64_slope.md``).
       tilt_max_deg: each episode's ground slope is drawn uniformly in [0, this] degrees, uphill
         in a random direction, and built up linearly over the first ``tilt_s`` seconds (gravity
         tilted under the level floor, as the closed loop's ``tilt`` scenario does, so that a
@@ -144,6 +150,8 @@ class EnvConfig:
     friction_min: float = 1.0
     friction_max: float = 1.0
     action_noise: float = 0.0
+    softness_min: float = 1.0
+    softness_max: float = 1.0
     tilt_max_deg: float = 0.0
     tilt_s: float = 2.0
     tilt_friction_margin: float = 0.0
@@ -153,6 +161,10 @@ class EnvConfig:
         return (self.friction_min, self.friction_max) != (1.0, 1.0)
 
     @property
+    def randomises_softness(self) -> bool:
+        return (self.softness_min, self.softness_max) != (1.0, 1.0)
+
+    @property
     def randomises_tilt(self) -> bool:
         return self.tilt_max_deg > 0
 
@@ -160,6 +172,10 @@ class EnvConfig:
         if not 0 < self.friction_min <= self.friction_max:
             raise ValueError(f"friction_min={self.friction_min}, friction_max={self.friction_max}: "
                              "need 0 < friction_min <= friction_max (factors on the model's friction)")
+        if not 0 < self.softness_min <= self.softness_max:
+            raise ValueError(f"softness_min={self.softness_min}, softness_max={self.softness_max}: "
+                             "need 0 < softness_min <= softness_max (factors on the model's "
+                             "contact time constant)")
         if self.action_noise < 0:
             raise ValueError(f"action_noise={self.action_noise} must be >= 0 (rad)")
         if not 0 <= self.tilt_max_deg < 90:
@@ -196,8 +212,8 @@ PRESETS = {
 
 
 # The EnvConfig fields of the domain randomisation (`stride ppo`'s flags of the same names).
-RANDOMISATION = ("friction_min", "friction_max", "action_noise", "tilt_max_deg",
-                 "tilt_friction_margin")
+RANDOMISATION = ("friction_min", "friction_max", "action_noise", "softness_min", "softness_max",
+                 "tilt_max_deg", "tilt_friction_margin")
 
 
 def config(robot: str, **overrides) -> EnvConfig:
@@ -357,6 +373,9 @@ class VelocityEnv(brax_base.Env):
         friction = (jax.random.uniform(jax.random.fold_in(k_clock, 1), minval=self.cfg.friction_min,
                                        maxval=self.cfg.friction_max)
                     if self.cfg.randomises_friction else jnp.ones(()))
+        softness = (jax.random.uniform(jax.random.fold_in(k_clock, 4), minval=self.cfg.softness_min,
+                                       maxval=self.cfg.softness_max)
+                    if self.cfg.randomises_softness else jnp.ones(()))
         tilt = jnp.zeros(2)  # (slope rad, uphill heading rad); level at t = 0 either way
         if self.cfg.randomises_tilt:
             steepest = jnp.deg2rad(self.cfg.tilt_max_deg)
@@ -370,7 +389,7 @@ class VelocityEnv(brax_base.Env):
         info = {"rng": rng, "command": command, "last_action": jnp.zeros(self.nu),
                 "air_time": jnp.zeros(nf), "last_contact": jnp.ones(nf, bool),
                 "clock": clock, "t": jnp.zeros((), jnp.int32), "friction": friction,
-                "tilt": tilt}
+                "softness": softness, "tilt": tilt}
         obs = observe(self.cfg, self.home, d.qpos, d.qvel, command, clock)
         _, parts = total_reward(self.cfg, self._terms_zero(), self.dt)
         metrics = {f"reward/{k}": jnp.zeros(()) for k in parts}
@@ -388,6 +407,7 @@ class VelocityEnv(brax_base.Env):
                                                                    target.shape)
         ctrl = jnp.clip(target, self.lo, self.hi)
         mx = with_friction(self.mx, info["friction"]) if cfg.randomises_friction else self.mx
+        mx = with_softness(mx, info["softness"]) if cfg.randomises_softness else mx
         up = None  # the sensed gravity after the step (world down on level ground)
         if cfg.randomises_tilt:  # the slope built up over tilt_s, as the ``tilt`` scenario's
             ramp = jnp.stack([info["tilt"][0], jnp.asarray(cfg.tilt_s, info["tilt"].dtype)])
@@ -472,6 +492,15 @@ def with_friction(mx: mjx.Model, factor: jax.Array) -> mjx.Model:
     geom, pair = randomize.sliding_friction(mx.geom_friction, mx.pair_friction,
                                             jnp.asarray(factor, mx.geom_friction.dtype))
     return mx.replace(geom_friction=geom, pair_friction=pair)
+
+
+def with_softness(mx: mjx.Model, factor: jax.Array) -> mjx.Model:
+    """``mx`` with the contact time constant of every geom and explicit contact pair scaled by
+    ``factor`` (> 1: softer; :func:`stride_jax.sim.randomize.contact_softness`, as the soft
+    scenario scales an ``MjModel``), on the device (``factor`` may be traced)."""
+    geom, pair = randomize.contact_softness(mx.geom_solref, mx.pair_solref,
+                                            jnp.asarray(factor, mx.geom_solref.dtype))
+    return mx.replace(geom_solref=geom, pair_solref=pair)
 
 
 def physics_step(mx: mjx.Model, n_substeps: int, d: mjx.Data, ctrl: jax.Array) -> mjx.Data:

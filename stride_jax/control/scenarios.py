@@ -98,8 +98,8 @@ def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoc
         m.opt.gravity[:] = tilted(m.opt.gravity, np.deg2rad(sc.slope_deg), xp=np)
     m.geom_friction[:], m.pair_friction[:] = randomize.sliding_friction(
         m.geom_friction, m.pair_friction, np.float64(sc.friction), np)
-    m.geom_solref[:, 0] *= sc.softness
-    m.pair_solref[:, 0] *= sc.softness
+    m.geom_solref[:], m.pair_solref[:] = randomize.contact_softness(
+        m.geom_solref, m.pair_solref, np.float64(sc.softness), np)
     return m
 
 

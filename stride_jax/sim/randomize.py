@@ -90,13 +90,23 @@ def sliding_friction(geom_friction, pair_friction, factor, xp=jnp):
             pair_friction * xp.stack([factor, factor, one, one, one]))
 
 
+def contact_softness(geom_solref, pair_solref, factor, xp=jnp):
+    """``(geom_solref, pair_solref)`` with the contact time constant (``solref[0]``) scaled by
+    ``factor`` (> 1: softer ground; a scalar, traced or not), the damping ratio kept. The one place
+    the project softens a ground: the hidden randomisation, the closed loop's soft scenario and
+    PPO's randomised ground."""
+    one = xp.ones_like(factor)
+    scale = xp.stack([factor, one])
+    return geom_solref * scale, pair_solref * scale
+
+
 def apply_fields(fields: dict, v: RandValues, base_body: int, xp=jnp) -> dict:
     """Returns the model arrays of :data:`FIELDS` with the episode's values applied."""
     f = dict(fields)
     f["geom_friction"], f["pair_friction"] = sliding_friction(
         fields["geom_friction"], fields["pair_friction"], v.friction, xp)
-    f["geom_solref"] = fields["geom_solref"] * xp.asarray([v.softness, 1.0])
-    f["pair_solref"] = fields["pair_solref"] * xp.asarray([v.softness, 1.0])
+    f["geom_solref"], f["pair_solref"] = contact_softness(
+        fields["geom_solref"], fields["pair_solref"], xp.asarray(v.softness), xp)
     f["body_mass"] = fields["body_mass"] + v.payload_kg * (xp.arange(fields["body_mass"].shape[0])
                                                            == base_body)
     f["dof_damping"] = fields["dof_damping"] * v.damping
