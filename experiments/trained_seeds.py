@@ -61,6 +61,8 @@ def gather(rows: list[dict]) -> list[dict]:
                         episodes=episodes,
                         ms_per_step=float(np.mean([got[s][d]["ms_per_step"]
                                                    for s in seeds for d in got[s]])),
+                        side_by_side=max(int(got[s][d].get("side_by_side") or 1)
+                                         for s in seeds for d in got[s]),
                         vel_rmse_mean=float(np.mean(up)) if up else float("nan"),
                         vel_rmse_worst=float(max(up)) if up else float("nan")))
     return out
@@ -106,9 +108,16 @@ def table(groups: list[dict], refs: dict[str, dict[str, dict]]) -> list[str]:
                 if vs else [])
         row = [g["scenario"], g["model"], ", ".join(map(str, g["seeds"])), per,
                f"{g['vel_rmse_mean']:.3f}", f"{g['vel_rmse_worst']:.3f}",
-               f"{sum(g['falls'])}/{sum(g['draws'])}", f"{g['ms_per_step']:.1f}"] + cell + ref
+               f"{sum(g['falls'])}/{sum(g['draws'])}", _ms(g)] + cell + ref
         lines.append("| " + " | ".join(row) + " |")
     return lines
+
+
+def _ms(g: dict) -> str:
+    """The ms/step cell: one control step's wall time, of all the episodes that ran side by side
+    in one vmapped program where there were several (``--episodes N``), said so."""
+    n = g.get("side_by_side", 1)
+    return f"{g['ms_per_step']:.1f}" + (f" ({n} together)" if n > 1 else "")
 
 
 def figure(groups: list[dict], refs: dict[str, dict[str, dict]], out: pathlib.Path,
@@ -202,7 +211,8 @@ def main(argv=None) -> int:
           "Sources: " + ", ".join(f"`{s}`" for s in sources)
           + (f"; references from `{a.reference}` ({', '.join(a.ref)})" if a.ref else ""), "",
           "Per seed: the mean over its planner draws that stayed up (k/n fell: of its n draws); "
-          "mean and worst: over every episode that stayed up; falls: of all episodes. "
+          "mean and worst: over every episode that stayed up; falls: of all episodes; ms/step: "
+          "one control step's wall time (N together: of N episodes in one vmapped program). "
           f"Minus {a.versus}: the difference of the means over the trained seeds that stayed up, "
           "with Welch's 90% t-interval (one value per trained seed; an interval holding 0 does "
           "not tell the kinds apart).", ""]

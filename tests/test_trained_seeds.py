@@ -66,7 +66,7 @@ def test_planner_draws_of_one_trained_seed_are_its_episodes(experiment):
     RMSE is the mean of its draws that stayed up, its falls counted; the group's mean and worst
     run over every upright episode; the same draw twice is an error."""
     mod = experiment("trained_seeds")
-    rows = [dict(_row("lowf", "stride", v, fell=f, run="r/stride-s0"), seed=d)
+    rows = [dict(_row("lowf", "stride", v, fell=f, run="r/stride-s0"), seed=d, side_by_side=3)
             for d, v, f in ((0, 0.50, True), (1, 0.06, False), (2, 0.08, False))]
     rows += [dict(_row("lowf", "stride_s1", 0.55, fell=True, run="r/stride-s1"), seed=d)
              for d in (0, 1)]
@@ -77,6 +77,7 @@ def test_planner_draws_of_one_trained_seed_are_its_episodes(experiment):
     assert len(g["episodes"]) == 5
     lines = mod.table([g], {})
     assert "| 0.070 (1/3 fell) / 0.550 (2/2 fell) | 0.070 | 0.080 | 3/5 |" in lines[2]
+    assert "(3 together) |" in lines[2]  # the step's wall time is the three draws' together
     # no versus column and no references: header, rule and row have the same columns
     assert len({line.count("|") for line in lines}) == 1 and not lines[0].endswith("|  |")
     with pytest.raises(ValueError, match="two rows of stride seed 0 at planner seed 2"):
