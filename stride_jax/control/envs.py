@@ -119,9 +119,10 @@ class EnvConfig:
       softness_min, softness_max: each episode's ground contact time constant (``solref[0]`` of
         every geom and contact pair) is the model's scaled by a factor drawn uniformly in this
         range at reset (:func:`with_softness`, as the closed loop's soft scenario scales it, 4
-        there); 1, 1: the model's own. A G1 policy trained on hard ground only falls on the
-        soft scenario in about one draw in five from floating-point differences alone
-        (``results/planning_diagnosis/slope_policies/g1_soft_64_slope.md``).
+        there); 1, 1: the model's own. The G1 slope policy (slopes and friction randomised, the
+        ground always hard) falls on the soft scenario in one episode in five from the GPU's
+        float rounding alone, where the first policy stands
+        (``results/planning_diagnosis/slope_policies/g1_soft_64_{slope,first}.md``).
       tilt_max_deg: each episode's ground slope is drawn uniformly in [0, this] degrees, uphill
         in a random direction, and built up linearly over the first ``tilt_s`` seconds (gravity
         tilted under the level floor, as the closed loop's ``tilt`` scenario does, so that a
