@@ -111,8 +111,8 @@ def test_bad_configs_are_clear_errors():
 def test_domain_randomisation_draws_friction_and_perturbs_the_targets(g1, go1):
     """``friction_min``/``max`` (``softness_min``/``max``): each reset draws the episode's
     friction (softness) factor in the range (1 without randomisation), and
-    :func:`envs.with_friction` (:func:`envs.with_softness`) scales the model as the closed loop's
-    low-friction (soft) scenario does (G1's contact pairs included); ``action_noise``: the same
+    :func:`envs.with_ground` scales the model's friction (softness) as the closed loop's
+    low-friction (soft) scenario does (G1's contact pairs included), and both at once; ``action_noise``: the same
     state and action step to different states under different keys."""
     from mujoco import mjx
 
@@ -120,14 +120,17 @@ def test_domain_randomisation_draws_friction_and_perturbs_the_targets(g1, go1):
 
     for sm in (g1, go1):
         low = scenario_model(sm, Scenario("low", WALK, friction=0.3))
-        mx = envs.with_friction(mjx.put_model(sm.mj), 0.3)
+        mx = envs.with_ground(mjx.put_model(sm.mj), friction=0.3)
         np.testing.assert_allclose(mx.geom_friction, low.geom_friction, rtol=1e-6)
         np.testing.assert_allclose(mx.pair_friction, low.pair_friction, rtol=1e-6)
         soft = scenario_model(sm, Scenario("soft", WALK, softness=4.0))
-        mx = envs.with_softness(mjx.put_model(sm.mj), 4.0)
+        mx = envs.with_ground(mjx.put_model(sm.mj), softness=4.0)
         np.testing.assert_allclose(mx.geom_solref, soft.geom_solref, rtol=1e-6)
         np.testing.assert_allclose(mx.pair_solref, soft.pair_solref, rtol=1e-6)
         assert not np.allclose(soft.geom_solref, sm.mj.geom_solref)
+        both = envs.with_ground(mjx.put_model(sm.mj), friction=0.3, softness=4.0)
+        np.testing.assert_allclose(both.pair_friction, low.pair_friction, rtol=1e-6)
+        np.testing.assert_allclose(both.pair_solref, soft.pair_solref, rtol=1e-6)
     assert g1.mj.npair > 0  # the pairs are checked on a model that has them
 
     env = envs.make("go1", friction_min=0.3, friction_max=0.5, action_noise=0.05,

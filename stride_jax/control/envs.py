@@ -108,7 +108,7 @@ class EnvConfig:
       init_joint_noise: std of the initial joint offsets (rad).
       init_height: added to the home pose's base height at reset (m).
       friction_min, friction_max: each episode's ground friction is the model's scaled by a
-        factor drawn uniformly in this range at reset (:func:`with_friction`: the sliding
+        factor drawn uniformly in this range at reset (:func:`with_ground`: the sliding
         friction of every geom and contact pair, as the closed loop's low-friction scenario
         scales it); 1, 1: the model's own, no randomisation. A policy trained on one friction
         walks on a knife edge on another (G1 at 0.3 of it falls from 0.01 rad of smooth action
@@ -118,7 +118,7 @@ class EnvConfig:
         perturbed, as a planner sampling around it (or an actuator) perturbs them.
       softness_min, softness_max: each episode's ground contact time constant (``solref[0]`` of
         every geom and contact pair) is the model's scaled by a factor drawn uniformly in this
-        range at reset (:func:`with_softness`, as the closed loop's soft scenario scales it, 4
+        range at reset (:func:`with_ground`, as the closed loop's soft scenario scales it, 4
         there); 1, 1: the model's own. The G1 slope policy (slopes and friction randomised, the
         ground always hard) falls on the soft scenario in one episode in five from the GPU's
         float rounding alone, where the first policy stands
@@ -407,8 +407,8 @@ class VelocityEnv(brax_base.Env):
             target = target + cfg.action_noise * jax.random.normal(jax.random.fold_in(k_cmd, 1),
                                                                    target.shape)
         ctrl = jnp.clip(target, self.lo, self.hi)
-        mx = with_friction(self.mx, info["friction"]) if cfg.randomises_friction else self.mx
-        mx = with_softness(mx, info["softness"]) if cfg.randomises_softness else mx
+        mx = with_ground(self.mx, info["friction"] if cfg.randomises_friction else None,
+                         info["softness"] if cfg.randomises_softness else None)
         up = None  # the sensed gravity after the step (world down on level ground)
         if cfg.randomises_tilt:  # the slope built up over tilt_s, as the ``tilt`` scenario's
             ramp = jnp.stack([info["tilt"][0], jnp.asarray(cfg.tilt_s, info["tilt"].dtype)])
@@ -485,23 +485,26 @@ def foot_friction(sm: sim_model.SimModel, m: mujoco.MjModel) -> float:
     return float(con.friction[feet, 0].min())
 
 
-def with_friction(mx: mjx.Model, factor: jax.Array) -> mjx.Model:
-    """``mx`` with the sliding friction of every geom and of every explicit contact pair (G1's
-    feet meet the floor through pairs, which ignore the geoms' friction) scaled by ``factor``
-    (:func:`stride_jax.sim.randomize.sliding_friction`, as the low-friction scenario scales an
-    ``MjModel``), on the device (``factor`` may be traced: one per world under ``vmap``)."""
-    geom, pair = randomize.sliding_friction(mx.geom_friction, mx.pair_friction,
-                                            jnp.asarray(factor, mx.geom_friction.dtype))
-    return mx.replace(geom_friction=geom, pair_friction=pair)
+def with_ground(mx: mjx.Model, friction: jax.Array | None = None,
+                softness: jax.Array | None = None) -> mjx.Model:
+    """``mx`` on other ground, on the device (the factors may be traced: one per world under
+    ``vmap``; ``None`` leaves that property the model's own):
 
-
-def with_softness(mx: mjx.Model, factor: jax.Array) -> mjx.Model:
-    """``mx`` with the contact time constant of every geom and explicit contact pair scaled by
-    ``factor`` (> 1: softer; :func:`stride_jax.sim.randomize.contact_softness`, as the soft
-    scenario scales an ``MjModel``), on the device (``factor`` may be traced)."""
-    geom, pair = randomize.contact_softness(mx.geom_solref, mx.pair_solref,
-                                            jnp.asarray(factor, mx.geom_solref.dtype))
-    return mx.replace(geom_solref=geom, pair_solref=pair)
+    - ``friction``: the sliding friction of every geom and of every explicit contact pair (G1's
+      feet meet the floor through pairs, which ignore the geoms' friction) scaled by it
+      (:func:`stride_jax.sim.randomize.sliding_friction`, as the low-friction scenario scales an
+      ``MjModel``);
+    - ``softness``: the contact time constant of every geom and pair scaled by it (> 1: softer;
+      :func:`stride_jax.sim.randomize.contact_softness`, as the soft scenario does)."""
+    if friction is not None:
+        geom, pair = randomize.sliding_friction(mx.geom_friction, mx.pair_friction,
+                                                jnp.asarray(friction, mx.geom_friction.dtype))
+        mx = mx.replace(geom_friction=geom, pair_friction=pair)
+    if softness is not None:
+        geom, pair = randomize.contact_softness(mx.geom_solref, mx.pair_solref,
+                                                jnp.asarray(softness, mx.geom_solref.dtype))
+        mx = mx.replace(geom_solref=geom, pair_solref=pair)
+    return mx
 
 
 def physics_step(mx: mjx.Model, n_substeps: int, d: mjx.Data, ctrl: jax.Array) -> mjx.Data:
