@@ -152,6 +152,10 @@ def test_eval_latents_and_the_divergence_bound(runs, tmp_path):
 def test_eval_without_runs_is_a_clear_error(tmp_path):
     with pytest.raises(SystemExit, match="no training runs"):
         cli.main(["eval", "--runs", str(tmp_path / "nothing*")])
+    (tmp_path / "killed").mkdir()  # a run killed before its first checkpoint: named
+    (tmp_path / "killed" / "model.json").write_text("{}")
+    with pytest.raises(SystemExit, match=r"killed'\] have no summary.json"):
+        cli.main(["eval", "--runs", str(tmp_path / "*")])
 
 
 @pytest.mark.parametrize("robot", ["go1", "g1"])

@@ -53,6 +53,13 @@ def test_cli_simulate_diagnose_report(tmp_path, capsys):
     assert cli.main(["diagnose", "--robot", "pendulum_bouncing", "--logs", str(logdir), "--out",
                      str(outdir)]) == 2
     assert "log is for robot 'pendulum'" in capsys.readouterr().err
+    # planted effects that are not JSON, not an object, or not in the library: named, exit code 2
+    for bad, says in (("{delay: 2}", "is not JSON"), ("[2]", "must be a JSON object"),
+                      ('{"dampng": 0.3}', "unknown effect(s) ['dampng']")):
+        assert cli.main(["simulate", "--robot", "pendulum", "--out", str(tmp_path / "bad"),
+                         "--effects", bad]) == 2
+        assert says in capsys.readouterr().err, bad
+    assert not (tmp_path / "bad").exists()
 
 
 def test_too_few_trajectories_is_a_clear_error():

@@ -148,6 +148,12 @@ def test_missing_dataset_says_how_to_make_it(tmp_path):
         cli.main(["train", "--robot", "pendulum", "--preset", "tiny",
                   "--data", str(tmp_path / "none"), "--out", str(tmp_path / "run")])
     assert not (tmp_path / "none").exists()
+    with pytest.raises(SystemExit, match="unknown robot 'g3'"):  # not "no dataset at data/g3"
+        cli.main(["train", "--robot", "g3", "--preset", "tiny", "--out", str(tmp_path / "run")])
+    with pytest.raises(SystemExit, match="unknown model 'strde'"):  # before making data for it
+        cli.main(["train", "--robot", "pendulum", "--model", "strde", "--preset", "tiny", "--make-data",
+                  "--data", str(tmp_path / "none"), "--out", str(tmp_path / "run")])
+    assert not (tmp_path / "none").exists()
 
 
 def test_train_flags_nest_the_library_configs_with_the_flat_flags_kept():

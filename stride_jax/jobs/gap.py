@@ -145,6 +145,25 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _effects_flag(text: str) -> dict:
+    """``--effects``: a JSON object of library effect -> parameter (a number or a list); a
+    ``ValueError`` naming what is wrong otherwise."""
+    from stride_jax.gap import effects
+
+    try:
+        planted = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"--effects {text!r} is not JSON ({err}); give an object such as "
+                         "'{\"damping\": 0.3}'") from None
+    if not isinstance(planted, dict):
+        raise ValueError(f"--effects {text!r} must be a JSON object of effect -> parameter, "
+                         "such as '{\"damping\": 0.3}'")
+    unknown = [n for n in planted if n not in effects.ALL]
+    if unknown:
+        raise ValueError(f"--effects: unknown effect(s) {unknown}; known: {', '.join(effects.ALL)}")
+    return planted
+
+
 def _diagnose_config(args: argparse.Namespace):
     """The preset with the flags given on top (``ValueError`` for bad values)."""
     from stride_jax.gap import diagnose
@@ -181,8 +200,13 @@ def main(argv: list[str] | None = None) -> int:
         elif args.cmd == "simulate":
             from stride_jax.gap import nominal, real
 
+            try:
+                planted = _effects_flag(j.effects)
+            except ValueError as err:
+                print(f"error: {err}", file=sys.stderr)
+                return 2
             sm = nominal.load(j.robot, j.nominal)
-            _, logged = real.generate(sm, json.loads(j.effects), j.trajectories, j.steps,
+            _, logged = real.generate(sm, planted, j.trajectories, j.steps,
                                       j.seed, real.SensorNoise() if j.noise else None)
             logs.write(j.out, sm, logged, notes="simulated by `stride gap " + shlex.join(argv) + "`")
             print(f"{len(logged)} trajectories in {j.out}")

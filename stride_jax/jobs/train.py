@@ -13,7 +13,7 @@ import json
 import pathlib
 from typing import ClassVar
 
-from stride_jax import distributed
+from stride_jax import distributed, robots
 from stride_jax.distributed import DistributedConfig
 from stride_jax.dynamics import checkpoint, models
 from stride_jax.dynamics.mlp import MLPConfig
@@ -124,9 +124,12 @@ PRESETS = {
 def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.Path:
     """Trains ``cfg.model`` on ``cfg.data`` into ``cfg.out`` (resuming a killed run); returns
     the run folder. ``command`` is accepted for the uniform job signature."""
+    if cfg.model not in models.MODELS:  # before any data is made for it
+        raise ValueError(f"unknown model {cfg.model!r}; available: {', '.join(models.MODELS)}")
     distributed.initialize(cfg.distributed)
     data_dir = pathlib.Path(cfg.data or f"data/{cfg.robot}")
     if not (data_dir / "meta.json").exists():
+        robots.get(cfg.robot)  # an unknown robot is named as such, not as a missing dataset
         if not cfg.make_data:
             raise dataset.DatasetError(
                 f"no dataset at {data_dir}: make it first with `stride data --robot {cfg.robot} "
