@@ -43,15 +43,26 @@ class InputError(ValueError):
     values."""
 
 
-def check_shape(fn: str, arg: str, x, shape: tuple[int, ...]) -> None:
+def check_shape(fn: str, arg: str, x, shape: tuple[int, ...], finite: bool = True) -> None:
     """Raises :class:`InputError` naming ``fn`` and ``arg`` unless ``x`` has ``shape`` (checked
-    at trace time: free under ``jit``). Core maths take one example; batches go through ``vmap``.
+    at trace time: free under ``jit``) and, with ``finite`` and where ``x`` is a concrete value,
+    is finite (:func:`check_finite`). Core maths take one example; batches go through ``vmap``.
     """
     got = np.shape(x)
     if got != tuple(shape):
         hint = "; vmap over the batch" if len(got) > len(shape) else ""
         raise InputError(f"{fn}: {arg} must have shape {tuple(shape)} (one example{hint}), "
                          f"got {got}")
+    if finite:
+        check_finite(fn, arg, x)
+
+
+def check_finite(fn: str, arg: str, x) -> None:
+    """Raises :class:`InputError` naming ``fn`` and ``arg`` where ``x`` is a concrete value
+    holding NaN or inf. Under ``jit`` (or ``vmap``, ``grad``) the values are unknown and nothing is
+    checked: wrap the call with ``jax.experimental.checkify`` to check them there."""
+    if not isinstance(x, jax.core.Tracer) and not np.isfinite(np.asarray(x)).all():
+        raise InputError(f"{fn}: {arg} holds NaN or inf values")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -103,6 +103,19 @@ def test_batches_go_through_vmap_with_a_clear_error_otherwise():
         dyn.gravity(onn, onn.init(jax.random.key(0)), qs[0])
 
 
+def test_non_finite_inputs_are_named_where_the_values_are_known():
+    """Called eagerly, NaN or inf in any argument is an error naming it; under jit the values
+    are unknown, so NaN goes through (as it would through any jitted maths)."""
+    model, params = _model(ARM)
+    q = jnp.zeros(2)
+    with pytest.raises(dyn.InputError, match="forward_dynamics: tau holds NaN or inf"):
+        dyn.forward_dynamics(model, params, q, q, q.at[1].set(jnp.inf))
+    with pytest.raises(dyn.InputError, match="bias_force: qd holds NaN or inf"):
+        dyn.bias_force(model, params, q, q.at[0].set(jnp.nan))
+    out = jax.jit(lambda qd: dyn.forward_dynamics(model, params, q, qd, q))(q.at[0].set(jnp.nan))
+    assert np.isnan(np.asarray(out)).any()
+
+
 @pytest.mark.parametrize("name", ["stride", "delan", "delan_prior"])
 def test_float64_inputs_run_in_float64(name):
     """With ``jax_enable_x64`` and float64 inputs nothing is computed in float32 (the float32

@@ -174,7 +174,7 @@ def q_features(spec: ModelSpec, q: jax.Array, height: bool = True) -> jax.Array:
     ambiguity) and joint angles -- never the horizontal position. Periodic hinges enter as
     (sin, cos).
     """
-    check_shape("q_features", "q", q, (spec.nq,))
+    check_shape("q_features", "q", q, (spec.nq,), finite=False)  # the callers check values
     if spec.floating_base:
         head = ([q[2:3]] if height else []) + [quat_to_mat(q[3:7]).reshape(9)]
     else:

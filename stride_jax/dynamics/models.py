@@ -38,7 +38,7 @@ import numpy as np
 
 from stride_jax.dynamics import (flow, fused, fused_layout, fused_pallas, fused_step, integrate, lagrangian,
                                   next_obs, stride)
-from stride_jax.types import InputError, ModelSpec
+from stride_jax.types import InputError, ModelSpec, check_finite
 
 __all__ = ["Actuation", "DEFAULT_NFE", "InputError", "LATENTS", "MODELS", "Model", "load", "make",
            "motors", "next_observation", "rollout_keys", "save_definition", "spec_from_meta",
@@ -240,8 +240,7 @@ def _check_inputs(name: str, spec: ModelSpec, nu: int, **arrays) -> None:
         if not ok:
             raise InputError(f"{name}: {k} must have shape {want} (one example; vmap over "
                              f"the batch), got {shape}")
-        if not isinstance(x, jax.core.Tracer) and not np.isfinite(np.asarray(x)).all():
-            raise InputError(f"{name}: {k} holds NaN or inf values")
+        check_finite(name, k, x)
 
 
 def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.StructuredConfig,

@@ -6,7 +6,8 @@ a controller, an estimator or an analysis:
 Each function takes a model of :func:`stride_jax.dynamics.make` or
 :func:`stride_jax.dynamics.load` (STRIDE, DeLaN, DeLaN's prior, LNN + Diffusion), its params and
 **one** example (``q [nq]``, ``qd, qdd, tau [nv]``); batch with ``jax.vmap``. Inputs of the wrong
-shape raise :class:`~stride_jax.types.InputError` naming the argument. Everything is pure and
+shape, or called eagerly with NaN or inf values, raise :class:`~stride_jax.types.InputError`
+naming the argument (values are not checked under ``jit``). Everything is pure and
 differentiable (``jax.grad`` through a rollout for gradient-based control), and runs in the
 inputs' precision (float64 with ``jax_enable_x64``; float32 parameters are promoted).
 
