@@ -62,10 +62,13 @@ TRAIN = ["train", "--robot", "pendulum", "--model", "stride", "--preset", "tiny"
 @pytest.fixture(scope="module")
 def alone(tmp_path_factory) -> pathlib.Path:
     """The dataset (``d1``) and the model (``r1``) of one process with one device: the reference
-    both tests below compare with (made once)."""
+    both tests below compare with (made once, in this process: a ``stride`` process costs ~7 s
+    of imports before its job starts)."""
+    from stride_jax import cli
+
     tmp = tmp_path_factory.mktemp("alone")
-    _alone([*DATA, "--out", str(tmp / "d1")], tmp)
-    _alone([*TRAIN, "--data", str(tmp / "d1"), "--out", str(tmp / "r1")], tmp)
+    cli.main([*DATA, "--out", str(tmp / "d1")])
+    cli.main([*TRAIN, "--data", str(tmp / "d1"), "--out", str(tmp / "r1")])
     return tmp
 
 
