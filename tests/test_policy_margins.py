@@ -20,8 +20,8 @@ def test_a_row_per_policy_a_column_per_scenario_at_the_levels_asked(experiment, 
     _write(tmp_path, "go1_tilt_cpu64_slope", [0.001, 0.01], [5, 5])  # another robot: left out
     data = mod.gather(tmp_path, "g1", "cpu64")
     assert set(data) == {"slope", "softlr"} and set(data["slope"]) == {"soft", "tilt"}
-    scenarios, md = mod.table(data, [0.001, 0.01])
-    assert scenarios == ["soft", "tilt"]
+    scenarios, ar, md = mod.table(data, [0.001, 0.01])
+    assert scenarios == ["soft", "tilt"] and ar == 0.9
     assert "| slope | 12 / 9 of 64 | 0 / 3 of 64 |" in md  # the levels asked, not the file's first
     assert "| softlr | - | 11 / ? of 64 |" in md  # not run there; a level that file lacks
     _write(tmp_path, "g1_push_cpu64_slope", [0.001, 0.01], [0, 0], ar=0.0)

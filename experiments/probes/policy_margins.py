@@ -18,6 +18,8 @@ import argparse
 import json
 import pathlib
 
+from stride_jax.io import atomic_write_text
+
 
 def gather(folder: pathlib.Path, robot: str, tag: str) -> dict:
     """``{policy: {scenario: {"noise": [...], "falls": [...], "draws": n, "command": ...}}}``."""
@@ -38,7 +40,9 @@ def gather(folder: pathlib.Path, robot: str, tag: str) -> dict:
     return out
 
 
-def table(data: dict, noise: list[float]) -> tuple[list[str], str]:
+def table(data: dict, noise: list[float]) -> tuple[list[str], float, str]:
+    """``(scenarios, AR(1) coefficient, markdown table)`` of :func:`gather`'s ``data`` at the
+    ``noise`` levels."""
     scenarios = sorted({s for p in data.values() for s in p})
     ars = {c["ar"] for p in data.values() for c in p.values()}
     if len(ars) != 1:
@@ -54,7 +58,7 @@ def table(data: dict, noise: list[float]) -> tuple[list[str], str]:
             c = data[policy].get(s)
             cells.append("-" if c is None else " / ".join(falls(c, n) for n in noise) + f" of {c['draws']}")
         lines.append(f"| {policy} | " + " | ".join(cells) + " |")
-    return scenarios, "\n".join(lines)
+    return scenarios, ars.pop(), "\n".join(lines)
 
 
 def main() -> None:
@@ -67,18 +71,19 @@ def main() -> None:
     a = ap.parse_args()
     noise = [float(x) for x in a.noise.split(",")]
     data = gather(pathlib.Path(a.folder), a.robot, a.tag)
-    scenarios, md = table(data, noise)
+    scenarios, ar, md = table(data, noise)
     levels = " / ".join(f"{n:g}" for n in noise)
     text = (f"# The {a.robot} policies alone: falls per scenario at action noise {levels} rad\n\n"
             f"`python experiments/probes/policy_margins.py {a.folder} --robot {a.robot} --tag {a.tag} "
             f"--noise {a.noise} --out {a.out}` (from each policy's `policy_noise.py` run, its command in the file named "
-            f"below the table)\n\nEach cell: the episodes that fell at noise {levels} (AR(1) action "
-            f"noise as in the files), out of the draws.\n\n{md}\n\nFiles: "
+            f"below the table)\n\nEach cell: the episodes that fell at noise {levels} (AR(1) "
+            f"coefficient {ar:g}), out of the draws.\n\n{md}\n\nFiles: "
             + ", ".join(f"`{c['file']}`" for p in data.values() for c in p.values()) + "\n")
     out = pathlib.Path(a.out)
-    out.with_suffix(".md").write_text(text)
-    out.with_suffix(".json").write_text(json.dumps({"robot": a.robot, "tag": a.tag, "noise": noise,
-                                                    "scenarios": scenarios, "policies": data}, indent=1))
+    atomic_write_text(out.with_suffix(".md"), text)
+    atomic_write_text(out.with_suffix(".json"), json.dumps(
+        {"robot": a.robot, "tag": a.tag, "noise": noise, "ar": ar, "scenarios": scenarios,
+         "policies": data}, indent=1))
     print(f"wrote {out}.{{md,json}}")
 
 

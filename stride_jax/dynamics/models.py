@@ -41,7 +41,7 @@ from stride_jax.dynamics import (flow, fused, fused_layout, fused_pallas, fused_
 from stride_jax.types import InputError, ModelSpec, check_finite
 
 __all__ = ["Actuation", "DEFAULT_NFE", "InputError", "LATENTS", "MODELS", "Model", "load", "make",
-           "motors", "next_observation", "rollout_keys", "save_definition", "spec_from_meta",
+           "check_name", "motors", "next_observation", "rollout_keys", "save_definition", "spec_from_meta",
            "step_key", "structured"]
 
 
@@ -458,13 +458,18 @@ def next_observation(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Str
                  None, step, rollout, None, spec, act, cfg, scales, None)
 
 
+def check_name(name: str) -> None:
+    """A ``ValueError`` listing :data:`MODELS` unless ``name`` is one of them."""
+    if name not in MODELS:
+        raise ValueError(f"unknown model {name!r}; available: {', '.join(MODELS)}")
+
+
 def make(name: str, spec: ModelSpec, act: Actuation | None = None,
          cfg: stride.StructuredConfig = stride.StructuredConfig(),
          scales: stride.Scales = stride.Scales()) -> Model:
     """The model called ``name`` (:data:`MODELS`, :data:`DESCRIPTIONS`); a clear error for
     unknown names. ``act=None``: :func:`motors` on every dof."""
-    if name not in MODELS:
-        raise ValueError(f"unknown model {name!r}; available: {', '.join(MODELS)}")
+    check_name(name)
     if not isinstance(spec, ModelSpec):
         raise TypeError(f"spec must be a ModelSpec, got {type(spec).__name__}")
     if not isinstance(cfg, stride.StructuredConfig):

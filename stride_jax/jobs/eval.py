@@ -98,7 +98,7 @@ def find_runs(pattern: str) -> list[pathlib.Path]:
                    for p in glob.glob(part.strip()) if (pathlib.Path(p) / "model.json").is_file()})
     if not runs:
         raise FileNotFoundError(f"no training runs (folders with model.json) match {pattern!r}")
-    unsaved = [str(r) for r in runs if not (r / "summary.json").is_file()]
+    unsaved = [str(r) for r in runs if not runs_lib.is_trained(r)]
     if unsaved:  # a run killed before its first evaluation, or a folder that is not a run
         raise FileNotFoundError(f"run(s) {unsaved} have no summary.json (no checkpoint saved yet): "
                                 "resume them with the same `stride train` command, or leave them out")

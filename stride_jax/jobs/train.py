@@ -124,8 +124,7 @@ PRESETS = {
 def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.Path:
     """Trains ``cfg.model`` on ``cfg.data`` into ``cfg.out`` (resuming a killed run); returns
     the run folder. ``command`` is accepted for the uniform job signature."""
-    if cfg.model not in models.MODELS:  # before any data is made for it
-        raise ValueError(f"unknown model {cfg.model!r}; available: {', '.join(models.MODELS)}")
+    models.check_name(cfg.model)  # before any data is made for it
     distributed.initialize(cfg.distributed)
     data_dir = pathlib.Path(cfg.data or f"data/{cfg.robot}")
     if not (data_dir / "meta.json").exists():

@@ -29,8 +29,7 @@ def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0,
     ``transition_fraction`` of each minibatch; ``potential``: the prior's potential
     (``LNNConfig.potential``); ``gravity_context``: the networks see gravity's direction
     (``StructuredConfig.gravity_context``, for sloped data)."""
-    if model not in models.MODELS:
-        raise ValueError(f"unknown model {model!r}; available: {', '.join(models.MODELS)}")
+    models.check_name(model)
     nfe = nfe or models.DEFAULT_NFE.get(models.MODELS[model][1], 2)
     mass = meta.get("total_mass") or float(sim_model.load(meta["robot"]).mj.body_mass.sum())
     return stride.StructuredConfig(net=mlp.MLPConfig(hidden, depth, activation, weight_init),
