@@ -7,11 +7,15 @@ velocity 0.4 s ahead (the candidates' actions replayed through the model) and it
 at the end the family's mean command offset z.
 
     python experiments/probes/g1_stop_candidates.py results/models/g1_walk_ppo_g1_slope_slope15_tw1_tf0.25/stride-s0 [FAMILY_COST]
+        [--policy results/policies/ppo_g1_slope] [--learned results/learned_g1_slope/reward_value.msgpack]
+        [--family-cost-stop C]
 
 FAMILY_COST (default 0, G1's closed-loop setting): ``MPPIConfig.family_cost``, the prior that
-pulls the family's offsets back to the plain policy.
+pulls the family's offsets back to the plain policy; ``--family-cost-stop C``:
+``PlanningConfig.family_cost_stop``, the same prior acting at a stop command only (session 58:
+``--policy``, ``--learned`` and ``--family-cost-stop`` added; their defaults are session 51's run).
 """
-import sys, time, numpy as np, jax, jax.numpy as jnp
+import argparse, time, numpy as np, jax, jax.numpy as jnp
 import stride_jax
 stride_jax.set_xla_flags()
 from stride_jax.sim import model as sim_model
@@ -19,17 +23,24 @@ from stride_jax.control import envs, ppo, learned as L, mppi
 from stride_jax.control.episode import learned_model, learned_step, policy_alone
 from stride_jax.control.planning import PlanningConfig, make_planning, make_planner, mppi_config, split
 from stride_jax.control.scenarios import SCENARIOS
-run = sys.argv[1]
-family_cost = float(sys.argv[2]) if len(sys.argv) > 2 else 0.0
+ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+ap.add_argument("run")
+ap.add_argument("family_cost", nargs="?", type=float, default=0.0)
+ap.add_argument("--policy", default="results/policies/ppo_g1_slope")
+ap.add_argument("--learned", default="results/learned_g1_slope/reward_value.msgpack")
+ap.add_argument("--family-cost-stop", type=float, default=0.0)
+args = ap.parse_args()
+run, family_cost = args.run, args.family_cost
 sm = sim_model.load("g1")
-pol = "results/policies/ppo_g1_slope"
+pol = args.policy
 ep, env_cfg = policy_alone(sm, SCENARIOS["changes"], pol, govern=True)
 policy = ppo.load_policy(pol)[0]  # the planner's candidates
 t = np.asarray(ep.t); nq = sm.mj.nq
 model, params = learned_model(run, sm)
 step = learned_step(model, params)
-pcfg = PlanningConfig(observer_gain=0.1, learned_track_weight=10.0, model_gravity=True, prior_noise_std=0.05)
-lp = L.load("results/learned_g1_slope/reward_value.msgpack", ensemble=True)
+pcfg = PlanningConfig(observer_gain=0.1, learned_track_weight=10.0, model_gravity=True, prior_noise_std=0.05,
+                      family_cost_stop=args.family_cost_stop)
+lp = L.load(args.learned, ensemble=True)
 planning = make_planning(pcfg, env_cfg, sm, step, policy, lp)
 mcfg = mppi.MPPIConfig(samples=256, horizon=20, policy_samples=32, family_samples=96, prior_fraction=1.0, family_decay=0.8, family_cost=family_cost)
 mc = mppi_config(mcfg, pcfg, planning)
