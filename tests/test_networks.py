@@ -49,7 +49,7 @@ def _bimodal(key, n):
 
 
 @pytest.mark.parametrize("kind,nfe", [("flow", 8), ("diffusion", 20)])
-def test_generators_keep_both_modes_where_mse_returns_the_mean(kind, nfe):
+def test_generators_keep_both_modes_where_mse_returns_the_mean(kind, nfe, run_time_bound):
     gen = generative.make(kind, mlp.MLPConfig(hidden=64, depth=2), nfe)
     params = gen.init(jax.random.key(0), 1, 1)
     reg_init, reg_apply = mlp.mlp(mlp.MLPConfig(hidden=64, depth=2), 1)
@@ -66,9 +66,7 @@ def test_generators_keep_both_modes_where_mse_returns_the_mean(kind, nfe):
         l_mse = jnp.mean((jax.vmap(lambda ci: reg_apply(reg, ci))(c) - x) ** 2)
         return l_gen + l_mse
 
-    # 1500 steps: run time, not compile time, so this program is optimised as XLA's default does
-    # even under the suite's O0 flags (conftest)
-    @functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 2})
+    @functools.partial(jax.jit, compiler_options=run_time_bound)  # 1500 steps: run-time bound
     def step(p, state, key):
         g = jax.grad(loss)(p, key)
         updates, state = opt.update(g, state)

@@ -32,7 +32,7 @@ def _batch(key, n):
     return q, qd, tau, _true_qdd(q, qd, tau, s)
 
 
-def _train(residual, steps=2000):
+def _train(residual, compiler_options, steps=2000):
     params = stride.init(jax.random.key(0), SPEC, CFG, residual)
     opt = optax.adam(3e-3)
     state = opt.init(params)
@@ -44,9 +44,7 @@ def _train(residual, steps=2000):
         total, _ = jax.vmap(lambda *a: stride.loss(p, SPEC, CFG, residual, *a))(q, qd, tau, qdd, keys)
         return jnp.mean(total)
 
-    # 2000 steps: run time, not compile time, so this one program is optimised as XLA's default
-    # does even under the suite's O0 flags (conftest): the fixture 37 -> ~20 s on 2 cores
-    @functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 2})
+    @functools.partial(jax.jit, compiler_options=compiler_options)  # 2000 steps: run-time bound
     def step(p, s, key):
         g = jax.grad(batch_loss)(p, key)
         u, s = opt.update(g, s)
@@ -69,8 +67,8 @@ def _w1(a, b):
 
 
 @pytest.fixture(scope="module")
-def trained():
-    return {"stride": _train("flow"), "delan": _train("mlp")}
+def trained(run_time_bound):
+    return {"stride": _train("flow", run_time_bound), "delan": _train("mlp", run_time_bound)}
 
 
 def test_stride_keeps_both_modes_where_delan_averages(trained):
