@@ -40,7 +40,11 @@ else  # G1: closer to the policy (the settings that kept G1 planners up before,
            # tilt); 2.5 where they are (--planning.model-gravity; since session 51, chosen on the
            # tilt and kept out of sample: results/closed_loop_g1_gpu/gate25.md). A later
            # --planning.trust-limit among the flags wins.
-           $([ "${TRUST:-1}" = 1 ] && echo --planning.trust-limit "$gate" --planning.trust-hold-s 1.0))
+           $([ "${TRUST:-1}" = 1 ] && echo --planning.trust-limit "$gate" --planning.trust-hold-s 1.0)
+           # the stop prior since session 59 (results/closed_loop_g1_gpu/README.md, "Session 59":
+           # the command changes 0.311 -> 0.296, nil at walking speeds; the runs before it ran
+           # without: a later --planning.family-cost-stop 0 among the flags reproduces them)
+           --planning.family-cost-stop 0.3)
 fi
 mkdir -p "$out"
 timeout "$limit" python -m stride_jax.jobs.closed_loop "${common[@]}" --models "${models%,}" \
