@@ -141,8 +141,9 @@ def markdown(results: dict[str, dict], command: str) -> str:
         lines += [f"## {robot}", "", f"Headline parts: {', '.join(res['headline'])}; policy rows: "
                   f"{res['policy']}.", "",
                   "| scenario | policy | STRIDE | DeLaN + MLP | ONN | STRIDE <= policy | <= DeLaN | "
-                  "<= ONN | STRIDE ms/step | oracle ms/step | ratio |",
-                  "|---|---:|---:|---:|---:|---|---|---|---:|---:|---:|"]
+                  "<= ONN | STRIDE ms/step | oracle ms/step | ratio | trained seeds / episodes: STRIDE, "
+                  "DeLaN, ONN |",
+                  "|---|---:|---:|---:|---:|---|---|---|---:|---:|---:|---|"]
         for c in res["cells"]:
             vs = c["stride_vs"]
             apart = c["apart"]
@@ -155,7 +156,9 @@ def markdown(results: dict[str, dict], command: str) -> str:
                 + (f"{ms:.1f}" if ms is not None else "-") + " | "
                 + (f"{c['oracle_ms']:.0f}" + (" (all scenarios)" if c["oracle_ms_from"] == "all scenarios" else "")
                    if c["oracle_ms"] else "-") + " | "
-                + (f"{c['time_ratio']:.2f}" if c["time_ratio"] is not None else "-") + " |")
+                + (f"{c['time_ratio']:.2f}" if c["time_ratio"] is not None else "-") + " | "
+                + ", ".join(f"{c[k]['seeds']}/{c[k]['episodes']}" if c[k] else "-"
+                            for k in ("stride", "delan", "onn")) + " |")
         if any(c["slope_unseen"] for c in res["cells"]):
             lines += ["", "\\* rows on a slope their controller could not sense (world-down gravity, runs "
                           "before session 46: `results/planning_diagnosis/README.md`)"]

@@ -64,6 +64,7 @@ def test_policy_rows_picked_from_other_parts_and_a_table_without_headline(experi
     assert mod.main([f"x={p}", "--out", str(tmp_path / "out")]) == 0
     md = (tmp_path / "out.md").read_text()
     assert "## x" in md and "| rough | 0.090 | 0.062 |" in md
+    assert "| 3/3, -, 3/3 |" in md  # how many trained seeds and episodes each kind's value rests on
     with pytest.raises(SystemExit):
         mod.main([f"x={p}", "--out", str(tmp_path / "o2"), "--y-policy", "policy@old"])
 
