@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import argparse
 import glob
-import json
-import pathlib
 from types import SimpleNamespace
 
 import numpy as np
@@ -113,10 +111,7 @@ def main(argv=None) -> int:
     res = table(groups)
     command = "python experiments/command_segments.py " + " ".join(f'"{g}"' for g in a.groups) \
         + f" --out {a.out}"
-    stem = pathlib.Path(a.out)
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    io.atomic_write_text(stem.with_suffix(".json"), json.dumps(dict(command=command, **res), indent=1))
-    io.atomic_write_text(stem.with_suffix(".md"), markdown(res, command))
+    stem = io.write_table(a.out, dict(command=command, **res), markdown(res, command))
     print(f"wrote {stem}.{{md,json}}")
     return 0
 

@@ -84,10 +84,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     res = compare(pathlib.Path(a.before), pathlib.Path(a.after))
     command = f"python experiments/gap_bench_compare.py {a.before} {a.after} --out {a.out}"
-    stem = pathlib.Path(a.out)
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    io.atomic_write_text(stem.with_suffix(".json"), json.dumps(dict(command=command, **res), indent=1))
-    io.atomic_write_text(stem.with_suffix(".md"), markdown(res, command))
+    stem = io.write_table(a.out, dict(command=command, **res), markdown(res, command))
     print(f"{res['compared']} rows compared, {res['moved']} moved -> {stem}.{{md,json}}")
     return 0
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import pathlib
 import tempfile
@@ -29,6 +30,16 @@ def atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], None]) ->
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write(path, lambda f: f.write(text.encode()))
+
+
+def write_table(stem: str | os.PathLike, payload: dict, markdown: str) -> pathlib.Path:
+    """A result's two files, each written atomically: ``STEM.json`` (``payload``) and ``STEM.md``
+    (``markdown``), in a folder made if missing. Returns the stem."""
+    stem = pathlib.Path(stem)
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(stem.with_suffix(".json"), json.dumps(payload, indent=1))
+    atomic_write_text(stem.with_suffix(".md"), markdown)
+    return stem
 
 
 def file_sha256(path: str | os.PathLike) -> str:
