@@ -14,7 +14,9 @@ traces), the rows of that model kind in the scenario: every trained seed (``MODE
 ``MODEL_sN``) and planner draw. The mean square error of the pooled steps is
 the squared offset plus the variance about it, per axis; each trained seed's forward offset is
 listed so that a difference between kinds can be read against the spread of their seeds. Writes
-``OUT.md``, ``OUT.json`` and ``OUT.png``. Needs the traces (``trace_*.npz``), which stay out of
+``OUT.md``, ``OUT.json`` and ``OUT.png``; where the scenario's command changes, a second table splits
+each model's error over the stretches of constant command (the mean over its traces of each
+one's RMSE there). Needs the traces (``trace_*.npz``), which stay out of
 the repository: run it where the closed loop ran.
 """
 
@@ -23,12 +25,14 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import shlex
+import sys
 import types
 
 import numpy as np
 
 from stride_jax.control.episode import tracked
-from stride_jax.io import atomic_write, atomic_write_text
+from stride_jax.io import atomic_write, write_table
 from stride_jax.jobs import closed_loop
 from stride_paper.seeds import kind_and_seed
 
@@ -54,11 +58,53 @@ def traces(folder: pathlib.Path, scenario: str, model: str) -> dict[int, list[pa
     return out
 
 
+def _load(path: pathlib.Path) -> types.SimpleNamespace:
+    with np.load(path) as z:
+        return types.SimpleNamespace(**{k: z[k] for k in ("t", "command", "fallen", "v_base")})
+
+
 def errors(path: pathlib.Path, settle_s: float) -> np.ndarray:
     """Velocity minus command (x, y in the base frame) on a trace's scored steps."""
-    with np.load(path) as z:
-        tr = types.SimpleNamespace(**{k: z[k] for k in ("t", "command", "fallen", "v_base")})
+    tr = _load(path)
     return (tr.v_base[:, :2] - tr.command[:, :2])[tracked(tr, settle_s)]
+
+
+def schedule(tr) -> list[tuple[float, float, list[float]]]:
+    """``(start s, end s, command [3])`` of each stretch of constant command of a trace."""
+    t, c = np.asarray(tr.t), np.asarray(tr.command)
+    starts = np.flatnonzero(np.r_[True, np.any(np.diff(c, axis=0) != 0, axis=1)])
+    ends = np.r_[starts[1:], len(t)]
+    dt = float(t[1] - t[0]) if len(t) > 1 else 0.0
+    return [(float(t[a]), float(t[b - 1]) + dt, [float(x) for x in c[a]]) for a, b in zip(starts, ends)]
+
+
+def segment_rmse(path: pathlib.Path, settle_s: float) -> tuple[list, list[float], float, bool]:
+    """A trace's schedule, its velocity RMSE over the scored steps of each stretch of constant
+    command (NaN: none scored) and over all of them (the closed loop's ``vel_rmse``), and
+    whether it fell."""
+    tr = _load(path)
+    use, t = tracked(tr, settle_s), np.asarray(tr.t)
+    e2 = np.sum((tr.v_base[:, :2] - tr.command[:, :2]) ** 2, axis=1)
+    rmse = lambda m: float(np.sqrt(e2[m].mean())) if m.any() else float("nan")
+    sched = schedule(tr)
+    return sched, [rmse(use & (t >= a) & (t < b)) for a, b, _ in sched], rmse(use), bool(tr.fallen.any())
+
+
+def by_segment(files: list[pathlib.Path], settle_s: float) -> dict:
+    """Per stretch of constant command, the mean over the traces (planner draws) of each one's
+    RMSE there (:func:`segment_rmse`; NaN where no trace scored a step); the traces must share
+    one schedule."""
+    key = lambda sched: [(round(a, 6), [round(x, 6) for x in c]) for a, _, c in sched]
+    got = [segment_rmse(f, settle_s) for f in files]
+    sched = got[0][0]
+    for f, g in zip(files, got):
+        if key(g[0]) != key(sched):
+            raise ValueError(f"{f}: its command schedule differs from {files[0].name}'s")
+    per = np.array([g[1] for g in got])
+    mean = [float(np.mean(col[np.isfinite(col)])) if np.isfinite(col).any() else float("nan")
+            for col in per.T]
+    return dict(schedule=[dict(start=a, end=b, command=c) for a, b, c in sched], rmse=mean,
+                whole=float(np.mean([g[2] for g in got])), fell=sum(g[3] for g in got))
 
 
 def split(e: np.ndarray) -> dict:
@@ -89,7 +135,8 @@ def decompose(folder: pathlib.Path, scenario: str, model: str,
     per = {s: np.concatenate([errors(f, settle_s) for f in fs]) for s, fs in seeds.items()}
     return dict(split(np.concatenate(list(per.values()))), settle_s=settle_s,
                 episodes=sum(len(fs) for fs in seeds.values()), seeds=sorted(seeds),
-                seed_offset_x=[float(per[s][:, 0].mean()) for s in sorted(per)])
+                seed_offset_x=[float(per[s][:, 0].mean()) for s in sorted(per)],
+                segments=by_segment([f for s in sorted(seeds) for f in seeds[s]], settle_s))
 
 
 def figure(rows: dict[str, dict], out: pathlib.Path, title: str) -> None:
@@ -136,11 +183,7 @@ def main(argv=None) -> int:
                                source=f"{folder}:{model}")
         except (FileNotFoundError, ValueError) as e:
             raise SystemExit(f"{pick!r}: {e}") from None
-    stem = pathlib.Path(a.out)
-    stem.parent.mkdir(parents=True, exist_ok=True)
     title = a.title or f"Velocity tracking error in '{a.scenario}': offset and variance"
-    atomic_write_text(stem.with_suffix(".json"), json.dumps(
-        dict(title=title, scenario=a.scenario, rows=rows), indent=1))
     settle = sorted({r["settle_s"] for r in rows.values()})
     md = [f"# {title}", "",
           "Scored steps pooled over every trace of a model (upright, "
@@ -157,7 +200,24 @@ def main(argv=None) -> int:
                   f"{r['offset_x']:+.4f} | {r['offset_y']:+.4f} | {r['var_x']:.2e} | "
                   f"{r['var_y']:.2e} | {share:.0%} | "
                   + " / ".join(f"{v:+.4f}" for v in r["seed_offset_x"]) + " |")
-    atomic_write_text(stem.with_suffix(".md"), "\n".join(md) + "\n")
+    scheds = [r["segments"]["schedule"] for r in rows.values()]
+    if len(scheds[0]) > 1 and all(s == scheds[0] for s in scheds):
+        head = [f"{s['start']:g}-{s['end']:g} s ({', '.join(f'{x:g}' for x in s['command'])})"
+                for s in scheds[0]]
+        md += ["", "Per stretch of constant command (vx m/s, vy m/s, yaw rate rad/s): velocity "
+               "RMSE over its scored steps, mean over the model's traces (planner draws); whole: "
+               "the mean of the traces' own RMSE (the closed loop's `vel_rmse`).", "",
+               "| model | episodes | " + " | ".join(head) + " | whole |",
+               "|---|---:|" + "---:|" * (len(head) + 1)]
+        for label, r in rows.items():
+            g = r["segments"]
+            md.append(f"| {label} | {r['episodes']}" + (f" ({g['fell']} fell)" if g["fell"] else "")
+                      + " | " + " | ".join("-" if np.isnan(v) else f"{v:.3f}" for v in g["rmse"])
+                      + f" | {g['whole']:.3f} |")
+    command = "python experiments/tracking_error.py " + " ".join(
+        shlex.quote(x) for x in (sys.argv[1:] if argv is None else argv))
+    stem = write_table(a.out, dict(title=title, command=command, scenario=a.scenario, rows=rows),
+                       "\n".join(md) + "\n")
     figure(rows, stem.with_suffix(".png"), title)
     print(f"wrote {stem}.{{md,json,png}}")
     return 0

@@ -10,7 +10,7 @@ from stride_jax.control.episode import tracked
 
 
 def _trace(folder, model, offset, sway, scenario="changes", draw=0, n=200, dt=0.02,
-           change_at=100, fall_at=None):
+           change_at=100, fall_at=None, offset_after=None):
     """A closed-loop row and its trace, as the closed loop writes them: velocity = command +
     ``offset`` + a lateral sine of amplitude ``sway``, the command stepping once at
     ``change_at``; ``draw`` is the planner's draw (the row's ``seed``, ``episode``)."""
@@ -21,6 +21,8 @@ def _trace(folder, model, offset, sway, scenario="changes", draw=0, n=200, dt=0.
     command[change_at:, 0] = 0.8
     v = command.copy()
     v[:, :2] += offset
+    if offset_after is not None:  # another offset after the change
+        v[change_at:, :2] += np.asarray(offset_after) - offset
     v[:, 1] += sway * np.sin(2 * np.pi * 2.0 * t)
     fallen = np.zeros(n, bool)
     if fall_at is not None:
@@ -78,10 +80,15 @@ def test_the_script_writes_table_json_and_figure_and_names_bad_picks(tmp_path, e
     out = tmp_path / "out" / "err"
     assert mod.main(["--scenario", "changes", f"STRIDE={tmp_path}:stride",
                      f"DeLaN={tmp_path}:delan", "--out", str(out)]) == 0
-    rows = json.loads(out.with_suffix(".json").read_text())["rows"]
+    saved = json.loads(out.with_suffix(".json").read_text())
+    rows = saved["rows"]
+    assert saved["command"].startswith("python experiments/tracking_error.py --scenario changes")
     assert rows["DeLaN"]["steps"] == 60 - 25  # up to the fall
     assert "| STRIDE | 1 | 150 |" in out.with_suffix(".md").read_text()
     assert out.with_suffix(".png").stat().st_size > 1000
+    md = out.with_suffix(".md").read_text()
+    assert "| 0-2 s (0.5, 0, 0) | 2-4 s (0.8, 0, 0) | whole |" in md  # per segment
+    assert "| DeLaN | 1 (1 fell) | " in md
     with pytest.raises(SystemExit, match="no row of onn in 'changes'"):
         mod.main(["--scenario", "changes", f"ONN={tmp_path}:onn", "--out", str(out)])
     with pytest.raises(SystemExit, match="expected LABEL=FOLDER:MODEL"):
@@ -89,3 +96,24 @@ def test_the_script_writes_table_json_and_figure_and_names_bad_picks(tmp_path, e
     (tmp_path / "trace_changes_stride.npz").unlink()
     with pytest.raises(SystemExit, match="trace_changes_stride.npz: no trace of the row stride"):
         mod.main(["--scenario", "changes", f"STRIDE={tmp_path}:stride", "--out", str(out)])
+
+
+def test_each_command_segment_scores_its_own_error(tmp_path, experiment):
+    """Per stretch of constant command: each trace's RMSE over its scored steps there, the mean
+    over the traces; a fall leaves the steps after it unscored; traces of another schedule are
+    an error."""
+    mod = experiment("tracking_error")
+    _trace(tmp_path, "stride", np.array([0.1, 0.0]), sway=0.0, offset_after=[0.4, 0.0])
+    _trace(tmp_path, "stride_s1", np.array([0.3, 0.0]), sway=0.0, offset_after=[0.0, 0.0])
+    g = mod.decompose(tmp_path, "changes", "stride")["segments"]
+    assert np.allclose([s["command"] for s in g["schedule"]], [[0.5, 0.0, 0.0], [0.8, 0.0, 0.0]])
+    assert [s["start"] for s in g["schedule"]] == pytest.approx([0.0, 2.0])
+    assert g["rmse"] == pytest.approx([0.2, 0.2], abs=1e-6)
+    assert g["whole"] == pytest.approx((np.sqrt((0.01 + 0.16) / 2) + np.sqrt(0.09 / 2)) / 2, abs=1e-6)
+    assert g["fell"] == 0
+    _trace(tmp_path, "delan", np.array([0.1, 0.0]), sway=0.0, fall_at=80)
+    g = mod.decompose(tmp_path, "changes", "delan")["segments"]
+    assert g["rmse"][0] == pytest.approx(0.1, abs=1e-6) and np.isnan(g["rmse"][1]) and g["fell"] == 1
+    _trace(tmp_path, "stride", np.array([0.1, 0.0]), sway=0.0, draw=1, change_at=120)
+    with pytest.raises(ValueError, match="schedule differs"):
+        mod.decompose(tmp_path, "changes", "stride")
