@@ -17,7 +17,8 @@ if __name__ == "__main__":
                     help="a merged closed_loop.json to append the parts to (its rows and notes kept)")
     ap.add_argument("--headline", default=None,
                     help="comma-separated parts holding the current planner's rows (the report's "
-                         "closed-loop claims read those alone)")
+                         "closed-loop claims read those alone); PART:MODEL+MODEL takes only "
+                         "those models' rows of the part (e.g. se_changes:policy)")
     a = ap.parse_args()
     if not a.parts and not a.onto:
         ap.error("give parts to merge, or --onto a merged table")

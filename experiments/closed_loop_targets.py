@@ -31,7 +31,8 @@ import numpy as np
 from stride_jax import io
 from stride_jax.jobs import closed_loop
 from stride_paper.report_control import slope_unseen
-from stride_paper.seeds import at_most, fall_rates_differ, kind_and_seed, seed_means, welch
+from stride_paper.seeds import (at_most, fall_rates_differ, headline_picks, in_headline,
+                                kind_and_seed, seed_means, welch)
 
 KINDS = ("policy", "stride", "delan", "onn")
 
@@ -62,11 +63,11 @@ def _at_most(a: dict | None, b: dict | None) -> bool | None:
 
 def robot_targets(table: dict, policy_pick: str = "") -> dict:
     """The scenarios' cells and the targets' verdicts of one merged table (``headline`` needed)."""
-    head = (table.get("headline") or {}).get("parts")
-    if not head:
+    picks = headline_picks(table)
+    if not picks:
         raise ValueError("the table names no headline parts (stride_jax.jobs.closed_loop.merge "
                          "--headline): nothing says which rows are the current planner")
-    rows = [r for r in table["rows"] if r.get("part") in head]
+    rows = [r for r in table["rows"] if in_headline(r, picks)]
     scenarios = list(dict.fromkeys(r["scenario"] for r in rows))
     by: dict[tuple[str, str], list[dict]] = {(sc, k): [] for sc in scenarios for k in KINDS}
     for r in rows:
@@ -117,7 +118,7 @@ def robot_targets(table: dict, policy_pick: str = "") -> dict:
         "time_fifth_of_oracle": dict(met=(max(ratios) <= 0.2) if ratios else None,
                                      worst_ratio=max(ratios) if ratios else None),
     }
-    return dict(headline=head, policy=policy_pick or "the headline's own rows", cells=cells,
+    return dict(headline=table["headline"]["parts"], policy=policy_pick or "the headline's own rows", cells=cells,
                 targets=targets)
 
 

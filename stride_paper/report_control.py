@@ -13,7 +13,8 @@ from stride_paper.report_common import (
     WHERE_MPPI,
     Row, _dig, _finite, _git_note, _load_json, _num, _stats, _table, verdict,
 )
-from stride_paper.seeds import at_most, fall_rates_differ, kind_and_seed, seed_means, welch
+from stride_paper.seeds import (at_most, fall_rates_differ, headline_picks, in_headline,
+                                kind_and_seed, seed_means, welch)
 
 # ---------------------------------------------------------------------------------- MPPI
 
@@ -139,9 +140,9 @@ def _claim_cells(files: list[tuple[pathlib.Path, dict]]) -> tuple[dict, list, st
                 cells.setdefault((p, _row_key(r), _row_model(r)), []).append(r)
         return cells, files, ""
     for p, d in heads:
-        parts = set(d["headline"].get("parts") or [])
+        picks = headline_picks(d) or {}
         for r in d["rows"]:
-            if r.get("part") in parts:
+            if in_headline(r, picks):
                 cells.setdefault((p, _row_key(r), kind_and_seed({"model": _row_model(r)})[0]),
                                []).append(r)
     return cells, heads, "; the current planner: " + "; ".join(
@@ -159,7 +160,7 @@ def _command(d: dict, headline: bool = False) -> str | None:
     parts = d.get("parts")
     if not isinstance(parts, dict):
         return d.get("command") or _dig(d, "env", "command")
-    head = (d.get("headline") or {}).get("parts") or []
+    head = headline_picks(d) or {}
     names = [n for n in parts if n in head] if headline and head else list(parts)
     if not headline and len(names) > MAX_PART_COMMANDS:
         return None

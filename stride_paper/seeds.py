@@ -34,6 +34,35 @@ def kind_and_seed(row: dict) -> tuple[str, int]:
     return kind, seed
 
 
+def headline_picks(table: dict) -> dict[str, frozenset[str] | None] | None:
+    """A merged closed-loop table's ``headline`` (``stride_jax.jobs.closed_loop.merge``: the
+    current planner's rows) as ``{part: models}``: an entry ``PART`` takes all the part's rows
+    (models None), ``PART:MODEL+MODEL`` only those models' (a run's policy-alone rows without its
+    planner's, say); None where the table names no headline."""
+    entries = (table.get("headline") or {}).get("parts")
+    if not entries:
+        return None
+    picks: dict[str, frozenset[str] | None] = {}
+    for entry in entries:
+        part, _, models = str(entry).partition(":")
+        names = frozenset(m for m in models.split("+") if m) if models else None
+        if part in picks and (picks[part] is None or names is None):
+            picks[part] = None
+        else:
+            picks[part] = (picks.get(part) or frozenset()) | names if names else None
+    return picks
+
+
+def in_headline(row: dict, picks: dict[str, frozenset[str] | None]) -> bool:
+    """Whether ``row`` is among :func:`headline_picks`' rows (a model named by its merged name
+    or by the name before ``@part``)."""
+    part = row.get("part")
+    if part not in picks:
+        return False
+    models = picks[part]
+    return models is None or row["model"] in models or str(row["model"]).split("@")[0] in models
+
+
 def seed_means(rows: Iterable[dict], fallen: str = "drop") -> dict[int, float]:
     """Each trained seed's mean velocity RMSE over its rows (planner draws) that stayed up.
     A seed whose every draw fell is left out (``fallen="drop"``: it has no tracking to compare)

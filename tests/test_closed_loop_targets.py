@@ -56,6 +56,11 @@ def test_policy_rows_picked_from_other_parts_and_a_table_without_headline(experi
     soft = next(c for c in r["cells"] if c["scenario"] == "soft")
     assert soft["policy"]["vel_rmse"] == 0.06 and soft["stride_vs"]["policy"] is True
     assert next(c for c in r["cells"] if c["scenario"] == "rough")["policy"] is None
+    # a headline taking some models of a part: the old part's policy row, not its fallen STRIDE
+    tab["headline"]["parts"].append("old:policy")
+    r = mod.robot_targets(tab)
+    soft = next(c for c in r["cells"] if c["scenario"] == "soft")
+    assert soft["policy"]["vel_rmse"] == 0.06 and r["targets"]["no_falls"]["met"]
     del tab["headline"]
     with pytest.raises(ValueError, match="no headline"):
         mod.robot_targets(tab)

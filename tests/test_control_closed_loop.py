@@ -650,6 +650,15 @@ def test_a_merge_onto_an_earlier_one_keeps_its_rows_and_notes(tmp_path):
     with pytest.raises(ValueError, match="not parts of the table"):
         cl.merge([], str(tmp_path / "sixth"), onto=str(tmp_path / "fifth" / "closed_loop.json"),
                  headline=["b", "zz"])
+    # some models of a part (a run's policy rows without its planner's): each must have rows
+    cl.merge([], str(tmp_path / "sixth"), onto=str(tmp_path / "fifth" / "closed_loop.json"),
+             headline=["c", "b:onn+stride"])
+    assert json.loads((tmp_path / "sixth" / "closed_loop.json").read_text())["headline"] == {
+        "parts": ["c", "b:onn+stride"]}
+    for bad in ("b:policy", "b:", "b:onn+zz"):
+        with pytest.raises(ValueError, match="has no rows"):
+            cl.merge([], str(tmp_path / "seventh"),
+                     onto=str(tmp_path / "fifth" / "closed_loop.json"), headline=[bad])
 
 
 def test_the_recovery_alarm_fires_on_the_velocity_tracking_error(go1):

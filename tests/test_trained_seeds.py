@@ -51,6 +51,22 @@ def test_seed_means_drop_or_keep_the_seeds_whose_every_draw_fell():
         seed_means(rows, fallen="keep")
 
 
+def test_a_headline_takes_whole_parts_or_some_models_of_a_part():
+    """``PART`` takes every row of the part, ``PART:MODEL+MODEL`` those models' (by merged name or
+    the name before ``@part``); a part named both ways is taken whole; no headline: None."""
+    from stride_paper.seeds import headline_picks, in_headline
+    rows = [dict(model="policy@old", part="old"), dict(model="stride@old", part="old"),
+            dict(model="onn", part="old"), dict(model="stride", part="new"),
+            dict(model="stride", part="other")]
+    picks = headline_picks({"headline": {"parts": ["new", "old:policy+onn"]}})
+    assert picks == {"new": None, "old": frozenset({"policy", "onn"})}
+    assert [in_headline(r, picks) for r in rows] == [True, False, True, True, False]
+    assert headline_picks({"headline": {"parts": ["old:policy", "old"]}}) == {"old": None}
+    assert headline_picks({"headline": {"parts": ["old:policy", "old:onn"]}}) == {
+        "old": frozenset({"policy", "onn"})}
+    assert headline_picks({"rows": []}) is None
+
+
 def test_at_most_orders_by_fall_rate_then_error():
     """Falling less often wins whatever the upright error; equal rates (1 of 3 and 2 of 6) go to
     the error; no upright draw (NaN) loses to any error."""

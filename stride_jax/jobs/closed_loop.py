@@ -502,7 +502,9 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None,
     ``title`` is given); a part merged there before adds the rows its run has written since (a
     resumed run), and none new is an error. ``headline``: the parts that hold the current
     planner's rows (the report's closed-loop claims read those alone; kept from ``onto`` when not
-    given); each must be a part of the table."""
+    given), each ``PART`` (all its rows) or ``PART:MODEL+MODEL`` (only those models' rows, by
+    their name in the part's run: a run's policy-alone rows without its planner's); each part
+    must be a part of the table (``stride_paper.seeds.headline_picks`` reads them)."""
     import shutil
 
     out_dir = pathlib.Path(out)
@@ -565,10 +567,18 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None,
             if trace.is_file():
                 shutil.copy2(trace, out_dir / trace_name(r["scenario"], model, episode, seed))
     if headline is not None:
-        unknown = [h for h in headline if h not in envs_]
+        unknown = [h for h in headline if h.partition(":")[0] not in envs_]
         if unknown:
             raise ValueError(f"headline parts {unknown} are not parts of the table "
                              f"(parts: {', '.join(envs_)})")
+        for h in headline:
+            part, pick, models = h.partition(":")
+            held = {n for r in rows if r.get("part") == part
+                    for n in (r["model"], r["model"].split("@")[0])}
+            absent = [m for m in models.split("+") if m and m not in held]
+            if pick and (absent or not models.strip("+")):
+                raise ValueError(f"headline {h!r}: part {part!r} has no rows of "
+                                 f"{absent or models!r} (its models: {', '.join(sorted(held))})")
         head = dict(parts=list(headline))
     table = dict(title=title, parts=envs_, rows=rows)
     if head is not None:
