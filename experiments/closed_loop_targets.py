@@ -204,11 +204,7 @@ def main(argv=None) -> int:
         ap.error(f"--{'/'.join(picks)}-policy names no table given")
     command = "python experiments/closed_loop_targets.py " + " ".join(
         argv if argv is not None else sys.argv[1:])
-    stem = pathlib.Path(a.out)
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    io.atomic_write_text(stem.with_suffix(".json"), json.dumps(dict(command=command, robots=results),
-                                                               indent=1))
-    io.atomic_write_text(stem.with_suffix(".md"), markdown(results, command))
+    stem = io.write_table(a.out, dict(command=command, robots=results), markdown(results, command))
     print(f"wrote {stem}.{{md,json}}")
     return 0
 

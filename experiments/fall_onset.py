@@ -98,11 +98,10 @@ def main() -> None:
               f"{_f(e['over_s'])} | {_f(e['distrust_s'])} | {e['distrust_share']:.2f} |"
               for e in eps]
     out = pathlib.Path(a.out)
-    io.atomic_write_text(out.with_suffix(".md"), "\n".join(lines) + "\n")
-    io.atomic_write_text(out.with_suffix(".json"), json.dumps(
-        dict(scenario=a.scenario, over=a.over, parts=a.parts,
-             episodes=[{k: v for k, v in e.items() if k not in ("t", "vx")} for e in eps]),
-        indent=1))
+    io.write_table(out, dict(scenario=a.scenario, over=a.over, parts=a.parts,
+                             episodes=[{k: v for k, v in e.items() if k not in ("t", "vx")}
+                                       for e in eps]),
+                   "\n".join(lines) + "\n")
     parts = list(dict.fromkeys(e["part"] for e in eps))
     fig, axes = plt.subplots(1, len(parts), figsize=(5 * len(parts), 3.6), squeeze=False,
                              sharey=True)

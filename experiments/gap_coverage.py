@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import pathlib
 import time
 
@@ -57,7 +56,7 @@ def main() -> None:
     from tqdm import tqdm
 
     from stride_jax.gap import diagnose, effects, filters, fit, real, simex
-    from stride_jax.io import atomic_write_text, code_version
+    from stride_jax.io import code_version, write_table
     from stride_jax.sim import model
 
     noise = sensor_noise(real, a.noise)
@@ -137,8 +136,8 @@ def main() -> None:
                      f"{r['inside_bounds']}/{r['draws']} | {r['median_estimate']:.4g} | {r['robust_sd_estimate']:.3g} | "
                      f"{r['median_half_width']:.3g} | "
                      f"{r['bias_in_se']:+.2f} | {r['low_misses']} / {r['high_misses']} |")
-    atomic_write_text(out / "coverage.md", "\n".join(lines) + "\n")
-    atomic_write_text(out / "coverage.json", json.dumps({"command": cmd, "code": version, "rows": rows}, indent=1))
+    write_table(out / "coverage", {"command": cmd, "code": version, "rows": rows},
+                "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

@@ -24,7 +24,7 @@ import pathlib
 import numpy as np
 from scipy import stats
 
-from stride_jax.io import atomic_write_text
+from stride_jax.io import write_table
 
 METRICS = {  # name -> (label, getter on a Table I run row)
     "per_sample": ("state RMSE per sample", lambda r: r["state"]["mean"]),
@@ -129,8 +129,7 @@ def main(argv: list[str] | None = None) -> None:
             lines.append(f"| {robot} | {sc} | {n} | " + " | ".join(cells) + " |")
     out = pathlib.Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out.with_suffix(".md"), "\n".join(lines) + "\n")
-    atomic_write_text(out.with_suffix(".json"), json.dumps(result, indent=1))
+    write_table(out, result, "\n".join(lines) + "\n")
     _plot(result, out.with_suffix(".png"))
     print(f"wrote {out}.{{md,json,png}}")
 

@@ -23,7 +23,6 @@ Writes OUT.md and OUT.json.
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 import shlex
 import sys
@@ -71,7 +70,7 @@ def main(argv: list[str] | None = None) -> dict:
     from stride_jax.control.episode import policy_alone
     from stride_jax.control.planning import servo_torque, split
     from stride_jax.control.scenarios import SCENARIOS, governed
-    from stride_jax.io import atomic_write_text, code_version
+    from stride_jax.io import code_version, write_table
     from stride_jax.sim import model as sim_model
     from stride_jax.sim.rollout_mjx import fallen as is_fallen
 
@@ -116,7 +115,6 @@ def main(argv: list[str] | None = None) -> dict:
     env = dict(command=command_line, code=code_version(), robot=a.robot, policy=a.policy,
                learned=a.learned, scenario=sc.name, governed_commands=sc.commands,
                asked=command.tolist(), states=int(pick.size))
-    atomic_write_text(stem.with_suffix(".json"), json.dumps(dict(env=env, rows=rows), indent=1))
     lines = [f"# The learned cost against the task's reward: {a.robot}, command "
              f"{command.tolist()}", "", f"Command: `{command_line}`", "",
              f"{pick.size} upright states of the policy's governed {sc.name!r} episode under "
@@ -130,7 +128,7 @@ def main(argv: list[str] | None = None) -> dict:
     for r in rows:
         lines.append(f"| {r['shift']:+.2f} | {r['vx']:+.3f} | {r['r_hat']:+.4f} | "
                      f"{r['value']:+.3f} | {r['env_reward']:+.4f} | {r['env_tracking']:+.4f} |")
-    atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
+    write_table(stem, dict(env=env, rows=rows), "\n".join(lines) + "\n")
     print("\n".join(lines[-len(rows) - 2:]))
     print(f"wrote {stem}.{{md,json}}")
     return dict(rows=rows)

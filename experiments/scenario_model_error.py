@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import pathlib
 import shlex
 import sys
@@ -121,7 +120,7 @@ def main(argv: list[str] | None = None) -> dict:
     from stride_jax.control.episode import learned_model, learned_step
     from stride_jax.control.scenarios import SCENARIOS
     from stride_jax.dynamics import models as dyn_models
-    from stride_jax.io import atomic_write_text, code_version
+    from stride_jax.io import code_version, write_table
     from stride_jax.sim import model as sim_model
 
     if a.scenario not in SCENARIOS:
@@ -178,7 +177,6 @@ def main(argv: list[str] | None = None) -> dict:
     env = dict(command=command, code=code_version(), backend=jax.default_backend(),
                scenario=sc.name, policy=policy, draws=a.draws, nfe=a.nfe or None, seconds=a.seconds,
                commands=sc.commands, govern=a.govern)
-    atomic_write_text(stem.with_suffix(".json"), json.dumps(dict(env=env, rows=rows), indent=1))
     lines = [f"# One-period model error along the policy's episode: {a.robot}, {sc.name}", "",
              f"Command: `{command}`", "",
              "Base linear acceleration error over one control period (true minus predicted, "
@@ -197,7 +195,7 @@ def main(argv: list[str] | None = None) -> dict:
                              + " / ".join(f"{x:+.2f}" for x in v["bias"]) + " | "
                              + " / ".join(f"{x:.2f}" for x in v["spread"])
                              + f" | {v['joint_vel_rmse']:.3f} |")
-    atomic_write_text(stem.with_suffix(".md"), "\n".join(lines) + "\n")
+    write_table(stem, dict(env=env, rows=rows), "\n".join(lines) + "\n")
     print(f"wrote {stem}.{{md,json}}")
     return dict(rows=rows)
 

@@ -204,9 +204,6 @@ def main(argv=None) -> int:
     groups = versus(gather(rows), a.versus)
     stem = pathlib.Path(a.out)
     stem.parent.mkdir(parents=True, exist_ok=True)
-    io.atomic_write_text(stem.with_suffix(".json"), json.dumps(
-        dict(title=a.title, sources=sources, reference=a.reference, refs=a.ref, groups=groups),
-        indent=1))
     md = [f"# {a.title or 'Closed loop over trained seeds'}", "",
           "Sources: " + ", ".join(f"`{s}`" for s in sources)
           + (f"; references from `{a.reference}` ({', '.join(a.ref)})" if a.ref else ""), "",
@@ -216,7 +213,8 @@ def main(argv=None) -> int:
           f"Minus {a.versus}: the difference of the means over the trained seeds that stayed up, "
           "with Welch's 90% t-interval (one value per trained seed; an interval holding 0 does "
           "not tell the kinds apart).", ""]
-    io.atomic_write_text(stem.with_suffix(".md"), "\n".join(md + table(groups, refs)) + "\n")
+    io.write_table(stem, dict(title=a.title, sources=sources, reference=a.reference, refs=a.ref,
+                              groups=groups), "\n".join(md + table(groups, refs)) + "\n")
     figure(groups, refs, stem.with_suffix(".png"), a.title)
     print(f"wrote {stem}.{{md,json,png}} ({len(groups)} groups)")
     return 0
