@@ -118,8 +118,8 @@ def robot_targets(table: dict, policy_pick: str = "") -> dict:
         "time_fifth_of_oracle": dict(met=(max(ratios) <= 0.2) if ratios else None,
                                      worst_ratio=max(ratios) if ratios else None),
     }
-    return dict(headline=table["headline"]["parts"], policy=policy_pick or "the headline's own rows", cells=cells,
-                targets=targets)
+    return dict(headline=table["headline"]["parts"],
+                policy=policy_pick or "the headline's own rows", cells=cells, targets=targets)
 
 
 def _fmt(c: dict | None) -> str:

@@ -45,11 +45,9 @@ def headline_picks(table: dict) -> dict[str, frozenset[str] | None] | None:
     picks: dict[str, frozenset[str] | None] = {}
     for entry in entries:
         part, _, models = str(entry).partition(":")
-        names = frozenset(m for m in models.split("+") if m) if models else None
-        if part in picks and (picks[part] is None or names is None):
-            picks[part] = None
-        else:
-            picks[part] = (picks.get(part) or frozenset()) | names if names else None
+        names = frozenset(m for m in models.split("+") if m) or None  # None: the whole part
+        have = picks.get(part, frozenset())
+        picks[part] = None if names is None or have is None else have | names
     return picks
 
 
