@@ -10,8 +10,8 @@
 # Windows DLLs, caches and *_test.py files (13.2 -> 7.2 MB compressed).
 set -eu
 cd "$(git rev-parse --show-toplevel)"
-[ -d .whl/site ] || { echo "no .whl/site: unpack the cp312 wheels first (docs/reproduce.md)"; exit 1; }
-[ -f .menagerie/menagerie_all.tar.xz ] || { echo "no .menagerie/menagerie_all.tar.xz (docs/reproduce.md)"; exit 1; }
+[ -d .whl/site ] || { echo "no .whl/site: bash experiments/device_wheels.sh first"; exit 1; }
+[ -f .menagerie/menagerie_all.tar.xz ] || { echo "no .menagerie/menagerie_all.tar.xz: bash experiments/device_wheels.sh first"; exit 1; }
 cap=${CAP:-64000000}
 tracked=$(bash experiments/device_tree.sh size)
 part=$(( cap - tracked - 300000 ))
