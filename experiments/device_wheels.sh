@@ -4,8 +4,8 @@
 # Menagerie; /work/.library/device/KINDS.md), at the versions this checkout's venv runs, unpacked
 # into .whl/site; and the Menagerie archive .menagerie/menagerie_all.tar.xz from $MENAGERIE_ROOT.
 #   bash experiments/device_wheels.sh        # then: bash experiments/device_carry.sh
-# Needs the venv (`make setup`) and pip reaching a package index. Session 60: ~10 s, 22 MB of
-# wheels, site part 7.2 MB after device_carry.sh's trim, Menagerie archive 8.4 MB.
+# Needs the venv (`make setup`), unzip, and pip reaching a package index. Session 60: 26 s, 22 MB
+# of wheels, site part 7.2 MB after device_carry.sh's trim, Menagerie archive 8.4 MB.
 set -euo pipefail
 cd "$(git rev-parse --show-toplevel)"
 py=${PYTHON:-.venv/bin/python}
@@ -28,8 +28,8 @@ rm -rf .whl/dl && mkdir -p .whl/dl
 python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
   --implementation cp "${plat[@]}" -d .whl/dl "${pins[@]}"
 rm -rf .whl/site && mkdir -p .whl/site
-for w in .whl/dl/*.whl; do
-  python3 -m zipfile -e "$w" .whl/site
+for w in .whl/dl/*.whl; do  # unzip keeps the wheels' file modes (what session 60's GPU calls ran)
+  unzip -q -o "$w" -d .whl/site
 done
 echo "device_wheels: ${#pins[@]} wheels (${pins[*]}) -> .whl/site"
 root=${MENAGERIE_ROOT:-../shared/menagerie}
