@@ -6,7 +6,11 @@
 # MODELS: policy, oracle, NAME=RUN, or names of results/models/ROBOT/<name>-s0 (MODELS_DIR=g1_walk:
 # of results/models/g1_walk/, the models trained on walking data). Rows are written as they
 # finish and the driver skips the pairs already in OUT/closed_loop.json (re-run to resume); the
-# whole folder ends as OUT.tgz (the device returns few files).
+# whole folder ends as OUT.tgz (the device returns few files). Episodes run in chunks of
+# CHUNK_S simulated seconds (default 1; 0: one program each), their state saved in OUT/partial
+# after each: a call cut by its limit keeps what it ran, and the same command on the same OUT
+# (this call's tgz unpacked there on a later machine, or the same warm machine) resumes at the
+# last chunk instead of losing the model's whole episode (sessions 59-61 lost three so).
 set -u
 robot=$1 out=$2 limit=$3 names=$4 scen=$5
 shift 5
@@ -17,7 +21,7 @@ for n in ${names//,/ }; do
     *) models+="$n=results/models/${MODELS_DIR:-$robot}/$n-s0,";;
   esac
 done
-common=(--preset gpu --robot "$robot" --policy "results/policies/ppo_$robot"
+common=(--preset gpu --robot "$robot" --chunk-s "${CHUNK_S:-1}" --policy "results/policies/ppo_$robot"
         --learned "results/learned_$robot/reward_value.msgpack")
 gate=3.5
 for f in "$@"; do [ "$f" = --planning.model-gravity ] && gate=2.5; done

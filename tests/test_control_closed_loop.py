@@ -477,6 +477,45 @@ def test_a_run_logs_its_progress_writes_its_row_and_resumes(tmp_path):
     assert cl.run(cfg, log=again.append) == rows and not any("simulated" in x for x in again)
 
 
+def test_a_chunked_run_killed_mid_episode_resumes_to_the_same_rows(tmp_path, monkeypatch):
+    """``chunk_s``: episodes run chunk by chunk, their state saved after each; a run killed after
+    its first chunk resumes there when called again, and gives the rows and traces of a run
+    without chunks (to float rounding: other programs) (episodes side by side, so the saved state carries a batch of planner keys
+    and simulations); nothing partial is left once the row is written."""
+    common = dict(models="policy", scenarios="walk", seconds=0.2, settle_s=0.0, progress_s=0.0,
+                  policy="results/policies/ppo_go1", episodes=2)
+    plain = cl.run(cl.ClosedLoopConfig(out=str(tmp_path / "plain"), **common),
+                   log=lambda *_: None)
+    cfg = cl.ClosedLoopConfig(out=str(tmp_path / "chunked"), chunk_s=0.08, **common)
+    assert cl._chunk_steps(cfg.chunk_s, 0.02, 10) == 4  # 3 chunks of 4 steps for 10
+    save, saved = cl._save_state, []
+
+    def killed_after_one(path, *a):
+        save(path, *a)
+        saved.append(path)
+        raise KeyboardInterrupt("killed")
+
+    monkeypatch.setattr(cl, "_save_state", killed_after_one)
+    with pytest.raises(KeyboardInterrupt):
+        cl.run(cfg, log=lambda *_: None)
+    assert saved and saved[0].is_file() and not (tmp_path / "chunked" / "closed_loop.json").exists()
+    monkeypatch.setattr(cl, "_save_state", save)
+    lines = []
+    rows = cl.run(cfg, log=lines.append)
+    assert any("resumed at 4 of 10 steps" in x for x in lines)
+    assert not saved[0].exists()
+    for r, r0 in zip(rows, plain, strict=True):  # the same to float rounding (other programs)
+        for k, v in r0.items():
+            if k not in ("ms_per_step", "compile_s"):
+                assert r[k] == (pytest.approx(v, rel=1e-5) if isinstance(v, float) else v), k
+    for f in ("trace_walk_policy.npz", "trace_walk_policy_seed1.npz"):
+        a, b = np.load(tmp_path / "plain" / f), np.load(tmp_path / "chunked" / f)
+        for k in a.files:
+            np.testing.assert_allclose(b[k], a[k], rtol=1e-5, atol=1e-5, err_msg=k)
+    with pytest.raises(ValueError, match="chunk-s"):
+        cl.ClosedLoopConfig(chunk_s=-1.0)
+
+
 def test_runs_of_one_kind_of_model_share_one_compiled_episode(tmp_path):
     """A trained model's parameters and data scales are the episode's argument: runs of one
     recipe (trained seeds, whose scales differ in their last bits) compile once, a run with

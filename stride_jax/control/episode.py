@@ -121,6 +121,40 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     (:func:`sensed_gravity`), as an IMU on a real slope senses the slope; ``False``: world down,
     as every run before session 46 did, which hides an emulated slope from them (the floor stays
     level while gravity tilts)."""
+    init, body = _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record,
+                          pushes, limits, tilt, progress, progress_every, sense_gravity)
+    _, trace = jax.lax.scan(body, init, jnp.arange(n_steps))
+    return trace
+
+
+def start_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, planning: Planning,
+                  planner: mppi.Planner | None, key: jax.Array):
+    """The state a closed-loop episode starts from (the simulation at the home pose, the
+    planner's warm start, the task clock, fallen, the observer's estimate): what
+    :func:`continue_episode` takes and returns. Pure; jit it."""
+    return _episode(sm, mx_sim, (), planning, planner, None, None, key)[0]
+
+
+def continue_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Planning,
+                     planner: mppi.Planner | None, carry, first_step: jax.Array, n_steps: int,
+                     starts: jax.Array, values: jax.Array, key: jax.Array,
+                     pushes: jax.Array | None = None,
+                     limits: tuple[jax.Array, jax.Array] | None = None,
+                     tilt: jax.Array | None = None, progress: Callable | None = None,
+                     progress_every: int = 50, sense_gravity: bool = True):
+    """``n_steps`` control steps of :func:`run_episode`'s episode from ``carry`` (of
+    :func:`start_episode` or of an earlier call) at control step ``first_step`` (traced: one
+    program serves every chunk): ``(carry, trace)``. Chunks run one after another give
+    :func:`run_episode`'s trace, so a long episode can be saved between them and resumed
+    (``stride closed-loop --chunk-s``). Pure; jit it."""
+    _, body = _episode(sm, mx_sim, slots, planning, planner, starts, values, key, None, pushes,
+                       limits, tilt, progress, progress_every, sense_gravity)
+    return jax.lax.scan(body, carry, first_step + jnp.arange(n_steps))
+
+
+def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=None, pushes=None,
+             limits=None, tilt=None, progress=None, progress_every=50, sense_gravity=True):
+    """``(init, body)`` of :func:`run_episode`'s scan over control steps."""
     nu = sm.info.nu
     gait = len(planning.lo) > nu
     qpos0 = jnp.asarray(sm.info.qpos0).at[2].add(0.02)
@@ -186,8 +220,7 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
         return (d2, ps, clock, down2, dist), rec
 
     init = (d0, ps0, jnp.zeros(()), jnp.zeros((), bool), jnp.zeros(N_DIST, d0.qpos.dtype))
-    _, trace = jax.lax.scan(body, init, jnp.arange(n_steps))
-    return trace
+    return init, body
 
 
 def tracked(trace, settle_s: float = 0.5) -> np.ndarray:

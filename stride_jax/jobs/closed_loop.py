@@ -38,7 +38,7 @@ import dataclasses
 import json
 import pathlib
 import time
-from typing import ClassVar
+from typing import Callable, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -53,12 +53,13 @@ from stride_jax.control import envs
 from stride_jax.control.episode import (PRECISIONS, Trace, World,  # noqa: F401
                                         learned_model, learned_step, learned_step_fn, metrics,
                                         mjx_step_fn, run_episode, scenario_world)
+from stride_jax.control import episode as episode_lib
 from stride_jax.control.mppi import MPPIConfig
 from stride_jax.control.planning import PlanningConfig, make_planner, make_planning, mppi_config
 from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,  # noqa: F401
                                           push_schedule, scenario_model, schedule,
                                           tilt_schedule)
-from stride_jax.io import atomic_write_text, code_version
+from stride_jax.io import atomic_write, atomic_write_text, code_version
 from stride_jax.sim import model as sim_model
 
 
@@ -116,6 +117,12 @@ class ClosedLoopConfig:
       out: results folder (``closed_loop.json``/``.md`` and plots).
       progress_s: log the episode's progress every this many simulated seconds (0: only when
         a pair finishes).
+      chunk_s: run each episode in chunks of this many simulated seconds, saving its state and
+        trace after each (``OUT/partial/``, atomically): a run killed mid-episode (a time limit,
+        a lost machine) resumes at its last chunk when called again with the same settings, so
+        it loses at most one chunk. 0: one program per episode, nothing saved before its row.
+        The same trace either way, to float rounding (the chunks run the same step, one after
+        another, compiled as another program: measured 1e-7 relative on the CPU).
       seed: planner key and terrain seed.
       episodes: episodes of each (scenario, model) pair side by side in one program (vmapped
         over the planner's key): seeds ``seed``, ``seed + 1``, ... draw the planner's noise, the
@@ -143,6 +150,7 @@ class ClosedLoopConfig:
     model_precision: str = ""
     settle_s: float = 0.5
     progress_s: float = 1.0
+    chunk_s: float = 0.0
     govern: bool = False
     sense_gravity: bool = True
     out: str = "results/closed_loop"
@@ -152,6 +160,8 @@ class ClosedLoopConfig:
     def __post_init__(self):
         if self.episodes < 1:
             raise ValueError(f"--episodes is {self.episodes}: it must be >= 1")
+        if self.chunk_s < 0:
+            raise ValueError(f"--chunk-s is {self.chunk_s}: it must be >= 0 (0: no chunks)")
         if self.model_precision not in PRECISIONS:
             raise ValueError(f"--model-precision is {self.model_precision!r}: use one of "
                              f"{', '.join(repr(p) for p in PRECISIONS)}")
@@ -251,8 +261,10 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         log(f"  {now['label']}: {int(steps) * dt:.1f} of {now['n'] * dt:.1f} s simulated "
             f"({wall:.0f} s)")
 
-    def episode_fn(name, n_steps, slots, sm_sim, batched):
-        def episode(mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
+    def episode_fn(name, n_steps, slots, sm_sim, batched, chunk=0):
+        """The jitted episode; with ``chunk`` steps, ``(start, continue)``: the episode's first
+        state, and ``chunk`` steps from a state at a step given at run time."""
+        def parts(mx_plan, learned_args):
             if name in learned:
                 params, scales = learned_args
                 step_fn = learned_step(checkpoint.with_scales(learned[name][0], scales), params,
@@ -266,13 +278,31 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             if name != "policy":
                 with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
                     planner = make_planner(planning, mppi_config(cfg.mppi, cfg.planning, planning))
+            return planning, planner
+
+        run = dict(pushes=None, limits=limits, progress=progress if every else None,
+                   progress_every=every or 1, sense_gravity=cfg.sense_gravity)
+
+        def episode(mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
+            planning, planner = parts(mx_plan, learned_args)
             return run_episode(sm_sim, mx_sim, slots, planning, planner, n_steps, starts, values,
-                               key, pushes=pushes, limits=limits, tilt=tilt,
-                               progress=progress if every else None,
-                               progress_every=every or 1, sense_gravity=cfg.sense_gravity)
-        if batched:  # episodes side by side: only the key differs
-            episode = jax.vmap(episode, in_axes=(None,) * 7 + (0,))
-        return jax.jit(episode)
+                               key, tilt=tilt, **{**run, "pushes": pushes})
+
+        def start(mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
+            return episode_lib.start_episode(sm_sim, mx_sim, *parts(mx_plan, learned_args), key)
+
+        def resume(carry, first, mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
+            return episode_lib.continue_episode(
+                sm_sim, mx_sim, slots, *parts(mx_plan, learned_args), carry, first, chunk,
+                starts, values, key, tilt=tilt, **{**run, "pushes": pushes})
+
+        if not chunk:
+            # episodes side by side: only the key differs
+            return jax.jit(jax.vmap(episode, in_axes=(None,) * 7 + (0,)) if batched else episode)
+        if batched:
+            start = jax.vmap(start, in_axes=(None,) * 7 + (0,))
+            resume = jax.vmap(resume, in_axes=(0, None) + (None,) * 7 + (0,))
+        return jax.jit(start), jax.jit(resume)
 
     for sc_name in [s for s in cfg.scenarios.split(",") if s]:
         sc = scenario(cfg, sc_name)
@@ -288,20 +318,33 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             args = (mx_sim, mx_plan,
                     (learned[name][1], learned[name][0].scales) if name in learned else (),
                     world.starts, world.values, world.pushes, world.tilt, keys)
+            chunk = _chunk_steps(cfg.chunk_s, sm.robot.ctrl_dt, n_steps)
             sig = (kind.get(name, name), n_steps, tuple(slots[0]), sm_sim.geom_foot.tobytes(),
-                   jax.tree.structure(args[:3]), len(todo) if batched else 0)
+                   jax.tree.structure(args[:3]), len(todo) if batched else 0, chunk)
             t0 = time.perf_counter()
             if sig not in compiled:
                 if every:
                     log(f"  {sc.name} {name}: compiling")
-                compiled[sig] = episode_fn(name, n_steps, slots, sm_sim,
-                                           batched).lower(*args).compile()
+                fn = episode_fn(name, n_steps, slots, sm_sim, batched, chunk)
+                compiled[sig] = (fn.lower(*args).compile() if not chunk else
+                                 (fn[0].lower(*args).compile(),
+                                  fn[1].lower(jax.eval_shape(fn[0], *args), 0, *args).compile()))
             compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
             now.update(label=f"{sc.name} {name}", t0=t0, n=n_steps)
-            traces = jax.block_until_ready(compiled[sig](*args))
-            run_s = time.perf_counter() - t0
-            traces = jax.tree.map(np.asarray, traces)  # one copy to the host for all episodes
+            if chunk:
+                partial = out / "partial" / f"{sc.name}_{name}.npz"
+                # the pair and the settings its episodes depend on (not where they are written,
+                # nor the run's other pairs: a call naming fewer models resumes as well)
+                settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in _PER_RUN}
+                ident = json.dumps(dict(settings=settings, model=name, run=run_dir, seeds=todo,
+                                        chunk=chunk, n_steps=n_steps), sort_keys=True, default=str)
+                traces, run_s = _chunked(compiled[sig], args, n_steps, chunk, batched, partial,
+                                         ident, now, log)
+            else:
+                traces = jax.block_until_ready(compiled[sig](*args))
+                run_s = time.perf_counter() - t0
+                traces = jax.tree.map(np.asarray, traces)  # one copy to the host for all episodes
             planned = name != "policy"
             for i, seed in enumerate(todo):
                 trace = jax.tree.map(lambda x: x[i], traces) if batched else traces
@@ -321,6 +364,74 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             write(rows, cfg, command, out)
     plot(out, rows)
     return rows
+
+
+def _chunk_steps(chunk_s: float, dt: float, n_steps: int) -> int:
+    """Control steps per chunk for ``--chunk-s`` (0: none): chunks of equal length, as few as
+    ``chunk_s`` allows (the last may run past the episode's end; its extra steps are dropped)."""
+    if chunk_s <= 0:
+        return 0
+    n_chunks = -(-n_steps // max(1, int(round(chunk_s / dt))))
+    return -(-n_steps // n_chunks)
+
+
+def _save_state(path: pathlib.Path, carry, traces: list, steps: int, run_s: float,
+                ident: str) -> None:
+    """A chunked episode's state after ``steps`` control steps, atomically: its carry (typed
+    PRNG keys as their data), the traces (:class:`Trace`) of the chunks so far, and what
+    identifies the run."""
+    leaves = jax.tree.leaves(carry)
+    keys = [i for i, x in enumerate(leaves) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)]
+    arrays = {f"carry{i}": np.asarray(jax.random.key_data(x) if i in keys else x)
+              for i, x in enumerate(leaves)}
+    for k, chunk in enumerate(traces):
+        arrays.update({f"trace{k}_{f}": x for f, x in chunk._asdict().items()})
+    meta = dict(ident=ident, steps=steps, run_s=run_s, keys=keys, chunks=len(traces))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, lambda f: np.savez(f, meta=np.array(json.dumps(meta)), **arrays))
+
+
+def _load_state(path: pathlib.Path, carry_like, ident: str):
+    """``(carry, traces, steps, run_s)`` saved by :func:`_save_state` for the run ``ident``,
+    or None where there is none (or it is another run's: then it is left, not resumed)."""
+    if not path.is_file():
+        return None
+    with np.load(path) as z:
+        meta = json.loads(str(z["meta"]))
+        if meta["ident"] != ident:
+            return None
+        leaves, treedef = jax.tree.flatten(carry_like)
+        carry = jax.tree.unflatten(treedef, [
+            jax.random.wrap_key_data(z[f"carry{i}"]) if i in meta["keys"] else
+            jnp.asarray(z[f"carry{i}"], like.dtype) for i, like in enumerate(leaves)])
+        traces = [Trace(**{f: z[f"trace{k}_{f}"] for f in Trace._fields})
+                  for k in range(meta["chunks"])]
+    return carry, traces, meta["steps"], meta["run_s"]
+
+
+def _chunked(fns, args, n_steps: int, chunk: int, batched: bool, partial: pathlib.Path,
+             ident: str, now: dict, log: Callable):
+    """One pair's episodes chunk by chunk, saved after each and resumed from ``partial``:
+    ``(traces, run_s)``, ``run_s`` the chunks' wall time (resumed ones' included)."""
+    start, resume = fns
+    carry = start(*args)
+    got = _load_state(partial, carry, ident)
+    traces, steps, run_s = [], 0, 0.0
+    if got is not None:
+        carry, traces, steps, run_s = got
+        log(f"  {now['label']}: resumed at {steps} of {n_steps} steps ({partial})")
+    axis = 1 if batched else 0
+    while steps < n_steps:
+        t0 = time.perf_counter()
+        carry, trace = jax.block_until_ready(resume(carry, steps, *args))
+        run_s += time.perf_counter() - t0
+        traces.append(jax.tree.map(np.asarray, trace))
+        steps += chunk
+        _save_state(partial, carry, traces, steps, run_s, ident)
+    joined = jax.tree.map(lambda *xs: np.concatenate(xs, axis)[(slice(None),) * axis
+                                                                + (slice(0, n_steps),)], *traces)
+    partial.unlink()
+    return joined, run_s
 
 
 def trace_name(scenario: str, model: str, episode: int = 0, seed: int = 0) -> str:
@@ -451,7 +562,7 @@ def _run_seed(env: dict | None) -> int:
 
 
 # a run's settings that say which draws it took or where it wrote, not which planner it was
-_PER_RUN = frozenset({"seed", "episodes", "out", "models", "scenarios", "progress_s"})
+_PER_RUN = frozenset({"seed", "episodes", "out", "models", "scenarios", "progress_s", "chunk_s"})
 
 
 # Settings added with a default other than the behaviour of the runs before them: a run's
