@@ -514,6 +514,17 @@ def test_a_chunked_run_killed_mid_episode_resumes_to_the_same_rows(tmp_path, mon
             np.testing.assert_allclose(b[k], a[k], rtol=1e-5, atol=1e-5, err_msg=k)
     with pytest.raises(ValueError, match="chunk-s"):
         cl.ClosedLoopConfig(chunk_s=-1.0)
+    # a saved state comes back with its typed keys, and only for its own run and structure
+    state = {"x": jnp.arange(3.0), "key": jax.random.key(5)}
+    path = tmp_path / "state.npz"
+    cl._save_state(path, state, [], 4, 1.5, "this run")
+    carry, traces, steps, run_s = cl._load_state(path, state, "this run")
+    assert (traces, steps, run_s) == ([], 4, 1.5)
+    np.testing.assert_array_equal(carry["x"], state["x"])
+    np.testing.assert_array_equal(jax.random.key_data(carry["key"]),
+                                  jax.random.key_data(state["key"]))
+    assert cl._load_state(path, state, "another run") is None
+    assert cl._load_state(path, {**state, "x": jnp.arange(4.0)}, "this run") is None
 
 
 def test_runs_of_one_kind_of_model_share_one_compiled_episode(tmp_path):

@@ -280,13 +280,13 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                     planner = make_planner(planning, mppi_config(cfg.mppi, cfg.planning, planning))
             return planning, planner
 
-        run = dict(pushes=None, limits=limits, progress=progress if every else None,
+        run = dict(limits=limits, progress=progress if every else None,
                    progress_every=every or 1, sense_gravity=cfg.sense_gravity)
 
         def episode(mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
             planning, planner = parts(mx_plan, learned_args)
             return run_episode(sm_sim, mx_sim, slots, planning, planner, n_steps, starts, values,
-                               key, tilt=tilt, **{**run, "pushes": pushes})
+                               key, pushes=pushes, tilt=tilt, **run)
 
         def start(mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
             return episode_lib.start_episode(sm_sim, mx_sim, *parts(mx_plan, learned_args), key)
@@ -294,7 +294,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         def resume(carry, first, mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
             return episode_lib.continue_episode(
                 sm_sim, mx_sim, slots, *parts(mx_plan, learned_args), carry, first, chunk,
-                starts, values, key, tilt=tilt, **{**run, "pushes": pushes})
+                starts, values, key, pushes=pushes, tilt=tilt, **run)
 
         if not chunk:
             # episodes side by side: only the key differs
@@ -393,14 +393,19 @@ def _save_state(path: pathlib.Path, carry, traces: list, steps: int, run_s: floa
 
 def _load_state(path: pathlib.Path, carry_like, ident: str):
     """``(carry, traces, steps, run_s)`` saved by :func:`_save_state` for the run ``ident``,
-    or None where there is none (or it is another run's: then it is left, not resumed)."""
+    or None where there is none, or it is another run's or another episode state's (other code):
+    then it is left, not resumed."""
     if not path.is_file():
         return None
     with np.load(path) as z:
         meta = json.loads(str(z["meta"]))
-        if meta["ident"] != ident:
-            return None
         leaves, treedef = jax.tree.flatten(carry_like)
+        shapes = [z[f"carry{i}"].shape if f"carry{i}" in z.files else None
+                  for i in range(len(leaves))]
+        want = [jax.random.key_data(x).shape if i in meta["keys"] else x.shape
+                for i, x in enumerate(leaves)]
+        if meta["ident"] != ident or shapes != want or f"carry{len(leaves)}" in z.files:
+            return None
         carry = jax.tree.unflatten(treedef, [
             jax.random.wrap_key_data(z[f"carry{i}"]) if i in meta["keys"] else
             jnp.asarray(z[f"carry{i}"], like.dtype) for i, like in enumerate(leaves)])
