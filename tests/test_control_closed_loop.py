@@ -501,8 +501,10 @@ def test_a_chunked_run_killed_mid_episode_resumes_to_the_same_rows(tmp_path, mon
     assert saved and saved[0].is_file() and not (tmp_path / "chunked" / "closed_loop.json").exists()
     monkeypatch.setattr(cl, "_save_state", save)
     lines = []
-    rows = cl.run(cfg, log=lines.append)
+    rows = cl.run(dataclasses.replace(cfg, progress_s=0.02), log=lines.append)
     assert any("resumed at 4 of 10 steps" in x for x in lines)
+    ticks = [x.split(":")[1].split(" of")[0].strip() for x in lines if "s simulated" in x]
+    assert ticks == [f"{0.02 * k:.1f}" for k in range(5, 11)]  # none past the end (12 run)
     assert not saved[0].exists()
     for r, r0 in zip(rows, plain, strict=True):  # the same to float rounding (other programs)
         for k, v in r0.items():

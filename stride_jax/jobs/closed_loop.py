@@ -257,6 +257,8 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     now = {"label": "", "t0": 0.0, "n": 1}  # the running pair, for the progress callback
 
     def progress(steps):
+        if int(steps) > now["n"]:  # a last chunk's steps past the episode's end (dropped)
+            return
         dt, wall = sm.robot.ctrl_dt, time.perf_counter() - now["t0"]
         log(f"  {now['label']}: {int(steps) * dt:.1f} of {now['n'] * dt:.1f} s simulated "
             f"({wall:.0f} s)")
