@@ -284,7 +284,10 @@ def policy_episode(world: World, planning: Planning,
     """``planning``'s policy alone in a scenario's :class:`World` (:func:`scenario_world`), with
     its commands, pushes and tilt as the closed loop runs them (``sense_gravity`` as
     :func:`run_episode`'s): the states a planner would meet and the true step from each (issue
-    19's diagnoses)."""
+    19's diagnoses). Its own loop, not :func:`run_episode`'s: after a fall the policy keeps
+    acting (the closed loop stops its effort) and ``fallen`` is each period's own (not latched),
+    so a diagnosis sees every state the policy meets; while the robot is up the two act alike
+    (``tests/test_control_closed_loop.py``: the same actions on a slope)."""
     if planning.policy is None:
         raise ValueError("policy_episode needs a planning with a policy")
     sm, mx, n_steps = world.sm, world.mx, world.n_steps
