@@ -505,7 +505,7 @@ def test_a_chunked_run_killed_mid_episode_resumes_to_the_same_rows(tmp_path, mon
     assert any("resumed at 4 of 10 steps" in x for x in lines)
     ticks = [x.split(":")[1].split(" of")[0].strip() for x in lines if "s simulated" in x]
     assert ticks == [f"{0.02 * k:.1f}" for k in range(5, 11)]  # none past the end (12 run)
-    assert not saved[0].exists()
+    assert not saved[0].exists() and not saved[0].parent.exists()  # nothing partial left
     for r, r0 in zip(rows, plain, strict=True):  # the same to float rounding (other programs)
         for k, v in r0.items():
             if k not in ("ms_per_step", "compile_s"):

@@ -34,6 +34,7 @@ upright, falls, and planning time per step.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import pathlib
@@ -51,9 +52,9 @@ from stride_jax.control import envs
 # The library's episode, metrics and planner models, and the scenarios (re-exported: the job's
 # callers and tests take them from here).
 from stride_jax.control.episode import (PRECISIONS, Trace, World,  # noqa: F401
-                                        learned_model, learned_step, learned_step_fn, metrics,
-                                        mjx_step_fn, run_episode, scenario_world)
-from stride_jax.control import episode as episode_lib
+                                        continue_episode, learned_model, learned_step,
+                                        learned_step_fn, metrics, mjx_step_fn, run_episode,
+                                        scenario_world, start_episode)
 from stride_jax.control.mppi import MPPIConfig
 from stride_jax.control.planning import PlanningConfig, make_planner, make_planning, mppi_config
 from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,  # noqa: F401
@@ -282,21 +283,21 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                     planner = make_planner(planning, mppi_config(cfg.mppi, cfg.planning, planning))
             return planning, planner
 
-        run = dict(limits=limits, progress=progress if every else None,
-                   progress_every=every or 1, sense_gravity=cfg.sense_gravity)
+        episode_kw = dict(limits=limits, progress=progress if every else None,
+                          progress_every=every or 1, sense_gravity=cfg.sense_gravity)
 
         def episode(mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
             planning, planner = parts(mx_plan, learned_args)
             return run_episode(sm_sim, mx_sim, slots, planning, planner, n_steps, starts, values,
-                               key, pushes=pushes, tilt=tilt, **run)
+                               key, pushes=pushes, tilt=tilt, **episode_kw)
 
         def start(mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
-            return episode_lib.start_episode(sm_sim, mx_sim, *parts(mx_plan, learned_args), key)
+            return start_episode(sm_sim, mx_sim, *parts(mx_plan, learned_args), key)
 
         def resume(carry, first, mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
-            return episode_lib.continue_episode(
+            return continue_episode(
                 sm_sim, mx_sim, slots, *parts(mx_plan, learned_args), carry, first, chunk,
-                starts, values, key, pushes=pushes, tilt=tilt, **run)
+                starts, values, key, pushes=pushes, tilt=tilt, **episode_kw)
 
         if not chunk:
             # episodes side by side: only the key differs
@@ -438,6 +439,8 @@ def _chunked(fns, args, n_steps: int, chunk: int, batched: bool, partial: pathli
     joined = jax.tree.map(lambda *xs: np.concatenate(xs, axis)[(slice(None),) * axis
                                                                 + (slice(0, n_steps),)], *traces)
     partial.unlink()
+    with contextlib.suppress(OSError):  # the folder too, once no pair has a state in it
+        partial.parent.rmdir()
     return joined, run_s
 
 
