@@ -69,7 +69,7 @@ report: setup
 	$(BIN)/python experiments/report.py
 
 ## test: the whole suite, in two pytest processes balanced by tests/durations.json (about
-## 10 minutes on 2 cores; `$(BIN)/python -m pytest -q` runs it in one)
+## 13-14 minutes on 2 cores; `$(BIN)/python -m pytest -q` runs it in one)
 test: setup
 	$(BIN)/python tests/run_parallel.py
 
