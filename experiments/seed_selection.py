@@ -33,11 +33,18 @@ KINDS = ("stride", "delan", "onn")
 def validation_losses(rows: list[dict], models: pathlib.Path) -> dict[tuple[str, int], float]:
     """``(kind, seed) -> best_val`` of each row's run folder found by name in ``models``."""
     out: dict[tuple[str, int], float] = {}
+    names: dict[tuple[str, int], str] = {}
     for r in rows:
         key = kind_and_seed(r)
-        if key[0] not in KINDS or key in out:
-            continue
         name = pathlib.PurePath(str(r.get("run", ""))).name
+        if key[0] not in KINDS:
+            continue
+        if key in names:
+            if names[key] != name:  # one (kind, seed), two trainings: which loss is meant?
+                raise ValueError(f"{key[0]} seed {key[1]} ran as {names[key]!r} and as {name!r} in the "
+                                 f"headline: one validation score per trained seed is needed")
+            continue
+        names[key] = name
         summary = models / name / "summary.json"
         if not name or not summary.is_file():
             raise FileNotFoundError(f"row {r['model']!r} ({r['scenario']}): its run {r.get('run')!r} "

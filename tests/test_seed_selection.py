@@ -56,6 +56,11 @@ def test_a_run_without_its_summary_is_a_clear_error(experiment, tmp_path):
     with pytest.raises(FileNotFoundError, match="onn-s2"):
         mod.robot_selection(_table(), models)
     tab = _table()
+    # STRIDE's seed 0 from two trainings (a row of another run folder named as seed 0)
+    tab["rows"][1].update(run="fm/other/stride_b-s0", model="stride@a")
+    with pytest.raises(ValueError, match="stride seed 0"):
+        mod.robot_selection(tab, models)
+    tab = _table()
     del tab["headline"]
     with pytest.raises(ValueError, match="headline"):
         mod.robot_selection(tab, models)
