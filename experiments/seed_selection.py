@@ -9,6 +9,10 @@ over seeds (what issue 19's targets read) and the best seed (known only after pl
         g1=results/closed_loop_g1_gpu/closed_loop.json:results/models/g1_walk_ppo_g1_slope_slope15_tw1_tf0.25 \\
         --out results/closed_loop_seed_selection
 
+``--model-error ROBOT:SCENARIO=REPORT.json`` (repeatable) adds, per kind, how the seeds' one-period
+model error along the policy's own episode (``experiments/scenario_model_error.py`` run on the
+same models) orders them against their planning error.
+
 ``ROBOT=TABLE:MODELS``: a row's run folder (its ``run`` field, e.g. ``fm/slope/stride-s1``, a
 copy carried to the GPU) is looked up by its name in ``MODELS``. The losses of different kinds
 are in different units (STRIDE's includes its flow-matching term): seeds are compared within a
@@ -81,6 +85,55 @@ def robot_selection(table: dict, models: pathlib.Path) -> dict:
     return dict(cells=cells, hits={k: dict(best_picked=h[0], of=h[1]) for k, h in hits.items()})
 
 
+METRICS = ("bias_norm", "spread_norm", "joint_vel_rmse")
+
+
+def model_errors(report: dict) -> dict[tuple[str, int], dict[str, float]]:
+    """``(kind, seed) -> {metric: value}`` from ``experiments/scenario_model_error.py``'s JSON:
+    each model's last phase (after its split: where the scenario's change acts), of the rows
+    told the sensed gravity where the report has them (the closed loop's
+    ``--planning.model-gravity``), else its plain rows; never the prior-alone rows."""
+    rows = [r for r in report["rows"] if not r.get("prior_alone")]
+    told = [r for r in rows if r.get("told_gravity")]
+    out = {}
+    for r in told or rows:
+        phase = [k for k, v in r.items() if isinstance(v, dict) and "joint_vel_rmse" in v][-1]
+        key = kind_and_seed(dict(model=str(r["model"]).split(" (")[0], run=r.get("run", "")))
+        out[key] = {m: float(r[phase][m]) for m in METRICS} | {"phase": phase, "told_gravity": bool(told)}
+    return out
+
+
+def _spearman(a: list[float], b: list[float]) -> float:
+    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
+    ra, rb = ra - ra.mean(), rb - rb.mean()
+    den = np.sqrt((ra ** 2).sum() * (rb ** 2).sum())
+    return float((ra * rb).sum() / den) if den else float("nan")
+
+
+def against_model_error(selection: dict, scenario: str, errors: dict) -> list[dict]:
+    """Per kind in ``scenario``: each metric's rank correlation with the seeds' planning error
+    and whether its lowest seed is the best-planning one."""
+    out = []
+    for c in selection["cells"]:
+        if c["scenario"] != scenario:
+            continue
+        seeds = [int(s) for s in c["seeds"]]
+        missing = [s for s in seeds if (c["kind"], s) not in errors]
+        if missing:
+            raise ValueError(f"{scenario}: the model-error report has no {c['kind']} seed(s) {missing}")
+        plan = [c["seeds"][str(s)] for s in seeds]
+        row = dict(scenario=scenario, kind=c["kind"], best=c["best"],
+                   phase=errors[(c["kind"], seeds[0])]["phase"],
+                   told_gravity=errors[(c["kind"], seeds[0])]["told_gravity"])
+        for m in METRICS:
+            vals = [errors[(c["kind"], s)][m] for s in seeds]
+            row[m] = dict(per_seed={str(s): v for s, v in zip(seeds, vals)},
+                          spearman=_spearman(vals, plan), lowest=seeds[int(np.argmin(vals))],
+                          lowest_is_best=seeds[int(np.argmin(vals))] == c["best"])
+        out.append(row)
+    return out
+
+
 def markdown(results: dict[str, dict], command: str) -> str:
     lines = ["# Does the validation loss pick the seed that plans best? (issue 19)", "",
              f"Command: `{command}`", "",
@@ -106,12 +159,34 @@ def markdown(results: dict[str, dict], command: str) -> str:
         lines += ["", f"- the validation pick is the best-planning seed: {hit}",
                   f"- the picks (one per kind, the same seed in every scenario where the same seeds "
                   f"ran): {picked}; cells of one pick are not independent draws", ""]
+        if res.get("model_error"):
+            lines += ["One-period model error along the policy's own episode in the scenario "
+                      "(`experiments/scenario_model_error.py`; its last phase, told the gravity where "
+                      "measured so): per metric the seeds' values, Spearman's rank correlation with "
+                      "their planning error (1: the metric orders the seeds as planning does) and "
+                      "whether its lowest seed plans best.", "",
+                      "| scenario | kind | " + " | ".join(METRICS) + " |",
+                      "|---|---|" + "---|" * len(METRICS)]
+            for r in res["model_error"]:
+                cells = [" / ".join(f"{v:.3f}" for v in r[m]["per_seed"].values())
+                         + f" (rho {r[m]['spearman']:+.1f}{', lowest plans best' if r[m]['lowest_is_best'] else ''})"
+                         for m in METRICS]
+                lines.append(f"| {r['scenario']} | {r['kind']} | " + " | ".join(cells) + " |")
+            me = res["model_error"]
+            lines += [""] + [f"- {m}: orders the seeds as planning does (rho +1) in "
+                             f"{sum(r[m]['spearman'] > 0.99 for r in me)} of {len(me)} cells, rho > 0 in "
+                             f"{sum(r[m]['spearman'] > 0 for r in me)}; its lowest seed plans best in "
+                             f"{sum(r[m]['lowest_is_best'] for r in me)} (chance: 1 in 6, 1 in 2, 1 in 3)"
+                             for m in METRICS] + [""]
     return "\n".join(lines)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("tables", nargs="+", help="ROBOT=MERGED.json:MODELS_DIR")
+    ap.add_argument("--model-error", action="append", default=[], metavar="ROBOT:SCENARIO=JSON",
+                    help="a scenario_model_error.py report of the same models, compared per kind "
+                         "with the seeds' planning error (repeatable)")
     ap.add_argument("--out", required=True, help="writes OUT.md and OUT.json")
     a = ap.parse_args(argv)
     results = {}
@@ -125,6 +200,16 @@ def main(argv=None) -> int:
         if not pathlib.Path(models).is_dir():
             ap.error(f"{models}: no such models folder")
         results[robot] = robot_selection(json.loads(pathlib.Path(path).read_text()), pathlib.Path(models))
+    for spec in a.model_error:
+        key, eq, path = spec.partition("=")
+        robot, colon, scenario = key.partition(":")
+        if not eq or not colon or robot not in results:
+            ap.error(f"--model-error {spec!r}: expected ROBOT:SCENARIO=JSON, ROBOT one of {sorted(results)}")
+        if not pathlib.Path(path).is_file():
+            ap.error(f"--model-error {spec!r}: {path}: no such report")
+        errors = model_errors(json.loads(pathlib.Path(path).read_text()))
+        results[robot].setdefault("model_error", []).extend(
+            against_model_error(results[robot], scenario, errors))
     command = "python experiments/seed_selection.py " + " ".join(sys.argv[1:] if argv is None else argv)
     stem = io.write_table(a.out, dict(command=command, robots=results), markdown(results, command))
     print(f"wrote {stem}.{{md,json}}")

@@ -64,3 +64,35 @@ def test_a_run_without_its_summary_is_a_clear_error(experiment, tmp_path):
     del tab["headline"]
     with pytest.raises(ValueError, match="headline"):
         mod.robot_selection(tab, models)
+
+
+def test_model_error_metrics_are_ranked_against_the_seeds_planning(experiment, tmp_path):
+    mod = experiment("seed_selection")
+    models = _models(tmp_path, {("stride", 0): 3.0, ("stride", 1): 2.9, ("stride", 2): 3.1,
+                                ("onn", 0): 2.0, ("onn", 1): 2.5, ("onn", 2): 2.2})
+    sel = mod.robot_selection(_table(), models)
+
+    def row(name, seed, err, told=False, prior=False):
+        phase = dict(steps=10, bias_norm=err, spread_norm=2 * err, joint_vel_rmse=-err)
+        return {"model": name + (" (told gravity)" if told else ""), "run": f"x/{name.split('_')[0]}-s{seed}",
+                "told_gravity": told, "prior_alone": prior, "before 1 s": dict(phase, bias_norm=9.0),
+                "from 1 s": phase}
+
+    # rough: STRIDE's seeds plan 0.07 / 0.05 / 0.06; its told-gravity rows order them so, the
+    # plain rows (not read when told rows exist) and the prior-alone rows the other way
+    rows = [row(n, s, e, told=True) for n, s, e in (("stride", 0, 3.0), ("stride_s1", 1, 1.0),
+                                                     ("stride_s2", 2, 2.0))]
+    rows += [row(n, s, e) for n, s, e in (("stride", 0, 1.0), ("stride_s1", 1, 3.0), ("stride_s2", 2, 2.0))]
+    rows += [row("stride", 0, 0.1, told=True, prior=True)]
+    errors = mod.model_errors({"rows": rows})
+    assert errors[("stride", 1)]["bias_norm"] == 1.0 and errors[("stride", 0)]["phase"] == "from 1 s"
+    out = mod.against_model_error(dict(cells=[c for c in sel["cells"] if c["kind"] == "stride"]),
+                                  "rough", errors)
+    (r,) = out
+    assert r["bias_norm"]["spearman"] == pytest.approx(1.0) and r["bias_norm"]["lowest_is_best"]
+    assert r["joint_vel_rmse"]["spearman"] == pytest.approx(-1.0)
+    assert not r["joint_vel_rmse"]["lowest_is_best"]
+    md = mod.markdown({"go1": dict(sel, model_error=out)}, "cmd")
+    assert "rho +1.0, lowest plans best" in md
+    with pytest.raises(ValueError, match="onn seed"):  # a kind the report does not hold
+        mod.against_model_error(sel, "rough", errors)
