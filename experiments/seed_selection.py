@@ -22,11 +22,13 @@ kind only. Writes ``OUT.md`` and ``OUT.json``; the targets keep the mean over se
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import pathlib
 import sys
 
 import numpy as np
+from scipy import stats
 
 from stride_jax import io
 from stride_paper.seeds import headline_picks, in_headline, kind_and_seed, seed_means
@@ -68,21 +70,24 @@ def robot_selection(table: dict, models: pathlib.Path) -> dict:
         raise ValueError("the table names no headline parts: nothing says which rows are the current planner")
     rows = [r for r in table["rows"] if in_headline(r, picks) and kind_and_seed(r)[0] in KINDS]
     val = validation_losses(rows, models)
-    cells, hits = [], {k: [0, 0] for k in KINDS}
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["scenario"], kind_and_seed(r)[0]), []).append(r)
+    cells = []
     for sc in dict.fromkeys(r["scenario"] for r in rows):
         for kind in KINDS:
-            means = seed_means([r for r in rows if r["scenario"] == sc and kind_and_seed(r)[0] == kind])
+            means = seed_means(groups.get((sc, kind), []))
             if len(means) < 2:
                 continue
             pick = min(means, key=lambda s: val[(kind, s)])
             best = min(means, key=means.get)
-            hits[kind][0] += pick == best
-            hits[kind][1] += 1
             cells.append(dict(scenario=sc, kind=kind, seeds={str(s): v for s, v in means.items()},
                               val={str(s): val[(kind, s)] for s in means}, pick=pick, best=best,
                               picked=means[pick], mean=float(np.mean(list(means.values()))),
                               best_value=means[best]))
-    return dict(cells=cells, hits={k: dict(best_picked=h[0], of=h[1]) for k, h in hits.items()})
+    hits = {k: dict(best_picked=sum(c["pick"] == c["best"] for c in cells if c["kind"] == k),
+                    of=sum(c["kind"] == k for c in cells)) for k in KINDS}
+    return dict(cells=cells, hits=hits)
 
 
 METRICS = ("bias_norm", "spread_norm", "joint_vel_rmse")
@@ -103,20 +108,15 @@ def model_errors(report: dict) -> dict[tuple[str, int], dict[str, float]]:
     return out
 
 
-def _spearman(a: list[float], b: list[float]) -> float:
-    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
-    ra, rb = ra - ra.mean(), rb - rb.mean()
-    den = np.sqrt((ra ** 2).sum() * (rb ** 2).sum())
-    return float((ra * rb).sum() / den) if den else float("nan")
-
-
 def against_model_error(selection: dict, scenario: str, errors: dict) -> list[dict]:
     """Per kind in ``scenario``: each metric's rank correlation with the seeds' planning error
     and whether its lowest seed is the best-planning one."""
+    cells = [c for c in selection["cells"] if c["scenario"] == scenario]
+    if not cells:
+        known = sorted({c["scenario"] for c in selection["cells"]})
+        raise ValueError(f"no scenario {scenario!r} in the table's headline (it has {known})")
     out = []
-    for c in selection["cells"]:
-        if c["scenario"] != scenario:
-            continue
+    for c in cells:
         seeds = [int(s) for s in c["seeds"]]
         missing = [s for s in seeds if (c["kind"], s) not in errors]
         if missing:
@@ -127,9 +127,10 @@ def against_model_error(selection: dict, scenario: str, errors: dict) -> list[di
                    told_gravity=errors[(c["kind"], seeds[0])]["told_gravity"])
         for m in METRICS:
             vals = [errors[(c["kind"], s)][m] for s in seeds]
+            lowest = seeds[int(np.argmin(vals))]
             row[m] = dict(per_seed={str(s): v for s, v in zip(seeds, vals)},
-                          spearman=_spearman(vals, plan), lowest=seeds[int(np.argmin(vals))],
-                          lowest_is_best=seeds[int(np.argmin(vals))] == c["best"])
+                          spearman=float(stats.spearmanr(vals, plan).statistic), lowest=lowest,
+                          lowest_is_best=lowest == c["best"])
         out.append(row)
     return out
 
@@ -152,10 +153,8 @@ def markdown(results: dict[str, dict], command: str) -> str:
             lines.append(f"| {c['scenario']} | {c['kind']} | {per} | s{c['pick']} {c['picked']:.4f}{mark} "
                          f"| {c['mean']:.4f} | s{c['best']} {c['best_value']:.4f} |")
         hit = ", ".join(f"{k} {h['best_picked']} of {h['of']}" for k, h in res["hits"].items())
-        picked = "; ".join(f"{k}: " + ", ".join(f"s{s} in {n}" for s, n in sorted(
-            {s: sum(c["pick"] == s for c in res["cells"] if c["kind"] == k)
-             for s in {c["pick"] for c in res["cells"] if c["kind"] == k}}.items()))
-            for k in res["hits"])
+        picked = "; ".join(f"{k}: " + ", ".join(f"s{s} in {n}" for s, n in sorted(collections.Counter(
+            c["pick"] for c in res["cells"] if c["kind"] == k).items())) for k in res["hits"])
         lines += ["", f"- the validation pick is the best-planning seed: {hit}",
                   f"- the picks (one per kind, the same seed in every scenario where the same seeds "
                   f"ran): {picked}; cells of one pick are not independent draws", ""]

@@ -96,3 +96,5 @@ def test_model_error_metrics_are_ranked_against_the_seeds_planning(experiment, t
     assert "rho +1.0, lowest plans best" in md
     with pytest.raises(ValueError, match="onn seed"):  # a kind the report does not hold
         mod.against_model_error(sel, "rough", errors)
+    with pytest.raises(ValueError, match="no scenario 'tilt'"):  # named otherwise in the table
+        mod.against_model_error(sel, "tilt", errors)
