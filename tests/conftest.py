@@ -28,6 +28,16 @@ if "MENAGERIE_ROOT" not in os.environ and SHARED.is_dir():
     os.environ["MENAGERIE_ROOT"] = str(SHARED)
 
 
+@pytest.fixture(autouse=True)
+def _fresh_replay_memo():
+    """Each test starts with the gap tool's replay memo empty (:mod:`stride_jax.gap.memo`): a test
+    that patches how replays run must not be handed another test's results."""
+    memo = sys.modules.get("stride_jax.gap.memo")
+    if memo is not None:
+        memo.clear()
+    yield
+
+
 @pytest.fixture(scope="session")
 def run_time_bound() -> dict:
     """``compiler_options`` for a ``jax.jit`` whose run time, not its compile time, dominates (a

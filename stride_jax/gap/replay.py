@@ -19,7 +19,7 @@ import mujoco
 import mujoco.rollout
 import numpy as np
 
-from stride_jax.gap import effects, sim
+from stride_jax.gap import effects, memo, sim
 from stride_jax.gap.effects import Plan
 from stride_jax.sim.model import SimModel
 
@@ -76,12 +76,41 @@ def k_step_many(sm: SimModel, plans: list[Plan], q: np.ndarray, qd: np.ndarray, 
     """:func:`stride_jax.gap.sim.k_step` for every plan of ``plans`` at once.
 
     Returns the logged-frame state after ``k`` periods, ``q [P, M, nq]``, ``qd [P, M, nv]`` (NaN
-    where a replay diverged)."""
+    where a replay diverged). Plans replayed on these windows before (:mod:`stride_jax.gap.memo`)
+    are not replayed again."""
+    if not memo.enabled():
+        return _k_step_many(sm, plans, q, qd, cmd, start, first, k, chunk)[:2]
+    P, M = len(plans), len(start)
+    qo, vo = np.empty((P, M, sm.mj.nq)), np.empty((P, M, sm.mj.nv))
+    wk = memo.windows_key(sm, q, qd, cmd, start, first, k)
+    keys, todo = [wk + memo.plan_key(p) for p in plans], {}
+    for i, key in enumerate(keys):
+        if (hit := memo.get(key)) is not None:
+            qo[i], vo[i] = hit[:2]
+            sim._count_diverged(hit[2])
+        elif key in todo:  # the same plan twice in one call: replayed once
+            todo[key].append(i)
+        else:
+            todo[key] = [i]
+    if todo:
+        qn, vn, nd = _k_step_many(sm, [plans[ix[0]] for ix in todo.values()], q, qd, cmd, start, first, k, chunk)
+        for j, (key, ix) in enumerate(todo.items()):
+            memo.put(key, qn[j], vn[j], nd[j])
+            qo[ix], vo[ix] = qn[j], vn[j]
+    return qo, vo
+
+
+def _k_step_many(sm: SimModel, plans: list[Plan], q: np.ndarray, qd: np.ndarray, cmd: np.ndarray,
+                 start: np.ndarray, first: np.ndarray, k: int, chunk: int
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The replays themselves; also returns ``[P]`` how many worlds of each plan diverged (summed
+    over the periods, as :func:`_rollout` counts them)."""
     P, M = len(plans), len(start)
     wrench = any(p.wrench is not None for p in plans)
     spec = sim._CONTROL | (mujoco.mjtState.mjSTATE_XFRC_APPLIED if wrench else 0)
     per = max(1, chunk // max(M, 1))  # plans per call
     qo, vo = np.empty((P, M, sm.mj.nq)), np.empty((P, M, sm.mj.nv))
+    diverged = np.zeros(P, np.int64)
     for c0 in range(0, P, per):
         group = plans[c0:c0 + per]
         x = np.concatenate([sim.true_q(p, q[start]) for p in group])
@@ -92,10 +121,12 @@ def k_step_many(sm: SimModel, plans: list[Plan], q: np.ndarray, qd: np.ndarray, 
                                                 first, h, wrench) for j, p in enumerate(group)])
             s0 = sim._states(sm.mj, x, v)
             x, v = _rollout(sm, models, s0, control, spec)
+            diverged[c0:c0 + len(group)] += [sim.n_diverged(x[j * M:(j + 1) * M], v[j * M:(j + 1) * M])
+                                             for j in range(len(group))]
         for j, p in enumerate(group):
             qo[c0 + j] = sim.logged_q(p, x[j * M:(j + 1) * M])
             vo[c0 + j] = v[j * M:(j + 1) * M]
-    return qo, vo
+    return qo, vo, diverged
 
 
 def residuals(sm: SimModel, plans: list[Plan], data: fit.Data, scale: np.ndarray,

@@ -21,7 +21,7 @@ import mujoco
 import mujoco.rollout
 import numpy as np
 
-from stride_jax.gap import effects
+from stride_jax.gap import effects, memo
 from stride_jax.gap.effects import Plan
 from stride_jax.sim.model import SimModel
 
@@ -42,6 +42,17 @@ _LOCK = threading.Lock()
 def _count_warning(msg: str) -> None:
     with _LOCK:
         _COUNT["warnings"] += 1
+
+
+def n_diverged(q: np.ndarray, qd: np.ndarray) -> int:
+    """Worlds of a step's result that diverged (returned as NaN by :func:`step`)."""
+    return int((~(np.isfinite(q).all(-1) & np.isfinite(qd).all(-1))).sum())
+
+
+def _count_diverged(n: int) -> None:
+    if n:
+        with _LOCK:
+            _COUNT["diverged"] += int(n)
 
 
 def unstable() -> dict[str, int]:
@@ -155,16 +166,25 @@ def k_step(sm: SimModel, plan: Plan, q: np.ndarray, qd: np.ndarray, cmd: np.ndar
     ``q [N, nq]``, ``qd [N, nv]``, ``cmd [N, nu]``: the concatenated samples of all trajectories;
     ``start [M]`` the samples to start from (``start + k`` inside their trajectory) and ``first [M]``
     the first sample of each one's trajectory (the command before it is held from there).
-    Returns the predicted state after ``k`` periods, ``(q [M, nq], qd [M, nv])``.
+    Returns the predicted state after ``k`` periods, ``(q [M, nq], qd [M, nv])``: read-only
+    where they come from :mod:`stride_jax.gap.memo` (a replay made before returns its result).
     """
+    key = None
+    if memo.enabled():
+        key = memo.windows_key(sm, q, qd, cmd, start, first, k) + memo.plan_key(plan)
+        if (hit := memo.get(key)) is not None:
+            _count_diverged(hit[2])
+            return hit[:2]
     n_sub, servo = sm.n_substeps, sm.robot.kp is not None
     x, v = true_q(plan, q[start]), qd[start]
+    diverged = 0  # what step() counted: the worlds it returned as NaN, per period
     for h in range(k):
         i = (start + h)[:, None] * n_sub + np.arange(n_sub)[None, :] - plan.delay
         src = np.maximum(np.floor_divide(i, n_sub), first[:, None])
         u = effects.dead_band(cmd[src], _act_q(sm, logged_q(plan, x))[:, None], plan.deadzone, servo)
         x, v = step(sm, plan, x, v, u)
-    return logged_q(plan, x), v
+        diverged += n_diverged(x, v)
+    return (logged_q(plan, x), v) if key is None else memo.put(key, logged_q(plan, x), v, diverged)
 
 
 def one_step(sm: SimModel, plan: Plan, q: np.ndarray, qd: np.ndarray, cmd: np.ndarray,
