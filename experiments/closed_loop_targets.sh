@@ -11,9 +11,17 @@
 # after each: a call cut by its limit keeps what it ran, and the same command on the same OUT
 # (this call's tgz unpacked there on a later machine, or the same warm machine) resumes at the
 # last chunk instead of losing the model's whole episode (sessions 59-61 lost three so).
+# RESUME=PATH/OUT.tgz: that tgz, from an earlier call cut on another machine and carried here, is
+# unpacked beside OUT first where OUT does not exist yet (sessions 63-64 did this by hand).
 set -u
 robot=$1 out=$2 limit=$3 names=$4 scen=$5
 shift 5
+if [ -n "${RESUME:-}" ] && [ ! -e "$out" ]; then
+  [ -f "$RESUME" ] || { echo "closed_loop_targets: RESUME=$RESUME: no such file" >&2; exit 2; }
+  mkdir -p "$(dirname "$out")" && tar -C "$(dirname "$out")" -xzf "$RESUME" || exit 2
+  [ -d "$out" ] || { echo "closed_loop_targets: RESUME=$RESUME holds no folder $(basename "$out")/ (the tgz of another OUT?)" >&2; exit 2; }
+  echo "closed_loop_targets: $out unpacked from $RESUME"
+fi
 models=""
 for n in ${names//,/ }; do
   case $n in
