@@ -46,7 +46,8 @@ def _controls(sm: SimModel, plan: Plan, x: np.ndarray, v: np.ndarray, cmd: np.nd
 
 
 def _rollout(sm: SimModel, models: list, s0: np.ndarray, control: np.ndarray, spec: int
-             ) -> tuple[np.ndarray, np.ndarray]:
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One period of every world: ``(q, qd, diverged)``, NaN and True where a world diverged."""
     m0, n_sub = sm.mj, sm.n_substeps
     nt = max(1, min(sim.nthread(), len(s0)))
     datas = [mujoco.MjData(m0) for _ in range(nt)]
@@ -67,7 +68,7 @@ def _rollout(sm: SimModel, models: list, s0: np.ndarray, control: np.ndarray, sp
         with sim._LOCK:
             sim._COUNT["diverged"] += int(bad.sum())
         q1[bad], qd1[bad] = np.nan, np.nan
-    return q1, qd1
+    return q1, qd1, bad
 
 
 def k_step_many(sm: SimModel, plans: list[Plan], q: np.ndarray, qd: np.ndarray, cmd: np.ndarray,
@@ -120,9 +121,8 @@ def _k_step_many(sm: SimModel, plans: list[Plan], q: np.ndarray, qd: np.ndarray,
             control = np.concatenate([_controls(sm, p, x[j * M:(j + 1) * M], v[j * M:(j + 1) * M], cmd, start,
                                                 first, h, wrench) for j, p in enumerate(group)])
             s0 = sim._states(sm.mj, x, v)
-            x, v = _rollout(sm, models, s0, control, spec)
-            diverged[c0:c0 + len(group)] += [sim.n_diverged(x[j * M:(j + 1) * M], v[j * M:(j + 1) * M])
-                                             for j in range(len(group))]
+            x, v, bad = _rollout(sm, models, s0, control, spec)
+            diverged[c0:c0 + len(group)] += bad.reshape(len(group), M).sum(1)
         for j, p in enumerate(group):
             qo[c0 + j] = sim.logged_q(p, x[j * M:(j + 1) * M])
             vo[c0 + j] = v[j * M:(j + 1) * M]
