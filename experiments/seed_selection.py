@@ -13,6 +13,11 @@ over seeds (what issue 19's targets read) and the best seed (known only after pl
 model error along the policy's own episode (``experiments/scenario_model_error.py`` run on the
 same models) orders them against their planning error.
 
+``--pick-by ROBOT=REPORT.json`` (repeatable) tries such a metric as a selection rule, measured where
+a user could measure it before planning: on episodes outside the table (e.g. the policy's level
+walk, ``scenario_model_error.py --scenario walk --split-s 0``), each kind's seed lowest in it is
+picked once for every scenario, and issue 19's comparison targets are read with those seeds.
+
 ``ROBOT=TABLE:MODELS``: a row's run folder (its ``run`` field, e.g. ``fm/slope/stride-s1``, a
 copy carried to the GPU) is looked up by its name in ``MODELS``. The losses of different kinds
 are in different units (STRIDE's includes its flow-matching term): seeds are compared within a
@@ -31,7 +36,7 @@ import numpy as np
 from scipy import stats
 
 from stride_jax import io
-from stride_paper.seeds import headline_picks, in_headline, kind_and_seed, seed_means
+from stride_paper.seeds import at_most, headline_picks, in_headline, kind_and_seed, seed_means
 
 KINDS = ("stride", "delan", "onn")
 
@@ -135,6 +140,116 @@ def against_model_error(selection: dict, scenario: str, errors: dict) -> list[di
     return out
 
 
+def _seed_cells(table: dict) -> dict[tuple[str, str], dict[int, dict]]:
+    """The headline's rows as ``(scenario, kind) -> {seed: {vel_rmse, falls, episodes}}`` for the
+    three model kinds and the policy (one seed, 0); ``vel_rmse`` over the draws that stayed up
+    (``stride_paper.seeds.seed_means``; NaN where every draw fell)."""
+    picks = headline_picks(table)
+    if not picks:
+        raise ValueError("the table names no headline parts: nothing says which rows are the current planner")
+    groups: dict[tuple[str, str, int], list[dict]] = {}
+    for r in table["rows"]:
+        kind, seed = kind_and_seed(r)
+        if in_headline(r, picks) and kind in ("policy",) + KINDS:
+            groups.setdefault((r["scenario"], kind, seed), []).append(r)
+    out: dict[tuple[str, str], dict[int, dict]] = {}
+    for (sc, kind, seed), rows in groups.items():
+        means = seed_means(rows)
+        out.setdefault((sc, kind), {})[seed] = dict(
+            vel_rmse=means.get(seed, float("nan")), falls=sum(bool(r["fell"]) for r in rows),
+            episodes=len(rows))
+    return out
+
+
+def _pooled(per_seed: dict[int, dict]) -> dict:
+    """A kind's cell over all its seeds, as issue 19's targets read it: the mean of the seeds'
+    means (those with an upright draw), falls and episodes summed."""
+    up = [c["vel_rmse"] for c in per_seed.values() if np.isfinite(c["vel_rmse"])]
+    return dict(vel_rmse=float(np.mean(up)) if up else float("nan"),
+                falls=sum(c["falls"] for c in per_seed.values()),
+                episodes=sum(c["episodes"] for c in per_seed.values()))
+
+
+def _counts(scenarios: list[str], cell) -> dict:
+    """Issue 19's two comparison targets with each kind's cell in a scenario given by
+    ``cell(scenario, kind)`` (None: not run): STRIDE at most the policy (in >= 75% of the
+    scenarios), at most DeLaN + MLP and ONN (every comparison); ``stride_paper.seeds.at_most``."""
+    def le(a, b):
+        if a is None or b is None:
+            return None
+        return at_most(a["falls"], a["episodes"], a["vel_rmse"], b["falls"], b["episodes"], b["vel_rmse"])
+    pol = [le(cell(sc, "stride"), cell(sc, "policy")) for sc in scenarios]
+    base = [le(cell(sc, "stride"), cell(sc, k)) for sc in scenarios for k in ("delan", "onn")]
+    pol, base = [v for v in pol if v is not None], [v for v in base if v is not None]
+    return dict(at_most_policy=sum(pol), of_policy=len(pol),
+                at_most_policy_met=bool(pol) and sum(pol) >= 0.75 * len(pol),
+                at_most_baselines=sum(base), of_baselines=len(base),
+                at_most_baselines_met=bool(base) and all(base))
+
+
+def picked_once(table: dict, errors: dict[tuple[str, int], dict], source: str) -> dict:
+    """Each kind represented by one trained seed, chosen once before planning by a model error
+    measured on episodes outside the table (``source``, e.g. the policy's level walk): per
+    metric of :data:`METRICS` the seed lowest in it, then issue 19's comparison targets with
+    those seeds in every scenario, beside the targets' own reading (the mean over seeds) and the
+    per-scenario best seed (known only after planning: a bound, not a selection)."""
+    seeds = _seed_cells(table)
+    scenarios = list(dict.fromkeys(sc for sc, _ in seeds))
+    trained = {k: sorted({s for (_, kind), per in seeds.items() if kind == k for s in per}) for k in KINDS}
+    for k, ss in trained.items():
+        missing = [s for s in ss if (k, s) not in errors]
+        if missing:
+            raise ValueError(f"{source}: the model-error report has no {k} seed(s) {missing} "
+                             f"(the table's {k} seeds: {ss})")
+    policy = lambda sc: _pooled(seeds[(sc, "policy")]) if (sc, "policy") in seeds else None  # noqa: E731
+    rules = {}
+    for m in METRICS:
+        pick = {k: min(ss, key=lambda s: errors[(k, s)][m]) for k, ss in trained.items() if ss}
+
+        def cell(sc, kind, pick=pick):
+            if kind == "policy":
+                return policy(sc)
+            return seeds.get((sc, kind), {}).get(pick.get(kind))
+        rules[m] = dict(pick=pick, **_counts(scenarios, cell),
+                        stride=[dict(scenario=sc, **(cell(sc, "stride") or {})) for sc in scenarios])
+
+    def mean(sc, kind):
+        return policy(sc) if kind == "policy" else (_pooled(seeds[(sc, kind)]) if (sc, kind) in seeds else None)
+
+    def best(sc, kind):
+        if kind == "policy":
+            return policy(sc)
+        per = seeds.get((sc, kind))
+        return min(per.values(), key=lambda c: (c["falls"] / c["episodes"],
+                                                np.nan_to_num(c["vel_rmse"], nan=np.inf))) if per else None
+    return dict(source=source, rules=rules, mean=_counts(scenarios, mean),
+                best_in_hindsight=_counts(scenarios, best),
+                per_seed={k: {str(s): {m: errors[(k, s)][m] for m in METRICS} for s in ss}
+                          for k, ss in trained.items()})
+
+
+def _picked_markdown(p: dict) -> list[str]:
+    def count(c):
+        return (f"{c['at_most_policy']} of {c['of_policy']}{' (met)' if c['at_most_policy_met'] else ''} | "
+                f"{c['at_most_baselines']} of {c['of_baselines']}{' (met)' if c['at_most_baselines_met'] else ''}")
+    lines = [f"Each kind represented by one trained seed, chosen once before planning by its one-period "
+             f"model error on episodes outside the table (`{p['source']}`), then issue 19's comparison "
+             f"targets with those seeds in every scenario (STRIDE at most the policy in >= 75% of the "
+             f"scenarios; at most DeLaN + MLP's and ONN's in every comparison). The seeds' errors there "
+             f"(stride / delan / onn, seeds in order): "
+             + "; ".join(f"{m}: " + ", ".join(f"{k} " + " / ".join(f"{v[m]:.3f}" for v in per.values())
+                                              for k, per in p["per_seed"].items()) for m in METRICS) + ".", "",
+             "| seeds | picks (stride, delan, onn) | STRIDE <= policy | <= DeLaN and ONN | STRIDE per scenario |",
+             "|---|---|---|---|---|",
+             f"| mean over seeds (the targets) | all | {count(p['mean'])} | |"]
+    for m, r in p["rules"].items():
+        per = ", ".join(f"{c['scenario']} {c['vel_rmse']:.4f}" for c in r["stride"] if "vel_rmse" in c)
+        picks = ", ".join(f"s{r['pick'][k]}" for k in KINDS if k in r["pick"])
+        lines.append(f"| lowest {m} | {picks} | {count(r)} | {per} |")
+    lines += [f"| best per scenario (known only after planning) | - | {count(p['best_in_hindsight'])} | |", ""]
+    return lines
+
+
 def markdown(results: dict[str, dict], command: str) -> str:
     lines = ["# Does the validation loss pick the seed that plans best? (issue 19)", "",
              f"Command: `{command}`", "",
@@ -177,6 +292,8 @@ def markdown(results: dict[str, dict], command: str) -> str:
                              f"{sum(r[m]['spearman'] > 0 for r in me)}; its lowest seed plans best in "
                              f"{sum(r[m]['lowest_is_best'] for r in me)} (chance: 1 in 6, 1 in 2, 1 in 3)"
                              for m in METRICS] + [""]
+        for p in res.get("picked_once", []):
+            lines += _picked_markdown(p)
     return "\n".join(lines)
 
 
@@ -186,9 +303,13 @@ def main(argv=None) -> int:
     ap.add_argument("--model-error", action="append", default=[], metavar="ROBOT:SCENARIO=JSON",
                     help="a scenario_model_error.py report of the same models, compared per kind "
                          "with the seeds' planning error (repeatable)")
+    ap.add_argument("--pick-by", action="append", default=[], metavar="ROBOT=JSON",
+                    help="a scenario_model_error.py report of the same models on episodes outside "
+                         "the table (e.g. the policy's level walk): each kind's seed picked once "
+                         "by each metric there, and the targets' comparisons with those seeds")
     ap.add_argument("--out", required=True, help="writes OUT.md and OUT.json")
     a = ap.parse_args(argv)
-    results = {}
+    results, tables = {}, {}
     for spec in a.tables:
         robot, eq, rest = spec.partition("=")
         path, colon, models = rest.rpartition(":")
@@ -199,6 +320,7 @@ def main(argv=None) -> int:
         if not pathlib.Path(models).is_dir():
             ap.error(f"{models}: no such models folder")
         results[robot] = robot_selection(json.loads(pathlib.Path(path).read_text()), pathlib.Path(models))
+        tables[robot] = path
     for spec in a.model_error:
         key, eq, path = spec.partition("=")
         robot, colon, scenario = key.partition(":")
@@ -209,6 +331,15 @@ def main(argv=None) -> int:
         errors = model_errors(json.loads(pathlib.Path(path).read_text()))
         results[robot].setdefault("model_error", []).extend(
             against_model_error(results[robot], scenario, errors))
+    for spec in a.pick_by:
+        robot, eq, path = spec.partition("=")
+        if not eq or robot not in results:
+            ap.error(f"--pick-by {spec!r}: expected ROBOT=JSON, ROBOT one of {sorted(results)}")
+        if not pathlib.Path(path).is_file():
+            ap.error(f"--pick-by {spec!r}: {path}: no such report")
+        table = json.loads(pathlib.Path(tables[robot]).read_text())
+        results[robot].setdefault("picked_once", []).append(
+            picked_once(table, model_errors(json.loads(pathlib.Path(path).read_text())), path))
     command = "python experiments/seed_selection.py " + " ".join(sys.argv[1:] if argv is None else argv)
     stem = io.write_table(a.out, dict(command=command, robots=results), markdown(results, command))
     print(f"wrote {stem}.{{md,json}}")

@@ -98,3 +98,39 @@ def test_model_error_metrics_are_ranked_against_the_seeds_planning(experiment, t
         mod.against_model_error(sel, "rough", errors)
     with pytest.raises(ValueError, match="no scenario 'tilt'"):  # named otherwise in the table
         mod.against_model_error(sel, "tilt", errors)
+
+
+def test_seeds_picked_once_on_other_episodes_are_scored_against_the_targets(experiment):
+    mod = experiment("seed_selection")
+    tab = _table()
+    for sc, v in (("rough", 0.055), ("soft", 0.045)):  # the policy's own rows
+        tab["rows"].append(dict(scenario=sc, model="policy@a", vel_rmse=v, fell=False, part="a"))
+
+    def row(name, seed, err):
+        return {"model": name, "run": f"x/{name.split('_')[0]}-s{seed}", "told_gravity": False,
+                "prior_alone": False, "from 0 s": dict(steps=10, bias_norm=err, spread_norm=-err,
+                                                       joint_vel_rmse=1.0 + seed)}
+    # bias picks stride seed 1 (0.05 on rough, 0.06 on soft) and onn seed 0; spread picks stride
+    # seed 0 and onn seed 2; joints picks seed 0 of both
+    errors = mod.model_errors({"rows": [row("stride", 0, 2.0), row("stride_s1", 1, 1.0), row("stride_s2", 2, 1.5),
+                                        row("onn", 0, 1.0), row("onn_s1", 1, 2.0), row("onn_s2", 2, 3.0)]})
+    p = mod.picked_once(tab, errors, "walk.json")
+    bias, spread = p["rules"]["bias_norm"], p["rules"]["spread_norm"]
+    assert bias["pick"] == {"stride": 1, "onn": 0} and spread["pick"] == {"stride": 0, "onn": 2}
+    # bias: stride s1 0.05 <= policy 0.055 on rough, 0.06 > 0.045 on soft; against onn s0 (0.05, 0.04)
+    # it ties on rough (at most) and loses on soft
+    assert (bias["at_most_policy"], bias["of_policy"], bias["at_most_policy_met"]) == (1, 2, False)
+    assert (bias["at_most_baselines"], bias["of_baselines"]) == (1, 2)
+    assert [c["vel_rmse"] for c in bias["stride"]] == pytest.approx([0.05, 0.06])
+    # spread: stride s0 0.07 / 0.05 against onn s2 0.07 / 0.06: at most on both, the policy on neither
+    assert (spread["at_most_policy"], spread["at_most_baselines"], spread["at_most_baselines_met"]) == (0, 2, True)
+    # the mean over seeds: stride 0.06 / 0.05 with seed 1's fall on soft (fewer falls first), onn
+    # 0.06 / 0.05 with none: at most onn on rough only
+    assert (p["mean"]["at_most_policy"], p["mean"]["at_most_baselines"]) == (0, 1)
+    # hindsight: stride's best seed per scenario 0.05 / 0.04 against onn's 0.05 / 0.04
+    assert (p["best_in_hindsight"]["at_most_policy"], p["best_in_hindsight"]["at_most_baselines"]) == (2, 2)
+    assert p["best_in_hindsight"]["at_most_policy_met"]
+    md = "\n".join(mod._picked_markdown(p))
+    assert "| lowest bias_norm | s1, s0 | 1 of 2 | 1 of 2 | rough 0.0500, soft 0.0600 |" in md
+    with pytest.raises(ValueError, match="no onn seed"):
+        mod.picked_once(tab, {k: v for k, v in errors.items() if k != ("onn", 2)}, "walk.json")
