@@ -78,6 +78,27 @@ def phase_errors(acc_err: np.ndarray, qd_err: np.ndarray, nu: int) -> dict:
                 joint_vel_rmse=joints)
 
 
+def scenario(name: str, seconds: float, slope_deg: float = 0.0, rough_cm: float = 0.0):
+    """The scenario ``name`` lasting ``seconds``, its slope (degrees) and rough ground's bump
+    height (cm) overridden where given (0: keep; as the closed loop's flags, which rename it so:
+    ``tilt15``, ``rough2``); an unknown name or an override the scenario has no use for is an
+    error naming it."""
+    from stride_jax.control.scenarios import SCENARIOS
+
+    if name not in SCENARIOS:
+        raise SystemExit(f"--scenario {name!r}: one of {sorted(SCENARIOS)}")
+    sc = dataclasses.replace(SCENARIOS[name], seconds=seconds)
+    if slope_deg:
+        if not sc.slope_deg:
+            raise SystemExit(f"--slope-deg: scenario {name!r} has no slope")
+        sc = dataclasses.replace(sc, name=f"{sc.name}{slope_deg:g}", slope_deg=slope_deg)
+    if rough_cm:
+        if not sc.rough_m:
+            raise SystemExit(f"--rough-cm: scenario {name!r} has no rough ground")
+        sc = dataclasses.replace(sc, name=f"{sc.name}{rough_cm:g}", rough_m=rough_cm / 100)
+    return sc
+
+
 def main(argv: list[str] | None = None) -> dict:
     stride_jax.set_xla_flags()
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -85,6 +106,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--scenario", default="tilt")
     ap.add_argument("--slope-deg", type=float, default=0.0,
                     help="override the scenario's slope (0: keep), as the closed loop's flag")
+    ap.add_argument("--rough-cm", type=float, default=0.0,
+                    help="override the rough ground's bump height (cm; 0: keep), as the closed loop's flag")
     ap.add_argument("--models", required=True, help="NAME=RUN,... trained dynamics models")
     ap.add_argument("--policy", default="")
     ap.add_argument("--seconds", type=float, default=6.0)
@@ -118,18 +141,11 @@ def main(argv: list[str] | None = None) -> dict:
     import jax
 
     from stride_jax.control.episode import learned_model, learned_step
-    from stride_jax.control.scenarios import SCENARIOS
     from stride_jax.dynamics import models as dyn_models
     from stride_jax.io import code_version, write_table
     from stride_jax.sim import model as sim_model
 
-    if a.scenario not in SCENARIOS:
-        raise SystemExit(f"--scenario {a.scenario!r}: one of {sorted(SCENARIOS)}")
-    sc = dataclasses.replace(SCENARIOS[a.scenario], seconds=a.seconds)
-    if a.slope_deg:
-        if not sc.slope_deg:
-            raise SystemExit(f"--slope-deg: scenario {a.scenario!r} has no slope")
-        sc = dataclasses.replace(sc, name=f"{sc.name}{a.slope_deg:g}", slope_deg=a.slope_deg)
+    sc = scenario(a.scenario, a.seconds, a.slope_deg, a.rough_cm)
     sm = sim_model.load(a.robot)
     policy = a.policy or f"results/policies/ppo_{a.robot}"
     t0 = time.time()

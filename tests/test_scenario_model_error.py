@@ -60,3 +60,18 @@ def test_the_prior_alone_is_the_models_prior_term(experiment):
     assert float(jnp.abs(split["residual"]).max()) > 1e-2  # the full model differs
     with pytest.raises(ValueError, match="no residual"):
         mod.prior_alone(prior, p_params)
+
+
+def test_the_scenario_takes_the_closed_loops_overrides_and_refuses_what_it_has_no_use_for(experiment):
+    mod = experiment("scenario_model_error")
+    sc = mod.scenario("rough", 3.0, rough_cm=2)
+    assert (sc.name, sc.rough_m, sc.seconds) == ("rough2", pytest.approx(0.02), 3.0)
+    sc = mod.scenario("tilt", 6.0, slope_deg=15)
+    assert (sc.name, sc.slope_deg) == ("tilt15", 15)
+    assert mod.scenario("walk", 6.0).name == "walk"
+    with pytest.raises(SystemExit, match="'walk' has no rough ground"):
+        mod.scenario("walk", 6.0, rough_cm=2)
+    with pytest.raises(SystemExit, match="'rough' has no slope"):
+        mod.scenario("rough", 6.0, slope_deg=15)
+    with pytest.raises(SystemExit, match="'cliff': one of"):
+        mod.scenario("cliff", 6.0)
