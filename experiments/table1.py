@@ -93,6 +93,9 @@ class Table1Config:
         get their own runs and results folders (``<robot>[_<data>]_tw<weight>``).
       transition_fraction: ``stride train --transition-fraction``: the share of each minibatch
         the transition term is computed on (1: all; below 1 the folders gain ``_tf<fraction>``).
+      base_weight: ``stride train --base-weight`` for every run (a floating base's dofs' weight
+        in the one-period losses: the structured models' transition term, which it needs, and
+        ONN's loss; 1: every dof alike); other weights get their own folders (``..._bw<weight>``).
       potential: ``stride train --potential`` for the structured runs (``net``, the paper's
         ``V = m g z + V_net``, or ``com``: gravity's multibody form, ``LNNConfig.potential``);
         ``com`` gets its own runs and results folders (``..._com``).
@@ -119,6 +122,7 @@ class Table1Config:
     stop_at: int = 0
     transition_weight: float = 0.0
     transition_fraction: float = 1.0
+    base_weight: float = 1.0
     potential: str = "net"
     slope_deg: float = 0.0
     parallel: int = 5
@@ -131,13 +135,14 @@ class Table1Config:
 def folder_suffixes(args: Table1Config) -> tuple[str, str]:
     """``(data, variant)``: the suffixes of the data's folder (``<robot><data>-<preset>``: the
     data kind, the data policy's folder name, the slope) and of the runs' (``<robot><data>
-    <variant>-<preset>``: the transition loss, its fraction, the potential).
+    <variant>-<preset>``: the transition loss, its fraction, the base's weight, the potential).
     ``experiments/table1_device.sh`` builds the same names (tested)."""
     data = "" if args.data == "explore" else f"_{args.data}"
     data += f"_{pathlib.Path(args.data_policy).name}" if args.data_policy else ""
     data += f"_slope{args.slope_deg:g}" if args.slope_deg else ""
     variant = f"_tw{args.transition_weight:g}" if args.transition_weight else ""
     variant += f"_tf{args.transition_fraction:g}" if args.transition_fraction < 1 else ""
+    variant += f"_bw{args.base_weight:g}" if args.base_weight != 1 else ""
     variant += f"_{args.potential}" if args.potential != "net" else ""
     return data, variant
 
@@ -159,6 +164,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.transition_fraction < 1 and not args.transition_weight:
         raise SystemExit(f"--transition-fraction {args.transition_fraction:g} needs "
                          "--transition-weight above 0")
+    if args.base_weight != 1 and not args.transition_weight:
+        raise SystemExit(f"--base-weight {args.base_weight:g} needs --transition-weight above 0 "
+                         "(it weighs the structured models' transition term)")
     suffix, variant = folder_suffixes(args)
     tf = args.transition_fraction
     data = {r: root / "data" / f"{r}{suffix}-{args.preset}" for r in robots}
@@ -202,6 +210,7 @@ def main(argv: list[str] | None = None) -> None:
         *(["--stop-at", str(args.stop_at)] if args.stop_at else []),
         *(["--transition-weight", f"{args.transition_weight:g}"] if args.transition_weight else []),
         *(["--transition-fraction", f"{tf:g}"] if tf < 1 else []),
+        *(["--base-weight", f"{args.base_weight:g}"] if args.base_weight != 1 else []),
         *(["--potential", args.potential] if args.potential != "net" else []),
         *(["--gravity-context"] if args.slope_deg else []))
         for r, m, s, v in jobs}

@@ -10,7 +10,7 @@
 # DATA picks experiments/table1.py's --data (explore: default); DATA_POLICY (with DATA=walk) its
 # --data-policy, and NAME gains _<the policy folder's name>; TW (when set and not 0) its
 # --transition-weight, and NAME gains _twTW; TF (below 1, with TW) its --transition-fraction, and
-# NAME gains _tfTF; POT (when set and not net) its --potential, and NAME gains _POT (com: the
+# NAME gains _tfTF; BW (when set and not 1, with TW) its --base-weight, and NAME gains _bwBW; POT (when set and not net) its --potential, and NAME gains _POT (com: the
 # prior's potential in gravity's multibody form); SLOPE (when set and not 0) its --slope-deg
 # (sloped data, every model told the slope), and NAME gains _slopeSLOPE; two calls with different DATA
 # may run side by side (they share the compilation cache). LIMIT_S stops the driver after that
@@ -32,6 +32,8 @@ if [ "$slope" != 0 ]; then dargs+=(--slope-deg "$slope"); dsuffix=${dsuffix}_slo
 tw=$(printf '%g' "${TW:-0}"); tf=$(printf '%g' "${TF:-1}"); pot=${POT:-net}; vargs=(); vsuffix=""
 if [ "$tw" != 0 ]; then vargs=(--transition-weight "$tw"); vsuffix=_tw$tw; fi
 if [ "$tw" != 0 ] && [ "$tf" != 1 ]; then vargs+=(--transition-fraction "$tf"); vsuffix=${vsuffix}_tf$tf; fi
+bw=$(printf '%g' "${BW:-1}")
+if [ "$bw" != 1 ]; then vargs+=(--base-weight "$bw"); vsuffix=${vsuffix}_bw$bw; fi
 if [ "$pot" != net ]; then vargs+=(--potential "$pot"); vsuffix=${vsuffix}_$pot; fi
 name=$robot$dsuffix$vsuffix
 runs_name=$robot$dsuffix$vsuffix-paper  # the runs folder experiments/table1.py makes

@@ -182,6 +182,48 @@ def test_transition_loss_is_the_models_own_step_against_the_logged_next_state(na
 
 
 @pytest.mark.parametrize("name", ["stride", "delan", "onn"])
+def test_base_weight_weighs_the_floating_bases_dofs_in_the_one_period_losses(name):
+    """``base_weight``: a floating base's six dofs (pose change and velocity) count this much in
+    the one-period losses (the structured models' transition term, ONN's whole loss), each joint
+    1; a weight other than 1 without a floating base, without a transition term to weigh, or on
+    a generator's loss is refused by name."""
+    scales = stride.Scales(dq=jnp.full(7, 0.5), dqd=jnp.full(7, 2.0))
+    structured = name != "onn"
+    cfg = dataclasses.replace(CFG, transition_weight=0.5) if structured else CFG
+    plain = models.make(name, SPEC, ACT, cfg, scales)
+    heavy = models.make(name, SPEC, ACT, dataclasses.replace(cfg, base_weight=3.0), scales)
+    params = jax.tree.map(lambda w: w + 0.05 * jax.random.normal(jax.random.key(1), w.shape),
+                          plain.init(jax.random.key(0)))
+    q, qd, ctrl = Q0, 0.1 * jnp.ones(7), jnp.array([0.2])
+    q1, qd1 = plain.step(params, q, qd, ctrl, None)
+    ex = dict(q=q, qd=qd, ctrl=ctrl, tau=jnp.ones(7), qdd=jnp.ones(7))
+    part = "next" if structured else "obs"
+
+    def loss(model, q_next, qd_next):
+        return float(model.loss(params, dict(ex, q_next=q_next, qd_next=qd_next), jax.random.key(2))[1][part])
+
+    own = loss(plain, q1, qd1)  # ONN's own step is its loss' zero as well
+    base = (q1.at[0].add(0.1), qd1.at[4].add(0.4))  # the base's x position and a rotation rate
+    joint = (q1.at[7].add(0.1), qd1.at[6].add(0.4))
+    np.testing.assert_allclose(own, 0.0, atol=1e-8)
+    expected = (0.1 / 0.5) ** 2 + (0.4 / 2.0) ** 2
+    np.testing.assert_allclose(loss(plain, *base), expected, rtol=1e-3)
+    np.testing.assert_allclose(loss(heavy, *base), 3.0 * expected, rtol=1e-3)
+    np.testing.assert_allclose(loss(heavy, *joint), loss(plain, *joint), rtol=1e-6)
+    np.testing.assert_allclose(loss(heavy, *joint), expected, rtol=1e-3)
+    fixed = ModelSpec(nq=1, nv=1, floating_base=False)
+    with pytest.raises(ValueError, match="no floating base"):
+        models.make(name, fixed, models.motors(1), dataclasses.replace(cfg, base_weight=2.0))
+    if structured:
+        with pytest.raises(ValueError, match="set transition_weight above 0"):
+            models.make(name, SPEC, ACT, dataclasses.replace(CFG, base_weight=2.0))
+    with pytest.raises(ValueError, match="not weighted per dof"):
+        models.make("diffusion", SPEC, ACT, dataclasses.replace(CFG, base_weight=2.0))
+    with pytest.raises(ValueError, match="base_weight must be a finite number above 0"):
+        dataclasses.replace(CFG, base_weight=0.0)
+
+
+@pytest.mark.parametrize("name", ["stride", "delan", "onn"])
 def test_xla_bf16_kernel_is_the_same_model_with_bfloat16_products(name):
     """``kernel="xla-bf16"``: the same parameters, every network's products in bfloat16 at
     inference -- steps agree with float32 to bfloat16 precision and differ from it -- while the

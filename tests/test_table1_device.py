@@ -22,6 +22,10 @@ CASES = [
     ({"DATA": "walk", "SLOPE": "15.0", "TW": "1.0", "TF": "0.250"},
      {"data": "walk", "slope_deg": 15.0, "transition_weight": 1.0, "transition_fraction": 0.25}),
     ({"TW": "0.5", "TF": "1"}, {"transition_weight": 0.5}),  # a whole-batch fraction adds nothing
+    ({"DATA": "walk", "TW": "1", "TF": "0.25", "BW": "4.0", "POT": "com"},
+     {"data": "walk", "transition_weight": 1.0, "transition_fraction": 0.25, "base_weight": 4.0,
+      "potential": "com"}),
+    ({"TW": "1", "BW": "1.0"}, {"transition_weight": 1.0}),  # weight 1: every dof alike, no suffix
 ]
 
 

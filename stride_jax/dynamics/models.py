@@ -248,6 +248,10 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
     """The Lagrangian prior with a residual: STRIDE (flow), DeLaN (mlp), LNN + Diffusion."""
     residual = residual or MODELS[name][1]
     nu = len(act.dof)
+    weights = stride.dof_weights(spec, cfg)  # of the transition term's dofs
+    if cfg.base_weight != 1 and not cfg.transition_weight:
+        raise ValueError(f"{name}: base_weight {cfg.base_weight!r} weighs the transition term's "
+                         "base dofs, and there is none: set transition_weight above 0")
 
     def init(key):
         return stride.init(key, spec, cfg, residual)
@@ -312,7 +316,8 @@ def structured(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Structure
         q1, qd1 = central_period(train_substep, params, ex["q"], ex["qd"], ex["ctrl"],
                                  down=ex.get("down"))
         dq = integrate.difference(q1, ex["q_next"], spec.floating_base) / scales.dq
-        return jnp.sum(dq ** 2) + jnp.sum(((qd1 - ex["qd_next"]) / scales.dqd) ** 2)
+        return (jnp.sum(weights * dq ** 2)
+                + jnp.sum(weights * ((qd1 - ex["qd_next"]) / scales.dqd) ** 2))
 
     def acceleration(params, q, qd, tau, key, nfe=None):
         _check_inputs(name, spec, nu, q=q, qd=qd, tau=tau)
@@ -422,6 +427,11 @@ def next_observation(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Str
     """ONN (``kind=None``: an MLP) or Pure Diffusion (a generator) of the next observation."""
     kind = kind if kind is not None else MODELS[name][1]
     nu = len(act.dof)
+    stride.dof_weights(spec, cfg)  # a base weight needs a floating base
+    if kind is not None and cfg.base_weight != 1:
+        raise ValueError(f"{name}: base_weight {cfg.base_weight!r} weighs the regressing "
+                         f"next-observation model's loss; the {kind} generator's loss is not "
+                         "weighted per dof")
 
     def _step(params, q, qd, ctrl, key, nfe, down=None):
         return next_obs.step(params, spec, cfg, scales, q, qd, ctrl, key, nfe, kind, down)

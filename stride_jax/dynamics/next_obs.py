@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from stride_jax.dynamics import integrate, lagrangian, mlp
-from stride_jax.dynamics.stride import Scales, StructuredConfig, gravity_features
+from stride_jax.dynamics.stride import Scales, StructuredConfig, dof_weights, gravity_features
 from stride_jax.types import ModelSpec
 
 
@@ -69,7 +69,8 @@ def loss(params: dict, spec: ModelSpec, cfg: StructuredConfig, scales: Scales, e
     target = _target(spec, scales, ex)
     if generative_kind is None:
         out = mlp.mlp(cfg.net, 2 * spec.nv, zero_last=True)[1](params, c)
-        l_obs = jnp.sum((out - target) ** 2)
+        w = dof_weights(spec, cfg)  # the base's pose change and velocity rows, the joints' 1
+        l_obs = jnp.sum(jnp.concatenate([w, w]) * (out - target) ** 2)
         return l_obs, {"obs": l_obs}
     l_gen = cfg.generator(generative_kind).loss(params, target, c, key)
     return l_gen, {"ddpm" if generative_kind == "diffusion" else "fm": l_gen}

@@ -75,6 +75,7 @@ prior still learns end to end with the flow's samples in the loop.
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import NamedTuple
 
 import jax
@@ -135,6 +136,12 @@ class StructuredConfig:
     # drawn at random, so the term's mean is unbiased; validation takes every example): the term
     # costs ~5x an acceleration step per example, so 0.25 makes a step ~2x instead of ~5x
     transition_fraction: float = 1.0
+    # floating bases: the weight of the base's six dofs (their pose change and velocity) in the
+    # one-control-period losses, the structured models' transition term and the regressing
+    # next-observation model's (ONN's) whole loss, against 1 for each joint: above 1 puts a
+    # model's capacity where a velocity-tracking planner's cost reads (the base's motion), not
+    # spread over every joint alike. 1: every dof alike, as trained until session 65.
+    base_weight: float = 1.0
     # Inference (acceleration, terms, step, rollout): the networks' passes in XLA or as fused
     # kernels (fused.KERNELS; the flow with Euler steps). Training always differentiates in XLA.
     kernel: str = "xla"
@@ -156,6 +163,8 @@ class StructuredConfig:
             raise ValueError(f"transition_fraction {self.transition_fraction!r} needs a "
                              "transition_weight above 0 (it is the share of each minibatch the "
                              "transition term is computed on)")
+        if not (math.isfinite(self.base_weight) and self.base_weight > 0):
+            raise ValueError(f"base_weight must be a finite number above 0, got {self.base_weight!r}")
         if self.acc_through not in ACC_THROUGH:
             raise ValueError(f"acc_through {self.acc_through!r} is not one of {ACC_THROUGH}")
         self.diffusion  # likewise for the diffusion's settings
@@ -203,6 +212,18 @@ class Scales(NamedTuple):
     dq: jax.Array | float = 1.0
     dqd: jax.Array | float = 1.0
     ctrl: jax.Array | float = 1.0
+
+
+def dof_weights(spec: ModelSpec, cfg: StructuredConfig) -> jax.Array:
+    """The per-dof weights ``[nv]`` of the one-control-period losses: ``cfg.base_weight`` on a
+    floating base's six dofs, 1 on every joint; a ``base_weight`` other than 1 on a model without
+    a floating base is an error naming it."""
+    if cfg.base_weight == 1:
+        return jnp.ones(spec.nv)
+    if not spec.floating_base:
+        raise ValueError(f"base_weight {cfg.base_weight!r}: the model has no floating base (the "
+                         "weight is that of a floating base's six dofs)")
+    return jnp.ones(spec.nv).at[:6].set(cfg.base_weight)
 
 
 def gravity_features(spec: ModelSpec, q: jax.Array, down: jax.Array | None) -> jax.Array:

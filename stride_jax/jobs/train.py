@@ -73,6 +73,11 @@ class TrainConfig:
       transition_fraction: the share of each minibatch the transition term is computed on
         (``StructuredConfig.transition_fraction``; 1: every example). The term costs ~5x an
         acceleration step per example; validation takes every example.
+      base_weight: floating bases: the weight of the base's six dofs in the one-control-period
+        losses (``StructuredConfig.base_weight``: the structured models' transition term, which
+        it needs, and ONN's whole loss), 1 for each joint; 1, the default, weighs every dof
+        alike. Above 1 trains for the base's motion, what a velocity-tracking planner's cost
+        reads.
       out: run folder; empty means ``runs/<robot>/<model>``.
       distributed: train data-parallel over several processes (:mod:`stride_jax.distributed`).
     """
@@ -93,6 +98,7 @@ class TrainConfig:
     gravity_context: bool = False
     transition_weight: float = 0.0
     transition_fraction: float = 1.0
+    base_weight: float = 1.0
     out: str = ""
     distributed: DistributedConfig = DistributedConfig()
 
@@ -143,7 +149,8 @@ def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.P
     model_cfg = model_config(cfg.model, ds.meta, cfg.net.hidden, cfg.net.depth, cfg.nfe,
                              cfg.shared_lnn, cfg.acc_through, cfg.learn_mass, cfg.net.activation,
                              cfg.net.init, cfg.base_structure, cfg.transition_weight,
-                             cfg.transition_fraction, cfg.potential, cfg.gravity_context)
+                             cfg.transition_fraction, cfg.potential, cfg.gravity_context,
+                             cfg.base_weight)
     act = models.Actuation.from_meta(ds.meta)
     sc = scales(ds)
     model = models.make(cfg.model, spec, act, model_cfg, sc)

@@ -20,7 +20,7 @@ def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0,
                  weight_init: str = "lecun_normal", base_structure: bool = True,
                  transition_weight: float = 0.0,
                  transition_fraction: float = 1.0, potential: str = "net",
-                 gravity_context: bool = False) -> stride.StructuredConfig:
+                 gravity_context: bool = False, base_weight: float = 1.0) -> stride.StructuredConfig:
     """Sizes for ``model`` on the robot ``meta`` describes (a dataset's ``meta.json`` or
     :func:`stride_jax.sim.model.robot_meta`); ``nfe=0`` takes its default. Floating bases start
     the learned total mass at the nominal model's (a spec-sheet number); ``base_structure=False``
@@ -28,7 +28,8 @@ def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0,
     ``transition_weight`` adds the one-control-period transition loss (structured models), on
     ``transition_fraction`` of each minibatch; ``potential``: the prior's potential
     (``LNNConfig.potential``); ``gravity_context``: the networks see gravity's direction
-    (``StructuredConfig.gravity_context``, for sloped data)."""
+    (``StructuredConfig.gravity_context``, for sloped data); ``base_weight``: a floating base's
+    dofs' weight in the one-period losses (``StructuredConfig.base_weight``)."""
     models.check_name(model)
     nfe = nfe or models.DEFAULT_NFE.get(models.MODELS[model][1], 2)
     mass = meta.get("total_mass") or float(sim_model.load(meta["robot"]).mj.body_mass.sum())
@@ -39,7 +40,8 @@ def model_config(model: str, meta: dict, hidden: int, depth: int, nfe: int = 0,
                                    learn_mass=learn_mass, base_structure=base_structure,
                                    transition_weight=transition_weight,
                                    transition_fraction=transition_fraction,
-                                   potential=potential, gravity_context=gravity_context)
+                                   potential=potential, gravity_context=gravity_context,
+                                   base_weight=base_weight)
 
 
 def floored_std(x: np.ndarray, dtype=np.float32) -> np.ndarray:
