@@ -7,6 +7,10 @@ current planner), in one table per robot (``OUT.md``, ``OUT.json``):
 - at most DeLaN's and ONN's in every scenario (fewer falls first, then the mean error);
 - at most 1/5 of the oracle's (planning through MJX) time per control step.
 
+Beside them, the oracle's own tracking where the headline holds an oracle row of the scenario
+(planning through the scenario's MJX model over the same policy and learned reward: what the
+planner does with a right model); its rows over earlier policies are not read for it.
+
     python experiments/closed_loop_targets.py \\
         go1=results/closed_loop_go1_gpu/closed_loop.json \\
         g1=results/closed_loop_g1_gpu/closed_loop.json --out results/closed_loop_targets
@@ -86,6 +90,7 @@ def robot_targets(table: dict, policy_pick: str = "") -> dict:
         orc = [r["ms_per_step"] for r in oracle if r["scenario"] == sc] or \
               [r["ms_per_step"] for r in oracle]
         c["oracle_ms"] = float(np.mean(orc)) if orc else None
+        c["oracle"] = _cell([r for r in oracle if r["scenario"] == sc and in_headline(r, picks)])
         c["oracle_ms_from"] = ("this scenario" if any(r["scenario"] == sc for r in oracle)
                                else "all scenarios" if oracle else None)
         s = c["stride"]
@@ -136,15 +141,17 @@ def markdown(results: dict[str, dict], command: str) -> str:
              "Velocity RMSE (m/s): mean over trained seeds (each its planner draws that stayed up); "
              "falls over all episodes. STRIDE <= X: fewer falls, else the mean error at most X's; a loss "
              "in error alone says whether the trained seeds tell it apart (Welch's 90% interval of "
-             "STRIDE minus X clear of 0; nothing said: one value on a side).", ""]
+             "STRIDE minus X clear of 0; nothing said: one value on a side). Oracle: planning through "
+             "the scenario's own MJX model at the same K and H, over the same policy (its headline rows; "
+             "-: none run over this policy).", ""]
     for robot, res in results.items():
         t = res["targets"]
         lines += [f"## {robot}", "", f"Headline parts: {', '.join(res['headline'])}; policy rows: "
                   f"{res['policy']}.", "",
-                  "| scenario | policy | STRIDE | DeLaN + MLP | ONN | STRIDE <= policy | <= DeLaN | "
+                  "| scenario | policy | STRIDE | DeLaN + MLP | ONN | oracle | STRIDE <= policy | <= DeLaN | "
                   "<= ONN | STRIDE ms/step | oracle ms/step | ratio | trained seeds / episodes: STRIDE, "
                   "DeLaN, ONN |",
-                  "|---|---:|---:|---:|---:|---|---|---|---:|---:|---:|---|"]
+                  "|---|---:|---:|---:|---:|---:|---|---|---|---:|---:|---:|---|"]
         for c in res["cells"]:
             vs = c["stride_vs"]
             apart = c["apart"]
@@ -153,7 +160,7 @@ def markdown(results: dict[str, dict], command: str) -> str:
             ms = c["stride"]["ms_per_step"] if c["stride"] else None
             lines.append(
                 f"| {c['scenario']}{' *' if c['slope_unseen'] else ''} | {_fmt(c['policy'])} | {_fmt(c['stride'])} | {_fmt(c['delan'])} | "
-                f"{_fmt(c['onn'])} | {mark('policy')} | {mark('delan')} | {mark('onn')} | "
+                f"{_fmt(c['onn'])} | {_fmt(c.get('oracle'))} | {mark('policy')} | {mark('delan')} | {mark('onn')} | "
                 + (f"{ms:.1f}" if ms is not None else "-") + " | "
                 + (f"{c['oracle_ms']:.0f}" + (" (all scenarios)" if c["oracle_ms_from"] == "all scenarios" else "")
                    if c["oracle_ms"] else "-") + " | "

@@ -33,6 +33,15 @@ def test_targets_read_the_headline_seeds_and_the_oracle_time(experiment):
     assert cells["soft"]["stride_vs"]["policy"] is False and cells["soft"]["apart"]["onn"] is True
     assert cells["rough"]["time_ratio"] == pytest.approx(80.0 / 500.0)
     assert cells["soft"]["oracle_ms_from"] == "all scenarios"
+    # the oracle's tracking: its headline rows only (the one in part "old" ran over another policy)
+    assert cells["rough"]["oracle"] is None
+    tab = _table()
+    tab["rows"].append(_row("rough", "oracle@pol", 0.05, "pol", ms=600.0))
+    cells = {c["scenario"]: c for c in mod.robot_targets(tab)["cells"]}
+    assert cells["rough"]["oracle"]["vel_rmse"] == pytest.approx(0.05) and cells["soft"]["oracle"] is None
+    assert cells["rough"]["oracle_ms"] == pytest.approx(550.0)  # the time: every oracle row of it
+    md = mod.markdown({"go1": mod.robot_targets(tab)}, "cmd")
+    assert "| rough | 0.090 | 0.062 | - | 0.072 | 0.050 | yes |" in md
     t = r["targets"]
     assert t["no_falls"]["met"] and t["no_falls"]["stride_episodes"] == 6
     assert (t["at_most_policy"]["scenarios"], t["at_most_policy"]["of"]) == (1, 2)
