@@ -152,6 +152,17 @@ def test_central_latents_step_with_the_residuals_central_sample(name):
         np.testing.assert_array_equal(np.asarray(terms["residual"]), np.asarray(again["residual"]))
 
 
+def _one_period(model):
+    """``(params, example, q1, qd1)``: the model's parameters with their zero-initialised last
+    layers moved (outputs then depend on inputs), one example's state, command and torques, and
+    the model's own central step from it (what a logged next state equal to it would be)."""
+    params = jax.tree.map(lambda w: w + 0.05 * jax.random.normal(jax.random.key(1), w.shape),
+                          model.init(jax.random.key(0)))
+    q, qd, ctrl = Q0, 0.1 * jnp.ones(7), jnp.array([0.2])
+    q1, qd1 = model.step(params, q, qd, ctrl, None)
+    return params, dict(q=q, qd=qd, ctrl=ctrl, tau=jnp.ones(7), qdd=jnp.ones(7)), q1, qd1
+
+
 @pytest.mark.parametrize("name", ["stride", "delan"])
 def test_transition_loss_is_the_models_own_step_against_the_logged_next_state(name):
     """``transition_weight`` adds, per example, the squared error of the model's one-period step
@@ -159,11 +170,7 @@ def test_transition_loss_is_the_models_own_step_against_the_logged_next_state(na
     changes' units; zero where the log is the model's own step; it trains both parts."""
     scales = stride.Scales(dq=jnp.full(7, 0.5), dqd=jnp.full(7, 2.0))
     model = models.make(name, SPEC, ACT, dataclasses.replace(CFG, transition_weight=0.5), scales)
-    params = jax.tree.map(lambda w: w + 0.05 * jax.random.normal(jax.random.key(1), w.shape),
-                          model.init(jax.random.key(0)))
-    q, qd, ctrl = Q0, 0.1 * jnp.ones(7), jnp.array([0.2])
-    q1, qd1 = model.step(params, q, qd, ctrl, None)
-    ex = dict(q=q, qd=qd, ctrl=ctrl, tau=jnp.ones(7), qdd=jnp.ones(7))
+    params, ex, q1, qd1 = _one_period(model)
     own = model.loss(params, dict(ex, q_next=q1, qd_next=qd1), jax.random.key(2))[1]
     assert float(own["next"]) < 1e-8
     off = dict(ex, q_next=q1.at[7].add(0.1), qd_next=qd1.at[6].add(0.4))
@@ -192,11 +199,7 @@ def test_base_weight_weighs_the_floating_bases_dofs_in_the_one_period_losses(nam
     cfg = dataclasses.replace(CFG, transition_weight=0.5) if structured else CFG
     plain = models.make(name, SPEC, ACT, cfg, scales)
     heavy = models.make(name, SPEC, ACT, dataclasses.replace(cfg, base_weight=3.0), scales)
-    params = jax.tree.map(lambda w: w + 0.05 * jax.random.normal(jax.random.key(1), w.shape),
-                          plain.init(jax.random.key(0)))
-    q, qd, ctrl = Q0, 0.1 * jnp.ones(7), jnp.array([0.2])
-    q1, qd1 = plain.step(params, q, qd, ctrl, None)
-    ex = dict(q=q, qd=qd, ctrl=ctrl, tau=jnp.ones(7), qdd=jnp.ones(7))
+    params, ex, q1, qd1 = _one_period(plain)
     part = "next" if structured else "obs"
 
     def loss(model, q_next, qd_next):
