@@ -28,7 +28,6 @@ Writes OUT.md and OUT.json (the command, per-model rows).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import pathlib
 import shlex
 import sys
@@ -79,24 +78,22 @@ def phase_errors(acc_err: np.ndarray, qd_err: np.ndarray, nu: int) -> dict:
 
 
 def scenario(name: str, seconds: float, slope_deg: float = 0.0, rough_cm: float = 0.0):
-    """The scenario ``name`` lasting ``seconds``, its slope (degrees) and rough ground's bump
-    height (cm) overridden where given (0: keep; as the closed loop's flags, which rename it so:
-    ``tilt15``, ``rough2``); an unknown name or an override the scenario has no use for is an
+    """The scenario ``name`` lasting ``seconds`` with the closed loop's overrides of its slope
+    (degrees) and rough ground's bump height (cm) (``stride_jax.jobs.closed_loop.scenario``, which
+    renames it so: ``tilt15``, ``rough2``; 0: keep); an unknown name, or an override the scenario
+    has no use for (the closed loop passes those over: one run spans several scenarios), is an
     error naming it."""
     from stride_jax.control.scenarios import SCENARIOS
+    from stride_jax.jobs import closed_loop
 
     if name not in SCENARIOS:
         raise SystemExit(f"--scenario {name!r}: one of {sorted(SCENARIOS)}")
-    sc = dataclasses.replace(SCENARIOS[name], seconds=seconds)
-    if slope_deg:
-        if not sc.slope_deg:
-            raise SystemExit(f"--slope-deg: scenario {name!r} has no slope")
-        sc = dataclasses.replace(sc, name=f"{sc.name}{slope_deg:g}", slope_deg=slope_deg)
-    if rough_cm:
-        if not sc.rough_m:
-            raise SystemExit(f"--rough-cm: scenario {name!r} has no rough ground")
-        sc = dataclasses.replace(sc, name=f"{sc.name}{rough_cm:g}", rough_m=rough_cm / 100)
-    return sc
+    if slope_deg and not SCENARIOS[name].slope_deg:
+        raise SystemExit(f"--slope-deg: scenario {name!r} has no slope")
+    if rough_cm and not SCENARIOS[name].rough_m:
+        raise SystemExit(f"--rough-cm: scenario {name!r} has no rough ground")
+    cfg = closed_loop.ClosedLoopConfig(seconds=seconds, slope_deg=slope_deg, rough_cm=rough_cm)
+    return closed_loop.scenario(cfg, name)
 
 
 def main(argv: list[str] | None = None) -> dict:

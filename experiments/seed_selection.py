@@ -70,18 +70,15 @@ def validation_losses(rows: list[dict], models: pathlib.Path) -> dict[tuple[str,
 def robot_selection(table: dict, models: pathlib.Path) -> dict:
     """Per scenario and kind: seeds' errors, the validation pick, mean and best; and the count
     of (scenario, kind) cells where the pick is the best seed."""
+    seeds = _seed_cells(table)
     picks = headline_picks(table)
-    if not picks:
-        raise ValueError("the table names no headline parts: nothing says which rows are the current planner")
-    rows = [r for r in table["rows"] if in_headline(r, picks) and kind_and_seed(r)[0] in KINDS]
-    val = validation_losses(rows, models)
-    groups: dict[tuple[str, str], list[dict]] = {}
-    for r in rows:
-        groups.setdefault((r["scenario"], kind_and_seed(r)[0]), []).append(r)
+    val = validation_losses([r for r in table["rows"] if in_headline(r, picks)
+                             and kind_and_seed(r)[0] in KINDS], models)
     cells = []
-    for sc in dict.fromkeys(r["scenario"] for r in rows):
+    for sc in dict.fromkeys(sc for sc, kind in seeds if kind in KINDS):
         for kind in KINDS:
-            means = seed_means(groups.get((sc, kind), []))
+            means = {s: c["vel_rmse"] for s, c in seeds.get((sc, kind), {}).items()
+                     if np.isfinite(c["vel_rmse"])}  # seeds with an upright draw
             if len(means) < 2:
                 continue
             pick = min(means, key=lambda s: val[(kind, s)])
@@ -158,7 +155,7 @@ def _seed_cells(table: dict) -> dict[tuple[str, str], dict[int, dict]]:
         out.setdefault((sc, kind), {})[seed] = dict(
             vel_rmse=means.get(seed, float("nan")), falls=sum(bool(r["fell"]) for r in rows),
             episodes=len(rows))
-    return out
+    return {k: dict(sorted(per.items())) for k, per in out.items()}
 
 
 def _pooled(per_seed: dict[int, dict]) -> dict:
