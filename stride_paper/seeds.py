@@ -34,31 +34,49 @@ def kind_and_seed(row: dict) -> tuple[str, int]:
     return kind, seed
 
 
-def headline_picks(table: dict) -> dict[str, frozenset[str] | None] | None:
+Pick = frozenset  # of (models, scenarios) clauses, each a frozenset of names or None (any)
+
+
+def headline_picks(table: dict) -> dict[str, Pick | None] | None:
     """A merged closed-loop table's ``headline`` (``stride_jax.jobs.closed_loop.merge``: the
-    current planner's rows) as ``{part: models}``: an entry ``PART`` takes all the part's rows
-    (models None), ``PART:MODEL+MODEL`` only those models' (a run's policy-alone rows without its
-    planner's, say); None where the table names no headline."""
+    current planner's rows) as ``{part: clauses}``: an entry ``PART`` takes all the part's rows
+    (None), ``PART:MODEL+MODEL`` only those models' (a run's policy-alone rows without its
+    planner's, say), ``PART/SCENARIO+SCENARIO`` only those scenarios' (a part whose other
+    scenarios a later planner setting has replaced), and ``PART:MODELS/SCENARIOS`` both; a row is
+    in where any of its part's entries takes it. None where the table names no headline."""
     entries = (table.get("headline") or {}).get("parts")
     if not entries:
         return None
-    picks: dict[str, frozenset[str] | None] = {}
+    picks: dict[str, Pick | None] = {}
     for entry in entries:
-        part, _, models = str(entry).partition(":")
-        names = frozenset(m for m in models.split("+") if m) or None  # None: the whole part
+        part, models, scenarios = parse_headline_entry(str(entry))
         have = picks.get(part, frozenset())
-        picks[part] = None if names is None or have is None else have | names
+        whole = models is None and scenarios is None
+        picks[part] = None if whole or have is None else have | {(models, scenarios)}
     return picks
 
 
-def in_headline(row: dict, picks: dict[str, frozenset[str] | None]) -> bool:
+def parse_headline_entry(entry: str) -> tuple[str, frozenset[str] | None, frozenset[str] | None]:
+    """``PART[:MODEL+MODEL][/SCENARIO+SCENARIO]`` as ``(part, models, scenarios)`` (None: all)."""
+    head, _, scen = entry.partition("/")
+    part, _, models = head.partition(":")
+    names = frozenset(m for m in models.split("+") if m) or None
+    scenarios = frozenset(s for s in scen.split("+") if s) or None
+    return part, names, scenarios
+
+
+def in_headline(row: dict, picks: dict[str, Pick | None]) -> bool:
     """Whether ``row`` is among :func:`headline_picks`' rows (a model named by its merged name
     or by the name before ``@part``)."""
     part = row.get("part")
     if part not in picks:
         return False
-    models = picks[part]
-    return models is None or row["model"] in models or str(row["model"]).split("@")[0] in models
+    if picks[part] is None:
+        return True
+    names = {row["model"], str(row["model"]).split("@")[0]}
+    return any((models is None or bool(names & models))
+               and (scenarios is None or row["scenario"] in scenarios)
+               for models, scenarios in picks[part])
 
 
 def seed_means(rows: Iterable[dict], fallen: str = "drop") -> dict[int, float]:

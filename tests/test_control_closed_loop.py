@@ -699,7 +699,7 @@ def test_a_merge_onto_an_earlier_one_keeps_its_rows_and_notes(tmp_path):
                      onto=str(tmp_path / "fourth" / "closed_loop.json"))
     assert json.loads((tmp_path / "fifth" / "closed_loop.json").read_text())["headline"] == {
         "parts": ["b"]} and fifth[-1]["part"] == "c"
-    with pytest.raises(ValueError, match="not parts of the table"):
+    with pytest.raises(ValueError, match="'zz' is not a part of the table"):
         cl.merge([], str(tmp_path / "sixth"), onto=str(tmp_path / "fifth" / "closed_loop.json"),
                  headline=["b", "zz"])
     # some models of a part (a run's policy rows without its planner's): each must have rows
@@ -707,7 +707,10 @@ def test_a_merge_onto_an_earlier_one_keeps_its_rows_and_notes(tmp_path):
              headline=["c", "b:onn+stride"])
     assert json.loads((tmp_path / "sixth" / "closed_loop.json").read_text())["headline"] == {
         "parts": ["c", "b:onn+stride"]}
-    for bad in ("b:policy", "b:", "b:onn+zz"):
+    # and some scenarios of a part (its others replaced by a later planner setting)
+    cl.merge([], str(tmp_path / "sixth"), onto=str(tmp_path / "fifth" / "closed_loop.json"),
+             headline=["c", "b/walk", "b:onn/walk"])
+    for bad in ("b:policy", "b:", "b:onn+zz", "b/soft", "b/", "b:onn/walk+soft"):
         with pytest.raises(ValueError, match="has no rows"):
             cl.merge([], str(tmp_path / "seventh"),
                      onto=str(tmp_path / "fifth" / "closed_loop.json"), headline=[bad])

@@ -51,20 +51,33 @@ def test_seed_means_drop_or_keep_the_seeds_whose_every_draw_fell():
         seed_means(rows, fallen="keep")
 
 
-def test_a_headline_takes_whole_parts_or_some_models_of_a_part():
+def test_a_headline_takes_whole_parts_or_some_models_or_scenarios_of_a_part():
     """``PART`` takes every row of the part, ``PART:MODEL+MODEL`` those models' (by merged name or
-    the name before ``@part``); a part named both ways is taken whole; no headline: None."""
+    the name before ``@part``), ``PART/SCENARIO+SCENARIO`` those scenarios', ``PART:M/S`` both;
+    a part named whole and in part is taken whole; no headline: None."""
     from stride_paper.seeds import headline_picks, in_headline
     rows = [dict(model="policy@old", part="old"), dict(model="stride@old", part="old"),
             dict(model="onn", part="old"), dict(model="stride", part="new"),
             dict(model="stride", part="other")]
+    rows = [dict(r, scenario="slope") for r in rows]
     picks = headline_picks({"headline": {"parts": ["new", "old:policy+onn"]}})
-    assert picks == {"new": None, "old": frozenset({"policy", "onn"})}
+    assert picks == {"new": None, "old": frozenset({(frozenset({"policy", "onn"}), None)})}
     assert [in_headline(r, picks) for r in rows] == [True, False, True, True, False]
     assert headline_picks({"headline": {"parts": ["old:policy", "old"]}}) == {"old": None}
-    assert headline_picks({"headline": {"parts": ["old:policy", "old:onn"]}}) == {
-        "old": frozenset({"policy", "onn"})}
+    assert headline_picks({"headline": {"parts": ["old", "old:policy"]}}) == {"old": None}
+    two = headline_picks({"headline": {"parts": ["old:policy", "old:onn"]}})
+    assert [in_headline(r, two) for r in rows[:3]] == [True, False, True]
     assert headline_picks({"rows": []}) is None
+    # scenarios: a part's other scenarios left out, alone or with models
+    mixed = rows + [dict(model="stride", part="new", scenario="changes"),
+                    dict(model="onn", part="old", scenario="changes")]
+    for entries, want in ((["new/slope"], [False, False, False, True, False, False, False]),
+                          (["new/changes+slope", "old:onn/changes"],
+                           [False, False, False, True, False, True, True]),
+                          (["old/changes", "old:policy"],
+                           [True, False, False, False, False, False, True])):
+        picks = headline_picks({"headline": {"parts": entries}})
+        assert [in_headline(r, picks) for r in mixed] == want, entries
 
 
 def test_at_most_orders_by_fall_rate_then_error():

@@ -625,7 +625,9 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None,
     planner's rows (the report's closed-loop claims read those alone; kept from ``onto`` when not
     given), each ``PART`` (all its rows) or ``PART:MODEL+MODEL`` (only those models' rows, by
     their name in the part's run: a run's policy-alone rows without its planner's); each part
-    must be a part of the table (``stride_paper.seeds.headline_picks`` reads them)."""
+    must be a part of the table; ``PART/SCENARIO+SCENARIO`` takes only those scenarios' rows (a
+    part whose other scenarios a later planner setting has replaced;
+    ``stride_paper.seeds.headline_picks`` reads them)."""
     import shutil
 
     out_dir = pathlib.Path(out)
@@ -688,18 +690,21 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None,
             if trace.is_file():
                 shutil.copy2(trace, out_dir / trace_name(r["scenario"], model, episode, seed))
     if headline is not None:
-        unknown = [h for h in headline if h.partition(":")[0] not in envs_]
-        if unknown:
-            raise ValueError(f"headline parts {unknown} are not parts of the table "
-                             f"(parts: {', '.join(envs_)})")
-        for h in headline:
-            part, pick, models = h.partition(":")
-            held = {n for r in rows if r.get("part") == part
-                    for n in (r["model"], r["model"].split("@")[0])}
-            absent = [m for m in models.split("+") if m and m not in held]
-            if pick and (absent or not models.strip("+")):
-                raise ValueError(f"headline {h!r}: part {part!r} has no rows of "
-                                 f"{absent or models!r} (its models: {', '.join(sorted(held))})")
+        for h in headline:  # PART[:MODEL+MODEL][/SCENARIO+SCENARIO]
+            head_, slash, scenarios = h.partition("/")
+            part, colon, models = head_.partition(":")
+            if part not in envs_:
+                raise ValueError(f"headline {h!r}: {part!r} is not a part of the table "
+                                 f"(parts: {', '.join(envs_)})")
+            mine = [r for r in rows if r.get("part") == part]
+            for what, sep, given, held in (
+                    ("models", colon, models, {n for r in mine
+                                               for n in (r["model"], r["model"].split("@")[0])}),
+                    ("scenarios", slash, scenarios, {r["scenario"] for r in mine})):
+                absent = [m for m in given.split("+") if m and m not in held]
+                if sep and (absent or not given.strip("+")):
+                    raise ValueError(f"headline {h!r}: part {part!r} has no rows of "
+                                     f"{absent or given!r} (its {what}: {', '.join(sorted(held))})")
         head = dict(parts=list(headline))
     table = dict(title=title, parts=envs_, rows=rows)
     if head is not None:
