@@ -35,7 +35,7 @@ import numpy as np
 from stride_jax import io
 from stride_jax.jobs import closed_loop
 from stride_paper.report_control import slope_unseen
-from stride_paper.seeds import (at_most, fall_rates_differ, headline_picks, in_headline,
+from stride_paper.seeds import (cell_at_most, fall_rates_differ, headline_picks, in_headline,
                                 kind_and_seed, seed_means, welch)
 
 KINDS = ("policy", "stride", "delan", "onn")
@@ -55,14 +55,6 @@ def _cell(rows: list[dict]) -> dict | None:
                 seeds=len({kind_and_seed(r)[1] for r in rows}), episodes=len(rows),
                 falls=sum(bool(r["fell"]) for r in rows),
                 ms_per_step=float(np.mean([r["ms_per_step"] for r in alone])))
-
-
-def _at_most(a: dict | None, b: dict | None) -> bool | None:
-    """Whether cell ``a`` is at most cell ``b`` (``stride_paper.seeds.at_most``, the report's
-    claim-25 order; None: either missing)."""
-    if a is None or b is None:
-        return None
-    return at_most(a["falls"], a["episodes"], a["vel_rmse"], b["falls"], b["episodes"], b["vel_rmse"])
 
 
 def robot_targets(table: dict, policy_pick: str = "") -> dict:
@@ -94,7 +86,7 @@ def robot_targets(table: dict, policy_pick: str = "") -> dict:
         c["oracle_ms_from"] = ("this scenario" if any(r["scenario"] == sc for r in oracle)
                                else "all scenarios" if oracle else None)
         s = c["stride"]
-        c["stride_vs"] = {k: _at_most(s, c[k]) for k in ("policy", "delan", "onn")}
+        c["stride_vs"] = {k: cell_at_most(s, c[k]) for k in ("policy", "delan", "onn")}
         # a loss in error alone, over trained seeds on both sides: whether the seeds tell it apart
         c["apart"] = {k: (w["lo"] > 0) if (w := welch(s["seed_means"], c[k]["seed_means"])) else None
                       for k in ("policy", "delan", "onn")

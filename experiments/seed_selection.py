@@ -36,7 +36,7 @@ import numpy as np
 from scipy import stats
 
 from stride_jax import io
-from stride_paper.seeds import at_most, headline_picks, in_headline, kind_and_seed, seed_means
+from stride_paper.seeds import cell_at_most, headline_picks, in_headline, kind_and_seed, seed_means
 
 KINDS = ("stride", "delan", "onn")
 
@@ -170,13 +170,9 @@ def _pooled(per_seed: dict[int, dict]) -> dict:
 def _counts(scenarios: list[str], cell) -> dict:
     """Issue 19's two comparison targets with each kind's cell in a scenario given by
     ``cell(scenario, kind)`` (None: not run): STRIDE at most the policy (in >= 75% of the
-    scenarios), at most DeLaN + MLP and ONN (every comparison); ``stride_paper.seeds.at_most``."""
-    def le(a, b):
-        if a is None or b is None:
-            return None
-        return at_most(a["falls"], a["episodes"], a["vel_rmse"], b["falls"], b["episodes"], b["vel_rmse"])
-    pol = [le(cell(sc, "stride"), cell(sc, "policy")) for sc in scenarios]
-    base = [le(cell(sc, "stride"), cell(sc, k)) for sc in scenarios for k in ("delan", "onn")]
+    scenarios), at most DeLaN + MLP and ONN (every comparison); ``stride_paper.seeds.cell_at_most``."""
+    pol = [cell_at_most(cell(sc, "stride"), cell(sc, "policy")) for sc in scenarios]
+    base = [cell_at_most(cell(sc, "stride"), cell(sc, k)) for sc in scenarios for k in ("delan", "onn")]
     pol, base = [v for v in pol if v is not None], [v for v in base if v is not None]
     return dict(at_most_policy=sum(pol), of_policy=len(pol),
                 at_most_policy_met=bool(pol) and sum(pol) >= 0.75 * len(pol),

@@ -128,3 +128,11 @@ def at_most(falls: int, runs: int, error: float, other_falls: int, other_runs: i
     if fall_rates_differ(falls, runs, other_falls, other_runs):
         return falls * other_runs < other_falls * runs
     return bool(np.nan_to_num(error, nan=np.inf) <= np.nan_to_num(other_error, nan=np.inf))
+
+
+def cell_at_most(a: dict | None, b: dict | None) -> bool | None:
+    """:func:`at_most` of two cells (a kind's rows in one scenario, as dicts with ``falls``,
+    ``episodes`` and ``vel_rmse``); None where either is missing (not run)."""
+    if a is None or b is None:
+        return None
+    return at_most(a["falls"], a["episodes"], a["vel_rmse"], b["falls"], b["episodes"], b["vel_rmse"])

@@ -88,6 +88,12 @@ def test_at_most_orders_by_fall_rate_then_error():
     assert not fall_rates_differ(1, 3, 2, 6) and fall_rates_differ(1, 3, 1, 6)
     assert at_most(1, 3, 0.2, 2, 6, 0.2) and not at_most(1, 3, 0.21, 2, 6, 0.2)
     assert at_most(3, 3, math.nan, 3, 3, math.nan) and not at_most(3, 3, math.nan, 3, 3, 0.5)
+    # cells (a kind's rows in a scenario) the same way; a missing cell: no verdict
+    from stride_paper.seeds import cell_at_most
+    cell = lambda falls, n, err: dict(falls=falls, episodes=n, vel_rmse=err)  # noqa: E731
+    assert cell_at_most(cell(0, 3, 0.9), cell(1, 3, 0.1)) is True
+    assert cell_at_most(cell(1, 3, 0.21), cell(2, 6, 0.2)) is False
+    assert cell_at_most(None, cell(0, 3, 0.1)) is None and cell_at_most(cell(0, 3, 0.1), None) is None
 
 
 def test_planner_draws_of_one_trained_seed_are_its_episodes(experiment):

@@ -163,7 +163,7 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
     base = int(sm.mj.jnt_bodyid[0])  # the floating base's body
     horizon = 0
     if planner is not None:
-        horizon = planner.init(key).plan.shape[0]
+        horizon = jax.eval_shape(planner.init, key).plan.shape[0]  # its shape alone, no work
         ps0 = planner.init(key, jnp.broadcast_to(jnp.asarray(planning.nominal_u),
                                                  (horizon, len(planning.lo))))
     else:
