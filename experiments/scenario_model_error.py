@@ -1,6 +1,7 @@
 """Where a learned model goes wrong in a scenario: each trained model's one-control-period
 prediction error along the PPO policy's own episode in the scenario's MJX world, before and after
-a time split (e.g. flat ground, then the slope built up from 2 s), issue 19's "find why".
+a time split (e.g. flat ground, then the slope built up from 2 s) or between several (the
+stretches of constant command), issue 19's "find why".
 
 The closed-loop planner carries a disturbance observer: a constant base-acceleration offset
 absorbs a model's steady bias (the slope's gravity component along the ground, which no model
@@ -77,6 +78,21 @@ def phase_errors(acc_err: np.ndarray, qd_err: np.ndarray, nu: int) -> dict:
                 joint_vel_rmse=joints)
 
 
+def phases(t: np.ndarray, splits: list[float]) -> dict[str, np.ndarray]:
+    """The control periods' times ``t`` cut at ``splits`` (s, ascending): ``{label: mask}``,
+    "before a s", "a-b s", ..., "from z s" (one split: before and from it)."""
+    if not splits or any(b <= a for a, b in zip(splits, splits[1:])):
+        raise SystemExit(f"--split-s {','.join(f'{x:g}' for x in splits)}: give one or more "
+                         "times in ascending order")
+    edges = [-np.inf, *splits, np.inf]
+    out = {}
+    for a, b in zip(edges, edges[1:]):
+        label = (f"before {b:g} s" if a == -np.inf else f"from {a:g} s" if b == np.inf
+                 else f"{a:g}-{b:g} s")
+        out[label] = (t >= a) & (t < b)
+    return out
+
+
 def scenario(name: str, seconds: float, slope_deg: float = 0.0, rough_cm: float = 0.0):
     """The scenario ``name`` lasting ``seconds`` with the closed loop's overrides of its slope
     (degrees) and rough ground's bump height (cm) (``stride_jax.jobs.closed_loop.scenario``, which
@@ -108,8 +124,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--models", required=True, help="NAME=RUN,... trained dynamics models")
     ap.add_argument("--policy", default="")
     ap.add_argument("--seconds", type=float, default=6.0)
-    ap.add_argument("--split-s", type=float, default=2.0,
-                    help="the phases: before and from this time (s)")
+    ap.add_argument("--split-s", default="2",
+                    help="the phases: before and from this time (s); several, comma-separated "
+                         "(e.g. a scenario's command changes, 1.5,3,4.5): the stretches between")
     ap.add_argument("--draws", type=int, default=8, help="residual draws per state")
     ap.add_argument("--nfe", type=int, default=0,
                     help="a generative residual's evaluations per sample (0: as trained)")
@@ -128,6 +145,11 @@ def main(argv: list[str] | None = None) -> dict:
         raise SystemExit(f"--draws is {a.draws}: it must be >= 1")
     if a.nfe < 0:
         raise SystemExit(f"--nfe is {a.nfe}: it must be >= 1 (0: as trained)")
+    try:
+        splits = [float(x) for x in a.split_s.split(",") if x.strip()]
+    except ValueError:
+        raise SystemExit(f"--split-s {a.split_s!r}: expected times in s, comma-separated") from None
+    phases(np.zeros(0), splits)  # checks them before the episode runs
     models = [tuple(m.split("=", 1)) for m in a.models.split(",") if m]
     if not models or any(len(m) != 2 for m in models):
         raise SystemExit(f"--models {a.models!r}: expected NAME=RUN,...")
@@ -153,7 +175,7 @@ def main(argv: list[str] | None = None) -> dict:
         t, q, qd, ctrl, q2, qd2, down = (x[:cut] for x in (t, q, qd, ctrl, q2, qd2, down))
     print(f"policy episode: {len(t)} control periods ({time.time() - t0:.0f} s)")
     dt, nu = sm.robot.ctrl_dt, sm.info.nu
-    phases = {f"before {a.split_s:g} s": t < a.split_s, f"from {a.split_s:g} s": t >= a.split_s}
+    stretches = phases(t, splits)
     rows = []
     loaded = {run: learned_model(run, sm) for _, run in models}
     runs = [(name, run, False, False) for name, run in models]
@@ -176,7 +198,7 @@ def main(argv: list[str] | None = None) -> dict:
         err = qd2[:, None, :] - qd_pred  # true minus predicted velocity after one period
         acc_err = err[..., :3] / dt
         row = dict(model=name, run=run, told_gravity=told, prior_alone=prior)
-        for label, sel in phases.items():
+        for label, sel in stretches.items():
             if sel.any():
                 row[label] = phase_errors(acc_err[sel], err[sel], nu)
         rows.append(row)
@@ -189,7 +211,7 @@ def main(argv: list[str] | None = None) -> dict:
     stem.parent.mkdir(parents=True, exist_ok=True)
     env = dict(command=command, code=code_version(), backend=jax.default_backend(),
                scenario=sc.name, policy=policy, draws=a.draws, nfe=a.nfe or None, seconds=a.seconds,
-               commands=sc.commands, govern=a.govern)
+               commands=sc.commands, govern=a.govern, splits=splits)
     lines = [f"# One-period model error along the policy's episode: {a.robot}, {sc.name}", "",
              f"Command: `{command}`", "",
              "Base linear acceleration error over one control period (true minus predicted, "
@@ -201,7 +223,7 @@ def main(argv: list[str] | None = None) -> dict:
              "| model | phase | steps | bias x / y / z | spread x / y / z | joint vel RMSE |",
              "|---|---|---:|---|---|---:|"]
     for r in rows:
-        for label in phases:
+        for label in stretches:
             if label in r:
                 v = r[label]
                 lines.append(f"| {r['model']} | {label} | {v['steps']} | "

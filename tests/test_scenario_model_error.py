@@ -33,6 +33,24 @@ def test_bad_input_is_named(experiment, tmp_path):
         mod.main(["--models", f"stride={tmp_path}", "--draws", "0", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit, match="--nfe is -1"):
         mod.main(["--models", f"stride={tmp_path}", "--nfe", "-1", "--out", str(tmp_path / "x")])
+    for bad, why in (("3,1.5", "ascending"), ("2,2", "ascending"), ("a", "comma-separated"),
+                     (",", "ascending")):
+        with pytest.raises(SystemExit, match=why):
+            mod.main(["--models", f"stride={tmp_path}", "--split-s", bad, "--out", str(tmp_path / "x")])
+
+
+def test_phases_cut_the_episode_at_each_split(experiment):
+    """One split: before and from it (the labels the earlier reports carry); several: the
+    stretches between them, every period in exactly one."""
+    mod = experiment("scenario_model_error")
+    t = np.arange(0, 6, 0.02)
+    one = mod.phases(t, [2.0])
+    assert list(one) == ["before 2 s", "from 2 s"]
+    assert one["before 2 s"].sum() == 100 and one["from 2 s"].sum() == 200
+    four = mod.phases(t, [1.5, 3.0, 4.5])
+    assert list(four) == ["before 1.5 s", "1.5-3 s", "3-4.5 s", "from 4.5 s"]
+    assert (np.sum(list(four.values()), axis=0) == 1).all()
+    assert four["1.5-3 s"][np.searchsorted(t, 1.5)] and not four["1.5-3 s"][np.searchsorted(t, 3.0)]
 
 
 def test_the_prior_alone_is_the_models_prior_term(experiment):
