@@ -78,6 +78,23 @@ def phase_errors(acc_err: np.ndarray, qd_err: np.ndarray, nu: int) -> dict:
                 joint_vel_rmse=joints)
 
 
+def one_period(step, q, qd, ctrl, down, draws: int, central: bool = False) -> np.ndarray:
+    """``qd' [T, draws, nv]`` of ``step(q, qd, ctrl, key, down=...)`` (``learned_step``) at each
+    of the ``T`` states, ``draws`` residual draws each (keys from ``key(0)``); ``central``: the
+    residual's central sample (key None: a stochastic model's latent at its centre), one per
+    state; ``down``: the gravity direction per state, or None (not told)."""
+    import jax
+
+    keys = jax.random.split(jax.random.key(0), (len(q), 1 if central else draws))
+    told = down is not None
+    down = down if told else np.zeros((len(q), 3), np.float32)
+    over_draws = jax.vmap(lambda q, qd, u, k, g: step(q, qd, u, None if central else k,
+                                                      down=g if told else None),
+                          in_axes=(None, None, None, 0, None))
+    _, qd_pred = jax.jit(jax.vmap(over_draws))(q, qd, ctrl, keys, down)
+    return np.asarray(qd_pred, np.float64)
+
+
 def phases(t: np.ndarray, splits: list[float]) -> dict[str, np.ndarray]:
     """The control periods' times ``t`` cut at ``splits`` (s, ascending): ``{label: mask}``,
     "before a s", "a-b s", ..., "from z s" (one split: before and from it)."""
@@ -139,6 +156,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--prior", action="store_true",
                     help="rows of each structured model's Lagrangian prior alone (its residual "
                          "force left out)")
+    ap.add_argument("--central", action="store_true",
+                    help="rows of each stochastic model's central sample (the residual's latent "
+                         "at its centre, z = 0: what the planner's --mppi.latents central steps "
+                         "with), one per state")
     ap.add_argument("--out", required=True, help="path stem: writes OUT.md and OUT.json")
     a = ap.parse_args(argv)
     if a.draws < 1:
@@ -178,26 +199,27 @@ def main(argv: list[str] | None = None) -> dict:
     stretches = phases(t, splits)
     rows = []
     loaded = {run: learned_model(run, sm) for _, run in models}
-    runs = [(name, run, False, False) for name, run in models]
+    runs = [(name, run, False, False, False) for name, run in models]
     if a.model_gravity:
-        runs += [(name, run, True, False) for name, run in models
+        runs += [(name, run, True, False, False) for name, run in models
                  if dyn_models.takes_gravity(loaded[run][0])]
     if a.prior:
-        runs += [(name, run, told, True) for name, run, told, _ in list(runs)
+        runs += [(name, run, told, True, False) for name, run, told, _, _ in list(runs)
                  if loaded[run][0].residual not in (None, "none")]
-    for base, run, told, prior in runs:
-        name = base + (" prior alone" if prior else "") + (" (told gravity)" if told else "")
+    if a.central:
+        runs += [(name, run, told, False, True) for name, run, told, prior, _ in list(runs)
+                 if loaded[run][0].stochastic and not prior]
+    for base, run, told, prior, central in runs:
+        name = (base + (" prior alone" if prior else "") + (" central" if central else "")
+                + (" (told gravity)" if told else ""))
         t1 = time.time()
         step = learned_step(*(prior_alone(*loaded[run]) if prior else loaded[run]),
                             nfe=a.nfe or None)
-        keys = jax.random.split(jax.random.key(0), (len(t), a.draws))
-        over_draws = jax.vmap(lambda q, qd, u, k, g: step(q, qd, u, k, down=g if told else None),
-                              in_axes=(None, None, None, 0, None))
-        _, qd_pred = jax.jit(jax.vmap(over_draws))(q, qd, ctrl, keys, down)
-        qd_pred = np.asarray(qd_pred, np.float64)
+        qd_pred = one_period(step, q, qd, ctrl, down if told else None,
+                             1 if central else a.draws, central)
         err = qd2[:, None, :] - qd_pred  # true minus predicted velocity after one period
         acc_err = err[..., :3] / dt
-        row = dict(model=name, run=run, told_gravity=told, prior_alone=prior)
+        row = dict(model=name, run=run, told_gravity=told, prior_alone=prior, central=central)
         for label, sel in stretches.items():
             if sel.any():
                 row[label] = phase_errors(acc_err[sel], err[sel], nu)
@@ -217,9 +239,11 @@ def main(argv: list[str] | None = None) -> dict:
              "Base linear acceleration error over one control period (true minus predicted, "
              "world axes x, y, z; m/s^2): the bias (its mean: what the planner's disturbance "
              "observer converges to) and the spread around it (RMS: what the observer cannot "
-             f"absorb); joint-velocity RMSE after one period (rad/s). {a.draws} residual draws "
-             "per state, their mean error per step"
-             + (f"; {a.nfe} evaluations per residual sample." if a.nfe else "."), "",
+             f"absorb); joint-velocity RMSE after one period (rad/s), over every draw. "
+             f"{a.draws} residual draws per state, the acceleration's error their mean per step"
+             + (f"; {a.nfe} evaluations per residual sample" if a.nfe else "")
+             + ("; rows `central`: the residual's central sample (z = 0), one per state"
+                if a.central else "") + ".", "",
              "| model | phase | steps | bias x / y / z | spread x / y / z | joint vel RMSE |",
              "|---|---|---:|---|---|---:|"]
     for r in rows:

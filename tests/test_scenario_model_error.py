@@ -93,3 +93,29 @@ def test_the_scenario_takes_the_closed_loops_overrides_and_refuses_what_it_has_n
         mod.scenario("rough", 6.0, slope_deg=15)
     with pytest.raises(SystemExit, match="'cliff': one of"):
         mod.scenario("cliff", 6.0)
+
+
+def test_one_period_draws_the_residual_or_takes_its_central_sample(experiment):
+    """Drawn rows: ``draws`` different residual samples per state; ``central``: one per state,
+    the model's own step with no key (its latent at the centre)."""
+    import jax
+
+    import stride_jax.dynamics as dyn
+    from stride_jax.control.episode import learned_step
+    from stride_jax.dynamics import mlp, models, stride
+
+    mod = experiment("scenario_model_error")
+    spec = dyn.ModelSpec(nq=3, nv=3, floating_base=False)
+    model = models.make("stride", spec, None,
+                        stride.StructuredConfig(net=mlp.MLPConfig(hidden=16, depth=2)))
+    params = model.init(jax.random.key(0))
+    params["residual"] = jax.tree.map(lambda w: w + 0.3, params["residual"])  # a residual that varies
+    rng = np.random.default_rng(0)
+    q, qd, u = (rng.normal(size=(5, 3)).astype(np.float32) for _ in range(3))
+    step = learned_step(model, params)
+    drawn = mod.one_period(step, q, qd, u, None, 4)
+    central = mod.one_period(step, q, qd, u, None, 4, central=True)
+    assert drawn.shape == (5, 4, 3) and central.shape == (5, 1, 3)
+    assert np.abs(drawn[:, 0] - drawn[:, 1]).max() > 1e-2
+    own = jax.vmap(lambda a, b, c: model.step(params, a, b, c, None)[1])(q, qd, u)
+    np.testing.assert_allclose(central[:, 0], np.asarray(own), rtol=1e-5, atol=1e-5)
