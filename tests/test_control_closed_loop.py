@@ -965,3 +965,61 @@ def test_the_controller_senses_the_scenarios_gravity(go1):
     assert cl._same_settings(cl._settings(old, "stride"),
                              cl._settings({"config": {"robot": "go1", "sense_gravity": False}},
                                           "stride"))
+
+
+def test_the_velocity_integral_moves_the_planners_command_against_a_steady_error():
+    """``velocity_integral``: a steady overshoot integrates (after the settle time) into a lower
+    command, bounded by the limit; a command change resets it; the yaw rate is left alone; bad
+    settings are named."""
+    planning = planning_lib.Planning(*[None] * 9)._replace(
+        velocity_integral=2.0, velocity_integral_limit=0.1, integral_settle_s=0.11)
+    dt, command = 0.02, jnp.array([1.0, 0.0, 0.3])
+    integral, since, prev = jnp.zeros(2), jnp.zeros(()), jnp.full(3, jnp.nan)
+    v = jnp.array([1.05, -0.02, 0.0])  # 0.05 m/s too fast, 0.02 m/s drifting right
+    shifts = []
+    for _ in range(100):
+        integral, since = planning_lib.integrate_velocity_error(planning, integral, since,
+                                                                command, prev, v, dt)
+        prev = command
+        shifts.append(planning_lib.integral_command(planning, command, integral))
+    # nothing in the settle time (0.11 s: 5 periods), then 2/s x 0.05 m/s x the time since
+    np.testing.assert_allclose(shifts[3], command, atol=1e-7)
+    np.testing.assert_allclose(shifts[20][:2], [1.0 - 2 * 0.05 * 0.32, 2 * 0.02 * 0.32], atol=1e-5)
+    assert float(shifts[-1][0]) == pytest.approx(0.9, abs=1e-6)  # the limit: 0.1 m/s
+    assert float(shifts[-1][2]) == pytest.approx(0.3)  # the yaw rate as commanded
+    integral, since = planning_lib.integrate_velocity_error(planning, integral, since,
+                                                            jnp.array([0.5, 0.0, 0.0]), prev, v, dt)
+    assert float(jnp.abs(integral).max()) == 0.0 and float(since) == pytest.approx(dt)
+    with pytest.raises(ValueError, match="velocity_integral=-1"):
+        planning_lib.PlanningConfig(velocity_integral=-1.0)
+
+
+
+def test_the_closed_loop_plans_to_the_integral_command_and_scores_the_true_one(go1):
+    """In the episode the planner's state carries the shifted command once the settle time has
+    passed (a robot standing still is below a 1 m/s command: the shift is upward), while the
+    trace keeps the scenario's command; off, the planner sees the command itself."""
+    nq, nu = go1.mj.nq, go1.info.nu
+    mx = mjx.put_model(go1.mj)
+    walk = dataclasses.replace(cl.SCENARIOS["walk"], seconds=8 * go1.robot.ctrl_dt)
+    w = cl.scenario_world(go1, walk)
+
+    def step(state, q_aug, qd):  # a one-step "planner": stand still
+        u, z = jnp.asarray(go1.info.qpos0[7:]), jnp.zeros(1)
+        return u, state, mppi.Info(z, z, z[0], u[None], jnp.zeros((), jnp.int32), u[None, None],
+                                   z, jnp.ones(1, jnp.int32), jnp.zeros((), bool))
+
+    standing = mppi.Planner(lambda key, plan=None: mppi.MPPIState(jnp.zeros((1, nu)), key), step)
+    seen = {}
+    for ki in (0.0, 1.0):
+        planning = planning_lib.make_planning(
+            planning_lib.PlanningConfig(velocity_integral=ki, velocity_integral_settle_s=0.05),
+            envs.config("go1"), go1, cl.mjx_step_fn(go1, mx))
+        trace, cmd = jax.device_get(cl.run_episode(
+            w.sm, w.mx, w.slots, planning, standing, 8, w.starts, w.values, jax.random.key(0),
+            record=lambda qa, *_: planning_lib.split(qa, nq).command))
+        np.testing.assert_array_equal(trace.command, np.tile([1.0, 0.0, 0.0], (8, 1)))
+        seen[ki] = cmd
+    np.testing.assert_array_equal(seen[0.0], np.tile([1.0, 0.0, 0.0], (8, 1)))
+    np.testing.assert_array_equal(seen[1.0][:3], seen[0.0][:3])  # within the settle time
+    assert (np.diff(seen[1.0][3:, 0]) > 0).all() and (seen[1.0][3:, 2] == 0).all()

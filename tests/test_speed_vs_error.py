@@ -25,7 +25,8 @@ def test_models_ranked_by_speed_and_error_over_their_draws(experiment, tmp_path)
     assert by[("stride", 0)]["draws"] == 2 and by[("stride", 0)]["mean_vx"] == pytest.approx(1.01)
     assert got["spearman"] == pytest.approx(1.0)  # speed and error in the same order
     flipped = [dict(r, vel_rmse=1 - r["vel_rmse"]) for r in rows]
-    assert mod.speed_and_error(dict(table, rows=flipped), "slope")["spearman"] == pytest.approx(-1.0)
+    flip = mod.speed_and_error(dict(table, rows=flipped), "slope")
+    assert flip["spearman"] == pytest.approx(-1.0)
     (tmp_path / "t.json").write_text(json.dumps(table))
     out = mod.main([str(tmp_path / "t.json"), "--scenarios", "slope", "--out", str(tmp_path / "o")])
     assert out["slope"]["spearman"] == pytest.approx(1.0)
@@ -39,4 +40,5 @@ def test_bad_input_is_named(experiment, tmp_path):
     with pytest.raises(ValueError, match="no headline rows of scenario 'rough'"):
         mod.speed_and_error(dict(rows=[_row("onn", 1.0, 0.1)], headline=dict(parts=["p"])), "rough")
     with pytest.raises(SystemExit, match="no such file"):
-        mod.main([str(tmp_path / "none.json"), "--scenarios", "slope", "--out", str(tmp_path / "o")])
+        mod.main([str(tmp_path / "none.json"), "--scenarios", "slope",
+                  "--out", str(tmp_path / "o")])

@@ -23,6 +23,7 @@ from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.control.planning import (N_DIST, Planning, PlanningConfig, augment,
+                                         integral_command, integrate_velocity_error,
                                          make_planning, update_disturbance)
 from stride_jax.control.scenarios import (Scenario, command_at, governed, gravity_at,
                                           push_schedule, scenario_model, schedule, tilt_schedule,
@@ -177,11 +178,16 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
     obs_key = jax.random.fold_in(key, 0x0B5E)  # the observer's own draws
     central = planner is not None and planner.latents == "central"  # it predicts as the planner
 
+    integrate = planner is not None and planning.velocity_integral > 0
+
     def body(carry, step):
-        d, ps, clock, down, dist = carry
+        d, ps, clock, down, dist, *track = carry  # track: the integral's state, where it is on
         t = step * dt
         command = command_at(starts, values, t)
         seen = command if limits is None else jnp.clip(command, limits[0], limits[1])
+        if integrate:  # integral action: the planner tracks the command moved against the error
+            (integral, since, prev), = track
+            seen = integral_command(planning, seen, integral)
         up = sensed_gravity(mx_sim, t, tilt) if sense_gravity else None
         q_aug = augment(d.qpos, seen, clock, disturbance=dist, gravity=up)
         status, cut, info = jnp.zeros((), jnp.int32), jnp.zeros(()), None
@@ -207,6 +213,9 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
                                      None if central else jax.random.fold_in(obs_key, step))
             dist = jnp.where(finite & ~down2, new, dist)
         v, w, _ = envs.base_signals(d2.qpos, d2.qvel)
+        if integrate:
+            track = [(*integrate_velocity_error(planning, integral, since, command, prev, v, dt),
+                      command)]
         rec = Trace(t + dt, command, v, w, d2.qpos[2], down2, envs.foot_contact(sm, slots, d2),
                     u, status, cut, dist, alarm)
         if record is not None:
@@ -217,9 +226,14 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         if progress is not None:
             jax.lax.cond((step + 1) % progress_every == 0,
                          lambda s: jax.debug.callback(progress, s), lambda s: None, step + 1)
-        return (d2, ps, clock, down2, dist), rec
+        return (d2, ps, clock, down2, dist, *track), rec
 
     init = (d0, ps0, jnp.zeros(()), jnp.zeros((), bool), jnp.zeros(N_DIST, d0.qpos.dtype))
+    if integrate:  # the integrated error, the time since the last command change, the last
+        # command (the first period counts as a change); absent when off: the carry (and a
+        # chunked run's saved state) as before
+        init += ((jnp.zeros(2, d0.qpos.dtype), jnp.zeros((), d0.qpos.dtype),
+                  jnp.full(3, jnp.nan, d0.qpos.dtype)),)
     return init, body
 
 
