@@ -185,6 +185,7 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         t = step * dt
         command = command_at(starts, values, t)
         seen = command if limits is None else jnp.clip(command, limits[0], limits[1])
+        asked = seen  # what the controller is asked (governed), before the integral's shift
         if integrate:  # integral action: the planner tracks the command moved against the error
             (integral, since, prev), = track
             seen = integral_command(planning, seen, integral)
@@ -214,8 +215,8 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
             dist = jnp.where(finite & ~down2, new, dist)
         v, w, _ = envs.base_signals(d2.qpos, d2.qvel)
         if integrate:
-            track = [(*integrate_velocity_error(planning, integral, since, command, prev, v, dt),
-                      command)]
+            track = [(*integrate_velocity_error(planning, integral, since, asked, prev, v, dt),
+                      asked)]
         rec = Trace(t + dt, command, v, w, d2.qpos[2], down2, envs.foot_contact(sm, slots, d2),
                     u, status, cut, dist, alarm)
         if record is not None:

@@ -70,13 +70,13 @@ class PlanningConfig:
         transients, not by what persists).
       velocity_integral: integral action on the velocity error (1/s; 0: off): the command
         the planner tracks becomes ``command - velocity_integral * integral(v - command) dt``
-        (forward and lateral, base frame), integrated from ``velocity_integral_settle_s`` after
-        each command change and reset at it, the shift bounded by ``velocity_integral_limit``
-        (m/s). Why: on
-        Go1's slope the learned models' planners walk a steady +0.05 m/s past the command that
-        the disturbance observer (a constant base acceleration) does not take out, and the
-        trained models rank by that overshoot (``results/planning_diagnosis/README.md``,
-        session 66). The scored error stays against the true command.
+        (forward and lateral, base frame; against the governed command where the closed loop
+        governs it), integrated from ``velocity_integral_settle_s`` after each command change
+        and reset at it, the shift bounded by ``velocity_integral_limit`` (m/s). Why: on Go1's
+        slope the learned models' planners walk a steady +0.05 m/s past the command that the
+        disturbance observer (a constant base acceleration) does not take out, and the trained
+        models rank by that overshoot (``results/planning_diagnosis/README.md``, session 66).
+        The scored error stays against the true command.
       velocity_integral_limit: bound of the command shift (m/s).
       velocity_integral_settle_s: how long after a command change the integral waits (s; the
         closed loop's scoring settles as long by default).
