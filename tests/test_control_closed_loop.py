@@ -972,7 +972,7 @@ def test_the_velocity_integral_moves_the_planners_command_against_a_steady_error
     command, bounded by the limit; a command change resets it; the yaw rate is left alone; bad
     settings are named."""
     planning = planning_lib.Planning(*[None] * 9)._replace(
-        velocity_integral=2.0, velocity_integral_limit=0.1, integral_settle_s=0.11)
+        velocity_integral=2.0, velocity_integral_limit=0.1, velocity_integral_settle_s=0.11)
     dt, command = 0.02, jnp.array([1.0, 0.0, 0.3])
     integral, since, prev = jnp.zeros(2), jnp.zeros(()), jnp.full(3, jnp.nan)
     v = jnp.array([1.05, -0.02, 0.0])  # 0.05 m/s too fast, 0.02 m/s drifting right

@@ -241,7 +241,7 @@ class Planning(NamedTuple):
     family_prior: Callable | None = None  # (q_aug, qd) -> []: the offsets' prior, state-dependent
     velocity_integral: float = 0.0  # integral action on the velocity error (1/s; 0: off)
     velocity_integral_limit: float = 0.2  # bound of the command shift (m/s)
-    integral_settle_s: float = 0.5  # the integral starts this long after a command change (s)
+    velocity_integral_settle_s: float = 0.5  # the integral starts this long after a change (s)
 
 
 class Aug(NamedTuple):
@@ -302,7 +302,7 @@ def integrate_velocity_error(planning: Planning, integral, since, command, prev_
     integral = jnp.where(changed, 0.0, integral)
     since = jnp.where(changed, 0.0, since) + dt
     error = (v_base[:2] - command[:2]) * dt
-    grown = integral + jnp.where(since > planning.integral_settle_s, error, 0.0)
+    grown = integral + jnp.where(since > planning.velocity_integral_settle_s, error, 0.0)
     bound = planning.velocity_integral_limit / max(planning.velocity_integral, 1e-9)
     return jnp.clip(grown, -bound, bound), since
 
