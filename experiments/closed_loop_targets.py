@@ -57,6 +57,16 @@ def _cell(rows: list[dict]) -> dict | None:
                 ms_per_step=float(np.mean([r["ms_per_step"] for r in alone])))
 
 
+# The tables' row order (the issue's: terrain, disturbances, commands); a variant (G1's tilt15,
+# rough2) goes with its family, other names after these in the headline's order.
+SCENARIO_ORDER = ("slope", "tilt", "rough", "push", "soft", "low_friction", "changes")
+
+
+def _scenario_rank(scenario: str) -> int:
+    family = scenario.rstrip("0123456789")
+    return SCENARIO_ORDER.index(family) if family in SCENARIO_ORDER else len(SCENARIO_ORDER)
+
+
 def robot_targets(table: dict, policy_pick: str = "") -> dict:
     """The scenarios' cells and the targets' verdicts of one merged table (``headline`` needed)."""
     picks = headline_picks(table)
@@ -64,7 +74,7 @@ def robot_targets(table: dict, policy_pick: str = "") -> dict:
         raise ValueError("the table names no headline parts (stride_jax.jobs.closed_loop.merge "
                          "--headline): nothing says which rows are the current planner")
     rows = [r for r in table["rows"] if in_headline(r, picks)]
-    scenarios = list(dict.fromkeys(r["scenario"] for r in rows))
+    scenarios = sorted(dict.fromkeys(r["scenario"] for r in rows), key=_scenario_rank)
     by: dict[tuple[str, str], list[dict]] = {(sc, k): [] for sc in scenarios for k in KINDS}
     for r in rows:
         kind = kind_and_seed(r)[0]

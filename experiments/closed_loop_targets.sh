@@ -40,7 +40,13 @@ if [ "$robot" = go1 ]; then  # K = 1024: 64 policy, 256 command-family, 352 prio
   # 85-93% of the rough ground to the policy and lost the planner's gain there
   # (results/closed_loop_go1_gpu/gate25.md); a later --planning.trust-limit among the flags sets one.
   common+=(--mppi.policy-samples 64 --mppi.family-samples 256 --mppi.prior-fraction 0.5
-           --prior-noise-std 0.08 --planning.observer-gain 0.3 --planning.learned-track-weight 30)
+           --prior-noise-std 0.08 --planning.observer-gain 0.3 --planning.learned-track-weight 30
+           # integral action on the velocity error since session 67 (results/closed_loop_go1_gpu/
+           # README.md, "Session 67": slope 0.060 -> 0.042, tilt 0.057 -> 0.042, rough 0.065 ->
+           # 0.061 for STRIDE and alike for DeLaN and ONN; push 0.065 -> 0.067 for every kind, the
+           # integral winding up in the recovery). The runs before it ran without: VI=0, or a later
+           # --planning.velocity-integral 0 among the flags, reproduces them.
+           $([ "${VI:-1}" = 1 ] && echo --planning.velocity-integral 1.0))
 else  # G1: closer to the policy (the settings that kept G1 planners up before,
       # results/closed_loop/closed_loop_g1_gpu_policy_noise): 128 policy, 384 family, 512 prior
   common+=(--mppi.policy-samples 128 --mppi.family-samples 384 --mppi.prior-fraction 1.0
