@@ -16,6 +16,9 @@ from typing import Iterable
 
 import numpy as np
 
+# the closed-loop headline's reading lives beside its grammar (re-exported for the scripts)
+from stride_jax.jobs.headline import Pick, headline_picks, in_headline  # noqa: F401
+
 _NAME_SEED = re.compile(r"^(?P<kind>.+?)_s(?P<seed>\d+)$")
 _RUN_SEED = re.compile(r"-s(?P<seed>\d+)$")
 
@@ -32,51 +35,6 @@ def kind_and_seed(row: dict) -> tuple[str, int]:
     run = _RUN_SEED.search(pathlib.PurePath(str(row.get("run", ""))).name)
     seed = int(run["seed"]) if run else int(m["seed"]) if m else 0
     return kind, seed
-
-
-Pick = frozenset  # of (models, scenarios) clauses, each a frozenset of names or None (any)
-
-
-def headline_picks(table: dict) -> dict[str, Pick | None] | None:
-    """A merged closed-loop table's ``headline`` (``stride_jax.jobs.closed_loop.merge``: the
-    current planner's rows) as ``{part: clauses}``: an entry ``PART`` takes all the part's rows
-    (None), ``PART:MODEL+MODEL`` only those models' (a run's policy-alone rows without its
-    planner's, say), ``PART/SCENARIO+SCENARIO`` only those scenarios' (a part whose other
-    scenarios a later planner setting has replaced), and ``PART:MODELS/SCENARIOS`` both; a row is
-    in where any of its part's entries takes it. None where the table names no headline."""
-    entries = (table.get("headline") or {}).get("parts")
-    if not entries:
-        return None
-    picks: dict[str, Pick | None] = {}
-    for entry in entries:
-        part, models, scenarios = parse_headline_entry(str(entry))
-        have = picks.get(part, frozenset())
-        whole = models is None and scenarios is None
-        picks[part] = None if whole or have is None else have | {(models, scenarios)}
-    return picks
-
-
-def parse_headline_entry(entry: str) -> tuple[str, frozenset[str] | None, frozenset[str] | None]:
-    """``PART[:MODEL+MODEL][/SCENARIO+SCENARIO]`` as ``(part, models, scenarios)`` (None: all)."""
-    head, _, scen = entry.partition("/")
-    part, _, models = head.partition(":")
-    names = frozenset(m for m in models.split("+") if m) or None
-    scenarios = frozenset(s for s in scen.split("+") if s) or None
-    return part, names, scenarios
-
-
-def in_headline(row: dict, picks: dict[str, Pick | None]) -> bool:
-    """Whether ``row`` is among :func:`headline_picks`' rows (a model named by its merged name
-    or by the name before ``@part``)."""
-    part = row.get("part")
-    if part not in picks:
-        return False
-    if picks[part] is None:
-        return True
-    names = {row["model"], str(row["model"]).split("@")[0]}
-    return any((models is None or bool(names & models))
-               and (scenarios is None or row["scenario"] in scenarios)
-               for models, scenarios in picks[part])
 
 
 def seed_means(rows: Iterable[dict], fallen: str = "drop") -> dict[int, float]:

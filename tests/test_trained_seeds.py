@@ -78,6 +78,10 @@ def test_a_headline_takes_whole_parts_or_some_models_or_scenarios_of_a_part():
                            [True, False, False, False, False, False, True])):
         picks = headline_picks({"headline": {"parts": entries}})
         assert [in_headline(r, picks) for r in mixed] == want, entries
+    # the reading refuses what the merge refuses: a ':' or '/' with no names would take all
+    for bad in ("old:", "old/", "old:onn/", ":onn"):
+        with pytest.raises(ValueError, match="names no|no part"):
+            headline_picks({"headline": {"parts": [bad]}})
 
 
 def test_at_most_orders_by_fall_rate_then_error():

@@ -13,6 +13,7 @@ and ``run(cfg, command)``.
                  gap_bench (``stride gap bench``, the blind benchmark)
     closed_loop  ``stride closed-loop`` MPPI in closed loop per model and scenario (its config,
                  ``ClosedLoopConfig``, nests ``MPPIConfig`` and ``PlanningConfig``)
+    headline     which rows of a merged closed-loop table are the current planner's (no JAX)
     dreamer_mpc  the Dreamer-MPC ablation (``experiments/dreamer_mpc.py``)
     gait_study   the closed-loop gait study (``experiments/closed_loop_gait.py``)
     ppo          ``stride ppo``         one resumable chunk of a PPO policy into a run folder

@@ -61,6 +61,7 @@ from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,
                                           push_schedule, scenario_model, schedule,
                                           tilt_schedule)
 from stride_jax.io import atomic_write, atomic_write_text, code_version
+from stride_jax.jobs.headline import check_entries
 from stride_jax.sim import model as sim_model
 
 
@@ -626,8 +627,8 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None,
     given), each ``PART`` (all its rows) or ``PART:MODEL+MODEL`` (only those models' rows, by
     their name in the part's run: a run's policy-alone rows without its planner's); each part
     must be a part of the table; ``PART/SCENARIO+SCENARIO`` takes only those scenarios' rows (a
-    part whose other scenarios a later planner setting has replaced;
-    ``stride_paper.seeds.headline_picks`` reads them)."""
+    part whose other scenarios a later planner setting has replaced; the grammar, its check and
+    its reading: :mod:`stride_jax.jobs.headline`)."""
     import shutil
 
     out_dir = pathlib.Path(out)
@@ -690,21 +691,7 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None,
             if trace.is_file():
                 shutil.copy2(trace, out_dir / trace_name(r["scenario"], model, episode, seed))
     if headline is not None:
-        for h in headline:  # PART[:MODEL+MODEL][/SCENARIO+SCENARIO]
-            head_, slash, scenarios = h.partition("/")
-            part, colon, models = head_.partition(":")
-            if part not in envs_:
-                raise ValueError(f"headline {h!r}: {part!r} is not a part of the table "
-                                 f"(parts: {', '.join(envs_)})")
-            mine = [r for r in rows if r.get("part") == part]
-            for what, sep, given, held in (
-                    ("models", colon, models, {n for r in mine
-                                               for n in (r["model"], r["model"].split("@")[0])}),
-                    ("scenarios", slash, scenarios, {r["scenario"] for r in mine})):
-                absent = [m for m in given.split("+") if m and m not in held]
-                if sep and (absent or not given.strip("+")):
-                    raise ValueError(f"headline {h!r}: part {part!r} has no rows of "
-                                     f"{absent or given!r} (its {what}: {', '.join(sorted(held))})")
+        check_entries(headline, envs_, rows)
         head = dict(parts=list(headline))
     table = dict(title=title, parts=envs_, rows=rows)
     if head is not None:
