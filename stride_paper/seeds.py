@@ -17,7 +17,7 @@ from typing import Iterable
 import numpy as np
 
 # the closed-loop headline's reading lives beside its grammar (re-exported for the scripts)
-from stride_jax.jobs.headline import Pick, headline_picks, in_headline  # noqa: F401
+from stride_jax.jobs.headline import headline_picks, in_headline  # noqa: F401
 
 _NAME_SEED = re.compile(r"^(?P<kind>.+?)_s(?P<seed>\d+)$")
 _RUN_SEED = re.compile(r"-s(?P<seed>\d+)$")

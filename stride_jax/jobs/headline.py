@@ -1,12 +1,13 @@
 """A merged closed-loop table's headline: which of its rows are the current planner's.
 
 ``stride_jax.jobs.closed_loop.merge(..., headline=...)`` (``experiments/closed_loop_merge.py
---headline``) names them by entries ``PART[:MODEL+MODEL][/SCENARIO+SCENARIO]``: ``PART`` takes all the part's rows, ``PART:MODEL+MODEL`` only those models' (a run's
-policy-alone rows without its planner's, say), ``PART/SCENARIO+SCENARIO`` only those scenarios'
-(a part whose other scenarios a later planner setting has replaced), ``PART:MODELS/SCENARIOS``
-both. The merge validates the entries against its rows (:func:`check_entries`); the report and
-the experiment scripts read them (:func:`headline_picks`, :func:`in_headline`). One grammar, one
-place; no JAX (``stride_paper.seeds`` and the report import it).
+--headline``) names them by entries ``PART[:MODEL+MODEL][/SCENARIO+SCENARIO]``: ``PART`` takes
+all the part's rows, ``PART:MODEL+MODEL`` only those models' (a run's policy-alone rows without
+its planner's, say), ``PART/SCENARIO+SCENARIO`` only those scenarios' (a part whose other
+scenarios a later planner setting has replaced), ``PART:MODELS/SCENARIOS`` both. The merge
+validates the entries against its rows (:func:`check_entries`); the report and the experiment
+scripts read them (:func:`headline_picks`, :func:`in_headline`). One grammar, one place; no JAX
+(``stride_paper.seeds`` and the report import it).
 """
 
 from __future__ import annotations
