@@ -16,7 +16,7 @@ ifneq ($(wildcard ../shared/menagerie),)
 export MENAGERIE_ROOT ?= $(abspath ../shared/menagerie)
 endif
 
-.PHONY: setup demo data train eval table1 reproduce report ppo closed-loop test test-gpu bench-sim bench-mppi gap-bench clean
+.PHONY: setup demo data train eval table1 reproduce report ppo closed-loop test test-all test-gpu bench-sim bench-mppi gap-bench clean
 
 $(BIN)/stride: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -68,10 +68,15 @@ reproduce: setup
 report: setup
 	$(BIN)/python experiments/report.py
 
-## test: the whole suite, in two pytest processes balanced by tests/durations.json (about
-## 13-14 minutes on 2 cores; `$(BIN)/python -m pytest -q` runs it in one)
+## test: the suite, in two pytest processes balanced by tests/durations.json (10-14 minutes on
+## 2 cores; `$(BIN)/python -m pytest -q` runs it in one); the tests marked slow, longer
+## cross-checks each with a faster counterpart here, are left to test-all
 test: setup
 	$(BIN)/python tests/run_parallel.py
+
+## test-all: the suite and the tests marked slow (about 5 minutes more on 2 cores)
+test-all: setup
+	$(BIN)/python tests/run_parallel.py --all
 
 ## bench-sim: simulation steps/s per robot, backend and batch size -> results/throughput/bench_sim_<cpu|gpu>.md
 bench-sim: setup

@@ -6,7 +6,10 @@ their measured durations (``tests/durations.json``, rewritten with ``--record``;
 counts as the median). Each process's output is streamed with its number in front; the exit
 status is non-zero when any process fails.
 
-    python tests/run_parallel.py [--workers N] [--record] [-- PYTEST_ARGS... [tests/test_X.py ...]]
+    python tests/run_parallel.py [--workers N] [--all] [--record] [-- PYTEST_ARGS... [tests/test_X.py ...]]
+
+``--all`` runs the tests marked slow too (``make test-all``); without it pytest's own default
+(pyproject.toml: ``-m 'not slow'``) leaves them out, as ``make test`` does.
 
 Test files among the pytest arguments are the ones run; without any, every ``tests/test_*.py``.
 The workers share one JAX compilation cache for the run (a temporary folder, unless
@@ -67,6 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = argv[:argv.index("--")] if "--" in argv else argv
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    p.add_argument("--all", action="store_true", help="the tests marked slow too")
     p.add_argument("--record", action="store_true", help=f"rewrite {DURATIONS.name}")
     a = p.parse_args(argv)
     if a.workers < 1:
@@ -75,6 +79,8 @@ def main(argv: list[str] | None = None) -> int:
     # test files named after "--" are the ones run (split over the workers); else every file
     named = [x for x in extra if x.endswith(".py") and (root / x).is_file()]
     extra = [x for x in extra if x not in named]
+    if a.all:
+        extra = ["-m", "slow or not slow", *extra]  # a later -m among the arguments wins
     files = sorted(named) or sorted(str(f.relative_to(root)) for f in TESTS.glob("test_*.py"))
     durations = json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
     groups = plan(files, durations, a.workers)

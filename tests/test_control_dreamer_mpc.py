@@ -207,6 +207,7 @@ def test_value_targets_from_planner_rollouts_match_a_hand_recursion(go1):
     assert bool(up) and np.asarray(closed[0]).shape == obs.shape[2:]
 
 
+@pytest.mark.slow  # each switch: the tests above and below
 def test_a_tiny_closed_loop_with_every_switch_on(go1):
     """Two MJX worlds, a stochastic toy model, the policy prior, a short discounted horizon,
     residual draws and a learned error estimate cutting rollouts: the planner plans, the data

@@ -91,6 +91,7 @@ def test_loading_into_other_networks_is_refused(tmp_path):
         ppo.load(tmp_path, wider, 2, 1)
 
 
+@pytest.mark.slow  # PPO's chunks and resume: test_tiny_chunks_learn_and_resume_exactly
 def test_the_ppo_and_fit_reward_value_jobs_at_tiny_size(tmp_path, capsys):
     """`stride ppo` writes a run folder (config, checkpoint, progress) and refuses another
     network on it; `stride fit-reward-value` fits the learned models from that run."""

@@ -80,6 +80,7 @@ def _same_model(r1: pathlib.Path, r2: pathlib.Path) -> None:
     assert s2["best_val"] == pytest.approx(s1["best_val"], rel=1e-4)
 
 
+@pytest.mark.slow  # one process with two devices: the test below
 def test_two_processes_make_the_same_dataset_and_model(alone, tmp_path):
     _together([*DATA, "--out", str(tmp_path / "d2")], tmp_path)
     meta = [json.loads((d / "meta.json").read_text()) for d in (alone / "d1", tmp_path / "d2")]

@@ -37,6 +37,7 @@ def test_warp_forces_and_trajectory_match_mujoco(go1):
     np.testing.assert_allclose(w.time, c.time, atol=1e-6)
 
 
+@pytest.mark.slow  # MJX's equation-of-motion records: test_record.py
 @pytest.mark.parametrize("name", ["go1", "g1"])
 def test_warp_records_satisfy_the_equation_of_motion(name):
     sm = model.load(name)
@@ -46,6 +47,7 @@ def test_warp_records_satisfy_the_equation_of_motion(name):
     assert _eom_residual(sm, _episode_models(sm, ep), ep) < 2e-3  # float32 simulation
 
 
+@pytest.mark.slow  # a trajectory: test_warp_forces_and_trajectory_match_mujoco
 def test_warp_and_jax_physics_make_the_same_episodes(go1):
     """Same keys, same explorer, randomization and recording: the two physics part only by
     float32 round-off over a short episode."""
@@ -60,6 +62,7 @@ def test_warp_and_jax_physics_make_the_same_episodes(go1):
                                atol=0.05 * scale)
 
 
+@pytest.mark.slow  # Warp compiles slowly on a CPU
 def test_warp_runs_ground_patches_and_refuses_rough_ground(go1):
     r = stochastic(go1.robot.randomization)
     patches = dataclasses.replace(go1, robot=dataclasses.replace(
@@ -76,6 +79,7 @@ def test_unknown_impl_is_a_clear_error(go1):
         rollout_mjx.collect(go1, jax.random.key(0), 2, 5, impl="torch")
 
 
+@pytest.mark.slow  # Warp compiles slowly on a CPU
 def test_warp_on_several_devices_is_a_clear_error():
     """Warp runs one device per process; with two (forced host) devices it says so."""
     import os

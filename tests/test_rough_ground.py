@@ -58,7 +58,8 @@ def test_heights_differ_between_episodes_and_start_below_the_feet():
     np.testing.assert_array_equal(grids[0], terrain.height_grid(seeds[0], r))  # from the seed
 
 
-@pytest.mark.parametrize("name", ["go1", "g1"])
+@pytest.mark.parametrize("name", ["go1", pytest.param("g1", marks=pytest.mark.slow)])  # G1's pairs
+# on rough ground in `make test`: test_control_closed_loop.py::test_rough_ground_takes_the_floors_contact_pairs
 def test_a_bump_under_one_foot_lifts_that_foot_in_both_backends(name):
     """The same pose over flat ground (every foot clear by 5 mm) and over a bump of 2 cm under the
     first foot only: only that foot touches, in MuJoCo and in MJX (per-world heights)."""
@@ -103,7 +104,8 @@ def go1_rough():
     return _rough("go1")
 
 
-@pytest.mark.parametrize("backend", ["cpu", "mjx"])
+@pytest.mark.parametrize("backend", ["cpu", pytest.param("mjx", marks=pytest.mark.slow)])  # MJX on
+# a heightfield in `make test`: test_a_bump_under_one_foot_lifts_that_foot_in_both_backends[go1]
 def test_rough_records_satisfy_the_equation_of_motion_and_carry_the_robot(go1_rough, backend):
     sm, r = go1_rough
     rs = terrain.rough_model(sm, r)

@@ -73,7 +73,8 @@ def _bias_under(m, gravity, q, qd):
         m.opt.gravity[:] = saved
 
 
-@pytest.mark.parametrize("backend", ["cpu", "mjx"])
+@pytest.mark.parametrize("backend", ["cpu", pytest.param("mjx", marks=pytest.mark.slow)])  # MJX's
+# gravity per world in `make test`: test_record.py and test_control_closed_loop.py's tilt
 def test_sloped_records_were_simulated_under_the_gravity_they_carry(go1, go1_sloped, backend):
     """Each record's bias force is MuJoCo's under the record's own gravity (and not under the
     model's level one): the records carry the gravity the step was simulated with."""
@@ -233,6 +234,7 @@ def test_the_loss_reads_the_examples_gravity(name):
                      - float(level))) > 1e-4 * abs(float(level))
 
 
+@pytest.mark.slow  # the policy senses a slope: test_control_envs.py::test_a_randomised_slope_builds_up_and_the_policy_senses_it
 def test_a_policy_explorer_senses_each_worlds_slope(go1_sloped):
     """Walking data on slopes: the policy's observation holds each world's gravity, as its IMU
     would (both backends alike); a blind explorer acts otherwise on the tilted worlds."""
@@ -263,6 +265,7 @@ def test_a_policy_explorer_senses_each_worlds_slope(go1_sloped):
     np.testing.assert_allclose(m.records.ctrl[:, 0], ep.records.ctrl[:, 0], atol=1e-4)
 
 
+@pytest.mark.slow  # each model's slope context: the tests above
 def test_sloped_data_end_to_end_every_model_evaluated_as_it_can_be_told(tmp_path):
     """``stride train`` and ``stride eval`` on sloped data: a model trained with the gravity
     context is evaluated told each window's slope; one trained without it (a next-observation
