@@ -68,8 +68,8 @@ reproduce: setup
 report: setup
 	$(BIN)/python experiments/report.py
 
-## test: the suite, in two pytest processes balanced by tests/durations.json (10-14 minutes on
-## 2 cores; `$(BIN)/python -m pytest -q` runs it in one); the tests marked slow, longer
+## test: the suite, in two pytest processes balanced by tests/durations.json (~11 minutes on
+## 2 cores, 19 on this host's slow days; `$(BIN)/python -m pytest -q` runs it in one); the tests marked slow, longer
 ## cross-checks each with a faster counterpart here, are left to test-all
 test: setup
 	$(BIN)/python tests/run_parallel.py

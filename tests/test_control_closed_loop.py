@@ -911,11 +911,12 @@ def test_the_controller_senses_the_scenarios_gravity(go1):
     planning = planning_lib.make_planning(
         planning_lib.PlanningConfig(), env_cfg, go1, cl.mjx_step_fn(go1, mx),
         ppo_policy=lambda obs, key: jnp.zeros(nu).at[:3].set(obs[6:9]))
-    for g, seen in ((g_hat, [0, 0, -1]), (None, [np.sin(th), 0, -np.cos(th)])):
+    policy, dynamics = jax.jit(planning.policy), jax.jit(planning.dynamics)  # one MJX compile,
+    for g, seen in ((g_hat, [0, 0, -1]), (None, [np.sin(th), 0, -np.cos(th)])):  # not op by op
         q_aug = planning_lib.augment(q, jnp.zeros(3), gravity=g)
-        np.testing.assert_allclose(planning.policy(q_aug, qd)[:3],
+        np.testing.assert_allclose(policy(q_aug, qd)[:3],
                                    env_cfg.action_scale * np.asarray(seen), atol=1e-6)
-        nxt, _ = planning.dynamics(q_aug, qd, jnp.zeros(nu), jax.random.key(0))
+        nxt, _ = dynamics(q_aug, qd, jnp.zeros(nu), jax.random.key(0))
         np.testing.assert_array_equal(planning_lib.split(nxt, go1.mj.nq).gravity,
                                       planning_lib.split(q_aug, go1.mj.nq).gravity)  # held
     # the episode hands the scenario's gravity to the controller, or world down when told not to
