@@ -69,12 +69,12 @@ report: setup
 	$(BIN)/python experiments/report.py
 
 ## test: the suite, in two pytest processes balanced by tests/durations.json (~11 minutes on
-## 2 cores, 19 on this host's slow days; `$(BIN)/python -m pytest -q` runs it in one); the tests marked slow, longer
-## cross-checks each with a faster counterpart here, are left to test-all
+## 2 cores, 19 on this host's slow days; `$(BIN)/python -m pytest -q` runs it in one); the
+## tests marked slow, longer cross-checks each with a faster counterpart here, are left to test-all
 test: setup
 	$(BIN)/python tests/run_parallel.py
 
-## test-all: the suite and the tests marked slow (about 5 minutes more on 2 cores)
+## test-all: the suite and the tests marked slow (530 s more test time, measured in session 68)
 test-all: setup
 	$(BIN)/python tests/run_parallel.py --all
 

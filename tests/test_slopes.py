@@ -74,7 +74,7 @@ def _bias_under(m, gravity, q, qd):
 
 
 @pytest.mark.parametrize("backend", ["cpu", pytest.param("mjx", marks=pytest.mark.slow)])  # MJX's
-# gravity per world in `make test`: test_record.py and test_control_closed_loop.py's tilt
+# tilted gravity in `make test`: test_control_closed_loop.py::test_the_controller_senses_the_scenarios_gravity
 def test_sloped_records_were_simulated_under_the_gravity_they_carry(go1, go1_sloped, backend):
     """Each record's bias force is MuJoCo's under the record's own gravity (and not under the
     model's level one): the records carry the gravity the step was simulated with."""
