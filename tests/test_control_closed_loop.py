@@ -993,6 +993,30 @@ def test_the_velocity_integral_moves_the_planners_command_against_a_steady_error
     assert float(jnp.abs(integral).max()) == 0.0 and float(since) == pytest.approx(dt)
     with pytest.raises(ValueError, match="velocity_integral=-1"):
         planning_lib.PlanningConfig(velocity_integral=-1.0)
+    with pytest.raises(ValueError, match="velocity_integral_band=-0.1"):
+        planning_lib.PlanningConfig(velocity_integral_band=-0.1)
+
+
+def test_the_velocity_integrals_band_leaves_a_transient_out():
+    """``velocity_integral_band``: an axis's error beyond the band (an acceleration from rest,
+    a push) leaves that axis's integral as it is, one within it integrates as without a band."""
+    planning = planning_lib.Planning(*[None] * 9)._replace(
+        velocity_integral=1.0, velocity_integral_limit=0.2, velocity_integral_settle_s=0.0,
+        velocity_integral_band=0.1)
+    dt, command = 0.02, jnp.array([1.0, 0.0, 0.0])
+    integral, since = jnp.zeros(2), jnp.zeros(())
+    for v_x in (0.3, 0.5, 0.7, 0.85):  # accelerating: 0.7 .. 0.15 m/s below the command
+        integral, since = planning_lib.integrate_velocity_error(
+            planning, integral, since, command, command, jnp.array([v_x, 0.05, 0.0]), dt)
+    # forward: nothing entered; lateral: 0.05 m/s, within the band, every period
+    np.testing.assert_allclose(integral, [0.0, 4 * 0.05 * dt], atol=1e-7)
+    integral, since = planning_lib.integrate_velocity_error(
+        planning, integral, since, command, command, jnp.array([0.95, 0.05, 0.0]), dt)
+    np.testing.assert_allclose(integral, [-0.05 * dt, 5 * 0.05 * dt], atol=1e-7)
+    unbanded = planning._replace(velocity_integral_band=0.0)
+    grown, _ = planning_lib.integrate_velocity_error(
+        unbanded, jnp.zeros(2), since, command, command, jnp.array([0.3, 0.0, 0.0]), dt)
+    np.testing.assert_allclose(grown, [-0.7 * dt, 0.0], atol=1e-7)
 
 
 

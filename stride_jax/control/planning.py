@@ -80,6 +80,14 @@ class PlanningConfig:
       velocity_integral_limit: bound of the command shift (m/s).
       velocity_integral_settle_s: how long after a command change the integral waits (s; the
         closed loop's scoring settles as long by default).
+      velocity_integral_band: conditional integration (m/s; 0: off): a period's error enters
+        the integral only where it is within this band (forward and lateral each), so that a
+        transient -- the start-up's acceleration, a push, a slope the robot cannot climb at
+        the commanded speed -- does not wind the shift up. Why: on G1's 15 degree tilt the
+        integral (band off) wound +0.13 m/s up in the first second's acceleration, the planner
+        and the policy it hands to then walked 1.0-1.3 m/s where they walk 0.85 without, and
+        every episode of every kind fell (24 of 24; 2 of 24 without:
+        ``results/closed_loop_g1_gpu/README.md``, session 69).
       model_gravity: tell the planner's model the sensed gravity direction (``Aug.gravity``)
         where it takes one: the Lagrangian models turn their potential to it
         (:func:`stride_jax.dynamics.models.takes_gravity`), so that a model trained on level
@@ -172,6 +180,7 @@ class PlanningConfig:
     velocity_integral: float = 0.0
     velocity_integral_limit: float = 0.2
     velocity_integral_settle_s: float = 0.5
+    velocity_integral_band: float = 0.0
     model_gravity: bool = False
     family_std: float = 0.3
     family_cost_stop: float = 0.0
@@ -195,10 +204,11 @@ class PlanningConfig:
             raise ValueError(f"family_cost_stop={self.family_cost_stop} must be >= 0 and "
                              f"stop_speed={self.stop_speed} > 0")
         if min(self.velocity_integral, self.velocity_integral_limit,
-               self.velocity_integral_settle_s) < 0:
+               self.velocity_integral_settle_s, self.velocity_integral_band) < 0:
             raise ValueError(f"velocity_integral={self.velocity_integral}, "
-                             f"velocity_integral_limit={self.velocity_integral_limit} and "
-                             f"velocity_integral_settle_s={self.velocity_integral_settle_s} "
+                             f"velocity_integral_limit={self.velocity_integral_limit}, "
+                             f"velocity_integral_settle_s={self.velocity_integral_settle_s} and "
+                             f"velocity_integral_band={self.velocity_integral_band} "
                              f"must be >= 0")
         if self.alarm_hold_s < 0:
             raise ValueError(f"alarm_hold_s={self.alarm_hold_s} must be >= 0")
@@ -242,6 +252,7 @@ class Planning(NamedTuple):
     velocity_integral: float = 0.0  # integral action on the velocity error (1/s; 0: off)
     velocity_integral_limit: float = 0.2  # bound of the command shift (m/s)
     velocity_integral_settle_s: float = 0.5  # the integral starts this long after a change (s)
+    velocity_integral_band: float = 0.0  # errors beyond it (m/s) do not enter it (0: all do)
 
 
 class Aug(NamedTuple):
@@ -297,12 +308,16 @@ def integrate_velocity_error(planning: Planning, integral, since, command, prev_
     since')`` from this period's ``command`` (against the last one's: a change resets both),
     the time ``since`` the last change and the base's velocity ``v_base`` (base frame) after
     the period; ``integral`` is the forward and lateral velocity error (m/s) integrated over
-    time (s), held where the shift it asks would pass the limit."""
+    time (s), held where the shift it asks would pass the limit; with a band, an axis's error
+    beyond it leaves that axis's integral as it is (conditional integration)."""
     changed = jnp.any(command != prev_command)
     integral = jnp.where(changed, 0.0, integral)
     since = jnp.where(changed, 0.0, since) + dt
-    error = (v_base[:2] - command[:2]) * dt
-    grown = integral + jnp.where(since > planning.velocity_integral_settle_s, error, 0.0)
+    error = v_base[:2] - command[:2]
+    counts = since > planning.velocity_integral_settle_s
+    if planning.velocity_integral_band > 0:
+        counts = counts & (jnp.abs(error) <= planning.velocity_integral_band)
+    grown = integral + jnp.where(counts, error * dt, 0.0)
     bound = planning.velocity_integral_limit / max(planning.velocity_integral, 1e-9)
     return jnp.clip(grown, -bound, bound), since
 
@@ -491,7 +506,7 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
                     int(round(cfg.alarm_hold_s / sm.robot.ctrl_dt)) if alarm else 0, distrust,
                     int(round(cfg.trust_hold_s / sm.robot.ctrl_dt)) if distrust else 0,
                     family_prior, cfg.velocity_integral, cfg.velocity_integral_limit,
-                    cfg.velocity_integral_settle_s)
+                    cfg.velocity_integral_settle_s, cfg.velocity_integral_band)
 
 
 def mppi_config(mppi_cfg: mppi.MPPIConfig, cfg: PlanningConfig,
