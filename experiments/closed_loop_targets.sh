@@ -63,8 +63,16 @@ else  # G1: closer to the policy (the settings that kept G1 planners up before,
            # the command changes 0.311 -> 0.296, nil at walking speeds; the runs before it ran
            # without: a later --planning.family-cost-stop 0 among the flags reproduces them)
            --planning.family-cost-stop 0.3)
+           # No velocity integral (Go1's since session 67): on G1 it gains on soft ground, rough
+           # ground, low friction and the command changes but makes every kind fall on the 15
+           # degree tilt (24 of 24 episodes) and loses on the push (results/closed_loop_g1_gpu/
+           # README.md, "Session 69"); --planning.velocity-integral 1.0 among the flags runs it.
 fi
 mkdir -p "$out"
 timeout "$limit" python -m stride_jax.jobs.closed_loop "${common[@]}" --models "${models%,}" \
   --scenarios "$scen" --out "$out" "$@" 2>&1 | grep -v "import warp\|import mujoco_warp" | tee -a "$out/run.log"
 tar -czf "$out.tgz" -C "$(dirname "$out")" "$(basename "$out")"
+# On a lent machine ($OUT set by the device tool) the tgz goes there at once: a later step of
+# the same call that the call's own limit kills then loses only its own part (session 69 lost
+# two finished parts, copied only at the call's end).
+if [ -n "${OUT:-}" ] && [ -d "$OUT" ]; then cp "$out.tgz" "$OUT/"; fi

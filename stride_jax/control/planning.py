@@ -82,12 +82,15 @@ class PlanningConfig:
         closed loop's scoring settles as long by default).
       velocity_integral_band: conditional integration (m/s; 0: off): a period's error enters
         the integral only where it is within this band (forward and lateral each), so that a
-        transient -- the start-up's acceleration, a push, a slope the robot cannot climb at
-        the commanded speed -- does not wind the shift up. Why: on G1's 15 degree tilt the
-        integral (band off) wound +0.13 m/s up in the first second's acceleration, the planner
-        and the policy it hands to then walked 1.0-1.3 m/s where they walk 0.85 without, and
-        every episode of every kind fell (24 of 24; 2 of 24 without:
-        ``results/closed_loop_g1_gpu/README.md``, session 69).
+        transient -- the start-up's acceleration, a push -- does not wind the shift up (the
+        textbook anti-windup). It does not make the integral safe where the robot cannot walk
+        the command: on G1's 15 degree tilt the integral (band off) wound +0.13 m/s up in the
+        first second's acceleration, the planner and the policy it hands to walked 1.0-1.3 m/s
+        where they walk 0.85 without, and every episode of every kind fell (24 of 24; 2 of 24
+        without); with a 0.1 m/s band it wound up later, once the robot came within the band,
+        and the episode still fell (one ONN episode on CPU; ``results/closed_loop_g1_gpu/
+        README.md``, session 69). An integral asks for the command; what the robot can do on
+        the ground it stands on is another matter, which it does not know.
       model_gravity: tell the planner's model the sensed gravity direction (``Aug.gravity``)
         where it takes one: the Lagrangian models turn their potential to it
         (:func:`stride_jax.dynamics.models.takes_gravity`), so that a model trained on level
