@@ -126,8 +126,11 @@ def test_feature_space_lagrangian_terms_equal_the_reference(spec, shared):
         if spec.floating_base:
             qs = qs.at[:, 3:7].set(qs[:, 3:7] / jnp.linalg.norm(qs[:, 3:7], axis=1, keepdims=True))
         vs = 2.0 * jax.random.normal(jax.random.key(2), (8, spec.nv), jnp.float64)
-        fast = jax.vmap(lambda q, v: lagrangian.lnn_terms(params, spec, q, v, cfg))(qs, vs)
-        ref = jax.vmap(lambda q, v: lagrangian.lnn_terms_reference(params, spec, q, v, cfg))(qs, vs)
+        # one program each (op by op, go1's two-net variant took 16 s on a 2-core CPU)
+        fast = jax.jit(jax.vmap(lambda q, v: lagrangian.lnn_terms(params, spec, q, v, cfg)))(
+            qs, vs)
+        ref = jax.jit(jax.vmap(lambda q, v: lagrangian.lnn_terms_reference(params, spec, q, v,
+                                                                           cfg)))(qs, vs)
     for a, b in zip(fast, ref):
         assert np.abs(np.asarray(b)).max() > 1e-3  # not trivially zero
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9)

@@ -61,20 +61,27 @@ def test_fixed_base_terms_are_the_textbook_euler_lagrange_terms():
 def test_inverse_and_forward_dynamics_invert_each_other(spec):
     model, params = _model(spec)
     q, qd, qdd = _state(spec, 1)
-    tau = dyn.inverse_dynamics(model, params, q, qd, qdd)
-    prior = jax.jit(lambda p, q, qd, tau: dyn.forward_dynamics(model, p, q, qd, tau,
-                                                               residual=False))
-    np.testing.assert_allclose(prior(params, q, qd, tau), qdd, rtol=1e-3, atol=1e-3)
+
+    @jax.jit  # one program (op by op the floating base took 20 s on a 2-core CPU)
+    def check(params, q, qd, qdd):
+        tau = dyn.inverse_dynamics(model, params, q, qd, qdd)
+        return dict(tau=tau,
+                    prior=dyn.forward_dynamics(model, params, q, qd, tau, residual=False),
+                    bias=dyn.bias_force(model, params, q, qd),
+                    split=dyn.coriolis(model, params, q, qd) + dyn.gravity(model, params, q),
+                    at_rest=dyn.coriolis(model, params, q, jnp.zeros(spec.nv)),
+                    forward=dyn.forward_dynamics(model, params, q, qd, tau),
+                    terms=model.terms(params, q, qd, tau, jax.random.key(0)))
+
+    out = check(params, q, qd, qdd)
+    np.testing.assert_allclose(out["prior"], qdd, rtol=1e-3, atol=1e-3)
     # The split the model predicts: bias = C qd + g; C qd vanishes at rest.
-    np.testing.assert_allclose(dyn.bias_force(model, params, q, qd),
-                               dyn.coriolis(model, params, q, qd) + dyn.gravity(model, params, q),
-                               rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(dyn.coriolis(model, params, q, jnp.zeros(spec.nv)), 0.0,
-                               atol=1e-6)
+    np.testing.assert_allclose(out["bias"], out["split"], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(out["at_rest"], 0.0, atol=1e-6)
     # With the residual: the model's own acceleration (the MLP residual's force added).
-    terms = model.terms(params, q, qd, tau, jax.random.key(0))
-    np.testing.assert_allclose(dyn.forward_dynamics(model, params, q, qd, tau),
-                               terms["prior"] + terms["residual"], rtol=1e-4, atol=1e-4)
+    terms = out["terms"]
+    np.testing.assert_allclose(out["forward"], terms["prior"] + terms["residual"],
+                               rtol=1e-4, atol=1e-4)
     assert float(jnp.abs(terms["residual"]).max()) > 1e-3
 
 
