@@ -83,7 +83,7 @@ class PlanningConfig:
       velocity_integral_band: conditional integration (m/s; 0: off): a period's error enters
         the integral only where it is within this band (forward and lateral each), so that a
         transient -- the start-up's acceleration, a push -- does not wind the shift up (the
-        textbook anti-windup). It does not make the integral safe where the robot cannot walk
+        textbook anti-windup; not measured in closed loop on the push). It does not make the integral safe where the robot cannot walk
         the command: on G1's 15 degree tilt the integral (band off) wound +0.13 m/s up in the
         first second's acceleration, the planner and the policy it hands to walked 1.0-1.3 m/s
         where they walk 0.85 without, and every episode of every kind fell (24 of 24; 2 of 24
