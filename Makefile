@@ -68,8 +68,8 @@ reproduce: setup
 report: setup
 	$(BIN)/python experiments/report.py
 
-## test: the suite, in two pytest processes balanced by tests/durations.json (~11 minutes on
-## 2 cores, 19 on this host's slow days; `$(BIN)/python -m pytest -q` runs it in one); the
+## test: the suite, in two pytest processes balanced by tests/durations.json (17-19 minutes in
+## clean-clone CI on this 2-core host, sessions 68-69; `$(BIN)/python -m pytest -q` runs it in one); the
 ## tests marked slow, longer cross-checks each with a faster counterpart here, are left to test-all
 test: setup
 	$(BIN)/python tests/run_parallel.py
