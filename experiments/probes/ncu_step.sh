@@ -19,7 +19,8 @@ for c in "${list[@]}"; do
   python3 experiments/probes/fused_step_check.py --robot "$robot" --hidden "$hidden" \
     --samples "$samples" --kernels "$kernel" --horizon 30 --repeats 10 2>&1 \
     | grep -v -i "warn\|warp" | tee -a "$out/ncu_step.log"
-  timeout 240 ncu --clock-control none -k regex:stride_fused_step -c 2 \
+  # application-only: ncu following the compiler processes XLA starts crashes it (session 71)
+  timeout 240 ncu --target-processes application-only --clock-control none -k regex:stride_fused_step -c 2 \
     --section SpeedOfLight --section ComputeWorkloadAnalysis --section MemoryWorkloadAnalysis \
     --section Occupancy --section LaunchStats --section WarpStateStats --csv --page details \
     --log-file "$out/$name.csv" \

@@ -5,11 +5,11 @@
 # with its duration and its compute and memory throughput; ncu_summary.py sums them per step.
 # Usage (repository root, on a GPU machine whose runtime lets ncu read the counters):
 #   bash experiments/probes/ncu_train.sh OUT ["go1 256 1024;g1 256 1024;..."]
-# Session 20's runs crashed (SIGSEGV) under ncu's default kernel replay even with the settings
-# below. Not yet tried, settable here: NCU_REPLAY=application (ncu reruns the whole process once
-# per metric pass instead of saving and restoring device memory around each kernel: the steps are
-# deterministic, so the passes see the same kernels) and XLA's plain CUDA allocator
-# (NCU_ALLOCATOR=platform: every buffer its own cudaMalloc, no pool for the replay to restore).
+# Sessions 20-70's runs crashed (SIGSEGV) under kernel and application replay alike, with the
+# settings below and XLA's plain allocator: it was ncu itself, following the child processes XLA
+# starts while compiling (session 71, results/throughput/README.md); --target-processes
+# application-only below keeps it on the Python process. Settable: NCU_REPLAY=application (the
+# whole process rerun once per metric pass) and NCU_ALLOCATOR=platform (XLA's plain cudaMalloc).
 set -uo pipefail
 # ncu replays kernels in the process: XLA must not take the GPU's memory up front, and the
 # profiled steps launch their kernels one by one (no CUDA graphs), else the process segfaults
@@ -25,7 +25,7 @@ for c in "${list[@]}"; do
   echo "== $c" | tee -a "$out/ncu_train.log"
   python3 experiments/probes/train_step_floor.py --robot "$robot" --hidden "$hidden" \
     --batch "$batch" --out "$out" 2>&1 | grep -v -i "warn" | tail -2 | tee -a "$out/ncu_train.log"
-  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_enable_command_buffer=" timeout 300 ncu --clock-control none --profile-from-start off --replay-mode "$replay" \
+  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_enable_command_buffer=" timeout 300 ncu --target-processes application-only --clock-control none --profile-from-start off --replay-mode "$replay" \
     --metrics gpu__time_duration.sum,sm__throughput.avg.pct_of_peak_sustained_elapsed,gpu__compute_memory_throughput.avg.pct_of_peak_sustained_elapsed,launch__grid_size \
     --csv --page raw --log-file "$out/$name.csv" \
     python3 experiments/probes/train_step_floor.py --robot "$robot" --hidden "$hidden" \

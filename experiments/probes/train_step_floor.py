@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import ctypes.util
 import glob
 import json
 import os
@@ -103,12 +104,16 @@ def _cudart():
     """``libcudart`` of the CUDA wheels JAX uses (for cudaProfilerStart/Stop), or None."""
     try:
         import nvidia  # the pip CUDA packages' namespace
+        roots = list(nvidia.__path__)
     except ImportError:
-        return None
-    for root in nvidia.__path__:
+        roots = []
+    for root in roots:
         for path in glob.glob(os.path.join(root, "cuda_runtime", "lib", "libcudart.so*")):
             return ctypes.CDLL(path)
-    return None
+    # an image whose JAX links the system CUDA (the lent machines'): the toolkit's runtime
+    name = ctypes.util.find_library("cudart")
+    paths = ([name] if name else []) + sorted(glob.glob("/usr/local/cuda/lib64/libcudart.so*"))
+    return ctypes.CDLL(paths[0]) if paths else None
 
 
 def main():
