@@ -24,29 +24,34 @@ import stride_jax
 from stride_jax import config
 
 
-def _commands():
-    """name -> (config class, presets, help, run(cfg, command))."""
-    from stride_jax.jobs import (bench_mppi, bench_sim, closed_loop, data, eval as eval_job,
-                                 fit_reward_value, ppo, show, train)
-    return {
-        "data": (data.DataConfig, data.PRESETS, "generate a dataset", data.run),
-        "train": (train.TrainConfig, train.PRESETS, "train a dynamics model", train.run),
-        "eval": (eval_job.EvalConfig, eval_job.PRESETS, "Table I metrics of trained runs",
-                 eval_job.run),
-        "bench-sim": (bench_sim.BenchConfig, bench_sim.PRESETS, "simulation throughput",
-                      bench_sim.run),
-        "bench-mppi": (bench_mppi.BenchConfig, bench_mppi.PRESETS, "MPPI step latency",
-                       bench_mppi.run),
-        "ppo": (ppo.PPOConfig, ppo.PRESETS, "one PPO chunk of a warm-start policy (resumes)",
-                lambda cfg, command: ppo.run(cfg)),
-        "fit-reward-value": (fit_reward_value.FitConfig, fit_reward_value.FIT_PRESETS,
-                             "learned reward and value models from a PPO run",
-                             fit_reward_value.fit_from_policy),
-        "closed-loop": (closed_loop.ClosedLoopConfig, closed_loop.PRESETS,
-                        "closed-loop MPPI in MJX per model and scenario", closed_loop.run),
-        "show": (show.ShowConfig, show.PRESETS,
-                 "what trained pendulum models predict near the upright (a figure)", show.run),
-    }
+# name -> (job module, config class, presets, help, run): a job's module is imported only when
+# its subcommand runs or shows its flags (`stride --help` imported all of them: 8 s on 2 cores)
+COMMANDS = {
+    "data": ("data", "DataConfig", "PRESETS", "generate a dataset", "run"),
+    "train": ("train", "TrainConfig", "PRESETS", "train a dynamics model", "run"),
+    "eval": ("eval", "EvalConfig", "PRESETS", "Table I metrics of trained runs", "run"),
+    "bench-sim": ("bench_sim", "BenchConfig", "PRESETS", "simulation throughput", "run"),
+    "bench-mppi": ("bench_mppi", "BenchConfig", "PRESETS", "MPPI step latency", "run"),
+    "ppo": ("ppo", "PPOConfig", "PRESETS", "one PPO chunk of a warm-start policy (resumes)",
+            "run"),
+    "fit-reward-value": ("fit_reward_value", "FitConfig", "FIT_PRESETS",
+                         "learned reward and value models from a PPO run", "fit_from_policy"),
+    "closed-loop": ("closed_loop", "ClosedLoopConfig", "PRESETS",
+                    "closed-loop MPPI in MJX per model and scenario", "run"),
+    "show": ("show", "ShowConfig", "PRESETS",
+             "what trained pendulum models predict near the upright (a figure)", "run"),
+}
+
+
+def _job(name: str):
+    """(config class, presets, run(cfg, command)) of a subcommand, its module imported now."""
+    import importlib
+    module, cls, presets, _, run = COMMANDS[name]
+    job = importlib.import_module(f"stride_jax.jobs.{module}")
+    fn = getattr(job, run)
+    if name == "ppo":  # one resumable chunk; the command line is in its run folder already
+        return job.PPOConfig, job.PRESETS, lambda cfg, command: fn(cfg)
+    return getattr(job, cls), getattr(job, presets), fn
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -59,19 +64,23 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="stride", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
-    commands = _commands()
-    for name, (cls, presets, help_, _) in commands.items():
+    # the subcommand named first gets its flags (its job imported); the others only their help
+    chosen = next((a for a in args_in if not a.startswith("-")), None)
+    job = _job(chosen) if chosen in COMMANDS else None
+    for name, (_, _, _, help_, _) in COMMANDS.items():
         p = sub.add_parser(name, help=help_)
-        p.add_argument("--preset", default="default", help=f"one of {', '.join(presets)}")
-        config.add_flags(p, cls)
-    args = parser.parse_args(argv)
-    cls, presets, _, run = commands[args.command]
+        if name == chosen:
+            cls, presets, _ = job
+            p.add_argument("--preset", default="default", help=f"one of {', '.join(presets)}")
+            config.add_flags(p, cls)
+    args = parser.parse_args(args_in)
+    cls, presets, run = job
     from stride_jax.robots import RobotError
     from stride_jax.sim.dataset import DatasetError
     from stride_jax.train.loop import TrainingError
     try:
         cfg = config.from_flags(cls, args, config.preset(cls, presets, args.preset))
-        run(cfg, "stride " + shlex.join(sys.argv[1:] if argv is None else argv))
+        run(cfg, "stride " + shlex.join(args_in))
     except (RobotError, DatasetError, TrainingError, ValueError, FileNotFoundError) as e:
         raise SystemExit(f"stride {args.command}: error: {e}") from None
 

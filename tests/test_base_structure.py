@@ -178,7 +178,8 @@ def _robot():
     return act, (q, qd, ctrl, jax.random.split(jax.random.key(2), n))
 
 
-@pytest.mark.parametrize("kernel", ["pallas", "pallas-step"])
+@pytest.mark.parametrize("kernel", [pytest.param("pallas", marks=pytest.mark.slow), "pallas-step"])
+# (pallas: the per-pass kernels the pallas-step case falls back to; against XLA in test_fused.py)
 def test_fused_kernels_take_xla_maths_for_the_generic_lagrangian(kernel, kernels):
     """The whole-step kernel's layout is the structured one (L's first rows sqrt(m) I, an
     m g z term): without the structure a ``pallas-step`` model takes the per-pass kernels

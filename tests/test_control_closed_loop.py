@@ -16,6 +16,8 @@ from stride_jax.control import planning as planning_lib
 from stride_jax.jobs import closed_loop as cl
 
 
+@pytest.mark.slow  # planning through MJX: test_mppi.py::test_bench_oracle_row_plans_through_mjx; the
+# planner's gait: test_gait_parameters_are_held_per_rollout; episodes' rows and traces: the job's tests below
 def test_oracle_closed_loop_runs_jitted_and_deterministically(go1):
     cfg = dataclasses.replace(cl.PRESETS["tiny"], planning=planning_lib.PlanningConfig(
         gait=True, noise_std=0.05))
@@ -462,6 +464,7 @@ def test_a_tilting_ground_builds_the_slope_up_and_a_still_one_is_the_models_own_
     assert np.asarray(tilted.v_base)[-1, 0] < np.asarray(level.v_base)[-1, 0] - 0.05
 
 
+@pytest.mark.slow  # progress lines, rows, skip on rerun: test_a_chunked_run_killed_mid_episode_resumes_to_the_same_rows
 def test_a_run_logs_its_progress_writes_its_row_and_resumes(tmp_path):
     """The closed-loop job end to end at tiny size: progress lines while an episode runs (a
     planner through MJX runs minutes per episode), the row in closed_loop.json, and a second

@@ -18,6 +18,7 @@ def _rows(result: dict) -> list[dict]:
     return [{k: v for k, v in r.items() if k not in TIMING} for r in result["cases"]]
 
 
+@pytest.mark.slow  # the benchmark end to end and resumed: test_gap_bench_independent.py's tiny preset
 def test_pool_gives_the_serial_rows_and_a_rerun_skips_rows_on_disk(tmp_path):
     serial = bench.run(CFG, tmp_path / "serial", log=lambda s: None)
     pooled = bench.run(CFG, tmp_path / "pool", log=lambda s: None, workers=2)

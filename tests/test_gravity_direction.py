@@ -69,9 +69,11 @@ def _lnn(shared=False, structure=True, potential="net"):
                                 shared=shared, base_structure=structure, potential=potential)
 
 
-PRIORS = pytest.mark.parametrize("shared,potential", [(False, "net"), (True, "net"),
-                                                      (False, "com")],
-                                 ids=["two-nets", "shared", "com"])
+# (one network for L and V turns its potential as two do: the shared case runs in `make test-all`)
+PRIORS = pytest.mark.parametrize("shared,potential", [
+    pytest.param(False, "net", id="two-nets"),
+    pytest.param(True, "net", id="shared", marks=pytest.mark.slow),
+    pytest.param(False, "com", id="com")])
 
 
 def _states(n, dtype):

@@ -163,7 +163,8 @@ def _one_period(model):
     return params, dict(q=q, qd=qd, ctrl=ctrl, tau=jnp.ones(7), qdd=jnp.ones(7)), q1, qd1
 
 
-@pytest.mark.parametrize("name", ["stride", "delan"])
+@pytest.mark.parametrize("name", ["stride", pytest.param("delan", marks=pytest.mark.slow)])
+# (DeLaN's step is STRIDE's structured step without the residual)
 def test_transition_loss_is_the_models_own_step_against_the_logged_next_state(name):
     """``transition_weight`` adds, per example, the squared error of the model's one-period step
     (central residual, through both substeps) against ``q_next, qd_next`` in the one-step
@@ -190,7 +191,8 @@ def test_transition_loss_is_the_models_own_step_against_the_logged_next_state(na
         dataclasses.replace(CFG, transition_weight=-1.0)
 
 
-@pytest.mark.parametrize("name", ["stride", "delan", "onn"])
+@pytest.mark.parametrize("name", ["stride", pytest.param("delan", marks=pytest.mark.slow), "onn"])
+# (DeLaN's one-period losses are STRIDE's structured ones)
 def test_base_weight_weighs_the_floating_bases_dofs_in_the_one_period_losses(name):
     """``base_weight``: a floating base's six dofs (pose change and velocity) count this much in
     the one-period losses (the structured models' transition term, ONN's whole loss), each joint

@@ -84,6 +84,7 @@ def test_mjx_forces_and_flags_match_mujoco(name):
                                atol=2e-3 * np.abs(cpu_rec.qfrc_constraint).max())
 
 
+@pytest.mark.slow  # the backends' trajectories and forces: test_mjx_forces_and_flags_match_mujoco
 def test_backends_agree_on_a_short_trajectory_with_the_robots_own_solver(go1):
     """With the robot's few-iteration solver both backends still follow the same trajectory."""
     rng = np.random.default_rng(1)
