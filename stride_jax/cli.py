@@ -48,10 +48,10 @@ def _job(name: str):
     import importlib
     module, cls, presets, _, run = COMMANDS[name]
     job = importlib.import_module(f"stride_jax.jobs.{module}")
-    fn = getattr(job, run)
-    if name == "ppo":  # one resumable chunk; the command line is in its run folder already
-        return job.PPOConfig, job.PRESETS, lambda cfg, command: fn(cfg)
-    return getattr(job, cls), getattr(job, presets), fn
+    cls, presets, fn = getattr(job, cls), getattr(job, presets), getattr(job, run)
+    if name == "ppo":  # ppo.run(cfg) takes no command line
+        return cls, presets, lambda cfg, command: fn(cfg)
+    return cls, presets, fn
 
 
 def main(argv: list[str] | None = None) -> None:

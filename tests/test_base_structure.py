@@ -249,6 +249,8 @@ def train_on_a_known_prior(folder, name: str, cfg: stride.StructuredConfig):
     return q, qd
 
 
+@pytest.mark.slow  # the default model's training and round trip: test_train.py, test_checkpoint.py;
+# the switch read from a run folder: test_default_keeps_saved_runs_as_they_were
 def test_a_generic_lagrangian_trains_saves_and_loads(tmp_path):
     """A tiny training run of DeLaN without the structure: the loss falls, the run records the
     switch and loads as the same model; eval gives it a row of its own."""

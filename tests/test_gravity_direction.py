@@ -254,7 +254,7 @@ def test_the_model_interface_takes_a_gravity_direction_where_it_can():
         onn.step(p, *[s[0] for s in states], down=jnp.array([0.0, 0.0, -1.0]))
 
 
-@pytest.mark.slow  # a Lagrangian variant trains, saves and loads: test_base_structure.py
+@pytest.mark.slow  # the default model trains, saves and loads: test_train.py, test_checkpoint.py
 def test_a_com_potential_trains_saves_and_loads(tmp_path):
     """A tiny training run of STRIDE with the centre-of-mass potential on accelerations of a
     known prior: the loss falls, the run records the choice and loads as the same model (told a
