@@ -893,6 +893,16 @@ def test_the_policy_alone_reads_its_run_and_governs_the_commands(go1, monkeypatc
     assert scenarios.governed(sc, env_cfg.commands.bounds()).commands[0][1] == hi[0]
 
 
+def _sensing_planning(go1):
+    """Planning through MJX whose policy acts its observed gravity: the first three actions are
+    the observation's gravity entries."""
+    nu = go1.info.nu
+    return planning_lib.make_planning(
+        planning_lib.PlanningConfig(), envs.config("go1"), go1,
+        cl.mjx_step_fn(go1, mjx.put_model(go1.mj)),
+        ppo_policy=lambda obs, key: jnp.zeros(nu).at[:3].set(obs[6:9]))
+
+
 def test_the_controller_senses_the_scenarios_gravity(go1):
     """A slope emulated by tilting gravity under a level floor: an IMU on a real slope reads the
     slope, so the policy and the planner observe the simulation's gravity direction (before
@@ -910,10 +920,7 @@ def test_the_controller_senses_the_scenarios_gravity(go1):
     # the planning's policy and cost see the gravity carried in the planner's state
     nu = go1.info.nu
     env_cfg = envs.config("go1")
-    mx = mjx.put_model(go1.mj)
-    planning = planning_lib.make_planning(
-        planning_lib.PlanningConfig(), env_cfg, go1, cl.mjx_step_fn(go1, mx),
-        ppo_policy=lambda obs, key: jnp.zeros(nu).at[:3].set(obs[6:9]))
+    planning = _sensing_planning(go1)
     policy, dynamics = jax.jit(planning.policy), jax.jit(planning.dynamics)  # one MJX compile,
     for g, seen in ((g_hat, [0, 0, -1]), (None, [np.sin(th), 0, -np.cos(th)])):  # not op by op
         q_aug = planning_lib.augment(q, jnp.zeros(3), gravity=g)
@@ -934,26 +941,6 @@ def test_the_controller_senses_the_scenarios_gravity(go1):
     np.testing.assert_array_equal(off.q_aug[:, nq + planning_lib.N_AUG - 3:],
                                   np.tile([0, 0, -1], (3, 1)))
     assert not np.allclose(on.u, off.u)
-    act = jax.device_get(cl.run_episode(w.sm, w.mx, w.slots, planning, None, 3, w.starts,
-                                        w.values, jax.random.key(0), tilt=w.tilt)).action
-    np.testing.assert_allclose(act, on.u, atol=1e-6)  # the closed loop's episode: the same
-    # a recorded step's next state carries the gravity sensed at its time (a tilting ground)
-    tilt = dataclasses.replace(cl.SCENARIOS["tilt"], seconds=3 * go1.robot.ctrl_dt)
-    wt = cl.scenario_world(go1, tilt)
-    grav = lambda qa: planning_lib.split(qa, nq).gravity
-
-
-    def step(state, q_aug, qd):  # a one-step "planner": the policy's action
-        u, z = planning.policy(q_aug, qd), jnp.zeros(1)
-        return u, state, mppi.Info(z, z, z[0], u[None], jnp.zeros((), jnp.int32), u[None, None],
-                                   z, jnp.ones(1, jnp.int32), jnp.zeros((), bool))
-
-    acting = mppi.Planner(lambda key, plan=None: mppi.MPPIState(jnp.zeros((1, nu)), key), step)
-    _, (now, nxt) = jax.device_get(cl.run_episode(
-        wt.sm, wt.mx, wt.slots, planning, acting, 3, wt.starts, wt.values, jax.random.key(0),
-        tilt=wt.tilt, record=lambda qa, qd, u, info, qa2, *_: (grav(qa), grav(qa2))))
-    assert not np.allclose(now[1], now[0])  # the ground tilts step by step
-    np.testing.assert_allclose(nxt[:-1], now[1:], atol=1e-7)
     # flat ground: the sensed gravity is world down to the bit, so the controller's state is
     # the one it had before sensing (both episodes' code paths meet at augment)
     flat = cl.scenario_world(go1, dataclasses.replace(cl.SCENARIOS["walk"],
@@ -969,6 +956,38 @@ def test_the_controller_senses_the_scenarios_gravity(go1):
     assert cl._same_settings(cl._settings(old, "stride"),
                              cl._settings({"config": {"robot": "go1", "sense_gravity": False}},
                                           "stride"))
+
+
+@pytest.mark.slow  # the policy's episode senses the slope: test_the_controller_senses_the_scenarios_gravity
+def test_the_closed_loops_episode_senses_as_the_policy_episode_does(go1):
+    """The closed loop's episode (no planner: the policy acting) gives the policy episode's actions
+    on a sensed slope, and a recorded step's next state carries the gravity sensed at its time."""
+    from stride_jax.control import episode as episode_lib
+    planning = _sensing_planning(go1)
+    nq, nu = go1.mj.nq, go1.info.nu
+    slope = dataclasses.replace(cl.SCENARIOS["slope"], seconds=3 * go1.robot.ctrl_dt,
+                                slope_deg=15.0)
+    w = cl.scenario_world(go1, slope)
+    on = jax.device_get(episode_lib.policy_episode(w, planning, True))
+    act = jax.device_get(cl.run_episode(w.sm, w.mx, w.slots, planning, None, 3, w.starts,
+                                        w.values, jax.random.key(0), tilt=w.tilt)).action
+    np.testing.assert_allclose(act, on.u, atol=1e-6)  # the closed loop's episode: the same
+    # a recorded step's next state carries the gravity sensed at its time (a tilting ground)
+    tilt = dataclasses.replace(cl.SCENARIOS["tilt"], seconds=3 * go1.robot.ctrl_dt)
+    wt = cl.scenario_world(go1, tilt)
+    grav = lambda qa: planning_lib.split(qa, nq).gravity
+
+    def step(state, q_aug, qd):  # a one-step "planner": the policy's action
+        u, z = planning.policy(q_aug, qd), jnp.zeros(1)
+        return u, state, mppi.Info(z, z, z[0], u[None], jnp.zeros((), jnp.int32), u[None, None],
+                                   z, jnp.ones(1, jnp.int32), jnp.zeros((), bool))
+
+    acting = mppi.Planner(lambda key, plan=None: mppi.MPPIState(jnp.zeros((1, nu)), key), step)
+    _, (now, nxt) = jax.device_get(cl.run_episode(
+        wt.sm, wt.mx, wt.slots, planning, acting, 3, wt.starts, wt.values, jax.random.key(0),
+        tilt=wt.tilt, record=lambda qa, qd, u, info, qa2, *_: (grav(qa), grav(qa2))))
+    assert not np.allclose(now[1], now[0])  # the ground tilts step by step
+    np.testing.assert_allclose(nxt[:-1], now[1:], atol=1e-7)
 
 
 def test_the_velocity_integral_moves_the_planners_command_against_a_steady_error():

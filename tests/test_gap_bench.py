@@ -18,14 +18,11 @@ def _rows(result: dict) -> list[dict]:
     return [{k: v for k, v in r.items() if k not in TIMING} for r in result["cases"]]
 
 
-@pytest.mark.slow  # the benchmark end to end and resumed: test_gap_bench_independent.py's tiny preset
-def test_pool_gives_the_serial_rows_and_a_rerun_skips_rows_on_disk(tmp_path):
+def test_a_rerun_skips_rows_on_disk(tmp_path):
     serial = bench.run(CFG, tmp_path / "serial", log=lambda s: None)
-    pooled = bench.run(CFG, tmp_path / "pool", log=lambda s: None, workers=2)
-    assert serial["complete"] and pooled["complete"]
+    assert serial["complete"]
     assert len(serial["cases"]) == 4 and [(r["case"], r["noisy"]) for r in serial["cases"]] == [
         (0, False), (0, True), (1, False), (1, True)]
-    assert _rows(pooled) == _rows(serial)
     assert serial["cases"][2]["named"] == ["damping"]
     # an interrupted run: one row lost, one on disk (marked, to see that it is not recomputed)
     folder = bench.rows_dir(CFG, tmp_path / "serial")
@@ -40,6 +37,14 @@ def test_pool_gives_the_serial_rows_and_a_rerun_skips_rows_on_disk(tmp_path):
     assert again["cases"][1]["seconds"] == -1.0  # skipped
     assert _rows(again) == _rows(serial)  # the lost row recomputed as before
     assert (tmp_path / "serial" / "t.md").is_file()
+
+
+@pytest.mark.slow  # the rows themselves: test_a_rerun_skips_rows_on_disk (serial)
+def test_pool_gives_the_serial_rows(tmp_path):
+    serial = bench.run(CFG, tmp_path / "serial", log=lambda s: None)
+    pooled = bench.run(CFG, tmp_path / "pool", log=lambda s: None, workers=2)
+    assert serial["complete"] and pooled["complete"]
+    assert _rows(pooled) == _rows(serial)
 
 
 def test_minutes_zero_starts_nothing_and_writes_no_summary(tmp_path, capsys, monkeypatch):

@@ -24,18 +24,19 @@ def _data(sm, applied, n, steps, seed, noise=True):
 
 
 def test_damping_interval_covers_the_truth_in_repeated_noisy_draws(pend):
-    # 30 draws of 4 x 100 noisy steps; the 90% profile interval must contain its estimate, stay in
+    # 20 draws of 4 x 100 noisy steps; the 90% profile interval must contain its estimate, stay in
     # the bounds and cover the planted value in about 90% of draws (measured: 26/30 while the line
-    # search stopped at the grid's tolerance, a +0.6 standard-error offset read then as noise bias)
-    true, hits = 0.3, 0
+    # search stopped at the grid's tolerance, a +0.6 standard-error offset read then as noise bias;
+    # 30 draws before session 71, 20 for the suite's time: results/gap_coverage/ has the long run)
+    true, hits, draws = 0.3, 0, 20
     lo_b, hi_b = (float(b[0]) for b in effects.ALL["damping"].bounds(pend))
-    for seed in range(30):
+    for seed in range(draws):
         data, scale = _data(pend, {"damping": true}, 4, 100, 1000 + seed)
         f = fit.fit(pend, data, scale, ("damping",), CFG.fit)
         x, lo, hi = f.params["damping"][0], f.lo["damping"][0], f.hi["damping"][0]
         assert lo_b <= lo <= x <= hi <= hi_b, (seed, lo, x, hi)
         hits += lo <= true <= hi
-    assert 0.75 <= hits / 30 <= 1.0, hits
+    assert 0.75 <= hits / draws <= 1.0, hits
 
 
 def test_a_limit_reached_in_few_blocks_gets_an_interval_that_covers_it(pend):

@@ -123,8 +123,9 @@ def test_non_finite_inputs_are_named_where_the_values_are_known():
 
 
 @pytest.mark.parametrize("name", [pytest.param("stride", marks=pytest.mark.slow), "delan",
-                                  "delan_prior"])
-# (STRIDE: the Lagrangian terms of delan's case plus the flow's integration; `make test-all`)
+                                  pytest.param("delan_prior", marks=pytest.mark.slow)])
+# (STRIDE: the Lagrangian terms of delan's case plus the flow's integration; DeLaN with a prior:
+# delan's terms plus the prior's; both in `make test-all`)
 def test_float64_inputs_run_in_float64(name):
     """With ``jax_enable_x64`` and float64 inputs nothing is computed in float32 (the float32
     params are promoted): the terms, the acceleration and a step come out float64, and
