@@ -68,13 +68,15 @@ reproduce: setup
 report: setup
 	$(BIN)/python experiments/report.py
 
-## test: the suite, in two pytest processes balanced by tests/durations.json (17-19 minutes in
-## clean-clone CI on this 2-core host, sessions 68-69; `$(BIN)/python -m pytest -q` runs it in one); the
+## test: the suite, in two pytest processes balanced by tests/durations.json (14:42 in clean-clone
+## CI on this 2-core host, setup included, session 71; 17-19 min before; the host's speed swings by
+## 10-20% within an hour; `$(BIN)/python -m pytest -q` runs it in one process); the
 ## tests marked slow, longer cross-checks each with a faster counterpart here, are left to test-all
 test: setup
 	$(BIN)/python tests/run_parallel.py
 
-## test-all: the suite and the tests marked slow (530 s more test time, measured in session 68)
+## test-all: the suite and the tests marked slow (530 s more test time measured in session 68, and
+## about 330 s more marked in session 71)
 test-all: setup
 	$(BIN)/python tests/run_parallel.py --all
 
