@@ -76,7 +76,7 @@ test: setup
 	$(BIN)/python tests/run_parallel.py
 
 ## test-all: the suite and the tests marked slow (530 s more test time measured in session 68, and
-## about 330 s more marked in session 71)
+## about 330 s more marked in session 71, summed from their durations before the marks)
 test-all: setup
 	$(BIN)/python tests/run_parallel.py --all
 

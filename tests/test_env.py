@@ -11,10 +11,11 @@ PROBE = ("import stride_jax, jax, os; stride_jax.set_xla_flags(); "
          "print(len(jax.devices()), os.environ['XLA_FLAGS'])")
 
 
-def _run(probe=PROBE, **env):
+def _run(probe=PROBE, *args, **env):
     drop = ("XLA_FLAGS", "STRIDE_HOST_DEVICES", "STRIDE_DETERMINISTIC")
     env = {k: v for k, v in os.environ.items() if k not in drop} | env
-    return subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True)
+    return subprocess.run([sys.executable, "-c", probe, *args], env=env, capture_output=True,
+                          text=True)
 
 
 @pytest.mark.parametrize("value, devices", [("2", 2), ("auto", os.cpu_count() or 1)])
@@ -55,15 +56,13 @@ def test_the_command_line_sets_the_flags():
              "try:\n    cli.main()\nexcept SystemExit:\n    pass\n"
              "print(sorted(m for m in sys.modules if m.startswith('stride_jax.jobs.') or m == 'jax'))\n"
              "print(os.environ['XLA_FLAGS'])")
-    out = subprocess.run([sys.executable, "-c", probe, "--help"], capture_output=True, text=True,
-                         env={k: v for k, v in os.environ.items() if k != "XLA_FLAGS"})
+    out = _run(probe, "--help")
     assert out.returncode == 0, out.stderr
     assert "multi_thread_eigen=false" in out.stdout.splitlines()[-1]
     assert out.stdout.splitlines()[-2] == "[]"
     from stride_jax import cli
     assert all(name in out.stdout for name in cli.COMMANDS)
-    out = subprocess.run([sys.executable, "-c", probe, "show", "--help"], capture_output=True,
-                         text=True, env={k: v for k, v in os.environ.items() if k != "XLA_FLAGS"})
+    out = _run(probe, "show", "--help")
     assert out.returncode == 0, out.stderr
     assert "--stride" in out.stdout and "stride_jax.jobs.show" in out.stdout.splitlines()[-2]
 
