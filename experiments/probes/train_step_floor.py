@@ -4,7 +4,7 @@ minibatch drawn, the per-example loss vmapped, its gradient, Adam) on synthetic 
 robot's shapes, timed as ``stride train`` runs it (``--chunk`` steps per jitted scan).
 
     python experiments/probes/train_step_floor.py [--robot go1] [--hidden 256] [--batch 1024]
-        [--model stride] [--out results/throughput/train_step]
+        [--model stride] [--seeds 1] [--out results/throughput/train_step]
 
 Floors: XLA's own count of the step's FLOPs and bytes accessed (``cost_analysis`` of one step,
 compiled unrolled: XLA counts a loop body once), over the measured matmul peak (a large float32
@@ -129,6 +129,9 @@ def main():
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--cuda-profile", action="store_true")
     p.add_argument("--profile-steps", type=int, default=2)
+    p.add_argument("--seeds", type=int, default=1,
+                   help="independent models trained side by side in one program (vmapped over their "
+                        "parameters, optimiser states and draws): the throughput of many small trainings")
     p.add_argument("--trace", type=int, default=0,
                    help="single steps to trace with JAX's profiler (kernel times per step)")
     p.add_argument("--out", default="")
@@ -137,6 +140,8 @@ def main():
     sm, meta, spec, act = bench._robot(a.robot)
     cfg = model_config(a.model, meta, a.hidden, a.depth, 0, a.shared_lnn)
     model = models.make(a.model, spec, act, cfg, stride.Scales())
+    if a.seeds < 1:
+        raise SystemExit(f"--seeds {a.seeds}: need at least 1")
     params = model.init(jax.random.key(0))
     feet = sm.nfeet or 1
     data = jax.device_put(examples(spec, np.asarray(sm.info.qpos0), a.examples, feet))
@@ -149,8 +154,17 @@ def main():
         return jnp.mean(total), jax.tree.map(jnp.mean, parts)
 
     def steps(n):
-        return jax.jit(lambda params, opt_state, start: scan_steps(
-            mean_loss, opt, params, opt_state, data, jax.random.key(1), start, n, a.batch))
+        if a.seeds == 1:
+            return jax.jit(lambda params, opt_state, start: scan_steps(
+                mean_loss, opt, params, opt_state, data, jax.random.key(1), start, n, a.batch))
+        keys = jax.random.split(jax.random.key(1), a.seeds)  # each model its own minibatches
+        many = jax.vmap(lambda p_, s_, k_, start: scan_steps(mean_loss, opt, p_, s_, data, k_, start, n, a.batch),
+                        in_axes=(0, 0, 0, None))
+        return jax.jit(lambda params, opt_state, start: many(params, opt_state, keys, start))
+
+    if a.seeds > 1:  # the models' own initialisations, stacked
+        params = jax.vmap(model.init)(jax.random.split(jax.random.key(0), a.seeds))
+        opt_state = jax.vmap(opt.init)(params)
 
     one = steps(1).lower(params, opt_state, 0).compile()  # one step, no loop: XLA counts it all
     cost = _cost(one)
@@ -165,8 +179,8 @@ def main():
     peak32, peak16, bw = peak_flops(4096), peak_flops(4096, dtype="bfloat16"), copy_bandwidth()
     row = dict(device=jax.devices()[0].device_kind, robot=a.robot, model=a.model,
                hidden=a.hidden, depth=a.depth, batch=a.batch, shared_lnn=a.shared_lnn,
-               chunk=a.chunk, step_ms=1e3 * per_step, one_step_call_ms=1e3 * single,
-               examples_per_s=a.batch / per_step, compile_s=compile_s,
+               chunk=a.chunk, seeds=a.seeds, step_ms=1e3 * per_step, one_step_call_ms=1e3 * single,
+               examples_per_s=a.seeds * a.batch / per_step, compile_s=compile_s,
                flops_per_step=flops, bytes_per_step=nbytes, peak_tflops_f32=peak32 / 1e12,
                peak_tflops_bf16=peak16 / 1e12, copy_gbs=bw / 1e9,
                flop_floor_ms=1e3 * flops / peak32, memory_floor_ms=1e3 * nbytes / bw,
@@ -191,7 +205,8 @@ def main():
     if a.out:
         out = pathlib.Path(a.out)
         out.mkdir(parents=True, exist_ok=True)
-        name = f"train_step_{a.robot}_{a.model}_{a.hidden}x{a.depth}_b{a.batch}.json"
+        name = f"train_step_{a.robot}_{a.model}_{a.hidden}x{a.depth}_b{a.batch}" + \
+            (f"_seeds{a.seeds}" if a.seeds > 1 else "") + ".json"
         (out / name).write_text(json.dumps(row, indent=1) + "\n")
 
 
