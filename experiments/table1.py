@@ -16,7 +16,8 @@ process leaves a GPU idle between kernel launches). Seeds of one model compile t
 programs, so the seed-0 run of each (robot, model) goes first and the others start once it has
 filled JAX's persistent compilation cache (its first validation). Every run is resumable: run
 the same command again and finished runs are skipped, stopped ones resume from their last
-checkpoint, and evaluations are reused. Logs: ``<runs>/<model>-s<seed>/{train,eval}.log``.
+checkpoint, and evaluations are reused. Logs: ``<runs>/<model>-s<seed>/{train,eval}.log``
+(``--side-by-side``: ``<runs>/<model>-s0+1+2.train.log``).
 """
 
 from __future__ import annotations
@@ -103,6 +104,10 @@ class Table1Config:
         the floor by up to this many degrees) and every model trained with
         ``--gravity-context`` (its networks see the slope); data and folders ``..._slope<deg>``.
       parallel: processes at once.
+      side_by_side: train each model's seeds in one ``stride train --seeds`` process (one program,
+        the seeds vmapped; ``<robot>/<model>-s0+1+2`` in the progress): on a GPU at the paper's
+        size three seeds take 1.4x one seed's time where processes side by side share the GPU by
+        time slices (``results/throughput/README.md``); on a CPU no gain.
       minutes: wall-clock budget for training, from when the data exist (0: none); runs stop
         cleanly at it.
       eval_only: evaluate and tabulate the runs already trained (no data, no training).
@@ -126,6 +131,7 @@ class Table1Config:
     potential: str = "net"
     slope_deg: float = 0.0
     parallel: int = 5
+    side_by_side: bool = False
     minutes: float = 0.0
     eval_only: bool = False
     root: str = ""
@@ -201,29 +207,45 @@ def main(argv: list[str] | None = None) -> None:
     tag = lambda m, v: f"{m}-{v}" if v else m
     name = lambda r, m, s, v: f"{r}/{tag(m, v)}-s{s}"
     run_dir = lambda r, m, s, v: runs[r] / f"{tag(m, v)}-s{s}"
-    leader = {name(*j): run_dir(j[0], j[1], first_seed, "") for j in jobs}
-    train = {name(r, m, s, v): pool.stride_command(
-        "train", "--robot", r, "--model", m, "--preset", preset.train,
-        *(["--steps", str(steps)] if steps else []),
-        "--seed", str(s), "--data", str(data[r]), "--out", str(run_dir(r, m, s, v)),
-        "--deadline", str(deadline), *(["--acc-through", v] if v else []),
-        *(["--stop-at", str(args.stop_at)] if args.stop_at else []),
-        *(["--transition-weight", f"{args.transition_weight:g}"] if args.transition_weight else []),
-        *(["--transition-fraction", f"{tf:g}"] if tf < 1 else []),
-        *(["--base-weight", f"{args.base_weight:g}"] if args.base_weight != 1 else []),
-        *(["--potential", args.potential] if args.potential != "net" else []),
-        *(["--gravity-context"] if args.slope_deg else []))
-        for r, m, s, v in jobs}
     folders = {name(*j): run_dir(*j) for j in jobs}
-    follows = lambda n, marker: (lambda: leader[n] == folders[n] or (leader[n] / marker).exists())
-    ready = {n: follows(n, "metrics.csv") for n in train}
+    # a training job per run, or per model and variant with its seeds side by side (one program)
+    groups: dict[str, list[tuple]] = {}
+    for r, m, s, v in jobs:
+        key = f"{r}/{tag(m, v)}-s" + ("+".join(str(s_) for s_ in seeds) if args.side_by_side else str(s))
+        groups.setdefault(key, []).append((r, m, s, v))
+    if args.side_by_side:  # (the ablation's first-seed-only runs are a group of one seed)
+        groups = {k if len(g) == len(seeds) else name(*g[0]): g for k, g in groups.items()}
+
+    def train_command(group):
+        r, m, s, v = group[0]
+        who = (["--seeds", ",".join(str(j[2]) for j in group), "--out", str(runs[r] / tag(m, v))]
+               if args.side_by_side else ["--seed", str(s), "--out", str(run_dir(r, m, s, v))])
+        return pool.stride_command(
+            "train", "--robot", r, "--model", m, "--preset", preset.train,
+            *(["--steps", str(steps)] if steps else []),
+            *who, "--data", str(data[r]),
+            "--deadline", str(deadline), *(["--acc-through", v] if v else []),
+            *(["--stop-at", str(args.stop_at)] if args.stop_at else []),
+            *(["--transition-weight", f"{args.transition_weight:g}"] if args.transition_weight else []),
+            *(["--transition-fraction", f"{tf:g}"] if tf < 1 else []),
+            *(["--base-weight", f"{args.base_weight:g}"] if args.base_weight != 1 else []),
+            *(["--potential", args.potential] if args.potential != "net" else []),
+            *(["--gravity-context"] if args.slope_deg else []))
+
+    train = {g: train_command(members) for g, members in groups.items()}
+    logs = {g: (runs[members[0][0]] / f"{g.split('/', 1)[1]}.train.log" if args.side_by_side
+                else folders[name(*members[0])] / "train.log") for g, members in groups.items()}
+    # one seed's run first where seeds train one by one: the others reuse its compilation
+    leader = {g: run_dir(m[0][0], m[0][1], first_seed, "") for g, m in groups.items()}
+    follows = lambda g: (lambda: args.side_by_side or leader[g] == folders[name(*groups[g][0])]
+                         or (leader[g] / "metrics.csv").exists())
+    ready = {g: follows(g) for g in train}
     if args.eval_only:
-        train = {n: c for n, c in train.items() if (folders[n] / "summary.json").exists()}
         failed = []
+        ok = [name(*j) for j in jobs if (folders[name(*j)] / "summary.json").exists()]
     else:
-        failed = pool.run(train, {n: folders[n] / "train.log" for n in train}, args.parallel,
-                          env, ready, t0, "train")
-    ok = [n for n in train if n not in failed]
+        failed = pool.run(train, logs, args.parallel, env, ready, t0, "train")
+        ok = [name(*j) for g, members in groups.items() if g not in failed for j in members]
     # Evaluate runs side by side (each caches its eval.json), then tabulate per robot. The first
     # evaluation of a robot goes alone: it re-simulates the true continuations every other
     # evaluation of that dataset reuses.

@@ -51,6 +51,8 @@ def test_cpu_records_satisfy_the_equation_of_motion(name):
     assert _eom_residual(sm, _episode_models(sm, ep), ep) < 1e-4  # float32 storage
 
 
+@pytest.mark.slow  # MJX's whole collect program (35 s on 2 cores); fast: the CPU records' equation of motion
+# above and test_mjx_forces_and_flags_match_mujoco (MJX's records against MuJoCo's on the same steps)
 def test_mjx_records_satisfy_the_equation_of_motion(go1):
     ep = rollout_mjx.collect(go1, jax.random.key(4), 2, 60)
     assert _eom_residual(go1, _episode_models(go1, ep), ep) < 2e-3  # float32 simulation

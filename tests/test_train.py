@@ -1,6 +1,7 @@
 """Training: end to end from the CLI, resumption after a hard kill, and the NaN guard."""
 
 import csv
+import dataclasses
 import os
 import pathlib
 import signal
@@ -202,3 +203,72 @@ def test_a_batch_loss_takes_the_training_steps_and_validation_stays_per_example(
                          batch_loss=batch)
     last = list(csv.DictReader(open(out / "metrics.csv")))[-1]
     assert abs(float(last["val_loss"]) - 4.0) < 0.2  # w near 2, scored by the per-example loss
+
+
+def _noisy_line():
+    data = {"x": jnp.linspace(-1.0, 1.0, 50), "y": jnp.linspace(0.0, 3.0, 50)}
+    loss = lambda p, b, key: (jnp.mean((p["w"] * b["x"] + p["b"] - b["y"]
+                                        + 0.1 * jax.random.normal(key, b["x"].shape)) ** 2), {})
+    validate = lambda p: (float(jnp.mean((p["w"] * data["x"] + p["b"] - data["y"]) ** 2)),
+                          {"w": float(p["w"])})
+    return data, loss, validate
+
+
+def test_runs_side_by_side_are_each_run_alone(tmp_path):
+    """``run_many`` trains each run as ``run`` does with its own start and draws (to float
+    rounding), each into its own folder with its own best step; a side-by-side run held by
+    ``stop_at`` goes on from its checkpoints to the same end, and a single ``run`` into one of the
+    folders finds it finished."""
+    data, loss, validate = _noisy_line()
+    opt = loop.optimizer(3e-2, 12)
+    starts = [{"w": jnp.array(s), "b": jnp.array(-s)} for s in (0.0, 2.0)]
+    keys = [jax.random.key(3), jax.random.key(4)]
+    cfg = loop.LoopConfig(steps=12, batch=8, eval_every=3, ckpt_every=3)
+    alone = [loop.run(loss, p, data, cfg, opt, k, validate, out=tmp_path / f"alone{i}", progress=None)
+             for i, (p, k) in enumerate(zip(starts, keys))]
+    outs = [tmp_path / "many-a", tmp_path / "many-b"]
+    held = loop.run_many(loss, starts, data, dataclasses.replace(cfg, stop_at=5), opt, keys, validate,
+                         outs=outs, progress=None)
+    assert [r.steps_done for r in held] == [5, 5]
+    many = loop.run_many(loss, starts, data, cfg, opt, keys, validate, outs=outs, progress=None)
+    for i, (a, m, out) in enumerate(zip(alone, many, outs)):
+        assert m.steps_done == 12 and m.checked_at == [6, 9, 12]
+        np.testing.assert_allclose(m.scores, a.scores[1:], rtol=1e-5)
+        (step_a, pa), (step_m, pm) = _latest_params(tmp_path / f"alone{i}"), _latest_params(out)
+        assert step_a == step_m == 12
+        jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6), pm, pa)
+        rows = list(csv.DictReader(open(out / "metrics.csv")))
+        assert [int(r["step"]) for r in rows] == [3, 5, 6, 9, 12]
+        again = loop.run(loss, starts[0], data, cfg, opt, keys[0], validate, out=out, progress=None)
+        assert again.steps_done == 12 and again.checked_at == []
+    assert abs(float(many[0].params["w"]) - float(many[1].params["w"])) > 1e-3  # two runs, not one twice
+
+
+def test_runs_side_by_side_name_the_run_whose_loss_fails(tmp_path):
+    data, _, validate = _noisy_line()
+    loss = lambda p, b, key: (jnp.mean(jnp.log(p["w"]) * b["x"] ** 2), {})
+    starts = [{"w": jnp.array(1.0), "b": jnp.array(0.0)}, {"w": jnp.array(-1.0), "b": jnp.array(0.0)}]
+    cfg = loop.LoopConfig(steps=4, batch=8, eval_every=2, ckpt_every=2)
+    with pytest.raises(loop.TrainingError, match="run 1 of 2: the training loss became nan by step 2"):
+        loop.run_many(loss, starts, data, cfg, loop.optimizer(1e-2, 4), [jax.random.key(0)] * 2, validate,
+                      outs=[tmp_path / "a", tmp_path / "b"], progress=None)
+    with pytest.raises(ValueError, match="2 parameter sets, 1 keys"):
+        loop.run_many(loss, starts, data, cfg, loop.optimizer(1e-2, 4), [jax.random.key(0)], progress=None)
+
+
+def test_train_seeds_side_by_side_is_each_seed_alone(data_dir, tmp_path):
+    """``stride train --seeds 0,1`` leaves ``<out>-s0`` and ``<out>-s1``, each the run that
+    ``--seed`` alone makes (to float rounding), loadable as any run."""
+    from stride_jax import dynamics
+
+    short = ARGS + ["--steps", "20", "--data", str(data_dir)]
+    cli.main(short + ["--out", str(tmp_path / "run"), "--seeds", "0,1"])
+    cli.main(short + ["--out", str(tmp_path / "alone"), "--seed", "1"])
+    (_, side), (_, alone) = dynamics.load(tmp_path / "run-s1"), dynamics.load(tmp_path / "alone")
+    jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-5), side, alone)
+    (_, first) = dynamics.load(tmp_path / "run-s0")
+    assert not np.allclose(jax.tree.leaves(first)[0], jax.tree.leaves(side)[0])
+    cfg = __import__("json").loads((tmp_path / "run-s1" / "config.json").read_text())
+    assert cfg["train"]["loop"]["seed"] == 1 and cfg["side_by_side"] == [0, 1]
+    with pytest.raises(SystemExit, match="--seeds"):
+        cli.main(short + ["--out", str(tmp_path / "x"), "--seeds", "0,0"])

@@ -7,7 +7,9 @@ best validation ``select`` part of the loss.
   sloped data, gravity's direction);
 * :func:`train` -- a model on a dataset's train and validation splits (``stride train``);
 * :func:`train_examples` -- a model on examples given directly (``stride_jax.train.fit``: a
-  robot known only from arrays), writing ``summary.json`` beside the run's checkpoints.
+  robot known only from arrays), writing ``summary.json`` beside the run's checkpoints;
+* :func:`train_side_by_side` -- the same for several seeds in one program (``stride train
+  --seeds``), each seed its own run folder.
 
 The loop itself (minibatches, checkpoints, resumption, the CSV log) is
 :mod:`stride_jax.train.loop`'s, shared with every other model trained with optax here.
@@ -27,7 +29,7 @@ from stride_jax import distributed
 from stride_jax.dynamics.checkpoint import params_sha256
 from stride_jax.io import atomic_write_text
 from stride_jax.sim import record
-from stride_jax.train.loop import LoopConfig, TrainingError, optimizer, run
+from stride_jax.train.loop import LoopConfig, TrainingError, optimizer, run, run_many
 
 
 VALIDATION_CHUNK = 256  # validation examples evaluated at once (``train_examples``)
@@ -97,9 +99,44 @@ def train_examples(loss_fn: Callable, init_fn: Callable, data: dict, val: dict,
     (``checkpoint.params_sha256``)."""
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    mean_loss, validate = _objective(loss_fn, data, val, batch_loss)
+    key_init, key_loop = jax.random.split(jax.random.key(cfg.seed))
+    res = run(mean_loss, init_fn(key_init), data, cfg, optimizer(cfg.lr, cfg.steps), key_loop,
+              validate, out, log)
+    if distributed.is_main():
+        _write_summary(out, res, cfg)
+    return res.params
+
+
+def train_side_by_side(loss_fn: Callable, init_fn: Callable, data: dict, val: dict, cfg: LoopConfig,
+                       runs: dict[int, pathlib.Path], log: Callable[[str], None] = print,
+                       batch_loss: Callable | None = None) -> dict[int, dict]:
+    """:func:`train_examples` for several seeds at once, side by side in one program
+    (:func:`stride_jax.train.loop.run_many`): ``runs`` maps each seed to its run folder, and each
+    folder ends as :func:`train_examples` with ``cfg.seed`` = that seed leaves it (the same
+    initialisation and minibatch draws; a single run into the folder resumes it). Returns each
+    seed's best parameters."""
+    if not runs:
+        raise ValueError("train_side_by_side: no seeds to train")
+    outs = [pathlib.Path(o) for o in runs.values()]
+    if len(set(outs)) != len(outs):
+        raise ValueError(f"train_side_by_side: two seeds share a run folder: {runs}")
+    for o in outs:
+        o.mkdir(parents=True, exist_ok=True)
+    mean_loss, validate = _objective(loss_fn, data, val, batch_loss)
+    keys = [jax.random.split(jax.random.key(seed)) for seed in runs]
+    results = run_many(mean_loss, [init_fn(k[0]) for k in keys], data, cfg, optimizer(cfg.lr, cfg.steps),
+                       [k[1] for k in keys], validate, outs, log)
+    for o, res in zip(outs, results, strict=True):
+        _write_summary(o, res, cfg)
+    return {seed: res.params for seed, res in zip(runs, results, strict=True)}
+
+
+def _objective(loss_fn: Callable, data: dict, val: dict, batch_loss: Callable | None):
+    """``(mean_loss, validate)`` of :func:`train_examples`: a minibatch's mean loss and parts,
+    and the validation score and metrics of a parameter set."""
     if len(data["q"]) == 0 or len(val["q"]) == 0:
         raise TrainingError("no valid training or validation steps in the dataset")
-    key_init, key_loop = jax.random.split(jax.random.key(cfg.seed))
 
     def mean_loss(params, ex, key, chunk: int | None = None):
         """The examples' mean loss and parts, all at once (a training minibatch, through
@@ -129,13 +166,12 @@ def train_examples(loss_fn: Callable, init_fn: Callable, data: dict, val: dict,
         return float(parts.get("select", val_loss)), {
             "val_loss": float(val_loss), **{f"val_{k}": float(v) for k, v in parts.items()}}
 
-    res = run(mean_loss, init_fn(key_init), data, cfg, optimizer(cfg.lr, cfg.steps), key_loop,
-              validate, out, log)
-    if not distributed.is_main():
-        return res.params
+    return mean_loss, validate
+
+
+def _write_summary(out: pathlib.Path, res, cfg: LoopConfig) -> None:
     atomic_write_text(out / "summary.json", json.dumps(
         {"best_val": res.best_score, "best_step": res.best_step,
          "params_sha256": params_sha256(res.params),
          "steps": cfg.steps, "steps_done": res.steps_done,
          "finished": res.steps_done >= cfg.steps}, indent=1))
-    return res.params

@@ -353,3 +353,155 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
                                 args=ocp.args.StandardRestore(host(state["params"])))
     return Result(host(kept), np.concatenate(losses) if losses else np.zeros(0), checked_at, scores,
                   best_step, best_score, step)
+
+
+def _stack(trees: list) -> Any:
+    return jax.tree.map(lambda *a: jnp.stack(a), *trees)
+
+
+def _take(tree: Any, i: int) -> Any:
+    return jax.tree.map(lambda a: a[i], tree)
+
+
+def _restore_together(ckpts: list[ocp.CheckpointManager], states: list[dict], outs: list[pathlib.Path],
+                      log: Callable[[str], None]) -> list[dict]:
+    """Each run's latest checkpoint, at one step for all: a run killed between the runs' saves can
+    leave them a save apart, and the side-by-side program needs one step; the latest step that
+    every run holds (each keeps its last two) is restored."""
+    if all(c.latest_step() is None for c in ckpts):
+        return states
+    common = set.intersection(*(set(c.all_steps()) for c in ckpts))
+    if not common:
+        have = {str(o / "ckpt"): c.latest_step() for o, c in zip(outs, ckpts, strict=True)}
+        raise TrainingError(f"cannot resume the runs side by side: their checkpoints share no step "
+                            f"({have}); train them one by one to a common step, or remove the checkpoints")
+    step = max(common)
+    try:
+        states = [c.restore(step, args=ocp.args.StandardRestore(s)) for c, s in zip(ckpts, states, strict=True)]
+    except Exception as e:  # noqa: BLE001 -- any unreadable checkpoint is the same problem
+        raise TrainingError(f"cannot resume from {[str(o / 'ckpt') for o in outs]} at step {step}: {e}") from e
+    log(f"resumed {len(ckpts)} runs from step {step}")
+    return states
+
+
+def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
+             opt: optax.GradientTransformation, keys: list[jax.Array],
+             validate: Callable[[Any], tuple[float, dict[str, float]]] | None = None,
+             outs: list[pathlib.Path] | None = None, log: Callable[[str], None] = print,
+             progress: str | None = "train") -> list[Result]:
+    """:func:`run` for several independent runs side by side in one program: the same loss, data
+    and schedule, each run its own initial ``params[i]`` and ``keys[i]`` (its minibatch draws), the
+    optimiser steps of all vmapped over the runs.
+
+    Why: at the paper's size and batch a training step is a sequence of a few hundred kernels of a
+    few microseconds each, the GPU mostly idle between them (``results/throughput/README.md``);
+    three runs side by side take 1.4x one run's time on Go1, eight 2.4x. On a CPU, whose cores the
+    one run already fills, it gains nothing.
+
+    Each run is exactly what :func:`run` makes of its ``params[i]`` and ``keys[i]`` (the same
+    draws; equal to the float precision of the batched products): its own folder ``outs[i]`` with
+    ``ckpt`` (the run's own state, which a single :func:`run` into that folder also resumes),
+    ``best`` (its best validated parameters) and ``metrics.csv``, and its own best step. One
+    device, one process (the runs are the batch here, not the devices).
+    """
+    n = len(params)
+    if n < 1 or len(keys) != n or (outs is not None and len(outs) != n):
+        raise ValueError(f"run_many: {n} parameter sets, {len(keys)} keys and "
+                         f"{'no' if outs is None else len(outs)} folders: need one of each per run")
+    if jax.process_count() > 1:
+        raise TrainingError("runs side by side train on one process; train them one by one over several processes")
+    n_data = jax.tree.leaves(data)[0].shape[0]
+    batch = min(cfg.batch, n_data)
+    states = [{"params": p, "opt": opt.init(p), "step": jnp.zeros((), jnp.int32),
+               "best_val": jnp.array(jnp.inf, jnp.float32)} for p in params]
+    ckpts = bests = None
+    if outs is not None:
+        outs = [pathlib.Path(o) for o in outs]
+        ckpts = [_manager(o / "ckpt", 2) for o in outs]
+        bests = [_manager(o / "best", 1) for o in outs]
+        states = _restore_together(ckpts, states, outs, log)
+        for b in bests:  # best checkpoints after the resumed step belong to the lost part of a run
+            for s in b.all_steps():
+                if s > int(states[0]["step"]):
+                    b.delete(s)
+    device = jax.local_devices()[0]
+    data = jax.device_put(data, device)
+    state = jax.device_put(_stack(states), device)
+    key_data = jax.device_put(jnp.stack([jax.random.key_data(k) for k in keys]), device)
+
+    @functools.partial(jax.jit, static_argnames="n")
+    def chunk(params, opt_state, data, key_data, start, n):
+        one = lambda p, o, kd: scan_steps(loss_fn, opt, p, o, data, jax.random.wrap_key_data(kd), start, n, batch)
+        return jax.vmap(one)(params, opt_state, key_data)
+
+    step = start = int(state["step"][0])
+    kept = [_take(state["params"], i) for i in range(n)]
+    best_step = [step] * n
+    best_score = [float(s) for s in state["best_val"]]
+    losses, checked_at, scores = [], [], [[] for _ in range(n)]
+    logs = [_Log(o / "metrics.csv" if o is not None else None) for o in (outs or [None] * n)]
+    with tqdm(total=cfg.steps, initial=start, desc=f"{progress} x{n}" if progress else None, unit="step",
+              disable=progress is None) as bar:
+        end = _end(cfg)
+        while step < end:
+            stop = _next_stop(step, cfg, validate is not None, ckpts is not None)
+            (p, o), chunk_losses, parts = chunk(state["params"], state["opt"], data, key_data, step, n=stop - step)
+            state = dict(state, params=p, opt=o, step=jnp.full((n,), stop, jnp.int32))
+            bar.update(stop - step)
+            step, chunk_losses = stop, np.asarray(chunk_losses)  # [runs, steps]
+            losses.append(chunk_losses)
+            if not np.isfinite(chunk_losses).all():
+                i = int(np.nonzero(~np.isfinite(chunk_losses).all(1))[0][0])
+                bad = chunk_losses[i][~np.isfinite(chunk_losses[i])][0]
+                where = (f"; its last good checkpoint is in {outs[i] / 'ckpt'} (step "
+                         f"{ckpts[i].latest_step()})") if ckpts is not None else ""
+                raise TrainingError(
+                    f"run {i} of {n}: the training loss became {bad} by step {step}{where}. Lower the "
+                    f"learning rate ({cfg.lr}) or check the data for outliers.")
+            last = step == cfg.steps
+            held = step == end < cfg.steps
+            if validate is not None and (step % cfg.eval_every == 0 or last or held):
+                checked_at.append(step)
+                best_val = np.array(state["best_val"])
+                for i in range(n):
+                    params_i = _take(state["params"], i)
+                    score, metrics = validate(params_i)
+                    scores[i].append(float(score))
+                    logs[i].write({"step": step, "time": time.time(),
+                                   "train_loss": float(chunk_losses[i, -1]),
+                                   **{f"train_{k}": float(v[i, -1]) for k, v in parts.items()}, **metrics})
+                    if score < best_score[i]:
+                        best_val[i] = score
+                        kept[i], best_step[i], best_score[i] = params_i, step, float(score)
+                        if bests is not None:
+                            bests[i].save(step, args=ocp.args.StandardSave(params_i), force=True)
+                state = dict(state, best_val=jnp.asarray(best_val, jnp.float32))
+                bar.set_postfix(loss=f"{float(chunk_losses[:, -1].mean()):.4g}",
+                                val=f"{np.mean([s[-1] for s in scores]):.4g}")
+            elif validate is None:
+                kept = [_take(state["params"], i) for i in range(n)]
+                best_step = [step] * n
+            out_of_time = bool(cfg.deadline) and step % cfg.eval_every == 0 and time.time() > cfg.deadline
+            if ckpts is not None and (step % cfg.ckpt_every == 0 or last or out_of_time or held):
+                for i, c in enumerate(ckpts):
+                    c.save(step, args=ocp.args.StandardSave(_take(state, i)), force=True)
+            if held:
+                log(f"stopped at step {step} of {cfg.steps} (stop_at); run again with a later "
+                    "stop_at (or none) to go on")
+                break
+            if out_of_time and not last:
+                log(f"deadline reached: stopped at step {step} of {cfg.steps}; run again to resume")
+                break
+    if ckpts is not None:
+        for c, b in zip(ckpts, bests, strict=True):
+            c.wait_until_finished()
+            b.wait_until_finished()
+        if validate is not None:
+            for i, b in enumerate(bests):
+                if b.latest_step() is None:
+                    raise TrainingError("no validation ever ran (steps < eval_every?)")
+                best_step[i] = b.latest_step()
+                kept[i] = b.restore(best_step[i], args=ocp.args.StandardRestore(kept[i]))
+    run_losses = np.concatenate(losses, 1) if losses else np.zeros((n, 0))
+    return [Result(kept[i], run_losses[i], checked_at, scores[i], best_step[i], best_score[i], step)
+            for i in range(n)]
