@@ -153,6 +153,30 @@ def folder_suffixes(args: Table1Config) -> tuple[str, str]:
     return data, variant
 
 
+def tag(model: str, variant: str) -> str:
+    """A run's model and ``--acc-through`` variant as its folder names them."""
+    return f"{model}-{variant}" if variant else model
+
+
+def run_name(robot: str, model: str, seed: int, variant: str) -> str:
+    """``<robot>/<model>[-<variant>]-s<seed>``: a run's name in the progress and the logs."""
+    return f"{robot}/{tag(model, variant)}-s{seed}"
+
+
+def training_groups(jobs: list[tuple], side_by_side: bool) -> dict[str, list[tuple]]:
+    """The training processes over ``jobs`` ``(robot, model, seed, variant)``: one per run, named
+    as the run, or with ``side_by_side`` one per robot, model and variant over its seeds
+    (``<robot>/<model>-s0+1+2``: one ``stride train --seeds`` program); a group of one seed (the
+    ablation's first-seed runs) keeps its run's name."""
+    groups: dict[str, list[tuple]] = {}
+    for r, m, s, v in jobs:
+        groups.setdefault(f"{r}/{tag(m, v)}" if side_by_side else run_name(r, m, s, v), []).append((r, m, s, v))
+    if not side_by_side:
+        return groups
+    return {(k + "-s" + "+".join(str(j[2]) for j in g)) if len(g) > 1 else run_name(*g[0]): g
+            for k, g in groups.items()}
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -204,17 +228,10 @@ def main(argv: list[str] | None = None) -> None:
     ablation_seeds = seeds if args.ablation_seeds else [first_seed]
     jobs += [(r, "stride", s, v) for s in ablation_seeds for r in robots
              for v in args.ablation.split(",") if v]
-    tag = lambda m, v: f"{m}-{v}" if v else m
-    name = lambda r, m, s, v: f"{r}/{tag(m, v)}-s{s}"
+    name = run_name
     run_dir = lambda r, m, s, v: runs[r] / f"{tag(m, v)}-s{s}"
     folders = {name(*j): run_dir(*j) for j in jobs}
-    # a training job per run, or per model and variant with its seeds side by side (one program)
-    groups: dict[str, list[tuple]] = {}
-    for r, m, s, v in jobs:
-        key = f"{r}/{tag(m, v)}-s" + ("+".join(str(s_) for s_ in seeds) if args.side_by_side else str(s))
-        groups.setdefault(key, []).append((r, m, s, v))
-    if args.side_by_side:  # (the ablation's first-seed-only runs are a group of one seed)
-        groups = {k if len(g) == len(seeds) else name(*g[0]): g for k, g in groups.items()}
+    groups = training_groups(jobs, args.side_by_side)
 
     def train_command(group):
         r, m, s, v = group[0]

@@ -480,16 +480,30 @@ def test_a_run_logs_its_progress_writes_its_row_and_resumes(tmp_path):
     assert cl.run(cfg, log=again.append) == rows and not any("simulated" in x for x in again)
 
 
+_CHUNKED = dict(models="policy", scenarios="walk", seconds=0.2, settle_s=0.0, progress_s=0.0,
+                policy="results/policies/ppo_go1", episodes=2)
+
+
+def _same_rows_and_traces(rows, ref, a_dir, b_dir, rel):
+    for r, r0 in zip(rows, ref, strict=True):
+        for k, v in r0.items():
+            if k not in ("ms_per_step", "compile_s"):
+                assert r[k] == (pytest.approx(v, rel=rel) if isinstance(v, float) else v), k
+    for f in ("trace_walk_policy.npz", "trace_walk_policy_seed1.npz"):
+        a, b = np.load(a_dir / f), np.load(b_dir / f)
+        for k in a.files:
+            np.testing.assert_allclose(b[k], a[k], rtol=rel, atol=rel, err_msg=k)
+
+
 def test_a_chunked_run_killed_mid_episode_resumes_to_the_same_rows(tmp_path, monkeypatch):
     """``chunk_s``: episodes run chunk by chunk, their state saved after each; a run killed after
-    its first chunk resumes there when called again, and gives the rows and traces of a run
-    without chunks (to float rounding: other programs) (episodes side by side, so the saved state carries a batch of planner keys
-    and simulations); nothing partial is left once the row is written."""
-    common = dict(models="policy", scenarios="walk", seconds=0.2, settle_s=0.0, progress_s=0.0,
-                  policy="results/policies/ppo_go1", episodes=2)
-    plain = cl.run(cl.ClosedLoopConfig(out=str(tmp_path / "plain"), **common),
-                   log=lambda *_: None)
-    cfg = cl.ClosedLoopConfig(out=str(tmp_path / "chunked"), chunk_s=0.08, **common)
+    its first chunk resumes there when called again, and gives the rows and traces of the same
+    run uninterrupted (episodes side by side, so the saved state carries a batch of planner keys
+    and simulations); nothing partial is left once the row is written. (Against a run without
+    chunks: test_chunks_give_the_rows_of_one_program, slow.)"""
+    cfg = cl.ClosedLoopConfig(out=str(tmp_path / "whole"), chunk_s=0.08, **_CHUNKED)
+    whole = cl.run(cfg, log=lambda *_: None)
+    cfg = dataclasses.replace(cfg, out=str(tmp_path / "chunked"))
     assert cl._chunk_steps(cfg.chunk_s, 0.02, 10) == 4  # 3 chunks of 4 steps for 10
     save, saved = cl._save_state, []
 
@@ -509,14 +523,7 @@ def test_a_chunked_run_killed_mid_episode_resumes_to_the_same_rows(tmp_path, mon
     ticks = [x.split(":")[1].split(" of")[0].strip() for x in lines if "s simulated" in x]
     assert ticks == [f"{0.02 * k:.1f}" for k in range(5, 11)]  # none past the end (12 run)
     assert not saved[0].exists() and not saved[0].parent.exists()  # nothing partial left
-    for r, r0 in zip(rows, plain, strict=True):  # the same to float rounding (other programs)
-        for k, v in r0.items():
-            if k not in ("ms_per_step", "compile_s"):
-                assert r[k] == (pytest.approx(v, rel=1e-5) if isinstance(v, float) else v), k
-    for f in ("trace_walk_policy.npz", "trace_walk_policy_seed1.npz"):
-        a, b = np.load(tmp_path / "plain" / f), np.load(tmp_path / "chunked" / f)
-        for k in a.files:
-            np.testing.assert_allclose(b[k], a[k], rtol=1e-5, atol=1e-5, err_msg=k)
+    _same_rows_and_traces(rows, whole, tmp_path / "whole", tmp_path / "chunked", 1e-6)
     with pytest.raises(ValueError, match="chunk-s"):
         cl.ClosedLoopConfig(chunk_s=-1.0)
     # a saved state comes back with its typed keys, and only for its own run and structure
@@ -530,6 +537,16 @@ def test_a_chunked_run_killed_mid_episode_resumes_to_the_same_rows(tmp_path, mon
                                   jax.random.key_data(state["key"]))
     assert cl._load_state(path, state, "another run") is None
     assert cl._load_state(path, {**state, "x": jnp.arange(4.0)}, "this run") is None
+
+
+@pytest.mark.slow  # a second compile of the episode; fast: test_a_chunked_run_killed_mid_episode_resumes_to_the_same_rows
+def test_chunks_give_the_rows_of_one_program(tmp_path):
+    """An episode run in chunks gives the rows and traces of the same episode as one program (to
+    float rounding: other programs)."""
+    plain = cl.run(cl.ClosedLoopConfig(out=str(tmp_path / "plain"), **_CHUNKED), log=lambda *_: None)
+    rows = cl.run(cl.ClosedLoopConfig(out=str(tmp_path / "chunked"), chunk_s=0.08, **_CHUNKED),
+                  log=lambda *_: None)
+    _same_rows_and_traces(rows, plain, tmp_path / "plain", tmp_path / "chunked", 1e-5)
 
 
 def test_runs_of_one_kind_of_model_share_one_compiled_episode(tmp_path):

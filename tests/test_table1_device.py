@@ -39,3 +39,17 @@ def test_device_script_names_the_folders_table1_makes(experiment, env, flags):
                          env={"PATH": "/usr/bin:/bin", "NAMES_ONLY": "1", **env},
                          capture_output=True, text=True, check=True).stdout.split()
     assert out == [f"g1{data}{variant}", f"g1{data}{variant}-paper"]
+
+
+def test_training_groups_one_process_per_run_or_per_model_side_by_side(experiment):
+    """``--side-by-side`` trains each model's seeds in one process; the ablation's first-seed run
+    stays a process of its own under its run's name; without it every run is its own process."""
+    table1 = experiment("table1")
+    jobs = [("go1", m, s, "") for s in (0, 1, 2) for m in ("stride", "onn")] + [("go1", "stride", 0, "prior")]
+    one_by_one = table1.training_groups(jobs, side_by_side=False)
+    assert sorted(one_by_one) == sorted(table1.run_name(*j) for j in jobs)
+    assert all(len(g) == 1 for g in one_by_one.values())
+    side = table1.training_groups(jobs, side_by_side=True)
+    assert sorted(side) == ["go1/onn-s0+1+2", "go1/stride-prior-s0", "go1/stride-s0+1+2"]
+    assert [j[2] for j in side["go1/stride-s0+1+2"]] == [0, 1, 2]
+    assert sorted(j for g in side.values() for j in g) == sorted(jobs)  # every run trained once

@@ -272,3 +272,27 @@ def test_train_seeds_side_by_side_is_each_seed_alone(data_dir, tmp_path):
     assert cfg["train"]["loop"]["seed"] == 1 and cfg["side_by_side"] == [0, 1]
     with pytest.raises(SystemExit, match="--seeds"):
         cli.main(short + ["--out", str(tmp_path / "x"), "--seeds", "0,0"])
+
+
+def test_runs_side_by_side_resume_at_the_step_all_their_checkpoints_hold(tmp_path):
+    """A run saved further than the others (killed between their saves, or trained on alone) is
+    taken back to the last step every run holds, and the side-by-side runs end where they would
+    have ended uninterrupted."""
+    data, loss, validate = _noisy_line()
+    opt = loop.optimizer(3e-2, 9)
+    starts = [{"w": jnp.array(s), "b": jnp.array(-s)} for s in (0.0, 2.0)]
+    keys = [jax.random.key(3), jax.random.key(4)]
+    cfg = loop.LoopConfig(steps=9, batch=8, eval_every=3, ckpt_every=3)
+    outs, whole = [tmp_path / "a", tmp_path / "b"], [tmp_path / "wa", tmp_path / "wb"]
+    loop.run_many(loss, starts, data, cfg, opt, keys, validate, outs=whole, progress=None)
+    loop.run_many(loss, starts, data, dataclasses.replace(cfg, stop_at=3), opt, keys, validate, outs=outs,
+                  progress=None)
+    loop.run(loss, starts[0], data, dataclasses.replace(cfg, stop_at=6), opt, keys[0], validate, out=outs[0],
+             progress=None)  # run a now one save ahead of run b
+    said = []
+    loop.run_many(loss, starts, data, cfg, opt, keys, validate, outs=outs, log=said.append, progress=None)
+    assert "resumed 2 runs from step 3" in said
+    for out, ref in zip(outs, whole):
+        (step, p), (step_ref, p_ref) = _latest_params(out), _latest_params(ref)
+        assert step == step_ref == 9
+        jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-6), p, p_ref)

@@ -215,6 +215,16 @@ class _Log:
             writer.writerow(row)
 
 
+def _diverged(losses: np.ndarray, step: int, cfg: LoopConfig, last_good: tuple | None,
+              who: str = "") -> TrainingError:
+    """The error for a chunk whose ``losses`` are not all finite; ``last_good``: (checkpoint
+    folder, its latest step) or None without checkpoints; ``who``: which run, where several."""
+    bad = losses[~np.isfinite(losses)][0]
+    where = f"; the last good checkpoint is in {last_good[0]} (step {last_good[1]})" if last_good else ""
+    return TrainingError(f"{who}the training loss became {bad} by step {step}{where}. Lower the "
+                         f"learning rate ({cfg.lr}) or check the data for outliers.")
+
+
 def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
         opt: optax.GradientTransformation, key: jax.Array,
         validate: Callable[[Any], tuple[float, dict[str, float]]] | None = None,
@@ -305,12 +315,8 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
             step, chunk_losses = stop, np.asarray(chunk_losses)
             losses.append(chunk_losses)
             if not np.isfinite(chunk_losses).all():
-                bad = chunk_losses[~np.isfinite(chunk_losses)][0]
-                where = (f"; the last good checkpoint is in {out / 'ckpt'} (step "
-                         f"{ckpt.latest_step()})") if ckpt is not None else ""
-                raise TrainingError(
-                    f"the training loss became {bad} by step {step}{where}. Lower the "
-                    f"learning rate ({cfg.lr}) or check the data for outliers.")
+                raise _diverged(chunk_losses, step, cfg,
+                                (out / "ckpt", ckpt.latest_step()) if ckpt is not None else None)
             last = step == cfg.steps
             held = step == end < cfg.steps  # stopped by stop_at: validated, saved
             if validate is not None and (step % cfg.eval_every == 0 or last or held):
@@ -376,6 +382,10 @@ def _restore_together(ckpts: list[ocp.CheckpointManager], states: list[dict], ou
         raise TrainingError(f"cannot resume the runs side by side: their checkpoints share no step "
                             f"({have}); train them one by one to a common step, or remove the checkpoints")
     step = max(common)
+    for c in ckpts:  # a later save of one run: redone with the others (saving a step twice fails)
+        for s in c.all_steps():
+            if s > step:
+                c.delete(s)
     try:
         states = [c.restore(step, args=ocp.args.StandardRestore(s)) for c, s in zip(ckpts, states, strict=True)]
     except Exception as e:  # noqa: BLE001 -- any unreadable checkpoint is the same problem
@@ -398,8 +408,10 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
     three runs side by side take 1.4x one run's time on Go1, eight 2.4x. On a CPU, whose cores the
     one run already fills, it gains nothing.
 
-    Each run is exactly what :func:`run` makes of its ``params[i]`` and ``keys[i]`` (the same
-    draws; equal to the float precision of the batched products): its own folder ``outs[i]`` with
+    Each run is what :func:`run` makes of its ``params[i]`` and ``keys[i]`` (the same start and
+    draws; the batched products round differently, which long training amplifies: on a GPU the
+    runs' final losses differed from the single runs' within the seeds' own spread after 6000
+    steps, ``results/throughput/README.md``): its own folder ``outs[i]`` with
     ``ckpt`` (the run's own state, which a single :func:`run` into that folder also resumes),
     ``best`` (its best validated parameters) and ``metrics.csv``, and its own best step. One
     device, one process (the runs are the batch here, not the devices).
@@ -452,12 +464,9 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
             losses.append(chunk_losses)
             if not np.isfinite(chunk_losses).all():
                 i = int(np.nonzero(~np.isfinite(chunk_losses).all(1))[0][0])
-                bad = chunk_losses[i][~np.isfinite(chunk_losses[i])][0]
-                where = (f"; its last good checkpoint is in {outs[i] / 'ckpt'} (step "
-                         f"{ckpts[i].latest_step()})") if ckpts is not None else ""
-                raise TrainingError(
-                    f"run {i} of {n}: the training loss became {bad} by step {step}{where}. Lower the "
-                    f"learning rate ({cfg.lr}) or check the data for outliers.")
+                raise _diverged(chunk_losses[i], step, cfg,
+                                (outs[i] / "ckpt", ckpts[i].latest_step()) if ckpts is not None else None,
+                                f"run {i} of {n}: ")
             last = step == cfg.steps
             held = step == end < cfg.steps
             if validate is not None and (step % cfg.eval_every == 0 or last or held):
