@@ -110,3 +110,12 @@ def test_one_process_with_two_devices_trains_the_same_model(alone, tmp_path):
     summation, and a checkpoint that restores in a one-device process."""
     _alone([*TRAIN, "--data", str(alone / "d1"), "--out", str(tmp_path / "r2")], tmp_path, devices=2)
     _same_model(alone / "r1", tmp_path / "r2")
+
+
+def test_seeds_side_by_side_split_over_two_devices(alone, tmp_path):
+    """``stride train --seeds 0,1`` in one process with two local devices: a seed on each, and
+    seed 0's run is the model one device trains alone with seed 0 (to float rounding)."""
+    _alone([*TRAIN, "--data", str(alone / "d1"), "--out", str(tmp_path / "r"), "--seeds", "0,1"], tmp_path,
+           devices=2)
+    assert "2 runs side by side over 2 devices, 1 each" in (tmp_path / "train-2dev.log").read_text()
+    _same_model(alone / "r1", tmp_path / "r-s0")

@@ -414,7 +414,8 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
     steps, ``results/throughput/README.md``): its own folder ``outs[i]`` with
     ``ckpt`` (the run's own state, which a single :func:`run` into that folder also resumes),
     ``best`` (its best validated parameters) and ``metrics.csv``, and its own best step. One
-    device, one process (the runs are the batch here, not the devices).
+    process; several local devices each take an equal share of the runs (all on the first where
+    the runs do not split evenly).
     """
     n = len(params)
     if n < 1 or len(keys) != n or (outs is not None and len(outs) != n):
@@ -436,10 +437,22 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
             for s in b.all_steps():
                 if s > int(states[0]["step"]):
                     b.delete(s)
-    device = jax.local_devices()[0]
-    data = jax.device_put(data, device)
-    state = jax.device_put(_stack(states), device)
-    key_data = jax.device_put(jnp.stack([jax.random.key_data(k) for k in keys]), device)
+    # Several local devices: the runs split over them (each device its share of the runs, the
+    # data replicated; no traffic between them), where they split evenly; else all on the first.
+    devices = jax.local_devices()
+    first = devices[0]
+    if len(devices) > 1 and n % len(devices) == 0:
+        mesh = jax.sharding.Mesh(np.array(devices), ("runs",))
+        on_runs, everywhere = NamedSharding(mesh, PartitionSpec("runs")), NamedSharding(mesh, PartitionSpec())
+        log(f"{n} runs side by side over {len(devices)} devices, {n // len(devices)} each")
+    else:
+        if len(devices) > 1:
+            log(f"{n} runs do not split evenly over {len(devices)} devices: all train on the first")
+        on_runs = everywhere = first
+    data = jax.device_put(data, everywhere)
+    state = jax.device_put(_stack(states), on_runs)
+    key_data = jax.device_put(jnp.stack([jax.random.key_data(k) for k in keys]), on_runs)
+    one = lambda tree, i: jax.device_put(_take(tree, i), first)  # noqa: E731 -- a run's share, for its validation and files
 
     @functools.partial(jax.jit, static_argnames="n")
     def chunk(params, opt_state, data, key_data, start, n):
@@ -447,7 +460,7 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
         return jax.vmap(one)(params, opt_state, key_data)
 
     step = start = int(state["step"][0])
-    kept = [_take(state["params"], i) for i in range(n)]
+    kept = [one(state["params"], i) for i in range(n)]
     best_step = [step] * n
     best_score = [float(s) for s in state["best_val"]]
     losses, checked_at, scores = [], [], [[] for _ in range(n)]
@@ -473,7 +486,7 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
                 checked_at.append(step)
                 best_val = np.array(state["best_val"])
                 for i in range(n):
-                    params_i = _take(state["params"], i)
+                    params_i = one(state["params"], i)
                     score, metrics = validate(params_i)
                     scores[i].append(float(score))
                     logs[i].write({"step": step, "time": time.time(),
@@ -488,12 +501,12 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
                 bar.set_postfix(loss=f"{float(chunk_losses[:, -1].mean()):.4g}",
                                 val=f"{np.mean([s[-1] for s in scores]):.4g}")
             elif validate is None:
-                kept = [_take(state["params"], i) for i in range(n)]
+                kept = [one(state["params"], i) for i in range(n)]
                 best_step = [step] * n
             out_of_time = bool(cfg.deadline) and step % cfg.eval_every == 0 and time.time() > cfg.deadline
             if ckpts is not None and (step % cfg.ckpt_every == 0 or last or out_of_time or held):
                 for i, c in enumerate(ckpts):
-                    c.save(step, args=ocp.args.StandardSave(_take(state, i)), force=True)
+                    c.save(step, args=ocp.args.StandardSave(one(state, i)), force=True)
             if held:
                 log(f"stopped at step {step} of {cfg.steps} (stop_at); run again with a later "
                     "stop_at (or none) to go on")
