@@ -136,8 +136,9 @@ PRESETS = {
 
 
 def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.Path:
-    """Trains ``cfg.model`` on ``cfg.data`` into ``cfg.out`` (resuming a killed run); returns
-    the run folder. ``command`` is accepted for the uniform job signature."""
+    """Trains ``cfg.model`` on ``cfg.data`` into ``cfg.out`` (with ``cfg.seeds``: into
+    ``<out>-s<seed>`` each; resuming a killed run); returns the run folder (the first seed's).
+    ``command`` is accepted for the uniform job signature."""
     models.check_name(cfg.model)  # before any data is made for it
     seeds = parse_seeds(cfg.seeds)
     if seeds and distributed.resolve(cfg.distributed) is not None:
