@@ -8,6 +8,9 @@ settle time or more after a command change: ``stride_jax.control.episode.tracked
         "DeLaN + MLP=results/closed_loop_go1_gpu/parts/full_changes:delan" \\
         "ONN=results/closed_loop_go1_gpu/parts/eq_changes:onn" \\
         --out results/planning_diagnosis/changes_error_go1
+    python experiments/tracking_error.py --scenario tilt --window-s 1 "STRIDE=DIR:stride" ... --out OUT
+
+(``--window-s``: also the forward offset and the RMSE per window of the episode.)
 
 A ``LABEL=FOLDER:MODEL`` picks, from a closed-loop run's folder (``closed_loop.json`` and its
 traces), the rows of that model kind in the scenario: every trained seed (``MODEL``,
@@ -107,6 +110,30 @@ def by_segment(files: list[pathlib.Path], settle_s: float) -> dict:
                 whole=float(np.mean([g[2] for g in got])), fell=sum(g[3] for g in got))
 
 
+def by_window(files: list[pathlib.Path], settle_s: float, window_s: float) -> dict:
+    """Per window of ``window_s`` seconds from the episode's start, the forward offset and the
+    velocity RMSE over each trace's scored steps there, means over the traces (NaN: no trace
+    scored a step): where in the episode an error arises (a transient after a slope's onset, a
+    steady offset)."""
+    if window_s <= 0:
+        raise ValueError(f"window {window_s} s: need a positive length")
+    offset, rmse = [], []
+    for f in files:
+        tr = _load(f)
+        use, t = tracked(tr, settle_s), np.asarray(tr.t)
+        e = tr.v_base[:, :2] - tr.command[:, :2]
+        # a step's time ends its period: window k holds (k w, (k + 1) w], the first also t = 0
+        k_of = np.maximum(np.ceil(t / window_s - 1e-9).astype(int) - 1, 0)
+        w = [use & (k_of == k) for k in range(int(k_of.max()) + 1 if len(t) else 0)]
+        offset.append([float(e[m, 0].mean()) if m.any() else np.nan for m in w])
+        rmse.append([float(np.sqrt((e[m] ** 2).sum(1).mean())) if m.any() else np.nan for m in w])
+    width = max(len(r) for r in rmse)
+    pad = lambda rows: np.array([r + [np.nan] * (width - len(r)) for r in rows])  # noqa: E731
+    mean = lambda a: [float(np.nanmean(c)) if np.isfinite(c).any() else float("nan") for c in a.T]  # noqa: E731
+    return dict(window_s=window_s, start=[k * window_s for k in range(width)],
+                offset_x=mean(pad(offset)), rmse=mean(pad(rmse)))
+
+
 def split(e: np.ndarray) -> dict:
     """Offset and variance per axis of pooled errors ``[n, 2]``; ``mse`` is their sum."""
     if len(e) == 0:
@@ -125,18 +152,21 @@ def run_settle_s(folder: pathlib.Path) -> float:
 
 
 def decompose(folder: pathlib.Path, scenario: str, model: str,
-              settle_s: float | None = None) -> dict:
+              settle_s: float | None = None, window_s: float = 0.0) -> dict:
     """The pooled split of ``model``'s traces in ``scenario`` (:func:`split`), its episodes,
-    trained seeds and each seed's forward offset; ``settle_s``: the run's own unless given."""
+    trained seeds and each seed's forward offset; ``settle_s``: the run's own unless given;
+    ``window_s`` > 0: also :func:`by_window` (``windows``)."""
     seeds = traces(folder, scenario, model)
     settle_s = run_settle_s(folder) if settle_s is None else settle_s
     if not seeds:
         raise FileNotFoundError(f"{folder}: no row of {model} in {scenario!r}")
     per = {s: np.concatenate([errors(f, settle_s) for f in fs]) for s, fs in seeds.items()}
+    files = [f for s in sorted(seeds) for f in seeds[s]]
     return dict(split(np.concatenate(list(per.values()))), settle_s=settle_s,
                 episodes=sum(len(fs) for fs in seeds.values()), seeds=sorted(seeds),
                 seed_offset_x=[float(per[s][:, 0].mean()) for s in sorted(per)],
-                segments=by_segment([f for s in sorted(seeds) for f in seeds[s]], settle_s))
+                segments=by_segment(files, settle_s),
+                **({"windows": by_window(files, settle_s, window_s)} if window_s > 0 else {}))
 
 
 def figure(rows: dict[str, dict], out: pathlib.Path, title: str) -> None:
@@ -167,6 +197,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scenario", required=True)
     ap.add_argument("--settle-s", type=float, default=None,
                     help="score from this long after a command change (default: each run's own)")
+    ap.add_argument("--window-s", type=float, default=0.0,
+                    help="also split the error over windows of this many seconds (0: not)")
     ap.add_argument("--out", required=True, help="path stem: writes STEM.md, .json, .png")
     ap.add_argument("--title", default="")
     a = ap.parse_args(argv)
@@ -179,7 +211,7 @@ def main(argv=None) -> int:
         if not pathlib.Path(folder).is_dir():
             raise SystemExit(f"{pick!r}: no folder {folder}")
         try:
-            rows[label] = dict(decompose(pathlib.Path(folder), a.scenario, model, a.settle_s),
+            rows[label] = dict(decompose(pathlib.Path(folder), a.scenario, model, a.settle_s, a.window_s),
                                source=f"{folder}:{model}")
         except (FileNotFoundError, ValueError) as e:
             raise SystemExit(f"{pick!r}: {e}") from None
@@ -214,6 +246,19 @@ def main(argv=None) -> int:
             md.append(f"| {label} | {r['episodes']}" + (f" ({g['fell']} fell)" if g["fell"] else "")
                       + " | " + " | ".join("-" if np.isnan(v) else f"{v:.3f}" for v in g["rmse"])
                       + f" | {g['whole']:.3f} |")
+    if a.window_s > 0:
+        starts = max((r["windows"]["start"] for r in rows.values()), key=len)
+        head = [f"{x:g}-{x + a.window_s:g} s" for x in starts]
+        cell = lambda v: "-" if np.isnan(v) else f"{v:+.3f}"  # noqa: E731
+        md += ["", f"Per {a.window_s:g} s of the episode: forward offset and velocity RMSE (m/s) over "
+               "the scored steps there, means over the model's traces.", "",
+               "| model | | " + " | ".join(head) + " |", "|---|---|" + "---:|" * len(head)]
+        for label, r in rows.items():
+            w = r["windows"]
+            fill = lambda xs: xs + [float("nan")] * (len(head) - len(xs))  # noqa: E731
+            md.append(f"| {label} | forward offset | " + " | ".join(cell(v) for v in fill(w["offset_x"])) + " |")
+            md.append(f"| {label} | RMSE | " + " | ".join(cell(v)[1:] if cell(v) != "-" else "-"
+                                                          for v in fill(w["rmse"])) + " |")
     command = "python experiments/tracking_error.py " + " ".join(
         shlex.quote(x) for x in (sys.argv[1:] if argv is None else argv))
     stem = write_table(a.out, dict(title=title, command=command, scenario=a.scenario, rows=rows),

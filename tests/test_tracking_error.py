@@ -117,3 +117,21 @@ def test_each_command_segment_scores_its_own_error(tmp_path, experiment):
     _trace(tmp_path, "stride", np.array([0.1, 0.0]), sway=0.0, draw=1, change_at=120)
     with pytest.raises(ValueError, match="schedule differs"):
         mod.decompose(tmp_path, "changes", "stride")
+
+
+def test_windows_place_a_transient_offset_in_time(tmp_path, experiment):
+    """``--window-s``: an offset that only the first half carries shows in the first windows'
+    forward offset and RMSE, not in the later ones."""
+    mod = experiment("tracking_error")
+    _trace(tmp_path, "stride", np.array([0.05, 0.0]), sway=0.0, change_at=200, offset_after=None)
+    path = next(tmp_path.glob("trace_*.npz"))
+    with np.load(path) as z:
+        d = {k: z[k] for k in z.files}
+    d["v_base"][101:, 0] -= 0.05  # the offset gone after 2 s (a step's time ends its period)
+    np.savez(path, **d)
+    w = mod.decompose(tmp_path, "changes", "stride", settle_s=0.0, window_s=1.0)["windows"]
+    assert w["start"] == [0.0, 1.0, 2.0, 3.0]
+    np.testing.assert_allclose(w["offset_x"], [0.05, 0.05, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(w["rmse"], [0.05, 0.05, 0.0, 0.0], atol=1e-6)
+    with pytest.raises(ValueError, match="positive"):
+        mod.by_window([path], 0.0, 0.0)
