@@ -68,15 +68,17 @@ reproduce: setup
 report: setup
 	$(BIN)/python experiments/report.py
 
-## test: the suite, in two pytest processes balanced by tests/durations.json (14:42 in clean-clone
-## CI on this 2-core host, setup included, session 71; 17-19 min before; the host's speed swings by
-## 10-20% within an hour; `$(BIN)/python -m pytest -q` runs it in one process); the
+## test: the suite, in two pytest processes balanced by tests/durations.json (12:55 in clean-clone
+## CI on this 2-core host, setup included, session 72; 14:42-14:51 in sessions 71-72 before the
+## last cuts, 17-19 min before those; the host's speed swings by 10-20% within an hour;
+## `$(BIN)/python -m pytest -q` runs it in one process); the
 ## tests marked slow, longer cross-checks each with a faster counterpart here, are left to test-all
 test: setup
 	$(BIN)/python tests/run_parallel.py
 
 ## test-all: the suite and the tests marked slow (530 s more test time measured in session 68, and
-## about 330 s more marked in session 71, summed from their durations before the marks)
+## about 330 s more marked in session 71 and 55 s in session 72, summed from their durations
+## before the marks)
 test-all: setup
 	$(BIN)/python tests/run_parallel.py --all
 
