@@ -106,8 +106,10 @@ class Table1Config:
       parallel: processes at once.
       side_by_side: train each model's seeds in one ``stride train --seeds`` process (one program,
         the seeds vmapped; ``<robot>/<model>-s0+1+2`` in the progress): on a GPU at the paper's
-        size three seeds take 1.4x one seed's time where processes side by side share the GPU by
-        time slices (``results/throughput/README.md``); on a CPU no gain.
+        size three Go1 seeds take 1.4x one seed's step, a whole three-seed run 1.7x less time
+        than three one after another (``results/throughput/README.md``). Processes side by side
+        share a GPU by time slices (the closed loop's measured 2-3x slower per step each); the
+        two were not timed against each other for training. On a CPU no gain.
       minutes: wall-clock budget for training, from when the data exist (0: none); runs stop
         cleanly at it.
       eval_only: evaluate and tabulate the runs already trained (no data, no training).
