@@ -272,6 +272,8 @@ def test_train_seeds_side_by_side_is_each_seed_alone(data_dir, tmp_path):
     assert cfg["train"]["loop"]["seed"] == 1 and cfg["side_by_side"] == [0, 1]
     with pytest.raises(SystemExit, match="--seeds"):
         cli.main(short + ["--out", str(tmp_path / "x"), "--seeds", "0,0"])
+    with pytest.raises(SystemExit, match="--seed 3 with --seeds 0,1"):
+        cli.main(short + ["--out", str(tmp_path / "x"), "--seeds", "0,1", "--seed", "3"])
 
 
 def test_runs_side_by_side_resume_at_the_step_all_their_checkpoints_hold(tmp_path):

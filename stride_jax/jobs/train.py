@@ -83,7 +83,7 @@ class TrainConfig:
         e.g. ``0,1,2``; :func:`stride_jax.train.dynamics.train_side_by_side`), each into its own
         run folder ``<out>-s<seed>``, each the run ``--loop.seed`` alone makes (its
         initialisation and draws; the batched products round differently); empty: one run of
-        ``loop.seed`` into ``out``. On a GPU at the paper's size three seeds take 1.4x one
+        ``loop.seed`` into ``out`` (``--seed`` and ``--seeds`` together: an error). On a GPU at the paper's size three seeds take 1.4x one
         seed's step (``results/throughput/README.md``); on a CPU they gain nothing. Several local
         devices share the seeds where they split evenly (else all train on the first).
       distributed: train data-parallel over several processes (:mod:`stride_jax.distributed`).
@@ -141,6 +141,8 @@ def run(cfg: TrainConfig, command: str = "stride train", log=print) -> pathlib.P
     ``command`` is accepted for the uniform job signature."""
     models.check_name(cfg.model)  # before any data is made for it
     seeds = parse_seeds(cfg.seeds)
+    if seeds and cfg.loop.seed != LoopConfig.seed:
+        raise ValueError(f"--seed {cfg.loop.seed} with --seeds {cfg.seeds}: give every seed in --seeds alone")
     if seeds and distributed.resolve(cfg.distributed) is not None:
         raise ValueError("--seeds trains side by side on one process; with --distributed train the seeds one by one")
     distributed.initialize(cfg.distributed)
