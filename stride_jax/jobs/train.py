@@ -79,13 +79,14 @@ class TrainConfig:
         alike. Above 1 trains for the base's motion, what a velocity-tracking planner's cost
         reads.
       out: run folder; empty means ``runs/<robot>/<model>``.
-      seeds: several seeds trained side by side in one program (comma-separated,
-        e.g. ``0,1,2``; :func:`stride_jax.train.dynamics.train_side_by_side`), each into its own
-        run folder ``<out>-s<seed>``, each the run ``--loop.seed`` alone makes (its
-        initialisation and draws; the batched products round differently); empty: one run of
-        ``loop.seed`` into ``out`` (``--seed`` and ``--seeds`` together: an error). On a GPU at the paper's size three seeds take 1.4x one
-        seed's step (``results/throughput/README.md``); on a CPU they gain nothing. Several local
-        devices share the seeds where they split evenly (else all train on the first).
+      seeds: several seeds trained side by side in one program (comma-separated, e.g.
+        ``0,1,2``; :func:`stride_jax.train.dynamics.train_side_by_side`), each into its own run
+        folder ``<out>-s<seed>``, each the run ``--loop.seed`` alone makes (its initialisation
+        and draws; the batched products round differently); empty: one run of ``loop.seed``
+        into ``out`` (``--seed`` and ``--seeds`` together: an error). On a GPU at the paper's
+        size three seeds take 1.4x one seed's step (``results/throughput/README.md``); on a CPU
+        they gain nothing. Several local devices share the seeds where they split evenly (else
+        all train on the first).
       distributed: train data-parallel over several processes (:mod:`stride_jax.distributed`).
     """
 

@@ -452,7 +452,8 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
     data = jax.device_put(data, everywhere)
     state = jax.device_put(_stack(states), on_runs)
     key_data = jax.device_put(jnp.stack([jax.random.key_data(k) for k in keys]), on_runs)
-    one = lambda tree, i: jax.device_put(_take(tree, i), first)  # noqa: E731 -- a run's share, for its validation and files
+    # one run's share, on the first device, for its validation and its files
+    one = lambda tree, i: jax.device_put(_take(tree, i), first)  # noqa: E731
 
     @functools.partial(jax.jit, static_argnames="n")
     def chunk(params, opt_state, data, key_data, start, n):
