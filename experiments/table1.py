@@ -230,9 +230,8 @@ def main(argv: list[str] | None = None) -> None:
     ablation_seeds = seeds if args.ablation_seeds else [first_seed]
     jobs += [(r, "stride", s, v) for s in ablation_seeds for r in robots
              for v in args.ablation.split(",") if v]
-    name = run_name
     run_dir = lambda r, m, s, v: runs[r] / f"{tag(m, v)}-s{s}"
-    folders = {name(*j): run_dir(*j) for j in jobs}
+    folders = {run_name(*j): run_dir(*j) for j in jobs}
     groups = training_groups(jobs, args.side_by_side)
 
     def train_command(group):
@@ -253,18 +252,18 @@ def main(argv: list[str] | None = None) -> None:
 
     train = {g: train_command(members) for g, members in groups.items()}
     logs = {g: (runs[members[0][0]] / f"{g.split('/', 1)[1]}.train.log" if args.side_by_side
-                else folders[name(*members[0])] / "train.log") for g, members in groups.items()}
+                else folders[run_name(*members[0])] / "train.log") for g, members in groups.items()}
     # one seed's run first where seeds train one by one: the others reuse its compilation
     leader = {g: run_dir(m[0][0], m[0][1], first_seed, "") for g, m in groups.items()}
-    follows = lambda g: (lambda: args.side_by_side or leader[g] == folders[name(*groups[g][0])]
+    follows = lambda g: (lambda: args.side_by_side or leader[g] == folders[run_name(*groups[g][0])]
                          or (leader[g] / "metrics.csv").exists())
     ready = {g: follows(g) for g in train}
     if args.eval_only:
         failed = []
-        ok = [name(*j) for j in jobs if (folders[name(*j)] / "summary.json").exists()]
+        ok = [run_name(*j) for j in jobs if (folders[run_name(*j)] / "summary.json").exists()]
     else:
         failed = pool.run(train, logs, args.parallel, env, ready, t0, "train")
-        ok = [name(*j) for g, members in groups.items() if g not in failed for j in members]
+        ok = [run_name(*j) for g, members in groups.items() if g not in failed for j in members]
     # Evaluate runs side by side (each caches its eval.json), then tabulate per robot. The first
     # evaluation of a robot goes alone: it re-simulates the true continuations every other
     # evaluation of that dataset reuses.

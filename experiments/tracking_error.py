@@ -249,16 +249,14 @@ def main(argv=None) -> int:
     if a.window_s > 0:
         starts = max((r["windows"]["start"] for r in rows.values()), key=len)
         head = [f"{x:g}-{x + a.window_s:g} s" for x in starts]
-        cell = lambda v: "-" if np.isnan(v) else f"{v:+.3f}"  # noqa: E731
         md += ["", f"Per {a.window_s:g} s of the episode: forward offset and velocity RMSE (m/s) over "
                "the scored steps there, means over the model's traces.", "",
                "| model | | " + " | ".join(head) + " |", "|---|---|" + "---:|" * len(head)]
         for label, r in rows.items():
-            w = r["windows"]
-            fill = lambda xs: xs + [float("nan")] * (len(head) - len(xs))  # noqa: E731
-            md.append(f"| {label} | forward offset | " + " | ".join(cell(v) for v in fill(w["offset_x"])) + " |")
-            md.append(f"| {label} | RMSE | " + " | ".join(cell(v)[1:] if cell(v) != "-" else "-"
-                                                          for v in fill(w["rmse"])) + " |")
+            for what, key, form in (("forward offset", "offset_x", "+.3f"), ("RMSE", "rmse", ".3f")):
+                vals = r["windows"][key] + [float("nan")] * (len(head) - len(r["windows"][key]))
+                md.append(f"| {label} | {what} | "
+                          + " | ".join("-" if np.isnan(v) else format(v, form) for v in vals) + " |")
     command = "python experiments/tracking_error.py " + " ".join(
         shlex.quote(x) for x in (sys.argv[1:] if argv is None else argv))
     stem = write_table(a.out, dict(title=title, command=command, scenario=a.scenario, rows=rows),

@@ -100,7 +100,7 @@ def train_examples(loss_fn: Callable, init_fn: Callable, data: dict, val: dict,
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     mean_loss, validate = _objective(loss_fn, data, val, batch_loss)
-    key_init, key_loop = jax.random.split(jax.random.key(cfg.seed))
+    key_init, key_loop = seed_keys(cfg.seed)
     res = run(mean_loss, init_fn(key_init), data, cfg, optimizer(cfg.lr, cfg.steps), key_loop,
               validate, out, log)
     if distributed.is_main():
@@ -124,12 +124,19 @@ def train_side_by_side(loss_fn: Callable, init_fn: Callable, data: dict, val: di
     for o in outs:
         o.mkdir(parents=True, exist_ok=True)
     mean_loss, validate = _objective(loss_fn, data, val, batch_loss)
-    keys = [jax.random.split(jax.random.key(seed)) for seed in runs]
-    results = run_many(mean_loss, [init_fn(k[0]) for k in keys], data, cfg, optimizer(cfg.lr, cfg.steps),
-                       [k[1] for k in keys], validate, outs, log)
+    keys = [seed_keys(seed) for seed in runs]
+    results = run_many(mean_loss, [init_fn(k_init) for k_init, _ in keys], data, cfg,
+                       optimizer(cfg.lr, cfg.steps), [k_loop for _, k_loop in keys], validate, outs, log)
     for o, res in zip(outs, results, strict=True):
         _write_summary(o, res, cfg)
     return {seed: res.params for seed, res in zip(runs, results, strict=True)}
+
+
+def seed_keys(seed: int) -> tuple[jax.Array, jax.Array]:
+    """``(init, loop)``: a run's initialisation key and its minibatch draws' key, from its seed
+    (one derivation for a run alone and side by side)."""
+    key_init, key_loop = jax.random.split(jax.random.key(seed))
+    return key_init, key_loop
 
 
 def _objective(loss_fn: Callable, data: dict, val: dict, batch_loss: Callable | None):

@@ -215,6 +215,26 @@ class _Log:
             writer.writerow(row)
 
 
+def _marks(step: int, end: int, cfg: LoopConfig) -> tuple[bool, bool, bool]:
+    """``(last, held, validate)`` at the end of a chunk: the schedule's last step, a stop by
+    ``stop_at`` (validated and saved), and whether validation runs here."""
+    last, held = step == cfg.steps, step == end < cfg.steps
+    return last, held, step % cfg.eval_every == 0 or last or held
+
+
+def _after(step: int, cfg: LoopConfig, last: bool, held: bool) -> tuple[bool, str]:
+    """``(save, stop)`` after a chunk's validation: whether a checkpoint is written here, and
+    why the loop stops before the schedule's end (empty: it goes on), as the log says it."""
+    out_of_time = bool(cfg.deadline) and step % cfg.eval_every == 0 and time.time() > cfg.deadline
+    save = step % cfg.ckpt_every == 0 or last or out_of_time or held
+    if held:
+        return save, (f"stopped at step {step} of {cfg.steps} (stop_at); run again with a later "
+                      "stop_at (or none) to go on")
+    if out_of_time and not last:
+        return save, f"deadline reached: stopped at step {step} of {cfg.steps}; run again to resume"
+    return save, ""
+
+
 def _diverged(losses: np.ndarray, step: int, cfg: LoopConfig, last_good: tuple | None,
               who: str = "") -> TrainingError:
     """The error for a chunk whose ``losses`` are not all finite; ``last_good``: (checkpoint
@@ -317,9 +337,8 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
             if not np.isfinite(chunk_losses).all():
                 raise _diverged(chunk_losses, step, cfg,
                                 (out / "ckpt", ckpt.latest_step()) if ckpt is not None else None)
-            last = step == cfg.steps
-            held = step == end < cfg.steps  # stopped by stop_at: validated, saved
-            if validate is not None and (step % cfg.eval_every == 0 or last or held):
+            last, held, validating = _marks(step, end, cfg)
+            if validate is not None and validating:
                 score, metrics = validate(host(state["params"]))
                 checked_at.append(step)
                 scores.append(float(score))
@@ -336,17 +355,11 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
                 bar.set_postfix(loss=f"{float(chunk_losses[-1]):.4g}", val=f"{score:.4g}")
             elif validate is None:
                 kept, best_step = state["params"], step
-            out_of_time = bool(cfg.deadline) and step % cfg.eval_every == 0 and \
-                time.time() > cfg.deadline
-            if ckpt is not None and (step % cfg.ckpt_every == 0 or last or out_of_time or held):
+            save, stop = _after(step, cfg, last, held)
+            if ckpt is not None and save:
                 ckpt.save(step, args=ocp.args.StandardSave(host(state)), force=True)
-            if held:
-                log(f"stopped at step {step} of {cfg.steps} (stop_at); run again with a later "
-                    "stop_at (or none) to go on")
-                break
-            if out_of_time and not last:
-                log(f"deadline reached: stopped at step {step} of {cfg.steps}; run again "
-                    "to resume")
+            if stop:
+                log(stop)
                 break
     if ckpt is not None:
         ckpt.wait_until_finished()
@@ -457,8 +470,8 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
 
     @functools.partial(jax.jit, static_argnames="n")
     def chunk(params, opt_state, data, key_data, start, n):
-        one = lambda p, o, kd: scan_steps(loss_fn, opt, p, o, data, jax.random.wrap_key_data(kd), start, n, batch)
-        return jax.vmap(one)(params, opt_state, key_data)
+        each = lambda p, o, kd: scan_steps(loss_fn, opt, p, o, data, jax.random.wrap_key_data(kd), start, n, batch)
+        return jax.vmap(each)(params, opt_state, key_data)
 
     step = start = int(state["step"][0])
     kept = [one(state["params"], i) for i in range(n)]
@@ -481,9 +494,8 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
                 raise _diverged(chunk_losses[i], step, cfg,
                                 (outs[i] / "ckpt", ckpts[i].latest_step()) if ckpts is not None else None,
                                 f"run {i} of {n}: ")
-            last = step == cfg.steps
-            held = step == end < cfg.steps
-            if validate is not None and (step % cfg.eval_every == 0 or last or held):
+            last, held, validating = _marks(step, end, cfg)
+            if validate is not None and validating:
                 checked_at.append(step)
                 best_val = np.array(state["best_val"])
                 for i in range(n):
@@ -504,16 +516,12 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
             elif validate is None:
                 kept = [one(state["params"], i) for i in range(n)]
                 best_step = [step] * n
-            out_of_time = bool(cfg.deadline) and step % cfg.eval_every == 0 and time.time() > cfg.deadline
-            if ckpts is not None and (step % cfg.ckpt_every == 0 or last or out_of_time or held):
+            save, stop = _after(step, cfg, last, held)
+            if ckpts is not None and save:
                 for i, c in enumerate(ckpts):
                     c.save(step, args=ocp.args.StandardSave(one(state, i)), force=True)
-            if held:
-                log(f"stopped at step {step} of {cfg.steps} (stop_at); run again with a later "
-                    "stop_at (or none) to go on")
-                break
-            if out_of_time and not last:
-                log(f"deadline reached: stopped at step {step} of {cfg.steps}; run again to resume")
+            if stop:
+                log(stop)
                 break
     if ckpts is not None:
         for c, b in zip(ckpts, bests, strict=True):
