@@ -244,6 +244,38 @@ def test_runs_side_by_side_are_each_run_alone(tmp_path):
     assert abs(float(many[0].params["w"]) - float(many[1].params["w"])) > 1e-3  # two runs, not one twice
 
 
+def test_runs_side_by_side_validate_all_at_once_as_one_by_one(tmp_path):
+    """``validate_all`` (every run's validation from the stacked parameters, one program) gives
+    each run the scores, best step and parameters that validating the runs in turn gives; the
+    result says where the time went."""
+    data, loss, validate = _noisy_line()
+    opt = loop.optimizer(3e-2, 9)
+    starts = [{"w": jnp.array(s), "b": jnp.array(-s)} for s in (0.0, 2.0, -1.0)]
+    keys = [jax.random.key(k) for k in (3, 4, 5)]
+    cfg = loop.LoopConfig(steps=9, batch=8, eval_every=3, ckpt_every=3)
+    mse = jax.jit(jax.vmap(lambda p: jnp.mean((p["w"] * data["x"] + p["b"] - data["y"]) ** 2)))
+
+    def at_once(params):
+        return np.asarray(mse(params)), [{"w": float(w)} for w in params["w"]]
+
+    each = loop.run_many(loss, starts, data, cfg, opt, keys, validate, outs=[tmp_path / f"e{i}" for i in range(3)],
+                         progress=None)
+    once = loop.run_many(loss, starts, data, cfg, opt, keys, outs=[tmp_path / f"o{i}" for i in range(3)],
+                         progress=None, validate_all=at_once)
+    for e, o in zip(each, once):
+        np.testing.assert_allclose(o.scores, e.scores, rtol=1e-6)
+        assert o.best_step == e.best_step and o.checked_at == e.checked_at == [3, 6, 9]
+        np.testing.assert_allclose(o.params["w"], e.params["w"], rtol=1e-6)
+        assert set(o.seconds) == {"train", "validate", "save"} and all(v >= 0 for v in o.seconds.values())
+    w = [[float(r["w"]) for r in csv.DictReader(open(tmp_path / f"{k}2" / "metrics.csv"))] for k in "eo"]
+    assert len(w[0]) == 3 and w[1] == pytest.approx(w[0], rel=1e-6)  # each run's own metrics row
+    with pytest.raises(ValueError, match="not both"):
+        loop.run_many(loss, starts, data, cfg, opt, keys, validate, progress=None, validate_all=at_once)
+    with pytest.raises(ValueError, match="returned 2 scores and 2 metrics for 3 runs"):
+        loop.run_many(loss, starts, data, cfg, opt, keys, progress=None,
+                      validate_all=lambda p: (np.zeros(2), [{}, {}]))
+
+
 def test_runs_side_by_side_name_the_run_whose_loss_fails(tmp_path):
     data, _, validate = _noisy_line()
     loss = lambda p, b, key: (jnp.mean(jnp.log(p["w"]) * b["x"] ** 2), {})

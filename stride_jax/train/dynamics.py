@@ -99,12 +99,13 @@ def train_examples(loss_fn: Callable, init_fn: Callable, data: dict, val: dict,
     (``checkpoint.params_sha256``)."""
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    mean_loss, validate = _objective(loss_fn, data, val, batch_loss)
+    mean_loss, validate, _ = _objective(loss_fn, data, val, batch_loss)
     key_init, key_loop = seed_keys(cfg.seed)
     res = run(mean_loss, init_fn(key_init), data, cfg, optimizer(cfg.lr, cfg.steps), key_loop,
               validate, out, log)
     if distributed.is_main():
         _write_summary(out, res, cfg)
+        log(_time_split(res))
     return res.params
 
 
@@ -123,10 +124,12 @@ def train_side_by_side(loss_fn: Callable, init_fn: Callable, data: dict, val: di
         raise ValueError(f"train_side_by_side: two seeds share a run folder: {runs}")
     for o in outs:
         o.mkdir(parents=True, exist_ok=True)
-    mean_loss, validate = _objective(loss_fn, data, val, batch_loss)
+    mean_loss, _, validate_all = _objective(loss_fn, data, val, batch_loss, runs=len(runs))
     keys = [seed_keys(seed) for seed in runs]
     results = run_many(mean_loss, [init_fn(k_init) for k_init, _ in keys], data, cfg,
-                       optimizer(cfg.lr, cfg.steps), [k_loop for _, k_loop in keys], validate, outs, log)
+                       optimizer(cfg.lr, cfg.steps), [k_loop for _, k_loop in keys], outs=outs, log=log,
+                       validate_all=validate_all)
+    log(_time_split(results[0]) + f" ({len(runs)} runs side by side)")
     for o, res in zip(outs, results, strict=True):
         _write_summary(o, res, cfg)
     return {seed: res.params for seed, res in zip(runs, results, strict=True)}
@@ -139,9 +142,11 @@ def seed_keys(seed: int) -> tuple[jax.Array, jax.Array]:
     return key_init, key_loop
 
 
-def _objective(loss_fn: Callable, data: dict, val: dict, batch_loss: Callable | None):
-    """``(mean_loss, validate)`` of :func:`train_examples`: a minibatch's mean loss and parts,
-    and the validation score and metrics of a parameter set."""
+def _objective(loss_fn: Callable, data: dict, val: dict, batch_loss: Callable | None, runs: int = 1):
+    """``(mean_loss, validate, validate_all)`` of :func:`train_examples`: a minibatch's mean loss
+    and parts, the validation score and metrics of a parameter set, and the same for ``runs``
+    parameter sets stacked (``loop.ValidateAll``: one vmapped program, each run's chunk of
+    examples ``VALIDATION_CHUNK // runs`` so that a batched factorisation keeps its size)."""
     if len(data["q"]) == 0 or len(val["q"]) == 0:
         raise TrainingError("no valid training or validation steps in the dataset")
 
@@ -163,17 +168,31 @@ def _objective(loss_fn: Callable, data: dict, val: dict, batch_loss: Callable | 
         return jnp.mean(total), jax.tree.map(jnp.mean, parts)
 
     eval_fn = jax.jit(lambda params, ex, key: mean_loss(params, ex, key, VALIDATION_CHUNK))
+    eval_all = jax.jit(jax.vmap(lambda params, ex, key: mean_loss(params, ex, key, max(1, VALIDATION_CHUNK // runs)),
+                                in_axes=(0, None, None)))
     val_ex = jax.tree.map(lambda a: a[: min(len(a), 4096)], val)
 
-    def validate(params):
-        val_loss, parts = eval_fn(params, val_ex, jax.random.key(0))
+    def scored(val_loss, parts):
         # The best checkpoint: the lowest validation "select" part where the loss names one
         # (structured models: acceleration error plus the allocation term, not a total
         # dominated by the generator's loss), else the lowest total.
         return float(parts.get("select", val_loss)), {
             "val_loss": float(val_loss), **{f"val_{k}": float(v) for k, v in parts.items()}}
 
-    return mean_loss, validate
+    def validate(params):
+        return scored(*eval_fn(params, val_ex, jax.random.key(0)))
+
+    def validate_all(params):
+        val_loss, parts = jax.device_get(eval_all(params, val_ex, jax.random.key(0)))
+        done = [scored(val_loss[i], {k: v[i] for k, v in parts.items()}) for i in range(len(val_loss))]
+        return np.array([score for score, _ in done]), [metrics for _, metrics in done]
+
+    return mean_loss, validate, validate_all
+
+
+def _time_split(res) -> str:
+    """Where a training call's wall time went (``loop.Result.seconds``), as the log says it."""
+    return "time: " + ", ".join(f"{part} {sec:.1f} s" for part, sec in res.seconds.items())
 
 
 def _write_summary(out: pathlib.Path, res, cfg: LoopConfig) -> None:

@@ -19,6 +19,7 @@ change the draws.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import functools
@@ -146,6 +147,8 @@ class Result(NamedTuple):
       best_step: the step of ``params``.
       best_score: its validation score (inf without a ``validate``).
       steps_done: the steps taken, counting those of a resumed run.
+      seconds: wall time of this call by part (``train``: the optimiser's chunks; ``validate``;
+        ``save``: checkpoints handed to orbax), where the time went between validations.
     """
 
     params: Any
@@ -155,6 +158,7 @@ class Result(NamedTuple):
     best_step: int
     best_score: float
     steps_done: int
+    seconds: dict | None = None
 
 
 def _manager(path: pathlib.Path, max_to_keep: int) -> ocp.CheckpointManager:
@@ -191,6 +195,21 @@ def _next_stop(step: int, cfg: LoopConfig, validating: bool, saving: bool) -> in
     if saving:
         stop = min(stop, (step // cfg.ckpt_every + 1) * cfg.ckpt_every)
     return stop
+
+
+class _Clock:
+    """Wall seconds by part of a training call (:attr:`Result.seconds`): ``with clock(part):``."""
+
+    def __init__(self):
+        self.seconds = {"train": 0.0, "validate": 0.0, "save": 0.0}
+
+    @contextlib.contextmanager
+    def __call__(self, part: str):
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[part] += time.perf_counter() - t
 
 
 class _Log:
@@ -322,24 +341,28 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
     step = start = int(state["step"])
     kept, best_step, best_score = state["params"], step, float(state["best_val"])
     losses, checked_at, scores = [], [], []
+    clock = _Clock()
     metrics_log = _Log(out / "metrics.csv" if out is not None and main else None)
     with tqdm(total=cfg.steps, initial=start, desc=progress, unit="step",
               disable=progress is None or not main) as bar:
         end = _end(cfg)
         while step < end:
             stop = _next_stop(step, cfg, validate is not None, ckpt is not None)
-            (p, o), chunk_losses, parts = chunk(state["params"], state["opt"], data, key_data,
-                                                step, n=stop - step)
+            with clock("train"):
+                (p, o), chunk_losses, parts = chunk(state["params"], state["opt"], data, key_data,
+                                                    step, n=stop - step)
+                chunk_losses = np.asarray(chunk_losses)  # waits for the chunk
             state = dict(state, params=p, opt=o, step=jnp.asarray(stop, jnp.int32))
             bar.update(stop - step)
-            step, chunk_losses = stop, np.asarray(chunk_losses)
+            step = stop
             losses.append(chunk_losses)
             if not np.isfinite(chunk_losses).all():
                 raise _diverged(chunk_losses, step, cfg,
                                 (out / "ckpt", ckpt.latest_step()) if ckpt is not None else None)
             last, held, validating = _marks(step, end, cfg)
             if validate is not None and validating:
-                score, metrics = validate(host(state["params"]))
+                with clock("validate"):
+                    score, metrics = validate(host(state["params"]))
                 checked_at.append(step)
                 scores.append(float(score))
                 metrics_log.write({"step": step, "time": time.time(),
@@ -350,20 +373,23 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
                     state = dict(state, best_val=jnp.asarray(score, jnp.float32))
                     kept, best_step, best_score = state["params"], step, float(score)
                     if best is not None:
-                        best.save(step, args=ocp.args.StandardSave(host(state["params"])),
-                                  force=True)
+                        with clock("save"):
+                            best.save(step, args=ocp.args.StandardSave(host(state["params"])),
+                                      force=True)
                 bar.set_postfix(loss=f"{float(chunk_losses[-1]):.4g}", val=f"{score:.4g}")
             elif validate is None:
                 kept, best_step = state["params"], step
             save, stop = _after(step, cfg, last, held)
             if ckpt is not None and save:
-                ckpt.save(step, args=ocp.args.StandardSave(host(state)), force=True)
+                with clock("save"):
+                    ckpt.save(step, args=ocp.args.StandardSave(host(state)), force=True)
             if stop:
                 log(stop)
                 break
     if ckpt is not None:
-        ckpt.wait_until_finished()
-        best.wait_until_finished()
+        with clock("save"):
+            ckpt.wait_until_finished()
+            best.wait_until_finished()
         if validate is not None:
             if best.latest_step() is None:
                 raise TrainingError("no validation ever ran (steps < eval_every?)")
@@ -371,7 +397,7 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
             kept = best.restore(best_step,
                                 args=ocp.args.StandardRestore(host(state["params"])))
     return Result(host(kept), np.concatenate(losses) if losses else np.zeros(0), checked_at, scores,
-                  best_step, best_score, step)
+                  best_step, best_score, step, clock.seconds)
 
 
 def _stack(trees: list) -> Any:
@@ -407,11 +433,26 @@ def _restore_together(ckpts: list[ocp.CheckpointManager], states: list[dict], ou
     return states
 
 
+# ``validate_all(params) -> (scores [runs], [metrics {name: float}] per run)``: every run's
+# validation at once, the runs' parameters stacked on a leading axis (:func:`run_many`).
+ValidateAll = Callable[[Any], tuple[np.ndarray, list[dict[str, float]]]]
+
+
+def one_by_one(validate: Callable[[Any], tuple[float, dict[str, float]]]) -> ValidateAll:
+    """A single run's ``validate(params) -> (score, metrics)`` as :data:`ValidateAll`: each run's
+    parameters taken from the stack and validated in turn."""
+    def validate_all(params):
+        n = jax.tree.leaves(params)[0].shape[0]
+        done = [validate(_take(params, i)) for i in range(n)]
+        return np.array([float(score) for score, _ in done]), [metrics for _, metrics in done]
+    return validate_all
+
+
 def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
              opt: optax.GradientTransformation, keys: list[jax.Array],
              validate: Callable[[Any], tuple[float, dict[str, float]]] | None = None,
              outs: list[pathlib.Path] | None = None, log: Callable[[str], None] = print,
-             progress: str | None = "train") -> list[Result]:
+             progress: str | None = "train", validate_all: ValidateAll | None = None) -> list[Result]:
     """:func:`run` for several independent runs side by side in one program: the same loss, data
     and schedule, each run its own initial ``params[i]`` and ``keys[i]`` (its minibatch draws), the
     optimiser steps of all vmapped over the runs.
@@ -429,6 +470,11 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
     ``best`` (its best validated parameters) and ``metrics.csv``, and its own best step. One
     process; several local devices each take an equal share of the runs (all on the first where
     the runs do not split evenly).
+
+    ``validate`` validates one run's parameters as :func:`run`'s does, the runs in turn;
+    ``validate_all`` (:data:`ValidateAll`, instead of it) all runs at once from their stacked
+    parameters, which keeps the side-by-side gain through validation (one vmapped program
+    instead of a program per run: ``train.dynamics.train_side_by_side``).
     """
     n = len(params)
     if n < 1 or len(keys) != n or (outs is not None and len(outs) != n):
@@ -436,6 +482,10 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
                          f"{'no' if outs is None else len(outs)} folders: need one of each per run")
     if jax.process_count() > 1:
         raise TrainingError("runs side by side train on one process; train them one by one over several processes")
+    if validate is not None and validate_all is not None:
+        raise ValueError("run_many: give validate (one run at a time) or validate_all (all at once), not both")
+    if validate is not None:
+        validate_all = one_by_one(validate)
     n_data = jax.tree.leaves(data)[0].shape[0]
     batch = min(cfg.batch, n_data)
     states = [{"params": p, "opt": opt.init(p), "step": jnp.zeros((), jnp.int32),
@@ -478,16 +528,20 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
     best_step = [step] * n
     best_score = [float(s) for s in state["best_val"]]
     losses, checked_at, scores = [], [], [[] for _ in range(n)]
+    clock = _Clock()
     logs = [_Log(o / "metrics.csv" if o is not None else None) for o in (outs or [None] * n)]
     with tqdm(total=cfg.steps, initial=start, desc=f"{progress} x{n}" if progress else None, unit="step",
               disable=progress is None) as bar:
         end = _end(cfg)
         while step < end:
-            stop = _next_stop(step, cfg, validate is not None, ckpts is not None)
-            (p, o), chunk_losses, parts = chunk(state["params"], state["opt"], data, key_data, step, n=stop - step)
+            stop = _next_stop(step, cfg, validate_all is not None, ckpts is not None)
+            with clock("train"):
+                (p, o), chunk_losses, parts = chunk(state["params"], state["opt"], data, key_data, step,
+                                                    n=stop - step)
+                chunk_losses = np.asarray(chunk_losses)  # [runs, steps]; waits for the chunk
             state = dict(state, params=p, opt=o, step=jnp.full((n,), stop, jnp.int32))
             bar.update(stop - step)
-            step, chunk_losses = stop, np.asarray(chunk_losses)  # [runs, steps]
+            step = stop
             losses.append(chunk_losses)
             if not np.isfinite(chunk_losses).all():
                 i = int(np.nonzero(~np.isfinite(chunk_losses).all(1))[0][0])
@@ -495,44 +549,50 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
                                 (outs[i] / "ckpt", ckpts[i].latest_step()) if ckpts is not None else None,
                                 f"run {i} of {n}: ")
             last, held, validating = _marks(step, end, cfg)
-            if validate is not None and validating:
+            if validate_all is not None and validating:
                 checked_at.append(step)
                 best_val = np.array(state["best_val"])
-                for i in range(n):
-                    params_i = one(state["params"], i)
-                    score, metrics = validate(params_i)
+                with clock("validate"):
+                    all_scores, all_metrics = validate_all(state["params"])
+                if len(all_scores) != n or len(all_metrics) != n:
+                    raise ValueError(f"run_many: validate_all returned {len(all_scores)} scores and "
+                                     f"{len(all_metrics)} metrics for {n} runs")
+                for i, (score, metrics) in enumerate(zip(all_scores, all_metrics)):
                     scores[i].append(float(score))
                     logs[i].write({"step": step, "time": time.time(),
                                    "train_loss": float(chunk_losses[i, -1]),
                                    **{f"train_{k}": float(v[i, -1]) for k, v in parts.items()}, **metrics})
                     if score < best_score[i]:
                         best_val[i] = score
-                        kept[i], best_step[i], best_score[i] = params_i, step, float(score)
+                        kept[i], best_step[i], best_score[i] = one(state["params"], i), step, float(score)
                         if bests is not None:
-                            bests[i].save(step, args=ocp.args.StandardSave(params_i), force=True)
+                            with clock("save"):
+                                bests[i].save(step, args=ocp.args.StandardSave(kept[i]), force=True)
                 state = dict(state, best_val=jnp.asarray(best_val, jnp.float32))
                 bar.set_postfix(loss=f"{float(chunk_losses[:, -1].mean()):.4g}",
                                 val=f"{np.mean([s[-1] for s in scores]):.4g}")
-            elif validate is None:
+            elif validate_all is None:
                 kept = [one(state["params"], i) for i in range(n)]
                 best_step = [step] * n
             save, stop = _after(step, cfg, last, held)
             if ckpts is not None and save:
-                for i, c in enumerate(ckpts):
-                    c.save(step, args=ocp.args.StandardSave(one(state, i)), force=True)
+                with clock("save"):
+                    for i, c in enumerate(ckpts):
+                        c.save(step, args=ocp.args.StandardSave(one(state, i)), force=True)
             if stop:
                 log(stop)
                 break
     if ckpts is not None:
-        for c, b in zip(ckpts, bests, strict=True):
-            c.wait_until_finished()
-            b.wait_until_finished()
-        if validate is not None:
+        with clock("save"):
+            for c, b in zip(ckpts, bests, strict=True):
+                c.wait_until_finished()
+                b.wait_until_finished()
+        if validate_all is not None:
             for i, b in enumerate(bests):
                 if b.latest_step() is None:
                     raise TrainingError("no validation ever ran (steps < eval_every?)")
                 best_step[i] = b.latest_step()
                 kept[i] = b.restore(best_step[i], args=ocp.args.StandardRestore(kept[i]))
     run_losses = np.concatenate(losses, 1) if losses else np.zeros((n, 0))
-    return [Result(kept[i], run_losses[i], checked_at, scores[i], best_step[i], best_score[i], step)
-            for i in range(n)]
+    return [Result(kept[i], run_losses[i], checked_at, scores[i], best_step[i], best_score[i], step,
+                   dict(clock.seconds)) for i in range(n)]
