@@ -44,6 +44,11 @@ class DiagnosisConfig:
       central: comma-separated names of ``models`` that plan with their residual's central
         sample (``key=None`` at every step, as ``MPPIConfig(latents="central")``), e.g.
         ``stride_central=RUN`` beside ``stride=RUN`` compares the two on the same states.
+      model_gravity: the planner tells its model the sensed gravity direction
+        (``PlanningConfig.model_gravity``, as the closed loop's ``--planning.model-gravity``;
+        models trained on sloped data).
+      split_s: comma-separated times (s) that cut the episode into windows: one row per model
+        and window besides the whole episode (e.g. ``2``: the first two seconds apart).
       out: results folder.
     """
 
@@ -58,6 +63,8 @@ class DiagnosisConfig:
     seconds: float = 3.0
     every: int = 15
     central: str = ""
+    model_gravity: bool = False
+    split_s: str = ""
     out: str = "results/planning_diagnosis"
 
 
@@ -102,7 +109,8 @@ def run(cfg: DiagnosisConfig, command: str) -> dict:
     learned = learned_lib.load(cfg.learned) if cfg.learned else None
     mppi_cfg = mppi.MPPIConfig(samples=cfg.samples, horizon=cfg.horizon,
                                policy_samples=cfg.policy_samples)
-    planning_cfg, seed = PlanningConfig(), 0  # the closed loop's defaults
+    planning_cfg, seed = PlanningConfig(model_gravity=cfg.model_gravity), 0  # the closed loop's defaults
+    cuts = sorted(float(x) for x in cfg.split_s.split(",") if x.strip())
     models = [tuple(m.split("=", 1)) for m in cfg.models.split(",") if m]
     steps = {name: learned_step_fn(run_dir, sm) for name, run_dir in models}
     for name in [n for n in cfg.central.split(",") if n]:
@@ -152,15 +160,25 @@ def run(cfg: DiagnosisConfig, command: str) -> dict:
             per = checker(name, sig)(mx, q_aug[pick], qd[pick],
                                      jax.random.split(jax.random.key(seed), len(pick)))
             per = jax.device_get(per)
-            row = dict(scenario=sc_name, model=name, seconds=time.time() - t0,
-                       policy_action_std=spread, noise_std=planning_cfg.noise_std,
-                       **model_check.summarise(per, mppi_cfg.policy_samples))
-            rows.append(row)
-            print(f"{sc_name:>8} {name:>6}: rank corr {row['spearman']:.2f}, top-10% overlap "
-                  f"{row['top10_overlap']:.2f}, regret {row['regret']:.3f}, cost bias "
-                  f"{row['cost_bias_mean']:.3f} (true spread {row['cost_true_spread']:.3f}), "
-                  f"vel err at H {row['vel_err_noise'][-1]:.3f} m/s ({row['seconds']:.0f} s)",
-                  flush=True)
+            seconds = time.time() - t0
+            t_pick = np.asarray(ep.t)[pick]
+            edges = [0.0, *cuts, np.inf]
+            windows = [("all", np.ones(len(pick), bool))] + ([
+                (f"{a:g}-{b:g} s" if np.isfinite(b) else f"{a:g} s-", (t_pick >= a) & (t_pick < b))
+                for a, b in zip(edges[:-1], edges[1:])] if cuts else [])
+            for window, m in windows:
+                if not m.any():
+                    continue
+                row = dict(scenario=sc_name, model=name, window=window, seconds=seconds,
+                           policy_action_std=spread, noise_std=planning_cfg.noise_std,
+                           **model_check.summarise(jax.tree.map(lambda a: a[m], per),
+                                                   mppi_cfg.policy_samples))
+                rows.append(row)
+                print(f"{sc_name:>8} {name:>6} {window:>7}: rank corr {row['spearman']:.2f}, top-10% "
+                      f"overlap {row['top10_overlap']:.2f}, regret {row['regret']:.3f}, cost bias "
+                      f"{row['cost_bias_mean']:.3f} (true spread {row['cost_true_spread']:.3f}), "
+                      f"vel err at H {row['vel_err_noise'][-1]:.3f} m/s, plan forward bias "
+                      f"{np.mean(row['plan_fwd_bias']):+.3f} m/s ({seconds:.0f} s)", flush=True)
             env = dict(command=command, backend=jax.default_backend(),
                        device=jax.devices()[0].device_kind, code=code_version(),
                        config=dataclasses.asdict(cfg), models=dict(models), policy=cfg.policy,
@@ -181,20 +199,36 @@ def write_md(out: pathlib.Path, rows: list[dict], command: str, cfg: DiagnosisCo
              f"K={cfg.samples}, H={cfg.horizon}, {cfg.policy_samples} policy "
              f"candidates; states every {cfg.every} control steps of the policy's own "
              f"{cfg.seconds} s episode per scenario (`stride_jax/control/model_check.py`).",
-             "", "| scenario | model | rank corr | top-10% overlap | regret | cost bias (noise "
+             "", "Forward bias: the model's predicted forward velocity (m/s, in the base's heading "
+             "at the state) minus the true one, along the plan its weights make (mean over the "
+             "horizon) and along the candidates at the horizon's end; negative: the model "
+             "expects less speed than the plan reaches.",
+             "", "| scenario | model | window | states | rank corr | top-10% overlap | regret | cost bias (noise "
              "/ policy cand.) | true cost spread | vel err at H, noise / policy cand. (m/s) | "
-             "joint err at H (rad) | policy action std / noise std (rad) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "joint err at H (rad) | forward bias: plan / noise / policy cand. at H (m/s) | "
+             "policy action std / noise std (rad) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     f = lambda x: "-" if x is None else f"{x:.3f}"
     for r in rows:
         lines.append(
-            f"| {r['scenario']} | {r['model']} | {r['spearman']:.2f} | {r['top10_overlap']:.2f} | "
+            f"| {r['scenario']} | {r['model']} | {r.get('window', 'all')} | {r['states']} | "
+            f"{r['spearman']:.2f} | {r['top10_overlap']:.2f} | "
             f"{f(r['regret'])} | {f(r.get('cost_bias_noise', r['cost_bias_mean']))} / "
             f"{f(r.get('cost_bias_policy'))} | {f(r['cost_true_spread'])} | "
             f"{f(r['vel_err_noise'][-1])} / "
             f"{f((r.get('vel_err_policy') or [None])[-1])} | {f(r['joint_err_noise'][-1])} | "
+            f"{_signed(r.get('plan_fwd_bias'), True)} / {_signed(r.get('fwd_bias_noise'))} / "
+            f"{_signed(r.get('fwd_bias_policy'))} | "
             f"{r['policy_action_std']:.3f} / {r['noise_std']:.3f} |")
     atomic_write_text(out / "diagnosis.md", "\n".join(lines) + "\n")
+
+
+def _signed(series: list | None, mean: bool = False) -> str:
+    """A forward-bias series' mean (``mean``) or last value, signed; ``-`` where the row has
+    none (rows written before it existed)."""
+    if not series:
+        return "-"
+    return f"{(sum(series) / len(series) if mean else series[-1]):+.3f}"
 
 
 def plot(out: pathlib.Path, rows: list[dict]) -> None:
@@ -207,7 +241,7 @@ def plot(out: pathlib.Path, rows: list[dict]) -> None:
     fig, axes = plt.subplots(1, len(scenarios), figsize=(4.5 * len(scenarios), 3.5),
                              squeeze=False)
     for ax, sc in zip(axes[0], scenarios):
-        for i, r in enumerate(x for x in rows if x["scenario"] == sc):
+        for i, r in enumerate(x for x in rows if x["scenario"] == sc and x.get("window", "all") == "all"):
             h = range(1, len(r["vel_err_noise"]) + 1)
             ax.plot(h, r["vel_err_noise"], color=f"C{i}", label=f"{r['model']}: noise cand.")
             if r.get("vel_err_policy"):

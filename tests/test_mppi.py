@@ -330,6 +330,30 @@ def test_model_check_finds_a_model_that_misranks_candidates():
     assert s["states"] == 2 and len(s["vel_err_noise"]) == 8 and "vel_err_policy" in s
 
 
+def test_model_check_signs_the_forward_speed_a_slow_model_misses():
+    """A model that predicts half the truth's acceleration under-predicts the forward speed its
+    plan reaches (negative forward bias along the plan), read in the base's heading: the same
+    world motion seen from a base turned round reads the other way."""
+    from stride_jax.control import model_check
+
+    truth = lambda q, qd, u, k: (q + 0.1 * qd, qd + 0.1 * u)
+    slow = lambda q, qd, u, k: (q + 0.1 * qd, qd + 0.05 * u)
+    cost = lambda q, qd, u, t: (q[0] - 1.0) ** 2 + 0.01 * jnp.sum(u ** 2)
+    zero = lambda q, qd: jnp.zeros(())
+    cands = 1.0 + jax.random.normal(jax.random.key(0), (64, 8, 1))
+    q, qd = jnp.zeros(8).at[3].set(1.0), jnp.zeros(8)  # identity quaternion: heading +x
+    same = model_check.one_state(truth, truth, cost, zero, cands, q, qd, jax.random.key(1), 0.1, 1)
+    assert float(jnp.max(jnp.abs(same["fwd_bias"]))) == 0.0
+    bad = model_check.one_state(slow, truth, cost, zero, cands, q, qd, jax.random.key(1), 0.1, 1)
+    plan_bias = np.asarray(bad["plan_fwd_model"] - bad["plan_fwd_true"])
+    assert (plan_bias[1:] < 0).all() and (np.asarray(bad["plan_fwd_true"])[1:] > 0).all()
+    turned = q.at[3:7].set(jnp.array([0.0, 0.0, 0.0, 1.0]))  # yaw pi: heading -x
+    back = model_check.one_state(slow, truth, cost, zero, cands, turned, qd, jax.random.key(1), 0.1, 1)
+    np.testing.assert_allclose(back["fwd_bias"], -np.asarray(bad["fwd_bias"]), atol=1e-6)
+    s = model_check.summarise(jax.tree.map(lambda x: jnp.stack([x, x]), bad), n_policy=8)
+    assert len(s["plan_fwd_bias"]) == 8 and s["plan_fwd_bias"][-1] < 0 and len(s["fwd_bias_policy"]) == 8
+
+
 def test_a_policy_family_finds_the_command_offset_its_policy_lacks():
     """Candidates from a family of policies (the closed loop's PPO policy given command + z):
     a P-controller towards 1 under a drift settles at 0.5; the planner, searching z with the

@@ -7,6 +7,9 @@ scenario's MJX model) from the same state says what those weights should have be
 * **model error along the candidates** (off the data's distribution where the noise takes them)
   against the error along the policy's own candidates (near the data), per horizon step: the
   base's linear velocity (m/s) and the joint angles (rad);
+* **forward bias**: the base's forward velocity (m/s, in the start's heading) the model predicts
+  minus the true one, signed, along every candidate and along the plan the model's weights make:
+  a model that under-predicts the speed its plans reach makes the planner overshoot the command;
 * **cost bias**: the predicted minus the true cost of each candidate (reward units);
 * **ranking**: Spearman's rank correlation of predicted and true costs over the candidates, and
   the share of the model's best 10% that are among the truly best 10%;
@@ -53,19 +56,33 @@ def one_state(model_dynamics: Callable, true_dynamics: Callable, running_cost: C
     c_true, qs_t, qds_t = roll(true_dynamics)
     vel = jnp.linalg.norm(qds_m[..., :3] - qds_t[..., :3], axis=-1)  # [K, H] base velocity
     joints = jnp.sqrt(jnp.mean((qs_m[..., 7:7 + n_joints] - qs_t[..., 7:7 + n_joints]) ** 2, -1))
+    heading = _heading(q)
+    fwd = lambda qds: qds[..., :2] @ heading  # [..] forward velocity in the start's heading
     w_model, w_true = mppi.weights(c_model, temperature), mppi.weights(c_true, temperature)
     plan = lambda w: jnp.einsum("k,khu->hu", w, candidates)
-    cost_of = lambda a: mppi.open_loop_cost(true_dynamics, running_cost, value, q, qd, a, key)[0]
+    along = lambda dyn, a: mppi.open_loop_cost(dyn, running_cost, value, q, qd, a, key)
+    _, _, qds_plan_m = along(model_dynamics, plan(w_model))
+    c_plan, _, qds_plan_t = along(true_dynamics, plan(w_model))
     K = candidates.shape[0]
     top = max(1, K // 10)
     best_model = jnp.argsort(jnp.where(jnp.isfinite(c_model), c_model, jnp.inf))[:top]
     best_true = jnp.argsort(jnp.where(jnp.isfinite(c_true), c_true, jnp.inf))[:top]
     overlap = jnp.isin(best_model, best_true).mean()
     ok = jnp.isfinite(c_model) & jnp.isfinite(c_true)
-    return dict(vel_err=vel, joint_err=joints, cost_model=c_model, cost_true=c_true,
+    return dict(vel_err=vel, joint_err=joints, fwd_bias=fwd(qds_m) - fwd(qds_t),
+                plan_fwd_model=fwd(qds_plan_m), plan_fwd_true=fwd(qds_plan_t),
+                cost_model=c_model, cost_true=c_true,
                 spearman=spearman(jnp.where(ok, c_model, 1e9), jnp.where(ok, c_true, 1e9)),
-                top10_overlap=overlap, regret=cost_of(plan(w_model)) - cost_of(plan(w_true)),
+                top10_overlap=overlap, regret=c_plan - along(true_dynamics, plan(w_true))[0],
                 finite=ok.mean())
+
+
+def _heading(q: jax.Array) -> jax.Array:
+    """``[2]`` the floating base's heading (unit, world x-y) from its quaternion ``q[3:7]``
+    (w, x, y, z): the yaw of the body's x axis."""
+    w, x, y, z = q[3], q[4], q[5], q[6]
+    yaw = jnp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return jnp.stack([jnp.cos(yaw), jnp.sin(yaw)])
 
 
 def summarise(per_state: dict, n_policy: int) -> dict:
@@ -80,6 +97,9 @@ def summarise(per_state: dict, n_policy: int) -> dict:
     out = dict(
         states=int(a["cost_model"].shape[0]), candidates=K, policy_candidates=n_policy,
         vel_err_noise=np.nanmean(a["vel_err"][:, noise], axis=(0, 1)).tolist(),
+        fwd_bias_noise=np.nanmean(a["fwd_bias"][:, noise], axis=(0, 1)).tolist(),
+        plan_fwd_bias=np.nanmean(a["plan_fwd_model"] - a["plan_fwd_true"], axis=0).tolist(),
+        plan_fwd_true=np.nanmean(a["plan_fwd_true"], axis=0).tolist(),
         joint_err_noise=np.nanmean(a["joint_err"][:, noise], axis=(0, 1)).tolist(),
         cost_bias_mean=float(np.mean(bias[fin])) if fin.any() else float("nan"),
         cost_bias_std=float(np.std(bias[fin])) if fin.any() else float("nan"),
@@ -90,6 +110,7 @@ def summarise(per_state: dict, n_policy: int) -> dict:
     if n_policy:
         out["vel_err_policy"] = np.nanmean(a["vel_err"][:, pol], axis=(0, 1)).tolist()
         out["joint_err_policy"] = np.nanmean(a["joint_err"][:, pol], axis=(0, 1)).tolist()
+        out["fwd_bias_policy"] = np.nanmean(a["fwd_bias"][:, pol], axis=(0, 1)).tolist()
         out["cost_bias_policy"] = float(np.nanmean(bias[:, pol]))
         out["cost_bias_noise"] = float(np.nanmean(bias[:, noise]))
     return out
