@@ -276,6 +276,37 @@ def test_runs_side_by_side_validate_all_at_once_as_one_by_one(tmp_path):
                       validate_all=lambda p: (np.zeros(2), [{}, {}]))
 
 
+def test_the_best_parameters_are_written_with_the_checkpoints(tmp_path, monkeypatch):
+    """A best found at a validation is written to ``best`` with the next checkpoint, not at once
+    (a run resumed from that checkpoint finds any later best again): here at most one best write
+    per checkpoint, alone and side by side, and the best on disk is the returned one."""
+    data, loss, validate = _noisy_line()
+    opt = loop.optimizer(3e-2, 12)
+    starts = [{"w": jnp.array(s), "b": jnp.array(-s)} for s in (0.0, 2.0)]
+    cfg = loop.LoopConfig(steps=12, batch=8, eval_every=1, ckpt_every=6)
+    writes = []
+    manager = loop._manager
+
+    def counted(path, keep):
+        m = manager(path, keep)
+        save = m.save
+        m.save = lambda step, *a, **k: (writes.append((path.parent.name, path.name, step)), save(step, *a, **k))[1]
+        return m
+
+    monkeypatch.setattr(loop, "_manager", counted)
+    alone = loop.run(loss, starts[1], data, cfg, opt, jax.random.key(4), validate, out=tmp_path / "r", progress=None)
+    many = loop.run_many(loss, starts, data, cfg, opt, [jax.random.key(3), jax.random.key(4)], validate,
+                         outs=[tmp_path / "a", tmp_path / "b"], progress=None)
+    for run_dir, res in (("r", alone), ("a", many[0]), ("b", many[1])):
+        bests = [s for d, kind, s in writes if d == run_dir and kind == "best"]
+        assert 1 <= len(bests) <= 2 and bests[-1] == res.best_step  # checkpoints at 6 and 12
+        assert len(res.checked_at) == 12
+        mngr = ocp.CheckpointManager((tmp_path / run_dir / "best").absolute())
+        assert mngr.latest_step() == res.best_step
+        p = mngr.restore(res.best_step)
+        jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y), p, res.params)
+
+
 def test_runs_side_by_side_name_the_run_whose_loss_fails(tmp_path):
     data, _, validate = _noisy_line()
     loss = lambda p, b, key: (jnp.mean(jnp.log(p["w"]) * b["x"] ** 2), {})

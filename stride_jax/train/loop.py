@@ -275,7 +275,9 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
     ``validate(params) -> (score, metrics)`` runs every ``cfg.eval_every`` steps and after the
     last; the parameters with the lowest score are returned. ``out``: a run folder; then
     ``out/ckpt`` holds the latest state (every ``cfg.ckpt_every`` steps; a later call resumes
-    from it), ``out/best`` the best validated parameters and ``out/metrics.csv`` one row per
+    from it), ``out/best`` the best validated parameters up to it (written with each checkpoint,
+    not at every validation, which cost time on a GPU: a run resumed from a checkpoint finds any
+    later best again) and ``out/metrics.csv`` one row per
     validation (step, time, training loss and parts, ``metrics``). Without ``out`` nothing is
     written and the best parameters are kept in memory. ``progress``: the progress bar's label
     (None: no bar). Raises :class:`TrainingError` when the loss stops being finite.
@@ -340,6 +342,7 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
 
     step = start = int(state["step"])
     kept, best_step, best_score = state["params"], step, float(state["best_val"])
+    unsaved = False  # a best found since the last checkpoint, written with the next one
     losses, checked_at, scores = [], [], []
     clock = _Clock()
     metrics_log = _Log(out / "metrics.csv" if out is not None and main else None)
@@ -372,16 +375,16 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
                 if score < best_score:
                     state = dict(state, best_val=jnp.asarray(score, jnp.float32))
                     kept, best_step, best_score = state["params"], step, float(score)
-                    if best is not None:
-                        with clock("save"):
-                            best.save(step, args=ocp.args.StandardSave(host(state["params"])),
-                                      force=True)
+                    unsaved = best is not None
                 bar.set_postfix(loss=f"{float(chunk_losses[-1]):.4g}", val=f"{score:.4g}")
             elif validate is None:
                 kept, best_step = state["params"], step
             save, stop = _after(step, cfg, last, held)
             if ckpt is not None and save:
                 with clock("save"):
+                    if unsaved:
+                        best.save(best_step, args=ocp.args.StandardSave(host(kept)), force=True)
+                        unsaved = False
                     ckpt.save(step, args=ocp.args.StandardSave(host(state)), force=True)
             if stop:
                 log(stop)
@@ -527,6 +530,7 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
     kept = [one(state["params"], i) for i in range(n)]
     best_step = [step] * n
     best_score = [float(s) for s in state["best_val"]]
+    unsaved = [False] * n  # as in run: each run's best written with its next checkpoint
     losses, checked_at, scores = [], [], [[] for _ in range(n)]
     clock = _Clock()
     logs = [_Log(o / "metrics.csv" if o is not None else None) for o in (outs or [None] * n)]
@@ -565,9 +569,7 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
                     if score < best_score[i]:
                         best_val[i] = score
                         kept[i], best_step[i], best_score[i] = one(state["params"], i), step, float(score)
-                        if bests is not None:
-                            with clock("save"):
-                                bests[i].save(step, args=ocp.args.StandardSave(kept[i]), force=True)
+                        unsaved[i] = bests is not None
                 state = dict(state, best_val=jnp.asarray(best_val, jnp.float32))
                 bar.set_postfix(loss=f"{float(chunk_losses[:, -1].mean()):.4g}",
                                 val=f"{np.mean([s[-1] for s in scores]):.4g}")
@@ -578,6 +580,9 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
             if ckpts is not None and save:
                 with clock("save"):
                     for i, c in enumerate(ckpts):
+                        if unsaved[i]:
+                            bests[i].save(best_step[i], args=ocp.args.StandardSave(kept[i]), force=True)
+                            unsaved[i] = False
                         c.save(step, args=ocp.args.StandardSave(one(state, i)), force=True)
             if stop:
                 log(stop)
