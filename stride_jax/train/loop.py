@@ -354,7 +354,7 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
             with clock("train"):
                 (p, o), chunk_losses, parts = chunk(state["params"], state["opt"], data, key_data,
                                                     step, n=stop - step)
-                chunk_losses = np.asarray(chunk_losses)  # waits for the chunk
+                chunk_losses, parts = jax.device_get((chunk_losses, parts))  # waits for the chunk
             state = dict(state, params=p, opt=o, step=jnp.asarray(stop, jnp.int32))
             bar.update(stop - step)
             step = stop
@@ -542,7 +542,9 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
             with clock("train"):
                 (p, o), chunk_losses, parts = chunk(state["params"], state["opt"], data, key_data, step,
                                                     n=stop - step)
-                chunk_losses = np.asarray(chunk_losses)  # [runs, steps]; waits for the chunk
+                # [runs, steps]; waits for the chunk; the parts in the same copy (one per part
+                # and run, each its own wait, when read one by one)
+                chunk_losses, parts = jax.device_get((chunk_losses, parts))
             state = dict(state, params=p, opt=o, step=jnp.full((n,), stop, jnp.int32))
             bar.update(stop - step)
             step = stop
