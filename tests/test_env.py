@@ -100,3 +100,30 @@ def test_the_data_job_asks_for_deterministic_gpu_ops():
     assert "deterministic" not in _run(asked.format(True), STRIDE_DETERMINISTIC="0").stdout
     user = _run(asked.format(True), XLA_FLAGS="--xla_gpu_deterministic_ops=false").stdout
     assert user.strip() == "--xla_gpu_deterministic_ops=false"
+
+
+def test_the_entry_points_keep_compiled_programs_between_processes(tmp_path):
+    """``set_xla_flags`` turns JAX's persistent compilation cache on in the user's cache folder
+    (``$XDG_CACHE_HOME/stride_jax/jax``): a compiled program lands there, bounded in size; a
+    ``STRIDE_JAX_CACHE`` folder replaces it, ``STRIDE_JAX_CACHE=0`` turns it off, and the
+    process's own ``JAX_COMPILATION_CACHE_DIR`` wins."""
+    probe = ("import stride_jax, jax, jax.numpy as jnp, os; stride_jax.set_xla_flags(); "
+             "jax.jit(lambda x: jnp.sin(x) @ x.T)(jnp.ones((8, 8))).block_until_ready(); "
+             "print(jax.config.jax_compilation_cache_dir, jax.config.jax_compilation_cache_max_size)")
+    drop = ("JAX_COMPILATION_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
+            "JAX_COMPILATION_CACHE_MAX_SIZE", "STRIDE_JAX_CACHE")
+    base = {k: v for k, v in os.environ.items() if k not in drop}
+    base |= {"XDG_CACHE_HOME": str(tmp_path / "xdg"), "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+
+    def run(**env):
+        out = subprocess.run([sys.executable, "-c", probe], env=base | env, capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr
+        return out.stdout.split()
+
+    folder, size = run()
+    assert folder == str(tmp_path / "xdg" / "stride_jax" / "jax") and int(size) > 0
+    assert any(p.is_file() for p in (tmp_path / "xdg" / "stride_jax" / "jax").rglob("*"))
+    assert run(STRIDE_JAX_CACHE=str(tmp_path / "mine"))[0] == str(tmp_path / "mine")
+    assert any((tmp_path / "mine").rglob("*"))
+    assert run(STRIDE_JAX_CACHE="0")[0] == "None"
+    assert run(JAX_COMPILATION_CACHE_DIR=str(tmp_path / "theirs"))[0] == str(tmp_path / "theirs")
