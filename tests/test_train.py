@@ -266,7 +266,7 @@ def test_runs_side_by_side_validate_all_at_once_as_one_by_one(tmp_path):
         np.testing.assert_allclose(o.scores, e.scores, rtol=1e-6)
         assert o.best_step == e.best_step and o.checked_at == e.checked_at == [3, 6, 9]
         np.testing.assert_allclose(o.params["w"], e.params["w"], rtol=1e-6)
-        assert set(o.seconds) == {"train", "validate", "save"} and all(v >= 0 for v in o.seconds.values())
+        assert set(o.seconds) == {"train", "validate", "save", "other"} and all(v >= 0 for v in o.seconds.values())
     w = [[float(r["w"]) for r in csv.DictReader(open(tmp_path / f"{k}2" / "metrics.csv"))] for k in "eo"]
     assert len(w[0]) == 3 and w[1] == pytest.approx(w[0], rel=1e-6)  # each run's own metrics row
     with pytest.raises(ValueError, match="not both"):

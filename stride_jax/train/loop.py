@@ -147,8 +147,9 @@ class Result(NamedTuple):
       best_step: the step of ``params``.
       best_score: its validation score (inf without a ``validate``).
       steps_done: the steps taken, counting those of a resumed run.
-      seconds: wall time of this call by part (``train``: the optimiser's chunks; ``validate``;
-        ``save``: checkpoints handed to orbax), where the time went between validations.
+      seconds: wall time of this call by part (``train``: the optimiser's chunks, their
+        compilation included; ``validate``; ``save``: checkpoints handed to orbax and waited for;
+        ``other``: the rest, from the first chunk's start to returning).
     """
 
     params: Any
@@ -198,10 +199,16 @@ def _next_stop(step: int, cfg: LoopConfig, validating: bool, saving: bool) -> in
 
 
 class _Clock:
-    """Wall seconds by part of a training call (:attr:`Result.seconds`): ``with clock(part):``."""
+    """Wall seconds by part of a training call (:attr:`Result.seconds`): ``with clock(part):``;
+    :meth:`split` adds ``other``, the rest of the time since the clock started (the loop's own
+    host work: metrics rows, the progress bar, copies between devices)."""
 
     def __init__(self):
+        self.start = time.perf_counter()
         self.seconds = {"train": 0.0, "validate": 0.0, "save": 0.0}
+
+    def split(self) -> dict[str, float]:
+        return {**self.seconds, "other": time.perf_counter() - self.start - sum(self.seconds.values())}
 
     @contextlib.contextmanager
     def __call__(self, part: str):
@@ -400,7 +407,7 @@ def run(loss_fn: LossFn, params: Any, data: Any, cfg: LoopConfig,
             kept = best.restore(best_step,
                                 args=ocp.args.StandardRestore(host(state["params"])))
     return Result(host(kept), np.concatenate(losses) if losses else np.zeros(0), checked_at, scores,
-                  best_step, best_score, step, clock.seconds)
+                  best_step, best_score, step, clock.split())
 
 
 def _stack(trees: list) -> Any:
@@ -601,5 +608,6 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
                 best_step[i] = b.latest_step()
                 kept[i] = b.restore(best_step[i], args=ocp.args.StandardRestore(kept[i]))
     run_losses = np.concatenate(losses, 1) if losses else np.zeros((n, 0))
+    split = clock.split()
     return [Result(kept[i], run_losses[i], checked_at, scores[i], best_step[i], best_score[i], step,
-                   dict(clock.seconds)) for i in range(n)]
+                   dict(split)) for i in range(n)]
