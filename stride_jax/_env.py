@@ -101,6 +101,14 @@ def _use_compilation_cache() -> None:
     folder = compilation_cache_dir()
     if folder is None:
         return
+    try:
+        os.makedirs(folder, exist_ok=True)
+        if not os.access(folder, os.W_OK):
+            raise PermissionError("not writable")
+    except OSError as e:  # one clear warning instead of JAX's per program, and no cache
+        warnings.warn(f"stride_jax: no compilation cache, the folder {folder} cannot be used ({e}); "
+                      f"set {CACHE_ENV} to a writable folder, or to 0 to turn the cache off", stacklevel=3)
+        return
     settings = {"JAX_COMPILATION_CACHE_DIR": folder,
                 "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": str(CACHE_MIN_COMPILE_S)}
     try:  # without it JAX fails to open a bounded cache, silently: unbounded then

@@ -126,4 +126,9 @@ def test_the_entry_points_keep_compiled_programs_between_processes(tmp_path):
     assert run(STRIDE_JAX_CACHE=str(tmp_path / "mine"))[0] == str(tmp_path / "mine")
     assert any((tmp_path / "mine").rglob("*"))
     assert run(STRIDE_JAX_CACHE="0")[0] == "None"
+    (tmp_path / "file").write_text("")
+    out = subprocess.run([sys.executable, "-c", probe], env=base | {"STRIDE_JAX_CACHE": str(tmp_path / "file")},
+                         capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.split()[0] == "None", out.stderr
+    assert out.stderr.count("no compilation cache, the folder") == 1 and "STRIDE_JAX_CACHE" in out.stderr
     assert run(JAX_COMPILATION_CACHE_DIR=str(tmp_path / "theirs"))[0] == str(tmp_path / "theirs")
