@@ -494,8 +494,6 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
         raise TrainingError("runs side by side train on one process; train them one by one over several processes")
     if validate is not None and validate_all is not None:
         raise ValueError("run_many: give validate (one run at a time) or validate_all (all at once), not both")
-    if validate is not None:
-        validate_all = one_by_one(validate)
     n_data = jax.tree.leaves(data)[0].shape[0]
     batch = min(cfg.batch, n_data)
     states = [{"params": p, "opt": opt.init(p), "step": jnp.zeros((), jnp.int32),
@@ -527,6 +525,8 @@ def run_many(loss_fn: LossFn, params: list, data: Any, cfg: LoopConfig,
     key_data = jax.device_put(jnp.stack([jax.random.key_data(k) for k in keys]), on_runs)
     # one run's share, on the first device, for its validation and its files
     one = lambda tree, i: jax.device_put(_take(tree, i), first)  # noqa: E731
+    if validate is not None:  # the runs in turn, each on the first device as run() validates
+        validate_all = one_by_one(lambda p: validate(jax.device_put(p, first)))
 
     @functools.partial(jax.jit, static_argnames="n")
     def chunk(params, opt_state, data, key_data, start, n):
