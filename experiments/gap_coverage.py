@@ -3,11 +3,15 @@
     python experiments/gap_coverage.py --draws 30 --out results/gap_coverage [--trajectories 4 --steps 100]
         [--effects damping,delay,com_offset,damping+delay,payload+torque_scale] [--simex 4]
         [--noise outlier_rate=0,torque_std=0 | --noise none]
+    python experiments/gap_coverage.py --robot go1 --draws 20 --out results/gap_coverage/go1
 
-For each planted effect or pair (one case at a time, on the pendulum, through a real robot's
-sensors: ``real.SensorNoise``), ``--draws`` independent logs are generated and the case's effects are
-fitted with the ``tiny`` preset's fit settings; the 90% interval of every parameter should cover
-its planted value in about 90% of draws. Scalars get the profile interval (or, where the loss is
+For each planted effect or pair (one case at a time, on the pendulum or the Go1 -- its MJX-training
+form, whose replays are ~6x cheaper than the shipped model's --, through a real robot's sensors:
+``real.SensorNoise``), ``--draws`` independent logs are generated with the robot's explorer and the
+case's effects are fitted with the ``--preset``'s fit settings (the pendulum: ``tiny``, the Go1:
+``fast``, the independent benchmark's); the 90% interval of every parameter should cover its
+planted value in about 90% of draws. The logs come from the nominal model itself with the effect
+planted: sampling noise only, no model-form difference (the independent benchmark's part). Scalars get the profile interval (or, where the loss is
 kinked or few blocks inform it, the test inversion), the delay its integer set, a vector (the centre
 of mass offset, one row per component) and a pair the sandwich interval; a pair is fitted as a
 diagnosis fits it, from its two singles' estimates. Besides the coverage each row gives the
@@ -34,18 +38,30 @@ import numpy as np
 
 from stride_jax import config
 
-# planted values: the tiny benchmark's smaller magnitudes (stride_jax/jobs/gap_bench.py)
-PLANTED = {"damping": 0.3, "frictionloss": 0.15, "armature": 0.05, "torque_scale": 0.85, "payload": 0.15,
-           "torque_limit": 0.7, "deadzone": 0.3, "delay": 2, "com_offset": (0.03, 0.0, 0.0)}
-SCALARS = "damping,frictionloss,armature,torque_scale,payload,torque_limit,deadzone"
+# planted values: on the pendulum the tiny benchmark's smaller magnitudes (stride_jax/jobs/gap_bench.py),
+# on the Go1 the independent benchmark's singles (stride_jax/jobs/gap_bench_independent.py; delay in
+# control steps here)
+PLANTED = {
+    "pendulum": {"damping": 0.3, "frictionloss": 0.15, "armature": 0.05, "torque_scale": 0.85, "payload": 0.15,
+                 "torque_limit": 0.7, "deadzone": 0.3, "delay": 2, "com_offset": (0.03, 0.0, 0.0)},
+    "go1": {"damping": 1.5, "frictionloss": 0.8, "armature": 0.04, "torque_scale": 0.65, "payload": 2.5,
+            "torque_limit": 0.4, "kp_scale": 0.7, "ground_friction": 0.3, "delay": 2,
+            "com_offset": (0.03, 0.0, 0.0)}}
+SCALARS = {"pendulum": "damping,frictionloss,armature,torque_scale,payload,torque_limit,deadzone",
+           "go1": "damping,frictionloss,armature,torque_scale,payload,torque_limit,kp_scale,ground_friction"}
+DEFAULTS = {"pendulum": dict(trajectories=4, steps=100, preset="tiny"),
+            "go1": dict(trajectories=6, steps=200, preset="fast")}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--robot", default="pendulum", choices=sorted(PLANTED))
     ap.add_argument("--draws", type=int, default=30)
-    ap.add_argument("--trajectories", type=int, default=4)
-    ap.add_argument("--steps", type=int, default=100)
-    ap.add_argument("--effects", default=SCALARS, help="comma-separated effects of PLANTED, or pairs a+b")
+    ap.add_argument("--trajectories", type=int, default=0, help="per draw (0: the robot's default, 4 / 6)")
+    ap.add_argument("--steps", type=int, default=0, help="control steps per trajectory (0: 100 / 200)")
+    ap.add_argument("--preset", default="", help="the diagnosis preset whose fit settings are used (tiny / fast)")
+    ap.add_argument("--effects", default="", help="comma-separated effects of PLANTED, or pairs a+b "
+                    "(default: the robot's scalars)")
     ap.add_argument("--simex", type=int, default=0, help="SIMEX refits per noise level (0: none)")
     ap.add_argument("--simex-degree", type=int, default=2, choices=(1, 2),
                     help="SIMEX's extrapolant in the added variance: a quadratic (2) or a line (1)")
@@ -53,6 +69,11 @@ def main() -> None:
                     help="changes to real.SensorNoise's terms, name=value,... ('none': no noise)")
     ap.add_argument("--out", default="results/gap_coverage")
     a = ap.parse_args()
+    for name, value in DEFAULTS[a.robot].items():
+        if not getattr(a, name):
+            setattr(a, name, value)
+    a.effects = a.effects or SCALARS[a.robot]
+    planted = PLANTED[a.robot]
     from tqdm import tqdm
 
     from stride_jax.gap import diagnose, effects, filters, fit, real, simex
@@ -61,19 +82,21 @@ def main() -> None:
 
     noise = sensor_noise(real, a.noise)
     version = code_version()  # before the run: the checkout may change while it runs
-    cfg = diagnose.PRESETS["tiny"]
-    sm = model.load("pendulum")
+    if a.preset not in diagnose.PRESETS:
+        raise SystemExit(f"--preset {a.preset!r}: one of {', '.join(diagnose.PRESETS)}")
+    cfg = diagnose.PRESETS[a.preset]
+    sm = model.load(a.robot)
     rows = []
     t0 = time.time()
     for case in a.effects.split(","):
         names = tuple(case.split("+"))
-        unknown = [n for n in names if n not in PLANTED]
+        unknown = [n for n in names if n not in planted]
         if unknown:
-            raise SystemExit(f"no planted value for {unknown}; known: {', '.join(PLANTED)}")
-        truth = {n: np.atleast_1d(np.asarray(PLANTED[n], float)) for n in names}
+            raise SystemExit(f"no planted value for {unknown} on the {a.robot}; known: {', '.join(planted)}")
+        truth = {n: np.atleast_1d(np.asarray(planted[n], float)) for n in names}
         draws = []  # per draw: {name: (estimate, lo, hi)} vectors
         for seed in tqdm(range(a.draws), desc=case):
-            _, logged = real.generate(sm, {n: PLANTED[n] for n in names}, a.trajectories, a.steps,
+            _, logged = real.generate(sm, {n: planted[n] for n in names}, a.trajectories, a.steps,
                                       seed=1000 + seed, noise=noise)
             logged = [filters.preprocess(t, sm.robot.ctrl_dt, cfg.preprocess)[0] for t in logged]
             data = fit.make_data(logged, cfg.steps)
@@ -111,15 +134,17 @@ def main() -> None:
                              "estimates": est.tolist(), "lo": lo.tolist(), "hi": hi.tolist()})
     out = pathlib.Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    cmd = (f"python experiments/gap_coverage.py --draws {a.draws} --trajectories {a.trajectories} "
+    cmd = (f"python experiments/gap_coverage.py" + (f" --robot {a.robot}" if a.robot != "pendulum" else "")
+           + (f" --preset {a.preset}" if a.preset != DEFAULTS[a.robot]["preset"] else "")
+           + f" --draws {a.draws} --trajectories {a.trajectories} "
            f"--steps {a.steps} --effects {a.effects}" + (f" --simex {a.simex}" if a.simex else "")
            + (f" --simex-degree {a.simex_degree}" if a.simex and a.simex_degree != 2 else "")
            + (f" --noise {a.noise}" if a.noise else "") + f" --out {a.out}")
-    lines = ["# Coverage of the gap tool's 90% parameter intervals (pendulum, sensor noise)", "",
+    lines = [f"# Coverage of the gap tool's 90% parameter intervals ({a.robot}, sensor noise)", "",
              f"Sensor noise: {noise_text(noise)}", "",
              f"Command: `{cmd}` ({time.time() - t0:.0f} s; code {version})", "",
              f"{a.draws} independent noisy draws of {a.trajectories} x {a.steps} control steps per case, "
-             "the case's effects fitted with the `tiny` preset's fit settings (a pair jointly, from its singles' "
+             f"the case's effects fitted with the `{a.preset}` preset's fit settings (a pair jointly, from its singles' "
              "estimates)" + (f"; estimates and intervals corrected by SIMEX ({a.simex} refits per added noise "
                             f"level, {'a line' if a.simex_degree == 1 else 'a quadratic'} in the added "
                             "variance; a delay as fitted)" if a.simex else "") + ". Bias: median estimate minus the "
