@@ -24,7 +24,8 @@ Optimisers, per the lessons the issue lists:
   ``c = t^2 V / (2 H)`` (``V``: Newey-West variance of the per-block gradients, ``H``: curvature of
   ``L``, ``t``: Student quantile), found by bracketing and root finding; an integer (delay) by the
   hull of the values that a paired per-block test does not find worse than the estimate; vectors
-  and pairs by the sandwich covariance ``H^-1 V H^-1`` of the Gauss-Newton Hessian ``H``. Every
+  and pairs by the sandwich covariance ``H^-1 V H^-1`` of the Gauss-Newton Hessian ``H``, a
+  vector also by the paired test along each component (the hull of both). Every
   interval is clipped to the bounds and contains its estimate; an estimate on a bound that is not
   its nominal value is flagged (the truth may lie beyond it).
 
@@ -43,7 +44,8 @@ import numpy as np
 from scipy import optimize
 
 from stride_jax.gap import effects, logs, replay, sim
-from stride_jax.gap.intervals import _at_bound, _lagrange, _score_var, integer_set, sandwich, scalar_interval
+from stride_jax.gap.intervals import (_at_bound, _lagrange, _score_var, integer_set, sandwich, scalar_interval,
+                                      vector_interval)
 from stride_jax.sim.model import SimModel
 
 
@@ -597,7 +599,7 @@ def with_interval(sm: SimModel, data: Data, scale: np.ndarray, f: Fit, cfg: FitC
                   obj: Objective | None = None, mask: np.ndarray | None = None,
                   cache: dict | None = None) -> Fit:
     """``f`` (a single continuous effect fitted on ``data`` with ``interval=False``) with its
-    interval at level ``cfg.level``: the profile for a scalar, the sandwich for a vector; ``f``
+    interval at level ``cfg.level``: the profile for a scalar, :func:`vector_interval` for a vector; ``f``
     itself for anything else or where ``cfg.profile`` is 0. ``obj``: the fit's own objective
     (its evaluations are then counted once); else ``mask`` and ``cache`` as the fit had them."""
     if not cfg.profile or len(f.names) != 1 or effects.ALL[f.names[0]].integer:
@@ -611,7 +613,7 @@ def with_interval(sm: SimModel, data: Data, scale: np.ndarray, f: Fit, cfg: FitC
         xl, xh, _ = scalar_interval(obj, float(x[0]), f.train_loss, lo[0], hi[0], cfg.level)
         xl, xh = np.array([xl], float), np.array([xh], float)
     else:
-        xl, xh = sandwich(obj, x, lo, hi, cfg.level)
+        xl, xh, _ = vector_interval(obj, x, lo, hi, cfg.level)
     return f._replace(lo={name: np.asarray(xl, float)}, hi={name: np.asarray(xh, float)},
                       evals=obj.evals + (0 if own else f.evals),
                       unstable=obj.unstable + (0 if own else f.unstable))

@@ -1,7 +1,8 @@
 """Intervals of fitted effect parameters (level ``FitConfig.level``) from per-block scores of the
 training loss, as :mod:`stride_jax.gap.fit`'s docstring describes: the profile likelihood with a
-sandwich-calibrated threshold for scalars, a paired per-block test for an integer (delay), the
-sandwich covariance for vectors and pairs; all clipped to the bounds, all containing the estimate.
+sandwich-calibrated threshold for scalars, a paired per-block test for an integer (delay), for a
+vector the hull of the sandwich and a paired test along each component, the sandwich covariance for
+pairs; all clipped to the bounds, all containing the estimate.
 ``obj`` is a :class:`stride_jax.gap.fit.Objective`."""
 
 from __future__ import annotations
@@ -269,3 +270,59 @@ def sandwich(obj: Objective, x: np.ndarray, lo: np.ndarray, hi: np.ndarray, leve
     flat = np.diag(H) <= 1e-12 * max(float(np.abs(H).max()), 1e-300)
     half = np.where(flat, np.inf, half)
     return np.clip(x - half, lo, x), np.clip(x + half, x, hi)
+
+
+class _Along:
+    """The objective along component ``i`` of ``x`` (the others held at the estimate): what
+    :func:`paired_interval` reads (``block_losses`` of a one-entry vector, ``nxt``)."""
+
+    def __init__(self, obj: Objective, x: np.ndarray, i: int):
+        self.obj, self.x, self.i, self.nxt = obj, x, i, obj.nxt
+
+    def block_losses(self, v: np.ndarray) -> np.ndarray:
+        p = self.x.copy()
+        p[self.i] = float(np.asarray(v).ravel()[0])
+        return self.obj.block_losses(p)
+
+
+def vector_interval(obj: Objective, x: np.ndarray, lo: np.ndarray, hi: np.ndarray, level: float
+                    ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Interval of a vector estimate ``x`` (one effect's components, e.g. the centre of mass
+    offset): the :func:`sandwich`, whose covariance sees how the components trade against each
+    other, where the loss is quadratic near ``x``; along a component where it is not -- its
+    curvature along that component at half the sandwich half width is more than :data:`KINK`
+    times that at four times the step, the rule of :func:`scalar_interval` -- the hull of the
+    sandwich and :func:`paired_interval` along that component with the others at the estimate
+    (no curvature needed: it holds where the loss is rough). ``info["rough"]``: which components.
+
+    Why: on the Go1 the centre-of-mass offset's loss is rough at the scale the least squares stops
+    at (noise-free logs of a planted 0.03 m gave 0.026-0.030), so the sandwich's curvature says
+    little of where the estimate falls; over 30 noisy draws it covered the planted value in 7, 10
+    and 20 of 30 (x, y, z) with half widths a sixth of the estimates' spread
+    (``results/gap_coverage/go1``), where the pendulum's smooth loss gave 95-100%."""
+    sl, sh = sandwich(obj, x, lo, hi, level)
+    Lx = obj.block_losses(x)
+    f = float(Lx.sum())
+    rough, curv = [], []
+    for i in range(len(x)):
+        along = _Along(obj, x, i)
+        span = float(hi[i] - lo[i])
+        h = float(np.clip((sh[i] - sl[i]) / 4, 1e-4 * span, 0.05 * span))
+
+        def curvature(step: float) -> float:
+            t = np.array([x[i] - step, x[i], x[i] + step])
+            if t[0] < lo[i]:
+                t = t + (lo[i] - t[0])
+            elif t[2] > hi[i]:
+                t = t - (t[2] - hi[i])
+            t = np.clip(t, lo[i], hi[i])
+            tot = [f if v == x[i] else float(along.block_losses(np.array([v])).sum()) for v in t]
+            return float(_lagrange(t, float(x[i]))[1] @ np.array(tot))
+
+        H, H4 = curvature(h), curvature(4 * h)
+        curv.append((H, H4))
+        if H4 <= 0 or H > KINK * H4:
+            rough.append(i)
+            a, b = paired_interval(along, float(x[i]), Lx, float(lo[i]), float(hi[i]), level, 4 * h)
+            sl[i], sh[i] = min(sl[i], a), max(sh[i], b)
+    return sl, sh, {"rough": rough, "curvature": curv}
