@@ -68,8 +68,8 @@ reproduce: setup
 report: setup
 	$(BIN)/python experiments/report.py
 
-## test: the suite, in two pytest processes balanced by tests/durations.json (10:43-13:23 in
-## clean-clone CI on this 2-core host, setup included, session 72, with durations.json
+## test: the suite, in two pytest processes balanced by tests/durations.json (8:37-13:23 in
+## clean-clone CI on this 2-core host, setup included, sessions 72-73, with durations.json
 ## re-recorded, the same code an hour apart; 14:42-14:51 in sessions 71-72 before the
 ## last cuts, 17-19 min before those; the host's speed swings by 10-20% within an hour;
 ## `$(BIN)/python -m pytest -q` runs it in one process); the
