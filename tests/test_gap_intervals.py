@@ -30,6 +30,9 @@ class Rough:
     def block_losses(self, p):
         return np.bincount(self.ids, weights=(self.residual(p) ** 2).sum(1), minlength=self.nb)
 
+    def block_losses_many(self, ps):
+        return np.stack([self.block_losses(p) for p in ps])
+
 
 def _fit(obj):
     return minimize(lambda p: obj.block_losses(p).sum(), np.zeros(2), method="Nelder-Mead",

@@ -89,6 +89,17 @@ def _lagrange(t: np.ndarray, x: float) -> tuple[np.ndarray, np.ndarray]:
     return d1, d2
 
 
+def _nodes(x: float, h: float, lo: float, hi: float) -> np.ndarray:
+    """``[3]`` stencil nodes ``x - h, x, x + h`` inside ``[lo, hi]``, one-sided (``x`` first or
+    last) where a side would leave the bounds."""
+    t = np.array([x - h, x, x + h])
+    if t[0] < lo:
+        t = np.array([x, x + h, x + 2 * h])
+    elif t[2] > hi:
+        t = np.array([x - 2 * h, x - h, x])
+    return np.clip(t, lo, hi)
+
+
 def _at_bound(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, nominal) -> np.ndarray:
     """Whether each estimate sits on a bound that is not its nominal value (a nominal value on a
     bound, e.g. no delay, is an absent effect, not a truncated one)."""
@@ -123,12 +134,7 @@ def scalar_interval(obj: Objective, x: float, f: float, lo: float, hi: float, le
     Lx = obj.block_losses(np.array([x]))
 
     def stencil(h: float) -> tuple[np.ndarray, np.ndarray]:  # nodes around x inside the bounds, [3, nb] losses
-        t = np.array([x - h, x, x + h])
-        if t[0] < lo:
-            t = np.array([x, x + h, x + 2 * h])
-        elif t[2] > hi:
-            t = np.array([x - 2 * h, x - h, x])
-        t = np.clip(t, lo, hi)
+        t = _nodes(x, h, lo, hi)
         others = [v for v in t if v != x]
         Bo = iter(obj.block_losses_many([[v] for v in others]))
         return t, np.stack([Lx if v == x else next(Bo) for v in t])
@@ -313,24 +319,17 @@ def vector_interval(obj: Objective, x: np.ndarray, lo: np.ndarray, hi: np.ndarra
     f = float(Lx.sum())
     rough, curv = [], []
     for i in range(len(x)):
-        along = _Along(obj, x, i)
-        span = float(hi[i] - lo[i])
-        h = float(np.clip((sh[i] - sl[i]) / 4, 1e-4 * span, 0.05 * span))
-
-        def curvature(step: float) -> float:
-            t = np.array([x[i] - step, x[i], x[i] + step])
-            if t[0] < lo[i]:
-                t = t + (lo[i] - t[0])
-            elif t[2] > hi[i]:
-                t = t - (t[2] - hi[i])
-            t = np.clip(t, lo[i], hi[i])
-            tot = [f if v == x[i] else float(along.block_losses(np.array([v])).sum()) for v in t]
-            return float(_lagrange(t, float(x[i]))[1] @ np.array(tot))
-
-        H, wide = curvature(h), [curvature(k * h) for k in SCALES]
+        xi, lo_i, hi_i = float(x[i]), float(lo[i]), float(hi[i])
+        h = float(np.clip((sh[i] - sl[i]) / 4, 1e-4 * (hi_i - lo_i), 0.05 * (hi_i - lo_i)))
+        # the curvature along the component at the step and at SCALES times it: every node off
+        # the estimate in one batched replay
+        stencils = [_nodes(xi, k * h, lo_i, hi_i) for k in (1, *SCALES)]
+        off = [v for t in stencils for v in t if v != xi]
+        at = dict(zip(off, obj.block_losses_many([np.where(np.arange(len(x)) == i, v, x) for v in off]).sum(1)))
+        H, *wide = [float(_lagrange(t, xi)[1] @ np.array([f if v == xi else at[v] for v in t])) for t in stencils]
         curv.append((H, *wide))
         if any(Hk <= 0 or H > KINK * Hk for Hk in wide):
             rough.append(i)
-            a, b = paired_interval(along, float(x[i]), Lx, float(lo[i]), float(hi[i]), level, 4 * h)
+            a, b = paired_interval(_Along(obj, x, i), xi, Lx, lo_i, hi_i, level, 4 * h)
             sl[i], sh[i] = min(sl[i], a), max(sh[i], b)
     return sl, sh, {"rough": rough, "curvature": curv}
