@@ -31,8 +31,9 @@ GPU_DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 # JAX's persistent compilation cache for the entry points: a second `stride train` (or closed
 # loop, benchmark, experiment) with the same shapes loads its programs instead of compiling them
 # (on 2 CPU cores: the pendulum's default training 25.6 s -> 19.5 s of wall time, Go1's tiny one
-# 19.9 s -> 10.8 s; on an H200 a 6000-step Go1 run compiled ~25 s of its 50 s). JAX keeps only programs that took 1 s to compile
-# by default, none of the pendulum's: programs of 0.1 s and more are kept here (13 files, 0.6 MB
+# 19.9 s -> 10.8 s, commands in the README; on an H200 a 6000-step Go1 run spent about 23 s of its
+# 50 s compiling, results/throughput/README.md, session 73). JAX keeps only programs that took 1 s
+# to compile by default, none of the pendulum's: programs of 0.1 s and more are kept here (13 files, 0.6 MB
 # for the pendulum; all of them, 0.1 s more saved, were 97 files); the folder is bounded, JAX
 # evicting the least recently used entries beyond it (with the `filelock` package).
 CACHE_ENV = "STRIDE_JAX_CACHE"
