@@ -324,3 +324,26 @@ def test_contact_effect_start_is_adopted_only_where_it_fits_better_held_out(monk
     assert run({"ground_friction": [0.84]})[0] is alt
     cal, info = run({"ground_friction": [0.3]})
     assert cal is first and not info["adopted"] and "heldout_gap" not in info
+
+
+def test_recheck_fits_the_settings_again_under_the_best_hypothesis_and_adopts_them_where_better():
+    """A first calibration that took wrong settings (standing in for one that imitated the effect
+    with them) and a refinement that held another effect: with the best hypothesis held fixed,
+    the settings go back to the logs' own and the held-out gap drops; a best hypothesis that is the
+    refinement's own effect is not checked again."""
+    sm = nominal.load("pendulum")
+    _, logged = real.generate(sm, {"damping": [0.3]}, 6, 120, seed=2)
+    train, test, scale = _split_data(sm, logged, 3)
+    wrong = Settings(timestep=0.005, integrator="rk4")
+    cal = calibrate.Calibration(model=nominal.apply(sm, wrong), settings=wrong,
+                                record={"refined": {"held_fixed": {"armature": [0.05]}}, "changed": ["wrong"]})
+    best = {"damping": np.array([0.3])}
+    gap_now = fit.gap(baseline.residual(cal.model, test, scale, best))
+    new, rec = calibrate.recheck(sm, cal, best, gap_now, train, test, scale, calibrate.CalibrateConfig(), QUIET)
+    assert rec["ran"] and rec["adopted"] and new is not None, rec
+    assert new.settings.integrator in (None, "euler") and new.settings.timestep in (None, 0.002), new.settings
+    assert rec["heldout_gap"] < 1e-3 * gap_now
+    assert new.record["recheck"] == rec and new.record["refined"] == cal.record["refined"]
+    same, rec2 = calibrate.recheck(sm, cal, {"armature": np.array([0.05])}, gap_now, train, test, scale,
+                                   calibrate.CalibrateConfig(), QUIET)
+    assert same is None and not rec2["ran"]

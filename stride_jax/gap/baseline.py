@@ -68,6 +68,12 @@ def sentence(record: dict | None) -> str:
     held = list(record.get("effects_held_fixed") or {})
     share = (f"they close {record['shrink']:.1%} of the held-out {record['k']}-step gap, sign-flip p = "
              f"{record['p_value']:.2g}")
+    recheck = record.get("recheck") or {}
+    if recheck.get("adopted"):  # fitted again under the best hypothesis (calibrate.recheck)
+        return (f"the simulator's settings are off: {'; '.join(record['changed'])} (fitted again with the best "
+                f"hypothesis, {', '.join(held)}, held fixed on top, which with them leaves "
+                f"{recheck['heldout_gap'] / max(recheck['heldout_gap_before'], 1e-300):.1%} of the held-out "
+                f"gap it left on the first calibration's settings; on their own {share}{refit})")
     if held and record["shrink"] <= 0:  # kept because they lower the gap with the held effect on top
         share = (f"fitted with {', '.join(held)} held fixed on top, with which they lower the held-out gap; "
                  f"without it {share}")

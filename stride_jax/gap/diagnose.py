@@ -317,16 +317,30 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     stages["nominal_check"], t0 = time.time() - t0, time.time()
     for attempt in (1, 2):
         scr, C, w = _screen_and_which(sm, sm_nominal, cal, train_k, test_k, scale, cfg, log, stages)
-        refit = nuisance.refit_baseline(w, cal) if cal and attempt == 1 else None
-        if refit is None:
+        if not cal or attempt == 2:
             break
-        # a contact effect led the ranking and the nuisance rule read it as the contact model: the
-        # calibration missed part of it, so the effects are scored again on the re-fitted settings
-        why = next(t["summary"] for t in w["nuisance_tests"] if not t["admitted"])
-        cal = nuisance.adopt(sm_nominal, cal, refit, test_k, scale, why)
+        refit = nuisance.refit_baseline(w, cal)
+        if refit is not None:
+            # a contact effect led the ranking and the nuisance rule read it as the contact model: the
+            # calibration missed part of it, so the effects are scored again on the re-fitted settings
+            why = next(t["summary"] for t in w["nuisance_tests"] if not t["admitted"])
+            cal = nuisance.adopt(sm_nominal, cal, refit, test_k, scale, why)
+            log(f"  contact settings re-fitted ({'; '.join(cal.record['changed'])}): {why}; effects scored again")
+        elif cfg.calibrate.recheck and cfg.calibrate.refine:
+            # the best hypothesis is not the effect the refinement held: the settings again with it
+            t0 = time.time()
+            best = {n: np.asarray(v) for n, v in w["ranking"][0]["params"].items()}
+            cal_new, rec = calibrate.recheck(sm_nominal, cal, best, fit.gap(w["r_best_test"]), train_k, test_k,
+                                             scale, cfg.calibrate, log)
+            stages["calibration"] += time.time() - t0
+            out["calibration"] = cal.record | {"recheck": rec}
+            if cal_new is None:
+                break
+            cal = cal_new
+        else:
+            break
         sm = cal.model
         out["calibration"] = cal.record
-        log(f"  contact settings re-fitted ({'; '.join(cal.record['changed'])}): {why}; effects scored again")
     for t in w.get("nuisance_tests", []):
         t.pop("_settings", None)
     t0 = time.time()

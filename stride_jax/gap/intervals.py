@@ -90,14 +90,23 @@ def _lagrange(t: np.ndarray, x: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _nodes(x: float, h: float, lo: float, hi: float) -> np.ndarray:
-    """``[3]`` stencil nodes ``x - h, x, x + h`` inside ``[lo, hi]``, one-sided (``x`` first or
-    last) where a side would leave the bounds."""
+    """``[3]`` distinct stencil nodes, ``x`` among them: ``x - h, x, x + h`` inside ``[lo, hi]``,
+    one-sided (``x`` first or last) where a side would leave the bounds, and where the step does
+    not fit the bounds at all (a wide interval's 16x check) the widest nodes that do: the bounds
+    and ``x``, or ``x``, the midpoint and the far bound for ``x`` on a bound. (Clipped instead,
+    two nodes met at a bound and the curvature came out infinite or NaN, which silently passed
+    the roughness check.)"""
     t = np.array([x - h, x, x + h])
     if t[0] < lo:
         t = np.array([x, x + h, x + 2 * h])
     elif t[2] > hi:
         t = np.array([x - 2 * h, x - h, x])
-    return np.clip(t, lo, hi)
+    if t[0] >= lo and t[2] <= hi:
+        return t
+    if lo < x < hi:
+        return np.array([lo, x, hi])
+    far = hi if x <= lo else lo
+    return np.array(sorted([x, (x + far) / 2, far]))
 
 
 def _at_bound(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, nominal) -> np.ndarray:

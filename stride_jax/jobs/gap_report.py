@@ -319,6 +319,13 @@ def calibration_section(d: dict[str, Any]) -> list[str]:
                   "settings can imitate, screened on the nominal model): held-out gap "
                   f"{alt['heldout_gap']:.4g} against {alt['heldout_gap_other']:.4g}, "
                   + ("adopted: the effect is scored on these settings." if alt["adopted"] else "not adopted.")]
+    chk = c.get("recheck") or {}
+    if chk.get("ran"):
+        L += ["", f"Checked again with the best hypothesis ({', '.join(chk['best'])}) held fixed on top, which the "
+              f"refinement had not held ({', '.join(chk['refinement_held']) or 'none'}): held-out gap with it "
+              f"{chk['heldout_gap']:.4g} against {chk['heldout_gap_before']:.4g} on the settings before, "
+              + ("adopted: the settings above are these, and the effects were scored again on them."
+                 if chk["adopted"] else "not adopted.")]
     L += ["", f"{c['evaluations']} replays of the training split, {c['seconds']:.0f} s. What calibration can and cannot "
           "tell apart: docs/gap.md (a softer ground is a longer solref time constant; contact parameters can take up "
           "part of a payload or of ground friction).", ""]
