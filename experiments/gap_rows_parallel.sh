@@ -5,6 +5,7 @@
 # are left before the deadline, each row killed at the deadline. Rows already in DONE (a folder of
 # an earlier call's rows) are skipped, so the same command continues in the next call.
 #   bash experiments/gap_rows_parallel.sh OUT SECONDS "CASES" [DONE] [JOBS]
+#   (PYTHON: the interpreter, python3 by default)
 #   e.g. bash experiments/gap_rows_parallel.sh $OUT/rows 560 "$(seq -s ' ' 0 16)" results/gbi_partial 15
 # Then: python experiments/gap_bench_compare.py results/gap_bench_go1_independent_cases ROWS --out ...
 set -u
@@ -12,7 +13,7 @@ out=$1; seconds=$2; cases=$3; done_dir=${4:-}; jobs=${5:-$(nproc)}
 MIN_S=${MIN_S:-150}
 mkdir -p "$out"
 deadline=$(( $(date +%s) + seconds ))
-export STRIDE_GAP_THREADS=1 OMP_NUM_THREADS=1 deadline MIN_S out
+export STRIDE_GAP_THREADS=1 OMP_NUM_THREADS=1 deadline MIN_S out PYTHON=${PYTHON:-python3}
 todo=$(python3 - "$cases" "$done_dir" <<'EOF'
 import json, pathlib, sys
 cases, done = sys.argv[1].split(), sys.argv[2]
@@ -36,6 +37,6 @@ echo "$todo" | xargs -P "$jobs" -L 1 bash -c '
   [ "$left" -lt "$MIN_S" ] && { echo "skip $0 $1 (${left} s left)"; exit 0; }
   flag=""; [ "$1" = noisy ] && flag=--noisy
   t0=$(date +%s)
-  timeout "$left" python3 experiments/gap_one_row.py --case "$0" $flag --out "$out" > "$out/log-$0-$1.txt" 2>&1
+  timeout "$left" ${PYTHON:-python3} experiments/gap_one_row.py --case "$0" $flag --out "$out" > "$out/log-$0-$1.txt" 2>&1
   echo "row $0 $1 rc=$? $(( $(date +%s) - t0 )) s: $(tail -1 "$out/log-$0-$1.txt" | cut -c1-220)"'
 echo "done at $(date +%T)"
