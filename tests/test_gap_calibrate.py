@@ -116,6 +116,14 @@ def test_effect_on_top_of_a_model_form_difference_is_named_and_both_shrinks_repo
     refined = dict(cal.get("refined") or {}, contact_effect_start=below)
     lines = report.calibration_section(dict(out, calibration=dict(cal, refined=refined)))
     assert lines and not any("Calibrated again from the start" in line for line in lines)
+    # an adopted recheck is reported in the section and in the verdict's clause
+    chk = {"best": {"damping": [0.3]}, "refinement_held": {"armature": [0.05]}, "ran": True, "adopted": True,
+           "heldout_gap": 0.01, "heldout_gap_before": 0.04, "p_value": 0.001}
+    rechecked = dict(cal, recheck=chk, effects_held_fixed={"damping": [0.3]})
+    lines = report.calibration_section(dict(out, calibration=rechecked))
+    assert any("Checked again with the best hypothesis (damping)" in line and "adopted" in line for line in lines)
+    assert "fitted again with the best hypothesis, damping, held fixed" in baseline.sentence(rechecked)
+    assert "25.0% of the held-out gap" in baseline.sentence(rechecked)
     # calibration off: the nominal model is the baseline, the effect is still named
     off = diagnose.diagnose(sm, logged, dataclasses.replace(cfg, calibrate=calibrate.CalibrateConfig(mode="off")),
                             log=QUIET)
@@ -338,12 +346,29 @@ def test_recheck_fits_the_settings_again_under_the_best_hypothesis_and_adopts_th
     cal = calibrate.Calibration(model=nominal.apply(sm, wrong), settings=wrong,
                                 record={"refined": {"held_fixed": {"armature": [0.05]}}, "changed": ["wrong"]})
     best = {"damping": np.array([0.3])}
-    gap_now = fit.gap(baseline.residual(cal.model, test, scale, best))
-    new, rec = calibrate.recheck(sm, cal, best, gap_now, train, test, scale, calibrate.CalibrateConfig(), QUIET)
+    r_now = baseline.residual(cal.model, test, scale, best)
+    new, rec = calibrate.recheck(sm, cal, best, r_now, train, test, scale, calibrate.CalibrateConfig(), QUIET)
     assert rec["ran"] and rec["adopted"] and new is not None, rec
     assert new.settings.integrator in (None, "euler") and new.settings.timestep in (None, 0.002), new.settings
-    assert rec["heldout_gap"] < 1e-3 * gap_now
+    assert rec["heldout_gap"] < 1e-3 * fit.gap(r_now) and rec["p_value"] <= 0.05
     assert new.record["recheck"] == rec and new.record["refined"] == cal.record["refined"]
-    same, rec2 = calibrate.recheck(sm, cal, {"armature": np.array([0.05])}, gap_now, train, test, scale,
+    same, rec2 = calibrate.recheck(sm, cal, {"armature": np.array([0.05])}, r_now, train, test, scale,
                                    calibrate.CalibrateConfig(), QUIET)
     assert same is None and not rec2["ran"]
+    # a gain below the bar is not adopted: here the residual "before" is made only a little worse
+    # than the new settings' own
+    r_close = baseline.residual(new.model, test, scale, best) * 1.02
+    kept, rec3 = calibrate.recheck(sm, cal, best, r_close, train, test, scale, calibrate.CalibrateConfig(), QUIET)
+    assert kept is None and rec3["ran"] and not rec3["adopted"], rec3
+
+
+def test_a_value_that_moves_with_the_rechecked_settings_takes_the_confidence():
+    from stride_jax.gap import attribute
+    best = {"effects": ["damping"], "params": {"damping": [2.57]}, "param_lo": {"damping": [2.5]},
+            "param_hi": {"damping": [2.6]}}
+    shift = {"before": {"damping": [1.67]}, "first_settings": ["time step: 2 ms -> 2.5 ms"]}
+    (line,) = attribute.settings_shift(best, shift, 0.25)
+    assert "1.67 -> 2.57" in line
+    assert attribute.settings_shift(best, {"before": {"damping": [2.45]}}, 0.25) == []  # within 25% of 2.57
+    assert attribute.settings_shift(best, {"before": {"damping": [2.55]}}, 0.0) == []  # inside the interval
+    assert attribute.settings_shift(best, None, 0.25) == []

@@ -409,8 +409,10 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
        own interval (a contact effect that does only qualifies the value: it may stand for the
        simulator's contact model) and, for a single, its value fitted where each joint moves slowest
        and where it moves fastest agrees (:mod:`stride_jax.gap.form`), and, for a pair, its second
-       effect is material (a pair named for a confounder below the bar is not confident);
-       otherwise the reason names the conditions that failed.
+       effect is material (a pair named for a confounder below the bar is not confident), and its
+       value does not depend on the simulator's settings (where the calibration was checked again
+       under it and replaced, :func:`settings_shift`); otherwise the reason names the conditions
+       that failed.
 
     Every verdict lists the hypotheses the held-out data cannot tell apart from the best
     (``indistinguishable_from``). Which hypothesis is the best is the pair and nuisance rules'
@@ -511,6 +513,13 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
     fc = w.get("form_check")
     if fc and fc["differs"] and fc["effect"] in best["effects"]:
         shortfalls.append(form.note(fc))
+    moved = settings_shift(best, w.get("calibration_shift"), cfg.form_tol)
+    if moved:
+        shortfalls.append(f"its value depends on the simulator's settings: fitted on the first calibration's settings "
+                          f"({'; '.join(w['calibration_shift']['first_settings']) or 'the nominal model'}) and on "
+                          f"those fitted again with it held fixed, which predict the held-out split better, it moves "
+                          f"outside its interval and by more than {cfg.form_tol:.0%} of its departure from nominal: "
+                          + "; ".join(moved))
     if hint:
         shortfalls.append("the fit leaves structure (below)")
     confident = not shortfalls
@@ -521,6 +530,26 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
                       + (f"confident: it beats the runner-up in {best['p_beats_next']:.0%} of resamples" if confident
                          else "not confident: " + "; ".join(shortfalls))
                       + "".join(f"; {n}" for n in value_notes) + pair_note + bounds + hint + tie_note}
+
+
+def settings_shift(best: dict[str, Any], shift: dict[str, Any] | None, tol: float) -> list[str]:
+    """The entries of the best hypothesis whose value on the re-checked settings
+    (:func:`stride_jax.gap.calibrate.recheck`) lies outside its interval *and* more than ``tol`` of
+    its departure from nominal away from its value on the first settings (``shift["before"]``):
+    one line each, empty where none or no recheck was adopted. Both rules, as the form check's:
+    intervals hold the noise, not the model-form bias, so intervals alone would flag most shifts."""
+    out = []
+    for n, before in ((shift or {}).get("before") or {}).items():
+        if n not in best["params"]:
+            continue
+        after, lo, hi = (np.atleast_1d(np.asarray(best[k][n], float)) for k in ("params", "param_lo", "param_hi"))
+        b, nom = np.atleast_1d(np.asarray(before, float)), np.atleast_1d(np.asarray(effects.ALL[n].nominal, float))
+        for i in range(len(after)):
+            dep = max(abs(after[i] - nom[i]), abs(b[i] - nom[i]), 1e-12)
+            if not lo[i] <= b[i] <= hi[i] and abs(after[i] - b[i]) > tol * dep:
+                label = n + (f"[{i}]" if len(after) > 1 else "")
+                out.append(f"{label} {_num(b[i])} -> {_num(after[i])} (interval {_num(lo[i])} to {_num(hi[i])})")
+    return out
 
 
 def _entry(m: dict, params: dict) -> str:

@@ -113,7 +113,9 @@ class CalibrateConfig:
         on its own for that second start (1 or more: never).
       recheck: once the diagnosis has its best hypothesis, fit the settings again with it held
         fixed on top where it differs from the effect the refinement held (:func:`recheck`), and
-        score the effects again on them where they predict the held-out split better.
+        score the effects again on them where they predict the held-out split better: by at
+        least ``recheck_min`` of its gap, significantly (one-sided sign-flip test over held-out
+        blocks at ``recheck_p``).
       continuous_first: also search from the continuous settings fitted first (step 3c), keeping
         the lower training loss (one more search: 16-28 s on the shipped Go1's 6 x 4 s logs, ~33 s
         on 12 x 8 s; only in a first pass, not in a pass started from its settings).
@@ -138,6 +140,8 @@ class CalibrateConfig:
     refine: bool = True
     second_start: float = 0.5
     recheck: bool = True
+    recheck_min: float = 0.1
+    recheck_p: float = 0.05
     continuous_first: bool = True
 
     def __post_init__(self):
@@ -157,6 +161,9 @@ class CalibrateConfig:
             raise ValueError(f"calibrate: timestep range [{self.timestep_min}, {self.timestep_max}] is empty")
         if self.min_gain < 0:
             raise ValueError(f"calibrate.min_gain {self.min_gain} must be >= 0")
+        if not (0 <= self.recheck_min < 1 and 0 < self.recheck_p <= 1):
+            raise ValueError(f"calibrate: recheck_min {self.recheck_min} must be in [0, 1) and recheck_p "
+                             f"{self.recheck_p} in (0, 1]")
         if not self.second_start >= 0:
             raise ValueError(f"calibrate.second_start {self.second_start} must be >= 0 (1 or more: no second start)")
 
@@ -647,14 +654,19 @@ def refine(sm: SimModel, cal: Calibration, train: fit.Data, test: fit.Data, scal
     return dataclasses.replace(cal2, record=cal2.record | {"refined": info})
 
 
-def recheck(sm: SimModel, cal: Calibration, best: dict, gap_now: float, train: fit.Data, test: fit.Data,
+def recheck(sm: SimModel, cal: Calibration, best: dict, r_now: np.ndarray, train: fit.Data, test: fit.Data,
             scale: np.ndarray, cfg: CalibrateConfig, log=print) -> tuple[Calibration | None, dict]:
     """The settings fitted again with the diagnosis's best hypothesis ``best`` (``{effect:
     params}``, fitted on ``cal``'s baseline) held fixed on top, from the nominal model, the
     training form and ``cal``'s settings, whichever fits best (:func:`calibrate`); run only where
     ``best`` names other effects than the refinement held (:func:`refine`). Returns ``(the new
-    calibration, record)`` where its held-out ``k``-step gap with ``best`` applied is lower by
-    ``min_gain`` than ``gap_now`` (``cal``'s with ``best`` applied), else ``(None, record)``.
+    calibration, record)`` where its held-out ``k``-step residual with ``best`` applied beats
+    ``r_now`` (``cal``'s with ``best`` applied, ``[M, nv]`` on ``test``) by at least
+    ``cfg.recheck_min`` of its gap and significantly (one-sided sign-flip test of the paired block
+    improvements at ``cfg.recheck_p``), else ``(None, record)``. The bar is the pair rule's kind,
+    not ``min_gain``: a small held-out gain came with settings that traded against the effect
+    (the independent benchmark's noisy centre-of-mass offset: 2.5% better held out, the offset's
+    x from 0.030, the planted value, to 0.021).
 
     The refinement holds the effect that its screen on the first calibration picks, and that
     calibration may already have imitated the right one with the contact settings, so the screen
@@ -671,10 +683,16 @@ def recheck(sm: SimModel, cal: Calibration, best: dict, gap_now: float, train: f
     log(f"  calibration checked with the best hypothesis {sorted(best)} held fixed (the refinement held "
         f"{sorted(held) or 'none'})")
     new = calibrate(sm, train, test, scale, cfg, log, applied=best, start=cal.settings, heldout=cal.heldout)
-    g_new = heldout_gap(new)
-    rec |= {"ran": True, "heldout_gap": g_new, "heldout_gap_before": gap_now, "settings_moved": new.settings != cal.settings,
-            "adopted": bool(new.settings != cal.settings and g_new < (1 - cfg.min_gain) * gap_now)}
-    log(f"  held-out {test.k}-step gap with {sorted(best)}: {g_new:.4g} against {gap_now:.4g}: "
+    r_new = residual(new.model, test, scale, best)
+    ids, nb, _ = fit.block_ids(test, cfg.block)
+    bl = lambda r: np.bincount(ids, weights=(r ** 2).sum(1), minlength=nb)
+    g_now, g_new = fit.gap(r_now), fit.gap(r_new)
+    moved = new.settings != cal.settings
+    p = _signflip(bl(r_now) - bl(r_new), 4000, cfg.seed + 13) if moved else 1.0
+    rec |= {"ran": True, "heldout_gap": g_new, "heldout_gap_before": g_now, "p_value": p, "settings_moved": moved,
+            "adopted": bool(moved and g_new <= (1 - cfg.recheck_min) * g_now and p <= cfg.recheck_p)}
+    log(f"  held-out {test.k}-step gap with {sorted(best)}: {g_new:.4g} against {g_now:.4g} (sign-flip p {p:.2g}; "
+        f"needs {1 - cfg.recheck_min:.0%} of it or less at p <= {cfg.recheck_p:g}): "
         + ("adopted, effects scored again" if rec["adopted"] else "kept"))
     if not rec["adopted"]:
         return None, rec

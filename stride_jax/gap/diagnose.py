@@ -315,6 +315,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
     if bad:
         raise RuntimeError(f"effects do not reproduce the nominal model at their nominal value: {bad}")
     stages["nominal_check"], t0 = time.time() - t0, time.time()
+    shifted = None  # the best hypothesis's values on the first settings, where the recheck replaced them
     for attempt in (1, 2):
         scr, C, w = _screen_and_which(sm, sm_nominal, cal, train_k, test_k, scale, cfg, log, stages)
         if not cal or attempt == 2:
@@ -330,19 +331,21 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
             # the best hypothesis is not the effect the refinement held: the settings again with it
             t0 = time.time()
             best = {n: np.asarray(v) for n, v in w["ranking"][0]["params"].items()}
-            cal_new, rec = calibrate.recheck(sm_nominal, cal, best, fit.gap(w["r_best_test"]), train_k, test_k,
-                                             scale, cfg.calibrate, log)
+            cal_new, rec = calibrate.recheck(sm_nominal, cal, best, w["r_best_test"], train_k, test_k, scale,
+                                             cfg.calibrate, log)
             stages["calibration"] += time.time() - t0
             out["calibration"] = cal.record | {"recheck": rec}
             if cal_new is None:
                 break
-            cal = cal_new
+            cal, shifted = cal_new, {"before": rec["best"], "first_settings": cal.record.get("changed", [])}
         else:
             break
         sm = cal.model
         out["calibration"] = cal.record
     for t in w.get("nuisance_tests", []):
         t.pop("_settings", None)
+    if shifted:
+        w["calibration_shift"] = shifted
     t0 = time.time()
     out["screen"] = scr
     out["verdict"] = verdict(w, cfg)

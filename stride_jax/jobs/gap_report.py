@@ -323,7 +323,8 @@ def calibration_section(d: dict[str, Any]) -> list[str]:
     if chk.get("ran"):
         L += ["", f"Checked again with the best hypothesis ({', '.join(chk['best'])}) held fixed on top, which the "
               f"refinement had not held ({', '.join(chk['refinement_held']) or 'none'}): held-out gap with it "
-              f"{chk['heldout_gap']:.4g} against {chk['heldout_gap_before']:.4g} on the settings before, "
+              f"{chk['heldout_gap']:.4g} against {chk['heldout_gap_before']:.4g} on the settings before (sign-flip p "
+              f"{chk.get('p_value', float('nan')):.2g}), "
               + ("adopted: the settings above are these, and the effects were scored again on them."
                  if chk["adopted"] else "not adopted.")]
     L += ["", f"{c['evaluations']} replays of the training split, {c['seconds']:.0f} s. What calibration can and cannot "
