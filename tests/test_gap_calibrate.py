@@ -372,3 +372,12 @@ def test_a_value_that_moves_with_the_rechecked_settings_takes_the_confidence():
     assert attribute.settings_shift(best, {"before": {"damping": [2.45]}}, 0.25) == []  # within 25% of 2.57
     assert attribute.settings_shift(best, {"before": {"damping": [2.55]}}, 0.0) == []  # inside the interval
     assert attribute.settings_shift(best, None, 0.25) == []
+
+
+def test_the_recheck_runs_only_for_a_hypothesis_that_can_name_an_effect():
+    cfg = diagnose.PRESETS["tiny"]
+    w = lambda params, sig: {"ranking": [{"params": params}], "detection": {"significant": sig},
+                             "probe_explained_nominal": 0.0}
+    assert diagnose._names_an_effect(w({"damping": [0.3]}, True), cfg)
+    assert not diagnose._names_an_effect(w({"damping": [0.3]}, False), cfg)  # no significant gap
+    assert not diagnose._names_an_effect(w({"mass@hip": [1.0]}, True), cfg)  # an effect at its nominal value

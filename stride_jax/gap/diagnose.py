@@ -211,6 +211,17 @@ def _screen_and_which(sm, sm_nominal, cal, train_k, test_k, scale, cfg, log, sta
     return scr, C, w
 
 
+def _names_an_effect(w: dict[str, Any], cfg: DiagnoseConfig) -> bool:
+    """Whether the best hypothesis of :func:`which` can name an effect: the gap is significant
+    (the verdict's first rule) and some parameter is off its nominal value (a no-effect control's
+    best is often an effect at nominal)."""
+    best = w["ranking"][0]
+    significant = w["detection"]["significant"] or w["probe_explained_nominal"] > cfg.significant
+    off = any(np.any(np.abs(np.atleast_1d(np.asarray(v, float)) - np.atleast_1d(effects.ALL[n].nominal)) > 1e-9)
+              for n, v in best["params"].items())
+    return bool(significant and off)
+
+
 # ----------------------------------------------------------------------------- top level
 
 
@@ -327,7 +338,7 @@ def diagnose(sm: SimModel, trajs: list[logs.Trajectory], cfg: DiagnoseConfig = D
             why = next(t["summary"] for t in w["nuisance_tests"] if not t["admitted"])
             cal = nuisance.adopt(sm_nominal, cal, refit, test_k, scale, why)
             log(f"  contact settings re-fitted ({'; '.join(cal.record['changed'])}): {why}; effects scored again")
-        elif cfg.calibrate.recheck and cfg.calibrate.refine:
+        elif cfg.calibrate.recheck and cfg.calibrate.refine and _names_an_effect(w, cfg):
             # the best hypothesis is not the effect the refinement held: the settings again with it
             t0 = time.time()
             best = {n: np.asarray(v) for n, v in w["ranking"][0]["params"].items()}
