@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Rows of the independent gap benchmark side by side, one process of one thread each, for a
+# Rows of the independent gap benchmark side by side, one process each (STRIDE_GAP_THREADS threads, 1 by default), for a
 # machine with many CPU cores (a lent GPU machine's 16): `experiments/gap_one_row.py` per row,
 # longest first (by the committed rows' seconds), no row started once less than MIN_S seconds
 # are left before the deadline, each row killed at the deadline. Rows already in DONE (a folder of
@@ -13,7 +13,7 @@ out=$1; seconds=$2; cases=$3; done_dir=${4:-}; jobs=${5:-$(nproc)}
 MIN_S=${MIN_S:-150}
 mkdir -p "$out"
 deadline=$(( $(date +%s) + seconds ))
-export STRIDE_GAP_THREADS=1 OMP_NUM_THREADS=1 deadline MIN_S out PYTHON=${PYTHON:-python3}
+export STRIDE_GAP_THREADS=${STRIDE_GAP_THREADS:-1} OMP_NUM_THREADS=1 deadline MIN_S out PYTHON=${PYTHON:-python3}
 todo=$(python3 - "$cases" "$done_dir" <<'EOF'
 import json, pathlib, sys
 cases, done = sys.argv[1].split(), sys.argv[2]
