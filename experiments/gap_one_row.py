@@ -32,7 +32,7 @@ def main() -> None:
 
     from stride_jax.gap import diagnose
     from stride_jax.jobs import gap_bench_independent as bi
-    from stride_jax.io import atomic_write_text
+    from stride_jax.io import atomic_write_text, code_version
     from stride_jax.jobs.gap_report import json_default
 
     if a.preset not in bi.PRESETS or (a.diagnose and a.diagnose not in diagnose.PRESETS):
@@ -50,7 +50,8 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     keep = {k: v for k, v in res.items() if not k.startswith("_")}
     path = out / f"{a.case:02d}-{'noisy' if a.noisy else 'clean'}.json"
-    atomic_write_text(path, json.dumps({"row": row, "diagnosis": keep}, indent=1, default=json_default))
+    atomic_write_text(path, json.dumps({"code": code_version(), "row": row, "diagnosis": keep}, indent=1,
+                                       default=json_default))
     print(f"{path}: {row['verdict']} {row['named']} confident={row['confident']} ratio={row.get('shrink_ratio')} "
           f"({row['row_seconds']:.0f} s; stages {res.get('stage_seconds')})")
 
