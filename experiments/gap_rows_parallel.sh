@@ -3,7 +3,10 @@
 # machine with many CPU cores (a lent GPU machine's 16): `experiments/gap_one_row.py` per row,
 # longest first (by the committed rows' seconds), no row started once less than MIN_S seconds
 # are left before the deadline, each row killed at the deadline. Rows already in DONE (a folder of
-# an earlier call's rows) are skipped, so the same command continues in the next call.
+# an earlier call's rows) are skipped, so the same command continues in the next call. Beside
+# experiments/gap_bench_device.sh (the whole benchmark through its own pool, rows as it stores them):
+# chosen rows, each with its whole diagnosis kept (to read why a verdict moved), longest first;
+# experiments/gap_rows_collect.py then makes the benchmark's folder and tables of them.
 #   bash experiments/gap_rows_parallel.sh OUT SECONDS "CASES" [DONE] [JOBS]
 #   (PYTHON: the interpreter, python3 by default)
 #   e.g. bash experiments/gap_rows_parallel.sh $OUT/rows 560 "$(seq -s ' ' 0 16)" results/gbi_partial 15
