@@ -38,6 +38,10 @@ fits, and a replay of the shipped Go1 costs ~6x the MJX-training form's):
 4. held-out: the calibrated baseline is kept only if it lowers the held-out k-step gap
    (otherwise the nominal model stays the baseline, and the report says so), with a one-sided
    sign-flip test of the paired block improvements reported beside it.
+5. once the effects are ranked on that baseline (:mod:`stride_jax.gap.diagnose`), the search
+   again with the best hypothesis held fixed where the refinement held another effect
+   (:func:`recheck`), adopted where it predicts the held-out split materially and significantly
+   better; the effects are then scored again on it.
 
 What calibration can and cannot tell apart is in ``docs/gap.md``: a softer ground and a longer
 solref time constant are the same dynamics (the library's ``contact_softness`` is that knob), and
