@@ -108,6 +108,7 @@ def test_effect_on_top_of_a_model_form_difference_is_named_and_both_shrinks_repo
     md = path.read_text()
     assert "## Model form: the simulator's settings (calibrated first)" in md
     assert "against the nominal model" in md and "against the calibrated baseline" in md
+    assert "conditional on the simulator's settings above" in md  # what the intervals hold, said where they are
     d = json.loads((tmp_path / "rep" / "diagnosis.json").read_text())
     assert d["calibration"]["changed"] == cal["changed"] and "shrink_vs_baseline" in d["how_far"]
     # a contact effect screened for the second start that did not reach the share: nothing ran, so

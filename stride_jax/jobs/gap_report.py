@@ -197,7 +197,10 @@ def markdown(d: dict[str, Any], files: dict[str, str], command: str | None = Non
         L += ["", f"Parameter intervals: {level:.0%} profile-likelihood (scalars) or sandwich (vectors, pairs) intervals of the "
               "training loss, calibrated by the spread of its gradient over blocks of the logs, clipped to the "
               "parameter's bounds; they contain the estimate. They cover sampling noise only, not the bias that "
-              "sensor noise in the replayed start states gives the estimate (docs/gap.md). \"(at the bound)\": the "
+              "sensor noise in the replayed start states gives the estimate, and they are conditional on the "
+              "simulator's settings above: the model-form difference those leave biases the estimate the same way on "
+              "every trajectory, beyond the interval (on logs from independently set-up simulators most intervals "
+              "missed the planted value; docs/gap.md, \"Still short of the issue\"). \"(at the bound)\": the "
               "estimate sits on a bound of its parameter: the true value may lie beyond it. Single effects "
               "other than the two best held out and the named one are fitted without an interval (a third of a fit's "
               "replays)."]
