@@ -7,6 +7,7 @@ biases the estimate, the bias differs between motions: the trajectories' spread 
 where the block intervals (sampling noise) do not.
 
     python experiments/probes/form_spread.py --rows 01-clean,05-clean,09-clean [--cases DIR]
+        [--nominal] [--alternatives] [--profile 1.4,1.46,1.5,1.55] [--no-trajectories]
 
 Prints one line per fit; each row takes ~1-3 minutes on 2 cores.
 """
@@ -32,6 +33,8 @@ def main() -> None:
     ap.add_argument("--preset", default="default", help="the benchmark's preset (its cases)")
     ap.add_argument("--nominal", action="store_true", help="also fit on the nominal (uncalibrated) model")
     ap.add_argument("--no-trajectories", action="store_true", help="skip the per-trajectory fits")
+    ap.add_argument("--profile", default="", help="comma-separated values of the (single) planted effect: its "
+                    "training loss at each with the settings fixed and with the continuous contact settings refitted")
     ap.add_argument("--alternatives", action="store_true",
                     help="also refit the effect on every other value of each discrete setting")
     a = ap.parse_args()
@@ -50,6 +53,8 @@ def main() -> None:
             whole = fit.fit(base, fit.thin(p.train_k, stride), p.scale, (eff,), cfg.fit)
             print(f"{name} {eff} truth {truth}: all {len(p.tr_idx)} training trajectories "
                   f"{whole.params[eff]} [{whole.lo[eff]}, {whole.hi[eff]}] ({time.time() - t0:.0f} s)", flush=True)
+            if a.profile:
+                profile(p, s, base, eff, [float(v) for v in a.profile.split(",")], stride, cfg)
             if a.nominal:
                 f = fit.fit(p.sm, fit.thin(p.train_k, stride), p.scale, (eff,), cfg.fit)
                 print(f"  nominal model: {f.params[eff]} [{f.lo[eff]}, {f.hi[eff]}], training loss x "
@@ -69,6 +74,20 @@ def main() -> None:
             print(f"  spread over trajectories: mean {E.mean(0)}, sd {E.std(0, ddof=1)}, "
                   f"se of the mean {E.std(0, ddof=1) / np.sqrt(n)}; the interval's half width "
                   f"{(np.asarray(whole.hi[eff]) - np.asarray(whole.lo[eff])) / 2}", flush=True)
+
+
+def profile(p, s, base, eff, values, stride, cfg) -> None:
+    """The effect's training loss at ``values``: on the calibrated settings as they are, and with the
+    continuous contact settings fitted again at each value (a profile over those nuisance settings)."""
+    from stride_jax.gap import baseline, calibrate
+    data = fit.thin(p.train_k, stride)
+    cont = calibrate._names(cfg.calibrate.continuous)
+    for v in values:
+        app = {eff: [v]}
+        fixed = float((baseline.residual(base, data, p.scale, app) ** 2).sum())
+        _, refit, _ = calibrate.fit_continuous(p.sm, s, data, p.scale, cont, cfg.calibrate.max_nfev, app)
+        print(f"  {eff}={v}: training loss {fixed:.5g} on the calibrated settings, {refit:.5g} with the contact "
+              f"settings refitted", flush=True)
 
 
 def alternatives(base, p, s, eff, whole, stride, cfg) -> None:
