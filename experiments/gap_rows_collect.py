@@ -23,16 +23,13 @@ from stride_jax.jobs import gap_bench as bench
 from stride_jax.jobs import gap_bench_independent as bi
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("folders", nargs="+", help="FOLDER=CODE, in order (later rows replace earlier ones)")
-    ap.add_argument("--out", required=True)
-    ap.add_argument("--preset", default="default")
-    ap.add_argument("--command", default="")
-    a = ap.parse_args()
-    cfg = bi.PRESETS[a.preset]
-    dest = bench.rows_dir(cfg, a.out)
-    for item in a.folders:
+def collect(items: list[str], out: str, preset: str = "default", command: str = "", log=print) -> dict:
+    """Stores the rows of ``items`` (``FOLDER=CODE`` or ``FOLDER``, in order) in ``out``'s row
+    folder and writes the tables if every row is there; returns :func:`gap_bench_independent.run`'s
+    result (``complete`` False with the counts otherwise)."""
+    cfg = bi.PRESETS[preset]
+    dest = bench.rows_dir(cfg, out)
+    for item in items:
         folder, _, code = item.partition("=")
         files = sorted(pathlib.Path(folder).glob("[0-9]*-*.json"))
         if not files:
@@ -42,8 +39,18 @@ def main() -> None:
             if not (code or data.get("code")):
                 raise SystemExit(f"{f}: records no code; give its folder as {folder}=CODE")
             bench.save_row(dest, cfg, data["row"], code or data["code"])
-        print(f"{folder}: {len(files)} rows" + (f" at {code}" if code else ""))
-    res = bi.run(cfg, a.out, command=a.command, log=print, minutes=0)
+        log(f"{folder}: {len(files)} rows" + (f" at {code}" if code else ""))
+    return bi.run(cfg, out, command=command, log=log, minutes=0)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folders", nargs="+", help="FOLDER=CODE or FOLDER, in order (later rows replace earlier ones)")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--preset", default="default")
+    ap.add_argument("--command", default="")
+    a = ap.parse_args()
+    res = collect(a.folders, a.out, a.preset, a.command)
     print("complete" if res.get("complete", True) else f"incomplete: {res['done']} of {res['total']} rows")
 
 
