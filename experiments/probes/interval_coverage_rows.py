@@ -29,7 +29,7 @@ def rows(folder: pathlib.Path) -> list[dict]:
         best = row["best"]
         for name, truth in row["planted"].items():
             e = effects.ALL[name]
-            if e.integer or name == "delay":
+            if e.integer:
                 continue
             est = best["params"].get(name)
             for i, t in enumerate(np.atleast_1d(truth)):

@@ -386,6 +386,12 @@ def admission_note(w: dict[str, Any], cfg: DiagnoseConfig) -> str:
     return "".join(f"; {c}" for c in out)
 
 
+def significant(w: dict[str, Any], cfg: DiagnoseConfig) -> bool:
+    """The verdict's first rule: the best hypothesis beats the nominal model on cross-fitted
+    held-out data, or the linear probe explains more than ``cfg.significant`` of the residual."""
+    return bool(w["detection"]["significant"] or w["probe_explained_nominal"] > cfg.significant)
+
+
 def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
     """The answer to "which": ``no significant gap``, ``explained`` (by the best hypothesis, with
     ``confident`` True/False) or ``unexplained by the library``. The reason names the rule that
@@ -426,7 +432,7 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
                                                       if det["p_value"] <= det.get("p_floor", 0) * 1.0001 else "")
             + f", needs < {det['level']:.3g} = {cfg.alpha:g} / {det['hypotheses']} hypotheses")
     probe = f"linear probe explains {w['probe_explained_nominal']:.1%} of the held-out residual (needs > {cfg.significant:.0%})"
-    if not (det["significant"] or w["probe_explained_nominal"] > cfg.significant):
+    if not significant(w, cfg):
         return {"verdict": "no significant gap", "effects": [], "confident": False, "indistinguishable_from": ties,
                 "rule": "detection",
                 "reason": f"no significant gap: the best hypothesis ({name}) does not beat the nominal model on "
@@ -533,23 +539,17 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
 
 
 def settings_shift(best: dict[str, Any], shift: dict[str, Any] | None, tol: float) -> list[str]:
-    """The entries of the best hypothesis whose value on the re-checked settings
-    (:func:`stride_jax.gap.calibrate.recheck`) lies outside its interval *and* more than ``tol`` of
-    its departure from nominal away from its value on the first settings (``shift["before"]``):
-    one line each, empty where none or no recheck was adopted. Both rules, as the form check's:
-    intervals hold the noise, not the model-form bias, so intervals alone would flag most shifts."""
-    out = []
-    for n, before in ((shift or {}).get("before") or {}).items():
-        if n not in best["params"]:
-            continue
-        after, lo, hi = (np.atleast_1d(np.asarray(best[k][n], float)) for k in ("params", "param_lo", "param_hi"))
-        b, nom = np.atleast_1d(np.asarray(before, float)), np.atleast_1d(np.asarray(effects.ALL[n].nominal, float))
-        for i in range(len(after)):
-            dep = max(abs(after[i] - nom[i]), abs(b[i] - nom[i]), 1e-12)
-            if not lo[i] <= b[i] <= hi[i] and abs(after[i] - b[i]) > tol * dep:
-                label = n + (f"[{i}]" if len(after) > 1 else "")
-                out.append(f"{label} {_num(b[i])} -> {_num(after[i])} (interval {_num(lo[i])} to {_num(hi[i])})")
-    return out
+    """The entries of the best hypothesis whose value on the first settings (``shift["before"]``)
+    lies outside its interval on the re-checked ones (:func:`stride_jax.gap.calibrate.recheck`),
+    where it also moved by more than ``tol`` of its departure from nominal -- the pair rule's two
+    measures (:func:`stride_jax.gap.admit.moves`, :func:`~stride_jax.gap.admit.change_in_estimate`);
+    one line each, empty where none or no recheck was adopted. Both, as the form check's: intervals
+    hold the noise, not the model-form bias, so intervals alone would flag most shifts."""
+    before = {"params": (shift or {}).get("before") or {}}
+    if not before["params"] or admit.change_in_estimate(best, before) <= tol:
+        return []
+    return [f"{_entry(m, best['params'])} {_num(m['in_pair'])} -> {_num(m['single'])} (interval {_num(m['lo'])} "
+            f"to {_num(m['hi'])})" for m in admit.moves(best, before)]
 
 
 def _entry(m: dict, params: dict) -> str:

@@ -270,6 +270,20 @@ def _signflip(d: np.ndarray, n: int, seed: int) -> float:
     return float((1 + ((flips @ d) >= d.sum() - 1e-12 * np.abs(d).sum()).sum()) / (1 + n))
 
 
+def paired_p(r_before: np.ndarray, r_after: np.ndarray, test: fit.Data, block: int, seed: int) -> float:
+    """One-sided sign-flip p that ``r_after`` (``[M, nv]`` residuals on ``test``) fits better than
+    ``r_before``: the paired differences of their squared residuals summed over blocks of
+    ``block`` control steps (:func:`stride_jax.gap.fit.block_ids`), 4000 flips."""
+    ids, nb, _ = fit.block_ids(test, block)
+    bl = lambda r: np.bincount(ids, weights=(r ** 2).sum(1), minlength=nb)
+    return _signflip(bl(r_before) - bl(r_after), 4000, seed)
+
+
+def _heldout_key(s: Settings, applied: dict | None) -> tuple:
+    """The key of :attr:`Calibration.heldout`: the settings and the effects held fixed on top."""
+    return s, tuple(sorted((n, tuple(np.atleast_1d(v).tolist())) for n, v in (applied or {}).items()))
+
+
 def _z(name: str, v: float) -> float:
     """Setting ``name``'s value ``v`` in coordinates normalised to its (log) range: 0 at the low
     bound, 1 at the high one."""
@@ -457,7 +471,7 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
     heldout = {} if heldout is None else heldout
 
     def r_test(s: Settings, app: dict | None = None) -> np.ndarray:
-        key = (s, tuple(sorted((n, tuple(np.atleast_1d(v).tolist())) for n, v in (app or {}).items())))
+        key = _heldout_key(s, app)
         if key not in heldout:
             heldout[key] = residual(sm if s == Settings() else nominal.apply(sm, s), test, scale, app)
         return heldout[key]
@@ -512,12 +526,9 @@ def calibrate(sm: SimModel, train: fit.Data, test: fit.Data, scale: np.ndarray, 
     r_nom, r_cal = r_test(Settings()), r_test(best)
     if applied:
         g_nom_a, g_cal_a = fit.gap(r_test(Settings(), applied)), fit.gap(r_test(best, applied))
-    ids, nb, _ = fit.block_ids(test, cfg.block)
-    bl = lambda r: np.bincount(ids, weights=(r ** 2).sum(1), minlength=nb)
-    d = bl(r_nom) - bl(r_cal)
     g_nom, g_cal = fit.gap(r_nom), fit.gap(r_cal)
     ok = bool(best != Settings() and (g_cal_a < g_nom_a if applied else g_cal < g_nom))
-    p = _signflip(d, 4000, cfg.seed + 11) if best != Settings() else 1.0
+    p = paired_p(r_nom, r_cal, test, cfg.block, cfg.seed + 11) if best != Settings() else 1.0
     forms_heldout = {}
     for name, s in forms.items():
         forms_heldout[name] = fit.gap(r_test(s))
@@ -687,12 +698,10 @@ def recheck(sm: SimModel, cal: Calibration, best: dict, r_now: np.ndarray, train
     log(f"  calibration checked with the best hypothesis {sorted(best)} held fixed (the refinement held "
         f"{sorted(held) or 'none'})")
     new = calibrate(sm, train, test, scale, cfg, log, applied=best, start=cal.settings, heldout=cal.heldout)
-    r_new = residual(new.model, test, scale, best)
-    ids, nb, _ = fit.block_ids(test, cfg.block)
-    bl = lambda r: np.bincount(ids, weights=(r ** 2).sum(1), minlength=nb)
+    r_new = new.heldout[_heldout_key(new.settings, best)]  # replayed by the calibration's held-out check
     g_now, g_new = fit.gap(r_now), fit.gap(r_new)
     moved = new.settings != cal.settings
-    p = _signflip(bl(r_now) - bl(r_new), 4000, cfg.seed + 13) if moved else 1.0
+    p = paired_p(r_now, r_new, test, cfg.block, cfg.seed + 13) if moved else 1.0
     rec |= {"ran": True, "heldout_gap": g_new, "heldout_gap_before": g_now, "p_value": p, "settings_moved": moved,
             "adopted": bool(moved and g_new <= (1 - cfg.recheck_min) * g_now and p <= cfg.recheck_p)}
     log(f"  held-out {test.k}-step gap with {sorted(best)}: {g_new:.4g} against {g_now:.4g} (sign-flip p {p:.2g}; "

@@ -41,7 +41,7 @@ import numpy as np
 
 from stride_jax.gap import (baseline, calibrate, effects, filters, fit, granularity, logs, nuisance,
                             progress, regions, residual, screen, sim)
-from stride_jax.gap.attribute import check_form, check_nominal, verdict, which
+from stride_jax.gap.attribute import check_form, check_nominal, significant, verdict, which
 from stride_jax.gap.localise import divergence, where
 from stride_jax.gap.regions import PHASES, dof_names, foot_phases, noise_floor  # noqa: F401 (re-exported)
 from stride_jax.gap.residual import ResidualConfig
@@ -215,11 +215,9 @@ def _names_an_effect(w: dict[str, Any], cfg: DiagnoseConfig) -> bool:
     """Whether the best hypothesis of :func:`which` can name an effect: the gap is significant
     (the verdict's first rule) and some parameter is off its nominal value (a no-effect control's
     best is often an effect at nominal)."""
-    best = w["ranking"][0]
-    significant = w["detection"]["significant"] or w["probe_explained_nominal"] > cfg.significant
     off = any(np.any(np.abs(np.atleast_1d(np.asarray(v, float)) - np.atleast_1d(effects.ALL[n].nominal)) > 1e-9)
-              for n, v in best["params"].items())
-    return bool(significant and off)
+              for n, v in w["ranking"][0]["params"].items())
+    return significant(w, cfg) and off
 
 
 # ----------------------------------------------------------------------------- top level

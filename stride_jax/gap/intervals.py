@@ -78,6 +78,12 @@ def _outward(ok, x: float, bound: float, step: float) -> tuple[float, float | No
         step *= 2
 
 
+def _rough(H: float, wide) -> bool:
+    """The kink rule: the curvature ``H`` at the step is more than :data:`KINK` times one taken at
+    :data:`SCALES` times it (``wide``), or one of those is not positive."""
+    return any(Hk <= 0 or H > KINK * Hk for Hk in wide)
+
+
 def _lagrange(t: np.ndarray, x: float) -> tuple[np.ndarray, np.ndarray]:
     """Weights of the first and second derivative at ``x`` of the parabola through nodes ``t [3]``."""
     d1, d2 = np.empty(3), np.empty(3)
@@ -177,7 +183,7 @@ def scalar_interval(obj: Objective, x: float, f: float, lo: float, hi: float, le
     for k in SCALES:
         tk, Bk = stencil(k * h)
         wide[f"curvature_{k}h"] = float(_lagrange(tk, x)[1] @ Bk.sum(1))
-    if any(Hk <= 0 or H > KINK * Hk for Hk in wide.values()) or n_eff < MIN_BLOCKS:
+    if _rough(H, wide.values()) or n_eff < MIN_BLOCKS:
         a, b = paired_interval(obj, x, Lx, lo, hi, level, 4 * h, n_eff)
         return a, b, {"method": "test", "curvature": H, **wide, "sandwich_half_width": half,
                       "informative_blocks": n_eff}
@@ -337,7 +343,7 @@ def vector_interval(obj: Objective, x: np.ndarray, lo: np.ndarray, hi: np.ndarra
         at = dict(zip(off, obj.block_losses_many([np.where(np.arange(len(x)) == i, v, x) for v in off]).sum(1)))
         H, *wide = [float(_lagrange(t, xi)[1] @ np.array([f if v == xi else at[v] for v in t])) for t in stencils]
         curv.append((H, *wide))
-        if any(Hk <= 0 or H > KINK * Hk for Hk in wide):
+        if _rough(H, wide):
             rough.append(i)
             a, b = paired_interval(_Along(obj, x, i), xi, Lx, lo_i, hi_i, level, 4 * h)
             sl[i], sh[i] = min(sl[i], a), max(sh[i], b)

@@ -110,13 +110,11 @@ def adopt(sm: SimModel, cal, settings: Settings, test: fit.Data, scale: np.ndarr
     s = calibrate._neutral(settings, nominal.describe(sm))
     base = nominal.apply(sm, s)
     r_nom, r_cal = baseline.residual(sm, test, scale), baseline.residual(base, test, scale)
-    ids, nb, _ = fit.block_ids(test, 10)
-    bl = lambda r: np.bincount(ids, weights=(r ** 2).sum(1), minlength=nb)
     g_nom, g_cal = fit.gap(r_nom), fit.gap(r_cal)
     rec = cal.record | {
         "applied": True, "settings": {f.name: getattr(s, f.name) for f in dataclasses.fields(s)},
         "changed": nominal.summary(s, sm), "proposed": nominal.summary(s, sm),
         "heldout_gap_calibrated": g_cal, "heldout_gap_proposed": g_cal, "shrink": 1 - g_cal / max(g_nom, 1e-300),
-        "p_value": calibrate._signflip(bl(r_nom) - bl(r_cal), 4000, 11),
+        "p_value": calibrate.paired_p(r_nom, r_cal, test, 10, 11),
         "refit": {"why": why, "first": cal.record.get("changed", [])}}
     return calibrate.Calibration(model=base, settings=s, record=rec)
