@@ -261,3 +261,36 @@ def test_the_one_step_check_replays_at_most_two_members_of_one_effect(arms):
     families = [finer.parent(n) for n in checked]
     assert len(checked) == 5 and max(families.count(f) for f in families) == screen.CHECK_PER_EFFECT
     assert finer.parent(out["table"][0]["effect"]) == "damping"
+
+
+def test_the_refinements_screen_holds_a_joint_group_where_the_logs_carry_one(arms):
+    # damping mostly on the elbows: the all-joints damping also lowers the training loss, less; the
+    # settings refitted with it held would make up for the rest (the speed case's recheck)
+    _, logged = real.generate(arms, {"damping@elbow": 0.6, "damping@shoulder": 0.05}, 4, 100, seed=3)
+    train = fit.make_data(logged, 2)
+    scale = diagnose.scale_of(arms, fit.make_data(logged))
+    cfg = calibrate.CalibrateConfig()
+    held, rec = calibrate.screen(arms, train, scale, cfg, grid=5)
+    assert list(held) == ["damping@elbow"], rec["screen"][:4]
+    assert abs(held["damping@elbow"][0] - 0.6) < 0.1
+    names = [r["effect"] for r in rec["screen"]]
+    assert "damping" in names and names.index("damping") > names.index("damping@elbow")
+    coarse, rec0 = calibrate.screen(arms, train, scale, dataclasses.replace(cfg, refine_finer=0), grid=5)
+    assert list(coarse) == ["damping"] and not any("@" in r["effect"] for r in rec0["screen"])
+    loss = {r["effect"]: r["loss"] for r in rec["screen"]}
+    ratio = loss["damping@elbow"] / loss["damping"]  # the margin rule at its edge, both sides
+    assert ratio < 0.9 and "group_not_held" not in rec
+    strict, rec1 = calibrate.screen(arms, train, scale, dataclasses.replace(cfg, refine_finer_margin=1 - ratio / 2),
+                                    grid=5)
+    assert list(strict) == ["damping"] and rec1["group_not_held"]["group"] == "damping@elbow"
+    held2, _ = calibrate.screen(arms, train, scale, dataclasses.replace(cfg, refine_finer_margin=1 - ratio * 2), grid=5)
+    assert list(held2) == ["damping@elbow"]
+    only, _ = calibrate.screen(arms, train, scale, cfg, grid=5, only=frozenset({"damping"}))
+    assert list(only) == ["damping"]  # ``only`` screens what it names, no groups
+    assert finer.children(arms, "damping") == ["damping@shoulder", "damping@elbow", "damping@left",
+                                               "damping@right"]
+    assert finer.children(arms, "payload") == [] and finer.children(arms, "damping@elbow") == []
+    with pytest.raises(ValueError, match="refine_finer"):
+        calibrate.CalibrateConfig(refine_finer=-1)
+    with pytest.raises(ValueError, match="refine_finer_margin"):
+        calibrate.CalibrateConfig(refine_finer_margin=1.0)

@@ -59,7 +59,7 @@ from typing import Any
 import numpy as np
 from scipy import optimize
 
-from stride_jax.gap import effects, fit, nominal, replay
+from stride_jax.gap import effects, finer, fit, nominal, replay
 from stride_jax.gap.baseline import residual
 from stride_jax.gap.nominal import CONTINUOUS, Settings
 from stride_jax.sim.model import SimModel
@@ -107,6 +107,14 @@ class CalibrateConfig:
       seed: of the sign flips.
       screen_steps: Gauss-Newton steps per effect in the screen of :func:`refine` (the first
         from a secant replay, the others a parabola's vertex for the four best effects).
+      refine_finer: that screen also takes the joint groups (:func:`stride_jax.gap.finer.children`:
+        per joint type, leg, side and end) of this many of its best joint effects, so the
+        refinement can hold ``damping@calf`` where the logs carry it rather than ``damping`` on
+        every joint (0: the library's effects only).
+      refine_finer_margin: ... a group is held only where its training loss is at most
+        ``1 - refine_finer_margin`` of the best library effect's (the ranking's finer rule,
+        ``ScreenConfig.finer_margin``; the independent benchmark's torque limit 0.4: kp_scale@rear
+        1.8% below torque_scale, no group's signature).
       refine: screen the scalar library effects on top of the first calibration (:func:`screen`),
         and fit the settings again with the best of them held fixed on top (a strong physical
         effect biases settings fitted without it: a planted damping pulled the Go1's integrator
@@ -141,6 +149,8 @@ class CalibrateConfig:
     block: int = 10
     seed: int = 0
     screen_steps: int = 3
+    refine_finer: int = 2
+    refine_finer_margin: float = 0.1
     refine: bool = True
     second_start: float = 0.5
     recheck: bool = True
@@ -163,6 +173,9 @@ class CalibrateConfig:
             raise ValueError(f"calibrate.windows {self.windows} must be >= 0 (0: no cap)")
         if not 0 < self.timestep_min <= self.timestep_max:
             raise ValueError(f"calibrate: timestep range [{self.timestep_min}, {self.timestep_max}] is empty")
+        if self.refine_finer < 0 or not 0 <= self.refine_finer_margin < 1:
+            raise ValueError(f"calibrate.refine_finer {self.refine_finer} must be >= 0 (0: no joint groups) and "
+                             f"refine_finer_margin {self.refine_finer_margin} in [0, 1)")
         if self.min_gain < 0:
             raise ValueError(f"calibrate.min_gain {self.min_gain} must be >= 0")
         if not (0 <= self.recheck_min < 1 and 0 < self.recheck_p <= 1):
@@ -570,8 +583,10 @@ def screen(base: SimModel, train: fit.Data, scale: np.ndarray, cfg: CalibrateCon
     batch: a secant replay at a tenth of its range gives the residual's slope and the linear
     least-squares estimate; then ``screen_steps - 1`` times, for the four effects with the
     lowest loss so far, the vertex of a parabola through the effect's three best points. Integer
-    effects (delays) are scored on a grid of at most ``grid`` values. It only picks the effect to
-    hold fixed while the settings are fitted again (:func:`refine`); the effects' own fits come
+    effects (delays) are scored on a grid of at most ``grid`` values. With ``cfg.refine_finer``
+    (and no ``only``) the joint groups of the best joint effects are screened the same way after
+    them, and compete with them (one parameter each; a group wins only by ``refine_finer_margin``
+    of the best library effect's loss). It only picks the effect to hold fixed while the settings are fitted again (:func:`refine`); the effects' own fits come
     later, on the calibrated baseline."""
     sub = _sub(train, stride(cfg, len(train.start)))
     r0 = residual(base, sub, scale).ravel()
@@ -587,47 +602,64 @@ def screen(base: SimModel, train: fit.Data, scale: np.ndarray, cfg: CalibrateCon
             pts.setdefault(n, {})[x] = float((r ** 2).sum())
         return R
 
-    ends = {e.name: tuple(float(b[0]) for b in e.bounds(base)) for e in scalar}
-    first = []
-    for e in scalar:
-        lo, hi = ends[e.name]
-        x0 = float(e.nominal[0])
-        if e.integer:
-            xs = np.unique(np.linspace(lo, hi, min(grid, int(hi - lo) + 1)).round())
-            first += [(e.name, float(x)) for x in xs if abs(x - x0) > 1e-12]
-        else:
-            d = 0.1 * (hi - lo)
-            first.append((e.name, x0 + d if x0 + d <= hi else x0 - d))
-    R = score(first)
-    est = []
-    for (n, x1), r in zip(first, R, strict=True):
-        e = effects.ALL[n]
-        if e.integer:
-            continue
-        x0 = float(e.nominal[0])
-        J = (r.ravel() - r0) / (x1 - x0)
-        if J @ J > 0:
-            lo, hi = ends[n]
-            x = float(np.clip(x0 - (J @ r0) / (J @ J), lo, hi))
-            if all(abs(x - v) > 1e-9 * (hi - lo) for v in (x0, x1)):
-                est.append((n, x))
-    score(est)
-    for _ in range(cfg.screen_steps - 1):
-        best4 = sorted((n for n in pts if not effects.ALL[n].integer), key=lambda n: min(pts[n].values()))[:4]
-        step = []
-        for n in best4:
-            lo, hi = ends[n]
-            known = {float(effects.ALL[n].nominal[0]): L0} | pts[n]
-            if len(known) < 3:
-                continue  # only the secant point so far: no parabola to draw
-            (a, fa), (b, fb), (c, fc) = sorted(known.items(), key=lambda p: p[1])[:3]
-            den = (b - a) * (fb - fc) - (b - c) * (fb - fa)
-            if ((fa - fb) / (a - b) - (fb - fc) / (b - c)) / (a - c) <= 0:
-                continue  # no convex parabola through them
-            x = float(np.clip(b - 0.5 * ((b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)) / den, lo, hi))
-            if all(abs(x - v) > 1e-6 * (hi - lo) for v in (a, b, c)):
-                step.append((n, x))
-        score(step)
+    def search(scalar):
+        """Gauss-Newton from nominal for each of ``scalar``: a secant replay, the linear estimate,
+        then parabola vertices for the four best of them."""
+        ends = {e.name: tuple(float(b[0]) for b in e.bounds(base)) for e in scalar}
+        first = []
+        for e in scalar:
+            lo, hi = ends[e.name]
+            x0 = float(e.nominal[0])
+            if e.integer:
+                xs = np.unique(np.linspace(lo, hi, min(grid, int(hi - lo) + 1)).round())
+                first += [(e.name, float(x)) for x in xs if abs(x - x0) > 1e-12]
+            else:
+                d = 0.1 * (hi - lo)
+                first.append((e.name, x0 + d if x0 + d <= hi else x0 - d))
+        R = score(first)
+        est = []
+        for (n, x1), r in zip(first, R, strict=True):
+            e = effects.ALL[n]
+            if e.integer:
+                continue
+            x0 = float(e.nominal[0])
+            J = (r.ravel() - r0) / (x1 - x0)
+            if J @ J > 0:
+                lo, hi = ends[n]
+                x = float(np.clip(x0 - (J @ r0) / (J @ J), lo, hi))
+                if all(abs(x - v) > 1e-9 * (hi - lo) for v in (x0, x1)):
+                    est.append((n, x))
+        score(est)
+        mine = [e.name for e in scalar if not e.integer and e.name in pts]
+        for _ in range(cfg.screen_steps - 1):
+            best4 = sorted(mine, key=lambda n: min(pts[n].values()))[:4]
+            step = []
+            for n in best4:
+                lo, hi = ends[n]
+                known = {float(effects.ALL[n].nominal[0]): L0} | pts[n]
+                if len(known) < 3:
+                    continue  # only the secant point so far: no parabola to draw
+                (a, fa), (b, fb), (c, fc) = sorted(known.items(), key=lambda p: p[1])[:3]
+                den = (b - a) * (fb - fc) - (b - c) * (fb - fa)
+                if ((fa - fb) / (a - b) - (fb - fc) / (b - c)) / (a - c) <= 0:
+                    continue  # no convex parabola through them
+                x = float(np.clip(b - 0.5 * ((b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)) / den, lo, hi))
+                if all(abs(x - v) > 1e-6 * (hi - lo) for v in (a, b, c)):
+                    step.append((n, x))
+            score(step)
+
+    search(scalar)
+    if cfg.refine_finer and only is None:
+        # the joint groups of the best joint effects: a group's effect that the logs carry (damping
+        # on the calves) is also found, weaker, on every joint, and the settings fitted with the
+        # all-joints effect held make up for the rest (the recheck, :func:`recheck`, repeated
+        # the screen and the ranking for it: 507 s of a 5-minute target, results/gap_speed.md)
+        coarse = sorted((n for n in pts if finer.children(base, n)), key=lambda n: min(pts[n].values()))
+        kids = [effects.ALL[c] for n in coarse[:cfg.refine_finer] for c in finer.children(base, n)]
+        search(kids)
+        scalar = scalar + kids
+    else:
+        kids = []
     rows = []
     for e in scalar:
         if e.name in pts:
@@ -635,8 +667,17 @@ def screen(base: SimModel, train: fit.Data, scale: np.ndarray, cfg: CalibrateCon
             rows.append({"effect": e.name, "value": x, "loss": fx})
     rows.sort(key=lambda r: r["loss"])
     rec = {"loss_without": L0, "screen": rows, "replays": sum(len(v) for v in pts.values())}
-    if rows and rows[0]["loss"] < (1 - cfg.min_gain) * L0:
-        return {rows[0]["effect"]: [rows[0]["value"]]}, rec
+    pick = rows[0] if rows else None
+    group = {e.name for e in kids}
+    lib = next((r for r in rows if r["effect"] not in group), None)
+    if pick and pick["effect"] in group and lib and pick["loss"] > (1 - cfg.refine_finer_margin) * lib["loss"]:
+        # a joint group must remove refine_finer_margin of what the best library effect leaves
+        # (the ranking's finer rule, on the training loss): a hair's lead is no group's signature
+        rec["group_not_held"] = {"group": pick["effect"], "loss": pick["loss"], "library": lib["effect"],
+                                 "library_loss": lib["loss"], "margin": cfg.refine_finer_margin}
+        pick = lib
+    if pick and pick["loss"] < (1 - cfg.min_gain) * L0:
+        return {pick["effect"]: [pick["value"]]}, rec
     return {}, rec
 
 

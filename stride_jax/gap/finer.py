@@ -210,6 +210,16 @@ def parent(name: str) -> str:
     return base
 
 
+def children(sm: SimModel, name: str) -> list[str]:
+    """The variants of joint effect ``name`` on each joint group (type, limb, side and end
+    families) that apply to robot ``sm``: ``damping`` -> ``damping@hip``, ..., ``damping@rear``;
+    none for another name."""
+    if name not in JOINT_EFFECTS:
+        return []
+    out = [f"{name}@{grp}" for grp in groups.of(sm).names(("type", "limb", "side", "end"))]
+    return [n for n in out if effects.ALL[n].applies(sm)]
+
+
 def candidates(sm: SimModel) -> list[str]:
     """Every finer effect that applies to robot ``sm``: the joint effects on each group of the type,
     limb, side and end families, servo damping, one encoder offset per joint, mass and inertia of

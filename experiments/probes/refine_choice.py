@@ -1,0 +1,66 @@
+"""Which effect the calibration's refinement holds fixed, with and without the joint groups of
+its best joint effects in its screen (``CalibrateConfig.refine_finer``), on each row of the
+independent gap benchmark: a row whose held effect is the same both ways diagnoses exactly as
+before, so only the rows listed as changed need running again.
+
+    python experiments/probes/refine_choice.py --out /tmp/refine_choice.jsonl [--cases "0 1 2"]
+        [--noise clean,noisy]
+
+Appends one JSON line per row (resumable: rows already in ``--out`` are skipped). Each row runs
+the diagnosis's first calibration (20-60 s on the benchmark's 6 x 4 s Go1 logs) and two screens.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import sys
+import time
+
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+from calibration_with_effect import row_data  # noqa: E402
+
+from stride_jax.gap import calibrate  # noqa: E402
+from stride_jax.jobs import gap_bench_independent as bi  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--preset", default="default", help="the benchmark's preset (its cases)")
+    ap.add_argument("--cases", default="", help="space-separated case indices (empty: all)")
+    ap.add_argument("--noise", default="clean,noisy")
+    a = ap.parse_args()
+    bcfg = bi.PRESETS[a.preset]
+    out = pathlib.Path(a.out)
+    done = set()
+    if out.exists():
+        done = {(r["case"], r["noisy"]) for r in map(json.loads, out.read_text().splitlines())}
+    cases = [int(c) for c in a.cases.split()] or range(len(bi.cases(bcfg)))
+    for case in cases:
+        for noisy in [n == "noisy" for n in a.noise.split(",")]:
+            if (case, noisy) in done:
+                continue
+            t0 = time.time()
+            p, cfg, _ = row_data(bcfg, case, noisy)
+            cal = calibrate.calibrate(p.sm, p.train_k, p.test_k, p.scale, cfg.calibrate, log=lambda s: None)
+            held = {}
+            for k in (0, cfg.calibrate.refine_finer):
+                c = dataclasses.replace(cfg.calibrate, refine_finer=k)
+                pick, rec = calibrate.screen(cal.model, p.train_k, p.scale, c, cfg.fit.grid)
+                held[k] = {"held": {n: v[0] for n, v in pick.items()}, "top": rec["screen"][:3],
+                           "replays": rec["replays"]}
+            old, new = held[0]["held"], held[cfg.calibrate.refine_finer]["held"]
+            row = {"case": case, "noisy": noisy, "planted": bi.cases(bcfg)[case]["planted"], "held_before": old,
+                   "held_now": new, "changed": sorted(old) != sorted(new), "screens": held,
+                   "seconds": time.time() - t0}
+            with out.open("a") as f:
+                f.write(json.dumps(row) + "\n")
+            print(f"case {case:2d} {'noisy' if noisy else 'clean'} planted {row['planted']}: held {old} -> {new}"
+                  + ("  <- changed" if row["changed"] else "") + f" ({row['seconds']:.0f} s)", flush=True)
+
+
+if __name__ == "__main__":
+    main()
