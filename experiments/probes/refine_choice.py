@@ -7,7 +7,15 @@ before, so only the rows listed as changed need running again.
         [--noise clean,noisy]
 
 Appends one JSON line per row (resumable: rows already in ``--out`` are skipped). Each row runs
-the diagnosis's first calibration (20-60 s on the benchmark's 6 x 4 s Go1 logs) and two screens.
+the diagnosis's first calibration (40-190 s a row on the benchmark's 6 x 4 s Go1 logs, one
+thread) and two screens.
+
+    python experiments/probes/refine_choice.py --summary /tmp/refine_choice.jsonl [--margin 0.1]
+
+writes the rows as a markdown table, the held effect under ``--margin``
+(``CalibrateConfig.refine_finer_margin``) derived from the recorded screens: the library's
+effects are screened the same way with and without the joint groups, so the best library row
+and the best group row decide it exactly.
 """
 
 from __future__ import annotations
@@ -26,13 +34,45 @@ from stride_jax.gap import calibrate  # noqa: E402
 from stride_jax.jobs import gap_bench_independent as bi  # noqa: E402
 
 
+def held_under(row: dict, margin: float) -> dict:
+    """The effect the refinement holds under ``margin``, from the probe's recorded screens."""
+    screens = row["screens"]
+    lib = screens["0"]["top"][0] if screens["0"]["top"] else None
+    new = next((v for k, v in screens.items() if k != "0"), screens["0"])["top"]
+    if new and "@" in new[0]["effect"] and row["held_now"] and lib and new[0]["loss"] <= (1 - margin) * lib["loss"]:
+        return {new[0]["effect"]: new[0]["value"]}
+    return row["held_before"]
+
+
+def summary(path: str, margin: float) -> None:
+    rows = [json.loads(x) for x in pathlib.Path(path).read_text().splitlines()]
+    rows.sort(key=lambda r: (r["case"], r["noisy"]))
+    fmt = lambda h: ", ".join(f"{n} {v:.4g}" for n, v in h.items()) or "none"
+    print(f"Command: `python experiments/probes/refine_choice.py --summary {path} --margin {margin:g}`\n")
+    print("| row | planted | held without groups | held with groups | changed | best group in the top 3 (its training loss / the best library effect's) |")
+    print("|---|---|---|---|---|---:|")
+    for r in rows:
+        now = held_under(r, margin)
+        lib = r["screens"]["0"]["top"][0] if r["screens"]["0"]["top"] else None
+        grp = next((t for k, v in r["screens"].items() if k != "0" for t in v["top"] if "@" in t["effect"]), None)
+        ratio = f"{grp['effect']} {grp['loss'] / lib['loss']:.3f}" if grp and lib and lib["loss"] > 0 else "-"
+        print(f"| {r['case']:02d}-{'noisy' if r['noisy'] else 'clean'} | {r['planted'] or '{}'} | {fmt(r['held_before'])} "
+              f"| {fmt(now)} | {'**yes**' if sorted(now) != sorted(r['held_before']) else 'no'} | {ratio} |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", required=True)
+    ap.add_argument("--summary", default="", help="a probe's JSON lines: print them as a table instead")
+    ap.add_argument("--margin", type=float, default=0.1, help="with --summary: refine_finer_margin")
+    ap.add_argument("--out", default="")
     ap.add_argument("--preset", default="default", help="the benchmark's preset (its cases)")
     ap.add_argument("--cases", default="", help="space-separated case indices (empty: all)")
     ap.add_argument("--noise", default="clean,noisy")
     a = ap.parse_args()
+    if a.summary:
+        return summary(a.summary, a.margin)
+    if not a.out:
+        ap.error("--out is required without --summary")
     bcfg = bi.PRESETS[a.preset]
     out = pathlib.Path(a.out)
     done = set()
