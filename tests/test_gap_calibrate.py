@@ -117,6 +117,17 @@ def test_effect_on_top_of_a_model_form_difference_is_named_and_both_shrinks_repo
     refined = dict(cal.get("refined") or {}, contact_effect_start=below)
     lines = report.calibration_section(dict(out, calibration=dict(cal, refined=refined)))
     assert lines and not any("Calibrated again from the start" in line for line in lines)
+    # a joint group held by the refinement, and one the margin rule passed over, are said
+    scr = {"loss_without": 9.0, "screen": [{"effect": "damping@calf", "value": 0.7, "loss": 1.0},
+                                           {"effect": "damping", "value": 0.3, "loss": 4.0}]}
+    grp = dict(cal.get("refined") or {}, held_fixed={"damping@calf": [0.7]}, folded={}, screen=scr,
+               settings_moved=False)
+    lines = report.calibration_section(dict(out, calibration=dict(cal, refined=grp)))
+    assert "damping@calf is a joint group: its training loss was 25.0% of the best library effect's (damping)." in lines
+    passed = dict(grp, held_fixed={"damping": [0.3]}, screen=dict(scr, group_not_held={
+        "group": "damping@calf", "loss": 3.8, "library": "damping", "library_loss": 4.0, "margin": 0.1}))
+    lines = report.calibration_section(dict(out, calibration=dict(cal, refined=passed)))
+    assert any(line.startswith("The joint group damping@calf came within 10% of damping's") for line in lines)
     # an adopted recheck is reported in the section and in the verdict's clause
     chk = {"best": {"damping": [0.3]}, "refinement_held": {"armature": [0.05]}, "ran": True, "adopted": True,
            "heldout_gap": 0.01, "heldout_gap_before": 0.04, "p_value": 0.001}

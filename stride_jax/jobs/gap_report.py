@@ -273,6 +273,22 @@ def screen_lines(d: dict[str, Any]) -> list[str]:
     return L
 
 
+def _refine_groups(r: dict[str, Any]) -> list[str]:
+    """What the refinement's screen said of the joint groups it took (``CalibrateConfig.refine_finer``)."""
+    rows = (r.get("screen") or {}).get("screen") or []
+    skip = (r.get("screen") or {}).get("group_not_held")
+    held = next(iter(r.get("held_fixed") or {}), None)
+    lib = next((x for x in rows if "@" not in x["effect"]), None)
+    if skip:
+        return ["", f"The joint group {skip['group']} came within {skip['margin']:.0%} of {skip['library']}'s training "
+                    f"loss ({skip['loss']:.4g} against {skip['library_loss']:.4g}): the library effect was held."]
+    if held and "@" in held and lib and lib["loss"] > 0:
+        mine = next(x["loss"] for x in rows if x["effect"] == held)
+        return ["", f"{held} is a joint group: its training loss was {mine / lib['loss']:.1%} of the best library "
+                    f"effect's ({lib['effect']})."]
+    return []
+
+
 def calibration_section(d: dict[str, Any]) -> list[str]:
     """The simulator's settings, calibrated before the effects (:mod:`stride_jax.gap.calibrate`):
     what the nominal model uses, what the logs call for, and how much of the gap that closes."""
@@ -313,6 +329,7 @@ def calibration_section(d: dict[str, Any]) -> list[str]:
                      if r.get("folded") else "") + ": "
                   + (f"the settings moved (first pass: {'; '.join(r['first_pass']) or 'none'})." if r["settings_moved"]
                      else "the settings did not move.")]
+            L += _refine_groups(r)
         else:
             L += ["", "No library effect lowered the training loss on top of the first calibration (screen): "
                   "not refined."]
