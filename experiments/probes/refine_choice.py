@@ -35,13 +35,15 @@ from stride_jax.jobs import gap_bench_independent as bi  # noqa: E402
 
 
 def held_under(row: dict, margin: float) -> dict:
-    """The effect the refinement holds under ``margin``, from the probe's recorded screens."""
+    """The effect the refinement holds under ``margin`` (:func:`calibrate.held_choice`), from the
+    probe's recorded screens: the screen with groups' top rows and the best library row."""
     screens = row["screens"]
-    lib = screens["0"]["top"][0] if screens["0"]["top"] else None
-    new = next((v for k, v in screens.items() if k != "0"), screens["0"])["top"]
-    if new and "@" in new[0]["effect"] and row["held_now"] and lib and new[0]["loss"] <= (1 - margin) * lib["loss"]:
-        return {new[0]["effect"]: new[0]["value"]}
-    return row["held_before"]
+    top = next((v for k, v in screens.items() if k != "0"), screens["0"])["top"]
+    lib = screens["0"]["top"][:1]
+    rows = sorted(top + [r for r in lib if r not in top], key=lambda r: r["loss"])
+    pick, _ = calibrate.held_choice(rows, {r["effect"] for r in rows if "@" in r["effect"]}, margin)
+    # a group held passed min_gain where the no-margin screen held it; the library row as before
+    return row["held_now"] if pick and "@" in pick["effect"] else row["held_before"]
 
 
 def summary(path: str, margin: float) -> None:

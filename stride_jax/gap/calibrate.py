@@ -111,10 +111,11 @@ class CalibrateConfig:
         per joint type, leg, side and end) of this many of its best joint effects, so the
         refinement can hold ``damping@calf`` where the logs carry it rather than ``damping`` on
         every joint (0: the library's effects only).
-      refine_finer_margin: ... a group is held only where its training loss is at most
+      refine_finer_margin: a group is held only where its training loss is at most
         ``1 - refine_finer_margin`` of the best library effect's (the ranking's finer rule,
         ``ScreenConfig.finer_margin``; the independent benchmark's torque limit 0.4: kp_scale@rear
-        1.8% below torque_scale, no group's signature).
+        1.8% below torque_scale, its CoM offset: torque_limit@front 8.1% below payload; no
+        group's signature). :func:`held_choice`.
       refine: screen the scalar library effects on top of the first calibration (:func:`screen`),
         and fit the settings again with the best of them held fixed on top (a strong physical
         effect biases settings fitted without it: a planted damping pulled the Go1's integrator
@@ -585,8 +586,8 @@ def screen(base: SimModel, train: fit.Data, scale: np.ndarray, cfg: CalibrateCon
     lowest loss so far, the vertex of a parabola through the effect's three best points. Integer
     effects (delays) are scored on a grid of at most ``grid`` values. With ``cfg.refine_finer``
     (and no ``only``) the joint groups of the best joint effects are screened the same way after
-    them, and compete with them (one parameter each; a group wins only by ``refine_finer_margin``
-    of the best library effect's loss). It only picks the effect to hold fixed while the settings are fitted again (:func:`refine`); the effects' own fits come
+    them and compete with them (one parameter each; :func:`held_choice`). It only picks the effect
+    to hold fixed while the settings are fitted again (:func:`refine`); the effects' own fits come
     later, on the calibrated baseline."""
     sub = _sub(train, stride(cfg, len(train.start)))
     r0 = residual(base, sub, scale).ravel()
@@ -649,6 +650,7 @@ def screen(base: SimModel, train: fit.Data, scale: np.ndarray, cfg: CalibrateCon
             score(step)
 
     search(scalar)
+    kids = []
     if cfg.refine_finer and only is None:
         # the joint groups of the best joint effects: a group's effect that the logs carry (damping
         # on the calves) is also found, weaker, on every joint, and the settings fitted with the
@@ -658,8 +660,6 @@ def screen(base: SimModel, train: fit.Data, scale: np.ndarray, cfg: CalibrateCon
         kids = [effects.ALL[c] for n in coarse[:cfg.refine_finer] for c in finer.children(base, n)]
         search(kids)
         scalar = scalar + kids
-    else:
-        kids = []
     rows = []
     for e in scalar:
         if e.name in pts:
@@ -667,18 +667,26 @@ def screen(base: SimModel, train: fit.Data, scale: np.ndarray, cfg: CalibrateCon
             rows.append({"effect": e.name, "value": x, "loss": fx})
     rows.sort(key=lambda r: r["loss"])
     rec = {"loss_without": L0, "screen": rows, "replays": sum(len(v) for v in pts.values())}
-    pick = rows[0] if rows else None
-    group = {e.name for e in kids}
-    lib = next((r for r in rows if r["effect"] not in group), None)
-    if pick and pick["effect"] in group and lib and pick["loss"] > (1 - cfg.refine_finer_margin) * lib["loss"]:
-        # a joint group must remove refine_finer_margin of what the best library effect leaves
-        # (the ranking's finer rule, on the training loss): a hair's lead is no group's signature
-        rec["group_not_held"] = {"group": pick["effect"], "loss": pick["loss"], "library": lib["effect"],
-                                 "library_loss": lib["loss"], "margin": cfg.refine_finer_margin}
-        pick = lib
+    pick, passed_over = held_choice(rows, {e.name for e in kids}, cfg.refine_finer_margin)
+    if passed_over:
+        rec["group_not_held"] = passed_over
     if pick and pick["loss"] < (1 - cfg.min_gain) * L0:
         return {pick["effect"]: [pick["value"]]}, rec
     return {}, rec
+
+
+def held_choice(rows: list[dict], group: set[str], margin: float) -> tuple[dict | None, dict | None]:
+    """The screen's row to hold among ``rows`` (``{"effect", "value", "loss"}``, lowest loss
+    first) where the effects in ``group`` are joint groups: the first row, unless it is a group
+    that does not remove ``margin`` of what the best library effect leaves (the ranking's finer
+    rule, on the training loss: a hair's lead is no group's signature), then that library effect.
+    Returns ``(row or None, the passed-over group's record or None)``."""
+    pick = rows[0] if rows else None
+    lib = next((r for r in rows if r["effect"] not in group), None)
+    if pick and pick["effect"] in group and lib and pick["loss"] > (1 - margin) * lib["loss"]:
+        return lib, {"group": pick["effect"], "loss": pick["loss"], "library": lib["effect"],
+                     "library_loss": lib["loss"], "margin": margin}
+    return pick, None
 
 
 def refine(sm: SimModel, cal: Calibration, train: fit.Data, test: fit.Data, scale: np.ndarray,
