@@ -9,6 +9,7 @@ import pathlib
 
 import mujoco
 import numpy as np
+import pytest
 
 from stride_jax import robots
 from stride_jax.jobs import gap_bench_independent as bi
@@ -52,6 +53,28 @@ def test_drawn_settings_differ_from_the_model_and_planting_edits_what_it_says():
     assert ctl.delay_steps == 5 and ctl.deadband == 0.0  # 10 ms at the shipped 2 ms step
     trunk = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "trunk")
     assert m.body_mass[trunk] - m0.body_mass[trunk] == 1.0
+
+
+def test_joint_and_actuator_effects_plant_on_the_joints_named_only():
+    robot = robots.get("go1")
+    m0 = gen.robot_spec("go1").compile()
+    m = copy.copy(m0)
+    gen.plant(m, {"kp_scale@FR_": 0.6, "torque_limit@thigh": 0.5, "frictionloss@hip": 0.3}, robot.joints,
+              robot.base_body)
+    names = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, m.actuator_trnid[a, 0]) for a in range(m.nu)]
+    fr = np.array(["FR_" in n for n in names])
+    thigh = np.array(["thigh" in n for n in names])
+    assert fr.sum() == 3 and thigh.sum() == 4
+    assert np.allclose(m.actuator_gainprm[fr, 0], 0.6 * m0.actuator_gainprm[fr, 0])
+    assert np.allclose(m.actuator_gainprm[~fr, 0], m0.actuator_gainprm[~fr, 0])
+    assert np.allclose(m.actuator_forcerange[thigh], 0.5 * m0.actuator_forcerange[thigh])
+    assert np.allclose(m.actuator_forcerange[~thigh], m0.actuator_forcerange[~thigh])
+    dof = {j: m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j)] for j in robot.joints}
+    assert all(np.isclose(m.dof_frictionloss[d] - m0.dof_frictionloss[d], 0.3 if "hip" in j else 0.0)
+               for j, d in dof.items())
+    for bad, why in (({"damping@wrist": 1.0}, "no joint"), ({"payload@calf": 1.0}, "take a joint part")):
+        with pytest.raises(ValueError, match=why):
+            gen.plant(copy.copy(m0), bad, robot.joints, robot.base_body)
 
 
 def test_controls_are_cases_of_their_own_draws_and_keep_the_other_cases_draws():

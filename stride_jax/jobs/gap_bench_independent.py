@@ -91,6 +91,13 @@ PRESETS = {
                (("armature", 0.04), ("delay", 0.01)), (("damping", 1.5), ("torque_limit", 0.5))),
         out_of_library=(("joint_stiffness", 10.0), ("quadratic_drag", 0.05))),
 }
+# effects on some joints only, one of each joint and actuator kind, over the joint groups the
+# diagnosis knows (joint type, leg); the planted part is matched in the joints' names by the
+# independent generator, the same joints as the diagnosis's group of that name on the Go1
+PRESETS["groups"] = dataclasses.replace(
+    PRESETS["default"], singles=(("frictionloss@hip", 0.6), ("armature@thigh", 0.05), ("kp_scale@FL", 0.6),
+                                 ("torque_limit@calf", 0.5), ("damping@RR", 1.0)),
+    pairs=(), out_of_library=(), name="gap_bench_go1_independent_groups")
 # the same cases on shorter logs: what a 2-core CPU can run in a few hours
 PRESETS["small"] = dataclasses.replace(PRESETS["default"], trajectories=5, steps=100,
                                        name="gap_bench_go1_independent_small")

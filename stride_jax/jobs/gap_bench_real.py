@@ -128,6 +128,9 @@ class Controller:
     drag: float = 0.0
 
 
+_ON_JOINTS = ("damping", "frictionloss", "armature", "torque_scale", "torque_limit", "kp_scale")
+
+
 def plant(m: mujoco.MjModel, planted: dict[str, Any], joints: tuple[str, ...], base_body: str) -> Controller:
     """Puts the planted effects on the "real" model ``m`` (in place) and returns the controller side.
 
@@ -136,38 +139,43 @@ def plant(m: mujoco.MjModel, planted: dict[str, Any], joints: tuple[str, ...], b
     force limit); a factor on the force limit alone; a factor on the servo stiffness; a factor on
     the sliding friction of every geom; a payload on the base (inertia scaled with the mass); a CoM
     shift of the base; a delay in seconds (rounded to the real time step); a servo dead band;
-    damping on the joints of one type (``damping@calf``: joints whose name holds ``calf``); out of
-    library: a spring to the home angle, a quadratic drag.
+    any of the joint and actuator effects on some joints only (``damping@calf``, ``kp_scale@FR_``:
+    the joints whose name holds the part after ``@``); out of library: a spring to the home angle,
+    a quadratic drag.
     """
-    dofs = np.array([m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j)] for j in joints])
-    jids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in joints])
+    all_jids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in joints])
     body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, base_body)
     ctl = Controller()
     for name, v in planted.items():
         x = np.asarray(v, float)
+        name, _, part = name.partition("@")
+        jids = all_jids
+        if part:  # on some joints only: those whose name holds ``part`` (``calf``, ``FR_``)
+            if name not in _ON_JOINTS:
+                raise ValueError(f"planted {name}@{part}: only {_ON_JOINTS} take a joint part")
+            jids = np.array([i for i, j in zip(all_jids, joints) if part in j])
+            if not len(jids):
+                raise ValueError(f"planted {name}@{part}: no joint of {joints} holds {part!r}")
+        dofs = m.jnt_dofadr[jids]
+        acts = np.array([a for a in range(m.nu) if m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT
+                         and m.actuator_trnid[a, 0] in set(jids.tolist())], int)
         if name == "damping":
             m.dof_damping[dofs] += x
-        elif name.startswith("damping@"):  # one joint type: the joints whose name holds it
-            part = np.array([d for d, j in zip(dofs, joints) if name.split("@", 1)[1] in j])
-            if not len(part):
-                raise ValueError(f"planted {name!r}: no joint of {joints} holds {name.split('@', 1)[1]!r}")
-            m.dof_damping[part] += x
         elif name == "frictionloss":
             m.dof_frictionloss[dofs] += x
         elif name == "armature":
             m.dof_armature[dofs] += x
         elif name == "torque_scale":
-            m.actuator_gainprm[:, 0] *= x
-            m.actuator_biasprm[:, 1:3] *= x
-            m.actuator_forcerange[:] *= x
+            m.actuator_gainprm[acts, 0] *= x
+            m.actuator_biasprm[acts, 1:3] *= x
+            m.actuator_forcerange[acts] *= x
         elif name == "torque_limit":
-            lim = m.actuator_forcelimited.astype(bool)
-            if not lim.all():
+            if not m.actuator_forcelimited[acts].astype(bool).all():
                 raise ValueError("torque_limit needs force-limited actuators")
-            m.actuator_forcerange[:] *= x
+            m.actuator_forcerange[acts] *= x
         elif name == "kp_scale":
-            m.actuator_gainprm[:, 0] *= x
-            m.actuator_biasprm[:, 1] *= x
+            m.actuator_gainprm[acts, 0] *= x
+            m.actuator_biasprm[acts, 1] *= x
         elif name == "ground_friction":
             m.geom_friction[:, 0] *= x
         elif name == "contact_softness":
