@@ -1,6 +1,8 @@
 """Parameter fits: intervals contain the estimate, respect the bounds and cover the truth; unstable
 parameter values are scored as bad fits without MuJoCo's warnings; verdicts name their rule."""
 
+import dataclasses
+
 import numpy as np
 from scipy import optimize
 import pytest
@@ -125,6 +127,28 @@ def test_verdict_reasons_name_the_rule_and_list_ties():
     v = attribute.verdict(_w(0.9, 0.0, p_value=0.3, ties=True), cfg)
     assert v["verdict"] == "no significant gap" and v["indistinguishable_from"] == ["armature"]
     assert "needs < 0.005 = 0.05 / 10 hypotheses" in v["reason"]
+
+
+def test_a_share_under_the_rule_whose_interval_reaches_it_is_named_not_confidently():
+    cfg = diagnose.DiagnoseConfig()
+    v = attribute.verdict(_w(0.45, 0.0), cfg)  # interval [0.35, 0.55] holds the rule's 50%
+    assert v["verdict"] == "explained" and not v["confident"] and v["effects"] == ["damping"]
+    assert "within reach of the 50% rule" in v["reason"] and "cannot tell it from the rule's edge" in v["reason"]
+    assert "[35.0%, 55.0%]" in v["reason"]
+    old = attribute.verdict(_w(0.45, 0.0), dataclasses.replace(cfg, attribute_interval=False))
+    assert old["verdict"] == "unexplained by the library" and "upper bound" not in old["reason"]
+    v = attribute.verdict(_w(0.39, 0.0), cfg)  # [0.29, 0.49]: under the rule, significantly
+    assert v["verdict"] == "unexplained by the library"
+    assert "its upper bound 49.0% of the whole gap stays below the rule's 50.0%" in v["reason"]
+    # the floor moves the rule on the whole gap: 50% above a floor of 0.2 is 40% of the whole
+    w = _w(0.45, 0.0)
+    w["noise_floor"], w["ranking"][0]["explained_ci"] = 0.2, [0.30, 0.39]
+    assert attribute.verdict(w, cfg)["verdict"] == "unexplained by the library"
+    w["ranking"][0]["explained_ci"] = [0.30, 0.41]
+    assert attribute.verdict(w, cfg)["verdict"] == "explained"
+    # with structure left the verdict stays unexplained, and says the share was within reach
+    v = attribute.verdict(_w(0.45, 0.4), cfg)
+    assert v["verdict"] == "unexplained by the library" and "(its interval reaches it)" in v["reason"]
 
 
 def test_the_line_search_stops_at_a_quarter_of_the_standard_error():

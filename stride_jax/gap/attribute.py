@@ -404,8 +404,11 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
        hypotheses), or the linear probe explains more than ``cfg.significant`` of the held-out
        residual; otherwise "no significant gap";
     2. "explained" needs both: the best closes at least ``cfg.attribute_min`` of the held-out gap
-       above the noise floor, and the linear probe finds at most ``cfg.structure_max`` of that gap
-       still systematic after it; otherwise "unexplained by the library", naming the rule(s) that
+       above the noise floor -- or, with ``cfg.attribute_interval``, less, but the upper end of the
+       explained fraction's bootstrap interval reaches that rule (then never confident: the logs
+       cannot tell the share from the rule's edge, and "unexplained" would claim what they do not
+       show) -- and the linear probe finds at most ``cfg.structure_max`` of that gap still
+       systematic after it; otherwise "unexplained by the library", naming the rule(s) that
        failed;
     3. an "explained" call is confident when the explained fraction's lower bootstrap bound clears
        the attribute rule, the best beats the runner-up in ``cfg.confident_p`` of resamples, no
@@ -460,10 +463,19 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
               f"the noise floor ({best['explained']:.1%} of the whole gap)")
     left = f"the linear probe finds {w['structure_left']:.1%} of the gap above the floor still systematic after it"
     failed = []
-    if best["explained_above_floor"] < cfg.attribute_min:
+    # the rule read on the whole gap, where the bootstrap interval lives: attribute_min of the gap
+    # above the floor is ci_min of the whole gap
+    ci_min = cfg.attribute_min * (1 - w["noise_floor"] / max(w["gap_ms"], 1e-300))
+    edge = (best["explained_above_floor"] < cfg.attribute_min and cfg.attribute_interval
+            and best["explained"] > 0 and best["explained_ci"][1] >= ci_min)
+    if best["explained_above_floor"] < cfg.attribute_min and not edge:
         failed.append(f"{closes}, below the {cfg.attribute_min:.0%} rule"
+                      + (f" (its upper bound {best['explained_ci'][1]:.1%} of the whole gap stays below the rule's "
+                         f"{ci_min:.1%})" if cfg.attribute_interval and best["explained"] > 0 else "")
                       + (" (it predicts held-out data worse than the nominal model)" if best["explained"] < 0 else ""))
     if w["structure_left"] > cfg.structure_max:
+        if edge:
+            failed.append(f"{closes}, under the {cfg.attribute_min:.0%} rule (its interval reaches it)")
         failed.append(f"{left}, above the {cfg.structure_max:.0%} rule")
     bounds = bound_note(best) + admission_note(w, cfg)
     if failed:
@@ -471,9 +483,13 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
                 "indistinguishable_from": ties, "rule": "attribute_min" if best["explained_above_floor"] < cfg.attribute_min
                 else "structure_max",
                 "reason": f"unexplained by the library: {'; and '.join(failed)}; {why}" + bounds + hint + tie_note}
-    ci_min = cfg.attribute_min * (1 - w["noise_floor"] / max(w["gap_ms"], 1e-300))
     shortfalls, value_notes = [], []
-    if best["explained_ci"][0] < ci_min:
+    if edge:
+        shortfalls.append(f"it closes {best['explained_above_floor']:.1%} of the gap above the floor, under the "
+                          f"{cfg.attribute_min:.0%} rule, but the explained fraction's bootstrap interval "
+                          f"[{best['explained_ci'][0]:.1%}, {best['explained_ci'][1]:.1%}] of the whole gap holds the "
+                          f"rule's {ci_min:.1%}: these logs cannot tell it from the rule's edge")
+    elif best["explained_ci"][0] < ci_min:
         shortfalls.append(f"the explained fraction's lower bound {best['explained_ci'][0]:.1%} is below "
                           f"{ci_min:.1%} (the {cfg.attribute_min:.0%} rule less the noise floor)")
     if best["p_beats_next"] < cfg.confident_p:
@@ -531,7 +547,10 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
     confident = not shortfalls
     return {"verdict": "explained", "effects": best["effects"], "confident": confident,
             "indistinguishable_from": ties, "rule": "attribute_min",
-            "reason": f"explained: {closes}, at least the {cfg.attribute_min:.0%} rule, and {left} (at most "
+            "reason": f"explained: {closes}, "
+                      + (f"within reach of the {cfg.attribute_min:.0%} rule (below)" if edge
+                         else f"at least the {cfg.attribute_min:.0%} rule")
+                      + f", and {left} (at most "
                       f"{cfg.structure_max:.0%}); {why}; "
                       + (f"confident: it beats the runner-up in {best['p_beats_next']:.0%} of resamples" if confident
                          else "not confident: " + "; ".join(shortfalls))

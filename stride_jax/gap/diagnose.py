@@ -65,6 +65,9 @@ class DiagnoseConfig:
       pairs_of: fit pairs among this many best single effects (0: no pairs).
       penalty: complexity penalty per fitted parameter, in explained fraction.
       attribute_min: explained fraction (above the noise floor) needed to name an effect.
+      attribute_interval: read ``attribute_min`` against the explained fraction's bootstrap
+        interval: a best hypothesis under the rule whose interval still reaches it is named, never
+        confidently, instead of "unexplained by the library" (False: the point estimate decides).
       significant: share of the held-out residual that the linear probe must explain for a gap
         to count as significant even when the sign-flip test does not find it.
       structure_max: systematic residual left after the best hypothesis (linear probe, fraction of
@@ -109,6 +112,7 @@ class DiagnoseConfig:
     pairs_of: int = 3
     penalty: float = 0.005
     attribute_min: float = 0.5
+    attribute_interval: bool = True
     significant: float = 0.03
     structure_max: float = 0.15
     confident_p: float = 0.95
