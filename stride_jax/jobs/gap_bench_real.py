@@ -11,8 +11,8 @@ code they test:
   factors, which the calibration cannot represent exactly, and the width), margin, and the
   collision set (feet only);
 * **its own planting** of the effects (:func:`plant`: edits of the ``MjModel`` fields, a command
-  delay in seconds at the real time step, a servo dead band, a per-step quadratic drag, damping on
-  the joints of one type only);
+  delay in seconds at the real time step, a servo dead band, a per-step quadratic drag, and the
+  joint and actuator effects on some joints only, by name);
 * **its own controller** (a numpy trot / pronk / bound / pace position reference for the Go1,
   random torque sines for the pendulum) stepped with ``mujoco.mj_step``;
 * **its own sensor model** (:class:`Go1Sensors`: a real Go1's encoder resolution, joint-velocity
