@@ -149,6 +149,7 @@ def test_a_share_under_the_rule_whose_interval_reaches_it_is_named_not_confident
     # with structure left the verdict stays unexplained, and says the share was within reach
     v = attribute.verdict(_w(0.45, 0.4), cfg)
     assert v["verdict"] == "unexplained by the library" and "(its interval reaches it)" in v["reason"]
+    assert v["rule"] == "structure_max"
 
 
 def test_the_line_search_stops_at_a_quarter_of_the_standard_error():

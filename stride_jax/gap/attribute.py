@@ -480,7 +480,7 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
     bounds = bound_note(best) + admission_note(w, cfg)
     if failed:
         return {"verdict": "unexplained by the library", "effects": best["effects"], "confident": False,
-                "indistinguishable_from": ties, "rule": "attribute_min" if best["explained_above_floor"] < cfg.attribute_min
+                "indistinguishable_from": ties, "rule": "attribute_min" if best["explained_above_floor"] < cfg.attribute_min and not edge
                 else "structure_max",
                 "reason": f"unexplained by the library: {'; and '.join(failed)}; {why}" + bounds + hint + tie_note}
     shortfalls, value_notes = [], []
