@@ -157,8 +157,8 @@ def plant(m: mujoco.MjModel, planted: dict[str, Any], joints: tuple[str, ...], b
             if not len(jids):
                 raise ValueError(f"planted {name}@{part}: no joint of {joints} holds {part!r}")
         dofs = m.jnt_dofadr[jids]
-        acts = np.array([a for a in range(m.nu) if m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT
-                         and m.actuator_trnid[a, 0] in set(jids.tolist())], int)
+        acts = np.flatnonzero((m.actuator_trntype == mujoco.mjtTrn.mjTRN_JOINT)
+                              & np.isin(m.actuator_trnid[:, 0], jids))
         if name == "damping":
             m.dof_damping[dofs] += x
         elif name == "frictionloss":
