@@ -128,6 +128,22 @@ def test_a_confident_call_naming_part_of_a_pair_is_false_only_where_the_pair_is_
     assert sc.confident_false(ool) == (True, False)
 
 
+def test_ranked_first_counts_the_best_hypothesis_whatever_the_verdict():
+    from stride_jax.jobs import gap_bench_score as sc
+    base = {"kind": "single", "planted": {"frictionloss": [0.8]}, "named": [], "confident": False,
+            "correct": False, "correct_strict": False, "correct_as_set": False, "noisy": True,
+            "verdict": "unexplained by the library"}
+    ranked = base | {"best": {"effects": ["frictionloss"]}}
+    wrong = base | {"best": {"effects": ["damping"]}}
+    silent = base | {"verdict": "no significant gap"}  # nothing ranked
+    pair = base | {"kind": "pair", "planted": {"payload": [2.0], "torque_scale": [0.8]},
+                   "best": {"effects": ["torque_scale", "payload"]}}  # order aside
+    assert [sc.ranked_first(r) for r in (ranked, wrong, silent, pair)] == [True, False, False, True]
+    summ = sc.summary([ranked, wrong, silent, pair])["noisy"]
+    assert summ["ranked_first_single"] == 1 / 3 and summ["ranked_first_pairs"] == 1.0
+    assert summ["top1_single"] == 0.0  # the verdicts named nothing
+
+
 def test_a_pair_row_is_scored_with_what_each_planted_effect_adds_last():
     # the scorer's pair path (the Go1 preset's pairs) on the pendulum: damping 0.3 under a 20 ms
     # delay, the tiny diagnosis with pairs on; what each effect adds last, at its planted value and

@@ -6,7 +6,11 @@ right *as a set* when it is "explained" but not confident and its indistinguisha
 (:func:`stride_jax.gap.granularity.indistinguishable`) holds the planted effects: the logs cannot
 tell the members apart (a servo gain error and a motor-constant error are the same dynamics
 while nothing saturates) and the verdict says so, naming the set rather than a member.
-``top1_single`` and ``top1_pairs`` count both; ``top1_single_strict`` only the first. A confident
+``top1_single`` and ``top1_pairs`` count both; ``top1_single_strict`` only the first.
+``ranked_first_single`` and ``ranked_first_pairs`` count, whatever the verdict, the diagnosis's best
+hypothesis (its ranking's first row) being the planted effects (:func:`ranked_first`): the issue's
+"the right effect ranked first", which a verdict of "unexplained by the library" can still have
+where the calibrated simulator's leftover model-form difference outweighs the effect. A confident
 call naming an effect that was not planted is a confident false attribution, set or not; so is one
 naming only part of a pair whose every effect the logs show (``nameable``). A confident call naming
 part of a pair that is not nameable (the named effect stands in for the other, which then adds
@@ -153,6 +157,13 @@ def score(sm: SimModel, case: dict, res: dict, clean_held: list, settings: dict,
     return row
 
 
+def ranked_first(row: dict) -> bool:
+    """Whether the diagnosis ranked the planted effects first (its best hypothesis, verdict aside);
+    False where it ranked nothing (no significant gap)."""
+    best = (row.get("best") or {}).get("effects")
+    return bool(best) and set(best) == set(row["planted"])
+
+
 def confident_false(row: dict) -> tuple[bool, bool]:
     """``(confident false attribution, confident partial)`` for a scored row (module docstring)."""
     named, planted = set(row["named"]), set(row["planted"])
@@ -183,6 +194,8 @@ def summary(rows: list[dict]) -> dict[str, Any]:
                                 + f"; simulator settings found: {'; '.join(r['calibration']) or 'none'} "
                                 f"(drawn: {r['real_settings']})" for r in ctrl],
             "top1_single_strict": mean([r["correct_strict"] for r in singles]),
+            "ranked_first_single": mean([ranked_first(r) for r in singles]),
+            "ranked_first_pairs": mean([ranked_first(r) for r in pairs]),
             "right_as_set": sorted("+".join(r["planted"]) for r in rs if r["correct_as_set"]),
             "not_nameable": sorted("+".join(r["planted"]) for r in singles if r.get("nameable") is False),
             "top1_single_nameable": mean([r["correct"] for r in nameable]),
@@ -217,6 +230,9 @@ def markdown(cfg, rows: list[dict], summ: dict, command: str, seconds: float) ->
          "confident false attribution, the control says what the model-form difference is.", "",
          "A verdict counts as right when it names the planted effects, or when it is not confident and names an "
          "indistinguishable set that holds them (`right_as_set`); `top1_single_strict` counts the first only. "
+         "`ranked_first_single` / `ranked_first_pairs`: the diagnosis's best hypothesis is the planted effects, "
+         "whatever the verdict (\"the right effect ranked first\"; an \"unexplained\" verdict can still rank it "
+         "first). "
          "`not_nameable`: singles whose planted effect, at its planted value, closes less than 50% of the "
          "calibrated baseline's gap (the rule for naming an effect): the model-form difference outweighs it. "
          "`pairs_not_nameable`: pairs of which one effect, added last at its planted value, closes less than the "
@@ -225,7 +241,7 @@ def markdown(cfg, rows: list[dict], summ: dict, command: str, seconds: float) ->
          "or more: a confounder).",
          "", "| metric | noise-free | noisy |", "|---|---|---|"]
     for k in ("top1_single", "top1_pairs", "median_shrink_single", "confident_false", "confident_partial",
-              "top1_single_strict",
+              "top1_single_strict", "ranked_first_single", "ranked_first_pairs",
               "right_as_set", "not_nameable", "top1_single_nameable", "pairs_not_nameable",
               "top1_pairs_nameable", "median_share_ratio_single",
               "median_shrink_vs_nominal_single", "median_calibration_shrink", "out_of_library_verdicts",
