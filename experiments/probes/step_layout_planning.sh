@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# The planner with the whole-step kernel at given program layouts (samples and warps per program:
+# fused_step.ROWS, fused_step.WARPS), or through XLA (float32 or bfloat16 products): STRIDE NFE 2, one network for L and V,
+# bfloat16 products, K samples, H = 30, median of 20, each layout in its own run. Usage
+# (repository root, on the GPU machine):
+#   bash experiments/probes/step_layout_planning.sh OUT ROBOT K HIDDEN LAYOUT...   # LAYOUT: ROWS:WARPS, xla or xla-bf16
+# (step_rows_planning.sh is the same for rows alone, at the default warps.)
+set -uo pipefail
+out=$1; robot=$2; k=$3; h=$4; shift 4
+for layout in "$@"; do
+  if [ "${layout#xla}" != "$layout" ]; then rows=0; warps=0; kernel=$layout; name=$layout
+  else rows=${layout%%:*}; warps=${layout##*:}; kernel=pallas-step-bf16; name=rows${rows}_warps${warps}; fi
+  echo "== $robot ${h} x 3, K=$k, $name"
+  timeout 150 python3 -c "import sys; from stride_jax.dynamics import fused_step
+r, w = int(sys.argv[1]), int(sys.argv[2])
+fused_step.ROWS = r or None
+fused_step.WARPS = w or fused_step.WARPS
+sys.argv = ['stride'] + sys.argv[3:]
+from stride_jax import cli; cli.main()" "$rows" "$warps" bench-mppi --robots "$robot" --models stride \
+    --samples "$k" --horizons 30 --substeps 1 --shared-lnn --hidden "$h" --kernel "$kernel" \
+    --repeats 20 --out "$out/${robot}_h${h}_k${k}_${name}" 2>&1 | grep -E "K=|Error|error" | tail -3
+done
