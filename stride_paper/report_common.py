@@ -147,9 +147,10 @@ def _load_json(path: pathlib.Path) -> Any:
 
 def _git_note(path: pathlib.Path) -> str:
     """When the file's content was last committed, through renames (best effort; '' outside a
-    git checkout)."""
+    git checkout). ``--follow`` takes a new file much like an older one for a copy of it (status
+    C): that commit added this content, so it counts (without C the note gave the older file's)."""
     try:
-        r = subprocess.run(["git", "log", "-1", "--follow", "--diff-filter=AM", "--format=%h %cs",
+        r = subprocess.run(["git", "log", "-1", "--follow", "--diff-filter=AMC", "--format=%h %cs",
                             "--", path.name],
                            cwd=path.parent, capture_output=True, text=True, timeout=10)
     except (OSError, subprocess.SubprocessError):

@@ -324,3 +324,23 @@ def test_gap_controls_are_reported_from_their_own_file(results):
     assert "No-effect controls" in text and "--preset controls" in text
     assert "noise_free: a gap called on top of the calibrated settings in 4 of 20, a physical effect named in 1, " \
            "confidently in 0" in text
+
+
+def test_a_result_copied_from_another_and_changed_is_dated_by_its_own_commit(tmp_path):
+    # git log --follow sees a new result file much like an older one as a copy of it (status C);
+    # the note must give the commit that added this content, not the older file's
+    import subprocess
+    from stride_paper.report_common import _git_note
+    git = lambda *a: subprocess.run(["git", *a], cwd=tmp_path, check=True, capture_output=True, text=True)
+    git("init", "-q")
+    git("config", "user.email", "t@t"); git("config", "user.name", "t")
+    rows = "\n".join(f'"row {i}": {i}' for i in range(40))
+    (tmp_path / "a").mkdir(); (tmp_path / "b").mkdir()
+    (tmp_path / "a" / "r.json").write_text(rows + '\n"ms": 8.78\n')
+    git("add", "."); git("commit", "-q", "-m", "first")
+    first = git("log", "-1", "--format=%h").stdout.strip()
+    (tmp_path / "b" / "r.json").write_text(rows + '\n"ms": 5.04\n')
+    git("add", "."); git("commit", "-q", "-m", "second")
+    second = git("log", "-1", "--format=%h").stdout.strip()
+    assert _git_note(tmp_path / "a" / "r.json").startswith(f"committed {first}")
+    assert _git_note(tmp_path / "b" / "r.json").startswith(f"committed {second}")
