@@ -1,15 +1,18 @@
 #!/usr/bin/env bash
 # The planner with the whole-step kernel at given program layouts (samples and warps per program:
-# fused_step.ROWS, fused_step.WARPS), or through XLA (float32 or bfloat16 products): STRIDE NFE 2, one network for L and V,
-# bfloat16 products, K samples, H = 30, median of 20, each layout in its own run. Usage
+# fused_step.ROWS, fused_step.WARPS; 0 warps: the default), or through XLA (float32 or bfloat16
+# products): STRIDE NFE 2, one network for L and V, K samples, H = 30, median of 20, each layout
+# in its own run, into OUT/<robot>_h<HIDDEN>_k<K>_<rows R[_warps W] | xla | xla-bf16>. Usage
 # (repository root, on the GPU machine):
 #   bash experiments/probes/step_layout_planning.sh OUT ROBOT K HIDDEN LAYOUT...   # LAYOUT: ROWS:WARPS, xla or xla-bf16
-# (step_rows_planning.sh is the same for rows alone, at the default warps.)
 set -uo pipefail
 out=$1; robot=$2; k=$3; h=$4; shift 4
 for layout in "$@"; do
   if [ "${layout#xla}" != "$layout" ]; then rows=0; warps=0; kernel=$layout; name=$layout
-  else rows=${layout%%:*}; warps=${layout##*:}; kernel=pallas-step-bf16; name=rows${rows}_warps${warps}; fi
+  else
+    rows=${layout%%:*}; warps=${layout##*:}; kernel=pallas-step-bf16; name=rows${rows}
+    [ "$warps" = 0 ] || name=${name}_warps${warps}
+  fi
   echo "== $robot ${h} x 3, K=$k, $name"
   timeout 150 python3 -c "import sys; from stride_jax.dynamics import fused_step
 r, w = int(sys.argv[1]), int(sys.argv[2])

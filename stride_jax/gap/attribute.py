@@ -466,9 +466,11 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
     # the rule read on the whole gap, where the bootstrap interval lives: attribute_min of the gap
     # above the floor is ci_min of the whole gap
     ci_min = cfg.attribute_min * (1 - w["noise_floor"] / max(w["gap_ms"], 1e-300))
-    edge = (best["explained_above_floor"] < cfg.attribute_min and cfg.attribute_interval
-            and best["explained"] > 0 and best["explained_ci"][1] >= ci_min)
-    if best["explained_above_floor"] < cfg.attribute_min and not edge:
+    under = best["explained_above_floor"] < cfg.attribute_min
+    # under the rule, but the interval reaches it: named, never confidently (unless structure is left)
+    edge = under and cfg.attribute_interval and best["explained"] > 0 and best["explained_ci"][1] >= ci_min
+    short = under and not edge  # the 50% rule decides
+    if short:
         failed.append(f"{closes}, below the {cfg.attribute_min:.0%} rule"
                       + (f" (its upper bound {best['explained_ci'][1]:.1%} of the whole gap stays below the rule's "
                          f"{ci_min:.1%})" if cfg.attribute_interval and best["explained"] > 0 else "")
@@ -480,8 +482,7 @@ def verdict(w: dict[str, Any], cfg: DiagnoseConfig) -> dict[str, Any]:
     bounds = bound_note(best) + admission_note(w, cfg)
     if failed:
         return {"verdict": "unexplained by the library", "effects": best["effects"], "confident": False,
-                "indistinguishable_from": ties, "rule": "attribute_min" if best["explained_above_floor"] < cfg.attribute_min and not edge
-                else "structure_max",
+                "indistinguishable_from": ties, "rule": "attribute_min" if short else "structure_max",
                 "reason": f"unexplained by the library: {'; and '.join(failed)}; {why}" + bounds + hint + tie_note}
     shortfalls, value_notes = [], []
     if edge:
