@@ -37,6 +37,17 @@ GPU_DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 # for the pendulum; all of them, 0.1 s more saved, were 97 files); the folder is bounded, JAX
 # evicting the least recently used entries beyond it (with the `filelock` package).
 CACHE_ENV = "STRIDE_JAX_CACHE"
+# With several XLA host devices, two devices' programs can each hold one of XLA's CPU pool
+# threads inside a batched LAPACK Cholesky (MJX's solver) that waits for its share of the batch
+# to run on that same pool; with the pool's default of one thread per core both wait for ever
+# (reproduced with jax 0.10.2 on 2 cores: G1 MJX collection on two host devices hung in both of
+# ``rollout_mjx.collect``'s splits, as did ``stride bench-mppi``'s G1 oracle with its samples
+# split; Go1's smaller systems stay below LAPACK's split). XLA sizes that pool from ``NPROC``.
+# A larger pool is not the default: on two host devices of 2 cores it slowed the learned models'
+# MPPI step by 24-28% (Go1 STRIDE 256 x 3, K=128, H=16: 32.4 -> 41.6 ms with NPROC=4, 35.3 ->
+# 43.6 with 6) and Go1 MJX collection by ~14% (NPROC 3-6). So MJX work keeps to one host device
+# unless the process sets ``NPROC`` to at least :func:`pool_needed`.
+POOL_ENV = "NPROC"
 CACHE_MAX_BYTES = 2 << 30
 CACHE_MIN_COMPILE_S = 0.1
 
@@ -78,6 +89,35 @@ def set_xla_flags(deterministic: bool = False) -> None:
         warnings.warn("stride_jax.set_xla_flags() ran after JAX's backend started: XLA_FLAGS "
                       "take effect in child processes only; call it before the first JAX "
                       "computation", stacklevel=2)
+
+
+def pool_needed(devices: int) -> int:
+    """XLA's CPU pool (``NPROC``) that lets ``devices`` host devices each hold a thread in a
+    batched LAPACK call while the cores' threads run its parts (:data:`POOL_ENV`)."""
+    return (os.cpu_count() or 1) + devices
+
+
+_POOL_WARNED: set = set()
+
+
+def side_by_side_lapack(devices: list) -> list:
+    """Of ``devices``, those that may run batched LAPACK calls (MJX's solver) side by side: all
+    of them, unless they are several host devices of a CPU whose XLA pool is smaller than
+    :func:`pool_needed` (they would hang, :data:`POOL_ENV`): then the first, with a warning."""
+    if len(devices) < 2 or devices[0].platform != "cpu":
+        return devices
+    pool = os.environ.get(POOL_ENV, "")
+    pool = int(pool) if pool.isdigit() else (os.cpu_count() or 1)
+    need = pool_needed(len(devices))
+    if pool >= need:
+        return devices
+    if len(devices) not in _POOL_WARNED:
+        _POOL_WARNED.add(len(devices))
+        warnings.warn(f"MJX runs on one of the {len(devices)} XLA host devices: side by side, "
+                      f"their batched LAPACK calls can hang XLA's CPU pool of {pool} threads; "
+                      f"set {POOL_ENV}={need} before JAX starts to use them all "
+                      f"(stride_jax/_env.py, POOL_ENV)", stacklevel=3)
+    return devices[:1]
 
 
 def compilation_cache_dir() -> str | None:

@@ -105,6 +105,7 @@ def test_cli_rejects_unknown_robot():
     (["--episodes", "2"], "episodes must be >= 3"),
     (["--seconds", "-1"], "seconds=-1.0: need an episode length >= 0"),
     (["--seconds", "0.01"], r"seconds=0.01 is 1 control step\(s\) of 0.01 s: an episode needs at least 2"),
+    (["--split", "pmap"], "split='pmap': use one of shard, threads"),
 ])
 def test_cli_rejects_too_little_data(args, says, tmp_path):
     with pytest.raises(SystemExit, match=says):

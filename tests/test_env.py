@@ -12,7 +12,7 @@ PROBE = ("import stride_jax, jax, os; stride_jax.set_xla_flags(); "
 
 
 def _run(probe=PROBE, *args, **env):
-    drop = ("XLA_FLAGS", "STRIDE_HOST_DEVICES", "STRIDE_DETERMINISTIC")
+    drop = ("XLA_FLAGS", "STRIDE_HOST_DEVICES", "STRIDE_DETERMINISTIC", "NPROC")
     env = {k: v for k, v in os.environ.items() if k not in drop} | env
     return subprocess.run([sys.executable, "-c", probe, *args], env=env, capture_output=True,
                           text=True)
@@ -132,3 +132,41 @@ def test_the_entry_points_keep_compiled_programs_between_processes(tmp_path):
     assert out.returncode == 0 and out.stdout.split()[0] == "None", out.stderr
     assert out.stderr.count("no compilation cache, the folder") == 1 and "STRIDE_JAX_CACHE" in out.stderr
     assert run(JAX_COMPILATION_CACHE_DIR=str(tmp_path / "theirs"))[0] == str(tmp_path / "theirs")
+
+
+CHOLESKY_ON_TWO_DEVICES = """
+import stride_jax; stride_jax.set_xla_flags()
+import os, warnings, jax, jax.numpy as jnp
+from stride_jax.sim import rollout_mjx
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    devices = rollout_mjx.mjx_devices()
+a = jax.random.normal(jax.random.key(0), (256, 48, 48))
+a = a @ jnp.swapaxes(a, 1, 2) + 48 * jnp.eye(48)
+f = jax.jit(lambda x: jnp.linalg.cholesky(x).sum())
+xs = [jax.device_put(a, d) for d in devices]
+for _ in range(200):  # the devices' batched LAPACK Choleskys at once, as MJX's solver on G1
+    jax.block_until_ready([f(x) for x in xs])
+print(len(jax.devices()), len(devices), "NPROC" in "".join(str(w.message) for w in caught))
+"""
+
+
+@pytest.mark.parametrize("pool, uses, warns", [("", 1, True), ("pool_needed", 2, False)])
+def test_mjx_keeps_to_host_devices_whose_batched_choleskys_cannot_hang(pool, uses, warns):
+    """Two host devices running batched LAPACK Choleskys side by side hung on 2 cores with XLA's
+    default pool (each device's program held a pool thread waiting for the other half of its
+    batch): MJX keeps to one of them and says how to use both (``_env.POOL_ENV``); with that
+    pool both run side by side and finish."""
+    from stride_jax import _env
+
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "NPROC")}
+    env["STRIDE_HOST_DEVICES"] = "2"
+    if pool:
+        env["NPROC"] = str(_env.pool_needed(2))
+    try:
+        out = subprocess.run([sys.executable, "-c", CHOLESKY_ON_TWO_DEVICES], env=env,
+                             capture_output=True, text=True, timeout=120)
+    except subprocess.TimeoutExpired:
+        pytest.fail("two host devices' batched Choleskys hung (XLA's CPU pool too small)")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["2", str(uses), str(warns)]

@@ -1,5 +1,6 @@
 """Rollouts and the MPPI planner shard over devices: two forced host devices give the one-device
-answer. (Training over two devices against one: ``test_distributed.py``.)
+answer, the collection both ways (XLA's partitioner, a thread and program per device). (Training
+over two devices against one: ``test_distributed.py``.)
 
 One subprocess per device count does both (importing JAX and MJX twice is most of the cost)."""
 
@@ -10,13 +11,19 @@ import sys
 import numpy as np
 import pytest
 
+from stride_jax import _env
+
 SCRIPT = """
 import stride_jax, jax, numpy as np, sys
 from stride_jax.sim import model, rollout_mjx
 out, n = sys.argv[1], int(sys.argv[2])
-assert len(jax.local_devices()) == n
-ep = rollout_mjx.collect(model.load('pendulum'), jax.random.key(0), 4, 20)
-np.save(out + "/q.npy", ep.records.q)
+assert len(jax.local_devices()) == n and len(rollout_mjx.mjx_devices()) == n
+for split in rollout_mjx.SPLITS:  # 7 episodes in calls of 4 worlds: padded, uneven shares
+    ticks = []
+    ep = rollout_mjx.collect(model.load('pendulum'), jax.random.key(0), 7, 20, 4, split=split,
+                             progress=ticks.append)
+    assert sum(ticks) == 7, (split, ticks)
+    np.save(out + f"/q_{split}.npy", ep.records.q)
 # MPPI with a stochastic double integrator, its samples split over the devices.
 import jax.numpy as jnp
 from stride_jax.control import mppi
@@ -43,6 +50,7 @@ def test_rollouts_and_planning_on_two_devices_match_one(tmp_path):
         env = dict(os.environ)
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "--xla_cpu_enable_concurrency_optimized_scheduler=false")
                             + f" --xla_force_host_platform_device_count={n}")  # conftest's flags too
+        env["NPROC"] = str(_env.pool_needed(n))  # MJX side by side on both (rollout_mjx.mjx_devices)
         out = tmp_path / f"dev{n}"
         out.mkdir()
         procs.append(subprocess.Popen([sys.executable, "-c", SCRIPT, str(out), str(n)],
@@ -50,7 +58,12 @@ def test_rollouts_and_planning_on_two_devices_match_one(tmp_path):
         outs.append(out)
     codes = [proc.wait(timeout=600) for proc in procs]
     assert codes == [0, 0], f"subprocess exit codes {codes}"
-    np.testing.assert_allclose(np.load(outs[1] / "q.npy"), np.load(outs[0] / "q.npy"), atol=1e-6)
+    one = np.load(outs[0] / "q_shard.npy")
+    assert one.shape == (7, 20, 1) and np.abs(np.diff(one, axis=1)).max() > 1e-3  # it moved
+    np.testing.assert_allclose(np.load(outs[0] / "q_threads.npy"), one, atol=1e-6)
+    for split in ("shard", "threads"):
+        np.testing.assert_allclose(np.load(outs[1] / f"q_{split}.npy"), one, atol=1e-6,
+                                   err_msg=split)
     plans = [np.load(o / "plan.npy") for o in outs]
     assert np.abs(plans[0]).max() > 0.1  # the planner moved
     np.testing.assert_allclose(plans[1], plans[0], atol=1e-4)  # float rounding, 3 steps

@@ -13,7 +13,9 @@ sees the first ``d`` of them (``CUDA_VISIBLE_DEVICES``), on a CPU ``d`` forced h
   the records copied to the host (``data``) and on the devices alone (``device``: the jitted
   collection function, blocked on, nothing copied). ``--impl warp`` runs MuJoCo Warp's physics.
   ``--data-batches`` > 1 splits the worlds into that many calls, as ``stride data --batch`` does
-  (each batch's copy overlaps the next one's simulation).
+  (each batch's copy overlaps the next one's simulation). ``--split`` (as ``stride data
+  --split``): ``threads`` gives each device its own program, calls and copies from its own host
+  thread; ``shard`` splits each call over the devices with XLA's partitioner.
 - **training**: ``stride train`` on one shared dataset (the minibatch split over the devices,
   XLA all-reducing the gradients), steps per second read from ``metrics.csv`` between its first
   and last validation (compilation excluded). ``--per-device-batch`` keeps each device's share
@@ -49,6 +51,7 @@ def child(args) -> None:
     import csv
 
     import jax
+    import jax.numpy as jnp
 
     from stride_jax import cli
     from stride_jax.sim import model, rollout_mjx
@@ -77,24 +80,31 @@ def child(args) -> None:
         barrier()
         t, t_wall = time.perf_counter(), time.time()
         ep = rollout_mjx.collect(sm, jax.random.key(args.rank), worlds, n_steps, batch,
-                                 impl=args.impl)
+                                 impl=args.impl, split=args.split)
         jax.block_until_ready(ep.records.q)
         times.append(time.perf_counter() - t)
         spans.append((t_wall, time.time()))
-    fn = rollout_mjx.collect_fn(sm, n_steps, True, args.impl, batch)
     keys = jax.random.split(jax.random.key(0), batch)
-    if (sharding := rollout_mjx.world_sharding(batch)) is not None:
-        keys = jax.device_put(keys, sharding)
+    if args.split == "threads" and n > 1:  # each device its own program on its share
+        fn = rollout_mjx.collect_fn(sm, n_steps, True, args.impl, batch // n)
+        shares = [jax.device_put(k, d) for k, d in zip(jnp.split(keys, n), jax.local_devices())]
+        call = lambda: [fn(k) for k in shares]  # dispatched one after the other, run together
+    else:
+        fn = rollout_mjx.collect_fn(sm, n_steps, True, args.impl, batch)
+        if (sharding := rollout_mjx.world_sharding(batch)) is not None:
+            keys = jax.device_put(keys, sharding)
+        call = lambda: fn(keys)
     dev = []
     for _ in range(3):
         barrier()
         t, t_wall = time.perf_counter(), time.time()
-        jax.block_until_ready(fn(keys))
+        jax.block_until_ready(call())
         dev.append(time.perf_counter() - t)
         dev_spans.append((t_wall, time.time()))
     sim_steps = worlds * n_steps * sm.n_substeps
     row = dict(devices=n, platform=jax.default_backend(), device_kind=jax.devices()[0].device_kind,
-               robot=args.robot, impl=args.impl, worlds=worlds, data_batch=batch,
+               robot=args.robot, impl=args.impl, split=args.split, worlds=worlds,
+               data_batch=batch,
                control_steps=n_steps, data_seconds=times[1],
                data_sim_steps_per_s=sim_steps / times[1],
                device_sim_steps_per_s=batch * n_steps * sm.n_substeps / min(dev[1:]),
@@ -139,13 +149,19 @@ def merge_processes(parts: list[dict]) -> dict:
 
 def _env(platform: str, d: int, first: int = 0) -> dict:
     env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
-    if platform == "cpu":
-        env["JAX_PLATFORMS"] = "cpu"
-        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") +
-                            f" --xla_force_host_platform_device_count={d}").strip()
+    if platform == "cpu":  # set_xla_flags makes the devices and keeps its CPU-safe flags; a pool
+        env["JAX_PLATFORMS"] = "cpu"  # that lets MJX run on all of them (rollout_mjx.mjx_devices)
+        env["STRIDE_HOST_DEVICES"] = str(d)
+        if d > 1:
+            from stride_jax import _env as stride_env
+            env.setdefault("NPROC", str(stride_env.pool_needed(d)))
     else:
         env["CUDA_VISIBLE_DEVICES"] = ",".join(str(i) for i in range(first, first + d))
     return env
+
+
+_SPLITS = {"shard": "by XLA's partitioner, one program",
+           "threads": "each device its own program, calls and copies from its own host thread"}
 
 
 def write(rows: list[dict], out: pathlib.Path, command: str) -> None:
@@ -173,7 +189,8 @@ def write(rows: list[dict], out: pathlib.Path, command: str) -> None:
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", f"Data: the worlds of each row x {base['control_steps']} control steps, "
               f"{base.get('impl', 'jax')} physics, in calls of "
-              f"{base.get('data_batch', base['worlds'])} worlds split over the devices; "
+              f"{base.get('data_batch', base['worlds'])} worlds split over the devices "
+              f"({_SPLITS[base.get('split', 'shard')]}); "
               f"'data' includes copying the records to the host, "
               f"'on device' is one call with nothing copied."]
     if base.get("processes"):
@@ -203,6 +220,8 @@ def main(argv=None) -> None:
     p.add_argument("--per-device-batch", action="store_true")
     p.add_argument("--impl", default="jax", choices=("jax", "warp"), help="the data's physics")
     p.add_argument("--data-batches", type=int, default=1, help="calls the worlds are split into")
+    p.add_argument("--split", default="threads", choices=("threads", "shard"),
+                   help="how one process's devices share the worlds (rollout_mjx.collect)")
     p.add_argument("--no-train", action="store_true", help="data only")
     p.add_argument("--processes", action="store_true",
                    help="data only: one process per device, side by side (module docstring)")
@@ -234,7 +253,8 @@ def main(argv=None) -> None:
         opts = ["--robot", args.robot, "--model", args.model, "--worlds", str(args.worlds),
                 "--seconds", str(args.seconds), "--data", data,
                 "--train-steps", str(args.train_steps), "--batch", str(args.batch),
-                "--impl", args.impl, "--data-batches", str(args.data_batches)]
+                "--impl", args.impl, "--data-batches", str(args.data_batches),
+                "--split", args.split]
         opts += ["--per-device-batch"] * args.per_device_batch + ["--no-train"] * args.no_train
         child_cmd = lambda devices, res: [sys.executable, __file__, "--child", "--d",
                                           str(devices), "--result", str(res), *opts]

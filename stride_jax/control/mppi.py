@@ -313,9 +313,9 @@ def hold(trigger: jax.Array, left: jax.Array, steps: int) -> tuple[jax.Array, ja
     return trigger | (left > 0), jnp.where(trigger, steps, jnp.maximum(left - 1, 0))
 
 
-def sample_sharding() -> NamedSharding | None:
-    """The samples split over all local devices (None on one device)."""
-    devices = jax.local_devices()
+def sample_sharding(devices: list | None = None) -> NamedSharding | None:
+    """The samples split over ``devices`` (all local devices; None on one device)."""
+    devices = jax.local_devices() if devices is None else devices
     if len(devices) == 1:
         return None
     return NamedSharding(jax.sharding.Mesh(np.array(devices), ("samples",)),

@@ -37,6 +37,7 @@ from stride_jax.control import envs, mppi
 from stride_jax.dynamics import fused, models, stride
 from stride_jax.jobs import bench_table
 from stride_jax.sim import model as sim_model
+from stride_jax.sim import rollout_mjx
 from stride_jax.timing import median_time, peak_flops
 from stride_jax.train.setup import model_config
 
@@ -177,8 +178,11 @@ def setup(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig) -> Setu
         model = models.make(model_name, spec, act, model_cfg, stride.Scales())
         params = model.init(jax.random.key(0))
         dynamics = functools.partial(model.step, params)
+    # the oracle's MJX solver on a CPU's host devices: see rollout_mjx.mjx_devices
+    devices = rollout_mjx.mjx_devices() if model_name == "oracle" else None
     planner = mppi.make(mppi.MPPIConfig(samples=K, horizon=H, unroll=cfg.unroll or True),
-                        dynamics, tracking_cost(spec), lo, hi, sharding=mppi.sample_sharding())
+                        dynamics, tracking_cost(spec), lo, hi,
+                        sharding=mppi.sample_sharding(devices))
     q0 = jnp.asarray(sm.info.qpos0)
     state = planner.init(jax.random.key(1), jnp.broadcast_to(q0[
         np.asarray(act.dof) + (1 if spec.floating_base else 0)], (H, len(lo))))

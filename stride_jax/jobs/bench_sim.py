@@ -72,7 +72,7 @@ def _physics_fn(sm: model.SimModel, batch: int, n_steps: int, impl: str = "jax")
 
     fn = jax.jit(jax.vmap(one))
     keys = jax.random.split(jax.random.key(0), batch)
-    sharding = rollout_mjx.world_sharding(batch)
+    sharding = rollout_mjx.world_sharding(batch, rollout_mjx.mjx_devices())
     if sharding is not None:
         keys = jax.device_put(keys, sharding)
     return lambda: jax.block_until_ready(fn(keys))
@@ -104,7 +104,7 @@ def measure(cfg: BenchConfig, on_row=None) -> list[dict]:
                     t_phys = median_time(_physics_fn(sm, batch, cfg.steps, impl), cfg.repeats)
                     collect = rollout_mjx.collect_fn(sm, cfg.steps, True, impl, batch)
                     keys = jax.random.split(jax.random.key(1), batch)
-                    if (sharding := rollout_mjx.world_sharding(batch)) is not None:
+                    if (sharding := rollout_mjx.world_sharding(batch, rollout_mjx.mjx_devices())) is not None:
                         keys = jax.device_put(keys, sharding)
                     t_coll = median_time(lambda: jax.block_until_ready(collect(keys)), cfg.repeats)
                     modes = [("physics", t_phys), ("collect", t_coll)]

@@ -33,7 +33,12 @@ class DataConfig:
         ``mujoco.rollout``), or ``auto``: mjx when an accelerator is present, cpu otherwise.
       episodes: number of episodes (worlds).
       seconds: episode length (s); 0 uses the robot's default.
-      batch: worlds per jitted MJX call (0: all at once).
+      batch: worlds simulated at once (0: all), split over the process's devices.
+      split: how several devices of one process share the worlds (MJX backends):
+        ``threads``, each device its own share of the episodes, its own program and a host
+        thread dispatching its calls and copying its records (as one process per device);
+        ``shard``, each call's worlds split over the devices by XLA's partitioner
+        (:func:`stride_jax.sim.rollout_mjx.collect`). The same records to float rounding.
       seed: PRNG seed of randomisation, exploration and the split.
       randomized: apply the hidden randomisation.
       stochastic: a contact residual that is stochastic given the state: ground patches of
@@ -59,6 +64,7 @@ class DataConfig:
     episodes: int = 64
     seconds: float = 0.0
     batch: int = 0
+    split: str = "threads"
     seed: int = 0
     randomized: bool = True
     stochastic: bool = False
@@ -123,6 +129,8 @@ def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Datas
     if n_steps < 2:
         raise ValueError(f"seconds={seconds:g} is {n_steps} control step(s) of "
                          f"{sm.robot.ctrl_dt:g} s: an episode needs at least 2")
+    if cfg.split not in rollout_mjx.SPLITS:
+        raise ValueError(f"split={cfg.split!r}: use one of {', '.join(rollout_mjx.SPLITS)}")
     backend = resolve_backend(cfg.backend)
     key = jax.random.key(cfg.seed)
     part = distributed.share(cfg.episodes)  # all of them for a single process
@@ -133,7 +141,7 @@ def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Datas
                   disable=quiet) as bar:
             ep = rollout_mjx.collect(sm, key, cfg.episodes, n_steps, cfg.batch or None,
                                      randomized, bar.update, part,
-                                     impl=rollout_mjx.BACKENDS[backend])
+                                     impl=rollout_mjx.BACKENDS[backend], split=cfg.split)
     else:
         with tqdm(total=n_steps, desc=f"{cfg.robot} cpu", unit="step", disable=quiet) as bar:
             ep = rollout_cpu.collect(sm, key, cfg.episodes, n_steps, randomized,

@@ -10,7 +10,9 @@ are recorded) and the integrator, so recording costs no extra forward pass.
 
 from __future__ import annotations
 
+import concurrent.futures
 import functools
+import threading
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -20,6 +22,7 @@ import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 from mujoco import mjx
 
+from stride_jax import _env
 from stride_jax.sim import mjx_warp, randomize, record, terrain
 from stride_jax.sim.model import SimModel, check_open_loop
 
@@ -196,9 +199,16 @@ def _keys_to_data(tree):
     return jax.tree.map(lambda x: jax.random.key_data(x) if is_key(x) else x, tree)
 
 
-def world_sharding(n_worlds: int) -> NamedSharding | None:
-    """Shards a leading world axis over all local devices (None on a single device)."""
-    devices = jax.local_devices()
+def mjx_devices() -> list:
+    """The local devices MJX's physics may run on side by side: all of them, but one where they
+    are host devices of a CPU whose XLA pool would hang on their batched Cholesky
+    (:func:`stride_jax._env.side_by_side_lapack`)."""
+    return _env.side_by_side_lapack(jax.local_devices())
+
+
+def world_sharding(n_worlds: int, devices: list | None = None) -> NamedSharding | None:
+    """Shards a leading world axis over ``devices`` (all local devices; None on a single one)."""
+    devices = jax.local_devices() if devices is None else devices
     if len(devices) == 1:
         return None
     if n_worlds % len(devices):
@@ -236,24 +246,57 @@ def collect_fn(sm: SimModel, n_steps: int, randomized: bool = True, impl: str = 
     return hit[1]
 
 
+SPLITS = ("shard", "threads")  # how one process's local devices share a collection
+
+
 def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, batch: int | None = None,
             randomized: bool = True, progress: Callable[[int], None] | None = None,
-            part: slice = slice(None), impl: str = "jax") -> Episode:
+            part: slice = slice(None), impl: str = "jax", split: str = "threads") -> Episode:
     """Collects ``n_episodes`` episodes of ``n_steps`` control steps, ``batch`` worlds at a time.
 
-    Each batch is one jitted, vmapped call, split over the local devices. The next batch is
-    dispatched before the last one's records are copied to the host, so the copy overlaps the
-    simulation. Returns numpy arrays with a leading episode axis. ``progress(n)`` is called after
-    each batch with its size.
+    Each batch is one jitted, vmapped call. The next batch is dispatched before the last one's
+    records are copied to the host, so the copy overlaps the simulation. Returns numpy arrays with
+    a leading episode axis. ``progress(n)`` is called after each batch with its size.
     ``part``: only these of the ``n_episodes`` (each episode's draws come from its own key, so a
     part is exactly those episodes of the whole; several processes each make one).
     ``impl``: ``jax`` (MJX's physics) or ``warp`` (MuJoCo Warp's; :mod:`~stride_jax.sim.mjx_warp`).
+    ``split``, where the process sees several devices: ``shard`` splits each call's worlds over
+    them through XLA's partitioner (one program; one host thread copies every device's records);
+    ``threads`` gives each device a contiguous share of the episodes, its own program of
+    ``batch / devices`` worlds per call, and its own host thread dispatching the calls and
+    copying the records, as one process per device does (compiled once per device). The same
+    records either way.
     """
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; use one of {SPLITS}")
     keys = jax.random.split(key, n_episodes)[part]
     n_episodes = keys.shape[0]
     batch = min(batch or n_episodes, n_episodes)
-    fn = collect_fn(sm, n_steps, randomized, impl, batch)
-    sharding = world_sharding(batch)
+    devices = mjx_devices()
+    if split == "shard" or len(devices) == 1:
+        fn = collect_fn(sm, n_steps, randomized, impl, batch)
+        place = world_sharding(batch, devices) if len(devices) > 1 else devices[0]
+        return _pipeline(fn, keys, batch, place, progress)
+    per = -(-n_episodes // len(devices))  # each device's share of the episodes
+    calls = min(-(-batch // len(devices)), per)  # worlds per call on each device
+    fn = collect_fn(sm, n_steps, randomized, impl, calls)
+    lock = threading.Lock()
+
+    def tick(n):
+        with lock:
+            progress(n)
+
+    shares = [(d, keys[i * per:(i + 1) * per]) for i, d in enumerate(devices)
+              if i * per < n_episodes]
+    with concurrent.futures.ThreadPoolExecutor(len(shares)) as pool:
+        parts = list(pool.map(lambda s: _pipeline(fn, s[1], calls, s[0], progress and tick),
+                              shares))
+    return jax.tree.map(lambda *a: np.concatenate(a), *parts)
+
+
+def _pipeline(fn: Callable, keys: jax.Array, batch: int, place, progress) -> Episode:
+    """``fn`` over ``keys`` in calls of ``batch`` worlds placed by ``place`` (a sharding, a
+    device or None); each call is dispatched before the previous one's records are copied."""
     out, pending = [], None
 
     def fetch(job):
@@ -262,13 +305,13 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, batch: 
         if progress:
             progress(n)
 
-    for start in range(0, n_episodes, batch):
+    for start in range(0, keys.shape[0], batch):
         k = keys[start:start + batch]
         n = k.shape[0]
         if n < batch:  # pad the last batch to the compiled shape
             k = jnp.concatenate([k, jnp.repeat(k[-1:], batch - n, axis=0)])
-        if sharding is not None:
-            k = jax.device_put(k, sharding)
+        if place is not None:
+            k = jax.device_put(k, place)
         job = (fn(k), n)  # dispatched: runs while the previous batch is copied
         if pending is not None:
             fetch(pending)
