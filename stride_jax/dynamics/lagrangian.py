@@ -303,10 +303,14 @@ def _factor_from_raw(params: dict, spec: ModelSpec, raw: jax.Array, cfg: LNNConf
     index, diag = _factor_layout(spec, structured)
     # One gather from the outputs, the softplus of the diagonal ones, sqrt(m) and zero: no
     # scatters, and transcendentals on the diagonal only (a softplus over all of L, masked,
-    # cost a CPU planner as much as the mass network itself).
+    # cost a CPU planner as much as the mass network itself). The gather takes a flat index and
+    # is reshaped: batched by vmap, the [nv, nv] index made XLA's CPU gather a transposed layout
+    # and copy it back (Go1, 64 rows: 105 -> 21 us, its gradient 135 -> 84 us; the copies were
+    # 8% of a 2-core CPU planning step, results/mppi_latency/cpu_profile/).
     fixed = jnp.sqrt(total_mass(params, cfg)) if structured else 1.0
-    return jnp.concatenate([raw, jax.nn.softplus(raw[diag]),
-                            jnp.asarray([fixed, 0.0], raw.dtype)])[index]
+    entries = jnp.concatenate([raw, jax.nn.softplus(raw[diag]),
+                               jnp.asarray([fixed, 0.0], raw.dtype)])
+    return entries[index.ravel()].reshape(index.shape)
 
 
 def _mass_from_features(params: dict, spec: ModelSpec, x: jax.Array, cfg: LNNConfig
