@@ -157,6 +157,7 @@ class Setup(NamedTuple):
     spec: Any
     act: models.Actuation
     model_cfg: stride.StructuredConfig
+    devices: int  # the devices its samples are split over
 
 
 def setup(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig) -> Setup:
@@ -187,7 +188,7 @@ def setup(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig) -> Setu
     state = planner.init(jax.random.key(1), jnp.broadcast_to(q0[
         np.asarray(act.dof) + (1 if spec.floating_base else 0)], (H, len(lo))))
     return Setup(planner.step, state, q0, jnp.zeros(spec.nv), model, params, spec, act,
-                 model_cfg)
+                 model_cfg, len(devices or jax.local_devices()))
 
 
 def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
@@ -209,7 +210,21 @@ def measure(robot: str, model_name: str, K: int, H: int, cfg: BenchConfig,
                 nfe=b.model_cfg.nfe if not oracle and b.model.stochastic else None, ms=ms,
                 hz=1e3 / ms,
                 gflop=flops / 1e9, xla_gflop=xla_flops / 1e9, floor_ms=floor_ms,
-                ratio=ms / floor_ms if floor_ms > 0 else float("nan"), compile_s=compile_s)
+                ratio=ms / floor_ms if floor_ms > 0 else float("nan"), compile_s=compile_s,
+                devices=b.devices)
+
+
+def _oracle_devices_note(rows: list[dict], n_devices: int) -> str:
+    """Says where the oracle planned on fewer devices than the learned models: MJX on a CPU's
+    host devices keeps to one of them unless XLA's pool is large enough
+    (:func:`stride_jax.sim.rollout_mjx.mjx_devices`)."""
+    fewer = {r.get("devices", n_devices) for r in rows
+             if r["model"] == "oracle" and r.get("devices", n_devices) < n_devices}
+    if not fewer:
+        return ""
+    return (f" The oracle's samples ran on {min(fewer)} of the {n_devices} devices (MJX's solver "
+            "on a CPU's host devices hangs XLA's default pool; `NPROC` = cores + devices lets "
+            "it use all, at a cost to the learned models: `stride_jax/_env.py`).")
 
 
 def _products(kernel: str) -> str:
@@ -270,7 +285,8 @@ def write(rows: list[dict], cfg: BenchConfig, command: str, peak: float) -> path
              "simulation substeps) with block_until_ready; median of "
              f"{cfg.repeats}. FLOP floor = K x H x the FLOPs of one model control step "
              "(`control_step_flops`: counted without loops) / peak; the planner's own work "
-             "(noise, costs, weights) is left out, so the floor is a lower bound.")
+             "(noise, costs, weights) is left out, so the floor is a lower bound."
+             + _oracle_devices_note(rows, env["n_devices"]))
     oracle_ms = {(r["robot"], r["K"], r["H"]): r["ms"] for r in rows if r["model"] == "oracle"}
     num = lambda x, f: "-" if not np.isfinite(x) else format(x, f)  # noqa: E731
 
