@@ -37,6 +37,8 @@ GPU_DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
 # for the pendulum; all of them, 0.1 s more saved, were 97 files); the folder is bounded, JAX
 # evicting the least recently used entries beyond it (with the `filelock` package).
 CACHE_ENV = "STRIDE_JAX_CACHE"
+CACHE_MAX_BYTES = 2 << 30
+CACHE_MIN_COMPILE_S = 0.1
 # With several XLA host devices, two devices' programs can each hold one of XLA's CPU pool
 # threads inside a batched LAPACK Cholesky (MJX's solver) that waits for its share of the batch
 # to run on that same pool; with the pool's default of one thread per core both wait for ever
@@ -48,8 +50,6 @@ CACHE_ENV = "STRIDE_JAX_CACHE"
 # 43.6 with 6) and Go1 MJX collection by ~14% (NPROC 3-6). So MJX work keeps to one host device
 # unless the process sets ``NPROC`` to at least :func:`pool_needed`.
 POOL_ENV = "NPROC"
-CACHE_MAX_BYTES = 2 << 30
-CACHE_MIN_COMPILE_S = 0.1
 
 
 def set_xla_flags(deterministic: bool = False) -> None:

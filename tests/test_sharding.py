@@ -50,7 +50,7 @@ def test_rollouts_and_planning_on_two_devices_match_one(tmp_path):
         env = dict(os.environ)
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "--xla_cpu_enable_concurrency_optimized_scheduler=false")
                             + f" --xla_force_host_platform_device_count={n}")  # conftest's flags too
-        env["NPROC"] = str(_env.pool_needed(n))  # MJX side by side on both (rollout_mjx.mjx_devices)
+        env["NPROC"] = str(_env.pool_needed(n))  # MJX on both (rollout_mjx.mjx_devices)
         out = tmp_path / f"dev{n}"
         out.mkdir()
         procs.append(subprocess.Popen([sys.executable, "-c", SCRIPT, str(out), str(n)],

@@ -104,7 +104,8 @@ def measure(cfg: BenchConfig, on_row=None) -> list[dict]:
                     t_phys = median_time(_physics_fn(sm, batch, cfg.steps, impl), cfg.repeats)
                     collect = rollout_mjx.collect_fn(sm, cfg.steps, True, impl, batch)
                     keys = jax.random.split(jax.random.key(1), batch)
-                    if (sharding := rollout_mjx.world_sharding(batch, rollout_mjx.mjx_devices())) is not None:
+                    sharding = rollout_mjx.world_sharding(batch, rollout_mjx.mjx_devices())
+                    if sharding is not None:
                         keys = jax.device_put(keys, sharding)
                     t_coll = median_time(lambda: jax.block_until_ready(collect(keys)), cfg.repeats)
                     modes = [("physics", t_phys), ("collect", t_coll)]
