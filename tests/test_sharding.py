@@ -9,7 +9,6 @@ import subprocess
 import sys
 
 import numpy as np
-import pytest
 
 from stride_jax import _env
 
@@ -42,8 +41,8 @@ np.save(out + "/plan.npy", np.asarray(state.plan))
 """
 
 
-@pytest.mark.slow  # sharding over two forced host devices: test_distributed.py::
-# test_one_process_with_two_devices_trains_the_same_model (the training step's batch)
+# In the default suite (~17 s on 2 cores): `stride data`'s default on several devices (a thread and
+# program per device) is tested nowhere else.
 def test_rollouts_and_planning_on_two_devices_match_one(tmp_path):
     outs, procs = [], []
     for n in (1, 2):  # side by side: each is mostly single-threaded compilation
