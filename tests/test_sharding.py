@@ -23,6 +23,8 @@ for split in rollout_mjx.SPLITS:  # 7 episodes in calls of 4 worlds: padded, une
                              progress=ticks.append)
     assert sum(ticks) == 7, (split, ticks)
     np.save(out + f"/q_{split}.npy", ep.records.q)
+    done = rollout_mjx.device_call(model.load('pendulum'), 20, 4, split=split)()  # benchmarks' call
+    assert len(jax.tree.leaves(done)) > 0
 # MPPI with a stochastic double integrator, its samples split over the devices.
 import jax.numpy as jnp
 from stride_jax.control import mppi

@@ -51,7 +51,6 @@ def child(args) -> None:
     import csv
 
     import jax
-    import jax.numpy as jnp
 
     from stride_jax import cli
     from stride_jax.sim import model, rollout_mjx
@@ -84,21 +83,13 @@ def child(args) -> None:
         jax.block_until_ready(ep.records.q)
         times.append(time.perf_counter() - t)
         spans.append((t_wall, time.time()))
-    keys = jax.random.split(jax.random.key(0), batch)
-    if args.split == "threads" and n > 1:  # each device its own program on its share
-        fn = rollout_mjx.collect_fn(sm, n_steps, True, args.impl, batch // n)
-        shares = [jax.device_put(k, d) for k, d in zip(jnp.split(keys, n), jax.local_devices())]
-        call = lambda: [fn(k) for k in shares]  # dispatched one after the other, run together
-    else:
-        fn = rollout_mjx.collect_fn(sm, n_steps, True, args.impl, batch)
-        if (sharding := rollout_mjx.world_sharding(batch)) is not None:
-            keys = jax.device_put(keys, sharding)
-        call = lambda: fn(keys)
+    call = rollout_mjx.device_call(sm, n_steps, batch, impl=args.impl, split=args.split,
+                                   key=jax.random.key(0))
     dev = []
     for _ in range(3):
         barrier()
         t, t_wall = time.perf_counter(), time.time()
-        jax.block_until_ready(call())
+        call()
         dev.append(time.perf_counter() - t)
         dev_spans.append((t_wall, time.time()))
     sim_steps = worlds * n_steps * sm.n_substeps

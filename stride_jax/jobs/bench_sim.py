@@ -34,6 +34,8 @@ class BenchConfig:
       repeats: timed calls per measurement (median reported).
       iterations: override the robots' constraint-solver iterations (0 keeps them).
       ls_iterations: override their line-search iterations (0 keeps them).
+      split: how several local devices share the ``collect`` rows' worlds, as ``stride data
+        --split`` (:func:`stride_jax.sim.rollout_mjx.collect`).
       out: results folder (``bench_sim_<cpu|gpu>.json`` and ``.md``).
     """
 
@@ -44,6 +46,7 @@ class BenchConfig:
     repeats: int = 3
     iterations: int = 0
     ls_iterations: int = 0
+    split: str = "threads"
     out: str = "results/throughput"
 
 
@@ -93,6 +96,8 @@ def measure(cfg: BenchConfig, on_row=None) -> list[dict]:
     if unknown:
         raise ValueError(f"unknown backends {sorted(unknown)}; use "
                          f"{', '.join(rollout_mjx.BACKENDS)} and cpu")
+    if cfg.split not in rollout_mjx.SPLITS:
+        raise ValueError(f"split={cfg.split!r}: use one of {', '.join(rollout_mjx.SPLITS)}")
     rows = []
     for name in cfg.robots.split(","):
         sm = _with_solver(model.load(name), cfg)
@@ -102,12 +107,8 @@ def measure(cfg: BenchConfig, on_row=None) -> list[dict]:
                 if backend in rollout_mjx.BACKENDS:
                     impl = rollout_mjx.BACKENDS[backend]
                     t_phys = median_time(_physics_fn(sm, batch, cfg.steps, impl), cfg.repeats)
-                    collect = rollout_mjx.collect_fn(sm, cfg.steps, True, impl, batch)
-                    keys = jax.random.split(jax.random.key(1), batch)
-                    sharding = rollout_mjx.world_sharding(batch, rollout_mjx.mjx_devices())
-                    if sharding is not None:
-                        keys = jax.device_put(keys, sharding)
-                    t_coll = median_time(lambda: jax.block_until_ready(collect(keys)), cfg.repeats)
+                    t_coll = median_time(rollout_mjx.device_call(
+                        sm, cfg.steps, batch, impl=impl, split=cfg.split), cfg.repeats)
                     modes = [("physics", t_phys), ("collect", t_coll)]
                 else:
                     key = jax.random.key(1)

@@ -294,6 +294,29 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, batch: 
     return jax.tree.map(lambda *a: np.concatenate(a), *parts)
 
 
+def device_call(sm: SimModel, n_steps: int, batch: int, randomized: bool = True,
+                impl: str = "jax", split: str = "threads",
+                key: jax.Array | None = None) -> Callable[[], Any]:
+    """One call of :func:`collect`'s over ``batch`` worlds on the local devices, split as
+    ``split`` splits them, blocked on and nothing copied to the host: the device-side part of a
+    collection, which the throughput benchmarks time. Compiled on its first call."""
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; use one of {SPLITS}")
+    devices = mjx_devices()
+    keys = jax.random.split(jax.random.key(1) if key is None else key, batch)
+    if split == "shard" or len(devices) == 1:
+        fn = collect_fn(sm, n_steps, randomized, impl, batch)
+        keys = jax.device_put(keys, world_sharding(batch, devices) if len(devices) > 1
+                              else devices[0])
+        return lambda: jax.block_until_ready(fn(keys))
+    if batch % len(devices):
+        raise ValueError(f"{batch} worlds do not split evenly over {len(devices)} devices; "
+                         f"use a multiple of {len(devices)}")
+    fn = collect_fn(sm, n_steps, randomized, impl, batch // len(devices))
+    shares = [jax.device_put(k, d) for k, d in zip(jnp.split(keys, len(devices)), devices)]
+    return lambda: jax.block_until_ready([fn(k) for k in shares])  # dispatched, run together
+
+
 def _pipeline(fn: Callable, keys: jax.Array, batch: int, place, progress) -> Episode:
     """``fn`` over ``keys`` in calls of ``batch`` worlds placed by ``place`` (a sharding, a
     device or None); each call is dispatched before the previous one's records are copied."""
