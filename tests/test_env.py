@@ -11,11 +11,11 @@ PROBE = ("import stride_jax, jax, os; stride_jax.set_xla_flags(); "
          "print(len(jax.devices()), os.environ['XLA_FLAGS'])")
 
 
-def _run(probe=PROBE, *args, **env):
+def _run(probe=PROBE, *args, timeout=None, **env):
     drop = ("XLA_FLAGS", "STRIDE_HOST_DEVICES", "STRIDE_DETERMINISTIC", "NPROC")
     env = {k: v for k, v in os.environ.items() if k not in drop} | env
     return subprocess.run([sys.executable, "-c", probe, *args], env=env, capture_output=True,
-                          text=True)
+                          text=True, timeout=timeout)
 
 
 @pytest.mark.parametrize("value, devices", [("2", 2), ("auto", os.cpu_count() or 1)])
@@ -159,13 +159,9 @@ def test_mjx_keeps_to_host_devices_whose_batched_choleskys_cannot_hang(pool, use
     pool both run side by side and finish."""
     from stride_jax import _env
 
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "NPROC")}
-    env["STRIDE_HOST_DEVICES"] = "2"
-    if pool:
-        env["NPROC"] = str(_env.pool_needed(2))
+    env = dict(STRIDE_HOST_DEVICES="2") | (dict(NPROC=str(_env.pool_needed(2))) if pool else {})
     try:
-        out = subprocess.run([sys.executable, "-c", CHOLESKY_ON_TWO_DEVICES], env=env,
-                             capture_output=True, text=True, timeout=120)
+        out = _run(CHOLESKY_ON_TWO_DEVICES, timeout=120, **env)
     except subprocess.TimeoutExpired:
         pytest.fail("two host devices' batched Choleskys hung (XLA's CPU pool too small)")
     assert out.returncode == 0, out.stderr

@@ -96,8 +96,7 @@ def measure(cfg: BenchConfig, on_row=None) -> list[dict]:
     if unknown:
         raise ValueError(f"unknown backends {sorted(unknown)}; use "
                          f"{', '.join(rollout_mjx.BACKENDS)} and cpu")
-    if cfg.split not in rollout_mjx.SPLITS:
-        raise ValueError(f"split={cfg.split!r}: use one of {', '.join(rollout_mjx.SPLITS)}")
+    rollout_mjx.check_split(cfg.split)
     rows = []
     for name in cfg.robots.split(","):
         sm = _with_solver(model.load(name), cfg)

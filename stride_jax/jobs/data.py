@@ -129,8 +129,7 @@ def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Datas
     if n_steps < 2:
         raise ValueError(f"seconds={seconds:g} is {n_steps} control step(s) of "
                          f"{sm.robot.ctrl_dt:g} s: an episode needs at least 2")
-    if cfg.split not in rollout_mjx.SPLITS:
-        raise ValueError(f"split={cfg.split!r}: use one of {', '.join(rollout_mjx.SPLITS)}")
+    rollout_mjx.check_split(cfg.split)
     backend = resolve_backend(cfg.backend)
     key = jax.random.key(cfg.seed)
     part = distributed.share(cfg.episodes)  # all of them for a single process

@@ -249,6 +249,17 @@ def collect_fn(sm: SimModel, n_steps: int, randomized: bool = True, impl: str = 
 SPLITS = ("shard", "threads")  # how one process's local devices share a collection
 
 
+def check_split(split: str) -> None:
+    """A clear error for a ``split`` that is not one of :data:`SPLITS`."""
+    if split not in SPLITS:
+        raise ValueError(f"split={split!r}: use one of {', '.join(SPLITS)}")
+
+
+def _placement(batch: int, devices: list):
+    """Where one partitioned call's keys go: split over ``devices``, or on the one device."""
+    return world_sharding(batch, devices) if len(devices) > 1 else devices[0]
+
+
 def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, batch: int | None = None,
             randomized: bool = True, progress: Callable[[int], None] | None = None,
             part: slice = slice(None), impl: str = "jax", split: str = "threads") -> Episode:
@@ -267,16 +278,14 @@ def collect(sm: SimModel, key: jax.Array, n_episodes: int, n_steps: int, batch: 
     copying the records, as one process per device does (compiled once per device). The same
     records either way.
     """
-    if split not in SPLITS:
-        raise ValueError(f"unknown split {split!r}; use one of {SPLITS}")
+    check_split(split)
     keys = jax.random.split(key, n_episodes)[part]
     n_episodes = keys.shape[0]
     batch = min(batch or n_episodes, n_episodes)
     devices = mjx_devices()
     if split == "shard" or len(devices) == 1:
         fn = collect_fn(sm, n_steps, randomized, impl, batch)
-        place = world_sharding(batch, devices) if len(devices) > 1 else devices[0]
-        return _pipeline(fn, keys, batch, place, progress)
+        return _pipeline(fn, keys, batch, _placement(batch, devices), progress)
     per = -(-n_episodes // len(devices))  # each device's share of the episodes
     calls = min(-(-batch // len(devices)), per)  # worlds per call on each device
     fn = collect_fn(sm, n_steps, randomized, impl, calls)
@@ -300,14 +309,12 @@ def device_call(sm: SimModel, n_steps: int, batch: int, randomized: bool = True,
     """One call of :func:`collect`'s over ``batch`` worlds on the local devices, split as
     ``split`` splits them, blocked on and nothing copied to the host: the device-side part of a
     collection, which the throughput benchmarks time. Compiled on its first call."""
-    if split not in SPLITS:
-        raise ValueError(f"unknown split {split!r}; use one of {SPLITS}")
+    check_split(split)
     devices = mjx_devices()
     keys = jax.random.split(jax.random.key(1) if key is None else key, batch)
     if split == "shard" or len(devices) == 1:
         fn = collect_fn(sm, n_steps, randomized, impl, batch)
-        keys = jax.device_put(keys, world_sharding(batch, devices) if len(devices) > 1
-                              else devices[0])
+        keys = jax.device_put(keys, _placement(batch, devices))
         return lambda: jax.block_until_ready(fn(keys))
     if batch % len(devices):
         raise ValueError(f"{batch} worlds do not split evenly over {len(devices)} devices; "
@@ -318,8 +325,8 @@ def device_call(sm: SimModel, n_steps: int, batch: int, randomized: bool = True,
 
 
 def _pipeline(fn: Callable, keys: jax.Array, batch: int, place, progress) -> Episode:
-    """``fn`` over ``keys`` in calls of ``batch`` worlds placed by ``place`` (a sharding, a
-    device or None); each call is dispatched before the previous one's records are copied."""
+    """``fn`` over ``keys`` in calls of ``batch`` worlds placed by ``place`` (a sharding or a
+    device); each call is dispatched before the previous one's records are copied."""
     out, pending = [], None
 
     def fetch(job):
@@ -333,9 +340,7 @@ def _pipeline(fn: Callable, keys: jax.Array, batch: int, place, progress) -> Epi
         n = k.shape[0]
         if n < batch:  # pad the last batch to the compiled shape
             k = jnp.concatenate([k, jnp.repeat(k[-1:], batch - n, axis=0)])
-        if place is not None:
-            k = jax.device_put(k, place)
-        job = (fn(k), n)  # dispatched: runs while the previous batch is copied
+        job = (fn(jax.device_put(k, place)), n)  # dispatched: runs while the previous batch is copied
         if pending is not None:
             fetch(pending)
         pending = job
