@@ -36,12 +36,19 @@ def _states(spec, n: int, seed: int = 0):
     return q, qd, ctrl, jax.random.split(keys[4], n)
 
 
-@pytest.mark.parametrize("kernel, rows", [("pallas-step", 16), ("pallas-step-bf16", 8)])
-def test_whole_step_equals_the_xla_step(kernels, kernel, rows, monkeypatch):
+@pytest.mark.parametrize("kernel, rows, block", [
+    ("pallas-step", 16, 1), ("pallas-step-bf16", 8, 1),
+    # columns per loop iteration: 15 reduced dofs in blocks of 4 (three and a rest of 3) and 2
+    # (seven and a rest of 1); 18 dofs' products in blocks of 4 (four and a rest of 2)
+    ("pallas-step-bf16", 8, 4), ("pallas-step", 16, 2)])
+def test_whole_step_equals_the_xla_step(kernels, kernel, rows, block, monkeypatch):
     """Servo (saturated and unlimited joints), features, the prior's networks and products, the
     flow sample, the solve and the integration: the kernel's next states are XLA's (a Go1-sized
-    robot, a learned mass), in programs of either size ``program_rows`` chooses."""
+    robot, a learned mass), in programs of either size ``program_rows`` chooses and with the
+    small loops taking one or several columns per iteration (``fused_step.BLOCK``)."""
     monkeypatch.setattr(fused_step, "ROWS", rows)
+    monkeypatch.setattr(fused_step, "BLOCK", dict.fromkeys(
+        ("products", "gram", "factor", "backward"), block))
     spec, act = _robot(12)
     scales = stride.Scales(qd=jnp.linspace(0.5, 2.0, spec.nv), tau=jnp.linspace(1.0, 3.0, spec.nv),
                            force=jnp.linspace(2.0, 4.0, spec.nv))

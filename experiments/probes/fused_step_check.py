@@ -28,6 +28,20 @@ from stride_jax.timing import median_time
 from stride_jax.train.setup import model_config
 
 
+def _blocks(text: str) -> dict:
+    """``--block``: ``"4"`` (every loop) or ``"factor=4,backward=2"`` -> ``fused_step.BLOCK``."""
+    loops = ("products", "gram", "factor", "backward")
+    if text.isdigit():
+        return dict.fromkeys(loops, int(text))
+    out = {}
+    for item in filter(None, text.split(",")):
+        name, _, width = item.partition("=")
+        if name not in loops or not width.isdigit() or int(width) < 1:
+            raise SystemExit(f"--block {item!r}: want N or name=N with name one of {loops}")
+        out[name] = int(width)
+    return out
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--run", default="", help="a STRIDE run with shared_lnn (else: init)")
@@ -43,6 +57,9 @@ def main():
                    "the others (fused_step.SKIP: products, flow, solve; wrong results)")
     p.add_argument("--unroll", default="", help="the step kernel's loops to unroll "
                    "(fused_step.UNROLL: products, gram, factor, backward)")
+    p.add_argument("--block", default="", help="columns per iteration of the step kernel's "
+                   "loops: N for all, or name=N,... (fused_step.BLOCK: products, gram, factor, "
+                   "backward; 1 where not given)")
     p.add_argument("--warps", type=int, default=0,
                    help="warps per program of the step kernel (0: fused_step.WARPS)")
     p.add_argument("--rows", type=int, default=0,
@@ -53,6 +70,7 @@ def main():
         fused_step.WARPS = a.warps
     fused_step.UNROLL = frozenset(x for x in a.unroll.split(",") if x)
     fused_step.SKIP = frozenset(x for x in a.skip.split(",") if x)
+    fused_step.BLOCK = _blocks(a.block)
     sm, meta, spec, act = bench._robot(a.robot)
     if a.run:
         params = dynamics.load(a.run)[1]

@@ -1,7 +1,8 @@
 """Runs ``fused_step_check.py`` once per configuration in one process (one start of JAX and one
 robot build instead of one per configuration; each configuration still compiles its own kernel):
-the whole-step kernel's samples per program, warps per program, unrolled loops and parts left out,
-side by side. Each CONFIG is the probe's own flags with ``:`` for spaces:
+the whole-step kernel's samples per program, warps per program, unrolled loops, columns per loop
+iteration and parts left out, side by side. Each CONFIG is the probe's own flags with ``:`` for
+spaces:
 
     python experiments/probes/step_sweep.py --robot g1 --hidden 64 --samples 1024 -- \
         --kernels:xla,pallas-step-bf16 --rows:8:--warps:16 --rows:4:--warps:8 --rows:8:--skip:solve
@@ -27,7 +28,8 @@ def main(argv: list[str]) -> None:
         raise SystemExit("step_sweep: no configuration after --")
     from experiments.probes import fused_step_check as probe
     from stride_jax.dynamics import fused_step
-    defaults = (fused_step.ROWS, fused_step.WARPS, fused_step.UNROLL, fused_step.SKIP)
+    knobs = ("ROWS", "WARPS", "UNROLL", "SKIP", "BLOCK")
+    defaults = {k: getattr(fused_step, k) for k in knobs}
     for config in configs:
         flags = [f for f in config.split(":") if f]
         if "--kernels" not in flags:
@@ -39,7 +41,8 @@ def main(argv: list[str]) -> None:
         except Exception:  # noqa: BLE001 -- a probe: report and go on to the next configuration
             traceback.print_exc(limit=3)
         finally:
-            fused_step.ROWS, fused_step.WARPS, fused_step.UNROLL, fused_step.SKIP = defaults
+            for k, value in defaults.items():
+                setattr(fused_step, k, value)
 
 
 if __name__ == "__main__":

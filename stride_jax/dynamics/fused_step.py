@@ -60,6 +60,13 @@ SKIP: frozenset = frozenset()
 # The small loops unrolled, by name ("products", "gram", "factor", "backward"). Unrolled, a loop's
 # loads are issued ahead; but Triton's compile time grows steeply (all four unrolled: > 2 min).
 UNROLL: frozenset = frozenset()
+# Columns per iteration of the small loops, by name (the same names; 1 where not given): a loop
+# of ``n`` steps becomes ``n // b`` iterations of ``b`` columns and a last one of the rest. In
+# the factorisation a block's ``b`` columns are read from the reduced matrix at once and the
+# matrix takes one rank-``b`` update, and the backward substitution takes a block's products with
+# the solved rows at once: fewer dependent round trips through the ``[rows, nr, nr]`` register
+# tensor, the same arithmetic. Not yet measured on a GPU (the probes' ``--block``).
+BLOCK: dict = {}
 
 
 def program_rows(batch: int, sms: int | None = None) -> int:
@@ -107,6 +114,17 @@ def _loop(name: str, n: int, body: Callable, init):
     for i in range(n):
         init = body(i, init)
     return init
+
+
+def _blocks(name: str, n: int, body: Callable, init, reverse: bool = False):
+    """``body(start, width, carry)`` over the steps ``0 .. n - 1`` in blocks of ``BLOCK[name]``
+    (``width`` static, ``start`` traced inside the loop): the full blocks as one loop (``_loop``),
+    then the rest as one more block; ``reverse`` from the last step down (the rest last, at 0)."""
+    width = max(1, min(int(BLOCK.get(name, 1)), n))
+    full, rest = divmod(n, width)
+    start = (lambda i: n - (i + 1) * width) if reverse else (lambda i: i * width)
+    carry = _loop(name, full, lambda i, c: body(start(i), width, c), init)
+    return body(0 if reverse else full * width, rest, carry) if rest else carry
 
 
 def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float,
@@ -171,23 +189,27 @@ def _kernel(lay: Layout, lnn_dims, flow_dims, nfe: int, floor: float, dt: float,
         # 2. products with L (rows and columns gathered from the entries) and the bias force
         bias = jnp.zeros((R, n), jnp.float32)
         if "products" not in SKIP:
-            def by_rows(i, uw):  # u = L^T v, w = dL^T v
-                vi = qd_ref[:, _ds(i)]
-                row = index_ref[_ds(i), :]
-                return uw[0] + vi * _gather(ent_ref, row), uw[1] + vi * _gather(dent_ref, row)
+            def by_rows(i0, width, uw):  # u = L^T v, w = dL^T v
+                for i in (i0 + t for t in range(width)):
+                    vi = qd_ref[:, _ds(i)]
+                    row = index_ref[_ds(i), :]
+                    uw = uw[0] + vi * _gather(ent_ref, row), uw[1] + vi * _gather(dent_ref, row)
+                return uw
 
             zero = jnp.zeros((R, n), jnp.float32)
-            u, w = _loop("products", nv, by_rows, (zero, zero))
+            u, w = _blocks("products", nv, by_rows, (zero, zero))
             uw_ref[:, :n], uw_ref[:, n:] = u, w
             fp._barrier()
 
-            def by_cols(j, pm):  # p = L u, dM/dt v = dL u + L w
-                col = index_t_ref[_ds(j), :]
-                lc, dlc = _gather(ent_ref, col), _gather(dent_ref, col)
-                uj, wj = uw_ref[:, _ds(j)], uw_ref[:, _ds(n + j)]
-                return pm[0] + uj * lc, pm[1] + uj * dlc + wj * lc
+            def by_cols(j0, width, pm):  # p = L u, dM/dt v = dL u + L w
+                for j in (j0 + t for t in range(width)):
+                    col = index_t_ref[_ds(j), :]
+                    lc, dlc = _gather(ent_ref, col), _gather(dent_ref, col)
+                    uj, wj = uw_ref[:, _ds(j)], uw_ref[:, _ds(n + j)]
+                    pm = pm[0] + uj * lc, pm[1] + uj * dlc + wj * lc
+                return pm
 
-            p, mdot_v = _loop("products", nv, by_cols, (zero, zero))
+            p, mdot_v = _blocks("products", nv, by_cols, (zero, zero))
             p = p + floor * qd
             p_ref[...] = p
             # cotangent of 1/2 |L^T v|^2 on L's entries (v_i u_j, through softplus on the
@@ -257,7 +279,7 @@ def _solve(lay, floor, rhs, ent_ref, index_r_ref, mass_ref, prep_ref, vec_ref, c
     ``S = (floor / a) B B^T + L22 L22^T + D2``, ``a = m + floor``, ``s = sqrt(m)``, B L's rows
     3.. and columns 0-2; then ``x1 = (r1 - s B^T x2) / a``. S is factorised right-looking in
     registers, the forward substitution in the same loop, its columns kept for the backward
-    one."""
+    one; each loop takes ``BLOCK[name]`` columns per iteration."""
     R, n, nr, nv, P = rhs.shape[0], lay.n, lay.nr, lay.nv, lay.prep
     dof = jax.lax.broadcasted_iota(jnp.int32, (R, n), 1)
     vec_ref[:, :n] = rhs
@@ -273,34 +295,51 @@ def _solve(lay, floor, rhs, ent_ref, index_r_ref, mass_ref, prep_ref, vec_ref, c
     for k in range(3):
         r2 = r2 - s_a * _col(rhs, k) * base_cols[k]
 
-    def gram(k, S):
-        col = _gather(ent_ref, index_r_ref[_ds(k), :])
-        return S + col[:, :, None] * col[:, None, :]
+    m = nv - 3  # the reduced system's size (nr: padded)
+
+    def gram(k0, width, S):  # L's rows 3 + k: S += c c^T
+        for k in (k0 + t for t in range(width)):
+            col = _gather(ent_ref, index_r_ref[_ds(3 + k), :])
+            S = S + col[:, :, None] * col[:, None, :]
+        return S
 
     S = sum(f_a[:, :, None] * c[:, :, None] * c[:, None, :] for c in base_cols)
     S = S + jnp.where(ii == jj, d2[:, :, None], 0.0)
-    S = _loop("gram", nv - 3, lambda k, S: gram(k + 3, S), S)
+    S = _blocks("gram", m, gram, S)
 
-    def factor(j, carry):  # right-looking Cholesky with the forward substitution
+    def factor(j0, width, carry):  # right-looking Cholesky with the forward substitution
         S, y = carry
-        col = jnp.sum(jnp.where(jj == j, S, 0.0), axis=2)  # S[:, :, j]
-        root = jnp.sqrt(_col(col, j))
-        col = jnp.where(red >= j, col, 0.0) / root
-        chol_ref[:, _ds(j * nr, nr)] = col
-        yj = _col(y, j) / root
-        y = jnp.where(red > j, y - col * yj, jnp.where(red == j, yj, y))
-        return S - col[:, :, None] * col[:, None, :], y
+        cols = [jnp.sum(jnp.where(jj == j0 + t, S, 0.0), axis=2) for t in range(width)]
+        for t in range(width):  # the block's columns in turn, each on the later ones
+            j = j0 + t
+            root = jnp.sqrt(_col(cols[t], j))
+            col = jnp.where(red >= j, cols[t], 0.0) / root
+            chol_ref[:, _ds(j * nr, nr)] = col
+            yj = _col(y, j) / root
+            y = jnp.where(red > j, y - col * yj, jnp.where(red == j, yj, y))
+            for u in range(t + 1, width):
+                cols[u] = cols[u] - col * _col(col, j0 + u)
+            S = S - col[:, :, None] * col[:, None, :]
+        return S, y
 
-    _, y = _loop("factor", nv - 3, factor, (S, r2))
+    _, y = _blocks("factor", m, factor, (S, r2))
     fp._barrier()
 
-    def backward(i, x):
-        j = nv - 4 - i
-        col = chol_ref[:, _ds(j * nr, nr)]
-        dot = jnp.sum(jnp.where(red > j, col * x, 0.0), axis=1, keepdims=True)
-        return jnp.where(red == j, (_col(x, j) - dot) / _col(col, j), x)
+    def backward(j0, width, x):  # the block's rows, from its last up
+        cols = [chol_ref[:, _ds((j0 + t) * nr, nr)] for t in range(width)]
+        below = [jnp.sum(jnp.where(red >= j0 + width, c * x, 0.0), axis=1, keepdims=True)
+                 for c in cols]  # the rows solved before this block
+        xs = [None] * width
+        for t in reversed(range(width)):
+            acc = _col(x, j0 + t) - below[t]
+            for u in range(t + 1, width):
+                acc = acc - _col(cols[t], j0 + u) * xs[u]
+            xs[t] = acc / _col(cols[t], j0 + t)
+        for t in range(width):
+            x = jnp.where(red == j0 + t, xs[t], x)
+        return x
 
-    x2 = _loop("backward", nv - 3, backward, y)
+    x2 = _blocks("backward", m, backward, y, reverse=True)
     vec_ref[:, n:n + nr] = x2
     fp._barrier()
     qdd = jnp.where((dof >= 3) & (dof < nv),
