@@ -22,9 +22,9 @@ import numpy as np
 from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
-from stride_jax.control.planning import (N_DIST, Planning, PlanningConfig, augment,
+from stride_jax.control.planning import (N_AUG, N_DIST, Planning, PlanningConfig, augment,
                                          integral_command, integrate_velocity_error,
-                                         make_planning, update_disturbance)
+                                         make_planning, split, update_disturbance)
 from stride_jax.control.scenarios import (Scenario, command_at, governed, gravity_at,
                                           push_schedule, scenario_model, schedule, tilt_schedule,
                                           world_at)
@@ -179,9 +179,15 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
     central = planner is not None and planner.latents == "central"  # it predicts as the planner
 
     integrate = planner is not None and planning.velocity_integral > 0
+    lat = planning.latency_steps if planner is not None else 0
+    if lat and record is not None:
+        raise ValueError(f"record reads the planner's step as it acts; with latency_steps={lat} "
+                         "its plans act later: record needs a planner without latency")
 
     def body(carry, step):
-        d, ps, clock, down, dist, *track = carry  # track: the integral's state, where it is on
+        d, ps, clock, down, dist, *rest = carry  # rest: the integral's and latency's states
+        track = rest[:1] if integrate else []
+        late = rest[-1] if lat else None
         t = step * dt
         command = command_at(starts, values, t)
         seen = command if limits is None else jnp.clip(command, limits[0], limits[1])
@@ -193,7 +199,11 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         q_aug = augment(d.qpos, seen, clock, disturbance=dist, gravity=up)
         status, cut, info = jnp.zeros((), jnp.int32), jnp.zeros(()), None
         alarm = jnp.zeros((), bool)
-        if planner is not None:
+        if planner is not None and lat:
+            u, ps, late = _late_plan(planning, planner, late, ps, step, lat, q_aug, d.qvel,
+                                     clock, seen, dist, up, horizon, gait, nu, dt)
+            status, cut, alarm = late[1]
+        elif planner is not None:
             u, ps, info = planner.step(ps, q_aug, d.qvel)
             status, alarm = info.status, info.alarm
             cut = jnp.mean(info.kept < horizon)
@@ -227,7 +237,7 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         if progress is not None:
             jax.lax.cond((step + 1) % progress_every == 0,
                          lambda s: jax.debug.callback(progress, s), lambda s: None, step + 1)
-        return (d2, ps, clock, down2, dist, *track), rec
+        return (d2, ps, clock, down2, dist, *track, *([late] if lat else [])), rec
 
     init = (d0, ps0, jnp.zeros(()), jnp.zeros((), bool), jnp.zeros(N_DIST, d0.qpos.dtype))
     if integrate:  # the integrated error, the time since the last command change, the last
@@ -235,7 +245,60 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         # chunked run's saved state) as before
         init += ((jnp.zeros(2, d0.qpos.dtype), jnp.zeros((), d0.qpos.dtype),
                   jnp.full(3, jnp.nan, d0.qpos.dtype)),)
+    if lat:  # the plan in force and the (status, cut, alarm) of it and of the plan in flight
+        # (in the planner's state); at the start both are the planner's initial plan
+        quiet = (jnp.asarray(mppi.PLANNED, jnp.int32), jnp.zeros(()), jnp.zeros((), bool))
+        init += ((ps0.plan, quiet, quiet),)
     return init, body
+
+
+def _late_plan(planning: Planning, planner: mppi.Planner, late, ps, step, lat: int, q_aug, qd,
+               clock, seen, dist, up, horizon: int, gait: bool, nu: int, dt: float):
+    """One control period of a planner whose computation takes ``lat`` periods
+    (``PlanningConfig.latency_s``): ``(u, ps, late)``. ``late = (active, in_force, in_flight)``:
+    the plan in force (its first action applied at the last replanning period) and the
+    ``(status, cut, alarm)`` of it and of the plan in flight, which is ``ps.plan``. Every ``lat``
+    periods the plan in flight takes force and the next is computed: from the state the model
+    predicts ``lat`` periods on under the actions in force (``planning.latency_compensation``)
+    or from the state now, warm-started from the plan in force shifted to when it will apply.
+    In between the plan in force plays on; where the trust gate handed the robot to the policy
+    (``DISTRUSTED``) the policy acts each period on the state now."""
+    active, in_force, in_flight = late
+    nq = q_aug.shape[-1] - N_AUG
+    handed = lambda force: force[0] == mppi.DISTRUSTED
+
+    def policy_or(force, plan_u, q_a, qd_):
+        if planning.policy is None:
+            return plan_u
+        u_pol = jnp.clip(planning.policy(q_a, qd_), planning.lo, planning.hi)
+        return jnp.where(handed(force) & jnp.all(jnp.isfinite(u_pol)), u_pol, plan_u)
+
+    def replan(ps):
+        active, force = ps.plan, in_flight  # the plan in flight takes force now
+        start_q, start_qd = q_aug, qd
+        if planning.latency_compensation:
+            q_p, qd_p, clk = split(q_aug, nq).q, qd, clock
+            for i in range(lat):  # the actions in force until the new plan applies
+                a = augment(q_p, seen, clk, disturbance=dist, gravity=up)
+                u_i = policy_or(force, active[i], a, qd_p)
+                q2, qd_p = planning.dynamics(a, qd_p, u_i, None)  # None: a central sample
+                q_p = split(q2, nq).q
+                clk = jnp.mod(clk + (u_i[nu] if gait else planning.clock_hz) * dt, 1.0)
+            pred = augment(q_p, seen, clk, disturbance=dist, gravity=up)
+            ok = jnp.all(jnp.isfinite(pred)) & jnp.all(jnp.isfinite(qd_p))
+            start_q, start_qd = jnp.where(ok, pred, q_aug), jnp.where(ok, qd_p, qd)
+        warm = jnp.concatenate([active[lat - 1:], jnp.repeat(active[-1:], lat - 1, axis=0)])
+        u, ps, info = planner.step(ps._replace(plan=warm), start_q, start_qd)
+        plan = ps.plan.at[0].set(u)  # the gate's hand-over, or the plan's own first action
+        if gait:  # gait parameters are per rollout: hold the chosen ones over the plan
+            plan = plan.at[:, nu:].set(plan[0, nu:])
+        flight = (info.status, jnp.mean(info.kept < horizon), info.alarm)
+        return ps._replace(plan=plan), (active, force, flight)
+
+    ps, late = jax.lax.cond(step % lat == 0, replan, lambda ps: (ps, late), ps)
+    active, in_force, _ = late
+    u = policy_or(in_force, active[step % lat], q_aug, qd)
+    return u, ps, late
 
 
 def tracked(trace, settle_s: float = 0.5) -> np.ndarray:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from typing import Callable, NamedTuple
 
 import jax
@@ -151,6 +152,19 @@ class PlanningConfig:
         scenarios, but the 1 s hold made the policy act on 12-47% of its steps outside soft
         ground (the estimate above 2.5 on 0-10%): the hold, not the limit, sets the share
         (``experiments/observer_marker.py --holds``).
+      latency_s: the planner's computation time per plan (s; 0: none, the world waits for the
+        planner, as every closed-loop row before session 79 ran). A planner on a robot cannot
+        stop the world: with it, the closed loop replans once every ``ceil(latency_s / dt)``
+        control periods (one plan in flight at a time, as one accelerator runs it), each plan
+        applies from the period its computation ends, and meanwhile the plan in force plays on
+        (the policy acts at once where the trust gate handed it the robot). Set it to the
+        planning step's measured time on the target machine (``stride bench-mppi``; Go1 STRIDE
+        at K = 1024, H = 20: 27 ms on an H100, so 2 periods of 20 ms).
+      latency_compensation: with ``latency_s``, plan from the state the planner's model
+        predicts for the period the plan will apply from (the plan in force's actions in
+        between, the observer's estimate included, a stochastic residual's central sample),
+        the textbook delay compensation; off: from the state measured when the computation
+        starts, the plan's first actions then late.
       trust_hold_s: the policy keeps acting this long (s) after the gate last held
         (``MPPIConfig.distrust_hold``; 0: only while it holds).
       trust_overshoot: a second trigger of the model-trust gate (m/s; 0: off; needs a policy):
@@ -194,8 +208,12 @@ class PlanningConfig:
     trust_limit: float = 0.0
     trust_hold_s: float = 0.0
     trust_overshoot: float = 0.0
+    latency_s: float = 0.0
+    latency_compensation: bool = True
 
     def __post_init__(self):
+        if not self.latency_s >= 0:
+            raise ValueError(f"latency_s={self.latency_s} must be >= 0 (s)")
         if self.trust_limit < 0 or self.trust_hold_s < 0 or self.trust_overshoot < 0:
             raise ValueError(f"trust_limit={self.trust_limit}, trust_hold_s="
                              f"{self.trust_hold_s} and trust_overshoot={self.trust_overshoot} "
@@ -256,6 +274,8 @@ class Planning(NamedTuple):
     velocity_integral_limit: float = 0.2  # bound of the command shift (m/s)
     velocity_integral_settle_s: float = 0.5  # the integral starts this long after a change (s)
     velocity_integral_band: float = 0.0  # errors beyond it (m/s) do not enter it (0: all do)
+    latency_steps: int = 0  # control periods per plan's computation (0: the world waits)
+    latency_compensation: bool = True  # plan from the model's prediction for when it applies
 
 
 class Aug(NamedTuple):
@@ -509,7 +529,13 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
                     int(round(cfg.alarm_hold_s / sm.robot.ctrl_dt)) if alarm else 0, distrust,
                     int(round(cfg.trust_hold_s / sm.robot.ctrl_dt)) if distrust else 0,
                     family_prior, cfg.velocity_integral, cfg.velocity_integral_limit,
-                    cfg.velocity_integral_settle_s, cfg.velocity_integral_band)
+                    cfg.velocity_integral_settle_s, cfg.velocity_integral_band,
+                    latency_steps(cfg, sm.robot.ctrl_dt), cfg.latency_compensation)
+
+
+def latency_steps(cfg: PlanningConfig, dt: float) -> int:
+    """Control periods of ``dt`` (s) that one plan's computation of ``cfg.latency_s`` spans."""
+    return int(math.ceil(cfg.latency_s / dt - 1e-9)) if cfg.latency_s > 0 else 0
 
 
 def mppi_config(mppi_cfg: mppi.MPPIConfig, cfg: PlanningConfig,

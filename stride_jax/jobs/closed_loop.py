@@ -56,7 +56,8 @@ from stride_jax.control.episode import (PRECISIONS, Trace, World,  # noqa: F401
                                         learned_step_fn, metrics, mjx_step_fn, run_episode,
                                         scenario_world, start_episode)
 from stride_jax.control.mppi import MPPIConfig
-from stride_jax.control.planning import PlanningConfig, make_planner, make_planning, mppi_config
+from stride_jax.control.planning import (PlanningConfig, latency_steps, make_planner,
+                                         make_planning, mppi_config)
 from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,  # noqa: F401
                                           push_schedule, scenario_model, schedule,
                                           tilt_schedule)
@@ -357,7 +358,9 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                            **metrics(trace, cfg.settle_s),
                            ms_per_step=1e3 * run_s / n_steps, compile_s=compile_s,
                            steps=n_steps, K=cfg.mppi.samples if planned else None,
-                           H=cfg.mppi.horizon if planned else None, seed=seed,
+                           H=cfg.mppi.horizon if planned else None,
+                           latency_steps=(latency_steps(cfg.planning, sm.robot.ctrl_dt)
+                                          if planned else None), seed=seed,
                            episode=episode, side_by_side=len(todo) if batched else 1)
                 rows.append(row)
                 np.savez_compressed(out / trace_name(sc.name, name, episode, seed),
