@@ -78,12 +78,13 @@ def _run(planning, planner, n: int, x0: float = 0.0):
     return np.array(applied), np.array(xs), np.array(statuses)
 
 
-@pytest.mark.parametrize("lat", [1, 2, 3])
+@pytest.mark.parametrize("lat", [1, 2, 3, H + 2])
 def test_each_plan_acts_from_when_its_computation_ends_from_the_state_then(lat):
     """With compensation the plan computed at period ``b`` (call ``b / lat``) acts over periods
     ``b + lat .. b + 2 lat - 1``, from its index 0, and was planned from the position the robot
     then has (the toy's prediction is exact); the first ``lat`` periods play the initial plan.
-    Without, the same schedule, planned from the position at ``b``: late by ``lat`` periods."""
+    Without, the same schedule, planned from the position at ``b``: late by ``lat`` periods. A
+    computation longer than the plan (``H + 2``) holds the plan's last action."""
     n = 4 * lat + 1
     for compensate in (True, False):
         u, x, _ = _run(_toy(lat, compensate), _planner(), n)
@@ -92,7 +93,7 @@ def test_each_plan_acts_from_when_its_computation_ends_from_the_state_then(lat):
             start = t - t % lat  # the period the plan in force took force
             call, k = start // lat - 1, t - start
             seen = x[start] if compensate else x[start - lat]
-            assert u[t] == pytest.approx(1000 * call + 10 * k + seen), (compensate, t)
+            assert u[t] == pytest.approx(1000 * call + 10 * min(k, H - 1) + seen), (compensate, t)
 
 
 def test_a_plan_in_flight_warm_starts_from_the_plan_in_force_shifted_to_when_it_applies():

@@ -261,11 +261,14 @@ def _late_plan(planning: Planning, planner: mppi.Planner, late, ps, step, lat: i
     periods the plan in flight takes force and the next is computed: from the state the model
     predicts ``lat`` periods on under the actions in force (``planning.latency_compensation``)
     or from the state now, warm-started from the plan in force shifted to when it will apply.
-    In between the plan in force plays on; where the trust gate handed the robot to the policy
-    (``DISTRUSTED``) the policy acts each period on the state now."""
+    In between the plan in force plays on (its last action held where the computation outlasts
+    the plan's horizon); where the trust gate handed the robot to the policy (``DISTRUSTED``)
+    the policy acts each period on the state now."""
     active, in_force, in_flight = late
     nq = q_aug.shape[-1] - N_AUG
     handed = lambda force: force[0] == mppi.DISTRUSTED
+    H = active.shape[0]
+    at = lambda plan, k: plan[jnp.minimum(k, H - 1)]  # past its end a plan holds its last action
 
     def policy_or(force, plan_u, q_a, qd_):
         if planning.policy is None:
@@ -280,14 +283,14 @@ def _late_plan(planning: Planning, planner: mppi.Planner, late, ps, step, lat: i
             q_p, qd_p, clk = split(q_aug, nq).q, qd, clock
             for i in range(lat):  # the actions in force until the new plan applies
                 a = augment(q_p, seen, clk, disturbance=dist, gravity=up)
-                u_i = policy_or(force, active[i], a, qd_p)
+                u_i = policy_or(force, at(active, i), a, qd_p)
                 q2, qd_p = planning.dynamics(a, qd_p, u_i, None)  # None: a central sample
                 q_p = split(q2, nq).q
                 clk = jnp.mod(clk + (u_i[nu] if gait else planning.clock_hz) * dt, 1.0)
             pred = augment(q_p, seen, clk, disturbance=dist, gravity=up)
             ok = jnp.all(jnp.isfinite(pred)) & jnp.all(jnp.isfinite(qd_p))
             start_q, start_qd = jnp.where(ok, pred, q_aug), jnp.where(ok, qd_p, qd)
-        warm = jnp.concatenate([active[lat - 1:], jnp.repeat(active[-1:], lat - 1, axis=0)])
+        warm = at(active, jnp.arange(H) + lat - 1)  # to when it applies, less the step's shift
         u, ps, info = planner.step(ps._replace(plan=warm), start_q, start_qd)
         plan = ps.plan.at[0].set(u)  # the gate's hand-over, or the plan's own first action
         if gait:  # gait parameters are per rollout: hold the chosen ones over the plan
@@ -297,7 +300,7 @@ def _late_plan(planning: Planning, planner: mppi.Planner, late, ps, step, lat: i
 
     ps, late = jax.lax.cond(step % lat == 0, replan, lambda ps: (ps, late), ps)
     active, in_force, _ = late
-    u = policy_or(in_force, active[step % lat], q_aug, qd)
+    u = policy_or(in_force, at(active, step % lat), q_aug, qd)
     return u, ps, late
 
 
