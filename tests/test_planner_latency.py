@@ -21,17 +21,20 @@ NQ, H, DT = 3, 6, 0.02
 BIG = 50.0  # the toy's action bounds; its policy asks for more and is clipped to it
 
 
-def _toy(lat: int, compensate: bool, policy: bool = False) -> planning_lib.Planning:
+def _toy(lat: int, compensate: bool, policy=None, feedback: bool = False, big: float = BIG
+         ) -> planning_lib.Planning:
     def dynamics(q_aug, qd, u, key):  # x moves by 1 + u[0] per period: the actions matter
         a = planning_lib.split(q_aug, NQ)
         q2 = a.q.at[0].add(1.0 + u[0])
         return planning_lib.augment(q2, a.command, a.clock, disturbance=a.disturbance,
                                     gravity=a.gravity), qd
 
-    lo, hi = np.full(1, -BIG, np.float32), np.full(1, BIG, np.float32)
+    lo, hi = np.full(1, -big, np.float32), np.full(1, big, np.float32)
+    if policy is True:  # asks for more than the bounds
+        policy = lambda q, qd: jnp.full(1, 99.0)
     return planning_lib.Planning(
-        dynamics, None, None, (lambda q, qd: jnp.full(1, 99.0)) if policy else None, None, lo,
-        hi, (0.1,), np.zeros(1, np.float32), latency_steps=lat, latency_compensation=compensate)
+        dynamics, None, None, policy, None, lo, hi, (0.1,), np.zeros(1, np.float32),
+        latency_steps=lat, latency_compensation=compensate, latency_feedback=feedback)
 
 
 def _planner(distrust_at: int | None = None) -> mppi.Planner:
@@ -57,13 +60,16 @@ def _planner(distrust_at: int | None = None) -> mppi.Planner:
     return mppi.Planner(init, step)
 
 
-def _run(planning, planner, n: int, x0: float = 0.0):
-    """``n`` periods of the closed loop's latency logic on a world that moves as the toy
-    model: the applied actions, the positions before each period and the statuses in force."""
-    q = jnp.array([x0, 0.0, 0.0])
+def _run(planning, planner, n: int, drift: float = 0.0):
+    """``n`` periods of the closed loop's latency logic on a world that moves as the toy model
+    plus ``drift`` per period (which the model does not know): the applied actions, the
+    positions before each period and the statuses in force."""
+    q = jnp.array([0.0, 0.0, 0.0])
     ps = planner.init(jax.random.key(0))
     quiet = (jnp.asarray(mppi.PLANNED, jnp.int32), jnp.zeros(()), jnp.zeros((), bool))
-    late = (ps.plan, quiet, quiet)
+    refs = ((jnp.full((planning.latency_steps, 1), jnp.nan),) * 2
+            if planning.latency_feedback else ())
+    late = (ps.plan, quiet, quiet, *refs)
     up, dist, cmd = jnp.array([0.0, 0.0, -1.0]), jnp.zeros(planning_lib.N_DIST), jnp.zeros(3)
     applied, xs, statuses = [], [], []
     for t in range(n):
@@ -75,6 +81,7 @@ def _run(planning, planner, n: int, x0: float = 0.0):
         xs.append(float(q[0]))
         statuses.append(int(late[1][0]))
         q = planning_lib.split(planning.dynamics(q_aug, jnp.zeros(2), u, None)[0], NQ).q
+        q = q.at[0].add(drift)
     return np.array(applied), np.array(xs), np.array(statuses)
 
 
@@ -122,6 +129,44 @@ def test_a_hand_over_lets_the_policy_act_at_once_for_the_plans_window():
     np.testing.assert_array_equal(status, [0, 0, 0, 0, mppi.DISTRUSTED, mppi.DISTRUSTED, 0, 0])
     np.testing.assert_array_equal(u[4:6], BIG)
     assert (u[:4] < BIG).all() and (u[6:] > 1000 * 2 - 1).all()
+
+
+def test_the_policys_feedback_corrects_what_the_plans_prediction_missed():
+    """With the policy's feedback each period applies ``plan[k] + policy(x now) - policy(x_k)``,
+    ``x_k`` the model's prediction along the plan: where the model is exact nothing changes;
+    where the world drifts by 0.25 per period (unknown to the model) a policy ``-x`` takes the
+    drift off each action, which the plan as planned does not."""
+    lat, n, big = 3, 10, 1e9  # bounds that never clip
+    policy = lambda q_aug, qd: -planning_lib.split(q_aug, NQ).q[:1]
+    plain, _, _ = _run(_toy(lat, True, policy, big=big), _planner(), n)
+    fed, _, _ = _run(_toy(lat, True, policy, feedback=True, big=big), _planner(), n)
+    np.testing.assert_allclose(fed, plain, atol=1e-2)  # an exact model: x = x_k everywhere
+    seen = []  # the positions each call planned from
+    base = _planner()
+
+    def step(state, q_aug, qd):
+        jax.debug.callback(lambda x: seen.append(float(x)), planning_lib.split(q_aug, NQ).q[0])
+        return base.step(state, q_aug, qd)
+
+    u, x, _ = _run(_toy(lat, True, policy, feedback=True, big=big),
+                   mppi.Planner(base.init, step), n, drift=0.25)
+    for t in range(lat, n):
+        start = t - t % lat
+        call, k = start // lat - 1, t - start
+        plan = 1000 * call + 10 * np.arange(H) + seen[call]
+        x_k = seen[call] + sum(1.0 + plan[j] for j in range(k))  # the model's prediction
+        assert u[t] == pytest.approx(plan[k] - x[t] + x_k, abs=0.05), t
+        assert abs(x[t] - x_k) >= 0.25 - 1e-3  # the prediction missed (the feedback holds the
+        # miss to the last period's drift; the plan as planned lets it add up over the window)
+    with pytest.raises(ValueError, match="latency_feedback .* needs a PPO policy"):
+        planning_lib.make_planning(planning_lib.PlanningConfig(latency_s=0.02,
+                                                               latency_feedback=True),
+                                   envs.config("go1"), _go1_light(), lambda *a, **k: a[:2])
+
+
+def _go1_light():
+    from stride_jax.sim import model
+    return model.load("go1")
 
 
 def test_latency_is_periods_rounded_up_and_checked():

@@ -246,9 +246,13 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         init += ((jnp.zeros(2, d0.qpos.dtype), jnp.zeros((), d0.qpos.dtype),
                   jnp.full(3, jnp.nan, d0.qpos.dtype)),)
     if lat:  # the plan in force and the (status, cut, alarm) of it and of the plan in flight
-        # (in the planner's state); at the start both are the planner's initial plan
+        # (in the planner's state); at the start both are the planner's initial plan; with the
+        # policy's feedback, the policy at the states predicted along each (none yet: NaN, the
+        # plan as planned)
         quiet = (jnp.asarray(mppi.PLANNED, jnp.int32), jnp.zeros(()), jnp.zeros((), bool))
-        init += ((ps0.plan, quiet, quiet),)
+        refs = ((jnp.full((lat, len(planning.lo)), jnp.nan),) * 2
+                if planning.latency_feedback else ())
+        init += ((ps0.plan, quiet, quiet, *refs),)
     return init, body
 
 
@@ -263,8 +267,11 @@ def _late_plan(planning: Planning, planner: mppi.Planner, late, ps, step, lat: i
     or from the state now, warm-started from the plan in force shifted to when it will apply.
     In between the plan in force plays on (its last action held where the computation outlasts
     the plan's horizon); where the trust gate handed the robot to the policy (``DISTRUSTED``)
-    the policy acts each period on the state now."""
-    active, in_force, in_flight = late
+    the policy acts each period on the state now. With ``planning.latency_feedback`` ``late``
+    also holds the policy's actions at the states predicted along the plan in force and the
+    plan in flight over their windows, and each period applies the plan's action plus the
+    policy's at the state now minus the policy's at the state predicted for it."""
+    active, in_force, in_flight, *refs = late  # refs: the policy at the plans' predictions
     nq = q_aug.shape[-1] - N_AUG
     handed = lambda force: force[0] == mppi.DISTRUSTED
     H = active.shape[0]
@@ -276,6 +283,16 @@ def _late_plan(planning: Planning, planner: mppi.Planner, late, ps, step, lat: i
         u_pol = jnp.clip(planning.policy(q_a, qd_), planning.lo, planning.hi)
         return jnp.where(handed(force) & jnp.all(jnp.isfinite(u_pol)), u_pol, plan_u)
 
+    def act(force, plan_u, ref, q_a, qd_):
+        """The action of a plan in force at ``(q_a, qd_)``: its own, the policy's where it was
+        handed over, and with the policy's feedback ``plan_u + policy(now) - ref`` (``ref``:
+        the policy at the state predicted for this period; the plan's own where not finite)."""
+        u = policy_or(force, plan_u, q_a, qd_)
+        if ref is None:
+            return u
+        fed = jnp.clip(u + planning.policy(q_a, qd_) - ref, planning.lo, planning.hi)
+        return jnp.where(jnp.all(jnp.isfinite(fed)) & ~handed(force), fed, u)
+
     def replan(ps):
         active, force = ps.plan, in_flight  # the plan in flight takes force now
         start_q, start_qd = q_aug, qd
@@ -283,7 +300,7 @@ def _late_plan(planning: Planning, planner: mppi.Planner, late, ps, step, lat: i
             q_p, qd_p, clk = split(q_aug, nq).q, qd, clock
             for i in range(lat):  # the actions in force until the new plan applies
                 a = augment(q_p, seen, clk, disturbance=dist, gravity=up)
-                u_i = policy_or(force, at(active, i), a, qd_p)
+                u_i = act(force, at(active, i), refs[1][i] if refs else None, a, qd_p)
                 q2, qd_p = planning.dynamics(a, qd_p, u_i, None)  # None: a central sample
                 q_p = split(q2, nq).q
                 clk = jnp.mod(clk + (u_i[nu] if gait else planning.clock_hz) * dt, 1.0)
@@ -296,11 +313,25 @@ def _late_plan(planning: Planning, planner: mppi.Planner, late, ps, step, lat: i
         if gait:  # gait parameters are per rollout: hold the chosen ones over the plan
             plan = plan.at[:, nu:].set(plan[0, nu:])
         flight = (info.status, jnp.mean(info.kept < horizon), info.alarm)
-        return ps._replace(plan=plan), (active, force, flight)
+        if not planning.latency_feedback:
+            return ps._replace(plan=plan), (active, force, flight)
+        # the policy at the states the model predicts along the new plan over its window
+        q_p, qd_p, clk = split(start_q, nq).q, start_qd, split(start_q, nq).clock
+        ref = []
+        for k in range(lat):
+            a = augment(q_p, seen, clk, disturbance=dist, gravity=up)
+            ref.append(planning.policy(a, qd_p))
+            q2, qd_p = planning.dynamics(a, qd_p, at(plan, k), None)
+            q_p = split(q2, nq).q
+            clk = jnp.mod(clk + planning.clock_hz * dt, 1.0)
+        ref = jnp.stack(ref)
+        ok = jnp.all(jnp.isfinite(ref))  # a prediction gone astray: the plan as planned
+        return ps._replace(plan=plan), (active, force, flight, refs[1],
+                                        jnp.where(ok, ref, jnp.nan))
 
     ps, late = jax.lax.cond(step % lat == 0, replan, lambda ps: (ps, late), ps)
-    active, in_force, _ = late
-    u = policy_or(in_force, at(active, step % lat), q_aug, qd)
+    active, in_force, _, *refs = late
+    u = act(in_force, at(active, step % lat), refs[0][step % lat] if refs else None, q_aug, qd)
     return u, ps, late
 
 

@@ -165,6 +165,12 @@ class PlanningConfig:
         between, the observer's estimate included, a stochastic residual's central sample),
         the textbook delay compensation; off: from the state measured when the computation
         starts, the plan's first actions then late.
+      latency_feedback: with ``latency_s`` and a policy, the policy's feedback around the plan
+        between replans: each period applies ``plan[k] + policy(state now) - policy(x_k)``,
+        where ``x_k`` is the state the planner's model predicts for that period along the plan
+        (a stochastic residual's central sample): the plan's offset from the policy, with the
+        policy's own feedback on what the prediction missed, at the control rate and without
+        the plan's latency (the policy takes ~1 ms). Off: the plan's actions as planned.
       trust_hold_s: the policy keeps acting this long (s) after the gate last held
         (``MPPIConfig.distrust_hold``; 0: only while it holds).
       trust_overshoot: a second trigger of the model-trust gate (m/s; 0: off; needs a policy):
@@ -210,6 +216,7 @@ class PlanningConfig:
     trust_overshoot: float = 0.0
     latency_s: float = 0.0
     latency_compensation: bool = True
+    latency_feedback: bool = False
 
     def __post_init__(self):
         if not self.latency_s >= 0:
@@ -276,6 +283,7 @@ class Planning(NamedTuple):
     velocity_integral_band: float = 0.0  # errors beyond it (m/s) do not enter it (0: all do)
     latency_steps: int = 0  # control periods per plan's computation (0: the world waits)
     latency_compensation: bool = True  # plan from the model's prediction for when it applies
+    latency_feedback: bool = False  # the policy's feedback around the plan between replans
 
 
 class Aug(NamedTuple):
@@ -509,6 +517,9 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
                 out |= v[0] - a.command[0] > cfg.trust_overshoot
             return out
 
+    if cfg.latency_feedback and policy is None:
+        raise ValueError("latency_feedback puts the policy's feedback around the plan: it needs "
+                         "a PPO policy (and no planned gait)")
     r = cfg.plan_range
     lo, hi = np.full(nu, -r, np.float32), np.full(nu, r, np.float32)
     noise = (cfg.noise_std,) * nu
@@ -530,7 +541,8 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
                     int(round(cfg.trust_hold_s / sm.robot.ctrl_dt)) if distrust else 0,
                     family_prior, cfg.velocity_integral, cfg.velocity_integral_limit,
                     cfg.velocity_integral_settle_s, cfg.velocity_integral_band,
-                    latency_steps(cfg, sm.robot.ctrl_dt), cfg.latency_compensation)
+                    latency_steps(cfg, sm.robot.ctrl_dt), cfg.latency_compensation,
+                    cfg.latency_feedback)
 
 
 def latency_steps(cfg: PlanningConfig, dt: float) -> int:
