@@ -201,7 +201,7 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         alarm = jnp.zeros((), bool)
         if planner is not None and lat:
             u, ps, late = _late_plan(planning, planner, late, ps, step, lat, q_aug, d.qvel,
-                                     clock, seen, dist, up, horizon, gait, nu, dt)
+                                     horizon, gait, nu, dt)
             status, cut, alarm = late[1]
         elif planner is not None:
             u, ps, info = planner.step(ps, q_aug, d.qvel)
@@ -257,7 +257,7 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
 
 
 def _late_plan(planning: Planning, planner: mppi.Planner, late, ps, step, lat: int, q_aug, qd,
-               clock, seen, dist, up, horizon: int, gait: bool, nu: int, dt: float):
+               horizon: int, gait: bool, nu: int, dt: float):
     """One control period of a planner whose computation takes ``lat`` periods
     (``PlanningConfig.latency_s``): ``(u, ps, late)``. ``late = (active, in_force, in_flight)``:
     the plan in force (its first action applied at the last replanning period) and the
@@ -293,18 +293,30 @@ def _late_plan(planning: Planning, planner: mppi.Planner, late, ps, step, lat: i
         fed = jnp.clip(u + planning.policy(q_a, qd_) - ref, planning.lo, planning.hi)
         return jnp.where(jnp.all(jnp.isfinite(fed)) & ~handed(force), fed, u)
 
+    def along(q_a, qd_, action):
+        """The model's prediction (a stochastic residual's central sample) over ``lat`` periods
+        from ``(q_a, qd_)`` under ``action(k, q_aug, qd)``: the states before each period and
+        the state after the last, as the planner sees them (the command, observer estimate and
+        gravity of now, the clock run on)."""
+        now = split(q_a, nq)
+        q, clk, states = now.q, now.clock, []
+        aug = lambda q, clk: augment(q, now.command, clk, disturbance=now.disturbance,
+                                     gravity=now.gravity)
+        for k in range(lat):
+            a = aug(q, clk)
+            u_k = action(k, a, qd_)
+            states.append((a, qd_))
+            q2, qd_ = planning.dynamics(a, qd_, u_k, None)
+            q = split(q2, nq).q
+            clk = jnp.mod(clk + (u_k[nu] if gait else planning.clock_hz) * dt, 1.0)
+        return states, aug(q, clk), qd_
+
     def replan(ps):
         active, force = ps.plan, in_flight  # the plan in flight takes force now
         start_q, start_qd = q_aug, qd
-        if planning.latency_compensation:
-            q_p, qd_p, clk = split(q_aug, nq).q, qd, clock
-            for i in range(lat):  # the actions in force until the new plan applies
-                a = augment(q_p, seen, clk, disturbance=dist, gravity=up)
-                u_i = act(force, at(active, i), refs[1][i] if refs else None, a, qd_p)
-                q2, qd_p = planning.dynamics(a, qd_p, u_i, None)  # None: a central sample
-                q_p = split(q2, nq).q
-                clk = jnp.mod(clk + (u_i[nu] if gait else planning.clock_hz) * dt, 1.0)
-            pred = augment(q_p, seen, clk, disturbance=dist, gravity=up)
+        if planning.latency_compensation:  # under the actions in force until it applies
+            _, pred, qd_p = along(q_aug, qd, lambda k, a, v: act(
+                force, at(active, k), refs[1][k] if refs else None, a, v))
             ok = jnp.all(jnp.isfinite(pred)) & jnp.all(jnp.isfinite(qd_p))
             start_q, start_qd = jnp.where(ok, pred, q_aug), jnp.where(ok, qd_p, qd)
         warm = at(active, jnp.arange(H) + lat - 1)  # to when it applies, less the step's shift
@@ -316,15 +328,8 @@ def _late_plan(planning: Planning, planner: mppi.Planner, late, ps, step, lat: i
         if not planning.latency_feedback:
             return ps._replace(plan=plan), (active, force, flight)
         # the policy at the states the model predicts along the new plan over its window
-        q_p, qd_p, clk = split(start_q, nq).q, start_qd, split(start_q, nq).clock
-        ref = []
-        for k in range(lat):
-            a = augment(q_p, seen, clk, disturbance=dist, gravity=up)
-            ref.append(planning.policy(a, qd_p))
-            q2, qd_p = planning.dynamics(a, qd_p, at(plan, k), None)
-            q_p = split(q2, nq).q
-            clk = jnp.mod(clk + planning.clock_hz * dt, 1.0)
-        ref = jnp.stack(ref)
+        states, _, _ = along(start_q, start_qd, lambda k, a, v: at(plan, k))
+        ref = jnp.stack([planning.policy(a, v) for a, v in states])
         ok = jnp.all(jnp.isfinite(ref))  # a prediction gone astray: the plan as planned
         return ps._replace(plan=plan), (active, force, flight, refs[1],
                                         jnp.where(ok, ref, jnp.nan))
