@@ -131,7 +131,7 @@ def test_a_hand_over_lets_the_policy_act_at_once_for_the_plans_window():
     assert (u[:4] < BIG).all() and (u[6:] > 1000 * 2 - 1).all()
 
 
-def test_the_policys_feedback_corrects_what_the_plans_prediction_missed():
+def test_the_policys_feedback_corrects_what_the_plans_prediction_missed(go1):
     """With the policy's feedback each period applies ``plan[k] + policy(x now) - policy(x_k)``,
     ``x_k`` the model's prediction along the plan: where the model is exact nothing changes;
     where the world drifts by 0.25 per period (unknown to the model) a policy ``-x`` takes the
@@ -161,12 +161,7 @@ def test_the_policys_feedback_corrects_what_the_plans_prediction_missed():
     with pytest.raises(ValueError, match="latency_feedback .* needs a PPO policy"):
         planning_lib.make_planning(planning_lib.PlanningConfig(latency_s=0.02,
                                                                latency_feedback=True),
-                                   envs.config("go1"), _go1_light(), lambda *a, **k: a[:2])
-
-
-def _go1_light():
-    from stride_jax.sim import model
-    return model.load("go1")
+                                   envs.config("go1"), go1, lambda *a, **k: a[:2])
 
 
 def test_latency_is_periods_rounded_up_and_checked():

@@ -283,21 +283,20 @@ def _solve(lay, floor, rhs, ent_ref, index_r_ref, mass_ref, prep_ref, vec_ref, c
     registers, the forward substitution in the same loop, its columns kept for the backward
     one; each loop takes ``BLOCK[name]`` columns per iteration."""
     R, n, nr, nv, P = rhs.shape[0], lay.n, lay.nr, lay.nv, lay.prep
+    m = nv - 3  # the reduced system's size (nr: padded)
     dof = jax.lax.broadcasted_iota(jnp.int32, (R, n), 1)
     vec_ref[:, :n] = rhs
     fp._barrier()
     s, f_a, s_a, inv_a = (mass_ref[:, k:k + 1] for k in range(4))
     red = jax.lax.broadcasted_iota(jnp.int32, (R, nr), 1)
     shift = jnp.minimum(jax.lax.broadcasted_iota(jnp.int32, (1, nr), 1) + 3, n - 1)
-    r2 = jnp.where(red < nv - 3, _gather(vec_ref, shift), 0.0)
-    d2 = jnp.where(red < nv - 3, floor + _gather(prep_ref, shift + P["extra"]), 0.0)
+    r2 = jnp.where(red < m, _gather(vec_ref, shift), 0.0)
+    d2 = jnp.where(red < m, floor + _gather(prep_ref, shift + P["extra"]), 0.0)
     ii = jax.lax.broadcasted_iota(jnp.int32, (R, nr, nr), 1)
     jj = jax.lax.broadcasted_iota(jnp.int32, (R, nr, nr), 2)
     base_cols = [_gather(ent_ref, index_r_ref[k:k + 1, :]) for k in range(3)]
     for k in range(3):
         r2 = r2 - s_a * _col(rhs, k) * base_cols[k]
-
-    m = nv - 3  # the reduced system's size (nr: padded)
 
     def gram(k0, width, S):  # L's rows 3 + k: S += c c^T
         for k in (k0 + t for t in range(width)):
