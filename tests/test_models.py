@@ -281,3 +281,25 @@ def test_transition_fraction_computes_the_term_on_an_evenly_spread_share_of_the_
         dataclasses.replace(CFG, transition_fraction=0.0)
     with pytest.raises(ValueError, match="needs a transition_weight above 0"):
         dataclasses.replace(CFG, transition_weight=0.0, transition_fraction=0.5)
+
+
+def test_with_substeps_integrates_the_same_accelerations_coarser_or_finer():
+    """``models.with_substeps``: the trained substeps give the model's own step (bit for bit),
+    the period stays the control period, the steps converge as the substeps get finer (the
+    same accelerations, integrated), and a next-observation model, which has none, is refused."""
+    model = models.make("delan", SPEC, ACT, CFG)
+    params = jax.tree.map(lambda w: w + 0.05 * jax.random.normal(jax.random.key(1), w.shape),
+                          model.init(jax.random.key(0)))
+    qd0, ctrl, key = 0.3 * jnp.ones(7), jnp.full(1, 0.2), jax.random.key(3)
+    step = lambda m: np.concatenate(jax.jit(m.step)(params, Q0, qd0, ctrl, key))
+    same = models.with_substeps(model, ACT.n_substeps)
+    np.testing.assert_array_equal(step(same), step(model))
+    fine = {n: models.with_substeps(model, n) for n in (1, 4, 16, 64)}
+    assert all(m.actuation.dt * n == pytest.approx(ACT.dt * ACT.n_substeps)
+               for n, m in fine.items())
+    gaps = [np.abs(step(fine[n]) - step(fine[64])).max() for n in (1, 4, 16)]
+    assert gaps[0] > gaps[1] > gaps[2] > 0  # converging: the same dynamics, integrated finer
+    with pytest.raises(ValueError, match="predicts the control period at once"):
+        models.with_substeps(models.make("onn", SPEC, ACT, CFG), 1)
+    with pytest.raises(ValueError, match="n_substeps=0"):
+        models.with_substeps(model, 0)

@@ -215,3 +215,44 @@ def test_the_closed_loop_plays_late_plans_and_resumes_them_across_chunks(go1):
         np.testing.assert_allclose(np.concatenate(pieces), whole, atol=1e-6)
     with pytest.raises(ValueError, match="record needs a planner without latency"):
         cl.run_episode(*args, 2, w.starts, w.values, key, record=lambda *a: 0)
+
+
+def test_the_controllers_own_period_is_the_episodes_first_period_without_the_world(go1):
+    """``controller_period`` (what ``stride closed-loop`` times as ``controller_ms``) runs the
+    computation of an episode's first period: on time the planner's step, whose action is the
+    one the episode applies; with a 2-period latency a replanning period (one call of the planner,
+    the initial plan's first action applied); with the observer, its estimate too."""
+    nu = go1.info.nu
+    mx = mjx.put_model(go1.mj)
+    w = cl.scenario_world(go1, dataclasses.replace(cl.SCENARIOS["walk"],
+                                                   seconds=2 * go1.robot.ctrl_dt))
+    calls = []
+
+    def init(key, plan=None):
+        return mppi.MPPIState(jnp.zeros((4, nu)), key, held=jnp.zeros((), jnp.int32))
+
+    def step(state, q_aug, qd):
+        jax.debug.callback(lambda: calls.append(1))
+        c = state.held
+        plan = jnp.broadcast_to((0.01 * (c + 1) + 0.001 * jnp.arange(4))[:, None], (4, nu))
+        z = jnp.zeros(1)
+        info = mppi.Info(z, z, z[0], plan, jnp.zeros((), jnp.int32), plan[None], z,
+                         jnp.full(1, 4, jnp.int32), jnp.zeros((), bool))
+        return plan[0], mppi.MPPIState(plan, state.key, held=c + 1), info
+
+    planner, key = mppi.Planner(init, step), jax.random.key(0)
+    for latency, first in ((0.0, 0.01), (0.03, 0.0)):
+        planning = planning_lib.make_planning(
+            planning_lib.PlanningConfig(latency_s=latency, observer_gain=0.3),
+            envs.config("go1"), go1, cl.mjx_step_fn(go1, mx))
+        trace = jax.device_get(jax.jit(lambda k: cl.run_episode(
+            w.sm, w.mx, w.slots, planning, planner, 1, w.starts, w.values, k))(key))
+        carry = jax.jit(lambda k: ep.start_episode(go1, w.mx, planning, planner, k))(key)
+        calls.clear()
+        u, ps, dist = jax.device_get(jax.jit(lambda c, k: ep.controller_period(
+            go1, w.mx, planning, planner, c, k))(carry, key))
+        assert len(calls) == 1 and int(ps.held) == 1  # one plan computed
+        np.testing.assert_allclose(u, trace.action[0], atol=1e-7)
+        np.testing.assert_allclose(u, first, atol=1e-7)
+        assert dist.shape == (planning_lib.N_DIST,) and np.all(np.isfinite(dist))
+        assert np.any(dist != 0)  # the observer's prediction ran (the standing robot sags)

@@ -153,6 +153,36 @@ def continue_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning:
     return jax.lax.scan(body, carry, first_step + jnp.arange(n_steps))
 
 
+def controller_period(sm: sim_model.SimModel, mx_sim: mjx.Model, planning: Planning,
+                      planner: mppi.Planner | None, carry, key: jax.Array):
+    """The controller's own computation in one control period from an episode's state ``carry``
+    (:func:`start_episode`'s), under a standing command: what a robot's computer runs each
+    period, without the simulated world's step: ``(u, planner state, observer estimate)``. Time
+    it to learn whether a planner keeps up with the control rate (``stride closed-loop``'s
+    ``controller_ms``). It is the planner's step and, with ``planning.observer_gain``, the
+    observer's prediction of the step just taken (the real step taken as that prediction's
+    input here: the same work); with ``planning.latency_s``, a replanning period's work (the
+    compensation's prediction, the plan, the feedback's references, the period's action); with
+    no planner, the policy. Pure; jit it."""
+    d, ps, clock, _, dist, *rest = carry
+    q_aug = augment(d.qpos, jnp.zeros(3, d.qpos.dtype), clock, disturbance=dist,
+                    gravity=sensed_gravity(mx_sim, jnp.zeros(())))
+    if planner is None:
+        return planning.policy(q_aug, d.qvel), ps, dist
+    nu, lat = sm.info.nu, planning.latency_steps
+    gait = len(planning.lo) > nu
+    if lat:
+        u, ps, _ = _late_plan(planning, planner, rest[-1], ps, jnp.zeros((), jnp.int32), lat,
+                              q_aug, d.qvel, ps.plan.shape[0], gait, nu, sm.robot.ctrl_dt)
+    else:
+        u, ps, _ = planner.step(ps, q_aug, d.qvel)
+    if planning.observer_gain > 0:
+        central = planner.latents == "central"
+        dist = update_disturbance(planning, q_aug, d.qvel, u, d.qvel, sm.robot.ctrl_dt,
+                                  None if central else key)
+    return u, ps, dist
+
+
 def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=None, pushes=None,
              limits=None, tilt=None, progress=None, progress_every=50, sense_gravity=True):
     """``(init, body)`` of :func:`run_episode`'s scan over control steps."""

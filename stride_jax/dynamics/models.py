@@ -468,6 +468,23 @@ def next_observation(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Str
                  None, step, rollout, None, spec, act, cfg, scales, None)
 
 
+def with_substeps(model: Model, n_substeps: int) -> Model:
+    """``model`` integrating each control period in ``n_substeps`` substeps (of ``period /
+    n_substeps``) instead of the ``actuation.n_substeps`` it was trained with: the same
+    parameters and accelerations, a coarser (or finer) integration of them, e.g. a planner
+    that trades model steps for time. Structured models only: a next-observation model predicts
+    the period at once."""
+    if model.actuation is None or model.config is None or MODELS[model.name][0] == "next_obs":
+        raise ValueError(f"model {model.name!r} predicts the control period at once: it has no "
+                         "substeps to change")
+    if int(n_substeps) != n_substeps or n_substeps < 1:
+        raise ValueError(f"n_substeps={n_substeps}: it must be a whole number >= 1")
+    act = model.actuation
+    period = act.dt * act.n_substeps
+    act = dataclasses.replace(act, dt=period / int(n_substeps), n_substeps=int(n_substeps))
+    return make(model.name, model.spec, act, model.config, model.scales)
+
+
 def check_name(name: str) -> None:
     """A ``ValueError`` listing :data:`MODELS` unless ``name`` is one of them."""
     if name not in MODELS:

@@ -52,7 +52,7 @@ from stride_jax.control import envs
 # The library's episode, metrics and planner models, and the scenarios (re-exported: the job's
 # callers and tests take them from here).
 from stride_jax.control.episode import (PRECISIONS, Trace, World,  # noqa: F401
-                                        continue_episode, learned_model, learned_step,
+                                        continue_episode, controller_period, learned_model, learned_step,
                                         learned_step_fn, metrics, mjx_step_fn, run_episode,
                                         scenario_world, start_episode)
 from stride_jax.control.mppi import MPPIConfig
@@ -64,6 +64,7 @@ from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,
 from stride_jax.io import atomic_write, atomic_write_text, code_version
 from stride_jax.jobs.headline import check_entries
 from stride_jax.sim import model as sim_model
+from stride_jax.timing import median_time
 
 
 # ---------------------------------------------------------------------------------------------
@@ -134,6 +135,14 @@ class ClosedLoopConfig:
         wall time of one control step of all of them together. On a GPU several episodes cost
         little more than one (a planner's step is latency-bound), so this is how a pair is
         measured over draws.
+      model_substeps: the learned structured models (STRIDE, DeLaN, LNN + diffusion) integrate
+        each control period in this many substeps in the planner and the observer
+        (``models.with_substeps``: the same accelerations, integrated coarser or finer); 0: as
+        each was trained (Go1's and G1's: 5 of 4 ms). Next-observation models are unchanged.
+      controller_repeats: time the controller's own computation per control period this many
+        times after the episode (``controller_ms`` in each row, the median; one episode's, with
+        no simulated world: what a robot's computer must fit in 20 ms, where ``ms_per_step``
+        also counts the simulation and side-by-side episodes). 0: not timed.
     """
 
     robot: str = "go1"
@@ -159,10 +168,18 @@ class ClosedLoopConfig:
     out: str = "results/closed_loop"
     seed: int = 0
     episodes: int = 1
+    controller_repeats: int = 10
+    model_substeps: int = 0
 
     def __post_init__(self):
         if self.episodes < 1:
             raise ValueError(f"--episodes is {self.episodes}: it must be >= 1")
+        if self.model_substeps < 0:
+            raise ValueError(f"--model-substeps is {self.model_substeps}: it must be >= 0 (0: "
+                             "as each model was trained)")
+        if self.controller_repeats < 0:
+            raise ValueError(f"--controller-repeats is {self.controller_repeats}: it must be "
+                             ">= 0 (0: the controller is not timed)")
         if self.chunk_s < 0:
             raise ValueError(f"--chunk-s is {self.chunk_s}: it must be >= 0 (0: no chunks)")
         if self.model_precision not in PRECISIONS:
@@ -241,6 +258,15 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     # argument, so the runs of one kind of model (trained seeds of one recipe) share one
     # compiled episode
     learned = {name: learned_model(run_dir, sm, cfg.kernel) for name, run_dir in models if run_dir}
+    if cfg.model_substeps:
+        coarse = [n for n, (m, _) in learned.items() if dyn_models.MODELS[m.name][0] != "next_obs"]
+        for n in coarse:
+            m, params = learned[n]
+            learned[n] = (dyn_models.with_substeps(m, cfg.model_substeps), params)
+        log(f"--model-substeps {cfg.model_substeps}: {', '.join(coarse) or 'no model'} "
+            "integrate each control period in as many substeps"
+            + (f"; {', '.join(n for n in learned if n not in coarse)} predict the period at once"
+               if len(coarse) < len(learned) else ""))
     kind = {name: ("learned", checkpoint.program_sha256(m)) for name, (m, _) in learned.items()}
     context = [n for n, (m, _) in learned.items() if m.config.gravity_context]
     if context and not cfg.planning.model_gravity:
@@ -266,39 +292,40 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         log(f"  {now['label']}: {int(steps) * dt:.1f} of {now['n'] * dt:.1f} s simulated "
             f"({wall:.0f} s)")
 
+    def parts(name, mx_plan, learned_args):
+        """The planner's view of the task and the planner for model ``name``."""
+        if name in learned:
+            params, scales = learned_args
+            step_fn = learned_step(checkpoint.with_scales(learned[name][0], scales), params,
+                                   cfg.model_precision)
+        else:
+            step_fn = mjx_step_fn(sm, mx_plan)
+        planning = make_planning(cfg.planning, env_cfg, sm, step_fn, ppo_policy, learned_params,
+                                 error_params=error_params if name in learned
+                                 else None)  # the simulator has no model error
+        planner = None
+        if name != "policy":
+            with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
+                planner = make_planner(planning, mppi_config(cfg.mppi, cfg.planning, planning))
+        return planning, planner
+
     def episode_fn(name, n_steps, slots, sm_sim, batched, chunk=0):
         """The jitted episode; with ``chunk`` steps, ``(start, continue)``: the episode's first
         state, and ``chunk`` steps from a state at a step given at run time."""
-        def parts(mx_plan, learned_args):
-            if name in learned:
-                params, scales = learned_args
-                step_fn = learned_step(checkpoint.with_scales(learned[name][0], scales), params,
-                                       cfg.model_precision)
-            else:
-                step_fn = mjx_step_fn(sm, mx_plan)
-            planning = make_planning(cfg.planning, env_cfg, sm, step_fn, ppo_policy, learned_params,
-                                     error_params=error_params if name in learned
-                                     else None)  # the simulator has no model error
-            planner = None
-            if name != "policy":
-                with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
-                    planner = make_planner(planning, mppi_config(cfg.mppi, cfg.planning, planning))
-            return planning, planner
-
         episode_kw = dict(limits=limits, progress=progress if every else None,
                           progress_every=every or 1, sense_gravity=cfg.sense_gravity)
 
         def episode(mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
-            planning, planner = parts(mx_plan, learned_args)
+            planning, planner = parts(name, mx_plan, learned_args)
             return run_episode(sm_sim, mx_sim, slots, planning, planner, n_steps, starts, values,
                                key, pushes=pushes, tilt=tilt, **episode_kw)
 
         def start(mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
-            return start_episode(sm_sim, mx_sim, *parts(mx_plan, learned_args), key)
+            return start_episode(sm_sim, mx_sim, *parts(name, mx_plan, learned_args), key)
 
         def resume(carry, first, mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
             return continue_episode(
-                sm_sim, mx_sim, slots, *parts(mx_plan, learned_args), carry, first, chunk,
+                sm_sim, mx_sim, slots, *parts(name, mx_plan, learned_args), carry, first, chunk,
                 starts, values, key, pushes=pushes, tilt=tilt, **episode_kw)
 
         if not chunk:
@@ -308,6 +335,33 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             start = jax.vmap(start, in_axes=(None,) * 7 + (0,))
             resume = jax.vmap(resume, in_axes=(0, None) + (None,) * 7 + (0,))
         return jax.jit(start), jax.jit(resume)
+
+    timed = {}  # the controller's own period, compiled once per compiled episode
+
+    def controller_ms(name, sm_sim, args, sig) -> tuple[float, float]:
+        """``(median ms, compile s)`` of the controller's own computation in one control period
+        (:func:`controller_period`: one episode's, from its start, the planner's state carried
+        over ``cfg.controller_repeats`` periods): what a robot's computer must fit in a period."""
+        t0 = time.perf_counter()
+        if sig not in timed:
+            def begin(mx_sim, mx_plan, learned_args, key):
+                return start_episode(sm_sim, mx_sim, *parts(name, mx_plan, learned_args), key)
+
+            def period(carry, mx_sim, mx_plan, learned_args, key):
+                return controller_period(sm_sim, mx_sim, *parts(name, mx_plan, learned_args),
+                                         carry, key)
+            timed[sig] = (jax.jit(begin), jax.jit(period))
+        begin, period = timed[sig]
+        mx_sim, mx_plan, learned_args, key = *args[:3], args[-1]
+        key = key[0] if batched else key
+        carry = [begin(mx_sim, mx_plan, learned_args, key)]
+
+        def once():
+            _, ps, _ = jax.block_until_ready(period(carry[0], mx_sim, mx_plan, learned_args, key))
+            carry[0] = (carry[0][0], ps, *carry[0][2:])  # warm-started as in the episode
+        once()  # compiled
+        compile_s = time.perf_counter() - t0
+        return 1e3 * median_time(once, cfg.controller_repeats), compile_s
 
     for sc_name in [s for s in cfg.scenarios.split(",") if s]:
         sc = scenario(cfg, sc_name)
@@ -351,12 +405,22 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                 run_s = time.perf_counter() - t0
                 traces = jax.tree.map(np.asarray, traces)  # one copy to the host for all episodes
             planned = name != "policy"
+            ctl_ms = None
+            if cfg.controller_repeats:
+                ctl_ms, ctl_compile_s = controller_ms(name, sm_sim, args, sig)
+                period_ms = 1e3 * sm.robot.ctrl_dt
+                log(f"  {sc.name} {name}: the controller's own period {ctl_ms:.1f} ms "
+                    f"(median of {cfg.controller_repeats}; compile {ctl_compile_s:.0f} s)"
+                    + (f": over the {period_ms:.0f} ms control period, so a robot could not run "
+                       "it at this rate (--planning.latency-s runs it late)"
+                       if ctl_ms > period_ms and not cfg.planning.latency_s else ""))
             for i, seed in enumerate(todo):
                 trace = jax.tree.map(lambda x: x[i], traces) if batched else traces
                 episode = seed - cfg.seed
                 row = dict(scenario=sc.name, model=name, run=run_dir or None,
                            **metrics(trace, cfg.settle_s),
-                           ms_per_step=1e3 * run_s / n_steps, compile_s=compile_s,
+                           ms_per_step=1e3 * run_s / n_steps, controller_ms=ctl_ms,
+                           compile_s=compile_s,
                            steps=n_steps, K=cfg.mppi.samples if planned else None,
                            H=cfg.mppi.horizon if planned else None,
                            latency_steps=(latency_steps(cfg.planning, sm.robot.ctrl_dt)
@@ -536,9 +600,9 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
              "anti-phase contact correlation); with planned gaits, the median planned "
              "parameters too.", "",
              "| scenario | model | vel RMSE (m/s) | yaw RMSE (rad/s) | mean vx (m/s) | fell | "
-             "fall at (s) | contact gait (score) | planned gait | ms/step |"
+             "fall at (s) | contact gait (score) | planned gait | ms/step | controller ms |"
              + (" policy acted |" if gated else ""),
-             "|---|---|---|---|---|---|---|---|---|---|" + ("---|" if gated else "")]
+             "|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if gated else "")]
     for r in rows:
         planned = (f"{r['plan_gait']} ({r['plan_freq']:.1f} Hz, duty {r['plan_duty']:.2f})"
                    if "plan_gait" in r else "-")
@@ -548,7 +612,8 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
         lines.append(f"| {r['scenario']} | {model} | {_fmt(r['vel_rmse'])} | "
                      f"{_fmt(r['yaw_rmse'])} | {_fmt(r['mean_vx'], '{:.2f}')} | "
                      f"{'yes' if r['fell'] else 'no'} | {_fmt(r['fall_s'], '{:.2f}')} | "
-                     f"{contact} | {planned} | {r['ms_per_step']:.1f} |"
+                     f"{contact} | {planned} | {r['ms_per_step']:.1f} | "
+                     f"{_fmt(r.get('controller_ms'), '{:.1f}')} |"
                      + (f" {_fmt(r.get('distrust_share'), '{:.0%}')} |" if gated else ""))
     lines += _over_seeds_lines(rows)
     atomic_write_text(out / "closed_loop.md", "\n".join(lines) + "\n")
@@ -706,13 +771,16 @@ def merge(parts: list[str], out: str, title: str = "", onto: str | None = None,
     if head is not None:
         lines += ["", f"The current planner (the report's claims read these parts' rows alone): "
                       f"{', '.join(f'`{h}`' for h in head['parts'])}."]
+    timed = any(r.get("controller_ms") is not None for r in rows)  # (parts since session 80)
     lines += ["", "| scenario | model | part | vel RMSE (m/s) | yaw RMSE (rad/s) | mean vx (m/s) | "
-              "fell | fall at (s) | ms/step |", "|---|---|---|---|---|---|---|---|---|"]
+              "fell | fall at (s) | ms/step |" + (" controller ms |" if timed else ""),
+              "|---|---|---|---|---|---|---|---|---|" + ("---|" if timed else "")]
     for r in rows:
         lines.append(f"| {r['scenario']} | {r['model']} | {r['part']} | {_fmt(r['vel_rmse'])} | "
                      f"{_fmt(r.get('yaw_rmse'))} | {_fmt(r.get('mean_vx'), '{:.2f}')} | "
                      f"{'yes' if r['fell'] else 'no'} | {_fmt(r.get('fall_s'), '{:.2f}')} | "
-                     f"{r['ms_per_step']:.1f} |")
+                     f"{r['ms_per_step']:.1f} |"
+                     + (f" {_fmt(r.get('controller_ms'), '{:.1f}')} |" if timed else ""))
     lines += _over_seeds_lines(rows)
     atomic_write_text(out_dir / "closed_loop.md", "\n".join(lines) + "\n")
     plot(out_dir, rows)
