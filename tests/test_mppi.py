@@ -184,6 +184,15 @@ def test_a_glitch_or_a_step_with_no_finite_rollout_falls_back_safely():
     u, s1, info = jax.jit(bad.step)(s0, q, qd)
     assert int(info.status) == mppi.NO_FINITE_ROLLOUT
     assert float(u[0]) == pytest.approx(0.7) and np.isfinite(np.asarray(s1.plan)).all()
+    # with a policy, the policy acts where no rollout stayed finite (not on a glitch: its
+    # action at a non-finite state means nothing, the shifted plan applies as above)
+    guarded = mppi.make(dataclasses.replace(cfg, policy_samples=4), exploding, cost, [-U_MAX],
+                        [U_MAX], policy=lambda q, qd: jnp.full(1, -0.3))
+    u, s1, info = jax.jit(guarded.step)(s0, q, qd)
+    assert int(info.status) == mppi.NO_FINITE_ROLLOUT and float(u[0]) == pytest.approx(-0.3)
+    np.testing.assert_allclose(np.asarray(s1.plan)[:-1], 0.7)  # the shifted plan kept
+    u, _, info = jax.jit(guarded.step)(s0, jnp.array([np.nan]), qd)
+    assert int(info.status) == mppi.BAD_STATE and float(u[0]) == pytest.approx(0.7)
 
 
 def _gamble(q, qd, u, key):

@@ -65,7 +65,11 @@ finite, does not plan. The step then applies the previous plan shifted by one st
 warm start, finite by construction: no non-finite plan is ever stored; the action bounds' middle
 if a caller's initial plan was not finite), keeps that as its plan, and says why in
 ``Info.status`` (:data:`PLANNED`, :data:`BAD_STATE`, :data:`NO_FINITE_ROLLOUT`). The next valid
-state plans as usual.
+state plans as usual. Where the planner has a policy (``make(..., policy=)``) a step with no
+finite rollout from a valid state applies the policy's action instead (a model that diverges
+everywhere it is asked, e.g. integrated too coarsely, would otherwise hold its last plan's
+actions until the robot stands still: measured so on Go1, `docs/control.md`); the status still
+says :data:`NO_FINITE_ROLLOUT` and the plan kept is the shifted one.
 
 Handing back to the policy where the model is not to be trusted (``make(..., distrust=)``): while
 ``distrust(q, qd)`` holds, and ``distrust_hold`` steps after it last held, the step still plans
@@ -559,6 +563,9 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
             z = jnp.where(good_state, z, z_warm)
         status = jnp.where(good_state, info.status, BAD_STATE).astype(jnp.int32)
         u = plan[0]
+        if policy is not None:  # no rollout stayed finite from a valid state: the policy acts
+            u_pol = jnp.clip(policy(q_in, qd_in), lo, hi)
+            u = jnp.where((status == NO_FINITE_ROLLOUT) & jnp.all(jnp.isfinite(u_pol)), u_pol, u)
         distrusted = state.distrusted
         if distrust is not None:  # the model now, or the policy still held since it last failed
             failing, left = hold(jnp.asarray(distrust(q_in, qd_in), bool), distrusted,
