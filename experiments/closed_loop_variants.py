@@ -1,0 +1,99 @@
+"""Closed-loop planners side by side, per scenario: each variant's velocity RMSE as the
+headline's targets count it (the mean over trained seeds of each seed's mean over its draws),
+its falls, its controller's own time per period (``controller_ms``, where timed) and the periods
+its plans arrive late (``latency_steps``).
+
+    python experiments/closed_loop_variants.py "LABEL=PATH[:PART]" ... --out FILE.md [--scenarios A,B]
+
+PATH: a ``closed_loop.json`` (a run's, or a merged table whose rows name their ``part``; PART
+keeps that part's rows). Rows are grouped by scenario and by trained seed (the model's name less
+its ``@part``); ``policy`` rows make a variant of their own where a label holds only them."""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import pathlib
+import shlex
+import sys
+
+import numpy as np
+
+from stride_jax.io import atomic_write_text
+
+
+def rows_of(spec: str) -> tuple[str, list[dict]]:
+    label, _, where = spec.partition("=")
+    if not where:
+        raise ValueError(f"{spec!r}: give LABEL=PATH[:PART]")
+    path, _, part = where.partition(":")
+    if not pathlib.Path(path).is_file():
+        raise FileNotFoundError(f"{path}: no closed_loop.json")
+    rows = json.loads(pathlib.Path(path).read_text())["rows"]
+    if part:
+        rows = [r for r in rows if r.get("part") == part]
+        if not rows:
+            raise ValueError(f"{path}: no rows of part {part!r}")
+    return label, rows
+
+
+def summary(rows: list[dict]) -> dict[str, dict]:
+    """Per scenario: the mean over trained seeds of their mean RMSE over draws that stayed up,
+    each seed's mean, falls over episodes, the median controller ms and the latency."""
+    out = {}
+    for sc in dict.fromkeys(r["scenario"] for r in rows):
+        mine = [r for r in rows if r["scenario"] == sc]
+        seeds = collections.defaultdict(list)
+        for r in mine:
+            if not r["fell"]:
+                seeds[r["model"].split("@")[0]].append(r["vel_rmse"])
+        per_seed = [float(np.mean(v)) for v in seeds.values()]
+        ctl = [r["controller_ms"] for r in mine if r.get("controller_ms") is not None]
+        out[sc] = dict(rmse=float(np.mean(per_seed)) if per_seed else float("nan"),
+                       per_seed=per_seed, falls=sum(bool(r["fell"]) for r in mine),
+                       episodes=len(mine), controller_ms=float(np.median(ctl)) if ctl else None,
+                       latency_steps=mine[0].get("latency_steps") or 0)
+    return out
+
+
+def table(variants: list[tuple[str, dict]]) -> list[str]:
+    scenarios = list(dict.fromkeys(sc for _, s in variants for sc in s))
+    lines = ["| variant | controller ms | periods late | "
+             + " | ".join(f"{sc}: vel RMSE (seeds) | {sc}: falls" for sc in scenarios) + " |",
+             "|---|---:|---:|" + "---|---:|" * len(scenarios)]
+    for label, s in variants:
+        ctl = [v["controller_ms"] for v in s.values() if v["controller_ms"] is not None]
+        cells = []
+        for sc in scenarios:
+            v = s.get(sc)
+            cells += (["-", "-"] if v is None else
+                      [f"{v['rmse']:.4f} ({' / '.join(f'{x:.4f}' for x in v['per_seed'])})",
+                       f"{v['falls']}/{v['episodes']}"])
+        lat = max(v["latency_steps"] for v in s.values())
+        lines.append(f"| {label} | {np.median(ctl):.1f} | {lat} | " if ctl else
+                     f"| {label} | - | {lat} | ")
+        lines[-1] += " | ".join(cells) + " |"
+    return lines
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("variants", nargs="+", help="LABEL=PATH[:PART]")
+    ap.add_argument("--out", required=True, help="the markdown table to write")
+    ap.add_argument("--scenarios", default="", help="comma-separated: only these (all: '')")
+    a = ap.parse_args(argv)
+    keep = set(filter(None, a.scenarios.split(",")))
+    variants = [(label, summary([r for r in rows if not keep or r["scenario"] in keep]))
+                for label, rows in map(rows_of, a.variants)]
+    lines = [f"Command: `python {' '.join(shlex.quote(x) for x in sys.argv)}`", "",
+             "Velocity RMSE (m/s): the mean over trained seeds of each seed's mean over its "
+             "draws that stayed up (each seed's in brackets); falls over all episodes; controller "
+             "ms: the median of the rows' `controller_ms` (the controller's own computation per "
+             "period, no world); periods late: `latency_steps`.", ""] + table(variants)
+    atomic_write_text(pathlib.Path(a.out), "\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
