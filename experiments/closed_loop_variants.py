@@ -3,7 +3,8 @@ headline's targets count it (the mean over trained seeds of each seed's mean ove
 its falls, its controller's own time per period (``controller_ms``, where timed) and the periods
 its plans arrive late (``latency_steps``).
 
-    python experiments/closed_loop_variants.py "LABEL=PATH[:PART]" ... --out FILE.md [--scenarios A,B]
+    python experiments/closed_loop_variants.py "LABEL=PATH[:PART]" ... --out FILE.md \\
+        [--scenarios A,B]
 
 PATH: a ``closed_loop.json`` (a run's, or a merged table whose rows name their ``part``; PART
 keeps that part's rows). Rows are grouped by scenario and by trained seed (the model's name less

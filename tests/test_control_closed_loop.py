@@ -1089,3 +1089,21 @@ def test_the_closed_loop_plans_to_the_integral_command_and_scores_the_true_one(g
     np.testing.assert_array_equal(seen[0.0], np.tile([1.0, 0.0, 0.0], (8, 1)))
     np.testing.assert_array_equal(seen[1.0][:3], seen[0.0][:3])  # within the settle time
     assert (np.diff(seen[1.0][3:, 0]) > 0).all() and (seen[1.0][3:, 2] == 0).all()
+
+
+def test_latency_auto_runs_each_planner_late_by_its_own_measured_time(tmp_path):
+    """``--latency-auto``: each planner's controller is timed on time first and its plans then
+    act that many control periods late (``latency_auto_ms`` -> ``latency_steps``, rounded up);
+    the policy needs no planning time; it refuses a fixed latency beside it."""
+    cfg = dataclasses.replace(cl.PRESETS["tiny"], seconds=0.1, latency_auto=True,
+                              models="stride=results/models/go1/stride-s0,policy",
+                              policy="results/policies/ppo_go1", controller_repeats=3,
+                              out=str(tmp_path))
+    rows = {r["model"]: r for r in cl.run(cfg, log=lambda *_: None)}
+    late = rows["stride"]
+    assert late["latency_auto_ms"] > 0
+    assert late["latency_steps"] == planning_lib.latency_steps(
+        planning_lib.PlanningConfig(latency_s=late["latency_auto_ms"] / 1e3), 0.02) >= 1
+    assert rows["policy"]["latency_steps"] is None and "latency_auto_ms" not in rows["policy"]
+    with pytest.raises(ValueError, match="--latency-auto .* no --planning.latency-s"):
+        dataclasses.replace(cfg, planning=planning_lib.PlanningConfig(latency_s=0.04))

@@ -52,9 +52,9 @@ from stride_jax.control import envs
 # The library's episode, metrics and planner models, and the scenarios (re-exported: the job's
 # callers and tests take them from here).
 from stride_jax.control.episode import (PRECISIONS, Trace, World,  # noqa: F401
-                                        continue_episode, controller_period, learned_model, learned_step,
-                                        learned_step_fn, metrics, mjx_step_fn, run_episode,
-                                        scenario_world, start_episode)
+                                        continue_episode, controller_period, learned_model,
+                                        learned_step, learned_step_fn, metrics, mjx_step_fn,
+                                        run_episode, scenario_world, start_episode)
 from stride_jax.control.mppi import MPPIConfig
 from stride_jax.control.planning import (PlanningConfig, latency_steps, make_planner,
                                          make_planning, mppi_config)
@@ -135,6 +135,11 @@ class ClosedLoopConfig:
         wall time of one control step of all of them together. On a GPU several episodes cost
         little more than one (a planner's step is latency-bound), so this is how a pair is
         measured over draws.
+      latency_auto: each planner runs late by its own controller's time on this machine: per
+        pair, its controller is timed on time first (``controller_repeats``), and
+        ``planning.latency_s`` is set to that (rows: ``latency_auto_ms``, ``latency_steps``), so
+        planners of different speeds (ONN, STRIDE, the oracle) are compared as a robot with this
+        computer would run them. Compensation and feedback as ``planning`` says.
       model_substeps: the learned structured models (STRIDE, DeLaN, LNN + diffusion) integrate
         each control period in this many substeps in the planner and the observer
         (``models.with_substeps``: the same accelerations, integrated coarser or finer); 0: as
@@ -169,11 +174,15 @@ class ClosedLoopConfig:
     seed: int = 0
     episodes: int = 1
     controller_repeats: int = 10
+    latency_auto: bool = False
     model_substeps: int = 0
 
     def __post_init__(self):
         if self.episodes < 1:
             raise ValueError(f"--episodes is {self.episodes}: it must be >= 1")
+        if self.latency_auto and (self.planning.latency_s or not self.controller_repeats):
+            raise ValueError("--latency-auto sets each planner's latency to its measured time: "
+                             "it needs --controller-repeats >= 1 and no --planning.latency-s")
         if self.model_substeps < 0:
             raise ValueError(f"--model-substeps is {self.model_substeps}: it must be >= 0 (0: "
                              "as each model was trained)")
@@ -292,6 +301,10 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         log(f"  {now['label']}: {int(steps) * dt:.1f} of {now['n'] * dt:.1f} s simulated "
             f"({wall:.0f} s)")
 
+    # each model's planning settings: cfg.planning's, with --latency-auto its latency set to its
+    # controller's measured time (per pair, before its episode is compiled)
+    plan_cfg: dict[str, PlanningConfig] = {}
+
     def parts(name, mx_plan, learned_args):
         """The planner's view of the task and the planner for model ``name``."""
         if name in learned:
@@ -300,13 +313,14 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                                    cfg.model_precision)
         else:
             step_fn = mjx_step_fn(sm, mx_plan)
-        planning = make_planning(cfg.planning, env_cfg, sm, step_fn, ppo_policy, learned_params,
+        pcfg = plan_cfg.get(name, cfg.planning)
+        planning = make_planning(pcfg, env_cfg, sm, step_fn, ppo_policy, learned_params,
                                  error_params=error_params if name in learned
                                  else None)  # the simulator has no model error
         planner = None
         if name != "policy":
             with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
-                planner = make_planner(planning, mppi_config(cfg.mppi, cfg.planning, planning))
+                planner = make_planner(planning, mppi_config(cfg.mppi, pcfg, planning))
         return planning, planner
 
     def episode_fn(name, n_steps, slots, sm_sim, batched, chunk=0):
@@ -378,8 +392,18 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                     (learned[name][1], learned[name][0].scales) if name in learned else (),
                     world.starts, world.values, world.pushes, world.tilt, keys)
             chunk = _chunk_steps(cfg.chunk_s, sm.robot.ctrl_dt, n_steps)
+            planned = name != "policy"
             sig = (kind.get(name, name), n_steps, tuple(slots[0]), sm_sim.geom_foot.tobytes(),
                    jax.tree.structure(args[:3]), len(todo) if batched else 0, chunk)
+            plan_cfg[name], auto_ms = cfg.planning, None
+            if cfg.latency_auto and planned:  # late by its own time on this machine
+                auto_ms, auto_compile_s = controller_ms(name, sm_sim, args, sig + (0,))
+                plan_cfg[name] = dataclasses.replace(cfg.planning, latency_s=auto_ms / 1e3)
+                log(f"  {sc.name} {name}: --latency-auto: its controller takes {auto_ms:.1f} ms "
+                    f"on time (compile {auto_compile_s:.0f} s), so its plans act "
+                    f"{latency_steps(plan_cfg[name], sm.robot.ctrl_dt)} period(s) late")
+            lat = latency_steps(plan_cfg[name], sm.robot.ctrl_dt) if planned else 0
+            sig += (lat,)
             t0 = time.perf_counter()
             if sig not in compiled:
                 if every:
@@ -397,23 +421,24 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                 # nor the run's other pairs: a call naming fewer models resumes as well)
                 settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in _PER_RUN}
                 ident = json.dumps(dict(settings=settings, model=name, run=run_dir, seeds=todo,
-                                        chunk=chunk, n_steps=n_steps), sort_keys=True, default=str)
+                                        chunk=chunk, n_steps=n_steps, latency_steps=lat),
+                                   sort_keys=True, default=str)
                 traces, run_s = _chunked(compiled[sig], args, n_steps, chunk, batched, partial,
                                          ident, now, log)
             else:
                 traces = jax.block_until_ready(compiled[sig](*args))
                 run_s = time.perf_counter() - t0
                 traces = jax.tree.map(np.asarray, traces)  # one copy to the host for all episodes
-            planned = name != "policy"
             ctl_ms = None
             if cfg.controller_repeats:
                 ctl_ms, ctl_compile_s = controller_ms(name, sm_sim, args, sig)
-                period_ms = 1e3 * sm.robot.ctrl_dt
+                budget_ms = 1e3 * sm.robot.ctrl_dt * max(lat, 1)
                 log(f"  {sc.name} {name}: the controller's own period {ctl_ms:.1f} ms "
                     f"(median of {cfg.controller_repeats}; compile {ctl_compile_s:.0f} s)"
-                    + (f": over the {period_ms:.0f} ms control period, so a robot could not run "
-                       "it at this rate (--planning.latency-s runs it late)"
-                       if ctl_ms > period_ms and not cfg.planning.latency_s else ""))
+                    + ("" if ctl_ms <= budget_ms else
+                       f": over the {budget_ms:.0f} ms of its {max(lat, 1)} period(s), so a robot"
+                       " could not run it so" + ("" if lat else
+                                                 " (--planning.latency-s runs it late)")))
             for i, seed in enumerate(todo):
                 trace = jax.tree.map(lambda x: x[i], traces) if batched else traces
                 episode = seed - cfg.seed
@@ -423,8 +448,9 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                            compile_s=compile_s,
                            steps=n_steps, K=cfg.mppi.samples if planned else None,
                            H=cfg.mppi.horizon if planned else None,
-                           latency_steps=(latency_steps(cfg.planning, sm.robot.ctrl_dt)
-                                          if planned else None), seed=seed,
+                           latency_steps=lat if planned else None,
+                           **({"latency_auto_ms": auto_ms} if auto_ms is not None else {}),
+                           seed=seed,
                            episode=episode, side_by_side=len(todo) if batched else 1)
                 rows.append(row)
                 np.savez_compressed(out / trace_name(sc.name, name, episode, seed),
