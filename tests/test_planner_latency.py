@@ -75,8 +75,7 @@ def _run(planning, planner, n: int, drift: float = 0.0):
     for t in range(n):
         q_aug = planning_lib.augment(q, cmd, 0.0, disturbance=dist, gravity=up)
         u, ps, late = ep._late_plan(planning, planner, late, ps, jnp.asarray(t),
-                                    planning.latency_steps, q_aug, jnp.zeros(2), H, False, 1,
-                                    DT)
+                                    planning.latency_steps, q_aug, jnp.zeros(2), False, 1, DT)
         applied.append(float(u[0]))
         xs.append(float(q[0]))
         statuses.append(int(late[1][0]))

@@ -173,7 +173,7 @@ def controller_period(sm: sim_model.SimModel, mx_sim: mjx.Model, planning: Plann
     gait = len(planning.lo) > nu
     if lat:
         u, ps, _ = _late_plan(planning, planner, rest[-1], ps, jnp.zeros((), jnp.int32), lat,
-                              q_aug, d.qvel, ps.plan.shape[0], gait, nu, sm.robot.ctrl_dt)
+                              q_aug, d.qvel, gait, nu, sm.robot.ctrl_dt)
     else:
         u, ps, _ = planner.step(ps, q_aug, d.qvel)
     if planning.observer_gain > 0:
@@ -231,7 +231,7 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         alarm = jnp.zeros((), bool)
         if planner is not None and lat:
             u, ps, late = _late_plan(planning, planner, late, ps, step, lat, q_aug, d.qvel,
-                                     horizon, gait, nu, dt)
+                                     gait, nu, dt)
             status, cut, alarm = late[1]
         elif planner is not None:
             u, ps, info = planner.step(ps, q_aug, d.qvel)
@@ -287,7 +287,7 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
 
 
 def _late_plan(planning: Planning, planner: mppi.Planner, late, ps, step, lat: int, q_aug, qd,
-               horizon: int, gait: bool, nu: int, dt: float):
+               gait: bool, nu: int, dt: float):
     """One control period of a planner whose computation takes ``lat`` periods
     (``PlanningConfig.latency_s``): ``(u, ps, late)``. ``late = (active, in_force, in_flight)``:
     the plan in force (its first action applied at the last replanning period) and the
@@ -354,7 +354,7 @@ def _late_plan(planning: Planning, planner: mppi.Planner, late, ps, step, lat: i
         plan = ps.plan.at[0].set(u)  # the gate's hand-over, or the plan's own first action
         if gait:  # gait parameters are per rollout: hold the chosen ones over the plan
             plan = plan.at[:, nu:].set(plan[0, nu:])
-        flight = (info.status, jnp.mean(info.kept < horizon), info.alarm)
+        flight = (info.status, jnp.mean(info.kept < H), info.alarm)
         if not planning.latency_feedback:
             return ps._replace(plan=plan), (active, force, flight)
         # the policy at the states the model predicts along the new plan over its window
