@@ -115,6 +115,19 @@ def barrier(name: str) -> None:
         multihost_utils.sync_global_devices(name)
 
 
+def split_leading(axis: str, devices: list | None = None, n: int | None = None
+                  ) -> NamedSharding | None:
+    """A leading array axis named ``axis`` split over ``devices`` (all local devices; None on a
+    single one: nothing to split); ``n``, the axis's length where given, must split evenly."""
+    devices = jax.local_devices() if devices is None else devices
+    if len(devices) == 1:
+        return None
+    if n is not None and n % len(devices):
+        raise ValueError(f"{n} {axis} do not split evenly over {len(devices)} devices; use a "
+                         f"multiple of {len(devices)}")
+    return NamedSharding(Mesh(np.array(devices), (axis,)), PartitionSpec(axis))
+
+
 def mesh(axis: str = "batch") -> Mesh:
     """All devices of all processes on one axis."""
     return Mesh(np.array(jax.devices()), (axis,))

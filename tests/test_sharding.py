@@ -40,6 +40,16 @@ state, q = planner.init(jax.random.key(0)), jnp.zeros(2)
 for _ in range(3):
     u, state, info = step(state, q, jnp.zeros(2))
 np.save(out + "/plan.npy", np.asarray(state.plan))
+# the one helper behind both: a named leading axis over the devices, split evenly or refused
+from stride_jax import distributed
+sh = distributed.split_leading("worlds", None, 4)
+assert (sh is None) == (n == 1) and (n == 1 or sh.spec == jax.sharding.PartitionSpec("worlds"))
+if n > 1:
+    try:
+        rollout_mjx.world_sharding(3)
+        raise SystemExit("3 worlds over 2 devices were not refused")
+    except ValueError as e:
+        assert "3 worlds do not split evenly over 2 devices" in str(e), e
 """
 
 

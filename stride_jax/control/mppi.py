@@ -97,8 +97,9 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import NamedSharding, PartitionSpec
+from jax.sharding import NamedSharding
 
+from stride_jax import distributed
 from stride_jax.control.costs import (RISKS, Dynamics, open_loop_cost, risk_cost,  # noqa: F401
                                      velocity_spread, weights)
 from stride_jax.dynamics.models import LATENTS, rollout_keys, step_key
@@ -319,11 +320,7 @@ def hold(trigger: jax.Array, left: jax.Array, steps: int) -> tuple[jax.Array, ja
 
 def sample_sharding(devices: list | None = None) -> NamedSharding | None:
     """The samples split over ``devices`` (all local devices; None on one device)."""
-    devices = jax.local_devices() if devices is None else devices
-    if len(devices) == 1:
-        return None
-    return NamedSharding(jax.sharding.Mesh(np.array(devices), ("samples",)),
-                         PartitionSpec("samples"))
+    return distributed.split_leading("samples", devices)
 
 
 def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo, action_hi,

@@ -19,10 +19,10 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from jax.sharding import NamedSharding, PartitionSpec
+from jax.sharding import NamedSharding
 from mujoco import mjx
 
-from stride_jax import _env
+from stride_jax import _env, distributed
 from stride_jax.sim import mjx_warp, randomize, record, terrain
 from stride_jax.sim.model import SimModel, check_open_loop
 
@@ -208,14 +208,7 @@ def mjx_devices() -> list:
 
 def world_sharding(n_worlds: int, devices: list | None = None) -> NamedSharding | None:
     """Shards a leading world axis over ``devices`` (all local devices; None on a single one)."""
-    devices = jax.local_devices() if devices is None else devices
-    if len(devices) == 1:
-        return None
-    if n_worlds % len(devices):
-        raise ValueError(f"{n_worlds} worlds do not split evenly over {len(devices)} devices; "
-                         f"use a multiple of {len(devices)}")
-    mesh = jax.sharding.Mesh(np.array(devices), ("worlds",))
-    return NamedSharding(mesh, PartitionSpec("worlds"))
+    return distributed.split_leading("worlds", devices, n_worlds)
 
 
 _COLLECT_FNS: dict = {}
