@@ -173,6 +173,25 @@ def test_latency_is_periods_rounded_up_and_checked():
         planning_lib.PlanningConfig(latency_s=float("nan"))
 
 
+def _counting_planner(nu: int, on_call=None) -> mppi.Planner:
+    """A one-step "planner" on Go1 whose plan encodes its calls: action k of call c is
+    ``0.01 (c + 1) + 0.001 k`` on every joint (``on_call()`` on the host at each call)."""
+    def init(key, plan=None):
+        return mppi.MPPIState(jnp.zeros((4, nu)), key, held=jnp.zeros((), jnp.int32))
+
+    def step(state, q_aug, qd):
+        if on_call is not None:
+            jax.debug.callback(on_call)
+        c = state.held
+        plan = jnp.broadcast_to((0.01 * (c + 1) + 0.001 * jnp.arange(4))[:, None], (4, nu))
+        z = jnp.zeros(1)
+        info = mppi.Info(z, z, z[0], plan, jnp.zeros((), jnp.int32), plan[None], z,
+                         jnp.full(1, 4, jnp.int32), jnp.zeros((), bool))
+        return plan[0], mppi.MPPIState(plan, state.key, held=c + 1), info
+
+    return mppi.Planner(init, step)
+
+
 def test_the_closed_loop_plays_late_plans_and_resumes_them_across_chunks(go1):
     """On Go1 in MJX (a one-step "planner" that stands still, its plan encoding its calls):
     with a 2-period latency the applied action changes only every other period after the first
@@ -185,18 +204,7 @@ def test_the_closed_loop_plays_late_plans_and_resumes_them_across_chunks(go1):
                                           envs.config("go1"), go1, cl.mjx_step_fn(go1, mx))
     assert planning.latency_steps == 2
 
-    def init(key, plan=None):
-        return mppi.MPPIState(jnp.zeros((4, nu)), key, held=jnp.zeros((), jnp.int32))
-
-    def step(state, q_aug, qd):  # plan k of call c: 0.01 (c + 1) + 0.001 k on every joint
-        c = state.held
-        plan = jnp.broadcast_to((0.01 * (c + 1) + 0.001 * jnp.arange(4))[:, None], (4, nu))
-        z = jnp.zeros(1)
-        info = mppi.Info(z, z, z[0], plan, jnp.zeros((), jnp.int32), plan[None], z,
-                         jnp.full(1, 4, jnp.int32), jnp.zeros((), bool))
-        return plan[0], mppi.MPPIState(plan, state.key, held=c + 1), info
-
-    planner = mppi.Planner(init, step)
+    planner = _counting_planner(nu)
     key = jax.random.key(0)
     args = (w.sm, w.mx, w.slots, planning, planner)
     trace = jax.device_get(jax.jit(lambda k: cl.run_episode(
@@ -226,20 +234,7 @@ def test_the_controllers_own_period_is_the_episodes_first_period_without_the_wor
     w = cl.scenario_world(go1, dataclasses.replace(cl.SCENARIOS["walk"],
                                                    seconds=2 * go1.robot.ctrl_dt))
     calls = []
-
-    def init(key, plan=None):
-        return mppi.MPPIState(jnp.zeros((4, nu)), key, held=jnp.zeros((), jnp.int32))
-
-    def step(state, q_aug, qd):
-        jax.debug.callback(lambda: calls.append(1))
-        c = state.held
-        plan = jnp.broadcast_to((0.01 * (c + 1) + 0.001 * jnp.arange(4))[:, None], (4, nu))
-        z = jnp.zeros(1)
-        info = mppi.Info(z, z, z[0], plan, jnp.zeros((), jnp.int32), plan[None], z,
-                         jnp.full(1, 4, jnp.int32), jnp.zeros((), bool))
-        return plan[0], mppi.MPPIState(plan, state.key, held=c + 1), info
-
-    planner, key = mppi.Planner(init, step), jax.random.key(0)
+    planner, key = _counting_planner(nu, lambda: calls.append(1)), jax.random.key(0)
     for latency, first in ((0.0, 0.01), (0.03, 0.0)):
         planning = planning_lib.make_planning(
             planning_lib.PlanningConfig(latency_s=latency, observer_gain=0.3),
