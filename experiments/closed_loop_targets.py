@@ -50,11 +50,16 @@ def _cell(rows: list[dict]) -> dict | None:
         return None
     means = seed_means(rows)
     alone = [r for r in rows if int(r.get("side_by_side") or 1) == 1] or rows
+    timed = [r.get("controller_ms") for r in rows]
     return dict(vel_rmse=float(np.mean(list(means.values()))) if means else float("nan"),
                 seed_means=[float(v) for v in means.values()],
                 seeds=len({kind_and_seed(r)[1] for r in rows}), episodes=len(rows),
                 falls=sum(bool(r["fell"]) for r in rows),
-                ms_per_step=float(np.mean([r["ms_per_step"] for r in alone])))
+                ms_per_step=float(np.mean([r["ms_per_step"] for r in alone])),
+                # the controller's own time per period (rows since session 80): where every row
+                # has it, what the time target reads (one episode's, no simulated world)
+                controller_ms=(float(np.mean(timed))
+                               if all(t is not None for t in timed) else None))
 
 
 # The tables' row order (the issue's: terrain, disturbances, commands); a variant (G1's tilt15,
@@ -92,6 +97,10 @@ def robot_targets(table: dict, policy_pick: str = "") -> dict:
         orc = [r["ms_per_step"] for r in oracle if r["scenario"] == sc] or \
               [r["ms_per_step"] for r in oracle]
         c["oracle_ms"] = float(np.mean(orc)) if orc else None
+        orc_ctl = [r.get("controller_ms") for r in oracle if r["scenario"] == sc] or \
+                  [r.get("controller_ms") for r in oracle]
+        c["oracle_controller_ms"] = (float(np.mean(orc_ctl))
+                                     if orc_ctl and all(t is not None for t in orc_ctl) else None)
         c["oracle"] = _cell([r for r in oracle if r["scenario"] == sc and in_headline(r, picks)])
         c["oracle_ms_from"] = ("this scenario" if any(r["scenario"] == sc for r in oracle)
                                else "all scenarios" if oracle else None)
@@ -102,7 +111,13 @@ def robot_targets(table: dict, policy_pick: str = "") -> dict:
                       for k in ("policy", "delan", "onn")
                       if c["stride_vs"][k] is False
                       and not fall_rates_differ(s["falls"], s["episodes"], c[k]["falls"], c[k]["episodes"])}
-        c["time_ratio"] = (s["ms_per_step"] / c["oracle_ms"]) if s and c["oracle_ms"] else None
+        # the controllers' own times where both have them, else the closed loop's steps
+        c["time_basis"] = ("controller" if s and s["controller_ms"] is not None
+                           and c["oracle_controller_ms"] is not None else "closed-loop step")
+        if c["time_basis"] == "controller":
+            c["time_ratio"] = s["controller_ms"] / c["oracle_controller_ms"]
+        else:
+            c["time_ratio"] = (s["ms_per_step"] / c["oracle_ms"]) if s and c["oracle_ms"] else None
         # a slope the controller could not sense (world-down gravity, runs before session 46)
         c["slope_unseen"] = any(slope_unseen(table, r) for k in KINDS for r in by[(sc, k)])
         cells.append(dict(scenario=sc, **c))
@@ -159,16 +174,23 @@ def markdown(results: dict[str, dict], command: str) -> str:
             apart = c["apart"]
             mark = lambda k: ("-" if vs[k] is None else "yes" if vs[k] else
                               "no" + {True: " (told apart)", False: " (not told apart)"}.get(apart.get(k), ""))
-            ms = c["stride"]["ms_per_step"] if c["stride"] else None
+            ctl = c["time_basis"] == "controller"
+            ms = (c["stride"]["controller_ms" if ctl else "ms_per_step"] if c["stride"] else None)
+            orc_ms = c["oracle_controller_ms"] if ctl else c["oracle_ms"]
             lines.append(
                 f"| {c['scenario']}{' *' if c['slope_unseen'] else ''} | {_fmt(c['policy'])} | {_fmt(c['stride'])} | {_fmt(c['delan'])} | "
                 f"{_fmt(c['onn'])} | {_fmt(c.get('oracle'))} | {mark('policy')} | {mark('delan')} | {mark('onn')} | "
-                + (f"{ms:.1f}" if ms is not None else "-") + " | "
-                + (f"{c['oracle_ms']:.0f}" + (" (all scenarios)" if c["oracle_ms_from"] == "all scenarios" else "")
-                   if c["oracle_ms"] else "-") + " | "
+                + (f"{ms:.1f}{' c' if ctl else ''}" if ms is not None else "-") + " | "
+                + (f"{orc_ms:.0f}{' c' if ctl else ''}"
+                   + (" (all scenarios)" if c["oracle_ms_from"] == "all scenarios" else "")
+                   if orc_ms else "-") + " | "
                 + (f"{c['time_ratio']:.2f}" if c["time_ratio"] is not None else "-") + " | "
                 + ", ".join(f"{c[k]['seeds']}/{c[k]['episodes']}" if c[k] else "-"
                             for k in ("stride", "delan", "onn")) + " |")
+        if any(c["time_basis"] == "controller" for c in res["cells"]):
+            lines += ["", "c: the controllers' own time per period (`controller_ms`: one episode's "
+                          "planner and observer, no simulated world), where both rows have it; "
+                          "other cells: the closed loop's ms per step"]
         if any(c["slope_unseen"] for c in res["cells"]):
             lines += ["", "\\* rows on a slope their controller could not sense (world-down gravity, runs "
                           "before session 46: `results/planning_diagnosis/README.md`)"]

@@ -43,6 +43,19 @@ def test_targets_read_the_headline_seeds_and_the_oracle_time(experiment):
     assert cells["rough"]["oracle_ms"] == pytest.approx(550.0)  # the time: every oracle row of it
     md = mod.markdown({"go1": mod.robot_targets(tab)}, "cmd")
     assert "| rough | 0.090 | 0.062 | - | 0.072 | 0.050 | yes |" in md
+    assert cells["rough"]["time_basis"] == "closed-loop step"  # rows without controller_ms
+    # rows that timed their controllers: the ratio reads those (no world in them), where both
+    # STRIDE's and the oracle's rows have them
+    for row in tab["rows"]:
+        if row["scenario"] == "rough" and row["model"].split("@")[0] in ("stride", "stride_s1",
+                                                                       "stride_s2", "oracle"):
+            row["controller_ms"] = 400.0 if row["model"].startswith("oracle") else 36.0
+    cells = {c["scenario"]: c for c in mod.robot_targets(tab)["cells"]}
+    assert cells["rough"]["time_basis"] == "controller"
+    assert cells["rough"]["time_ratio"] == pytest.approx(36.0 / 400.0)
+    assert cells["soft"]["time_basis"] == "closed-loop step"  # STRIDE's soft rows were not timed
+    md = mod.markdown({"go1": mod.robot_targets(tab)}, "cmd")
+    assert "| 36.0 c | 400 c | 0.09 |" in md and "c: the controllers' own time" in md
     t = r["targets"]
     assert t["no_falls"]["met"] and t["no_falls"]["stride_episodes"] == 6
     assert (t["at_most_policy"]["scenarios"], t["at_most_policy"]["of"]) == (1, 2)
