@@ -1,5 +1,5 @@
-"""Wall-clock measurements shared by the benchmarks and the NFE figure: the median time of a
-call after a warm-up call, and the device's measured matmul peak."""
+"""Wall-clock measurements shared by the benchmarks, the closed loop and the NFE figure: the
+times (and median) of calls after a warm-up call, and the device's measured matmul peak."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import time
 from typing import Callable
 
 
-def median_time(fn: Callable[[], object], repeats: int) -> float:
-    """Median wall time (s) of ``repeats`` calls of ``fn`` after one warm-up call (which
-    compiles). ``fn`` must block until its result is ready (``jax.block_until_ready``)."""
+def wall_times(fn: Callable[[], object], repeats: int) -> list[float]:
+    """Wall times (s) of ``repeats`` calls of ``fn`` after one warm-up call (which compiles).
+    ``fn`` must block until its result is ready (``jax.block_until_ready``)."""
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")
     fn()  # compile and warm up
@@ -19,7 +19,12 @@ def median_time(fn: Callable[[], object], repeats: int) -> float:
         t = time.perf_counter()
         fn()
         times.append(time.perf_counter() - t)
-    return statistics.median(times)
+    return times
+
+
+def median_time(fn: Callable[[], object], repeats: int) -> float:
+    """Median wall time (s) of ``repeats`` calls of ``fn`` after a warm-up (:func:`wall_times`)."""
+    return statistics.median(wall_times(fn, repeats))
 
 
 def peak_flops(n: int = 2048, repeats: int = 5, dtype: str = "float32") -> float:

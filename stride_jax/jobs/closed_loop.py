@@ -38,6 +38,7 @@ import contextlib
 import dataclasses
 import json
 import pathlib
+import statistics
 import time
 from typing import Callable, ClassVar
 
@@ -64,7 +65,7 @@ from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,
 from stride_jax.io import atomic_write, atomic_write_text, code_version
 from stride_jax.jobs.headline import check_entries
 from stride_jax.sim import model as sim_model
-from stride_jax.timing import median_time
+from stride_jax.timing import wall_times
 
 
 # ---------------------------------------------------------------------------------------------
@@ -137,7 +138,8 @@ class ClosedLoopConfig:
         measured over draws.
       latency_auto: each planner runs late by its own controller's time on this machine: per
         pair, its controller is timed on time first (``controller_repeats``), and
-        ``planning.latency_s`` is set to that (rows: ``latency_auto_ms``, ``latency_steps``), so
+        ``planning.latency_s`` is set to the longest of those times (a real-time loop budgets
+        its worst case; rows: ``latency_auto_ms``, ``latency_steps``), so
         planners of different speeds (ONN, STRIDE, the oracle) are compared as a robot with this
         computer would run them. Compensation and feedback as ``planning`` says.
       model_substeps: the learned structured models (STRIDE, DeLaN, LNN + diffusion) integrate
@@ -145,7 +147,8 @@ class ClosedLoopConfig:
         (``models.with_substeps``: the same accelerations, integrated coarser or finer); 0: as
         each was trained (Go1's and G1's: 5 of 4 ms). Next-observation models are unchanged.
       controller_repeats: time the controller's own computation per control period this many
-        times after the episode (``controller_ms`` in each row, the median; one episode's, with
+        times after the episode (``controller_ms`` in each row, the median, and
+        ``controller_ms_max`` the longest; one episode's, with
         no simulated world: what a robot's computer must fit in 20 ms, where ``ms_per_step``
         also counts the simulation and side-by-side episodes). 0: not timed.
     """
@@ -352,10 +355,11 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
 
     timed = {}  # the controller's own period, compiled once per compiled episode
 
-    def controller_ms(name, sm_sim, args, sig) -> tuple[float, float]:
-        """``(median ms, compile s)`` of the controller's own computation in one control period
-        (:func:`controller_period`: one episode's, from its start, the planner's state carried
-        over ``cfg.controller_repeats`` periods): what a robot's computer must fit in a period."""
+    def controller_ms(name, sm_sim, args, sig) -> tuple[float, float, float]:
+        """``(median ms, longest ms, compile s)`` of the controller's own computation in one
+        control period (:func:`controller_period`: one episode's, from its start, the planner's
+        state carried over ``cfg.controller_repeats`` periods): what a robot's computer must fit
+        in a period."""
         t0 = time.perf_counter()
         if sig not in timed:
             def begin(mx_sim, mx_plan, learned_args, key):
@@ -375,7 +379,8 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             carry[0] = (carry[0][0], ps, *carry[0][2:])  # warm-started as in the episode
         once()  # compiled
         compile_s = time.perf_counter() - t0
-        return 1e3 * median_time(once, cfg.controller_repeats), compile_s
+        times = wall_times(once, cfg.controller_repeats)
+        return 1e3 * statistics.median(times), 1e3 * max(times), compile_s
 
     for sc_name in [s for s in cfg.scenarios.split(",") if s]:
         sc = scenario(cfg, sc_name)
@@ -396,12 +401,14 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             sig = (kind.get(name, name), n_steps, tuple(slots[0]), sm_sim.geom_foot.tobytes(),
                    jax.tree.structure(args[:3]), len(todo) if batched else 0, chunk)
             plan_cfg[name], auto_ms = cfg.planning, None
-            if cfg.latency_auto and planned:  # late by its own time on this machine
-                auto_ms, auto_compile_s = controller_ms(name, sm_sim, args, sig + (0,))
+            if cfg.latency_auto and planned:  # late by its own (longest) time on this machine
+                median_ms, auto_ms, auto_compile_s = controller_ms(name, sm_sim, args,
+                                                                   sig + (0,))
                 plan_cfg[name] = dataclasses.replace(cfg.planning, latency_s=auto_ms / 1e3)
-                log(f"  {sc.name} {name}: --latency-auto: its controller takes {auto_ms:.1f} ms "
-                    f"on time (compile {auto_compile_s:.0f} s), so its plans act "
-                    f"{latency_steps(plan_cfg[name], sm.robot.ctrl_dt)} period(s) late")
+                log(f"  {sc.name} {name}: --latency-auto: its controller takes {median_ms:.1f} "
+                    f"ms on time (median; longest {auto_ms:.1f}; compile {auto_compile_s:.0f} "
+                    f"s), so its plans act {latency_steps(plan_cfg[name], sm.robot.ctrl_dt)} "
+                    "period(s) late")
             lat = latency_steps(plan_cfg[name], sm.robot.ctrl_dt) if planned else 0
             sig += (lat,)
             t0 = time.perf_counter()
@@ -429,15 +436,16 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                 traces = jax.block_until_ready(compiled[sig](*args))
                 run_s = time.perf_counter() - t0
                 traces = jax.tree.map(np.asarray, traces)  # one copy to the host for all episodes
-            ctl_ms = None
+            ctl_ms = ctl_max = None
             if cfg.controller_repeats:
-                ctl_ms, ctl_compile_s = controller_ms(name, sm_sim, args, sig)
+                ctl_ms, ctl_max, ctl_compile_s = controller_ms(name, sm_sim, args, sig)
                 budget_ms = 1e3 * sm.robot.ctrl_dt * max(lat, 1)
                 log(f"  {sc.name} {name}: the controller's own period {ctl_ms:.1f} ms "
-                    f"(median of {cfg.controller_repeats}; compile {ctl_compile_s:.0f} s)"
-                    + ("" if ctl_ms <= budget_ms else
-                       f": over the {budget_ms:.0f} ms of its {max(lat, 1)} period(s), so a robot"
-                       " could not run it so" + ("" if lat else
+                    f"(median of {cfg.controller_repeats}, longest {ctl_max:.1f}; compile "
+                    f"{ctl_compile_s:.0f} s)"
+                    + ("" if ctl_max <= budget_ms else
+                       f": the longest over the {budget_ms:.0f} ms of its {max(lat, 1)} "
+                       "period(s), so a robot could not run it so" + ("" if lat else
                                                  " (--planning.latency-s runs it late)")))
             for i, seed in enumerate(todo):
                 trace = jax.tree.map(lambda x: x[i], traces) if batched else traces
@@ -445,6 +453,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                 row = dict(scenario=sc.name, model=name, run=run_dir or None,
                            **metrics(trace, cfg.settle_s),
                            ms_per_step=1e3 * run_s / n_steps, controller_ms=ctl_ms,
+                           controller_ms_max=ctl_max,
                            compile_s=compile_s,
                            steps=n_steps, K=cfg.mppi.samples if planned else None,
                            H=cfg.mppi.horizon if planned else None,
