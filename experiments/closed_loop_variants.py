@@ -7,13 +7,12 @@ its plans arrive late (``latency_steps``).
         [--scenarios A,B]
 
 PATH: a ``closed_loop.json`` (a run's, or a merged table whose rows name their ``part``; PART
-keeps that part's rows). Rows are grouped by scenario and by trained seed (the model's name less
-its ``@part``); ``policy`` rows make a variant of their own where a label holds only them."""
+keeps that part's rows). Rows are grouped by scenario and by trained seed
+(``stride_paper.seeds.seed_means``: the run folder's ``-sN``, else the name's ``_sN``)."""
 
 from __future__ import annotations
 
 import argparse
-import collections
 import json
 import pathlib
 import shlex
@@ -22,6 +21,7 @@ import sys
 import numpy as np
 
 from stride_jax.io import atomic_write_text
+from stride_paper.seeds import seed_means
 
 
 def rows_of(spec: str) -> tuple[str, list[dict]]:
@@ -45,11 +45,7 @@ def summary(rows: list[dict]) -> dict[str, dict]:
     out = {}
     for sc in dict.fromkeys(r["scenario"] for r in rows):
         mine = [r for r in rows if r["scenario"] == sc]
-        seeds = collections.defaultdict(list)
-        for r in mine:
-            if not r["fell"]:
-                seeds[r["model"].split("@")[0]].append(r["vel_rmse"])
-        per_seed = [float(np.mean(v)) for v in seeds.values()]
+        per_seed = list(seed_means(mine).values())
         ctl = [r["controller_ms"] for r in mine if r.get("controller_ms") is not None]
         out[sc] = dict(rmse=float(np.mean(per_seed)) if per_seed else float("nan"),
                        per_seed=per_seed, falls=sum(bool(r["fell"]) for r in mine),

@@ -8,12 +8,14 @@ import time
 from typing import Callable
 
 
-def wall_times(fn: Callable[[], object], repeats: int) -> list[float]:
-    """Wall times (s) of ``repeats`` calls of ``fn`` after one warm-up call (which compiles).
-    ``fn`` must block until its result is ready (``jax.block_until_ready``)."""
+def wall_times(fn: Callable[[], object], repeats: int, warm_up: bool = True) -> list[float]:
+    """Wall times (s) of ``repeats`` calls of ``fn`` after one warm-up call (which compiles;
+    ``warm_up=False``: the caller made it). ``fn`` must block until its result is ready
+    (``jax.block_until_ready``)."""
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")
-    fn()  # compile and warm up
+    if warm_up:
+        fn()  # compile and warm up
     times = []
     for _ in range(repeats):
         t = time.perf_counter()

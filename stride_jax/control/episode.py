@@ -167,20 +167,35 @@ def controller_period(sm: sim_model.SimModel, mx_sim: mjx.Model, planning: Plann
     d, ps, clock, _, dist, *rest = carry
     q_aug = augment(d.qpos, jnp.zeros(3, d.qpos.dtype), clock, disturbance=dist,
                     gravity=sensed_gravity(mx_sim, jnp.zeros(())))
-    if planner is None:
-        return planning.policy(q_aug, d.qvel), ps, dist
-    nu, lat = sm.info.nu, planning.latency_steps
-    gait = len(planning.lo) > nu
-    if lat:
-        u, ps, _ = _late_plan(planning, planner, rest[-1], ps, jnp.zeros((), jnp.int32), lat,
-                              q_aug, d.qvel, gait, nu, sm.robot.ctrl_dt)
-    else:
-        u, ps, _ = planner.step(ps, q_aug, d.qvel)
-    if planning.observer_gain > 0:
+    late = rest[-1] if planner is not None and planning.latency_steps else None
+    u, ps, _, _, _ = _control(sm, planning, planner, ps, late, jnp.zeros((), jnp.int32), q_aug,
+                              d.qvel)
+    if planner is not None and planning.observer_gain > 0:
         central = planner.latents == "central"
         dist = update_disturbance(planning, q_aug, d.qvel, u, d.qvel, sm.robot.ctrl_dt,
                                   None if central else key)
     return u, ps, dist
+
+
+def _control(sm, planning: Planning, planner: mppi.Planner | None, ps, late, step, q_aug, qd):
+    """The controller's action in one control period, as :func:`run_episode` and
+    :func:`controller_period` both run it: ``(u, ps, late, (status, cut, alarm), info)`` (the
+    planner's ``info`` where it planned this period on time, else None); the policy alone where
+    there is no planner, a late planner (:func:`_late_plan`) where ``late`` is given."""
+    quiet = (jnp.zeros((), jnp.int32), jnp.zeros(()), jnp.zeros((), bool))
+    if planner is None:
+        return planning.policy(q_aug, qd), ps, late, quiet, None
+    nu = sm.info.nu
+    gait = len(planning.lo) > nu
+    if late is not None:
+        u, ps, late = _late_plan(planning, planner, late, ps, step, planning.latency_steps,
+                                 q_aug, qd, gait, nu, sm.robot.ctrl_dt)
+        return u, ps, late, late[1], None
+    u, ps, info = planner.step(ps, q_aug, qd)
+    cut = jnp.mean(info.kept < ps.plan.shape[0])
+    if gait:  # gait parameters are per rollout: hold the chosen ones over the plan
+        ps = ps._replace(plan=ps.plan.at[:, nu:].set(ps.plan[0, nu:]))
+    return u, ps, late, (info.status, cut, info.alarm), info
 
 
 def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=None, pushes=None,
@@ -227,20 +242,8 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
             seen = integral_command(planning, seen, integral)
         up = sensed_gravity(mx_sim, t, tilt) if sense_gravity else None
         q_aug = augment(d.qpos, seen, clock, disturbance=dist, gravity=up)
-        status, cut, info = jnp.zeros((), jnp.int32), jnp.zeros(()), None
-        alarm = jnp.zeros((), bool)
-        if planner is not None and lat:
-            u, ps, late = _late_plan(planning, planner, late, ps, step, lat, q_aug, d.qvel,
-                                     gait, nu, dt)
-            status, cut, alarm = late[1]
-        elif planner is not None:
-            u, ps, info = planner.step(ps, q_aug, d.qvel)
-            status, alarm = info.status, info.alarm
-            cut = jnp.mean(info.kept < horizon)
-            if gait:  # gait parameters are per rollout: hold the chosen ones over the plan
-                ps = ps._replace(plan=ps.plan.at[:, nu:].set(ps.plan[0, nu:]))
-        else:
-            u = planning.policy(q_aug, d.qvel)
+        u, ps, late, (status, cut, alarm), info = _control(sm, planning, planner, ps, late,
+                                                            step, q_aug, d.qvel)
         u = jnp.where(down, jnp.asarray(planning.nominal_u), u)  # fallen: stop planning effort
         mx_t, d = world_at(mx_sim, d, base, t, pushes, tilt)
         d2 = envs.physics_step(mx_t, sm.n_substeps, d, planning.ctrl(q_aug, u))
@@ -307,20 +310,18 @@ def _late_plan(planning: Planning, planner: mppi.Planner, late, ps, step, lat: i
     H = active.shape[0]
     at = lambda plan, k: plan[jnp.minimum(k, H - 1)]  # past its end a plan holds its last action
 
-    def policy_or(force, plan_u, q_a, qd_):
-        if planning.policy is None:
-            return plan_u
-        u_pol = jnp.clip(planning.policy(q_a, qd_), planning.lo, planning.hi)
-        return jnp.where(handed(force) & jnp.all(jnp.isfinite(u_pol)), u_pol, plan_u)
-
     def act(force, plan_u, ref, q_a, qd_):
         """The action of a plan in force at ``(q_a, qd_)``: its own, the policy's where it was
         handed over, and with the policy's feedback ``plan_u + policy(now) - ref`` (``ref``:
         the policy at the state predicted for this period; the plan's own where not finite)."""
-        u = policy_or(force, plan_u, q_a, qd_)
+        if planning.policy is None:
+            return plan_u
+        pol = planning.policy(q_a, qd_)  # once: the hand-over and the feedback both read it
+        u_pol = jnp.clip(pol, planning.lo, planning.hi)
+        u = jnp.where(handed(force) & jnp.all(jnp.isfinite(u_pol)), u_pol, plan_u)
         if ref is None:
             return u
-        fed = jnp.clip(u + planning.policy(q_a, qd_) - ref, planning.lo, planning.hi)
+        fed = jnp.clip(u + pol - ref, planning.lo, planning.hi)
         return jnp.where(jnp.all(jnp.isfinite(fed)) & ~handed(force), fed, u)
 
     def along(q_a, qd_, action):

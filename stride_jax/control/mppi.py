@@ -562,15 +562,15 @@ def make(cfg: MPPIConfig, dynamics: Dynamics, running_cost: Callable, action_lo,
         u = plan[0]
         if policy is not None:  # no rollout stayed finite from a valid state: the policy acts
             u_pol = jnp.clip(policy(q_in, qd_in), lo, hi)
-            u = jnp.where((status == NO_FINITE_ROLLOUT) & jnp.all(jnp.isfinite(u_pol)), u_pol, u)
+            pol_ok = jnp.all(jnp.isfinite(u_pol))
+            u = jnp.where((status == NO_FINITE_ROLLOUT) & pol_ok, u_pol, u)
         distrusted = state.distrusted
         if distrust is not None:  # the model now, or the policy still held since it last failed
             failing, left = hold(jnp.asarray(distrust(q_in, qd_in), bool), distrusted,
                                  cfg.distrust_hold)
             hand_over = good_state & failing
             distrusted = jnp.where(good_state, left, distrusted)
-            u_policy = jnp.clip(policy(q_in, qd_in), lo, hi)
-            u = jnp.where(hand_over & jnp.all(jnp.isfinite(u_policy)), u_policy, u)
+            u = jnp.where(hand_over & pol_ok, u_pol, u)
             status = jnp.where(hand_over, DISTRUSTED, status).astype(jnp.int32)
         info = info._replace(plan=plan, status=status)
         return u, MPPIState(plan, key, z, held, distrusted), info
