@@ -28,7 +28,7 @@ from stride_jax.control.planning import (N_AUG, N_DIST, Planning, PlanningConfig
 from stride_jax.control.scenarios import (Scenario, command_at, governed, gravity_at,
                                           push_schedule, scenario_model, schedule, tilt_schedule,
                                           world_at)
-from stride_jax.sim import model as sim_model, rollout_mjx
+from stride_jax.sim import model as sim_model, rollout_mjx, sensors as sensors_lib
 
 
 class Trace(NamedTuple):
@@ -88,7 +88,8 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
                 pushes: jax.Array | None = None,
                 limits: tuple[jax.Array, jax.Array] | None = None,
                 tilt: jax.Array | None = None, progress: Callable | None = None,
-                progress_every: int = 50, sense_gravity: bool = True
+                progress_every: int = 50, sense_gravity: bool = True,
+                sensors: sensors_lib.SensorNoise | None = None
                 ) -> Trace | tuple[Trace, object]:
     """A closed-loop episode of ``n_steps`` control steps from the home pose (heading +x) under
     the command :func:`schedule` ``(starts, values)``. ``planner=None`` lets ``planning.policy``
@@ -121,9 +122,15 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     ``sense_gravity``: the policy and the planner observe the simulation's gravity direction
     (:func:`sensed_gravity`), as an IMU on a real slope senses the slope; ``False``: world down,
     as every run before session 46 did, which hides an emulated slope from them (the floor stays
-    level while gravity tilts)."""
+    level while gravity tilts).
+
+    ``sensors``: the controller sees the state through a real robot's sensors and state
+    estimator (:func:`stride_jax.sim.sensors.measure`, a fresh draw each period): the policy, the
+    planner, the disturbance observer (the state before and after each step as measured) and the
+    integral action (the measured base velocity) read it; the world, the trace and the fall check
+    keep the true state. None: the exact state, as every run before session 81."""
     init, body = _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record,
-                          pushes, limits, tilt, progress, progress_every, sense_gravity)
+                          pushes, limits, tilt, progress, progress_every, sense_gravity, sensors)
     _, trace = jax.lax.scan(body, init, jnp.arange(n_steps))
     return trace
 
@@ -142,14 +149,15 @@ def continue_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning:
                      pushes: jax.Array | None = None,
                      limits: tuple[jax.Array, jax.Array] | None = None,
                      tilt: jax.Array | None = None, progress: Callable | None = None,
-                     progress_every: int = 50, sense_gravity: bool = True):
+                     progress_every: int = 50, sense_gravity: bool = True,
+                     sensors: sensors_lib.SensorNoise | None = None):
     """``n_steps`` control steps of :func:`run_episode`'s episode from ``carry`` (of
     :func:`start_episode` or of an earlier call) at control step ``first_step`` (traced: one
     program serves every chunk): ``(carry, trace)``. Chunks run one after another give
     :func:`run_episode`'s trace, so a long episode can be saved between them and resumed
     (``stride closed-loop --chunk-s``). Pure; jit it."""
     _, body = _episode(sm, mx_sim, slots, planning, planner, starts, values, key, None, pushes,
-                       limits, tilt, progress, progress_every, sense_gravity)
+                       limits, tilt, progress, progress_every, sense_gravity, sensors)
     return jax.lax.scan(body, carry, first_step + jnp.arange(n_steps))
 
 
@@ -199,7 +207,8 @@ def _control(sm, planning: Planning, planner: mppi.Planner | None, ps, late, ste
 
 
 def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=None, pushes=None,
-             limits=None, tilt=None, progress=None, progress_every=50, sense_gravity=True):
+             limits=None, tilt=None, progress=None, progress_every=50, sense_gravity=True,
+             sensors=None):
     """``(init, body)`` of :func:`run_episode`'s scan over control steps."""
     nu = sm.info.nu
     gait = len(planning.lo) > nu
@@ -228,6 +237,17 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
     if lat and record is not None:
         raise ValueError(f"record reads the planner's step as it acts; with latency_steps={lat} "
                          "its plans act later: record needs a planner without latency")
+    if sensors is not None and record is not None:
+        raise ValueError("record pairs the planner's candidates with the true states: it needs "
+                         "the exact state (sensors=None)")
+    sense_key = jax.random.fold_in(key, 0x5E45)  # the sensors' own draws
+
+    def seen(d_, step):
+        """``(qpos, qvel)`` of ``d_`` at period ``step`` as the controller sees them."""
+        if sensors is None:
+            return d_.qpos, d_.qvel
+        return sensors_lib.measure(sensors, d_.qpos, d_.qvel, jax.random.fold_in(sense_key, step),
+                                   sm.robot.floating_base)
 
     def body(carry, step):
         d, ps, clock, down, dist, *rest = carry  # rest: the integral's and latency's states
@@ -235,15 +255,16 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         late = rest[-1] if lat else None
         t = step * dt
         command = command_at(starts, values, t)
-        seen = command if limits is None else jnp.clip(command, limits[0], limits[1])
-        asked = seen  # what the controller is asked (governed), before the integral's shift
+        command_seen = command if limits is None else jnp.clip(command, limits[0], limits[1])
+        asked = command_seen  # what the controller is asked (governed), before the integral
         if integrate:  # integral action: the planner tracks the command moved against the error
             (integral, since, prev), = track
-            seen = integral_command(planning, seen, integral)
+            command_seen = integral_command(planning, command_seen, integral)
         up = sensed_gravity(mx_sim, t, tilt) if sense_gravity else None
-        q_aug = augment(d.qpos, seen, clock, disturbance=dist, gravity=up)
+        qpos_m, qvel_m = seen(d, step)
+        q_aug = augment(qpos_m, command_seen, clock, disturbance=dist, gravity=up)
         u, ps, late, (status, cut, alarm), info = _control(sm, planning, planner, ps, late,
-                                                            step, q_aug, d.qvel)
+                                                            step, q_aug, qvel_m)
         u = jnp.where(down, jnp.asarray(planning.nominal_u), u)  # fallen: stop planning effort
         mx_t, d = world_at(mx_sim, d, base, t, pushes, tilt)
         d2 = envs.physics_step(mx_t, sm.n_substeps, d, planning.ctrl(q_aug, u))
@@ -252,20 +273,23 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         finite = jnp.all(jnp.isfinite(d2.qpos)) & jnp.all(jnp.isfinite(d2.qvel))
         d2 = jax.tree.map(lambda a, b: jnp.where(finite, a, b), d2, d)  # freeze a diverged sim
         down2 = down | rollout_mjx.fallen(sm, d2.qpos) | ~finite
+        qpos2_m, qvel2_m = seen(d2, step + 1)  # the next period's reading, drawn as it will be
         if observe:  # the planner's model predicts the step just taken; integrate its error
-            new = update_disturbance(planning, q_aug, d.qvel, u, d2.qvel, dt,
+            new = update_disturbance(planning, q_aug, qvel_m, u, qvel2_m, dt,
                                      None if central else jax.random.fold_in(obs_key, step))
             dist = jnp.where(finite & ~down2, new, dist)
         v, w, _ = envs.base_signals(d2.qpos, d2.qvel)
         if integrate:
-            track = [(*integrate_velocity_error(planning, integral, since, asked, prev, v, dt),
+            v_m = v if sensors is None else envs.base_signals(qpos2_m, qvel2_m)[0]
+            track = [(*integrate_velocity_error(planning, integral, since, asked, prev, v_m, dt),
                       asked)]
         rec = Trace(t + dt, command, v, w, d2.qpos[2], down2, envs.foot_contact(sm, slots, d2),
                     u, status, cut, dist, alarm)
         if record is not None:
             up2 = sensed_gravity(mx_sim, t + dt, tilt) if sense_gravity else None
             rec = (rec, record(q_aug, d.qvel, u, info,
-                               augment(d2.qpos, seen, clock, disturbance=dist, gravity=up2),
+                               augment(d2.qpos, command_seen, clock, disturbance=dist,
+                                       gravity=up2),
                                d2.qvel, down, jax.random.fold_in(key, step)))
         if progress is not None:
             jax.lax.cond((step + 1) % progress_every == 0,

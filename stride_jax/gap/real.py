@@ -8,7 +8,6 @@ seed gives the same commands and starts whatever effect is planted.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 
 import jax
@@ -17,36 +16,8 @@ import numpy as np
 
 from stride_jax.gap import effects, logs, sim
 from stride_jax.sim.model import SimModel
+from stride_jax.sim.sensors import SPIKE, SensorNoise  # (the logs' sensors; re-exported)
 from stride_jax.sim.rollout_mjx import fallen
-
-
-@dataclasses.dataclass(frozen=True)
-class SensorNoise:
-    """A real robot's sensors (all standard deviations; 0 disables a term).
-
-    Attributes:
-      encoder_bits: joint encoder resolution (bits per turn); 0 = no quantisation.
-      encoder_std: joint position noise (rad).
-      velocity_std: joint velocity estimate noise (rad/s, white at the log rate).
-      torque_std: measured torque noise (N m).
-      base_drift: random-walk step of the estimator's horizontal position (m per sample).
-      base_z_std: estimator height noise (m).
-      tilt_std: estimator orientation noise (rad, small random rotation per sample).
-      linvel_std: estimator linear velocity noise (m/s).
-      gyro_std: angular velocity noise (rad/s).
-      outlier_rate: fraction of joint velocity samples replaced by a spike (glitches).
-    """
-
-    encoder_bits: int = 14
-    encoder_std: float = 2e-4
-    velocity_std: float = 0.03
-    torque_std: float = 0.2
-    base_drift: float = 1e-3
-    base_z_std: float = 1e-3
-    tilt_std: float = 2e-3
-    linvel_std: float = 0.02
-    gyro_std: float = 0.01
-    outlier_rate: float = 1e-3
 
 
 def _quat_mul(a, b):
@@ -69,7 +40,7 @@ def add_noise(sm: SimModel, tr: logs.Trajectory, noise: SensorNoise, rng: np.ran
     q[:, lay.qadr] = qj
     vj = qd[:, lay.vadr] + noise.velocity_std * rng.standard_normal((T, len(lay.vadr)))
     spikes = rng.random(vj.shape) < noise.outlier_rate
-    vj[spikes] += rng.choice([-1, 1], spikes.sum()) * rng.uniform(2, 10, spikes.sum())
+    vj[spikes] += rng.choice([-1, 1], spikes.sum()) * rng.uniform(*SPIKE, spikes.sum())
     qd[:, lay.vadr] = vj
     if sm.robot.floating_base:
         q[:, :2] += np.cumsum(noise.base_drift * rng.standard_normal((T, 2)), 0)

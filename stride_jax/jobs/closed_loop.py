@@ -65,6 +65,7 @@ from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,
 from stride_jax.io import atomic_write, atomic_write_text, code_version
 from stride_jax.jobs.headline import check_entries
 from stride_jax.sim import model as sim_model
+from stride_jax.sim.sensors import SensorNoise
 from stride_jax.timing import wall_times
 
 
@@ -151,6 +152,14 @@ class ClosedLoopConfig:
         ``controller_ms_max`` the longest; one episode's, with
         no simulated world: what a robot's computer must fit in 20 ms, where ``ms_per_step``
         also counts the simulation and side-by-side episodes). 0: not timed.
+      sensor_noise: the controller (policy, planner, its observer and integral action) sees
+        the state through a real robot's sensors and state estimator, ``sensors`` with every
+        standard deviation times this factor (``SensorNoise.scaled``; a fresh draw each period,
+        the episode's key): 1 is a well-instrumented robot, larger a worse estimator. 0: the
+        exact state (every run before session 81). Scenario names get the factor
+        (``rough_noise3``); rows record it.
+      sensors: the sensors' terms (``--sensors.linvel-std``, ``--sensors.gyro-std``, ...;
+        :class:`stride_jax.sim.sensors.SensorNoise`), used where ``sensor_noise`` > 0.
     """
 
     robot: str = "go1"
@@ -179,6 +188,8 @@ class ClosedLoopConfig:
     controller_repeats: int = 10
     latency_auto: bool = False
     model_substeps: int = 0
+    sensor_noise: float = 0.0
+    sensors: SensorNoise = SensorNoise()
 
     def __post_init__(self):
         if self.episodes < 1:
@@ -197,6 +208,10 @@ class ClosedLoopConfig:
         if self.model_precision not in PRECISIONS:
             raise ValueError(f"--model-precision is {self.model_precision!r}: use one of "
                              f"{', '.join(repr(p) for p in PRECISIONS)}")
+        self.sensors.scaled(self.sensor_noise)  # a clear error for a negative or NaN factor
+        if not self.sensor_noise and self.sensors != SensorNoise():
+            raise ValueError("--sensors.* set the sensors' terms, which only --sensor-noise > 0 "
+                             "uses (1: the terms as given); --sensor-noise is 0")
         for field in ("seconds", "slope_deg", "rough_cm", "push_scale", "friction"):
             if getattr(self, field) < 0:
                 raise ValueError(f"--{field.replace('_', '-')} is {getattr(self, field)}: it must be >= 0 "
@@ -293,6 +308,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     if any(name == "policy" for name, _ in models) and ppo_policy is None:
         raise ValueError("model 'policy' needs --policy RUN")
     compiled = {}  # one executable per (kind of model, episode length, model structures)
+    sensors = cfg.sensors.scaled(cfg.sensor_noise) if cfg.sensor_noise else None
     limits = env_cfg.commands.bounds() if cfg.govern else None
     every = max(1, int(round(cfg.progress_s / sm.robot.ctrl_dt))) if cfg.progress_s > 0 else 0
     now = {"label": "", "t0": 0.0, "n": 1}  # the running pair, for the progress callback
@@ -330,7 +346,8 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         """The jitted episode; with ``chunk`` steps, ``(start, continue)``: the episode's first
         state, and ``chunk`` steps from a state at a step given at run time."""
         episode_kw = dict(limits=limits, progress=progress if every else None,
-                          progress_every=every or 1, sense_gravity=cfg.sense_gravity)
+                          progress_every=every or 1, sense_gravity=cfg.sense_gravity,
+                          sensors=sensors)
 
         def episode(mx_sim, mx_plan, learned_args, starts, values, pushes, tilt, key):
             planning, planner = parts(name, mx_plan, learned_args)
@@ -459,6 +476,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                            H=cfg.mppi.horizon if planned else None,
                            latency_steps=lat if planned else None,
                            **({"latency_auto_ms": auto_ms} if auto_ms is not None else {}),
+                           **({"sensor_noise": cfg.sensor_noise} if sensors else {}),
                            seed=seed,
                            episode=episode, side_by_side=len(todo) if batched else 1)
                 rows.append(row)
@@ -578,7 +596,8 @@ def scenario(cfg: ClosedLoopConfig, name: str) -> Scenario:
     scenario with a slope, ``cfg.rough_cm`` for one with rough ground, ``cfg.push_scale`` for one
     with pushes and ``cfg.friction`` for one with a lowered friction (renamed with the angle,
     height, factor or value, ``tilt15``, ``rough2``, ``push3x``, ``low_friction0.15``, so that
-    rows of different scenarios never share a name)."""
+    rows of different scenarios never share a name); with ``cfg.sensor_noise`` the name gets
+    its factor (``rough2_noise3``: the controller sees through noisier sensors)."""
     sc = SCENARIOS[name]
     if cfg.seconds:
         sc = dataclasses.replace(sc, seconds=cfg.seconds)
@@ -591,6 +610,8 @@ def scenario(cfg: ClosedLoopConfig, name: str) -> Scenario:
         sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.push_scale:g}x", pushes=pushes)
     if cfg.friction and sc.friction != 1.0:
         sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.friction:g}", friction=cfg.friction)
+    if cfg.sensor_noise:
+        sc = dataclasses.replace(sc, name=f"{sc.name}_noise{cfg.sensor_noise:g}")
     return sc
 
 
