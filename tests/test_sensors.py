@@ -178,3 +178,43 @@ def test_the_controller_sees_the_world_through_the_sensors_and_the_world_keeps_t
     with pytest.raises(ValueError, match="record pairs"):
         ep.run_episode(w.sm, w.mx, w.slots, planning, _watching_planner(nu, []), 1, w.starts,
                        w.values, key, record=lambda *a: 0, sensors=noise)
+
+
+def test_the_velocity_filter_blends_the_observers_prediction_into_what_the_controller_acts_on(go1):
+    """``planning.velocity_filter`` f: from the second period on the controller acts on
+    ``measured + f (predicted - measured)``, the prediction the observer made in the period
+    before (the model's step from what the controller then acted on); the first period acts on
+    the measurement; the world is the unfiltered run's (a planner that stands still). Without
+    the observer it is an error."""
+    nu, n, f = go1.info.nu, 4, 0.75
+    mx = mjx.put_model(go1.mj)
+    w = cl.scenario_world(go1, dataclasses.replace(cl.SCENARIOS["walk"],
+                                                   seconds=n * go1.robot.ctrl_dt))
+    key = jax.random.key(5)
+    noise = dataclasses.replace(QUIET, linvel_std=0.2, velocity_std=0.5)
+    seen = {}
+    for share in (0.0, f):
+        planning = planning_lib.make_planning(
+            planning_lib.PlanningConfig(observer_gain=0.3, velocity_filter=share),
+            envs.config("go1"), go1, cl.mjx_step_fn(go1, mx))
+        seen[share] = []
+        trace = jax.device_get(jax.jit(lambda k: ep.run_episode(
+            w.sm, w.mx, w.slots, planning, _watching_planner(nu, seen[share]), n, w.starts,
+            w.values, k, sensors=noise))(key))
+        seen[share].append(trace)
+    (*raw, plain), (*filt, trace) = seen[0.0], seen[f]
+    np.testing.assert_allclose(trace.height, plain.height, atol=1e-5)
+    np.testing.assert_allclose(filt[0][1], raw[0][1], atol=1e-6)  # period 0: the measurement
+    for k in range(1, n):
+        (a_prev, v_prev), (_, v_meas) = filt[k - 1], raw[k]  # raw: the same draws, unblended
+        _, pred = planning_lib.observe_step(
+            planning, jnp.asarray(a_prev), jnp.asarray(v_prev), jnp.zeros(nu),
+            jnp.asarray(v_meas), go1.robot.ctrl_dt,
+            jax.random.fold_in(jax.random.fold_in(key, 0x0B5E), k - 1))
+        np.testing.assert_allclose(filt[k][1], v_meas + f * (np.asarray(pred) - v_meas),
+                                   atol=1e-4, err_msg=f"period {k}")
+        assert np.abs(filt[k][1] - v_meas).max() > 1e-3  # the blend moved it
+    with pytest.raises(ValueError, match="needs observer_gain > 0"):
+        planning_lib.PlanningConfig(velocity_filter=0.5)
+    with pytest.raises(ValueError, match=r"in \[0, 1\)"):
+        planning_lib.PlanningConfig(observer_gain=0.3, velocity_filter=1.0)

@@ -24,7 +24,7 @@ from mujoco import mjx
 from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.control.planning import (N_AUG, N_DIST, Planning, PlanningConfig, augment,
                                          integral_command, integrate_velocity_error,
-                                         make_planning, split, update_disturbance)
+                                         make_planning, observe_step, split, update_disturbance)
 from stride_jax.control.scenarios import (Scenario, command_at, governed, gravity_at,
                                           push_schedule, scenario_model, schedule, tilt_schedule,
                                           world_at)
@@ -117,7 +117,9 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     (bounded by ``planning.observer_limit``, held while fallen or after a non-finite step). The
     planner sees ``d`` in its state and adds it to every rollout step
     (:func:`stride_jax.control.planning.apply_disturbance`): integral action, so a persistent
-    model error (a slope, a payload) stops biasing the plan.
+    model error (a slope, a payload) stops biasing the plan. With ``planning.velocity_filter``
+    the controller acts on the measured velocities blended with that prediction (the last
+    period's, for this one): the learned model as a filter of noisy sensors.
 
     ``sense_gravity``: the policy and the planner observe the simulation's gravity direction
     (:func:`sensed_gravity`), as an IMU on a real slope senses the slope; ``False``: world down,
@@ -233,6 +235,7 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
     central = planner is not None and planner.latents == "central"  # it predicts as the planner
 
     integrate = planner is not None and planning.velocity_integral > 0
+    filtered = observe and planning.velocity_filter > 0
     lat = planning.latency_steps if planner is not None else 0
     if lat and record is not None:
         raise ValueError(f"record reads the planner's step as it acts; with latency_steps={lat} "
@@ -250,8 +253,9 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
                                    sm.robot.floating_base)
 
     def body(carry, step):
-        d, ps, clock, down, dist, *rest = carry  # rest: the integral's and latency's states
+        d, ps, clock, down, dist, *rest = carry  # rest: the integral's, filter's, latency's
         track = rest[:1] if integrate else []
+        pred = rest[len(track)] if filtered else None  # the observer's prediction for now
         late = rest[-1] if lat else None
         t = step * dt
         command = command_at(starts, values, t)
@@ -262,6 +266,9 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
             command_seen = integral_command(planning, command_seen, integral)
         up = sensed_gravity(mx_sim, t, tilt) if sense_gravity else None
         qpos_m, qvel_m = seen(d, step)
+        if filtered:  # the model's prediction blended into the measured velocities
+            blend = qvel_m + planning.velocity_filter * (pred - qvel_m)
+            qvel_m = jnp.where(jnp.all(jnp.isfinite(blend)), blend, qvel_m)
         q_aug = augment(qpos_m, command_seen, clock, disturbance=dist, gravity=up)
         u, ps, late, (status, cut, alarm), info = _control(sm, planning, planner, ps, late,
                                                             step, q_aug, qvel_m)
@@ -275,9 +282,11 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         down2 = down | rollout_mjx.fallen(sm, d2.qpos) | ~finite
         qpos2_m, qvel2_m = seen(d2, step + 1)  # the next period's reading, drawn as it will be
         if observe:  # the planner's model predicts the step just taken; integrate its error
-            new = update_disturbance(planning, q_aug, qvel_m, u, qvel2_m, dt,
-                                     None if central else jax.random.fold_in(obs_key, step))
+            new, qd_pred = observe_step(planning, q_aug, qvel_m, u, qvel2_m, dt,
+                                        None if central else jax.random.fold_in(obs_key, step))
             dist = jnp.where(finite & ~down2, new, dist)
+            if filtered:  # held where the world or the robot went astray: the measurement
+                pred = jnp.where(finite & ~down2, qd_pred, jnp.nan)
         v, w, _ = envs.base_signals(d2.qpos, d2.qvel)
         if integrate:
             v_m = v if sensors is None else envs.base_signals(qpos2_m, qvel2_m)[0]
@@ -294,7 +303,8 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         if progress is not None:
             jax.lax.cond((step + 1) % progress_every == 0,
                          lambda s: jax.debug.callback(progress, s), lambda s: None, step + 1)
-        return (d2, ps, clock, down2, dist, *track, *([late] if lat else [])), rec
+        return (d2, ps, clock, down2, dist, *track, *([pred] if filtered else []),
+                *([late] if lat else [])), rec
 
     init = (d0, ps0, jnp.zeros(()), jnp.zeros((), bool), jnp.zeros(N_DIST, d0.qpos.dtype))
     if integrate:  # the integrated error, the time since the last command change, the last
@@ -302,6 +312,9 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         # chunked run's saved state) as before
         init += ((jnp.zeros(2, d0.qpos.dtype), jnp.zeros((), d0.qpos.dtype),
                   jnp.full(3, jnp.nan, d0.qpos.dtype)),)
+    if filtered:  # the observer's prediction of the next period's velocities (none yet: the
+        # first period acts on its measurement)
+        init += (jnp.full(sm.mj.nv, jnp.nan, d0.qpos.dtype),)
     if lat:  # the plan in force and the (status, cut, alarm) of it and of the plan in flight
         # (in the planner's state); at the start both are the planner's initial plan; with the
         # policy's feedback, the policy at the states predicted along each (none yet: NaN, the

@@ -66,6 +66,13 @@ class PlanningConfig:
         step the estimate moves by this fraction of the base's one-step acceleration error
         (observed minus predicted by the planner's model with the current estimate).
       observer_limit: bound of each disturbance entry (m/s^2, rad/s^2).
+      velocity_filter: the learned model as a state estimator's process model (0: off; below
+        1): the velocities the controller (policy and planner) acts on each period are
+        ``measured + velocity_filter * (predicted - measured)``, the prediction being the
+        observer's (the planner's model from the last period's filtered velocities, action and
+        disturbance estimate, its residual's central sample or one draw as the observer's): a
+        steady-state Kalman filter of one gain, for sensors noisier than the model's one-period
+        error (a real robot's base-velocity estimate). Needs ``observer_gain`` > 0.
       observer_angular: estimate the base's angular acceleration too (default: the linear
         part only; the angular one-step errors of the learned models are dominated by contact
         transients, not by what persists).
@@ -200,6 +207,7 @@ class PlanningConfig:
     observer_gain: float = 0.0
     observer_limit: float = 6.0
     observer_angular: bool = False
+    velocity_filter: float = 0.0
     velocity_integral: float = 0.0
     velocity_integral_limit: float = 0.2
     velocity_integral_settle_s: float = 0.5
@@ -228,6 +236,12 @@ class PlanningConfig:
         if self.trust_limit and not self.observer_gain:
             raise ValueError(f"trust_limit={self.trust_limit} reads the disturbance observer's "
                              f"estimate: it needs observer_gain > 0")
+        if not 0 <= self.velocity_filter < 1:
+            raise ValueError(f"velocity_filter={self.velocity_filter} must be in [0, 1) (the "
+                             "prediction's share; 0: off)")
+        if self.velocity_filter and not self.observer_gain:
+            raise ValueError(f"velocity_filter={self.velocity_filter} blends in the disturbance "
+                             "observer's prediction: it needs observer_gain > 0")
         if self.family_cost_stop < 0 or not self.stop_speed > 0:
             raise ValueError(f"family_cost_stop={self.family_cost_stop} must be >= 0 and "
                              f"stop_speed={self.stop_speed} > 0")
@@ -284,6 +298,7 @@ class Planning(NamedTuple):
     latency_steps: int = 0  # control periods per plan's computation (0: the world waits)
     latency_compensation: bool = True  # plan from the model's prediction for when it applies
     latency_feedback: bool = False  # the policy's feedback around the plan between replans
+    velocity_filter: float = 0.0  # the observer's prediction's share in the velocities acted on
 
 
 class Aug(NamedTuple):
@@ -366,6 +381,14 @@ def update_disturbance(planning: "Planning", q_aug: jax.Array, qd: jax.Array, u:
     and the estimate moves by ``planning.observer_gain`` times the base's acceleration error,
     bounded by ``planning.observer_limit`` (a non-finite prediction keeps the estimate).
     ``key=None``: a stochastic model predicts with its residual's central sample."""
+    return observe_step(planning, q_aug, qd, u, qd_real, dt, key)[0]
+
+
+def observe_step(planning: "Planning", q_aug: jax.Array, qd: jax.Array, u: jax.Array,
+                 qd_real: jax.Array, dt: float, key: jax.Array | None
+                 ) -> tuple[jax.Array, jax.Array]:
+    """:func:`update_disturbance`'s estimate and the velocities ``[nv]`` the model predicted
+    for after the step (before the estimate moved): what ``velocity_filter`` blends in."""
     nq = q_aug.shape[-1] - N_AUG
     dist = split(q_aug, nq).disturbance
     _, qd_pred = planning.dynamics(q_aug, qd, u, key)
@@ -374,7 +397,7 @@ def update_disturbance(planning: "Planning", q_aug: jax.Array, qd: jax.Array, u:
         innovation = innovation.at[3:].set(0.0)
     new = jnp.clip(dist + planning.observer_gain * innovation, -planning.observer_limit,
                    planning.observer_limit)
-    return jnp.where(jnp.all(jnp.isfinite(new)), new, dist)
+    return jnp.where(jnp.all(jnp.isfinite(new)), new, dist), qd_pred
 
 
 def servo_torque(sm: sim_model.SimModel, q: jax.Array, qd: jax.Array, ctrl: jax.Array):
@@ -542,7 +565,7 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
                     family_prior, cfg.velocity_integral, cfg.velocity_integral_limit,
                     cfg.velocity_integral_settle_s, cfg.velocity_integral_band,
                     latency_steps(cfg, sm.robot.ctrl_dt), cfg.latency_compensation,
-                    cfg.latency_feedback)
+                    cfg.latency_feedback, cfg.velocity_filter)
 
 
 def latency_steps(cfg: PlanningConfig, dt: float) -> int:
