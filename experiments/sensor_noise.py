@@ -94,15 +94,17 @@ def plot(data: dict, path: pathlib.Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, len(data), figsize=(5 * len(data), 3.6), squeeze=False)
+    fig, axes = plt.subplots(1, len(data), figsize=(7.5 * len(data), 4.0), squeeze=False)
     for ax, (sc, models) in zip(axes[0], data.items()):
         for model, by in models.items():
             fs = sorted(by)
-            ax.plot(fs, [by[f]["rmse"] for f in fs], "o-", label=model)
-        ax.set(title=sc, xlabel="sensor noise factor (x a well-instrumented robot's)",
+            if len(fs) > 1:  # a curve; a variant run at one factor is the table's alone
+                ax.plot(fs, [by[f]["rmse"] for f in fs], "o-", label=model)
+        ax.set(title=f"{sc} (variants run at one noise factor: the table)",
+               xlabel="sensor noise factor (x a well-instrumented robot's)",
                ylabel="velocity RMSE (m/s)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=120))
     plt.close(fig)

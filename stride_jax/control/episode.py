@@ -118,8 +118,8 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     planner sees ``d`` in its state and adds it to every rollout step
     (:func:`stride_jax.control.planning.apply_disturbance`): integral action, so a persistent
     model error (a slope, a payload) stops biasing the plan. With ``planning.velocity_filter``
-    the controller acts on the measured velocities blended with that prediction (the last
-    period's, for this one): the learned model as a filter of noisy sensors.
+    the controller acts on the base's measured linear velocity blended with that prediction
+    (the last period's, for this one): the learned model as a filter of a noisy estimate.
 
     ``sense_gravity``: the policy and the planner observe the simulation's gravity direction
     (:func:`sensed_gravity`), as an IMU on a real slope senses the slope; ``False``: world down,
@@ -237,6 +237,9 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
     integrate = planner is not None and planning.velocity_integral > 0
     filtered = observe and planning.velocity_filter > 0
     lat = planning.latency_steps if planner is not None else 0
+    if filtered and not sm.robot.floating_base:
+        raise ValueError("velocity_filter blends the base's linear velocity: "
+                         f"{sm.robot.name} has no floating base")
     if lat and record is not None:
         raise ValueError(f"record reads the planner's step as it acts; with latency_steps={lat} "
                          "its plans act later: record needs a planner without latency")
@@ -266,9 +269,10 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
             command_seen = integral_command(planning, command_seen, integral)
         up = sensed_gravity(mx_sim, t, tilt) if sense_gravity else None
         qpos_m, qvel_m = seen(d, step)
-        if filtered:  # the model's prediction blended into the measured velocities
-            blend = qvel_m + planning.velocity_filter * (pred - qvel_m)
-            qvel_m = jnp.where(jnp.all(jnp.isfinite(blend)), blend, qvel_m)
+        if filtered:  # the model's prediction blended into the base's measured velocity
+            blend = qvel_m[:3] + planning.velocity_filter * (pred - qvel_m[:3])
+            qvel_m = qvel_m.at[:3].set(jnp.where(jnp.all(jnp.isfinite(blend)), blend,
+                                                 qvel_m[:3]))
         q_aug = augment(qpos_m, command_seen, clock, disturbance=dist, gravity=up)
         u, ps, late, (status, cut, alarm), info = _control(sm, planning, planner, ps, late,
                                                             step, q_aug, qvel_m)
@@ -286,7 +290,7 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
                                         None if central else jax.random.fold_in(obs_key, step))
             dist = jnp.where(finite & ~down2, new, dist)
             if filtered:  # held where the world or the robot went astray: the measurement
-                pred = jnp.where(finite & ~down2, qd_pred, jnp.nan)
+                pred = jnp.where(finite & ~down2, qd_pred[:3], jnp.nan)
         v, w, _ = envs.base_signals(d2.qpos, d2.qvel)
         if integrate:
             v_m = v if sensors is None else envs.base_signals(qpos2_m, qvel2_m)[0]
@@ -314,7 +318,7 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
                   jnp.full(3, jnp.nan, d0.qpos.dtype)),)
     if filtered:  # the observer's prediction of the next period's velocities (none yet: the
         # first period acts on its measurement)
-        init += (jnp.full(sm.mj.nv, jnp.nan, d0.qpos.dtype),)
+        init += (jnp.full(3, jnp.nan, d0.qpos.dtype),)
     if lat:  # the plan in force and the (status, cut, alarm) of it and of the plan in flight
         # (in the planner's state); at the start both are the planner's initial plan; with the
         # policy's feedback, the policy at the states predicted along each (none yet: NaN, the

@@ -67,12 +67,15 @@ class PlanningConfig:
         (observed minus predicted by the planner's model with the current estimate).
       observer_limit: bound of each disturbance entry (m/s^2, rad/s^2).
       velocity_filter: the learned model as a state estimator's process model (0: off; below
-        1): the velocities the controller (policy and planner) acts on each period are
-        ``measured + velocity_filter * (predicted - measured)``, the prediction being the
-        observer's (the planner's model from the last period's filtered velocities, action and
+        1): the base's linear velocity the controller (policy and planner) acts on each period
+        is ``measured + velocity_filter * (predicted - measured)``, the prediction being the
+        observer's (the planner's model from the last period's filtered state, action and
         disturbance estimate, its residual's central sample or one draw as the observer's): a
-        steady-state Kalman filter of one gain, for sensors noisier than the model's one-period
-        error (a real robot's base-velocity estimate). Needs ``observer_gain`` > 0.
+        steady-state Kalman filter of one gain, for a base-velocity estimate noisier than the
+        model's one-period error. The base's alone: the learned models predict the joints'
+        velocities a period ahead worse than a robot's encoders measure them (session 81,
+        ``results/closed_loop/sensor_noise_go1_cpu/``: all velocities blended at 0.75 doubled
+        the tracking error). Needs ``observer_gain`` > 0 and a floating base.
       observer_angular: estimate the base's angular acceleration too (default: the linear
         part only; the angular one-step errors of the learned models are dominated by contact
         transients, not by what persists).
