@@ -9,8 +9,9 @@ estimate the planner adds to every rollout step).
 A ``LABEL=`` before a run marks its models as a variant (``stride (LABEL)``): runs of one
 model with other planner settings (``--planning.velocity-filter``) stay apart from the rest.
 Rows without ``sensor_noise`` ran on the exact state (factor 0); a noisy run's scenario is named
-``SCENARIO_noiseF`` and is listed under ``SCENARIO``. The observer's spread is read from each
-row's trace beside its ``closed_loop.json`` (``trace_<scenario>_<model>[_seed<s>].npz``)."""
+``SCENARIO_noiseF`` and is listed under ``SCENARIO``. The observer's spread is the row's
+``observer_step_rms``, or read from its trace beside its ``closed_loop.json``
+(``trace_<scenario>_<model>[_seed<s>].npz``; traces are not committed) for rows without it."""
 
 from __future__ import annotations
 
@@ -34,7 +35,10 @@ def base_scenario(name: str) -> str:
 
 def observer_spread(folder: pathlib.Path, row: dict) -> float | None:
     """RMS over upright periods of the change of the observer's linear estimate from one period
-    to the next (m/s^2); None where the row has no trace or no observer."""
+    to the next (m/s^2): the row's ``observer_step_rms`` (runs since session 81's), else read
+    from its trace; None where neither is there or there is no observer."""
+    if row.get("observer_step_rms") is not None:
+        return float(row["observer_step_rms"])
     path = folder / trace_name(row["scenario"], row["model"], row.get("episode", 0),
                                row.get("seed", 0))
     if not path.is_file():

@@ -29,7 +29,10 @@ def test_rows_group_by_noise_factor_and_the_observers_spread_is_read_from_the_tr
                                    row("rough_noise3", "stride", 0.10, 3.0, seed=1, ep=1),
                                    row("rough_noise3", "stride", 5.0, 3.0, seed=2, ep=2, fell=True)],
                  steps)
-    data = mod.main([exact, noisy, f"filter 0.5={exact}", "--out", str(tmp_path / "t")])
+    recorded = _run(tmp_path / "n1", [dict(row("rough_noise1", "stride", 0.07, 1.0),
+                                           observer_step_rms=0.5)])
+    data = mod.main([exact, noisy, recorded, f"filter 0.5={exact}", "--out", str(tmp_path / "t")])
+    assert data["rough"]["stride"][1.0]["spread"] == pytest.approx(0.5)  # the row's own, no trace
     assert data["rough"]["stride (filter 0.5)"][0.0]["rmse"] == pytest.approx(0.06)
     by = data["rough"]["stride"]
     assert by[0.0]["rmse"] == pytest.approx(0.06) and by[0.0]["spread"] is None  # no observer
@@ -37,7 +40,7 @@ def test_rows_group_by_noise_factor_and_the_observers_spread_is_read_from_the_tr
     assert (by[3.0]["falls"], by[3.0]["episodes"]) == (1, 3)
     assert by[3.0]["spread"] == pytest.approx(1.0)
     text = (tmp_path / "t.md").read_text()
-    assert "| stride | 0.0600 (0/1) | 0.0900 (1/3) | - | 1.00 |" in text
-    assert "| policy | 0.0900 (0/1) | - | - | - |" in text and (tmp_path / "t.png").is_file()
+    assert "| stride | 0.0600 (0/1) | 0.0700 (0/1) | 0.0900 (1/3) | - | 0.50 | 1.00 |" in text
+    assert "| policy | 0.0900 (0/1) | - | - | - | - | - |" in text and (tmp_path / "t.png").is_file()
     with pytest.raises(FileNotFoundError, match="no closed_loop.json"):
         mod.collect([str(tmp_path / "nope.json")])

@@ -173,6 +173,11 @@ def test_the_controller_sees_the_world_through_the_sensors_and_the_world_keeps_t
         planning, jnp.asarray(a0), jnp.asarray(v0), jnp.zeros(nu), jnp.asarray(v1),
         go1.robot.ctrl_dt, jax.random.fold_in(jax.random.fold_in(key, 0x0B5E), 0))
     np.testing.assert_allclose(noisy.disturbance[0], first, rtol=1e-4, atol=1e-4)
+    # the row's observer_step_rms: how much the estimate's linear part jumps per period
+    jumps = np.diff(np.asarray(noisy.disturbance)[:, :3], axis=0)
+    rms = ep.metrics(noisy, 0.0)["observer_step_rms"]
+    assert rms == pytest.approx(float(np.sqrt(np.mean(np.sum(jumps ** 2, axis=1)))), rel=1e-6)
+    assert rms > ep.metrics(exact, 0.0).get("observer_step_rms", 0.0)
     cmd = lambda seen: np.stack([planning_lib.split(jnp.asarray(a), nq).command for a, _ in seen])
     assert not np.allclose(cmd(n_seen)[2:, :2], cmd(truth)[2:, :2], atol=1e-4)
     with pytest.raises(ValueError, match="record pairs"):

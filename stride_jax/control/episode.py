@@ -425,7 +425,9 @@ def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
     """Tracking RMSE while upright (after ``settle_s`` from each command change), fall, speed;
     the planner's fallbacks, its share of rollouts cut, the share of upright steps it drew
     its recovery candidates (``alarm_share``) and the share in which it handed the action to the
-    policy (``distrust_share``, the model-trust gate)."""
+    policy (``distrust_share``, the model-trust gate); with the disturbance observer its mean
+    estimate and how much the estimate's linear part jumps from one period to the next
+    (``observer_step_rms``, m/s^2: what the sensors' noise puts into it)."""
     tr = jax.tree.map(np.asarray, trace)
     up = ~tr.fallen
     use = tracked(tr, settle_s)
@@ -444,6 +446,9 @@ def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
                alarm_share=float(tr.alarm[up].mean()) if up.any() else float("nan"))
     if np.any(tr.disturbance != 0) and up.any():  # the observer's mean estimate while upright
         out["disturbance"] = [float(x) for x in tr.disturbance[up].mean(axis=0)]
+        if up.sum() >= 3:  # and how much its linear part jumps from period to period (m/s^2)
+            jumps = np.diff(tr.disturbance[up][:, :3], axis=0)
+            out["observer_step_rms"] = float(np.sqrt(np.mean(np.sum(jumps ** 2, axis=1))))
     if up.sum() >= 10 and tr.contact.shape[1] == 4:  # the quadruped gait the feet showed
         out["contact_gait"], out["contact_gait_score"] = gait_lib.classify_contacts(
             tr.contact[up])
