@@ -24,6 +24,7 @@ import sys
 
 import numpy as np
 
+from stride_jax.control.episode import observer_step_rms
 from stride_jax.io import atomic_write, atomic_write_text
 from stride_jax.jobs.closed_loop import trace_name
 from stride_paper.seeds import seed_means
@@ -44,11 +45,8 @@ def observer_spread(folder: pathlib.Path, row: dict) -> float | None:
     if not path.is_file():
         return None
     with np.load(path) as z:
-        d, up = z["disturbance"][:, :3], ~z["fallen"]
-    if not np.any(d) or up.sum() < 3:
-        return None
-    step = np.diff(d[up], axis=0)
-    return float(np.sqrt(np.mean(np.sum(step ** 2, axis=1))))
+        d, up = z["disturbance"], ~z["fallen"]
+    return observer_step_rms(d, up) if np.any(d) else None
 
 
 def collect(paths: list[str]) -> dict:

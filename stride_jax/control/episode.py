@@ -284,7 +284,8 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         finite = jnp.all(jnp.isfinite(d2.qpos)) & jnp.all(jnp.isfinite(d2.qvel))
         d2 = jax.tree.map(lambda a, b: jnp.where(finite, a, b), d2, d)  # freeze a diverged sim
         down2 = down | rollout_mjx.fallen(sm, d2.qpos) | ~finite
-        qpos2_m, qvel2_m = seen(d2, step + 1)  # the next period's reading, drawn as it will be
+        if observe or integrate:  # the next period's reading, drawn as that period will draw it
+            qpos2_m, qvel2_m = seen(d2, step + 1)
         if observe:  # the planner's model predicts the step just taken; integrate its error
             new, qd_pred = observe_step(planning, q_aug, qvel_m, u, qvel2_m, dt,
                                         None if central else jax.random.fold_in(obs_key, step))
@@ -316,8 +317,8 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         # chunked run's saved state) as before
         init += ((jnp.zeros(2, d0.qpos.dtype), jnp.zeros((), d0.qpos.dtype),
                   jnp.full(3, jnp.nan, d0.qpos.dtype)),)
-    if filtered:  # the observer's prediction of the next period's velocities (none yet: the
-        # first period acts on its measurement)
+    if filtered:  # the observer's prediction of the next period's base linear velocity (none
+        # yet: the first period acts on its measurement)
         init += (jnp.full(3, jnp.nan, d0.qpos.dtype),)
     if lat:  # the plan in force and the (status, cut, alarm) of it and of the plan in flight
         # (in the planner's state); at the start both are the planner's initial plan; with the
@@ -446,9 +447,9 @@ def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
                alarm_share=float(tr.alarm[up].mean()) if up.any() else float("nan"))
     if np.any(tr.disturbance != 0) and up.any():  # the observer's mean estimate while upright
         out["disturbance"] = [float(x) for x in tr.disturbance[up].mean(axis=0)]
-        if up.sum() >= 3:  # and how much its linear part jumps from period to period (m/s^2)
-            jumps = np.diff(tr.disturbance[up][:, :3], axis=0)
-            out["observer_step_rms"] = float(np.sqrt(np.mean(np.sum(jumps ** 2, axis=1))))
+        jumps = observer_step_rms(tr.disturbance, up)
+        if jumps is not None:
+            out["observer_step_rms"] = jumps
     if up.sum() >= 10 and tr.contact.shape[1] == 4:  # the quadruped gait the feet showed
         out["contact_gait"], out["contact_gait_score"] = gait_lib.classify_contacts(
             tr.contact[up])
@@ -458,6 +459,16 @@ def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
         out["plan_freq"], out["plan_duty"] = float(g[0]), float(g[1])
         out["plan_gait"], out["plan_gait_dist"] = gait_lib.classify(g[2:])
     return out
+
+
+def observer_step_rms(disturbance, up) -> float | None:
+    """How much the observer's linear estimate jumps from one upright period to the next: the
+    RMS of its change (m/s^2) over a trace's ``disturbance [T, 6]`` where ``up [T]``; None with
+    fewer than three upright periods."""
+    d = np.asarray(disturbance)[np.asarray(up)][:, :3]
+    if len(d) < 3:
+        return None
+    return float(np.sqrt(np.mean(np.sum(np.diff(d, axis=0) ** 2, axis=1))))
 
 
 class PolicyEpisode(NamedTuple):

@@ -301,7 +301,7 @@ class Planning(NamedTuple):
     latency_steps: int = 0  # control periods per plan's computation (0: the world waits)
     latency_compensation: bool = True  # plan from the model's prediction for when it applies
     latency_feedback: bool = False  # the policy's feedback around the plan between replans
-    velocity_filter: float = 0.0  # the observer's prediction's share in the velocities acted on
+    velocity_filter: float = 0.0  # the observer's prediction's share in the base's velocity
 
 
 class Aug(NamedTuple):
