@@ -159,6 +159,49 @@ def test_domain_randomisation_draws_friction_and_perturbs_the_targets(g1, go1):
             envs.config("go1", **bad)
 
 
+def test_sensor_noise_reaches_the_observation_and_nothing_else(go1_env):
+    """``sensor_noise``: from the same state, action and key the world, the reward and the
+    termination are the exact environment's; the observation is :func:`envs.observe` of
+    :func:`sensors.measure` of the true state with the period's key, and its base-velocity block
+    is off by the sensors' scale (0.02 m/s x 3, rotated into the body frame)."""
+    from stride_jax.sim import sensors
+
+    plain, noisy = go1_env, envs.make("go1", sensor_noise=3.0)
+    keys = jax.random.key_data(jax.random.split(jax.random.key(1), 64))
+    s_plain, s_noisy = jax.vmap(plain.reset)(keys), jax.vmap(noisy.reset)(keys)
+    np.testing.assert_array_equal(s_plain.pipeline_state.qpos, s_noisy.pipeline_state.qpos)
+    a = 0.3 * jnp.ones((64, plain.action_size))
+
+    def step(env, s):  # (XLA's backend optimisations: a third of the compile time, unneeded)
+        fn = jax.jit(jax.vmap(env.step))
+        return fn.lower(s, a).compile({"xla_backend_optimization_level": 0})(s, a)
+
+    n_plain, n_noisy = step(plain, s_plain), step(noisy, s_noisy)
+    for name in ("qpos", "qvel"):
+        np.testing.assert_array_equal(getattr(n_plain.pipeline_state, name),
+                                      getattr(n_noisy.pipeline_state, name))
+    np.testing.assert_array_equal(n_plain.reward, n_noisy.reward)
+    np.testing.assert_array_equal(n_plain.done, n_noisy.done)
+
+    # the observation, rebuilt by hand from the true state and the period's key
+    q, qd = n_noisy.pipeline_state.qpos, n_noisy.pipeline_state.qvel
+    noise = sensors.SensorNoise().scaled(3.0)
+
+    def by_hand(q, qd, rng, command):
+        _, k_cmd = jax.random.split(rng)
+        qm, qdm = sensors.measure(noise, q, qd, jax.random.fold_in(k_cmd, 5), floating_base=True)
+        return envs.observe(noisy.cfg, noisy.home, qm, qdm, command)
+
+    want = jax.vmap(by_hand)(q, qd, s_noisy.info["rng"], n_noisy.info["command"])
+    np.testing.assert_allclose(n_noisy.obs, want, atol=1e-6)
+    np.testing.assert_allclose(n_plain.obs, jax.vmap(plain.observation_fn())(
+        q, qd, n_plain.info["command"]), atol=1e-6)
+    spread = float(jnp.std(n_noisy.obs[:, :3] - n_plain.obs[:, :3]))
+    assert 0.04 < spread < 0.09, spread  # 0.06 m/s per axis
+    with pytest.raises(ValueError, match="sensor_noise"):
+        envs.config("go1", sensor_noise=-1.0)
+
+
 def test_a_randomised_slope_builds_up_and_the_policy_senses_it(go1):
     """``tilt_max_deg``: each reset draws the episode's slope and uphill heading; gravity tilts
     linearly over ``tilt_s`` (level at the start, as the closed loop's ``tilt`` scenario) and the

@@ -40,7 +40,7 @@ from mujoco import mjx
 
 from stride_jax.control import gait as gait_lib, scenarios
 from stride_jax.dynamics.lagrangian import WORLD_DOWN
-from stride_jax.sim import randomize, rollout_mjx
+from stride_jax.sim import randomize, rollout_mjx, sensors
 from stride_jax.sim import model as sim_model
 
 
@@ -134,6 +134,11 @@ class EnvConfig:
         friction coefficient on the floor (:func:`foot_friction`) times the episode's friction
         factor: a slope steeper than ``atan(mu)`` is one no stance can hold, and 20-40% of the
         slope training's episodes fell with the two drawn apart (session 47). 0: drawn apart.
+      sensor_noise: the policy observes the state through a real robot's sensors,
+        :class:`stride_jax.sim.sensors.SensorNoise` scaled by this factor (1: a well-instrumented
+        robot's), a fresh draw every control period (:func:`stride_jax.sim.sensors.measure`, what
+        ``stride closed-loop --sensor-noise`` gives the controller); the world, rewards and
+        terminations keep the true state. 0: the exact state.
     """
 
     robot: str = "go1"
@@ -156,6 +161,7 @@ class EnvConfig:
     tilt_max_deg: float = 0.0
     tilt_s: float = 2.0
     tilt_friction_margin: float = 0.0
+    sensor_noise: float = 0.0
 
     @property
     def randomises_friction(self) -> bool:
@@ -185,6 +191,9 @@ class EnvConfig:
             raise ValueError(f"tilt_s={self.tilt_s} must be > 0 (s)")
         if not self.tilt_friction_margin >= 0:
             raise ValueError(f"tilt_friction_margin={self.tilt_friction_margin} must be >= 0")
+        if not (np.isfinite(self.sensor_noise) and self.sensor_noise >= 0):
+            raise ValueError(f"sensor_noise={self.sensor_noise} must be a finite number >= 0 (a "
+                             "factor on SensorNoise's defaults; 0: the exact state)")
         if self.action_scale <= 0:
             raise ValueError(f"action_scale={self.action_scale} must be > 0")
         if self.tracking_sigma <= 0:
@@ -214,7 +223,7 @@ PRESETS = {
 
 # The EnvConfig fields of the domain randomisation (`stride ppo`'s flags of the same names).
 RANDOMISATION = ("friction_min", "friction_max", "action_noise", "softness_min", "softness_max",
-                 "tilt_max_deg", "tilt_friction_margin")
+                 "tilt_max_deg", "tilt_friction_margin", "sensor_noise")
 
 
 def config(robot: str, **overrides) -> EnvConfig:
@@ -342,6 +351,8 @@ class VelocityEnv(brax_base.Env):
         d.qpos[:] = info.qpos0
         mujoco.mj_kinematics(self.sm.mj, d)
         self.foot_z0 = jnp.asarray(d.site_xpos[self.sm.foot_sites, 2], jnp.float32)
+        self.sensors = (sensors.SensorNoise().scaled(cfg.sensor_noise) if cfg.sensor_noise
+                        else None)
         # the feet's friction on the floor, where it bounds the slopes drawn
         self.foot_mu = foot_friction(self.sm, self.mj) if cfg.tilt_friction_margin else None
 
@@ -391,7 +402,7 @@ class VelocityEnv(brax_base.Env):
                 "air_time": jnp.zeros(nf), "last_contact": jnp.ones(nf, bool),
                 "clock": clock, "t": jnp.zeros((), jnp.int32), "friction": friction,
                 "softness": softness, "tilt": tilt}
-        obs = observe(self.cfg, self.home, d.qpos, d.qvel, command, clock)
+        obs = observe(self.cfg, self.home, *self._sensed(d.qpos, d.qvel, k_clock), command, clock)
         _, parts = total_reward(self.cfg, self._terms_zero(), self.dt)
         metrics = {f"reward/{k}": jnp.zeros(()) for k in parts}
         metrics["fallen"] = jnp.zeros(())
@@ -446,11 +457,18 @@ class VelocityEnv(brax_base.Env):
         command = jnp.where(resample, sample_command(cfg.commands, k_cmd), command)
         info.update(rng=rng, command=command, last_action=action,
                     air_time=jnp.where(contact, 0.0, air), last_contact=contact, clock=clock, t=t)
-        obs = observe(cfg, self.home, q, qd, command, clock, up)
+        obs = observe(cfg, self.home, *self._sensed(q, qd, k_cmd), command, clock, up)
         metrics = {f"reward/{k}": jnp.where(finite, v, 0.0) for k, v in parts.items()}
         metrics["fallen"] = fallen.astype(jnp.float32)
         return state.replace(pipeline_state=d, obs=obs, reward=reward,
                              done=fallen.astype(jnp.float32), metrics=metrics, info=info)
+
+    def _sensed(self, q: jax.Array, qd: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """``(q, qd)`` as the policy observes them: through the sensors where ``sensor_noise``
+        is set (a key folded from one already drawn: without it the streams stay as before)."""
+        if self.sensors is None:
+            return q, qd
+        return sensors.measure(self.sensors, q, qd, jax.random.fold_in(key, 5), floating_base=True)
 
     def _terms_zero(self) -> dict:
         names = ("tracking_lin_vel", "tracking_ang_vel", "lin_vel_z", "ang_vel_xy", "orientation",
