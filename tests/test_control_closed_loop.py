@@ -7,6 +7,7 @@ import shutil
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import pytest
 from mujoco import mjx
@@ -63,6 +64,20 @@ def test_scenario_grounds(go1):
     rough = cl.scenario_model(go1, cl.SCENARIOS["rough"])
     assert rough.nhfield == 1 and np.ptp(rough.hfield_data) > 0.5
     np.testing.assert_array_equal(go1.mj.opt.gravity, [0, 0, -9.81])  # nominal untouched
+    # the payload: a quarter of the robot's mass on its base, inertia alike, centre kept
+    load = cl.scenario_model(go1, cl.SCENARIOS["payload"])
+    b, total = go1.base_body, go1.mj.body_mass.sum()
+    np.testing.assert_allclose(load.body_mass.sum(), 1.25 * total, rtol=1e-9)
+    np.testing.assert_allclose(load.body_subtreemass[0], 1.25 * total, rtol=1e-9)
+    ratio = load.body_mass[b] / go1.mj.body_mass[b]
+    np.testing.assert_allclose(load.body_inertia[b], ratio * go1.mj.body_inertia[b], rtol=1e-9)
+    np.testing.assert_array_equal(load.body_ipos, go1.mj.body_ipos)
+    d = mujoco.MjData(load)
+    mujoco.mj_forward(load, d)  # gravity on the free joint's vertical: the loaded robot's weight
+    np.testing.assert_allclose(d.qfrc_bias[2], 1.25 * total * 9.81, rtol=1e-6)
+    assert go1.mj.body_mass.sum() == total  # nominal untouched
+    with pytest.raises(ValueError, match="payload"):
+        cl.Scenario("bad", cl.WALK, payload=-0.1)
     starts, values = cl.schedule(cl.SCENARIOS["step"])
     np.testing.assert_allclose(cl.command_at(starts, values, 0.5), [0, 0, 0])
     np.testing.assert_allclose(cl.command_at(starts, values, 1.5), [2, 0, 0])
@@ -460,6 +475,9 @@ def test_a_tilting_ground_builds_the_slope_up_and_a_still_one_is_the_models_own_
     assert cl.scenario(cl.ClosedLoopConfig(friction=0.15), "slope").friction == 1.0
     with pytest.raises(ValueError, match="friction"):
         cl.scenario(cl.ClosedLoopConfig(friction=-0.1), "low_friction")
+    heavy = cl.scenario(cl.ClosedLoopConfig(payload=0.4), "payload")
+    assert (heavy.name, heavy.payload) == ("payload0.4", 0.4)
+    assert cl.scenario(cl.ClosedLoopConfig(payload=0.4), "walk").payload == 0.0
     tilted = held(*args, np.array([np.deg2rad(30.0), 0.02], np.float32))
     assert np.asarray(tilted.v_base)[-1, 0] < np.asarray(level.v_base)[-1, 0] - 0.05
 

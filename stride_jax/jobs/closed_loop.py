@@ -90,6 +90,8 @@ class ClosedLoopConfig:
         their names get the factor, ``push3x``).
       friction: override the friction scale of the scenarios with a lowered friction (0: keep;
         their names get the value, ``low_friction0.15``).
+      payload: override the payload of the scenarios that carry one (a fraction of the robot's
+        mass on its base; 0: keep; their names get the fraction, ``payload0.4``).
       mppi: the planner's settings (``--mppi.samples``, ``--mppi.horizon``, ...; the older flat
         flags ``--samples``, ``--horizon``, ``--policy-samples`` ... still answer). Its
         ``noise_std`` is set from ``planning.noise_std`` (and ``planning.gait_noise``), its
@@ -170,6 +172,7 @@ class ClosedLoopConfig:
     rough_cm: float = 0.0
     push_scale: float = 0.0
     friction: float = 0.0
+    payload: float = 0.0
     mppi: MPPIConfig = MPPIConfig()
     planning: PlanningConfig = PlanningConfig()
     policy: str = ""
@@ -212,7 +215,7 @@ class ClosedLoopConfig:
         if not self.sensor_noise and self.sensors != SensorNoise():
             raise ValueError("--sensors.* set the sensors' terms, which only --sensor-noise > 0 "
                              "uses (1: the terms as given); --sensor-noise is 0")
-        for field in ("seconds", "slope_deg", "rough_cm", "push_scale", "friction"):
+        for field in ("seconds", "slope_deg", "rough_cm", "push_scale", "friction", "payload"):
             if getattr(self, field) < 0:
                 raise ValueError(f"--{field.replace('_', '-')} is {getattr(self, field)}: it must be >= 0 "
                                  "(0 keeps the scenario's own)")
@@ -594,8 +597,9 @@ def over_seeds(rows: list[dict]) -> list[dict]:
 def scenario(cfg: ClosedLoopConfig, name: str) -> Scenario:
     """The scenario ``name`` with the run's overrides: ``cfg.seconds``, ``cfg.slope_deg`` for a
     scenario with a slope, ``cfg.rough_cm`` for one with rough ground, ``cfg.push_scale`` for one
-    with pushes and ``cfg.friction`` for one with a lowered friction (renamed with the angle,
-    height, factor or value, ``tilt15``, ``rough2``, ``push3x``, ``low_friction0.15``, so that
+    with pushes, ``cfg.friction`` for one with a lowered friction and ``cfg.payload`` for one
+    with a payload (renamed with the angle, height, factor or value, ``tilt15``, ``rough2``,
+    ``push3x``, ``low_friction0.15``, ``payload0.4``, so that
     rows of different scenarios never share a name); with ``cfg.sensor_noise`` the name gets
     its factor (``rough2_noise3``: the controller sees through noisier sensors)."""
     sc = SCENARIOS[name]
@@ -610,6 +614,8 @@ def scenario(cfg: ClosedLoopConfig, name: str) -> Scenario:
         sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.push_scale:g}x", pushes=pushes)
     if cfg.friction and sc.friction != 1.0:
         sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.friction:g}", friction=cfg.friction)
+    if cfg.payload and sc.payload:
+        sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.payload:g}", payload=cfg.payload)
     if cfg.sensor_noise:
         sc = dataclasses.replace(sc, name=f"{sc.name}_noise{cfg.sensor_noise:g}")
     return sc
