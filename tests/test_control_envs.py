@@ -177,11 +177,13 @@ def test_sensor_noise_reaches_the_observation_and_nothing_else(go1_env):
         return fn.lower(s, a).compile({"xla_backend_optimization_level": 0})(s, a)
 
     n_plain, n_noisy = step(plain, s_plain), step(noisy, s_noisy)
-    # (two programs: XLA may fuse them apart, so the same float32 world to its last bits)
+    # Two programs, which XLA may fuse apart: the same float32 world up to rounding, which the
+    # contact solver amplifies (2e-6 m/s seen in CI); the sensors' smallest term, were it to
+    # reach the world, is 10x the tolerance (encoder 6e-4 rad, joint rates 0.09 rad/s here).
     for name in ("qpos", "qvel"):
         np.testing.assert_allclose(getattr(n_plain.pipeline_state, name),
-                                   getattr(n_noisy.pipeline_state, name), rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(n_plain.reward, n_noisy.reward, rtol=1e-5, atol=1e-7)
+                                   getattr(n_noisy.pipeline_state, name), rtol=1e-4, atol=5e-5)
+    np.testing.assert_allclose(n_plain.reward, n_noisy.reward, rtol=1e-4, atol=1e-6)
     np.testing.assert_array_equal(n_plain.done, n_noisy.done)
 
     # the observation, rebuilt by hand from the true state and the period's key
