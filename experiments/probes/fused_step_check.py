@@ -28,7 +28,7 @@ from stride_jax.timing import median_time
 from stride_jax.train.setup import model_config
 
 
-def _blocks(text: str) -> dict:
+def parse_blocks(text: str) -> dict:
     """``--block``: ``"4"`` (every loop) or ``"factor=4,backward=2"`` -> ``fused_step.BLOCK``."""
     loops = ("products", "gram", "factor", "backward")
     if text.isdigit():
@@ -70,7 +70,7 @@ def main():
         fused_step.WARPS = a.warps
     fused_step.UNROLL = frozenset(x for x in a.unroll.split(",") if x)
     fused_step.SKIP = frozenset(x for x in a.skip.split(",") if x)
-    fused_step.BLOCK = _blocks(a.block)
+    fused_step.BLOCK = parse_blocks(a.block)
     sm, meta, spec, act = bench._robot(a.robot)
     if a.run:
         params = dynamics.load(a.run)[1]

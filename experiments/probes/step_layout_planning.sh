@@ -19,11 +19,11 @@ for layout in "$@"; do
   fi
   echo "== $robot ${h} x 3, K=$k, $name"
   timeout 150 python3 -c "import sys; from stride_jax.dynamics import fused_step
-from experiments.probes.fused_step_check import _blocks
+from experiments.probes.fused_step_check import parse_blocks
 r, w = int(sys.argv[1]), int(sys.argv[2])
 fused_step.ROWS = r or None
 fused_step.WARPS = w or fused_step.WARPS
-fused_step.BLOCK = _blocks(sys.argv[3])
+fused_step.BLOCK = parse_blocks(sys.argv[3])
 sys.argv = ['stride'] + sys.argv[4:]
 from stride_jax import cli; cli.main()" "$rows" "$warps" "$block" bench-mppi --robots "$robot" --models stride \
     --samples "$k" --horizons 30 --substeps 1 --shared-lnn --hidden "$h" --kernel "$kernel" \

@@ -351,8 +351,8 @@ class VelocityEnv(brax_base.Env):
         d.qpos[:] = info.qpos0
         mujoco.mj_kinematics(self.sm.mj, d)
         self.foot_z0 = jnp.asarray(d.site_xpos[self.sm.foot_sites, 2], jnp.float32)
-        self.sensors = (sensors.SensorNoise().scaled(cfg.sensor_noise) if cfg.sensor_noise
-                        else None)
+        self.sensor_spec = (sensors.SensorNoise().scaled(cfg.sensor_noise) if cfg.sensor_noise
+                            else None)
         # the feet's friction on the floor, where it bounds the slopes drawn
         self.foot_mu = foot_friction(self.sm, self.mj) if cfg.tilt_friction_margin else None
 
@@ -466,9 +466,9 @@ class VelocityEnv(brax_base.Env):
     def _sensed(self, q: jax.Array, qd: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         """``(q, qd)`` as the policy observes them: through the sensors where ``sensor_noise``
         is set (a key folded from one already drawn: without it the streams stay as before)."""
-        if self.sensors is None:
+        if self.sensor_spec is None:
             return q, qd
-        return sensors.measure(self.sensors, q, qd, jax.random.fold_in(key, 5), floating_base=True)
+        return sensors.measure(self.sensor_spec, q, qd, jax.random.fold_in(key, 5), floating_base=True)
 
     def _terms_zero(self) -> dict:
         names = ("tracking_lin_vel", "tracking_ang_vel", "lin_vel_z", "ang_vel_xy", "orientation",

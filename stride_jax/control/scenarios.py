@@ -113,10 +113,7 @@ def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoc
     m.geom_solref[:], m.pair_solref[:] = randomize.contact_softness(
         m.geom_solref, m.pair_solref, np.float64(sc.softness), np)
     if sc.payload:
-        base = sm.base_body
-        extra = sc.payload * float(sm.mj.body_mass.sum())
-        m.body_inertia[base] *= (m.body_mass[base] + extra) / m.body_mass[base]
-        m.body_mass[base] += extra
+        randomize.add_payload(m, sm.base_body, sc.payload * float(sm.mj.body_mass.sum()))
         mujoco.mj_setConst(m, mujoco.MjData(m))  # the derived masses (subtree, mean inertia)
     return m
 

@@ -45,6 +45,7 @@ from typing import Callable, Mapping
 import mujoco
 import numpy as np
 
+from stride_jax.sim import randomize
 from stride_jax.sim.model import SimModel
 
 
@@ -174,10 +175,7 @@ def _softness(sm, plan, p):
 
 
 def _payload(sm, plan, p):
-    b = sm.base_body
-    m0 = float(sm.mj.body_mass[b])
-    plan.mj.body_mass[b] = m0 + p[0]
-    plan.mj.body_inertia[b] *= (m0 + p[0]) / m0
+    randomize.add_payload(plan.mj, sm.base_body, p[0])
     return plan
 
 

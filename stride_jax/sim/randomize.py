@@ -114,6 +114,16 @@ def apply_fields(fields: dict, v: RandValues, base_body: int, xp=jnp) -> dict:
     return f
 
 
+def add_payload(m: mujoco.MjModel, body: int, kg: float) -> None:
+    """Adds ``kg`` to body ``body`` of ``m`` in place, its rotational inertia scaled with its
+    mass and its centre of mass kept (a load strapped on: the gap tool's ``payload`` effect and
+    the closed loop's ``payload`` scenario). Derived constants are left to the caller, as
+    :func:`apply_fields` leaves them."""
+    m0 = float(m.body_mass[body])
+    m.body_inertia[body] *= (m0 + kg) / m0
+    m.body_mass[body] = m0 + kg
+
+
 def tilted_gravity(gravity, down, xp=jnp):
     """The gravity vector (m/s^2) of a model whose ``gravity`` is tilted to point along the
     unit vector ``down`` (its magnitude kept): the slope of
