@@ -78,6 +78,18 @@ def test_scenario_grounds(go1):
     assert go1.mj.body_mass.sum() == total  # nominal untouched
     with pytest.raises(ValueError, match="payload"):
         cl.Scenario("bad", cl.WALK, payload=-0.1)
+    # carried by another body, named: that body takes it, the base nothing
+    thigh = mujoco.mj_name2id(go1.mj, mujoco.mjtObj.mjOBJ_BODY, "FR_thigh")
+    strapped = cl.scenario_model(go1, cl.Scenario("thigh", cl.WALK, payload=0.25, payload_body="FR_thigh"))
+    np.testing.assert_allclose(strapped.body_mass[thigh] - go1.mj.body_mass[thigh], 0.25 * total, rtol=1e-9)
+    assert strapped.body_mass[b] == go1.mj.body_mass[b]
+    d = mujoco.MjData(strapped)
+    mujoco.mj_forward(strapped, d)
+    np.testing.assert_allclose(d.qfrc_bias[2], 1.25 * total * 9.81, rtol=1e-6)
+    with pytest.raises(ValueError, match="'backpack' is not a body of 'go1'; its bodies: trunk"):
+        cl.scenario_model(go1, cl.Scenario("bad", cl.WALK, payload=0.25, payload_body="backpack"))
+    with pytest.raises(ValueError, match="payload of 0"):
+        cl.Scenario("bad", cl.WALK, payload_body="trunk")
     starts, values = cl.schedule(cl.SCENARIOS["step"])
     np.testing.assert_allclose(cl.command_at(starts, values, 0.5), [0, 0, 0])
     np.testing.assert_allclose(cl.command_at(starts, values, 1.5), [2, 0, 0])
@@ -478,6 +490,9 @@ def test_a_tilting_ground_builds_the_slope_up_and_a_still_one_is_the_models_own_
     heavy = cl.scenario(cl.ClosedLoopConfig(payload=0.4), "payload")
     assert (heavy.name, heavy.payload) == ("payload0.4", 0.4)
     assert cl.scenario(cl.ClosedLoopConfig(payload=0.4), "walk").payload == 0.0
+    worn = cl.scenario(cl.ClosedLoopConfig(payload=0.4, payload_body="torso_link"), "payload")
+    assert (worn.name, worn.payload, worn.payload_body) == ("payload0.4_on_torso_link", 0.4, "torso_link")
+    assert cl.scenario(cl.ClosedLoopConfig(payload_body="torso_link"), "walk").payload_body == ""
     tilted = held(*args, np.array([np.deg2rad(30.0), 0.02], np.float32))
     assert np.asarray(tilted.v_base)[-1, 0] < np.asarray(level.v_base)[-1, 0] - 0.05
 
@@ -498,6 +513,16 @@ def test_a_run_logs_its_progress_writes_its_row_and_resumes(tmp_path):
     assert [t.split(":")[1].split(" of")[0].strip() for t in ticks] == ["0.1", "0.2"]
     again = []
     assert cl.run(cfg, log=again.append) == rows and not any("simulated" in x for x in again)
+
+
+def test_a_payload_on_a_body_the_robot_lacks_fails_before_any_episode(tmp_path):
+    cfg = cl.ClosedLoopConfig(models="policy", scenarios="walk,payload", seconds=0.2, settle_s=0.0,
+                              payload_body="backpack", policy="results/policies/ppo_go1",
+                              out=str(tmp_path))
+    lines = []
+    with pytest.raises(ValueError, match="payload body 'backpack' is not a body of 'go1'"):
+        cl.run(cfg, log=lines.append)
+    assert not any("simulated" in x for x in lines) and not (tmp_path / "closed_loop.json").exists()
 
 
 _CHUNKED = dict(models="policy", scenarios="walk", seconds=0.2, settle_s=0.0, progress_s=0.0,

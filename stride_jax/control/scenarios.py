@@ -42,6 +42,8 @@ class Scenario:
         as this fraction of the robot's total mass (its rotational inertia scaled with it, its
         centre of mass kept), so that one scenario loads both robots alike (0.25: 3.2 kg on the
         Go1, 8.3 kg on the G1). 0: none.
+      payload_body: the body that carries it, by name ("": the base body, where the IMU is; a
+        humanoid's backpack sits on its torso: ``torso_link`` on the G1).
     """
 
     name: str
@@ -54,11 +56,15 @@ class Scenario:
     rough_m: float = 0.0
     pushes: tuple[tuple[float, float, float, float], ...] = ()
     payload: float = 0.0
+    payload_body: str = ""
 
     def __post_init__(self):
         if not (np.isfinite(self.payload) and self.payload >= 0):
             raise ValueError(f"scenario {self.name!r}: payload={self.payload} must be a finite "
                              "fraction >= 0 of the robot's total mass")
+        if self.payload_body and not self.payload:
+            raise ValueError(f"scenario {self.name!r}: payload_body={self.payload_body!r} names "
+                             "a body for a payload of 0")
 
 
 WALK = ((0.0, 1.0, 0.0, 0.0),)
@@ -113,9 +119,22 @@ def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoc
     m.geom_solref[:], m.pair_solref[:] = randomize.contact_softness(
         m.geom_solref, m.pair_solref, np.float64(sc.softness), np)
     if sc.payload:
-        randomize.add_payload(m, sm.base_body, sc.payload * float(sm.mj.body_mass.sum()))
+        randomize.add_payload(m, payload_body(sm, sc), sc.payload * float(sm.mj.body_mass.sum()))
         mujoco.mj_setConst(m, mujoco.MjData(m))  # the derived masses (subtree, mean inertia)
     return m
+
+
+def payload_body(sm: sim_model.SimModel, sc: Scenario) -> int:
+    """The id of the body that carries ``sc``'s payload: ``sc.payload_body`` by name, or the
+    robot's base body; an unknown name is an error that lists the robot's bodies."""
+    if not sc.payload_body:
+        return sm.base_body
+    body = mujoco.mj_name2id(sm.mj, mujoco.mjtObj.mjOBJ_BODY, sc.payload_body)
+    if body <= 0:  # -1: no such body; 0: the world, which nothing carries
+        names = [mujoco.mj_id2name(sm.mj, mujoco.mjtObj.mjOBJ_BODY, i) for i in range(1, sm.mj.nbody)]
+        raise ValueError(f"scenario {sc.name!r}: payload body {sc.payload_body!r} is not a body "
+                         f"of {sm.robot.name!r}; its bodies: {', '.join(names)}")
+    return body
 
 
 def tilt_schedule(sc: Scenario) -> np.ndarray:

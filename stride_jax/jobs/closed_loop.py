@@ -60,7 +60,7 @@ from stride_jax.control.mppi import MPPIConfig
 from stride_jax.control.planning import (PlanningConfig, latency_steps, make_planner,
                                          make_planning, mppi_config)
 from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,  # noqa: F401
-                                          push_schedule, scenario_model, schedule,
+                                          payload_body, push_schedule, scenario_model, schedule,
                                           tilt_schedule)
 from stride_jax.io import atomic_write, atomic_write_text, code_version
 from stride_jax.jobs.headline import check_entries
@@ -92,6 +92,8 @@ class ClosedLoopConfig:
         their names get the value, ``low_friction0.15``).
       payload: override the payload of the scenarios that carry one (a fraction of the robot's
         mass on its base; 0: keep; their names get the fraction, ``payload0.4``).
+      payload_body: the body that carries the payload of the scenarios that carry one, by name
+        ("": keep, the base body; their names get it, ``payload_on_torso_link``).
       mppi: the planner's settings (``--mppi.samples``, ``--mppi.horizon``, ...; the older flat
         flags ``--samples``, ``--horizon``, ``--policy-samples`` ... still answer). Its
         ``noise_std`` is set from ``planning.noise_std`` (and ``planning.gait_noise``), its
@@ -173,6 +175,7 @@ class ClosedLoopConfig:
     push_scale: float = 0.0
     friction: float = 0.0
     payload: float = 0.0
+    payload_body: str = ""
     mppi: MPPIConfig = MPPIConfig()
     planning: PlanningConfig = PlanningConfig()
     policy: str = ""
@@ -402,7 +405,11 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         times = wall_times(once, cfg.controller_repeats, warm_up=False)  # warm: once() above
         return 1e3 * statistics.median(times), 1e3 * max(times), compile_s
 
-    for sc_name in [s for s in cfg.scenarios.split(",") if s]:
+    scenario_names = [s for s in cfg.scenarios.split(",") if s]
+    for sc_name in scenario_names:  # a payload's body named wrong fails before any episode runs
+        if (sc := scenario(cfg, sc_name)).payload:
+            payload_body(sm, sc)
+    for sc_name in scenario_names:
         sc = scenario(cfg, sc_name)
         world = scenario_world(sm, sc, cfg.seed)
         n_steps, mx_sim, sm_sim, slots = world.n_steps, world.mx, world.sm, world.slots
@@ -599,7 +606,7 @@ def scenario(cfg: ClosedLoopConfig, name: str) -> Scenario:
     scenario with a slope, ``cfg.rough_cm`` for one with rough ground, ``cfg.push_scale`` for one
     with pushes, ``cfg.friction`` for one with a lowered friction and ``cfg.payload`` for one
     with a payload (renamed with the angle, height, factor or value, ``tilt15``, ``rough2``,
-    ``push3x``, ``low_friction0.15``, ``payload0.4``, so that
+    ``push3x``, ``low_friction0.15``, ``payload0.4``; ``cfg.payload_body`` adds ``_on_torso_link``), so that
     rows of different scenarios never share a name); with ``cfg.sensor_noise`` the name gets
     its factor (``rough2_noise3``: the controller sees through noisier sensors)."""
     sc = SCENARIOS[name]
@@ -616,6 +623,8 @@ def scenario(cfg: ClosedLoopConfig, name: str) -> Scenario:
         sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.friction:g}", friction=cfg.friction)
     if cfg.payload and sc.payload:
         sc = dataclasses.replace(sc, name=f"{sc.name}{cfg.payload:g}", payload=cfg.payload)
+    if cfg.payload_body and sc.payload:
+        sc = dataclasses.replace(sc, name=f"{sc.name}_on_{cfg.payload_body}", payload_body=cfg.payload_body)
     if cfg.sensor_noise:
         sc = dataclasses.replace(sc, name=f"{sc.name}_noise{cfg.sensor_noise:g}")
     return sc
