@@ -4,7 +4,8 @@
 # products): STRIDE NFE 2, one network for L and V, K samples, H = 30, median of 20, each layout
 # in its own run, into OUT/<robot>_h<HIDDEN>_k<K>_<rows R[_warps W][_block B] | xla | xla-bf16>.
 # A third field gives the small loops' columns per iteration (fused_step.BLOCK, as the probes'
-# --block: N for every loop, or name=N,...). Usage (repository root, on the GPU machine):
+# --block: N for every loop, or name=N,...; none: the library's default, blocks of 4 since session
+# 83, so a run before it reads as ROWS:WARPS:1). Usage (repository root, on the GPU machine):
 #   bash experiments/probes/step_layout_planning.sh OUT ROBOT K HIDDEN LAYOUT...   # LAYOUT: ROWS:WARPS[:BLOCK], xla or xla-bf16
 set -uo pipefail
 out=$1; robot=$2; k=$3; h=$4; shift 4
@@ -23,7 +24,7 @@ from experiments.probes.fused_step_check import parse_blocks
 r, w = int(sys.argv[1]), int(sys.argv[2])
 fused_step.ROWS = r or None
 fused_step.WARPS = w or fused_step.WARPS
-fused_step.BLOCK = parse_blocks(sys.argv[3])
+fused_step.BLOCK = parse_blocks(sys.argv[3]) if sys.argv[3] else fused_step.BLOCK
 sys.argv = ['stride'] + sys.argv[4:]
 from stride_jax import cli; cli.main()" "$rows" "$warps" "$block" bench-mppi --robots "$robot" --models stride \
     --samples "$k" --horizons 30 --substeps 1 --shared-lnn --hidden "$h" --kernel "$kernel" \

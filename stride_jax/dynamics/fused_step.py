@@ -66,9 +66,11 @@ UNROLL: frozenset = frozenset()
 # matrix takes one rank-``b`` update, and the backward substitution takes a block's products with
 # the solved rows at once: fewer dependent round trips through the ``[rows, nr, nr]`` register
 # tensor, the same arithmetic. One H200, G1 64 x 3, K = 1024: blocks of 4 in every loop 175.0
-# against 190.4 us per rollout step (``results/mppi_latency/README.md``, session 79); 1 stays
-# the default until the planner end to end is measured with it (the probes' ``--block``).
-BLOCK: dict = {}
+# against 190.4 us per rollout step (``results/mppi_latency/README.md``, session 79); the planner
+# end to end (one H100, K = 1024, H = 30, bfloat16, session 83): G1 64 x 3 4.84 -> 4.60 ms, Go1
+# 256 x 3 3.41 -> 3.29 ms (blocking the factorisation and the substitution alone: 4.84). The
+# default since; ``{}`` (or the probes' ``--block 1``) is the kernel before.
+BLOCK: dict = dict.fromkeys(("products", "gram", "factor", "backward"), 4)
 
 
 def program_rows(batch: int, sms: int | None = None) -> int:
