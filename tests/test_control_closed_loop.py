@@ -515,6 +515,17 @@ def test_a_run_logs_its_progress_writes_its_row_and_resumes(tmp_path):
     assert cl.run(cfg, log=again.append) == rows and not any("simulated" in x for x in again)
 
 
+def test_a_run_records_the_commit_it_started_from(tmp_path, monkeypatch):
+    """A checkout that moves on while a run goes (another commit, a switched branch) does not
+    relabel the run's results: the code is read once, at its start."""
+    checkout = {"commit": "started-here"}
+    monkeypatch.setattr(cl, "code_version", lambda: checkout["commit"])
+    cfg = cl.ClosedLoopConfig(models="policy", scenarios="walk", seconds=0.1, settle_s=0.0,
+                              policy="results/policies/ppo_go1", out=str(tmp_path))
+    cl.run(cfg, log=lambda _: checkout.update(commit="moved-on"))  # it moves once the run logs
+    assert json.loads((tmp_path / "closed_loop.json").read_text())["env"]["code"] == "started-here"
+
+
 def test_a_payload_on_a_body_the_robot_lacks_fails_before_any_episode(tmp_path):
     cfg = cl.ClosedLoopConfig(models="policy", scenarios="walk,payload", seconds=0.2, settle_s=0.0,
                               payload_body="backpack", policy="results/policies/ppo_go1",

@@ -264,6 +264,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     from stride_jax.dynamics import checkpoint, fused, models as dyn_models
 
     fused.kernel_dtype(cfg.kernel)  # a clear error for an unknown choice, before any work
+    code = code_version()  # the code this process runs: read now, not when a row is written
     sm = sim_model.load(cfg.robot)
     unknown = [s for s in cfg.scenarios.split(",") if s and s not in SCENARIOS]
     if unknown:
@@ -495,7 +496,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                 log(f"{sc.name:>12} {name:>8}{f' seed {seed}' if batched else ''}: vel RMSE "
                     f"{row['vel_rmse']:.3f} m/s, yaw RMSE {row['yaw_rmse']:.3f} rad/s, fell "
                     f"{row['fell']}, {row['ms_per_step']:.1f} ms/step (compile {compile_s:.0f} s)")
-            write(rows, cfg, command, out)
+            write(rows, cfg, command, out, code)
     plot(out, rows)
     return rows
 
@@ -644,9 +645,12 @@ def _gate_words(pl) -> str:
            if pl.trust_overshoot else []))
 
 
-def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Path) -> None:
+def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Path,
+          code: str | None = None) -> None:
+    """``closed_loop.json`` and ``.md`` (and the plots) of ``rows``; ``code``: the commit the run
+    started from (default: the checkout's now)."""
     env = dict(command=command, backend=jax.default_backend(), device=jax.devices()[0].device_kind,
-               jax=jax.__version__, code=code_version(), config=dataclasses.asdict(cfg))
+               jax=jax.__version__, code=code or code_version(), config=dataclasses.asdict(cfg))
     atomic_write_text(out / "closed_loop.json", json.dumps(dict(env=env, rows=rows), indent=1))
     robot = {"go1": "Go1", "g1": "G1"}.get(cfg.robot, cfg.robot)
     pl = cfg.planning
