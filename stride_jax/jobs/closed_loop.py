@@ -91,7 +91,8 @@ class ClosedLoopConfig:
       friction: override the friction scale of the scenarios with a lowered friction (0: keep;
         their names get the value, ``low_friction0.15``).
       payload: override the payload of the scenarios that carry one (a fraction of the robot's
-        mass on its base; 0: keep; their names get the fraction, ``payload0.4``).
+        mass, on its base or ``payload_body``; 0: keep; their names get the fraction,
+        ``payload0.4``).
       payload_body: the body that carries the payload of the scenarios that carry one, by name
         ("": keep, the base body; their names get it, ``payload_on_torso_link``).
       mppi: the planner's settings (``--mppi.samples``, ``--mppi.horizon``, ...; the older flat
@@ -266,9 +267,14 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     fused.kernel_dtype(cfg.kernel)  # a clear error for an unknown choice, before any work
     code = code_version()  # the code this process runs: read now, not when a row is written
     sm = sim_model.load(cfg.robot)
-    unknown = [s for s in cfg.scenarios.split(",") if s and s not in SCENARIOS]
+    names = [s for s in cfg.scenarios.split(",") if s]
+    unknown = [s for s in names if s not in SCENARIOS]
     if unknown:
         raise ValueError(f"unknown scenarios {unknown}; known: {', '.join(SCENARIOS)}")
+    scenarios = [scenario(cfg, s) for s in names]
+    for sc in scenarios:  # a payload's body named wrong fails before any model loads
+        if sc.payload:
+            payload_body(sm, sc)
     models = _parse_models(cfg.models)
     ppo_policy, env_cfg = None, envs.config(cfg.robot)
     if cfg.policy:
@@ -406,12 +412,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         times = wall_times(once, cfg.controller_repeats, warm_up=False)  # warm: once() above
         return 1e3 * statistics.median(times), 1e3 * max(times), compile_s
 
-    scenario_names = [s for s in cfg.scenarios.split(",") if s]
-    for sc_name in scenario_names:  # a payload's body named wrong fails before any episode runs
-        if (sc := scenario(cfg, sc_name)).payload:
-            payload_body(sm, sc)
-    for sc_name in scenario_names:
-        sc = scenario(cfg, sc_name)
+    for sc in scenarios:
         world = scenario_world(sm, sc, cfg.seed)
         n_steps, mx_sim, sm_sim, slots = world.n_steps, world.mx, world.sm, world.slots
         for name, run_dir in models:
