@@ -36,20 +36,26 @@ def _states(spec, n: int, seed: int = 0):
     return q, qd, ctrl, jax.random.split(keys[4], n)
 
 
-@pytest.mark.parametrize("kernel, rows, block", [
-    ("pallas-step", 16, 1), ("pallas-step-bf16", 8, 1),
-    # columns per loop iteration: 15 reduced dofs in blocks of 4 (three and a rest of 3) and 2
-    # (seven and a rest of 1); 18 dofs' products in blocks of 4 (four and a rest of 2)
-    ("pallas-step-bf16", 8, 4), ("pallas-step", 16, 2)])
-def test_whole_step_equals_the_xla_step(kernels, kernel, rows, block, monkeypatch):
+@pytest.mark.parametrize("kernel, rows, block, joints, split", [
+    ("pallas-step", 16, 1, 12, True), ("pallas-step-bf16", 8, 1, 12, False),
+    # columns per loop iteration: Go1's 15 reduced dofs split 8 + 7, in blocks of 4 (two; one and
+    # a rest of 3) and 2 (four; three and a rest of 1), unsplit in blocks of 4 (three and a rest
+    # of 3); 18 dofs' products in blocks of 4 (four and a rest of 2)
+    ("pallas-step-bf16", 8, 4, 12, True), ("pallas-step", 16, 2, 12, True),
+    ("pallas-step-bf16", 8, 4, 12, False),
+    # G1's size: 35 dofs, 32 reduced (no padding) split 16 + 16
+    ("pallas-step-bf16", 8, 4, 29, True)])
+def test_whole_step_equals_the_xla_step(kernels, kernel, rows, block, joints, split, monkeypatch):
     """Servo (saturated and unlimited joints), features, the prior's networks and products, the
     flow sample, the solve and the integration: the kernel's next states are XLA's (a Go1-sized
-    robot, a learned mass), in programs of either size ``program_rows`` chooses and with the
-    small loops taking one or several columns per iteration (``fused_step.BLOCK``)."""
+    and a G1-sized robot, a learned mass), in programs of either size ``program_rows`` chooses,
+    with the small loops taking one or several columns per iteration (``fused_step.BLOCK``) and
+    the reduced system factorised whole or in two halves (``fused_step.SPLIT``)."""
     monkeypatch.setattr(fused_step, "ROWS", rows)
     monkeypatch.setattr(fused_step, "BLOCK", dict.fromkeys(
         ("products", "gram", "factor", "backward"), block))
-    spec, act = _robot(12)
+    monkeypatch.setattr(fused_step, "SPLIT", split)
+    spec, act = _robot(joints)
     scales = stride.Scales(qd=jnp.linspace(0.5, 2.0, spec.nv), tau=jnp.linspace(1.0, 3.0, spec.nv),
                            force=jnp.linspace(2.0, 4.0, spec.nv))
     cfg = stride.StructuredConfig(net=mlp.MLPConfig(hidden=32, depth=2), shared_lnn=True,

@@ -61,6 +61,9 @@ def main():
                    "loops: N for all, or name=N,... (fused_step.BLOCK: products, gram, factor, "
                    "backward; 1 where not given; empty: the library's default, 4 in every loop "
                    "since session 83; 1: the kernel before)")
+    p.add_argument("--split", type=int, default=-1, choices=(-1, 0, 1),
+                   help="the reduced system factorised in two halves (1) or whole (0); -1: "
+                   "the library's default (fused_step.SPLIT, halves since session 84)")
     p.add_argument("--warps", type=int, default=0,
                    help="warps per program of the step kernel (0: fused_step.WARPS)")
     p.add_argument("--rows", type=int, default=0,
@@ -73,6 +76,8 @@ def main():
     fused_step.SKIP = frozenset(x for x in a.skip.split(",") if x)
     if a.block:
         fused_step.BLOCK = parse_blocks(a.block)
+    if a.split >= 0:
+        fused_step.SPLIT = bool(a.split)
     sm, meta, spec, act = bench._robot(a.robot)
     if a.run:
         params = dynamics.load(a.run)[1]

@@ -28,7 +28,7 @@ def main(argv: list[str]) -> None:
         raise SystemExit("step_sweep: no configuration after --")
     from experiments.probes import fused_step_check as probe
     from stride_jax.dynamics import fused_step
-    knobs = ("ROWS", "WARPS", "UNROLL", "SKIP", "BLOCK")
+    knobs = ("ROWS", "WARPS", "UNROLL", "SKIP", "BLOCK", "SPLIT")
     defaults = {k: getattr(fused_step, k) for k in knobs}
     for config in configs:
         flags = [f for f in config.split(":") if f]
