@@ -96,6 +96,24 @@ def test_eval_writes_the_table(runs, tmp_path):
     assert "energy score" in md
 
 
+def test_eval_records_the_commit_it_started_from(runs, tmp_path, monkeypatch):
+    """A checkout that moves on while the evaluation goes does not relabel its table: the code
+    is read once, at its start."""
+    from stride_jax.jobs import eval as eval_job
+    if len(list(runs.iterdir())) < 3:
+        pytest.skip("needs the runs trained above")
+    checkout, cached = {"commit": "started-here"}, eval_job._cached
+    monkeypatch.setattr(eval_job, "code_version", lambda: checkout["commit"])
+
+    def moving(run, cfg):  # the checkout moves as the first run is evaluated
+        checkout["commit"] = "moved-on"
+        return cached(run, cfg)
+
+    monkeypatch.setattr(eval_job, "_cached", moving)
+    cli.main(["eval", "--runs", f"{runs}/*", "--preset", "tiny", "--out", str(tmp_path)])
+    assert json.loads((tmp_path / "table.json").read_text())["code"] == "started-here"
+
+
 def test_merge_replaces_one_models_rows(runs, tmp_path):
     """A model re-evaluated later (e.g. retrained to the full step count) replaces its rows in
     the earlier table; tables of other settings or datasets are refused."""

@@ -190,12 +190,15 @@ def variant_config(cfg: AblationConfig, variant: str, learned: str | None = None
 
 
 def train_value(cl_cfg: ClosedLoopConfig, cfg: planner_value.PlannerValueConfig, name: str,
-                run: str, out: str | pathlib.Path, command: str = "", log=print) -> dict:
+                run: str, out: str | pathlib.Path, command: str = "", log=print,
+                code: str | None = None) -> dict:
     """Collects the planner's data with ``cl_cfg``'s planner through the dynamics model ``run``
     (on the nominal ground), refits the value of ``cl_cfg.learned`` and fits the one-step
     error model; writes ``reward_value.msgpack``, ``error_model.msgpack`` and ``report.json``
     to ``out`` (:mod:`stride_jax.control.planner_value`). ``cl_cfg`` needs a policy and a
-    learned reward and value."""
+    learned reward and value. ``code``: the commit the job started from (default: the
+    checkout's now)."""
+    code = code or code_version()  # read before the work, not when the report is written
     if not (cl_cfg.policy and cl_cfg.learned):
         raise ValueError("the planner's value needs a policy and a learned reward/value "
                          "(--policy, --learned) to start from")
@@ -221,7 +224,7 @@ def train_value(cl_cfg: ClosedLoopConfig, cfg: planner_value.PlannerValueConfig,
         f"{float(jnp.mean(data.closed.reward)):.4f}")
     new_value, err_params, report = planner_value.fit(jax.random.key(cfg.seed + 1), cfg,
                                                       value_params, data)
-    report.update(command=command, code=code_version(), model=name, run=run,
+    report.update(command=command, code=code, model=name, run=run,
                   seconds_collect=t_collect, seconds=time.monotonic() - t0,
                   config=dataclasses.asdict(cfg), planner=dataclasses.asdict(cl_cfg.mppi))
     out = pathlib.Path(out)
@@ -241,6 +244,7 @@ def train_value(cl_cfg: ClosedLoopConfig, cfg: planner_value.PlannerValueConfig,
 def run(cfg: AblationConfig, command: str = "", log=print) -> list[dict]:
     """Every variant of ``cfg`` (training the planner's value first where a row needs it);
     writes ``ablation.{json,md}`` to ``cfg.out`` after each variant."""
+    code = code_version()  # the code this process runs: read now, not when a table is written
     out = pathlib.Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     variants = [v for v in cfg.variants.split(",") if v]
@@ -257,7 +261,7 @@ def run(cfg: AblationConfig, command: str = "", log=print) -> list[dict]:
                 f"'{cfg.value_collector}' planner)")
             collector = dataclasses.replace(variant_config(cfg, cfg.value_collector),
                                             out=str(value_dir))
-            train_value(collector, vcfg, name, run_dir, value_dir, command, log)
+            train_value(collector, vcfg, name, run_dir, value_dir, command, log, code)
         value_report = json.loads((value_dir / "report.json").read_text())
         _check_reused_value(value_report, vcfg, value_dir)
         learned_file = str(value_dir / "reward_value.msgpack")
@@ -274,7 +278,7 @@ def run(cfg: AblationConfig, command: str = "", log=print) -> list[dict]:
         closed_loop.run(variant_config(cfg, variant, learned_file, error_file, bound), command,
                         log)
         log(f"variant {variant}: {time.perf_counter() - t0:.0f} s")
-        write(gather(out), cfg, command, out, bound, value_report)
+        write(gather(out), cfg, command, out, bound, value_report, code)
     return gather(out)
 
 
@@ -307,9 +311,12 @@ def gather(out: pathlib.Path) -> list[dict]:
 
 
 def write(rows: list[dict], cfg: AblationConfig, command: str, out: pathlib.Path,
-          bound: float, value_report: dict | None) -> None:
+          bound: float, value_report: dict | None, code: str | None = None) -> None:
+    """``ablation.{json,md}`` of ``rows``; ``code``: the commit the run started from (default:
+    the checkout's now)."""
     env = dict(command=command, backend=jax.default_backend(),
-               device=jax.devices()[0].device_kind, jax=jax.__version__, code=code_version(),
+               device=jax.devices()[0].device_kind, jax=jax.__version__,
+               code=code or code_version(),
                config=dataclasses.asdict(cfg), error_bound_used=bound)
     atomic_write_text(out / "ablation.json", json.dumps(
         dict(env=env, value=value_report, rows=rows), indent=1))

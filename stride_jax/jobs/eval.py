@@ -408,6 +408,7 @@ def _write(out: pathlib.Path, robot: str, cfg: EvalConfig, command: str, results
 
 
 def run(cfg: EvalConfig, command: str = "stride eval", log=print) -> pathlib.Path:
+    code = code_version()  # the code this process runs: read now, not when the table is written
     runs = find_runs(cfg.runs)
     results = []
     t0 = time.time()
@@ -420,7 +421,7 @@ def run(cfg: EvalConfig, command: str = "stride eval", log=print) -> pathlib.Pat
     out = pathlib.Path(cfg.out or f"results/table1/{robot}")
     _write(out, robot, cfg, cfg.label or command, results,
            {str(r): json.loads((r / "config.json").read_text()) for r in runs},
-           backend=jax.default_backend(), code=code_version(), seconds=time.time() - t0)
+           backend=jax.default_backend(), code=code, seconds=time.time() - t0)
     log(f"wrote {out / 'table.md'} and table.json ({len(runs)} runs)")
     return out
 

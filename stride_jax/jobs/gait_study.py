@@ -74,6 +74,7 @@ def gait_study(cfg: GaitStudyConfig, command: str = "", log=print) -> dict:
     """(a) Each named gait's reference alone (no planner) in MJX: which gait the feet show, and
     whether it stays up. (b) MPPI with the oracle choosing gait parameters from random initial
     gaits at each speed: the gait it settles on (median of the second half) and the feet's."""
+    code = code_version()  # the code this process runs: read now, not when the result is written
     sm = sim_model.load("go1")
     mx = mjx.put_model(sm.mj)
     slots = envs.contact_slots(mx)
@@ -116,7 +117,7 @@ def gait_study(cfg: GaitStudyConfig, command: str = "", log=print) -> dict:
                 f"{m.get('contact_gait')}, fell {m['fell']}")
     out = pathlib.Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    result = dict(command=command, backend=jax.default_backend(), code=code_version(),
+    result = dict(command=command, backend=jax.default_backend(), code=code,
                   device=jax.devices()[0].device_kind, config=dataclasses.asdict(cfg), rows=rows)
     atomic_write_text(out / "closed_loop_gait.json", json.dumps(result, indent=1))
     fmt = lambda x, f="{:.2f}": "-" if x is None or (isinstance(x, float) and np.isnan(x)) else (

@@ -134,6 +134,7 @@ def plot_phase(arrays: dict, numbers: dict, path: pathlib.Path, title: str = "")
 
 def run(cfg: ShowConfig, command: str = "stride show", log=print) -> pathlib.Path:
     """Writes ``<out>/phase_portrait.png`` and ``<out>/phase.json``; returns the figure's path."""
+    code = code_version()  # the code this process runs: read now, not when the result is written
     for path in (cfg.stride, cfg.baseline):
         if not runs.is_trained(pathlib.Path(path)):
             raise FileNotFoundError(f"no trained run at {path}: train it first (`stride train "
@@ -148,7 +149,7 @@ def run(cfg: ShowConfig, command: str = "stride show", log=print) -> pathlib.Pat
                      f"({cfg.baseline}); `{command}`")
     line = summary_line(numbers, names)
     atomic_write_text(out / "phase.json", json.dumps(
-        {"command": command, "code": code_version(), "config": dataclasses.asdict(cfg),
+        {"command": command, "code": code, "config": dataclasses.asdict(cfg),
          "numbers": numbers, "summary": line}, indent=1))
     log(line)
     log(f"wrote {fig} (phase portrait: what the trained models predict near the upright)")
