@@ -139,6 +139,14 @@ class EnvConfig:
         robot's), a fresh draw every control period (:func:`stride_jax.sim.sensors.measure`, what
         ``stride closed-loop --sensor-noise`` gives the controller); the world, rewards and
         terminations keep the true state. 0: the exact state.
+      payload_max: each episode's robot carries a load drawn uniformly in [0, this] times its
+        own mass, strapped on ``payload_body`` (:func:`with_payload`: the body's mass and
+        rotational inertia scaled, its centre of mass kept, as the closed loop's ``payload``
+        scenario loads it); the policy is not told. 0: no load. A G1 trained unloaded falls
+        with +50% on its torso (``results/closed_loop/payload_g1_cpu/``).
+      payload_body: the body that carries it, by name ("": the base body; a humanoid carries a
+        backpack on its torso, ``torso_link``); a name the robot lacks fails when the
+        environment is made, listing its bodies.
     """
 
     robot: str = "go1"
@@ -162,6 +170,8 @@ class EnvConfig:
     tilt_s: float = 2.0
     tilt_friction_margin: float = 0.0
     sensor_noise: float = 0.0
+    payload_max: float = 0.0
+    payload_body: str = ""
 
     @property
     def randomises_friction(self) -> bool:
@@ -174,6 +184,10 @@ class EnvConfig:
     @property
     def randomises_tilt(self) -> bool:
         return self.tilt_max_deg > 0
+
+    @property
+    def randomises_payload(self) -> bool:
+        return self.payload_max > 0
 
     def __post_init__(self):
         if not 0 < self.friction_min <= self.friction_max:
@@ -194,6 +208,12 @@ class EnvConfig:
         if not (np.isfinite(self.sensor_noise) and self.sensor_noise >= 0):
             raise ValueError(f"sensor_noise={self.sensor_noise} must be a finite number >= 0 (a "
                              "factor on SensorNoise's defaults; 0: the exact state)")
+        if not (np.isfinite(self.payload_max) and self.payload_max >= 0):
+            raise ValueError(f"payload_max={self.payload_max} must be a finite number >= 0 (a "
+                             "fraction of the robot's mass; 0: no load)")
+        if self.payload_body and not self.payload_max:
+            raise ValueError(f"payload_body={self.payload_body!r} names a body for no payload "
+                             "(payload_max=0)")
         if self.action_scale <= 0:
             raise ValueError(f"action_scale={self.action_scale} must be > 0")
         if self.tracking_sigma <= 0:
@@ -223,7 +243,8 @@ PRESETS = {
 
 # The EnvConfig fields of the domain randomisation (`stride ppo`'s flags of the same names).
 RANDOMISATION = ("friction_min", "friction_max", "action_noise", "softness_min", "softness_max",
-                 "tilt_max_deg", "tilt_friction_margin", "sensor_noise")
+                 "tilt_max_deg", "tilt_friction_margin", "sensor_noise", "payload_max",
+                 "payload_body")
 
 
 def config(robot: str, **overrides) -> EnvConfig:
@@ -355,6 +376,9 @@ class VelocityEnv(brax_base.Env):
                             else None)
         # the feet's friction on the floor, where it bounds the slopes drawn
         self.foot_mu = foot_friction(self.sm, self.mj) if cfg.tilt_friction_margin else None
+        # where a drawn payload sits, and the mass its fraction is of
+        self.payload_body = sim_model.body_id(self.sm, cfg.payload_body, "payload_body")
+        self.robot_mass = float(self.mj.body_mass.sum())
 
     # -- Brax Env API -------------------------------------------------------------------------
     @property
@@ -388,6 +412,9 @@ class VelocityEnv(brax_base.Env):
         softness = (jax.random.uniform(jax.random.fold_in(k_clock, 4), minval=self.cfg.softness_min,
                                        maxval=self.cfg.softness_max)
                     if self.cfg.randomises_softness else jnp.ones(()))
+        payload = (self.robot_mass * jax.random.uniform(
+            jax.random.fold_in(k_clock, 5), maxval=self.cfg.payload_max)
+                   if self.cfg.randomises_payload else jnp.zeros(()))
         tilt = jnp.zeros(2)  # (slope rad, uphill heading rad); level at t = 0 either way
         if self.cfg.randomises_tilt:
             steepest = jnp.deg2rad(self.cfg.tilt_max_deg)
@@ -401,7 +428,7 @@ class VelocityEnv(brax_base.Env):
         info = {"rng": rng, "command": command, "last_action": jnp.zeros(self.nu),
                 "air_time": jnp.zeros(nf), "last_contact": jnp.ones(nf, bool),
                 "clock": clock, "t": jnp.zeros((), jnp.int32), "friction": friction,
-                "softness": softness, "tilt": tilt}
+                "softness": softness, "tilt": tilt, "payload": payload}
         obs = observe(self.cfg, self.home, *self._sensed(d.qpos, d.qvel, k_clock), command, clock)
         _, parts = total_reward(self.cfg, self._terms_zero(), self.dt)
         metrics = {f"reward/{k}": jnp.zeros(()) for k in parts}
@@ -420,6 +447,8 @@ class VelocityEnv(brax_base.Env):
         ctrl = jnp.clip(target, self.lo, self.hi)
         mx = with_ground(self.mx, info["friction"] if cfg.randomises_friction else None,
                          info["softness"] if cfg.randomises_softness else None)
+        if cfg.randomises_payload:
+            mx = with_payload(mx, self.payload_body, info["payload"])
         up = None  # the sensed gravity after the step (world down on level ground)
         if cfg.randomises_tilt:  # the slope built up over tilt_s, as the ``tilt`` scenario's
             ramp = jnp.stack([info["tilt"][0], jnp.asarray(cfg.tilt_s, info["tilt"].dtype)])
@@ -523,6 +552,15 @@ def with_ground(mx: mjx.Model, friction: jax.Array | None = None,
                                                 jnp.asarray(softness, mx.geom_solref.dtype))
         mx = mx.replace(geom_solref=geom, pair_solref=pair)
     return mx
+
+
+def with_payload(mx: mjx.Model, body: int, kg: jax.Array) -> mjx.Model:
+    """``mx`` with ``kg`` (may be traced: one per world under ``vmap``) strapped on body
+    ``body`` (:func:`stride_jax.sim.randomize.payload_fields`; derived constants such as
+    ``body_invweight0`` kept, as the hidden randomisation keeps them)."""
+    mass, inertia = randomize.payload_fields(mx.body_mass, mx.body_inertia, body,
+                                             jnp.asarray(kg, mx.body_mass.dtype))
+    return mx.replace(body_mass=mass, body_inertia=inertia)
 
 
 def physics_step(mx: mjx.Model, n_substeps: int, d: mjx.Data, ctrl: jax.Array) -> mjx.Data:

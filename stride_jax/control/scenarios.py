@@ -127,14 +127,7 @@ def scenario_model(sm: sim_model.SimModel, sc: Scenario, seed: int = 0) -> mujoc
 def payload_body(sm: sim_model.SimModel, sc: Scenario) -> int:
     """The id of the body that carries ``sc``'s payload: ``sc.payload_body`` by name, or the
     robot's base body; an unknown name is an error that lists the robot's bodies."""
-    if not sc.payload_body:
-        return sm.base_body
-    body = mujoco.mj_name2id(sm.mj, mujoco.mjtObj.mjOBJ_BODY, sc.payload_body)
-    if body <= 0:  # -1: no such body; 0: the world, which nothing carries
-        names = [mujoco.mj_id2name(sm.mj, mujoco.mjtObj.mjOBJ_BODY, i) for i in range(1, sm.mj.nbody)]
-        raise ValueError(f"scenario {sc.name!r}: payload body {sc.payload_body!r} is not a body "
-                         f"of {sm.robot.name!r}; its bodies: {', '.join(names)}")
-    return body
+    return sim_model.body_id(sm, sc.payload_body, f"scenario {sc.name!r}: payload body")
 
 
 def tilt_schedule(sc: Scenario) -> np.ndarray:

@@ -53,6 +53,20 @@ def _id(m: mujoco.MjModel, obj: mujoco.mjtObj, name: str, robot: str) -> int:
     return i
 
 
+def body_id(sm: "SimModel", name: str, what: str = "body") -> int:
+    """The id of ``sm``'s body ``name`` (``""``: the base body, where the IMU is); a name that
+    is not one of the robot's bodies (the world included: nothing carries it) is a ``ValueError``
+    that lists them, ``what`` naming what asked (``"payload body"``)."""
+    if not name:
+        return sm.base_body
+    body = mujoco.mj_name2id(sm.mj, mujoco.mjtObj.mjOBJ_BODY, name)
+    if body <= 0:  # -1: no such body; 0: the world
+        names = [mujoco.mj_id2name(sm.mj, mujoco.mjtObj.mjOBJ_BODY, i) for i in range(1, sm.mj.nbody)]
+        raise ValueError(f"{what} {name!r} is not a body of {sm.robot.name!r}; its bodies: "
+                         f"{', '.join(names)}")
+    return body
+
+
 def strip_visual_meshes(spec: mujoco.MjSpec) -> int:
     """Deletes the mesh geoms that never collide (visual only) and the meshes left unused, where
     their bodies' inertia is given explicitly; returns how many geoms went.

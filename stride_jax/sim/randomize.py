@@ -114,14 +114,24 @@ def apply_fields(fields: dict, v: RandValues, base_body: int, xp=jnp) -> dict:
     return f
 
 
+def payload_fields(body_mass, body_inertia, body: int, kg, xp=jnp):
+    """``(body_mass, body_inertia)`` with ``kg`` added to body ``body``, its rotational inertia
+    scaled with its mass and its centre of mass kept (a load strapped on). ``kg`` may be traced
+    (one per world under ``vmap``: PPO's randomised payload); ``xp`` as in :func:`apply_fields`.
+    The one place the project straps a load on: :func:`add_payload` and the env's
+    (``stride_jax.control.envs.with_payload``)."""
+    hit = xp.arange(body_mass.shape[0]) == body
+    m0 = body_mass[body]
+    scale = xp.where(hit, (m0 + kg) / m0, 1.0)
+    return body_mass + xp.where(hit, kg, 0.0), body_inertia * scale[:, None]
+
+
 def add_payload(m: mujoco.MjModel, body: int, kg: float) -> None:
-    """Adds ``kg`` to body ``body`` of ``m`` in place, its rotational inertia scaled with its
-    mass and its centre of mass kept (a load strapped on: the gap tool's ``payload`` effect and
-    the closed loop's ``payload`` scenario). Derived constants are left to the caller, as
-    :func:`apply_fields` leaves them."""
-    m0 = float(m.body_mass[body])
-    m.body_inertia[body] *= (m0 + kg) / m0
-    m.body_mass[body] = m0 + kg
+    """Adds ``kg`` to body ``body`` of ``m`` in place (:func:`payload_fields`: the gap tool's
+    ``payload`` effect and the closed loop's ``payload`` scenario). Derived constants are left
+    to the caller, as :func:`apply_fields` leaves them."""
+    m.body_mass[:], m.body_inertia[:] = payload_fields(m.body_mass, m.body_inertia, body,
+                                                       float(kg), np)
 
 
 def tilted_gravity(gravity, down, xp=jnp):
