@@ -63,6 +63,8 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=3.0, help="episode length (0: the scenario's)")
     ap.add_argument("--slope-deg", type=float, default=0.0, help="as the closed-loop job's")
     ap.add_argument("--rough-cm", type=float, default=0.0, help="as the closed-loop job's")
+    ap.add_argument("--payload", type=float, default=0.0, help="as the closed-loop job's")
+    ap.add_argument("--payload-body", default="", help="as the closed-loop job's")
     ap.add_argument("--govern", action=argparse.BooleanOptionalAction, default=True)
     ap.add_argument("--sense-gravity", action=argparse.BooleanOptionalAction, default=True,
                     help="the policy observes the scenario's gravity (as the closed loop's "
@@ -75,7 +77,8 @@ def main() -> None:
     if env_cfg.robot != a.robot:
         raise SystemExit(f"the policy {a.policy} drives {env_cfg.robot}, not {a.robot}")
     cfg = ClosedLoopConfig(robot=a.robot, seconds=a.seconds, govern=a.govern,
-                           slope_deg=a.slope_deg, rough_cm=a.rough_cm)
+                           slope_deg=a.slope_deg, rough_cm=a.rough_cm, payload=a.payload,
+                           payload_body=a.payload_body)
     sm = sim_model.load(a.robot)
     sc = scenario(cfg, a.scenario)
     w = scenario_world(sm, sc)
@@ -102,7 +105,9 @@ def main() -> None:
               f"({time.perf_counter() - t0:.0f} s)", flush=True)
     out = pathlib.Path(a.out)
     extra = "".join(f" --{k} {v:g}" for k, v in (("ar", a.ar), ("slope-deg", a.slope_deg),
-                                                   ("rough-cm", a.rough_cm)) if v)
+                                                   ("rough-cm", a.rough_cm),
+                                                   ("payload", a.payload)) if v)
+    extra += f" --payload-body {a.payload_body}" if a.payload_body else ""
     extra += ("" if a.govern else " --no-govern") + ("" if a.sense_gravity
                                                      else " --no-sense-gravity")
     cmd = ("python experiments/probes/policy_noise.py --robot {} --policy {} --scenario {} "
