@@ -377,7 +377,7 @@ class VelocityEnv(brax_base.Env):
         # the feet's friction on the floor, where it bounds the slopes drawn
         self.foot_mu = foot_friction(self.sm, self.mj) if cfg.tilt_friction_margin else None
         # where a drawn payload sits, and the mass its fraction is of
-        self.payload_body = sim_model.body_id(self.sm, cfg.payload_body, "payload_body")
+        self.payload_body_id = sim_model.body_id(self.sm, cfg.payload_body, "payload_body")
         self.robot_mass = float(self.mj.body_mass.sum())
 
     # -- Brax Env API -------------------------------------------------------------------------
@@ -448,7 +448,7 @@ class VelocityEnv(brax_base.Env):
         mx = with_ground(self.mx, info["friction"] if cfg.randomises_friction else None,
                          info["softness"] if cfg.randomises_softness else None)
         if cfg.randomises_payload:
-            mx = with_payload(mx, self.payload_body, info["payload"])
+            mx = with_payload(mx, self.payload_body_id, info["payload"])
         up = None  # the sensed gravity after the step (world down on level ground)
         if cfg.randomises_tilt:  # the slope built up over tilt_s, as the ``tilt`` scenario's
             ramp = jnp.stack([info["tilt"][0], jnp.asarray(cfg.tilt_s, info["tilt"].dtype)])
