@@ -344,3 +344,15 @@ def test_a_result_copied_from_another_and_changed_is_dated_by_its_own_commit(tmp
     second = git("log", "-1", "--format=%h").stdout.strip()
     assert _git_note(tmp_path / "a" / "r.json").startswith(f"committed {first}")
     assert _git_note(tmp_path / "b" / "r.json").startswith(f"committed {second}")
+
+
+def test_tables_with_other_rows_beside_closed_loop_runs_are_not_read_as_runs(tmp_path):
+    """A probe's table kept in a closed-loop folder (rows of noise levels, no ``model``) is not
+    a closed-loop run: the report reads the run beside it alone."""
+    from stride_paper import report_control
+    run = _closed()
+    _write(tmp_path / "closed_loop" / "a" / "closed_loop.json", run)
+    _write(tmp_path / "closed_loop" / "a" / "margins.json",
+           {"command": "policy_noise.py", "rows": [{"noise": 0.0, "draws": 16, "falls": 0}]})
+    found = report_control.load_closed_loop(tmp_path)
+    assert [p.name for p, _ in found] == ["closed_loop.json"]
