@@ -191,10 +191,10 @@ def load_closed_loop(results: pathlib.Path) -> list[tuple[pathlib.Path, dict]]:
             d = _load_json(p)
         except (OSError, json.JSONDecodeError):
             continue  # being written by another job: skipped, not fatal
-        # a closed-loop table's rows name their model; other tables kept beside them (a
-        # probe's falls per noise level) have rows too, and are not closed-loop rows
+        # a closed-loop table's rows carry the tracking error; other tables kept beside them
+        # (a probe's falls per noise level) have rows too, and are not closed-loop rows
         rows = d.get("rows") if isinstance(d, dict) else None
-        if isinstance(rows, list) and all(isinstance(r, dict) and "model" in r for r in rows):
+        if isinstance(rows, list) and all(isinstance(r, dict) and "vel_rmse" in r for r in rows):
             out.append((p, d))
     return out
 

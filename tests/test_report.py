@@ -347,8 +347,8 @@ def test_a_result_copied_from_another_and_changed_is_dated_by_its_own_commit(tmp
 
 
 def test_tables_with_other_rows_beside_closed_loop_runs_are_not_read_as_runs(tmp_path):
-    """A probe's table kept in a closed-loop folder (rows of noise levels, no ``model``) is not
-    a closed-loop run: the report reads the run beside it alone."""
+    """A probe's table kept in a closed-loop folder (rows of noise levels, no tracking error)
+    is not a closed-loop run: the report reads the run beside it alone."""
     from stride_paper import report_control
     run = _closed()
     _write(tmp_path / "closed_loop" / "a" / "closed_loop.json", run)
