@@ -84,3 +84,37 @@ def test_pushes_reach_the_records(go1):
     ep = rollout_cpu.collect(go1, jax.random.key(2), 4, 100)
     pushed = np.abs(ep.records.qfrc_external[..., :2]).max(-1) > 1.0
     assert pushed.any() and not pushed.all()
+
+
+def test_the_hidden_payload_sits_on_the_named_body(go1, tmp_path):
+    """``Randomization.payload_body``: the data's hidden payload on a named body (the base when
+    unnamed); ``stride data --payload-kg-max --payload-body`` carries it into the episodes (the
+    same draws on another body make other trajectories) and the dataset's metadata, from which
+    the re-simulated continuations read it back; an unknown name fails before any episode."""
+    import dataclasses
+
+    from stride_jax.jobs import data as collect
+    from stride_jax.sim import continuations
+
+    fields = randomize.nominal_fields(go1.mj)
+    r = dataclasses.replace(go1.robot.randomization, payload_body="FR_thigh")
+    body = randomize.payload_body_id(go1, r)
+    assert body != go1.base_body and randomize.payload_body_id(go1) == go1.base_body
+    v = randomize.sample(jax.random.key(1), r, 5.0)._replace(payload_kg=np.float32(1.5))
+    m = randomize.apply_mujoco(go1.mj, fields, v, body)
+    np.testing.assert_allclose(m.body_mass - go1.mj.body_mass,
+                               1.5 * (np.arange(go1.mj.nbody) == body), atol=1e-6)
+
+    cfg = collect.DataConfig(robot="go1", backend="cpu", episodes=3, seconds=0.3,
+                             payload_kg_max=5.0, payload_body="FR_thigh", out=str(tmp_path / "a"))
+    thigh = collect.generate(cfg)
+    base = collect.generate(dataclasses.replace(cfg, payload_body="", out=str(tmp_path / "b")))
+    assert thigh.meta["randomization"]["payload_body"] == "FR_thigh"
+    assert list(thigh.meta["randomization"]["payload_kg"]) == [0.0, 5.0]
+    assert continuations.randomization_of(thigh.meta).payload_body == "FR_thigh"
+    q_thigh, q_base = thigh.split("train")["q"], base.split("train")["q"]
+    assert np.abs(q_thigh - q_base).max() > 1e-3  # the same draws, on another body
+    with pytest.raises(ValueError, match="'backpack' is not a body of 'go1'; its bodies: trunk"):
+        collect.generate(dataclasses.replace(cfg, payload_body="backpack"))
+    with pytest.raises(ValueError, match="payload_kg_max"):
+        collect.generate(dataclasses.replace(cfg, payload_kg_max=-1.0))

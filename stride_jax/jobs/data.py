@@ -19,7 +19,7 @@ from tqdm import tqdm
 from stride_jax import distributed
 from stride_jax.distributed import DistributedConfig
 from stride_jax.robots import Explorer, stochastic
-from stride_jax.sim import dataset, model, rollout_cpu, rollout_mjx
+from stride_jax.sim import dataset, model, randomize, rollout_cpu, rollout_mjx
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,6 +55,13 @@ class DataConfig:
         A ``policy`` senses each episode's gravity, as its IMU would (explorers with
         ``senses_gravity``, :func:`stride_jax.sim.rollout_mjx.sensing_act`); the robots' own
         explorers act on the state alone.
+      payload_kg_max: > 0: each episode's hidden payload is drawn uniformly in [0, this] kg
+        (:attr:`stride_jax.robots.Randomization.payload_kg`, replacing the robot's own range;
+        implies ``randomized``, as ``payload_body`` does). 0: the robot's own range.
+      payload_body: the body that carries the hidden payload, by name
+        (:attr:`~stride_jax.robots.Randomization.payload_body`; "": the robot's own, its base
+        body unless it names another); a name the robot lacks fails before any episode,
+        listing its bodies.
       out: output folder; empty means ``data/<robot>``.
       distributed: several processes share the episodes (:mod:`stride_jax.distributed`).
     """
@@ -71,6 +78,8 @@ class DataConfig:
     policy: str = ""
     action_noise: float = 0.3
     slope_deg: float = 0.0
+    payload_kg_max: float = 0.0
+    payload_body: str = ""
     out: str = ""
     distributed: DistributedConfig = DistributedConfig()
 
@@ -114,11 +123,22 @@ def generate(cfg: DataConfig, explorer: Explorer | None = None) -> dataset.Datas
     if cfg.slope_deg:
         robot = dataclasses.replace(robot, randomization=dataclasses.replace(
             robot.randomization, slope_deg=(0.0, float(cfg.slope_deg))))
+    if not (math.isfinite(cfg.payload_kg_max) and cfg.payload_kg_max >= 0):
+        raise ValueError(f"payload_kg_max={cfg.payload_kg_max!r}: need a load >= 0 kg (0: the "
+                         "robot's own range)")
+    if cfg.payload_kg_max or cfg.payload_body:
+        r = robot.randomization
+        robot = dataclasses.replace(robot, randomization=dataclasses.replace(
+            r, payload_kg=(0.0, float(cfg.payload_kg_max)) if cfg.payload_kg_max else r.payload_kg,
+            payload_body=cfg.payload_body or r.payload_body))
     if explorer is not None:
         robot = dataclasses.replace(robot, explorer=explorer)
     if robot is not sm.robot:
         sm = dataclasses.replace(sm, robot=robot)
-    randomized = cfg.randomized or cfg.stochastic or cfg.slope_deg > 0
+    randomized = (cfg.randomized or cfg.stochastic or cfg.slope_deg > 0
+                  or cfg.payload_kg_max > 0 or bool(cfg.payload_body))
+    if randomized:
+        randomize.payload_body_id(sm)  # a body the robot lacks: an error before any episode
     if cfg.episodes < 3:
         raise ValueError(f"episodes must be >= 3 (train/val/test split), got {cfg.episodes}")
     if not math.isfinite(cfg.seconds) or cfg.seconds < 0:

@@ -41,7 +41,11 @@ class Randomization:
     Attributes:
       friction: scale of the sliding friction of every contact, (lo, hi).
       softness: scale of the contact solref time constant (> 1 is softer), (lo, hi).
-      payload_kg: mass added to the base body (kg), (lo, hi).
+      payload_kg: mass added to ``payload_body`` (kg), (lo, hi): a point load at the body's
+        centre of mass (its mass grows, its rotational inertia about that centre does not; the
+        closed loop's ``payload`` scenario and PPO's ``payload_max`` scale the body instead).
+      payload_body: the body that carries it, by name ("": the base body; a humanoid's
+        backpack: G1's ``torso_link``).
       push_n: magnitude of one horizontal push on the base (N), (lo, hi); 0 disables pushes.
       push_s: duration of the push (s), (lo, hi).
       damping: scale of every joint's viscous damping, (lo, hi).
@@ -71,6 +75,7 @@ class Randomization:
     friction: tuple[float, float] = (1.0, 1.0)
     softness: tuple[float, float] = (1.0, 1.0)
     payload_kg: tuple[float, float] = (0.0, 0.0)
+    payload_body: str = ""
     push_n: tuple[float, float] = (0.0, 0.0)
     push_s: tuple[float, float] = (0.1, 0.2)
     damping: tuple[float, float] = (1.0, 1.0)

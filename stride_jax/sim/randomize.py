@@ -31,7 +31,7 @@ class RandValues(NamedTuple):
 
     friction: jax.Array  # scale of sliding friction
     softness: jax.Array  # scale of the contact time constant
-    payload_kg: jax.Array  # mass added to the base body
+    payload_kg: jax.Array  # mass added to the payload's body (Randomization.payload_body)
     damping: jax.Array  # scale of joint damping
     frictionloss: jax.Array  # scale of joint dry friction
     bump_nm: jax.Array  # signed amplitude of the hidden joint torque bump (N m)
@@ -100,15 +100,16 @@ def contact_softness(geom_solref, pair_solref, factor, xp=jnp):
     return geom_solref * scale, pair_solref * scale
 
 
-def apply_fields(fields: dict, v: RandValues, base_body: int, xp=jnp) -> dict:
-    """Returns the model arrays of :data:`FIELDS` with the episode's values applied."""
+def apply_fields(fields: dict, v: RandValues, payload_body: int, xp=jnp) -> dict:
+    """Returns the model arrays of :data:`FIELDS` with the episode's values applied; the payload
+    on body ``payload_body`` (:func:`payload_body_id`)."""
     f = dict(fields)
     f["geom_friction"], f["pair_friction"] = sliding_friction(
         fields["geom_friction"], fields["pair_friction"], v.friction, xp)
     f["geom_solref"], f["pair_solref"] = contact_softness(
         fields["geom_solref"], fields["pair_solref"], xp.asarray(v.softness), xp)
     f["body_mass"] = fields["body_mass"] + v.payload_kg * (xp.arange(fields["body_mass"].shape[0])
-                                                           == base_body)
+                                                           == payload_body)
     f["dof_damping"] = fields["dof_damping"] * v.damping
     f["dof_frictionloss"] = fields["dof_frictionloss"] * v.frictionloss
     return f
@@ -159,18 +160,28 @@ def nominal_fields(m: mujoco.MjModel) -> dict:
     return {k: np.array(getattr(m, k)) for k in FIELDS}
 
 
-def apply_mjx(mx, fields: dict, v: RandValues, base_body: int):
+def payload_body_id(sm, r: Randomization | None = None) -> int:
+    """The id of ``sm``'s body that carries the hidden payload of ``r`` (default: the robot's
+    own randomisation; :attr:`~stride_jax.robots.Randomization.payload_body`, the base body
+    when unnamed); a name the robot lacks is an error listing its bodies."""
+    from stride_jax.sim import model as sim_model
+    r = r if r is not None else sm.robot.randomization
+    return sim_model.body_id(sm, r.payload_body, "randomization.payload_body")
+
+
+def apply_mjx(mx, fields: dict, v: RandValues, payload_body: int):
     """An ``mjx.Model`` with the episode's values; vmap over ``v`` for a batch of worlds."""
     jfields = {k: jnp.asarray(a, dtype=jnp.float32) for k, a in fields.items()}
     return mx.replace(**{k: a.astype(getattr(mx, k).dtype)
-                         for k, a in apply_fields(jfields, v, base_body, jnp).items()})
+                         for k, a in apply_fields(jfields, v, payload_body, jnp).items()})
 
 
-def apply_mujoco(m: mujoco.MjModel, fields: dict, v: RandValues, base_body: int) -> mujoco.MjModel:
+def apply_mujoco(m: mujoco.MjModel, fields: dict, v: RandValues,
+                 payload_body: int) -> mujoco.MjModel:
     """A randomised copy of ``m`` (``v`` holds one episode's values, as numpy or JAX scalars)."""
     out = copy.copy(m)  # MjModel's copy is a deep copy
     vals = RandValues(*(np.asarray(x, dtype=np.float64) for x in v))
-    for k, a in apply_fields(fields, vals, base_body, np).items():
+    for k, a in apply_fields(fields, vals, payload_body, np).items():
         getattr(out, k)[...] = a
     return out
 

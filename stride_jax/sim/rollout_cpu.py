@@ -255,8 +255,9 @@ def randomized_worlds(sm: SimModel, r, rand: randomize.RandValues
     fields = randomize.nominal_fields(mj)
     rand_np = jax.tree.map(np.asarray, rand)
     n = len(rand_np.friction)
+    payload_body = randomize.payload_body_id(sm, r)
     models = [randomize.apply_mujoco(mj, fields, jax.tree.map(lambda a: a[i], rand_np),
-                                     sm.base_body) for i in range(n)]
+                                     payload_body) for i in range(n)]
     if r.rough:
         for m, h in zip(models, _height_data(r, rand_np.terrain_seed)):
             m.hfield_data[...] = h

@@ -154,6 +154,7 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True, impl: s
     # MJX's own kinematics find the patches under the feet, so both impls look up the same ones
     mx_kin = (mx0 if impl == "jax" else mjx.put_model(mj)) if patches else None
     fields = randomize.nominal_fields(mj)
+    payload_body = randomize.payload_body_id(sm, r)
     pair_foot = randomize.pair_feet(mj, sm.geom_foot)
     episode_s = n_steps * robot.ctrl_dt
     act = sensing_act(explorer, randomized and r.sloped)
@@ -161,7 +162,7 @@ def make_collect_fn(sm: SimModel, n_steps: int, randomized: bool = True, impl: s
     def episode(key: jax.Array) -> Episode:
         key_rand, key_explore = jax.random.split(key)
         rand = randomize.sample(key_rand, robot.randomization, episode_s)
-        mx = randomize.apply_mjx(mx0, fields, rand, sm.base_body) if randomized else mx0
+        mx = randomize.apply_mjx(mx0, fields, rand, payload_body) if randomized else mx0
         if randomized and r.sloped:
             mx = randomize.tilt_mjx(mx, rand.down)
         if rough:
