@@ -21,6 +21,7 @@ import numpy as np
 from mujoco import mjx
 
 from stride_jax.robots import Randomization
+from stride_jax.sim import model as sim_model
 
 FIELDS = ("geom_friction", "pair_friction", "geom_solref", "pair_solref", "body_mass",
           "dof_damping", "dof_frictionloss")
@@ -164,7 +165,6 @@ def payload_body_id(sm, r: Randomization | None = None) -> int:
     """The id of ``sm``'s body that carries the hidden payload of ``r`` (default: the robot's
     own randomisation; :attr:`~stride_jax.robots.Randomization.payload_body`, the base body
     when unnamed); a name the robot lacks is an error listing its bodies."""
-    from stride_jax.sim import model as sim_model
     r = r if r is not None else sm.robot.randomization
     return sim_model.body_id(sm, r.payload_body, "randomization.payload_body")
 
