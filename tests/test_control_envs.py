@@ -301,3 +301,9 @@ def test_a_randomised_payload_loads_the_named_body(go1):
             envs.config("go1", **bad)
     with pytest.raises(ValueError, match="'backpack' is not a body of 'go1'; its bodies: trunk"):
         envs.make("go1", payload_max=0.2, payload_body="backpack")
+    massless = copy.copy(go1.mj)
+    massless.body_mass[body] = 0.0
+    with pytest.raises(ValueError, match="has no mass"):
+        envs.VelocityEnv(envs.config("go1", payload_max=0.2, payload_body="FR_thigh"), massless)
+    with pytest.raises(ValueError, match="FR_thigh: body .* has no mass"):
+        randomize.add_payload(massless, body, 1.0)

@@ -378,6 +378,9 @@ class VelocityEnv(brax_base.Env):
         self.foot_mu = foot_friction(self.sm, self.mj) if cfg.tilt_friction_margin else None
         # where a drawn payload sits, and the mass its fraction is of
         self.payload_body_id = sim_model.body_id(self.sm, cfg.payload_body, "payload_body")
+        if cfg.randomises_payload:
+            randomize.check_payload_body(self.mj.body_mass, self.payload_body_id,
+                                         f"payload_body {cfg.payload_body or 'the base'!r}")
         self.robot_mass = float(self.mj.body_mass.sum())
 
     # -- Brax Env API -------------------------------------------------------------------------

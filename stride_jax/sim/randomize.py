@@ -128,10 +128,19 @@ def payload_fields(body_mass, body_inertia, body: int, kg, xp=jnp):
     return body_mass + xp.where(hit, kg, 0.0), body_inertia * scale[:, None]
 
 
+def check_payload_body(body_mass, body: int, what: str = "payload body") -> None:
+    """A body that carries a load scaled with it (:func:`payload_fields`) needs a mass: a
+    massless one (a frame, a site holder) would take an infinite inertia; an error naming it."""
+    if not float(body_mass[body]) > 0:
+        raise ValueError(f"{what}: body {body} has no mass, so a load scaled with it has no "
+                         "inertia to scale; put the load on a body with mass")
+
+
 def add_payload(m: mujoco.MjModel, body: int, kg: float) -> None:
     """Adds ``kg`` to body ``body`` of ``m`` in place (:func:`payload_fields`: the gap tool's
     ``payload`` effect and the closed loop's ``payload`` scenario). Derived constants are left
     to the caller, as :func:`apply_fields` leaves them."""
+    check_payload_body(m.body_mass, body, mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, body))
     m.body_mass[:], m.body_inertia[:] = payload_fields(m.body_mass, m.body_inertia, body,
                                                        float(kg), np)
 
