@@ -591,8 +591,46 @@ def test_a_chunked_run_killed_mid_episode_resumes_to_the_same_rows(tmp_path, mon
     np.testing.assert_array_equal(carry["x"], state["x"])
     np.testing.assert_array_equal(jax.random.key_data(carry["key"]),
                                   jax.random.key_data(state["key"]))
-    assert cl._load_state(path, state, "another run") is None
-    assert cl._load_state(path, {**state, "x": jnp.arange(4.0)}, "this run") is None
+    assert isinstance(cl._load_state(path, state, "another run"), str)
+    assert "other shapes" in cl._load_state(path, {**state, "x": jnp.arange(4.0)}, "this run")
+    assert cl._load_state(tmp_path / "none.npz", state, "this run") is None
+
+
+def test_a_saved_state_of_another_run_is_set_aside_with_the_reason_not_overwritten(tmp_path):
+    """A chunked episode whose saved state is another run's (a setting changed between the call
+    cut by its limit and the call resuming it) says which settings differ, keeps that state
+    beside under another name, and runs from its first step; the set-aside file is never
+    overwritten by the new run's own states. Settings that only time the controller
+    (``controller_repeats``) do not make another run."""
+    from stride_jax.control.episode import Trace
+
+    def ident(**planning):
+        return json.dumps(dict(settings=dict(planning=dict(observer_gain=0.3, **planning)),
+                               model="onn"), sort_keys=True)
+
+    start = lambda x: {"x": x, "key": jax.random.key(0)}
+    resume = lambda carry, steps, x: ({**carry, "x": carry["x"] + 1.0}, Trace(
+        *(jnp.full((2,), steps, jnp.float32) for _ in Trace._fields)))
+    path = tmp_path / "partial" / "walk_onn.npz"
+    old = start(jnp.zeros(3))
+    cl._save_state(path, {**old, "x": old["x"] + 7.0}, [], 2, 0.5, ident())
+    before = path.read_bytes()
+    lines = []
+    traces, _ = cl._chunked((start, resume), (jnp.zeros(3),), 4, 2, False, path,
+                            ident(latency_auto=True), {"label": "walk onn"}, lines.append)
+    said = " ".join(lines)
+    assert "is not resumed" in said and "planning.latency_auto: (absent) -> True" in said, said
+    aside = tmp_path / "partial" / "walk_onn.stale0.npz"
+    assert aside.read_bytes() == before and not path.exists()  # kept whole; the run's own gone
+    np.testing.assert_array_equal(traces.t, [0, 0, 2, 2])  # from the first step, not the 2nd
+    assert "walk_onn.stale0.npz" in said
+    # a second set-aside takes the next name
+    cl._save_state(path, old, [], 2, 0.5, ident(observer_gain_x=1))
+    cl._chunked((start, resume), (jnp.zeros(3),), 4, 2, False, path, ident(), {"label": "w"},
+                lambda *_: None)
+    assert (tmp_path / "partial" / "walk_onn.stale1.npz").is_file() and aside.is_file()
+    cfg = cl.ClosedLoopConfig()
+    assert "controller_repeats" in dataclasses.asdict(cfg) and "controller_repeats" in cl._PER_RUN
 
 
 @pytest.mark.slow  # a second compile of the episode; fast: test_a_chunked_run_killed_mid_episode_resumes_to_the_same_rows

@@ -131,7 +131,10 @@ class ClosedLoopConfig:
       chunk_s: run each episode in chunks of this many simulated seconds, saving its state and
         trace after each (``OUT/partial/``, atomically): a run killed mid-episode (a time limit,
         a lost machine) resumes at its last chunk when called again with the same settings, so
-        it loses at most one chunk. 0: one program per episode, nothing saved before its row.
+        it loses at most one chunk (settings that only time the controller may differ); a
+        state saved with other settings or code is not resumed: the log says which settings
+        differ and the state is kept beside as ``<pair>.stale<k>.npz``, never overwritten.
+        0: one program per episode, nothing saved before its row.
         The same trace either way, to float rounding (the chunks run the same step, one after
         another, compiled as another program: measured 1e-7 relative on the CPU).
       seed: planner key and terrain seed.
@@ -528,9 +531,9 @@ def _save_state(path: pathlib.Path, carry, traces: list, steps: int, run_s: floa
 
 
 def _load_state(path: pathlib.Path, carry_like, ident: str):
-    """``(carry, traces, steps, run_s)`` saved by :func:`_save_state` for the run ``ident``,
-    or None where there is none, or it is another run's or another episode state's (other code):
-    then it is left, not resumed."""
+    """``(carry, traces, steps, run_s)`` saved by :func:`_save_state` for the run ``ident``;
+    None where there is none; where there is another run's, or another episode state's (other
+    code), a line saying why it is not this run's (the caller sets it aside, not resumed)."""
     if not path.is_file():
         return None
     with np.load(path) as z:
@@ -540,14 +543,50 @@ def _load_state(path: pathlib.Path, carry_like, ident: str):
                   for i in range(len(leaves))]
         want = [jax.random.key_data(x).shape if i in meta["keys"] else x.shape
                 for i, x in enumerate(leaves)]
-        if meta["ident"] != ident or shapes != want or f"carry{len(leaves)}" in z.files:
-            return None
+        if meta["ident"] != ident:
+            return _ident_difference(meta["ident"], ident)
+        if shapes != want or f"carry{len(leaves)}" in z.files:
+            n = sum(f.startswith("carry") for f in z.files)
+            return (f"its episode state has {n} arrays of other shapes than this code's "
+                    f"{len(leaves)} (saved by other code)")
         carry = jax.tree.unflatten(treedef, [
             jax.random.wrap_key_data(z[f"carry{i}"]) if i in meta["keys"] else
             jnp.asarray(z[f"carry{i}"], like.dtype) for i, like in enumerate(leaves)])
         traces = [Trace(**{f: z[f"trace{k}_{f}"] for f in Trace._fields})
                   for k in range(meta["chunks"])]
     return carry, traces, meta["steps"], meta["run_s"]
+
+
+def _ident_difference(saved: str, now: str, most: int = 4) -> str:
+    """What differs between a saved state's run identity and this run's (both the JSON of
+    :func:`run`'s ``ident``), as ``key: saved -> now`` for the first ``most`` keys."""
+    def flat(d, pre=""):
+        out = {}
+        for k, v in d.items():
+            if isinstance(v, dict):
+                out.update(flat(v, f"{pre}{k}."))
+            else:
+                out[f"{pre}{k}"] = v
+        return out
+    try:
+        a, b = flat(json.loads(saved)), flat(json.loads(now))
+    except (ValueError, AttributeError):
+        return "it was saved by another run"
+    gone = "(absent)"
+    diff = [f"{k}: {a.get(k, gone)} -> {b.get(k, gone)}" for k in sorted(a.keys() | b.keys())
+            if a.get(k, gone) != b.get(k, gone)]
+    more = f"; and {len(diff) - most} more" if len(diff) > most else ""
+    return "another run's settings (" + "; ".join(diff[:most]) + more + ")"
+
+
+def _set_aside(path: pathlib.Path) -> pathlib.Path:
+    """``path`` renamed ``<stem>.stale<k>.npz`` (the first ``k`` free), so that a run which does
+    not resume it never overwrites it."""
+    k = 0
+    while (aside := path.with_name(f"{path.stem}.stale{k}{path.suffix}")).exists():
+        k += 1
+    path.rename(aside)
+    return aside
 
 
 def _chunked(fns, args, n_steps: int, chunk: int, batched: bool, partial: pathlib.Path,
@@ -558,7 +597,10 @@ def _chunked(fns, args, n_steps: int, chunk: int, batched: bool, partial: pathli
     carry = start(*args)
     got = _load_state(partial, carry, ident)
     traces, steps, run_s = [], 0, 0.0
-    if got is not None:
+    if isinstance(got, str):  # not this run's: kept aside, never overwritten
+        log(f"  {now['label']}: {partial} is not resumed: {got}; kept as "
+            f"{_set_aside(partial).name}, the episode starts from its first step")
+    elif got is not None:
         carry, traces, steps, run_s = got
         log(f"  {now['label']}: resumed at {steps} of {n_steps} steps ({partial})")
     axis = 1 if batched else 0
@@ -716,8 +758,10 @@ def _run_seed(env: dict | None) -> int:
     return ((env or {}).get("config") or {}).get("seed", 0)
 
 
-# a run's settings that say which draws it took or where it wrote, not which planner it was
-_PER_RUN = frozenset({"seed", "episodes", "out", "models", "scenarios", "progress_s", "chunk_s"})
+# a run's settings that say which draws it took, where it wrote or how long it timed the
+# controller alone, not which planner it was nor what its episodes did
+_PER_RUN = frozenset({"seed", "episodes", "out", "models", "scenarios", "progress_s", "chunk_s",
+                      "controller_repeats"})
 
 
 # Settings added with a default other than the behaviour of the runs before them: a run's
