@@ -633,6 +633,64 @@ def test_a_saved_state_of_another_run_is_set_aside_with_the_reason_not_overwritt
     assert "controller_repeats" in dataclasses.asdict(cfg) and "controller_repeats" in cl._PER_RUN
 
 
+def _together_and_apart(tmp_path, **kw):
+    """The rows of ``kw`` run one scenario at a time and with ``together``, each checked to be
+    the other's to float rounding (traces too); ``(together's rows, its log)``."""
+    apart = cl.run(cl.ClosedLoopConfig(out=str(tmp_path / "apart"), **kw), log=lambda *_: None)
+    lines = []
+    together = cl.run(cl.ClosedLoopConfig(out=str(tmp_path / "together"), together=True, **kw),
+                      log=lines.append)
+    key = lambda r: (r["scenario"], r["model"], r["seed"])
+    ref = {key(r): r for r in apart}
+    assert sorted(ref) == sorted(key(r) for r in together)
+    for r in together:
+        for k, v in ref[key(r)].items():
+            if k not in ("ms_per_step", "controller_ms", "controller_ms_max", "compile_s",
+                         "side_by_side"):
+                assert r[k] == (pytest.approx(v, rel=1e-5, abs=1e-6) if isinstance(v, float)
+                                else v), (key(r), k)
+    for f in sorted((tmp_path / "apart").glob("trace_*.npz")):
+        a, b = np.load(f), np.load(tmp_path / "together" / f.name)
+        for k in a.files:  # other batch shapes round otherwise: 2e-5 relative seen
+            np.testing.assert_allclose(b[k], a[k], rtol=1e-4, atol=1e-5, err_msg=f"{f.name} {k}")
+    return together, lines
+
+
+def test_scenarios_run_together_give_the_rows_they_give_apart(tmp_path):
+    """``together``: the scenarios whose worlds differ in values alone (pushes, friction, a
+    command schedule) run side by side in one program per model, each episode in its own
+    world; rough ground (another model structure) runs apart. The rows and traces are those of
+    the scenarios run one at a time, to float rounding; the rows say how many ran side by side
+    and which scenarios. (The oracle, planning through its episode's own world:
+    test_the_oracle_plans_through_its_own_world_together, slow.)"""
+    rows, _ = _together_and_apart(
+        tmp_path, models="policy", scenarios="push,low_friction,rough,changes", seconds=0.2,
+        settle_s=0.0, progress_s=0.0, policy="results/policies/ppo_go1", episodes=2,
+        controller_repeats=0, rough_cm=2)
+    assert len(rows) == 8
+    for r in rows:
+        if r["scenario"] == "rough2":
+            assert r["side_by_side"] == 2 and "scenarios_together" not in r
+        else:  # three worlds x two episodes
+            assert r["side_by_side"] == 6
+            assert r["scenarios_together"] == "push+low_friction+changes"
+    # the worlds differ (so the match above says each episode met its own): friction at once
+    t = {n: np.load(tmp_path / "together" / f"trace_{n}_policy.npz")
+         for n in ("push", "low_friction")}
+    assert np.abs(t["push"]["v_base"] - t["low_friction"]["v_base"]).max() > 1e-3
+
+
+@pytest.mark.slow  # MJX planning compiled four times; fast: test_scenarios_run_together_give_the_rows_they_give_apart
+def test_the_oracle_plans_through_its_own_world_together(tmp_path):
+    """The oracle side by side plans each episode through that episode's own world (its
+    friction, its pushes), as it does run apart."""
+    rows, _ = _together_and_apart(
+        tmp_path, models="oracle", scenarios="push,low_friction", seconds=0.1, settle_s=0.0,
+        progress_s=0.0, policy="results/policies/ppo_go1", controller_repeats=0,
+        mppi=mppi.MPPIConfig(samples=4, horizon=2))
+    assert [r["side_by_side"] for r in rows] == [2, 2]
+
+
 @pytest.mark.slow  # a second compile of the episode; fast: test_a_chunked_run_killed_mid_episode_resumes_to_the_same_rows
 def test_chunks_give_the_rows_of_one_program(tmp_path):
     """An episode run in chunks gives the rows and traces of the same episode as one program (to

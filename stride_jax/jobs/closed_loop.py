@@ -168,6 +168,13 @@ class ClosedLoopConfig:
         (``rough_noise3``); rows record it.
       sensors: the sensors' terms (``--sensors.linvel-std``, ``--sensors.gyro-std``, ...;
         :class:`stride_jax.sim.sensors.SensorNoise`), used where ``sensor_noise`` > 0.
+      together: the scenarios whose worlds differ in values alone (friction, softness, gravity,
+        a payload's mass, pushes, commands; not rough ground's heightfield) run side by side in
+        one program per model, each episode in its own world: a GPU fills with scenarios x
+        ``episodes`` episodes instead of one scenario's. The same rows as run apart, to float
+        rounding (tested); ``ms_per_step`` is then the wall time of a control step of them all
+        (``side_by_side`` says how many, ``scenarios_together`` which), ``controller_ms`` one
+        episode's controller as ever.
     """
 
     robot: str = "go1"
@@ -200,6 +207,7 @@ class ClosedLoopConfig:
     model_substeps: int = 0
     sensor_noise: float = 0.0
     sensors: SensorNoise = SensorNoise()
+    together: bool = False
 
     def __post_init__(self):
         if self.episodes < 1:
@@ -358,9 +366,11 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                 planner = make_planner(planning, mppi_config(cfg.mppi, pcfg, planning))
         return planning, planner
 
-    def episode_fn(name, n_steps, slots, sm_sim, batched, chunk=0):
+    def episode_fn(name, n_steps, slots, sm_sim, batched, chunk=0, axes=EPISODES_AXES):
         """The jitted episode; with ``chunk`` steps, ``(start, continue)``: the episode's first
-        state, and ``chunk`` steps from a state at a step given at run time."""
+        state, and ``chunk`` steps from a state at a step given at run time. ``batched``: vmapped
+        over the arguments ``axes`` marks (:data:`EPISODES_AXES`: the key alone, one world's
+        draws; :func:`_world_axes`: scenarios side by side too)."""
         episode_kw = dict(limits=limits, progress=progress if every else None,
                           progress_every=every or 1, sense_gravity=cfg.sense_gravity,
                           sensors=sensors)
@@ -380,15 +390,15 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
 
         if not chunk:
             # episodes side by side: only the key differs
-            return jax.jit(jax.vmap(episode, in_axes=(None,) * 7 + (0,)) if batched else episode)
+            return jax.jit(jax.vmap(episode, in_axes=axes) if batched else episode)
         if batched:
-            start = jax.vmap(start, in_axes=(None,) * 7 + (0,))
-            resume = jax.vmap(resume, in_axes=(0, None) + (None,) * 7 + (0,))
+            start = jax.vmap(start, in_axes=axes)
+            resume = jax.vmap(resume, in_axes=(0, None) + axes)
         return jax.jit(start), jax.jit(resume)
 
     timed = {}  # the controller's own period, compiled once per compiled episode
 
-    def controller_ms(name, sm_sim, args, sig) -> tuple[float, float, float]:
+    def controller_ms(name, sm_sim, one, sig) -> tuple[float, float, float]:
         """``(median ms, longest ms, compile s)`` of the controller's own computation in one
         control period (:func:`controller_period`: one episode's, from its start, the planner's
         state carried over ``cfg.controller_repeats`` periods): what a robot's computer must fit
@@ -403,8 +413,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                                          carry, key)
             timed[sig] = (jax.jit(begin), jax.jit(period))
         begin, period = timed[sig]
-        mx_sim, mx_plan, learned_args, key = *args[:3], args[-1]
-        key = key[0] if batched else key
+        mx_sim, mx_plan, learned_args, key = one  # one episode's world, model and key
         carry = [begin(mx_sim, mx_plan, learned_args, key)]
 
         def once():
@@ -415,29 +424,49 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         times = wall_times(once, cfg.controller_repeats, warm_up=False)  # warm: once() above
         return 1e3 * statistics.median(times), 1e3 * max(times), compile_s
 
-    for sc in scenarios:
-        world = scenario_world(sm, sc, cfg.seed)
-        n_steps, mx_sim, sm_sim, slots = world.n_steps, world.mx, world.sm, world.slots
+    for group in _groups(sm, scenarios, cfg.seed, cfg.together):
+        world = group[0][1]  # the group's worlds differ in values only (_groups)
+        n_steps, sm_sim, slots = world.n_steps, world.sm, world.slots
+        label = "+".join(sc.name for sc, _ in group)
+        together = len(group) > 1
         for name, run_dir in models:
-            todo = [seed for seed in seeds if (sc.name, name, seed) not in done]
-            if not todo:
+            members = [(sc, w, seed) for sc, w in group for seed in seeds
+                       if (sc.name, name, seed) not in done]
+            if not members:
                 continue
-            keys = (jax.vmap(jax.random.key)(jnp.asarray(todo)) if batched
+            todo = [seed for *_, seed in members]
+            batch = batched or together
+            keys = (jax.vmap(jax.random.key)(jnp.asarray(todo)) if batch
                     else jax.random.key(todo[0]))
-            mx_plan = mx_sim if name == "oracle" else mx_nominal
-            args = (mx_sim, mx_plan,
-                    (learned[name][1], learned[name][0].scales) if name in learned else (),
-                    world.starts, world.values, world.pushes, world.tilt, keys)
+            learned_args = ((learned[name][1], learned[name][0].scales) if name in learned
+                            else ())
+            oracle = name == "oracle"
+            if together:  # each episode its own world: the worlds stacked along the batch
+                stacked = lambda f: jax.tree.map(lambda *xs: jnp.stack(xs),
+                                                 *[f(w) for _, w, _ in members])
+                mxs = stacked(lambda w: w.mx)
+                args = (mxs, mxs if oracle else mx_nominal, learned_args,
+                        stacked(lambda w: w.starts), stacked(lambda w: w.values),
+                        stacked(lambda w: w.pushes), stacked(lambda w: w.tilt), keys)
+                axes = _world_axes(oracle)
+            else:
+                args = (world.mx, world.mx if oracle else mx_nominal, learned_args,
+                        world.starts, world.values, world.pushes, world.tilt, keys)
+                axes = EPISODES_AXES
+            first = members[0][1].mx  # one episode's arguments, for the controller's timing
+            one = (first, first if oracle else mx_nominal, learned_args, jax.random.key(todo[0]))
             chunk = _chunk_steps(cfg.chunk_s, sm.robot.ctrl_dt, n_steps)
             planned = name != "policy"
             sig = (kind.get(name, name), n_steps, tuple(slots[0]), sm_sim.geom_foot.tobytes(),
-                   jax.tree.structure(args[:3]), len(todo) if batched else 0, chunk)
+                   jax.tree.structure(args[:3]), len(todo) if batch else 0, chunk)
+            if together:
+                sig += (axes,)
             plan_cfg[name], auto_ms = cfg.planning, None
             if cfg.latency_auto and planned:  # late by its own (longest) time on this machine
-                median_ms, auto_ms, auto_compile_s = controller_ms(name, sm_sim, args,
+                median_ms, auto_ms, auto_compile_s = controller_ms(name, sm_sim, one,
                                                                    sig + (0,))
                 plan_cfg[name] = dataclasses.replace(cfg.planning, latency_s=auto_ms / 1e3)
-                log(f"  {sc.name} {name}: --latency-auto: its controller takes {median_ms:.1f} "
+                log(f"  {label} {name}: --latency-auto: its controller takes {median_ms:.1f} "
                     f"ms on time (median; longest {auto_ms:.1f}; compile {auto_compile_s:.0f} "
                     f"s), so its plans act {latency_steps(plan_cfg[name], sm.robot.ctrl_dt)} "
                     "period(s) late")
@@ -446,41 +475,43 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
             t0 = time.perf_counter()
             if sig not in compiled:
                 if every:
-                    log(f"  {sc.name} {name}: compiling")
-                fn = episode_fn(name, n_steps, slots, sm_sim, batched, chunk)
+                    log(f"  {label} {name}: compiling")
+                fn = episode_fn(name, n_steps, slots, sm_sim, batch, chunk, axes)
                 compiled[sig] = (fn.lower(*args).compile() if not chunk else
                                  (fn[0].lower(*args).compile(),
                                   fn[1].lower(jax.eval_shape(fn[0], *args), 0, *args).compile()))
             compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
-            now.update(label=f"{sc.name} {name}", t0=t0, n=n_steps)
+            now.update(label=f"{label} {name}", t0=t0, n=n_steps)
             if chunk:
-                partial = out / "partial" / f"{sc.name}_{name}.npz"
+                partial = out / "partial" / f"{label}_{name}.npz"
                 # the pair and the settings its episodes depend on (not where they are written,
                 # nor the run's other pairs: a call naming fewer models resumes as well)
                 settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in _PER_RUN}
-                ident = json.dumps(dict(settings=settings, model=name, run=run_dir, seeds=todo,
-                                        chunk=chunk, n_steps=n_steps, latency_steps=lat),
-                                   sort_keys=True, default=str)
-                traces, run_s = _chunked(compiled[sig], args, n_steps, chunk, batched, partial,
-                                         ident, now, log)
+                ident = dict(settings=settings, model=name, run=run_dir, seeds=todo,
+                             chunk=chunk, n_steps=n_steps, latency_steps=lat)
+                if together:  # which scenario each episode walks
+                    ident["scenarios"] = [sc.name for sc, _, _ in members]
+                traces, run_s = _chunked(compiled[sig], args, n_steps, chunk, batch, partial,
+                                         json.dumps(ident, sort_keys=True, default=str), now,
+                                         log)
             else:
                 traces = jax.block_until_ready(compiled[sig](*args))
                 run_s = time.perf_counter() - t0
                 traces = jax.tree.map(np.asarray, traces)  # one copy to the host for all episodes
             ctl_ms = ctl_max = None
             if cfg.controller_repeats:
-                ctl_ms, ctl_max, ctl_compile_s = controller_ms(name, sm_sim, args, sig)
+                ctl_ms, ctl_max, ctl_compile_s = controller_ms(name, sm_sim, one, sig)
                 budget_ms = 1e3 * sm.robot.ctrl_dt * max(lat, 1)
-                log(f"  {sc.name} {name}: the controller's own period {ctl_ms:.1f} ms "
+                log(f"  {label} {name}: the controller's own period {ctl_ms:.1f} ms "
                     f"(median of {cfg.controller_repeats}, longest {ctl_max:.1f}; compile "
                     f"{ctl_compile_s:.0f} s)"
                     + ("" if ctl_max <= budget_ms else
                        f": the longest over the {budget_ms:.0f} ms of its {max(lat, 1)} "
                        "period(s), so a robot could not run it so" + ("" if lat else
                                                  " (--planning.latency-s runs it late)")))
-            for i, seed in enumerate(todo):
-                trace = jax.tree.map(lambda x: x[i], traces) if batched else traces
+            for i, (sc, _, seed) in enumerate(members):
+                trace = jax.tree.map(lambda x: x[i], traces) if batch else traces
                 episode = seed - cfg.seed
                 row = dict(scenario=sc.name, model=name, run=run_dir or None,
                            **metrics(trace, cfg.settle_s),
@@ -493,16 +524,50 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                            **({"latency_auto_ms": auto_ms} if auto_ms is not None else {}),
                            **({"sensor_noise": cfg.sensor_noise} if sensors else {}),
                            seed=seed,
-                           episode=episode, side_by_side=len(todo) if batched else 1)
+                           episode=episode, side_by_side=len(todo) if batch else 1,
+                           **({"scenarios_together": label} if together else {}))
                 rows.append(row)
                 np.savez_compressed(out / trace_name(sc.name, name, episode, seed),
                                     **trace._asdict())
-                log(f"{sc.name:>12} {name:>8}{f' seed {seed}' if batched else ''}: vel RMSE "
+                log(f"{sc.name:>12} {name:>8}{f' seed {seed}' if batch else ''}: vel RMSE "
                     f"{row['vel_rmse']:.3f} m/s, yaw RMSE {row['yaw_rmse']:.3f} rad/s, fell "
                     f"{row['fell']}, {row['ms_per_step']:.1f} ms/step (compile {compile_s:.0f} s)")
             write(rows, cfg, command, out, code)
     plot(out, rows)
     return rows
+
+
+# the episode program's batch axes over (mx_sim, mx_plan, learned_args, starts, values, pushes,
+# tilt, key): one world's episodes side by side differ in their key alone
+EPISODES_AXES = (None,) * 7 + (0,)
+
+
+def _world_axes(oracle: bool) -> tuple:
+    """The batch axes of episodes in several worlds side by side (``--together``): each its own
+    simulated model and schedules; the planner's model too for the oracle, which plans through
+    its episode's world."""
+    return (0, 0 if oracle else None, None, 0, 0, 0, 0, 0)
+
+
+def _groups(sm: sim_model.SimModel, scenarios: list[Scenario], seed: int, together: bool):
+    """The scenarios in the order run, as groups of ``(scenario, World)``: one each, or with
+    ``together`` those whose worlds share one compiled episode (the same length, contact slots,
+    feet and MJX model structure, so that they differ in values alone: friction, softness,
+    gravity, masses, pushes, commands) in one group, in the order of their first scenario.
+    Rough ground (a heightfield, another structure) stays apart."""
+    if not together:
+        for sc in scenarios:
+            yield [(sc, scenario_world(sm, sc, seed))]
+        return
+    groups: dict[tuple, list] = {}
+    for sc in scenarios:
+        w = scenario_world(sm, sc, seed)
+        leaves = lambda t: tuple((np.shape(x), np.result_type(x).str) for x in jax.tree.leaves(t))
+        key = (w.n_steps, tuple(np.asarray(x).tobytes() for x in w.slots), w.sm.geom_foot.tobytes(),
+               jax.tree.structure(w.mx), leaves(w.mx),
+               leaves((w.starts, w.values, w.pushes, w.tilt)))
+        groups.setdefault(key, []).append((sc, w))
+    yield from groups.values()
 
 
 def _chunk_steps(chunk_s: float, dt: float, n_steps: int) -> int:
@@ -758,10 +823,10 @@ def _run_seed(env: dict | None) -> int:
     return ((env or {}).get("config") or {}).get("seed", 0)
 
 
-# a run's settings that say which draws it took, where it wrote or how long it timed the
-# controller alone, not which planner it was nor what its episodes did
+# a run's settings that say which draws it took, where it wrote, how it batched its episodes or
+# how long it timed the controller alone, not which planner it was nor what its episodes did
 _PER_RUN = frozenset({"seed", "episodes", "out", "models", "scenarios", "progress_s", "chunk_s",
-                      "controller_repeats"})
+                      "controller_repeats", "together"})
 
 
 # Settings added with a default other than the behaviour of the runs before them: a run's
