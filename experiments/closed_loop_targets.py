@@ -91,18 +91,22 @@ def robot_targets(table: dict, policy_pick: str = "") -> dict:
         for sc in scenarios:
             by[(sc, "policy")] = [picked[sc]] if sc in picked else []
     oracle = [r for r in table["rows"] if r["model"].split("@")[0] == "oracle"]
+    # the oracle's time per step from the episodes that ran alone, as a kind's (_cell): one
+    # that shared its steps with others (--episodes, --together) took their time too, which
+    # would flatter every ratio against it; theirs only where none ran alone
+    oracle_alone = [r for r in oracle if int(r.get("side_by_side") or 1) == 1] or oracle
     cells = []
     for sc in scenarios:
         c = {k: _cell(by[(sc, k)]) for k in KINDS}
-        orc = [r["ms_per_step"] for r in oracle if r["scenario"] == sc] or \
-              [r["ms_per_step"] for r in oracle]
+        orc = [r["ms_per_step"] for r in oracle_alone if r["scenario"] == sc] or \
+              [r["ms_per_step"] for r in oracle_alone]
         c["oracle_ms"] = float(np.mean(orc)) if orc else None
         orc_ctl = [r.get("controller_ms") for r in oracle if r["scenario"] == sc] or \
                   [r.get("controller_ms") for r in oracle]
         c["oracle_controller_ms"] = (float(np.mean(orc_ctl))
                                      if orc_ctl and all(t is not None for t in orc_ctl) else None)
         c["oracle"] = _cell([r for r in oracle if r["scenario"] == sc and in_headline(r, picks)])
-        c["oracle_ms_from"] = ("this scenario" if any(r["scenario"] == sc for r in oracle)
+        c["oracle_ms_from"] = ("this scenario" if any(r["scenario"] == sc for r in oracle_alone)
                                else "all scenarios" if oracle else None)
         s = c["stride"]
         c["stride_vs"] = {k: cell_at_most(s, c[k]) for k in ("policy", "delan", "onn")}

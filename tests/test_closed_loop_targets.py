@@ -112,3 +112,21 @@ def test_time_per_step_is_read_off_the_episodes_that_ran_alone(experiment):
                                                    and "side_by_side" not in r)]
     rough = next(c for c in mod.robot_targets(tab)["cells"] if c["scenario"] == "rough")
     assert rough["stride"]["ms_per_step"] == pytest.approx(160.0)
+
+
+def test_the_oracle_time_is_read_off_the_episodes_that_ran_alone(experiment):
+    """An oracle row that shared its control steps with others (``--together``: five worlds in
+    one program) took their time too: the ratio reads the oracle episodes that ran alone, from
+    another scenario where this one has none alone; the shared ones only where none did."""
+    mod = experiment("closed_loop_targets")
+    tab = _table()
+    tab["rows"] += [dict(_row(sc, "oracle", 0.05, "old", ms=2000.0), side_by_side=2,
+                         scenarios_together="soft+rough") for sc in ("soft", "rough")]
+    cells = {c["scenario"]: c for c in mod.robot_targets(tab)["cells"]}
+    assert cells["rough"]["oracle_ms"] == pytest.approx(500.0)
+    assert cells["soft"]["oracle_ms"] == pytest.approx(500.0)  # rough's alone, not 2000
+    assert cells["soft"]["oracle_ms_from"] == "all scenarios"
+    assert cells["soft"]["time_ratio"] == pytest.approx(80.0 / 500.0)
+    tab["rows"] = [r for r in tab["rows"] if r.get("side_by_side") == 2 or r["model"] != "oracle"]
+    cells = {c["scenario"]: c for c in mod.robot_targets(tab)["cells"]}
+    assert cells["soft"]["oracle_ms"] == pytest.approx(2000.0)
