@@ -559,13 +559,15 @@ def _groups(sm: sim_model.SimModel, scenarios: list[Scenario], seed: int, togeth
         for sc in scenarios:
             yield [(sc, scenario_world(sm, sc, seed))]
         return
+    def shapes(tree) -> tuple:
+        return tuple((np.shape(x), np.result_type(x).str) for x in jax.tree.leaves(tree))
+
     groups: dict[tuple, list] = {}
     for sc in scenarios:
         w = scenario_world(sm, sc, seed)
-        leaves = lambda t: tuple((np.shape(x), np.result_type(x).str) for x in jax.tree.leaves(t))
-        key = (w.n_steps, tuple(np.asarray(x).tobytes() for x in w.slots), w.sm.geom_foot.tobytes(),
-               jax.tree.structure(w.mx), leaves(w.mx),
-               leaves((w.starts, w.values, w.pushes, w.tilt)))
+        key = (w.n_steps, tuple(np.asarray(x).tobytes() for x in w.slots),
+               w.sm.geom_foot.tobytes(), jax.tree.structure(w.mx), shapes(w.mx),
+               shapes((w.starts, w.values, w.pushes, w.tilt)))
         groups.setdefault(key, []).append((sc, w))
     yield from groups.values()
 
