@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Issue 19's closed-loop runs on one GPU, one process (several processes on one GPU time-slice
-# it: measured 2-3x slower per control step each, results/closed_loop_go1_gpu/README.md).
+# it: measured 2-3x slower per control step each, results/closed_loop_go1_gpu/README.md); to fill
+# the GPU, --episodes N runs a pair's draws side by side and --together the level scenarios too
+# (one program per model, each episode in its own world; docs/control.md, closed loop).
 #   bash experiments/closed_loop_targets.sh ROBOT OUT LIMIT_S MODELS SCENARIOS [more flags]
 # e.g. bash experiments/closed_loop_targets.sh g1 /tmp/g1 540 policy,stride,delan,onn slope,soft
 # MODELS: policy, oracle, NAME=RUN, or names of results/models/ROBOT/<name>-s0 (MODELS_DIR=g1_walk:
