@@ -7,6 +7,10 @@
 #   bash experiments/device_tree.sh back            # the index and .git/info/exclude as before
 #   bash experiments/device_tree.sh status          # what is out, and the tracked tree's size
 #   bash experiments/device_tree.sh size            # the tracked tree's size in bytes, alone
+#   bash experiments/device_tree.sh keep [PATH...]  # out: every trained model and policy folder
+#       (results/models/*, results/policies/*) and the large result folders (HEAVY below), but
+#       the PATHs a call needs and the folders that hold them (a PATH inside a folder keeps that
+#       folder's other entries out); e.g. keep results/policies/ppo_g1_soft_ent
 # While folders are out, `git status` shows them deleted from the index: commit only with paths
 # (`git commit -- PATH...`), or put them back first. `out` twice is refused (one set at a time).
 set -euo pipefail
@@ -17,7 +21,49 @@ exclude=$git_dir/info/exclude
 # (du -c over xargs prints one total per batch of names: sum the sizes instead)
 tree_size() { git ls-files -z | xargs -0 stat -c %s 2>/dev/null | awk '{s += $1} END {print s + 0}'; }
 
+# result folders too large to send that device calls have not needed
+HEAVY=(results/closed_loop_g1_gpu results/closed_loop_go1_gpu results/closed_loop
+       results/planning_diagnosis results/reproduce)
+
+# the immediate entries (folders and files) git tracks under folder $1
+children() { git ls-files -- "$1/" | sed "s|^$1/||" | cut -d/ -f1 | sort -u | sed "s|^|$1/|"; }
+
+# what `keep` puts out of path $1 given the kept paths in $kept (one per line): nothing where $1
+# is kept or lies in a kept path, its entries in turn where a kept path lies in it, else $1 (a
+# folder)
+leave_out() {
+  local p=$1 k
+  while IFS= read -r k; do
+    [ -n "$k" ] || continue
+    if [ "$p" = "$k" ] || [[ $p == "$k"/* ]]; then return; fi
+  done <<< "$kept"
+  while IFS= read -r k; do
+    if [ -n "$k" ] && [[ $k == "$p"/* ]]; then
+      local c
+      for c in $(children "$p"); do leave_out "$c"; done
+      return
+    fi
+  done <<< "$kept"
+  [ ! -d "$p" ] || echo "$p"  # a file beside a kept one stays (the exclude file takes folders)
+}
+
 case "${1:-}" in
+  keep)
+    shift
+    kept=""
+    for k in "$@"; do
+      k=${k%/}
+      [ -n "$(git ls-files -- "$k" | head -1)" ] || { echo "$k: no tracked files" >&2; exit 1; }
+      kept+="$k"$'\n'
+    done
+    paths=()
+    for c in $(children results/models) $(children results/policies) "${HEAVY[@]}"; do
+      [ -d "$c" ] && [ -n "$(git ls-files -- "$c" | head -1)" ] || continue
+      while IFS= read -r p; do [ -n "$p" ] && paths+=("$p"); done < <(leave_out "$c")
+    done
+    [ ${#paths[@]} -gt 0 ] || { echo "keep: nothing to leave out"; exit 0; }
+    exec bash "$0" out "${paths[@]}"
+    ;;
   out)
     shift
     [ ! -s "$state" ] || { echo "already out: $(tr '\n' ' ' < "$state")(run 'back' first)" >&2; exit 1; }
@@ -52,6 +98,6 @@ case "${1:-}" in
     echo "tracked tree $(tree_size) bytes"
     ;;
   *)
-    echo "usage: bash experiments/device_tree.sh out [PATH...] | back | status | size" >&2; exit 2
+    echo "usage: bash experiments/device_tree.sh out [PATH...] | keep [PATH...] | back | status | size" >&2; exit 2
     ;;
 esac

@@ -62,3 +62,26 @@ def test_named_paths_and_bad_ones(repo):
     _run(repo, "back")
     assert "no tracked files" in _run(repo, "out", "results/nothing", ok=False)
     assert "usage" in _run(repo, "sideways", ok=False)
+
+
+def test_keep_leaves_out_every_model_policy_and_large_result_folder_but_the_kept(repo):
+    """``keep PATH...``: every folder of results/models and results/policies and the large
+    result folders go out but the kept paths; a kept path inside a folder keeps that folder's
+    other folders out (its files stay: the exclude file takes folders); ``back`` as ever."""
+    for name in ("results/models/a/s0/w.npz", "results/models/a/s1/w.npz", "results/models/a/c.json",
+                 "results/policies/p/w.npz", "results/policies/q/w.npz", "results/policies/README.md",
+                 "results/closed_loop/t.json"):
+        (repo / name).parent.mkdir(parents=True, exist_ok=True)
+        (repo / name).write_text(name)
+    _git(repo, "add", ".")
+    _git(repo, "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-q", "-m", "more")
+    _run(repo, "keep", "results/models/a/s0", "results/policies/p/")
+    out = _run(repo, "status").split("\n")[0].split()[1:]
+    assert sorted(out) == ["results/closed_loop", "results/models/a/s1", "results/models/b",
+                           "results/policies/q"]
+    sent = _git(repo, "ls-files", "--cached", "--others", "--exclude-standard").split()
+    assert "results/models/a/s0/w.npz" in sent and "results/policies/p/w.npz" in sent
+    assert "results/models/a/c.json" in sent and "results/models/a/s1/w.npz" not in sent
+    _run(repo, "back")
+    assert _git(repo, "status", "--short") == ""
+    assert "no tracked files" in _run(repo, "keep", "results/policies/none", ok=False)
