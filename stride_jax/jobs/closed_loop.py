@@ -432,6 +432,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
         n_steps, sm_sim, slots = world.n_steps, world.sm, world.slots
         label = "+".join(sc.name for sc, _ in group)
         together = len(group) > 1
+        stacks = {}  # the worlds stacked along the batch, per episode list (once for all models)
         for name, run_dir in models:
             members = [(sc, w, seed) for sc, w in group for seed in seeds
                        if (sc.name, name, seed) not in done]
@@ -445,12 +446,14 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                             else ())
             oracle = name == "oracle"
             if together:  # each episode its own world: the worlds stacked along the batch
-                stacked = lambda f: jax.tree.map(lambda *xs: jnp.stack(xs),
-                                                 *[f(w) for _, w, _ in members])
-                mxs = stacked(lambda w: w.mx)
-                args = (mxs, mxs if oracle else mx_nominal, learned_args,
-                        stacked(lambda w: w.starts), stacked(lambda w: w.values),
-                        stacked(lambda w: w.pushes), stacked(lambda w: w.tilt), keys)
+                which = tuple(sc.name for sc, _, _ in members)
+                if which not in stacks:
+                    stacks[which] = [jax.tree.map(lambda *xs: jnp.stack(xs),
+                                                  *[getattr(w, f) for _, w, _ in members])
+                                     for f in ("mx", "starts", "values", "pushes", "tilt")]
+                mxs, starts, values, pushes, tilt = stacks[which]
+                args = (mxs, mxs if oracle else mx_nominal, learned_args, starts, values, pushes,
+                        tilt, keys)
                 axes = _world_axes(oracle)
             else:
                 args = (world.mx, world.mx if oracle else mx_nominal, learned_args,
