@@ -354,7 +354,8 @@ def _factor(count, S, y, chol_ref, nr, off):
     """Right-looking Cholesky of the first ``count`` columns of ``S [R, r, c]`` with the forward
     substitution of ``y [R, r]``: the factor's column ``j`` goes to ``chol_ref``'s column
     ``off + j``, rows ``off ..`` (the reduced system's rows ``off .. off + r``; rows above
-    ``off`` zero). ``c == r``: S is the whole symmetric matrix, updated by each column with
+    ``off`` are not written: every reader, the backward substitution included, takes a
+    column's rows from its own block down). ``c == r``: S is the whole symmetric matrix, updated by each column with
     itself. ``c < r``: S holds only the first ``c`` columns, and each block's columns update it
     with their first ``c`` rows read back from ``chol_ref`` (a barrier per block). ``y``'s
     solved entries returned."""
@@ -371,8 +372,6 @@ def _factor(count, S, y, chol_ref, nr, off):
             root = jnp.sqrt(_col(cols[t], j))
             col = jnp.where(red >= j, cols[t], 0.0) / root
             chol_ref[:, _ds((off + j) * nr + off, r)] = col
-            if off:
-                chol_ref[:, _ds((off + j) * nr, off)] = jnp.zeros((R, off), jnp.float32)
             yj = _col(y, j) / root
             y = jnp.where(red > j, y - col * yj, jnp.where(red == j, yj, y))
             for u in range(t + 1, width):
