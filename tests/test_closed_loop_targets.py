@@ -130,3 +130,30 @@ def test_the_oracle_time_is_read_off_the_episodes_that_ran_alone(experiment):
     tab["rows"] = [r for r in tab["rows"] if r.get("side_by_side") == 2 or r["model"] != "oracle"]
     cells = {c["scenario"]: c for c in mod.robot_targets(tab)["cells"]}
     assert cells["soft"]["oracle_ms"] == pytest.approx(2000.0)
+
+
+def test_the_oracle_is_read_against_the_policy_as_a_reference(experiment):
+    """The bar a right model sets (not a target): where the same planner through the scenario's
+    own MJX model is above the policy, and where STRIDE is at most it; scenarios without an
+    oracle row of the headline are left out of both."""
+    mod = experiment("closed_loop_targets")
+    tab = _table()
+    r = mod.robot_targets(tab)
+    assert r["oracle_reference"]["scenarios"] == []  # the oracle row of part "old" is not read
+    assert "for reference" not in mod.markdown({"go1": r}, "cmd")
+    tab["rows"] += [_row("rough", "oracle@pol", 0.05, "pol", ms=600.0),
+                    _row("soft", "oracle@pol", 0.0512, "pol", ms=600.0)]
+    r = mod.robot_targets(tab)
+    ref = r["oracle_reference"]
+    assert ref["scenarios"] == ["rough", "soft"] and ref["oracle_above_policy"] == ["soft"]
+    # STRIDE: rough 0.062 above the oracle's 0.05; soft 0.052 above 0.0512 too
+    assert ref["stride_at_most_oracle"] == [] and ref["stride_vs_oracle_of"] == 2
+    md = mod.markdown({"go1": r}, "cmd")
+    assert ("at most the policy in 1 of 2 scenarios (above it: soft 0.05120 against 0.05000); "
+            "STRIDE at most the oracle in 0 of 2") in md
+    tab["rows"][-1]["vel_rmse"] = 0.053  # the oracle above STRIDE on soft
+    ref = mod.robot_targets(tab)["oracle_reference"]
+    assert ref["stride_at_most_oracle"] == ["soft"]
+    tab["rows"][-1]["fell"] = True  # an oracle that falls is above anything that stays up
+    ref = mod.robot_targets(tab)["oracle_reference"]
+    assert ref["oracle_above_policy"] == ["soft"] and ref["stride_at_most_oracle"] == ["soft"]
