@@ -10,7 +10,8 @@ settle time or more after a command change: ``stride_jax.control.episode.tracked
         --out results/planning_diagnosis/changes_error_go1
     python experiments/tracking_error.py --scenario tilt --window-s 1 "STRIDE=DIR:stride" ... --out OUT
 
-(``--window-s``: also the forward offset and the RMSE per window of the episode.)
+(``--window-s``: also the forward offset and the RMSE per window of the episode, and the share
+of its steps the model-trust gate handed to the policy.)
 
 A ``LABEL=FOLDER:MODEL`` picks, from a closed-loop run's folder (``closed_loop.json`` and its
 traces), the rows of that model kind in the scenario: every trained seed (``MODEL``,
@@ -19,8 +20,12 @@ the squared offset plus the variance about it, per axis; each trained seed's for
 listed so that a difference between kinds can be read against the spread of their seeds. Writes
 ``OUT.md``, ``OUT.json`` and ``OUT.png``; where the scenario's command changes, a second table splits
 each model's error over the stretches of constant command (the mean over its traces of each
-one's RMSE there). Needs the traces (``trace_*.npz``), which stay out of
-the repository: run it where the closed loop ran.
+one's RMSE there). Where the traces record the planner's status (runs since the trust gate,
+session 41), a third table splits the pooled error over the steps the model-trust gate handed
+to the policy (``mppi.DISTRUSTED``) and those the plan acted on: whether a planner loses where
+it plans or where it hands over (a push that trips the gate, a model it stops trusting). Needs
+the traces (``trace_*.npz``), which stay out of the repository: run it where the closed loop
+ran.
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ import types
 import numpy as np
 
 from stride_jax.control.episode import tracked
+from stride_jax.control.mppi import DISTRUSTED
 from stride_jax.io import atomic_write, write_table
 from stride_jax.jobs import closed_loop
 from stride_paper.seeds import kind_and_seed
@@ -61,9 +67,39 @@ def traces(folder: pathlib.Path, scenario: str, model: str) -> dict[int, list[pa
     return out
 
 
-def _load(path: pathlib.Path) -> types.SimpleNamespace:
+def _load(path: pathlib.Path, planner: bool = True) -> types.SimpleNamespace:
+    """A trace's arrays; ``status`` (the planner's, per step) None where it has none: older
+    runs, or ``planner`` False (the policy alone records zeros, which say nothing of a gate)."""
     with np.load(path) as z:
-        return types.SimpleNamespace(**{k: z[k] for k in ("t", "command", "fallen", "v_base")})
+        tr = types.SimpleNamespace(**{k: z[k] for k in ("t", "command", "fallen", "v_base")})
+        tr.status = z["status"] if planner and "status" in z.files else None
+    return tr
+
+
+def handed_over(tr) -> np.ndarray:
+    """Per step, whether the model-trust gate handed the robot to the policy (all False where
+    the trace records no planner status: nothing was handed over)."""
+    if tr.status is None:
+        return np.zeros(len(tr.t), bool)
+    return np.asarray(tr.status) == DISTRUSTED
+
+
+def by_gate(files: list[pathlib.Path], settle_s: float, planner: bool = True) -> dict | None:
+    """The pooled scored steps split by who acted: the share the trust gate handed to the
+    policy, and the velocity RMSE over those and over the planned ones (NaN: none); None where
+    no trace records a planner status (``planner`` False: the policy alone)."""
+    loaded = [_load(f, planner) for f in files]
+    if all(tr.status is None for tr in loaded):
+        return None
+    e2, gate = [], []
+    for tr in loaded:
+        use = tracked(tr, settle_s)
+        e2.append(np.sum((tr.v_base[:, :2] - tr.command[:, :2]) ** 2, axis=1)[use])
+        gate.append(handed_over(tr)[use])
+    e2, gate = np.concatenate(e2), np.concatenate(gate)
+    rmse = lambda m: float(np.sqrt(e2[m].mean())) if m.any() else float("nan")  # noqa: E731
+    return dict(share=float(gate.mean()) if len(gate) else float("nan"),
+                rmse_handed_over=rmse(gate), rmse_planned=rmse(~gate))
 
 
 def errors(path: pathlib.Path, settle_s: float) -> np.ndarray:
@@ -110,28 +146,33 @@ def by_segment(files: list[pathlib.Path], settle_s: float) -> dict:
                 whole=float(np.mean([g[2] for g in got])), fell=sum(g[3] for g in got))
 
 
-def by_window(files: list[pathlib.Path], settle_s: float, window_s: float) -> dict:
+def by_window(files: list[pathlib.Path], settle_s: float, window_s: float,
+              planner: bool = True) -> dict:
     """Per window of ``window_s`` seconds from the episode's start, the forward offset and the
     velocity RMSE over each trace's scored steps there, means over the traces (NaN: no trace
     scored a step): where in the episode an error arises (a transient after a slope's onset, a
-    steady offset)."""
+    steady offset); and the share of those steps the trust gate handed to the policy (NaN
+    without a planner status; ``planner`` False: the policy alone)."""
     if window_s <= 0:
         raise ValueError(f"window {window_s} s: need a positive length")
-    offset, rmse = [], []
+    offset, rmse, handed = [], [], []
     for f in files:
-        tr = _load(f)
+        tr = _load(f, planner)
         use, t = tracked(tr, settle_s), np.asarray(tr.t)
         e = tr.v_base[:, :2] - tr.command[:, :2]
+        gate = handed_over(tr)
         # a step's time ends its period: window k holds (k w, (k + 1) w], the first also t = 0
         k_of = np.maximum(np.ceil(t / window_s - 1e-9).astype(int) - 1, 0)
         w = [use & (k_of == k) for k in range(int(k_of.max()) + 1 if len(t) else 0)]
         offset.append([float(e[m, 0].mean()) if m.any() else np.nan for m in w])
         rmse.append([float(np.sqrt((e[m] ** 2).sum(1).mean())) if m.any() else np.nan for m in w])
+        handed.append([float(gate[m].mean()) if m.any() and tr.status is not None else np.nan
+                       for m in w])
     width = max(len(r) for r in rmse)
     pad = lambda rows: np.array([r + [np.nan] * (width - len(r)) for r in rows])  # noqa: E731
     mean = lambda a: [float(np.nanmean(c)) if np.isfinite(c).any() else float("nan") for c in a.T]  # noqa: E731
     return dict(window_s=window_s, start=[k * window_s for k in range(width)],
-                offset_x=mean(pad(offset)), rmse=mean(pad(rmse)))
+                offset_x=mean(pad(offset)), rmse=mean(pad(rmse)), handed_over=mean(pad(handed)))
 
 
 def split(e: np.ndarray) -> dict:
@@ -166,7 +207,9 @@ def decompose(folder: pathlib.Path, scenario: str, model: str,
                 episodes=sum(len(fs) for fs in seeds.values()), seeds=sorted(seeds),
                 seed_offset_x=[float(per[s][:, 0].mean()) for s in sorted(per)],
                 segments=by_segment(files, settle_s),
-                **({"windows": by_window(files, settle_s, window_s)} if window_s > 0 else {}))
+                gate=by_gate(files, settle_s, planner=model != "policy"),
+                **({"windows": by_window(files, settle_s, window_s, planner=model != "policy")}
+                   if window_s > 0 else {}))
 
 
 def figure(rows: dict[str, dict], out: pathlib.Path, title: str) -> None:
@@ -246,14 +289,32 @@ def main(argv=None) -> int:
             md.append(f"| {label} | {r['episodes']}" + (f" ({g['fell']} fell)" if g["fell"] else "")
                       + " | " + " | ".join("-" if np.isnan(v) else f"{v:.3f}" for v in g["rmse"])
                       + f" | {g['whole']:.3f} |")
+    if any(r["gate"] for r in rows.values()):
+        md += ["", "Who acted, over the pooled scored steps: the share the model-trust gate handed "
+               "to the policy (`mppi.DISTRUSTED`), and the velocity RMSE (m/s) over those steps "
+               "and over the steps the plan acted on (-: none, or no planner status recorded: "
+               "the policy alone acts on all of its own steps).", "",
+               "| model | handed to the policy | RMSE there | RMSE where planned |",
+               "|---|---:|---:|---:|"]
+        fmt = lambda v: "-" if np.isnan(v) else f"{v:.3f}"  # noqa: E731
+        for label, r in rows.items():
+            g = r["gate"]
+            md.append(f"| {label} | - | - | - |" if g is None else
+                      f"| {label} | {g['share']:.0%} | {fmt(g['rmse_handed_over'])} | "
+                      f"{fmt(g['rmse_planned'])} |")
     if a.window_s > 0:
         starts = max((r["windows"]["start"] for r in rows.values()), key=len)
         head = [f"{x:g}-{x + a.window_s:g} s" for x in starts]
         md += ["", f"Per {a.window_s:g} s of the episode: forward offset and velocity RMSE (m/s) over "
-               "the scored steps there, means over the model's traces.", "",
+               "the scored steps there, means over the model's traces; where the traces record "
+               "the planner's status, the share of those steps the trust gate handed to the "
+               "policy.", "",
                "| model | | " + " | ".join(head) + " |", "|---|---|" + "---:|" * len(head)]
         for label, r in rows.items():
-            for what, key, form in (("forward offset", "offset_x", "+.3f"), ("RMSE", "rmse", ".3f")):
+            for what, key, form in (("forward offset", "offset_x", "+.3f"), ("RMSE", "rmse", ".3f"),
+                                    ("handed to the policy", "handed_over", ".0%")):
+                if key == "handed_over" and r["gate"] is None:
+                    continue
                 vals = r["windows"][key] + [float("nan")] * (len(head) - len(r["windows"][key]))
                 md.append(f"| {label} | {what} | "
                           + " | ".join("-" if np.isnan(v) else format(v, form) for v in vals) + " |")

@@ -135,3 +135,37 @@ def test_windows_place_a_transient_offset_in_time(tmp_path, experiment):
     np.testing.assert_allclose(w["rmse"], [0.05, 0.05, 0.0, 0.0], atol=1e-6)
     with pytest.raises(ValueError, match="positive"):
         mod.by_window([path], 0.0, 0.0)
+
+
+def test_who_acted_splits_the_error_by_the_trust_gate(tmp_path, experiment):
+    """Where a trace records the planner's status, the pooled error splits over the steps the
+    trust gate handed to the policy and those the plan acted on, and each window says how many
+    it handed over; the policy alone (its status all zeros, as the closed loop records it) has
+    no split."""
+    from stride_jax.control import mppi
+    mod = experiment("tracking_error")
+    _trace(tmp_path, "stride", np.array([0.0, 0.0]), sway=0.0, change_at=200)
+    _trace(tmp_path, "policy", np.array([0.02, 0.0]), sway=0.0, change_at=200)
+    ppath = next(tmp_path.glob("trace_changes_policy*.npz"))
+    with np.load(ppath) as z:  # the policy alone records a status of zeros, as the closed loop does
+        np.savez(ppath, status=np.zeros(200, np.int32), **{k: z[k] for k in z.files})
+    path = next(tmp_path.glob("trace_changes_stride*.npz"))
+    with np.load(path) as z:
+        d = {k: z[k] for k in z.files}
+    status = np.full(200, mppi.PLANNED, np.int32)
+    status[101:151] = mppi.DISTRUSTED  # (2, 3] s handed over (a step's time ends its period),
+    d["v_base"][101:151, 0] += 0.1  # with an offset of 0.1 there
+    np.savez(path, status=status, **d)
+    r = mod.decompose(tmp_path, "changes", "stride", settle_s=0.0, window_s=1.0)
+    assert r["gate"]["share"] == pytest.approx(0.25)
+    assert r["gate"]["rmse_handed_over"] == pytest.approx(0.1, abs=1e-6)
+    assert r["gate"]["rmse_planned"] == pytest.approx(0.0, abs=1e-6)
+    np.testing.assert_allclose(r["windows"]["handed_over"], [0.0, 0.0, 1.0, 0.0], atol=1e-6)
+    p = mod.decompose(tmp_path, "changes", "policy", settle_s=0.0, window_s=1.0)
+    assert p["gate"] is None and np.isnan(p["windows"]["handed_over"]).all()
+    assert mod.main([f"S={tmp_path}:stride", f"P={tmp_path}:policy", "--scenario", "changes",
+                     "--window-s", "1", "--settle-s", "0", "--out", str(tmp_path / "out")]) == 0
+    md = (tmp_path / "out.md").read_text()
+    assert "| S | 25% | 0.100 | 0.000 |" in md and "| P | - | - | - |" in md
+    assert "| S | handed to the policy | 0% | 0% | 100% | 0% |" in md
+    assert "| P | handed to the policy |" not in md
