@@ -942,6 +942,19 @@ def test_the_trust_gate_reads_the_observers_linear_estimate(go1):
         planning_lib.PlanningConfig(trust_limit=3.5)
     with pytest.raises(ValueError, match="trust_limit"):
         planning_lib.PlanningConfig(observer_gain=0.1, trust_limit=-1.0)
+    # the onset delay: seconds to control steps for MPPI, as the hold; none without the gate
+    assert planning.distrust_after == 0
+    assert planning_lib.mppi_config(mppi.MPPIConfig(), cfg, planning).distrust_after == 0
+    delayed = dataclasses.replace(cfg, trust_delay_s=0.1)
+    late = planning_lib.make_planning(delayed, envs.config("go1"), go1, _fake_step, policy)
+    assert late.distrust_after == round(0.1 / go1.robot.ctrl_dt) == 5
+    assert planning_lib.mppi_config(mppi.MPPIConfig(), delayed, late).distrust_after == 5
+    with pytest.raises(ValueError, match="distrust_after=3 .*trust_delay_s=0.1 s gives 5"):
+        planning_lib.mppi_config(mppi.MPPIConfig(distrust_after=3), delayed, late)
+    with pytest.raises(ValueError, match="trust_delay_s=0.1 delays the model-trust gate"):
+        planning_lib.PlanningConfig(trust_delay_s=0.1)
+    with pytest.raises(ValueError, match="trust_delay_s=-0.1 must be >= 0"):
+        planning_lib.PlanningConfig(observer_gain=0.1, trust_limit=3.5, trust_delay_s=-0.1)
 
 
 def test_the_stop_prior_prices_the_familys_offsets_at_a_stop_command_only(go1):

@@ -471,6 +471,43 @@ def test_distrust_hands_the_action_to_the_policy_and_keeps_the_plan_warm():
         mppi.MPPIConfig(distrust_hold=-1)
 
 
+def test_a_delayed_gate_plans_through_a_brief_trigger_and_hands_over_a_lasting_one():
+    """``distrust_after``: the gate hands the robot to the policy only once ``distrust`` has
+    held that many steps in a row. A trigger of two steps (a push) is planned through; one of
+    four hands over from its third step, held ``distrust_hold`` steps after; a gap resets the
+    count; a state that is not finite leaves it; 0 and 1 hand over at once."""
+    drift = lambda q, qd, u, key=None: (q + 0.1 * u, qd + 1.0)  # qd counts the steps
+    cost = lambda q, qd, u, t: (q[0] - 1.0) ** 2
+    policy = lambda q, qd: jnp.full(1, -3.0)
+    base = mppi.MPPIConfig(samples=16, horizon=3, noise_std=0.5, distrust_hold=1)
+
+    def statuses(after, steps_on, n=10, bad=()):
+        cfg = dataclasses.replace(base, distrust_after=after)
+        on = jnp.asarray([k in steps_on for k in range(n + 1)])
+        planner = mppi.make(cfg, drift, cost, [-2.0], [2.0], policy=policy,
+                            distrust=lambda q, qd: on[jnp.clip(qd[0].astype(int), 0, n)])
+        step, state = jax.jit(planner.step), planner.init(jax.random.key(0))
+        out = []
+        for k in range(n):
+            q = jnp.full(1, jnp.nan) if k in bad else jnp.zeros(1)
+            _, state, info = step(state, q, jnp.full(1, float(k)))
+            out.append("D" if int(info.status) == mppi.DISTRUSTED else
+                       "B" if int(info.status) == mppi.BAD_STATE else ".")
+        return "".join(out)
+
+    assert statuses(3, {2, 3}) == ".........."  # two steps: planned through
+    assert statuses(3, {2, 3, 4, 5}) == "....DDD..."  # from the third step on, held one after
+    assert statuses(3, {1, 2, 4, 5, 6}) == "......DD.."  # the gap at 3 starts the count again
+    assert statuses(3, {2, 4, 5}, bad={3}) == "...B.DD..."  # a bad state: neither count nor reset
+    assert statuses(0, {2, 3}) == statuses(1, {2, 3}) == "..DDD....."  # at once, as before
+    assert mppi.make(base, drift, cost, [-2.0], [2.0], policy=policy,
+                     distrust=lambda q, qd: True).init(jax.random.key(0)).streak is None
+    with pytest.raises(ValueError, match="distrust_after=3 delays the trust gate"):
+        mppi.make(dataclasses.replace(base, distrust_after=3), drift, cost, [-2.0], [2.0])
+    with pytest.raises(ValueError, match="distrust_after"):
+        mppi.MPPIConfig(distrust_after=-1)
+
+
 def test_an_alarm_swaps_the_policy_prior_for_wide_noise_around_the_plan():
     """A policy that always pushes the wrong way: its prior candidates pull the plan towards
     it. While the alarm holds, those candidates leave the policy (the plan plus noise at

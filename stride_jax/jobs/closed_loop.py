@@ -776,8 +776,10 @@ def write(rows: list[dict], cfg: ClosedLoopConfig, command: str, out: pathlib.Pa
         f", tracking weight {pl.learned_track_weight:g} on the learned reward"
         if cfg.learned and pl.learned_track_weight else "",
         f", disturbance observer (gain {pl.observer_gain:g})" if pl.observer_gain else "",
-        f", the policy acts while {_gate_words(pl)} (held {pl.trust_hold_s:g} s; the model-trust"
-        f" gate: share of upright steps in the last column)" if gated else "",
+        (f", the policy acts while {_gate_words(pl)}"
+         + (f" for {pl.trust_delay_s:g} s in a row" if pl.trust_delay_s else "")
+         + f" (held {pl.trust_hold_s:g} s; the model-trust gate: share of upright steps in the"
+         " last column)") if gated else "",
         f", {cfg.mppi.family_samples} candidates from the policy asked for command + z"
         if cfg.mppi.family_samples else ""])
     lines = [f"# Closed-loop MPPI on the MJX {robot}", "", f"Command: `{command}`", "",
