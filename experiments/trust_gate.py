@@ -1,0 +1,109 @@
+"""Where the model-trust gate handed a closed loop's robot to the policy, read off a run's rows
+and traces (the numbers behind ``results/closed_loop_g1_gpu/README.md``, "Session 86"):
+
+    python experiments/trust_gate.py rows results/closed_loop_g1_gpu/closed_loop.json \\
+        --models stride,stride_s1,stride_s2
+    python experiments/trust_gate.py traces results/closed_loop_g1_gpu/parts/delay_s0 --limit 2.5
+
+``rows``: per scenario, each row of the named models (the table's ``headline`` parts where it
+names them) with its velocity RMSE and the share of its upright steps the gate handed to the
+policy (``distrust_share``), and the mean share over them. ``traces``: per saved trace of a
+run folder, the control periods the observer's linear estimate lay past ``--limit`` (m/s^2),
+the longest run of them without a break (what ``--planning.trust-delay-s`` must outlast for
+the gate to plan through it) and the periods handed over. Prints markdown tables.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+
+import numpy as np
+
+from stride_jax.control.mppi import DISTRUSTED
+from stride_jax.jobs.headline import headline_picks, in_headline
+
+
+def longest_run(mask: np.ndarray) -> int:
+    """The longest run of consecutive True entries of ``mask``."""
+    best = run = 0
+    for m in np.asarray(mask, bool):
+        run = run + 1 if m else 0
+        best = max(best, run)
+    return best
+
+
+def trigger_runs(path: pathlib.Path, limit: float) -> dict:
+    """A trace's periods with the observer's linear estimate past ``limit``, their longest
+    unbroken run, and the periods the gate handed over (``status`` DISTRUSTED)."""
+    with np.load(path) as z:
+        if "disturbance" not in z.files or "status" not in z.files:
+            raise ValueError(f"{path}: no disturbance estimate or planner status (a run "
+                             "without the observer, or the policy alone)")
+        over = np.linalg.norm(z["disturbance"][:, :3], axis=1) > limit
+        handed = z["status"] == DISTRUSTED
+    return dict(over=int(over.sum()), longest=longest_run(over), handed=int(handed.sum()),
+                periods=int(len(over)))
+
+
+def row_shares(table: dict, models: list[str]) -> dict[str, dict]:
+    """Per scenario, ``(model, seed, vel_rmse, fell, distrust_share)`` of the rows of
+    ``models`` (names before any ``@part``; the headline's rows where the table has one) and
+    their mean share."""
+    picks = headline_picks(table)
+    out: dict[str, dict] = {}
+    for r in table["rows"]:
+        if r["model"].split("@")[0] not in models or (picks and not in_headline(r, picks)):
+            continue
+        if r.get("distrust_share") is None:
+            continue
+        out.setdefault(r["scenario"], {"rows": []})["rows"].append(
+            (r["model"], r.get("seed", 0), r["vel_rmse"], bool(r["fell"]), r["distrust_share"]))
+    for cell in out.values():
+        cell["mean_share"] = float(np.mean([x[-1] for x in cell["rows"]]))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = ap.add_subparsers(dest="what", required=True)
+    r = sub.add_parser("rows", help="rows' handed-over shares per scenario")
+    r.add_argument("table", help="a closed_loop.json")
+    r.add_argument("--models", required=True, help="comma-separated model names")
+    t = sub.add_parser("traces", help="trigger runs per saved trace")
+    t.add_argument("folders", nargs="+", help="closed-loop run folders (their trace_*.npz)")
+    t.add_argument("--limit", type=float, required=True, help="the gate's limit (m/s^2)")
+    a = ap.parse_args(argv)
+    if a.what == "rows":
+        path = pathlib.Path(a.table)
+        if not path.is_file():
+            raise SystemExit(f"{path}: no such table")
+        got = row_shares(json.loads(path.read_text()), a.models.split(","))
+        if not got:
+            raise SystemExit(f"{path}: no row of {a.models} with a distrust_share")
+        print("| scenario | rows: model (planner seed) vel RMSE, handed over | mean handed over |")
+        print("|---|---|---:|")
+        for sc, cell in got.items():
+            rows = "; ".join(f"{m} ({s}) {v:.3f}{' fell' if f else ''}, {d:.0%}"
+                             for m, s, v, f, d in cell["rows"])
+            print(f"| {sc} | {rows} | {cell['mean_share']:.0%} |")
+        return 0
+    files = [f for d in a.folders for f in sorted(pathlib.Path(d).glob("trace_*.npz"))]
+    if not files:
+        raise SystemExit(f"{a.folders}: no trace_*.npz (traces stay where the closed loop ran)")
+    print(f"| trace | periods past {a.limit:g} m/s^2 | longest run | handed over | periods |")
+    print("|---|---:|---:|---:|---:|")
+    for f in files:
+        try:
+            g = trigger_runs(f, a.limit)
+        except ValueError as e:
+            print(f"| {f.parent.name}/{f.name} | {e} | | | |")
+            continue
+        print(f"| {f.parent.name}/{f.name} | {g['over']} | {g['longest']} | {g['handed']} | "
+              f"{g['periods']} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,46 @@
+"""experiments/trust_gate.py: where the model-trust gate handed the robot to the policy, from a
+closed loop's rows and traces."""
+
+import json
+
+import numpy as np
+import pytest
+
+from stride_jax.control import mppi
+
+
+def test_trigger_runs_count_the_estimates_past_the_limit_and_the_handovers(tmp_path, experiment):
+    mod = experiment("trust_gate")
+    assert mod.longest_run([0, 1, 1, 0, 1, 1, 1, 0]) == 3 and mod.longest_run([]) == 0
+    dist = np.zeros((10, 6), np.float32)
+    dist[[1, 2, 5, 6, 7], 0] = 3.0  # two runs past 2.5: of 2 and of 3 periods
+    dist[3, 3:] = 9.0  # the angular entries do not count
+    status = np.full(10, mppi.PLANNED, np.int32)
+    status[6:9] = mppi.DISTRUSTED
+    np.savez(tmp_path / "trace_push_stride.npz", disturbance=dist, status=status)
+    got = mod.trigger_runs(tmp_path / "trace_push_stride.npz", 2.5)
+    assert got == dict(over=5, longest=3, handed=3, periods=10)
+    np.savez(tmp_path / "trace_push_policy.npz", v_base=np.zeros((10, 3)))
+    with pytest.raises(ValueError, match="no disturbance estimate"):
+        mod.trigger_runs(tmp_path / "trace_push_policy.npz", 2.5)
+
+
+def test_row_shares_read_the_headline_rows_of_the_named_models(tmp_path, experiment, capsys):
+    mod = experiment("trust_gate")
+    row = lambda model, part, share, v=0.1: dict(scenario="push", model=model, part=part,
+                                                 seed=2, vel_rmse=v, fell=False,
+                                                 distrust_share=share)
+    table = {"parts": {"a": {}, "old": {}}, "headline": {"parts": ["a"]},
+             "rows": [row("stride@a", "a", 0.5), row("stride_s1@a", "a", 0.3),
+                      row("onn@a", "a", 0.9), row("stride@old", "old", 1.0)]}
+    got = mod.row_shares(table, ["stride", "stride_s1"])
+    assert [r[0] for r in got["push"]["rows"]] == ["stride@a", "stride_s1@a"]
+    assert got["push"]["mean_share"] == pytest.approx(0.4)
+    p = tmp_path / "closed_loop.json"
+    p.write_text(json.dumps(table))
+    assert mod.main(["rows", str(p), "--models", "stride"]) == 0
+    assert "| push | stride@a (2) 0.100, 50% | 50% |" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="no row of delan"):
+        mod.main(["rows", str(p), "--models", "delan"])
+    with pytest.raises(SystemExit, match="no trace"):
+        mod.main(["traces", str(tmp_path), "--limit", "2.5"])
