@@ -147,8 +147,9 @@ def test_who_acted_splits_the_error_by_the_trust_gate(tmp_path, experiment):
     _trace(tmp_path, "stride", np.array([0.0, 0.0]), sway=0.0, change_at=200)
     _trace(tmp_path, "policy", np.array([0.02, 0.0]), sway=0.0, change_at=200)
     ppath = next(tmp_path.glob("trace_changes_policy*.npz"))
-    with np.load(ppath) as z:  # the policy alone records a status of zeros, as the closed loop does
-        np.savez(ppath, status=np.zeros(200, np.int32), **{k: z[k] for k in z.files})
+    with np.load(ppath) as z:
+        pd = {k: z[k] for k in z.files}
+    np.savez(ppath, status=np.zeros(200, np.int32), **pd)  # the policy alone records zeros
     path = next(tmp_path.glob("trace_changes_stride*.npz"))
     with np.load(path) as z:
         d = {k: z[k] for k in z.files}
