@@ -67,12 +67,14 @@ def traces(folder: pathlib.Path, scenario: str, model: str) -> dict[int, list[pa
     return out
 
 
-def _load(path: pathlib.Path, planner: bool = True) -> types.SimpleNamespace:
-    """A trace's arrays; ``status`` (the planner's, per step) None where it has none: older
-    runs, or ``planner`` False (the policy alone records zeros, which say nothing of a gate)."""
+def load(path: pathlib.Path, planner: bool = True) -> types.SimpleNamespace:
+    """A trace's arrays (``name``: its file's); ``status`` (the planner's, per step) None where
+    it has none: older runs, or ``planner`` False (the policy alone records zeros, which say
+    nothing of a gate). The functions below take traces so loaded, each file read once."""
     with np.load(path) as z:
         tr = types.SimpleNamespace(**{k: z[k] for k in ("t", "command", "fallen", "v_base")})
         tr.status = z["status"] if planner and "status" in z.files else None
+    tr.name = pathlib.Path(path).name
     return tr
 
 
@@ -84,11 +86,10 @@ def handed_over(tr) -> np.ndarray:
     return np.asarray(tr.status) == DISTRUSTED
 
 
-def by_gate(files: list[pathlib.Path], settle_s: float, planner: bool = True) -> dict | None:
+def by_gate(loaded: list[types.SimpleNamespace], settle_s: float) -> dict | None:
     """The pooled scored steps split by who acted: the share the trust gate handed to the
     policy, and the velocity RMSE over those and over the planned ones (NaN: none); None where
-    no trace records a planner status (``planner`` False: the policy alone)."""
-    loaded = [_load(f, planner) for f in files]
+    no trace records a planner status (loaded with ``planner`` False: the policy alone)."""
     if all(tr.status is None for tr in loaded):
         return None
     e2, gate = [], []
@@ -102,9 +103,8 @@ def by_gate(files: list[pathlib.Path], settle_s: float, planner: bool = True) ->
                 rmse_handed_over=rmse(gate), rmse_planned=rmse(~gate))
 
 
-def errors(path: pathlib.Path, settle_s: float) -> np.ndarray:
+def errors(tr: types.SimpleNamespace, settle_s: float) -> np.ndarray:
     """Velocity minus command (x, y in the base frame) on a trace's scored steps."""
-    tr = _load(path)
     return (tr.v_base[:, :2] - tr.command[:, :2])[tracked(tr, settle_s)]
 
 
@@ -117,11 +117,11 @@ def schedule(tr) -> list[tuple[float, float, list[float]]]:
     return [(float(t[a]), float(t[b - 1]) + dt, [float(x) for x in c[a]]) for a, b in zip(starts, ends)]
 
 
-def segment_rmse(path: pathlib.Path, settle_s: float) -> tuple[list, list[float], float, bool]:
+def segment_rmse(tr: types.SimpleNamespace,
+                 settle_s: float) -> tuple[list, list[float], float, bool]:
     """A trace's schedule, its velocity RMSE over the scored steps of each stretch of constant
     command (NaN: none scored) and over all of them (the closed loop's ``vel_rmse``), and
     whether it fell."""
-    tr = _load(path)
     use, t = tracked(tr, settle_s), np.asarray(tr.t)
     e2 = np.sum((tr.v_base[:, :2] - tr.command[:, :2]) ** 2, axis=1)
     rmse = lambda m: float(np.sqrt(e2[m].mean())) if m.any() else float("nan")
@@ -129,16 +129,16 @@ def segment_rmse(path: pathlib.Path, settle_s: float) -> tuple[list, list[float]
     return sched, [rmse(use & (t >= a) & (t < b)) for a, b, _ in sched], rmse(use), bool(tr.fallen.any())
 
 
-def by_segment(files: list[pathlib.Path], settle_s: float) -> dict:
+def by_segment(loaded: list[types.SimpleNamespace], settle_s: float) -> dict:
     """Per stretch of constant command, the mean over the traces (planner draws) of each one's
     RMSE there (:func:`segment_rmse`; NaN where no trace scored a step); the traces must share
     one schedule."""
     key = lambda sched: [(round(a, 6), [round(x, 6) for x in c]) for a, _, c in sched]
-    got = [segment_rmse(f, settle_s) for f in files]
+    got = [segment_rmse(tr, settle_s) for tr in loaded]
     sched = got[0][0]
-    for f, g in zip(files, got):
+    for tr, g in zip(loaded, got):
         if key(g[0]) != key(sched):
-            raise ValueError(f"{f}: its command schedule differs from {files[0].name}'s")
+            raise ValueError(f"{tr.name}: its command schedule differs from {loaded[0].name}'s")
     per = np.array([g[1] for g in got])
     mean = [float(np.mean(col[np.isfinite(col)])) if np.isfinite(col).any() else float("nan")
             for col in per.T]
@@ -146,18 +146,16 @@ def by_segment(files: list[pathlib.Path], settle_s: float) -> dict:
                 whole=float(np.mean([g[2] for g in got])), fell=sum(g[3] for g in got))
 
 
-def by_window(files: list[pathlib.Path], settle_s: float, window_s: float,
-              planner: bool = True) -> dict:
+def by_window(loaded: list[types.SimpleNamespace], settle_s: float, window_s: float) -> dict:
     """Per window of ``window_s`` seconds from the episode's start, the forward offset and the
     velocity RMSE over each trace's scored steps there, means over the traces (NaN: no trace
     scored a step): where in the episode an error arises (a transient after a slope's onset, a
     steady offset); and the share of those steps the trust gate handed to the policy (NaN
-    without a planner status; ``planner`` False: the policy alone)."""
+    without a planner status, or loaded with ``planner`` False: the policy alone)."""
     if window_s <= 0:
         raise ValueError(f"window {window_s} s: need a positive length")
     offset, rmse, handed = [], [], []
-    for f in files:
-        tr = _load(f, planner)
+    for tr in loaded:
         use, t = tracked(tr, settle_s), np.asarray(tr.t)
         e = tr.v_base[:, :2] - tr.command[:, :2]
         gate = handed_over(tr)
@@ -201,14 +199,16 @@ def decompose(folder: pathlib.Path, scenario: str, model: str,
     settle_s = run_settle_s(folder) if settle_s is None else settle_s
     if not seeds:
         raise FileNotFoundError(f"{folder}: no row of {model} in {scenario!r}")
-    per = {s: np.concatenate([errors(f, settle_s) for f in fs]) for s, fs in seeds.items()}
-    files = [f for s in sorted(seeds) for f in seeds[s]]
+    planner = model != "policy"
+    loaded = {s: [load(f, planner) for f in fs] for s, fs in seeds.items()}
+    per = {s: np.concatenate([errors(tr, settle_s) for tr in trs]) for s, trs in loaded.items()}
+    every = [tr for s in sorted(loaded) for tr in loaded[s]]
     return dict(split(np.concatenate(list(per.values()))), settle_s=settle_s,
                 episodes=sum(len(fs) for fs in seeds.values()), seeds=sorted(seeds),
                 seed_offset_x=[float(per[s][:, 0].mean()) for s in sorted(per)],
-                segments=by_segment(files, settle_s),
-                gate=by_gate(files, settle_s, planner=model != "policy"),
-                **({"windows": by_window(files, settle_s, window_s, planner=model != "policy")}
+                segments=by_segment(every, settle_s),
+                gate=by_gate(every, settle_s),
+                **({"windows": by_window(every, settle_s, window_s)}
                    if window_s > 0 else {}))
 
 

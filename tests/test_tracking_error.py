@@ -134,7 +134,19 @@ def test_windows_place_a_transient_offset_in_time(tmp_path, experiment):
     np.testing.assert_allclose(w["offset_x"], [0.05, 0.05, 0.0, 0.0], atol=1e-6)
     np.testing.assert_allclose(w["rmse"], [0.05, 0.05, 0.0, 0.0], atol=1e-6)
     with pytest.raises(ValueError, match="positive"):
-        mod.by_window([path], 0.0, 0.0)
+        mod.by_window([mod.load(path)], 0.0, 0.0)
+
+
+def test_each_trace_is_read_once(tmp_path, experiment, monkeypatch):
+    """The split, the stretches, the windows and who acted all read one load of each trace."""
+    mod = experiment("tracking_error")
+    for seed in range(3):
+        _trace(tmp_path, "stride", np.array([0.05, 0.0]), sway=0.0, change_at=200,
+               offset_after=None, draw=seed)
+    read, load = [], mod.load
+    monkeypatch.setattr(mod, "load", lambda path, planner=True: read.append(path) or load(path, planner))
+    r = mod.decompose(tmp_path, "changes", "stride", settle_s=0.0, window_s=1.0)
+    assert r["episodes"] == 3 and len(read) == 3 and len(set(read)) == 3
 
 
 def test_who_acted_splits_the_error_by_the_trust_gate(tmp_path, experiment):
