@@ -953,6 +953,13 @@ def test_the_trust_gate_reads_the_observers_linear_estimate(go1):
         planning_lib.mppi_config(mppi.MPPIConfig(distrust_after=3), delayed, late)
     with pytest.raises(ValueError, match="trust_delay_s=0.1 delays the model-trust gate"):
         planning_lib.PlanningConfig(trust_delay_s=0.1)
+    # with latency the planner steps once per replanning period: the holds and the delay count
+    # those (1 s of hold at 2 periods per plan: 25 planner steps, 50 control periods)
+    slow = dataclasses.replace(delayed, trust_hold_s=1.0, alarm_speed=0.5, alarm_hold_s=0.4,
+                               latency_s=1.5 * go1.robot.ctrl_dt)
+    late = planning_lib.make_planning(slow, envs.config("go1"), go1, _fake_step, policy)
+    assert late.latency_steps == 2
+    assert (late.distrust_hold, late.distrust_after, late.alarm_hold) == (25, 2, 10)
     with pytest.raises(ValueError, match="trust_delay_s=-0.1 must be >= 0"):
         planning_lib.PlanningConfig(observer_gain=0.1, trust_limit=3.5, trust_delay_s=-0.1)
 

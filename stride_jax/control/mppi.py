@@ -174,12 +174,13 @@ class MPPIConfig:
         policy-prior candidates (``prior_fraction``) are the shifted plan plus noise instead of
         the policy's rollout, and they and the plan's noise candidates draw it at this std.
         Policy and family candidates stay as they are. Needs an ``alarm``.
-      alarm_hold: control steps the recovery candidates keep planning after the alarm last
-        held (0: only while it holds): a recovery that has brought the error under the alarm's
-        threshold is not handed back to the policy prior at once.
-      distrust_hold: control steps the policy keeps acting after the ``distrust`` given to
+      alarm_hold: steps (calls of ``step``: control periods, or replanning periods where the
+        plan's computation spans several) the recovery candidates keep planning after the alarm
+        last held (0: only while it holds): a recovery that has brought the error under the
+        alarm's threshold is not handed back to the policy prior at once.
+      distrust_hold: steps the policy keeps acting after the ``distrust`` given to
         :func:`make` last held (0: only while it holds).
-      distrust_after: control steps in a row the ``distrust`` must hold before the policy acts
+      distrust_after: steps in a row the ``distrust`` must hold before the policy acts
         (0 or 1: at once). A brief disturbance that trips it for fewer steps (a push, which the
         disturbance observer sees as a large estimate) is planned through; a lasting one (a
         model wrong where the robot now is) still hands over, this many steps late.

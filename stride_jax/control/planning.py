@@ -184,7 +184,8 @@ class PlanningConfig:
       trust_hold_s: the policy keeps acting this long (s) after the gate last held
         (``MPPIConfig.distrust_hold``; 0: only while it holds).
       trust_delay_s: the gate hands over only once its trigger has held this long (s) without
-        a break (``MPPIConfig.distrust_after``, rounded to control periods; 0: at once). A push
+        a break (``MPPIConfig.distrust_after``, rounded to the planner's periods: control
+        periods, or with ``latency_s`` replanning periods; 0: at once). A push
         drives the observer's estimate past ``trust_limit`` for the push's length and a little
         after, though it is a disturbance the observer and a right model plan through, not the
         model error the gate is for: measured on G1's pushes, the oracle handed the robot to
@@ -304,9 +305,9 @@ class Planning(NamedTuple):
     family: Callable | None = None  # (q_aug, qd, z [3]) -> u: the policy given command + z
     alarm: Callable | None = None  # (q_aug, qd) -> bool []: plan the recovery candidates
     recovery_noise: tuple = ()  # per action entry: the recovery candidates' noise std
-    alarm_hold: int = 0  # control steps the recovery candidates stay after the alarm last held
+    alarm_hold: int = 0  # planner steps the recovery candidates stay after the alarm last held
     distrust: Callable | None = None  # (q_aug, qd) -> bool []: the policy acts, not the plan
-    distrust_hold: int = 0  # control steps the policy keeps acting after distrust last held
+    distrust_hold: int = 0  # planner steps the policy keeps acting after distrust last held
     family_prior: Callable | None = None  # (q_aug, qd) -> []: the offsets' prior, state-dependent
     velocity_integral: float = 0.0  # integral action on the velocity error (1/s; 0: off)
     velocity_integral_limit: float = 0.2  # bound of the command shift (m/s)
@@ -316,7 +317,7 @@ class Planning(NamedTuple):
     latency_compensation: bool = True  # plan from the model's prediction for when it applies
     latency_feedback: bool = False  # the policy's feedback around the plan between replans
     velocity_filter: float = 0.0  # the observer's prediction's share in the base's velocity
-    distrust_after: int = 0  # control steps in a row distrust must hold before the policy acts
+    distrust_after: int = 0  # planner steps in a row distrust must hold before the policy acts
 
 
 class Aug(NamedTuple):
@@ -574,17 +575,20 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
             nominal = np.asarray(gait_lib.join_action(jnp.asarray(nominal), trot), np.float32)
     recovery = tuple(n * cfg.recovery_noise_std / cfg.noise_std if cfg.noise_std else
                      cfg.recovery_noise_std for n in noise)
+    lat = latency_steps(cfg, sm.robot.ctrl_dt)
+    # the alarm's and the gate's holds and the gate's delay count the planner's steps: one per
+    # control period, or with latency_s one per replanning period of ``lat`` control periods
+    plan_steps = lambda s: int(round(s / (sm.robot.ctrl_dt * max(lat, 1))))  # noqa: E731
     return Planning(dynamics, cost, value, policy, ctrl, lo, hi, noise, nominal,
                     0.0 if cfg.gait else env_cfg.gait_hz, obs_aug, disagreement, step_error,
                     reward_action, cfg.observer_gain, cfg.observer_limit, cfg.observer_angular,
                     family, alarm, recovery,
-                    int(round(cfg.alarm_hold_s / sm.robot.ctrl_dt)) if alarm else 0, distrust,
-                    int(round(cfg.trust_hold_s / sm.robot.ctrl_dt)) if distrust else 0,
+                    plan_steps(cfg.alarm_hold_s) if alarm else 0, distrust,
+                    plan_steps(cfg.trust_hold_s) if distrust else 0,
                     family_prior, cfg.velocity_integral, cfg.velocity_integral_limit,
                     cfg.velocity_integral_settle_s, cfg.velocity_integral_band,
-                    latency_steps(cfg, sm.robot.ctrl_dt), cfg.latency_compensation,
-                    cfg.latency_feedback, cfg.velocity_filter,
-                    int(round(cfg.trust_delay_s / sm.robot.ctrl_dt)) if distrust else 0)
+                    lat, cfg.latency_compensation, cfg.latency_feedback, cfg.velocity_filter,
+                    plan_steps(cfg.trust_delay_s) if distrust else 0)
 
 
 def latency_steps(cfg: PlanningConfig, dt: float) -> int:
