@@ -24,6 +24,11 @@ policy's rows are the headline's own, or ``--ROBOT-policy MODEL@PART,...`` where
 holds none (the first listed part holding a scenario wins); the oracle's time is the mean of the
 table's oracle rows of the same scenario (any part: its time does not depend on the policy
 beside it), else of all its oracle rows.
+
+``--ROBOT-headline ENTRY,...`` reads the targets off other rows of the same table than its
+headline (entries as ``closed_loop_merge.py --headline`` takes them, checked against the table):
+a candidate planner setting merged beside the headline, judged as the headline would be without
+making it the headline.
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ import sys
 import numpy as np
 
 from stride_jax import io
+from stride_jax.jobs.headline import check_entries
 from stride_jax.jobs import closed_loop
 from stride_paper.report_control import slope_unseen
 from stride_paper.seeds import (cell_at_most, fall_rates_differ, headline_picks, in_headline,
@@ -245,12 +251,19 @@ def main(argv=None) -> int:
     ap.add_argument("tables", nargs="+", help="ROBOT=PATH of a merged closed_loop.json")
     ap.add_argument("--out", required=True, help="path stem: writes STEM.md and STEM.json")
     a, rest = ap.parse_known_args(argv)
-    picks = {}
+    picks, heads = {}, {}
     it = iter(rest)
-    for flag in it:  # --ROBOT-policy MODEL@PART,...
-        if not (flag.startswith("--") and flag.endswith("-policy")):
-            ap.error(f"unknown argument {flag!r} (expected --ROBOT-policy MODEL@PART,...)")
-        picks[flag[2:-len("-policy")]] = next(it, "")
+    for flag in it:  # --ROBOT-policy MODEL@PART,... and --ROBOT-headline ENTRY,...
+        for suffix, into in (("-policy", picks), ("-headline", heads)):
+            if flag.startswith("--") and flag.endswith(suffix) and len(flag) > 2 + len(suffix):
+                value = next(it, "")
+                if not value or value.startswith("--"):
+                    ap.error(f"{flag} needs a value")
+                into[flag[2:-len(suffix)]] = value
+                break
+        else:
+            ap.error(f"unknown argument {flag!r} (expected --ROBOT-policy MODEL@PART,... or "
+                     "--ROBOT-headline ENTRY,...)")
     results = {}
     for spec in a.tables:
         robot, sep, path = spec.partition("=")
@@ -259,12 +272,20 @@ def main(argv=None) -> int:
         p = pathlib.Path(path)
         if not p.is_file():
             ap.error(f"{p}: no such closed-loop table")
+        table = json.loads(p.read_text())
         try:
-            results[robot] = robot_targets(json.loads(p.read_text()), picks.pop(robot, ""))
+            if robot in heads:  # another set of the table's rows read as its headline
+                entries = [e for e in heads.pop(robot).split(",") if e]
+                check_entries(entries, table.get("parts") or
+                              sorted({r.get("part") for r in table["rows"]} - {None}),
+                              table["rows"])
+                table["headline"] = dict(parts=entries)
+            results[robot] = robot_targets(table, picks.pop(robot, ""))
         except ValueError as e:
             ap.error(f"{p}: {e}")
-    if picks:
-        ap.error(f"--{'/'.join(picks)}-policy names no table given")
+    for flag, left in (("policy", picks), ("headline", heads)):
+        if left:
+            ap.error(f"--{'/'.join(left)}-{flag} names no table given")
     command = "python experiments/closed_loop_targets.py " + " ".join(
         argv if argv is not None else sys.argv[1:])
     stem = io.write_table(a.out, dict(command=command, robots=results), markdown(results, command))

@@ -60,8 +60,9 @@ else  # G1: closer to the policy (the settings that kept G1 planners up before,
            # tilt); 2.5 where they are (--planning.model-gravity; since session 51, chosen on the
            # tilt and kept out of sample: results/closed_loop_g1_gpu/gate25.md). A later
            # --planning.trust-limit among the flags wins; --planning.trust-delay-s D among them
-           # hands over only once the trigger has held D s (session 86, one draw so far:
-           # results/closed_loop_g1_gpu/README.md, "Session 86").
+           # hands over only once the trigger has held D s (sessions 86-87: at 0.2 s a gain
+           # under pushes and a fall on the tilt in 1 of 24 draws; results/closed_loop_g1_gpu/
+           # README.md, "Session 87").
            $([ "${TRUST:-1}" = 1 ] && echo --planning.trust-limit "$gate" --planning.trust-hold-s 1.0)
            # the stop prior since session 59 (results/closed_loop_g1_gpu/README.md, "Session 59":
            # the command changes 0.311 -> 0.296, nil at walking speeds; the runs before it ran

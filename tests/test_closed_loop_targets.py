@@ -97,6 +97,25 @@ def test_policy_rows_picked_from_other_parts_and_a_table_without_headline(experi
         mod.main([f"x={p}", "--out", str(tmp_path / "o2"), "--y-policy", "policy@old"])
 
 
+def test_another_set_of_rows_read_as_the_headline(experiment, tmp_path):
+    """``--ROBOT-headline``: the targets off other parts of the same table (a candidate setting
+    merged beside the headline), checked against the table; the table's own headline untouched."""
+    mod = experiment("closed_loop_targets")
+    p = tmp_path / "t.json"
+    p.write_text(json.dumps(_table()))
+    assert mod.main([f"x={p}", "--out", str(tmp_path / "o"), "--x-headline", "pol,old:stride"]) == 0
+    got = json.loads((tmp_path / "o.json").read_text())["robots"]["x"]
+    rough = next(c for c in got["cells"] if c["scenario"] == "rough")
+    assert rough["stride"]["falls"] == 1 and rough["onn"] is None  # old's STRIDE, no ONN part
+    assert got["targets"]["no_falls"]["met"] is False
+    assert "Headline parts: pol, old:stride" in (tmp_path / "o.md").read_text()
+    assert json.loads(p.read_text())["headline"]["parts"] == ["pol", "a", "b"]
+    for bad in (["--x-headline", "pol,nope"], ["--x-headline", "old:delan"], ["--y-headline", "pol"],
+                ["--x-headline"], ["--x-headline", "--x-policy"]):
+        with pytest.raises(SystemExit):
+            mod.main([f"x={p}", "--out", str(tmp_path / "o2"), *bad])
+
+
 def test_time_per_step_is_read_off_the_episodes_that_ran_alone(experiment):
     """A vmapped part's draws share each control step (four episodes' time in one row): the
     planner's time is the single episodes', and the draws' only where no single one ran."""

@@ -191,7 +191,10 @@ class PlanningConfig:
         model error the gate is for: measured on G1's pushes, the oracle handed the robot to
         the policy in each push window and lost 0.013 m/s to the policy's own episode there
         (``results/closed_loop_g1_gpu/push_gate_oracle.md``). A trigger that outlasts the
-        delay (a slope, a wrong model) still hands over, that much later.
+        delay (a slope, a wrong model) still hands over, that much later: at 0.2 s on G1 it
+        gained under pushes for STRIDE and DeLaN over every seed, but one tilt draw in 24
+        fell, its trigger broken into runs shorter than the delay until too late
+        (``results/closed_loop_g1_gpu/trust_delay_targets.md``).
       trust_overshoot: a second trigger of the model-trust gate (m/s; 0: off; needs a policy):
         the policy also acts while the base's forward velocity (base frame) exceeds the
         commanded one the planner sees by more than this. A planner that drives the robot
