@@ -193,9 +193,8 @@ class PlanningConfig:
         (``results/closed_loop_g1_gpu/push_gate_oracle.md``). A trigger that outlasts the
         delay (a slope, a wrong model) still hands over, that much later: at 0.2 s on G1 it
         gained under pushes for STRIDE (every trained seed) and DeLaN (on average), lost for
-        ONN, and one STRIDE tilt draw in 24
-        fell, its trigger broken into runs shorter than the delay until too late
-        (``results/closed_loop_g1_gpu/trust_delay_targets.md``).
+        ONN, and one STRIDE tilt draw in 24 fell, its trigger broken into runs shorter than
+        the delay until too late (``results/closed_loop_g1_gpu/trust_delay_targets.md``).
       trust_overshoot: a second trigger of the model-trust gate (m/s; 0: off; needs a policy):
         the policy also acts while the base's forward velocity (base frame) exceeds the
         commanded one the planner sees by more than this. A planner that drives the robot
