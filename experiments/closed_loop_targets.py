@@ -41,8 +41,8 @@ import sys
 import numpy as np
 
 from stride_jax import io
-from stride_jax.jobs.headline import check_entries
 from stride_jax.jobs import closed_loop
+from stride_jax.jobs.headline import check_entries
 from stride_paper.report_control import slope_unseen
 from stride_paper.seeds import (cell_at_most, fall_rates_differ, headline_picks, in_headline,
                                 kind_and_seed, seed_means, welch)
