@@ -10,7 +10,10 @@ names them) with its velocity RMSE and the share of its upright steps the gate h
 policy (``distrust_share``), and the mean share over them. ``traces``: per saved trace of a
 run folder, the control periods the observer's linear estimate lay past ``--limit`` (m/s^2),
 the longest run of them without a break (what ``--planning.trust-delay-s`` must outlast for
-the gate to plan through it) and the periods handed over. Prints markdown tables.
+the gate to plan through it), the most of them in any ``--window-s`` (default 1 s) before the
+first handover (what a rule counting crossings per window would read), the periods handed
+over, and when the estimate first passed the limit, the gate first handed over and the robot
+fell (s). Prints markdown tables.
 """
 
 from __future__ import annotations
@@ -27,24 +30,40 @@ from stride_jax.jobs.headline import headline_picks, in_headline
 
 def longest_run(mask: np.ndarray) -> int:
     """The longest run of consecutive True entries of ``mask``."""
-    best = run = 0
-    for m in np.asarray(mask, bool):
-        run = run + 1 if m else 0
-        best = max(best, run)
-    return best
+    edges = np.flatnonzero(np.diff(np.r_[0, np.asarray(mask, np.int8), 0]))  # starts, ends
+    return int((edges[1::2] - edges[::2]).max()) if len(edges) else 0
 
 
-def trigger_runs(path: pathlib.Path, limit: float) -> dict:
+def _first(mask: np.ndarray, t: np.ndarray) -> float | None:
+    """The time of the first True entry of ``mask`` (None: none)."""
+    return float(t[np.argmax(mask)]) if mask.any() else None
+
+
+def trigger_runs(path: pathlib.Path, limit: float, window_s: float = 1.0) -> dict:
     """A trace's periods with the observer's linear estimate past ``limit``, their longest
-    unbroken run, and the periods the gate handed over (``status`` DISTRUSTED)."""
+    unbroken run, the most of them in any window of ``window_s`` seconds that ends before the
+    gate first handed over (the whole trace where it never did), the periods it handed over
+    (``status`` DISTRUSTED), and the times (s; None: never) the estimate first passed the
+    limit, the gate first handed over and the robot fell."""
+    if window_s <= 0:
+        raise ValueError(f"window {window_s} s: need a positive length")
     with np.load(path) as z:
         if "disturbance" not in z.files or "status" not in z.files:
             raise ValueError(f"{path}: no disturbance estimate or planner status (a run "
                              "without the observer, or the policy alone)")
+        if "t" not in z.files or "fallen" not in z.files:
+            raise ValueError(f"{path}: no time or fall flags (not a closed loop's trace)")
         over = np.linalg.norm(z["disturbance"][:, :3], axis=1) > limit
         handed = z["status"] == DISTRUSTED
-    return dict(over=int(over.sum()), longest=longest_run(over), handed=int(handed.sum()),
-                periods=int(len(over)))
+        t, fallen = np.asarray(z["t"]), np.asarray(z["fallen"], bool)
+    dt = float(t[1] - t[0]) if len(t) > 1 else 1.0
+    width = max(int(round(window_s / dt)), 1)
+    in_window = np.convolve(over.astype(int), np.ones(width, int))[:len(over)]  # ending at each
+    before = int(np.argmax(handed)) if handed.any() else len(over)
+    return dict(over=int(over.sum()), longest=longest_run(over),
+                most_in_window=int(in_window[:before].max()) if before else 0,
+                handed=int(handed.sum()), periods=int(len(over)), first_over_s=_first(over, t),
+                handed_at_s=_first(handed, t), fell_at_s=_first(fallen, t))
 
 
 def row_shares(table: dict, models: list[str]) -> dict[str, dict]:
@@ -74,6 +93,8 @@ def main(argv=None) -> int:
     t = sub.add_parser("traces", help="trigger runs per saved trace")
     t.add_argument("folders", nargs="+", help="closed-loop run folders (their trace_*.npz)")
     t.add_argument("--limit", type=float, required=True, help="the gate's limit (m/s^2)")
+    t.add_argument("--window-s", type=float, default=1.0,
+                   help="the window of the most periods past the limit before a handover (s)")
     a = ap.parse_args(argv)
     if a.what == "rows":
         path = pathlib.Path(a.table)
@@ -92,16 +113,22 @@ def main(argv=None) -> int:
     files = [f for d in a.folders for f in sorted(pathlib.Path(d).glob("trace_*.npz"))]
     if not files:
         raise SystemExit(f"{a.folders}: no trace_*.npz (traces stay where the closed loop ran)")
-    print(f"| trace | periods past {a.limit:g} m/s^2 | longest run | handed over | periods |")
-    print("|---|---:|---:|---:|---:|")
+    if a.window_s <= 0:
+        raise SystemExit(f"--window-s {a.window_s}: need a positive length")
+    secs = lambda x: "-" if x is None else f"{x:.2f}"  # noqa: E731
+    print(f"| trace | periods past {a.limit:g} m/s^2 | longest run | most in {a.window_s:g} s "
+          "before a handover | handed over | periods | first past (s) | first handed over (s) "
+          "| fell at (s) |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for f in files:
         try:
-            g = trigger_runs(f, a.limit)
+            g = trigger_runs(f, a.limit, a.window_s)
         except ValueError as e:
-            print(f"| {f.parent.name}/{f.name} | {e} | | | |")
+            print(f"| {f.parent.name}/{f.name} | {e} | | | | | | | |")
             continue
-        print(f"| {f.parent.name}/{f.name} | {g['over']} | {g['longest']} | {g['handed']} | "
-              f"{g['periods']} |")
+        print(f"| {f.parent.name}/{f.name} | {g['over']} | {g['longest']} | "
+              f"{g['most_in_window']} | {g['handed']} | {g['periods']} | "
+              f"{secs(g['first_over_s'])} | {secs(g['handed_at_s'])} | {secs(g['fell_at_s'])} |")
     return 0
 
 

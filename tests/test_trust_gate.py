@@ -12,14 +12,33 @@ from stride_jax.control import mppi
 def test_trigger_runs_count_the_estimates_past_the_limit_and_the_handovers(tmp_path, experiment):
     mod = experiment("trust_gate")
     assert mod.longest_run([0, 1, 1, 0, 1, 1, 1, 0]) == 3 and mod.longest_run([]) == 0
+    assert mod.longest_run([1, 1]) == 2 and mod.longest_run([0, 0]) == 0
     dist = np.zeros((10, 6), np.float32)
     dist[[1, 2, 5, 6, 7], 0] = 3.0  # two runs past 2.5: of 2 and of 3 periods
     dist[3, 3:] = 9.0  # the angular entries do not count
     status = np.full(10, mppi.PLANNED, np.int32)
     status[6:9] = mppi.DISTRUSTED
-    np.savez(tmp_path / "trace_push_stride.npz", disturbance=dist, status=status)
-    got = mod.trigger_runs(tmp_path / "trace_push_stride.npz", 2.5)
-    assert got == dict(over=5, longest=3, handed=3, periods=10)
+    t = 0.02 * np.arange(1, 11, dtype=np.float32)
+    fallen = np.zeros(10, bool)
+    fallen[8:] = True
+    np.savez(tmp_path / "trace_push_stride.npz", disturbance=dist, status=status, t=t,
+             fallen=fallen)
+    got = mod.trigger_runs(tmp_path / "trace_push_stride.npz", 2.5, window_s=0.1)
+    # before the first handover (period 6) the five-period windows hold at most 3 past the limit
+    assert got == dict(over=5, longest=3, most_in_window=3, handed=3, periods=10,
+                       first_over_s=pytest.approx(0.04), handed_at_s=pytest.approx(0.14),
+                       fell_at_s=pytest.approx(0.18))
+    assert mod.trigger_runs(tmp_path / "trace_push_stride.npz", 2.5, window_s=1.0)[
+        "most_in_window"] == 3  # periods 1, 2 and 5
+    status[:] = mppi.PLANNED  # never handed over: the whole trace's windows
+    np.savez(tmp_path / "trace_push_stride.npz", disturbance=dist, status=status, t=t,
+             fallen=np.zeros(10, bool))
+    got = mod.trigger_runs(tmp_path / "trace_push_stride.npz", 2.5, window_s=1.0)
+    assert (got["most_in_window"], got["handed_at_s"], got["fell_at_s"]) == (5, None, None)
+    assert mod.trigger_runs(tmp_path / "trace_push_stride.npz", 2.5, window_s=0.1)[
+        "most_in_window"] == 3  # five periods hold at most three of them
+    with pytest.raises(ValueError, match="positive"):
+        mod.trigger_runs(tmp_path / "trace_push_stride.npz", 2.5, window_s=0.0)
     np.savez(tmp_path / "trace_push_policy.npz", v_base=np.zeros((10, 3)))
     with pytest.raises(ValueError, match="no disturbance estimate"):
         mod.trigger_runs(tmp_path / "trace_push_policy.npz", 2.5)
