@@ -580,6 +580,25 @@ def test_a_chunked_run_killed_mid_episode_resumes_to_the_same_rows(tmp_path, mon
     assert ticks == [f"{0.02 * k:.1f}" for k in range(5, 11)]  # none past the end (12 run)
     assert not saved[0].exists() and not saved[0].parent.exists()  # nothing partial left
     _same_rows_and_traces(rows, whole, tmp_path / "whole", tmp_path / "chunked", 1e-6)
+    # killed after its last chunk but before its rows (timing the controller, say): the saved
+    # state is kept, and the next call resumes at the episode's end, running no chunk again
+    cfg = dataclasses.replace(cfg, out=str(tmp_path / "timed"), controller_repeats=1)
+
+    def killed_timing(*a, **k):
+        raise KeyboardInterrupt("killed while timing the controller")
+
+    monkeypatch.setattr(cl, "wall_times", killed_timing)
+    with pytest.raises(KeyboardInterrupt):
+        cl.run(cfg, log=lambda *_: None)
+    assert list((tmp_path / "timed" / "partial").glob("*.npz"))
+    assert not (tmp_path / "timed" / "closed_loop.json").exists()
+    monkeypatch.undo()
+    lines = []
+    rows = cl.run(dataclasses.replace(cfg, progress_s=0.02), log=lines.append)
+    assert any("resumed at 10 of 10 steps" in x for x in lines), lines
+    assert not any("s simulated" in x for x in lines)  # no chunk run again
+    assert not (tmp_path / "timed" / "partial").exists()
+    _same_rows_and_traces(rows, whole, tmp_path / "whole", tmp_path / "timed", 1e-6)
     with pytest.raises(ValueError, match="chunk-s"):
         cl.ClosedLoopConfig(chunk_s=-1.0)
     # a saved state comes back with its typed keys, and only for its own run and structure
@@ -621,7 +640,8 @@ def test_a_saved_state_of_another_run_is_set_aside_with_the_reason_not_overwritt
     said = " ".join(lines)
     assert "is not resumed" in said and "planning.latency_auto: (absent) -> True" in said, said
     aside = tmp_path / "partial" / "walk_onn.stale0.npz"
-    assert aside.read_bytes() == before and not path.exists()  # kept whole; the run's own gone
+    assert aside.read_bytes() == before  # kept whole
+    assert path.exists()  # the run's own, until its rows are written (cl._drop_state)
     np.testing.assert_array_equal(traces.t, [0, 0, 2, 2])  # from the first step, not the 2nd
     assert "walk_onn.stale0.npz" in said
     # a second set-aside takes the next name

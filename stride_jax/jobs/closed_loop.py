@@ -131,7 +131,9 @@ class ClosedLoopConfig:
       chunk_s: run each episode in chunks of this many simulated seconds, saving its state and
         trace after each (``OUT/partial/``, atomically): a run killed mid-episode (a time limit,
         a lost machine) resumes at its last chunk when called again with the same settings, so
-        it loses at most one chunk (settings that only time the controller may differ); a
+        it loses at most one chunk (settings that only time the controller may differ; the
+        state stays until the pair's rows are written, so one killed after its last chunk
+        resumes at its end); a
         state saved with other settings or code is not resumed: the log says which settings
         differ and the state is kept beside as ``<pair>.stale<k>.npz``, never overwritten.
         0: one program per episode, nothing saved before its row.
@@ -539,6 +541,8 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
                     f"{row['vel_rmse']:.3f} m/s, yaw RMSE {row['yaw_rmse']:.3f} rad/s, fell "
                     f"{row['fell']}, {row['ms_per_step']:.1f} ms/step (compile {compile_s:.0f} s)")
             write(rows, cfg, command, out, code)
+            if chunk:
+                _drop_state(partial)
     plot(out, rows)
     return rows
 
@@ -676,7 +680,7 @@ def _chunked(fns, args, n_steps: int, chunk: int, batched: bool, partial: pathli
             f"{_set_aside(partial).name}, the episode starts from its first step")
     elif got is not None:
         carry, traces, steps, run_s = got
-        log(f"  {now['label']}: resumed at {steps} of {n_steps} steps ({partial})")
+        log(f"  {now['label']}: resumed at {min(steps, n_steps)} of {n_steps} steps ({partial})")
     axis = 1 if batched else 0
     while steps < n_steps:
         t0 = time.perf_counter()
@@ -687,10 +691,16 @@ def _chunked(fns, args, n_steps: int, chunk: int, batched: bool, partial: pathli
         _save_state(partial, carry, traces, steps, run_s, ident)
     joined = jax.tree.map(lambda *xs: np.concatenate(xs, axis)[(slice(None),) * axis
                                                                 + (slice(0, n_steps),)], *traces)
-    partial.unlink()
-    with contextlib.suppress(OSError):  # the folder too, once no pair has a state in it
+    return joined, run_s  # the saved state stays until the pair's rows are written
+
+
+def _drop_state(partial: pathlib.Path) -> None:
+    """A pair's saved state, once its rows are written (never before: a run killed between
+    its last chunk and its rows, timing the controller say, resumes at its end rather than
+    losing the episode, as session 88's oracle did), and the folder once no pair has one."""
+    partial.unlink(missing_ok=True)
+    with contextlib.suppress(OSError):
         partial.parent.rmdir()
-    return joined, run_s
 
 
 def trace_name(scenario: str, model: str, episode: int = 0, seed: int = 0) -> str:
