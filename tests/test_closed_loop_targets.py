@@ -176,3 +176,35 @@ def test_the_oracle_is_read_against_the_policy_as_a_reference(experiment):
     tab["rows"][-1]["fell"] = True  # an oracle that falls is above anything that stays up
     ref = mod.robot_targets(tab)["oracle_reference"]
     assert ref["oracle_above_policy"] == ["soft"] and ref["stride_at_most_oracle"] == ["soft"]
+
+
+def test_the_oracle_is_read_at_strides_samples_and_horizon(experiment):
+    """The oracle's time and tracking come from rows at STRIDE's K and H (a planner's time
+    follows its horizon: G1's oracle took half its H 20 time at H 10); a scenario where STRIDE
+    ran at a size no oracle row has leaves the time target not measured, never judged against
+    the oracle of another size. Rows that record no size (older tables) are read as before."""
+    mod = experiment("closed_loop_targets")
+    tab = _table()
+    sized = lambda r, k, h: dict(r, K=k, H=h)
+    tab["rows"] = [sized(r, 1024, 10) if r["model"].startswith("stride") else r for r in tab["rows"]]
+    tab["rows"][-1] = sized(tab["rows"][-1], 1024, 20)  # the oracle at H 20 (500 ms)
+    tab["rows"] += [_row("rough", "oracle@pol", 0.05, "pol", ms=600.0)]  # recorded no size
+    tab["rows"][-1] = sized(tab["rows"][-1], 1024, 20)
+    r = mod.robot_targets(tab)
+    cells = {c["scenario"]: c for c in r["cells"]}
+    assert cells["rough"]["oracle_ms"] is None and cells["rough"]["oracle"] is None
+    assert cells["rough"]["time_ratio"] is None
+    tf = r["targets"]["time_fifth_of_oracle"]
+    assert tf["met"] is None and tf["no_oracle_at_stride_size"] == ["rough", "soft"]
+    assert "no oracle row at STRIDE's K and H in rough (K 1024, H 10)" in mod.markdown({"g1": r}, "cmd")
+    # an oracle at H 10 alone, on rough: its time (and, in the headline, its tracking) is read
+    tab["rows"] += [sized(_row("rough", "oracle@pol", 0.055, "pol", ms=250.0), 1024, 10)]
+    r = mod.robot_targets(tab)
+    cells = {c["scenario"]: c for c in r["cells"]}
+    assert cells["rough"]["oracle_ms"] == pytest.approx(250.0)
+    assert cells["rough"]["oracle"]["vel_rmse"] == pytest.approx(0.055)
+    assert cells["soft"]["oracle_ms_from"] == "all scenarios"  # rough's H 10 row
+    assert r["targets"]["time_fifth_of_oracle"]["met"] is False  # 80 / 250 > 1/5
+    # a table whose rows record no size: the oracle of any size, as before
+    r = mod.robot_targets(_table())
+    assert r["targets"]["time_fifth_of_oracle"]["met"] is True  # 80 / 500
