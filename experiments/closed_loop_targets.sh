@@ -67,7 +67,13 @@ else  # G1: closer to the policy (the settings that kept G1 planners up before,
            # the stop prior since session 59 (results/closed_loop_g1_gpu/README.md, "Session 59":
            # the command changes 0.311 -> 0.296, nil at walking speeds; the runs before it ran
            # without: a later --planning.family-cost-stop 0 among the flags reproduces them)
-           --planning.family-cost-stop 0.3)
+           --planning.family-cost-stop 0.3
+           # horizon 10 since session 88 (results/closed_loop_g1_gpu/README.md, "Session 88":
+           # STRIDE and DeLaN track closer than at 20 in every scenario, STRIDE at most the
+           # policy in 6 of 6 with no fall, where at 20 it lost the command changes and rough
+           # ground; ONN loses on the tilt, 3 of 12 fell, soft ground and low friction); the
+           # runs before it ran 20: a later --mppi.horizon 20 among the flags reproduces them)
+           --mppi.horizon 10)
            # No velocity integral (Go1's since session 67): on G1 it gains on soft ground, rough
            # ground, low friction and the command changes but makes every kind fall on the 15
            # degree tilt (24 of 24 episodes) and loses on the push (results/closed_loop_g1_gpu/
