@@ -4,6 +4,8 @@ and traces (the numbers behind ``results/closed_loop_g1_gpu/README.md``, "Sessio
     python experiments/trust_gate.py rows results/closed_loop_g1_gpu/closed_loop.json \\
         --models stride,stride_s1,stride_s2
     python experiments/trust_gate.py traces results/closed_loop_g1_gpu/parts/delay_s0 --limit 2.5
+    python experiments/trust_gate.py overspeed results/closed_loop_g1_gpu/parts/h10_stride \
+        --scenario tilt15 --over 0.25
 
 ``rows``: per scenario, each row of the named models (the table's ``headline`` parts where it
 names them) with its velocity RMSE and the share of its upright steps the gate handed to the
@@ -13,7 +15,11 @@ the longest run of them without a break (what ``--planning.trust-delay-s`` must 
 the gate to plan through it), the most of them in any ``--window-s`` (default 1 s) before the
 first handover (what a rule counting crossings per window would read), the periods handed
 over, and when the estimate first passed the limit, the gate first handed over and the robot
-fell (s). Prints markdown tables.
+fell (s). ``overspeed``: per saved trace whose upright forward speed passed the command by
+more than ``--over`` (m/s; a robot running away downhill, say), when it first did, the most it
+passed it by, who was acting (the share of the ``--window-s`` before that the gate had handed
+to the policy, and from then to the episode's end) and when it fell: a runaway under the
+policy's own steps is the policy's, not the planner's. Prints markdown tables.
 """
 
 from __future__ import annotations
@@ -66,6 +72,32 @@ def trigger_runs(path: pathlib.Path, limit: float, window_s: float = 1.0) -> dic
                 handed_at_s=_first(handed, t), fell_at_s=_first(fallen, t))
 
 
+def overspeed(path: pathlib.Path, over: float, window_s: float = 1.0) -> dict | None:
+    """A trace's forward overspeed while upright: None where its forward speed never passed
+    the command by more than ``over`` (m/s); else the time it first did (s), the most it did
+    (m/s), the share of the ``window_s`` seconds before that time and of the periods from it to
+    the end that the gate handed to the policy, and when the robot fell (s; None: never)."""
+    if window_s <= 0:
+        raise ValueError(f"window {window_s} s: need a positive length")
+    with np.load(path) as z:
+        missing = {"t", "v_base", "command", "status", "fallen"} - set(z.files)
+        if missing:
+            raise ValueError(f"{path}: no {', '.join(sorted(missing))} (not a planner's "
+                             "closed-loop trace)")
+        t, fallen = np.asarray(z["t"]), np.asarray(z["fallen"], bool)
+        excess = np.asarray(z["v_base"])[:, 0] - np.asarray(z["command"])[:, 0]
+        handed = z["status"] == DISTRUSTED
+    fast = (excess > over) & ~fallen
+    if not fast.any():
+        return None
+    i = int(np.argmax(fast))
+    dt = float(t[1] - t[0]) if len(t) > 1 else 1.0
+    lo = max(i - max(int(round(window_s / dt)), 1), 0)
+    return dict(first_s=float(t[i]), most=float(excess[~fallen].max()),
+                handed_before=float(handed[lo:i].mean()) if i > lo else None,
+                handed_after=float(handed[i:].mean()), fell_at_s=_first(fallen, t))
+
+
 def row_shares(table: dict, models: list[str]) -> dict[str, dict]:
     """Per scenario, ``(model, seed, vel_rmse, fell, distrust_share)`` of the rows of
     ``models`` (names before any ``@part``; the headline's rows where the table has one) and
@@ -95,6 +127,13 @@ def main(argv=None) -> int:
     t.add_argument("--limit", type=float, required=True, help="the gate's limit (m/s^2)")
     t.add_argument("--window-s", type=float, default=1.0,
                    help="the window of the most periods past the limit before a handover (s)")
+    o = sub.add_parser("overspeed", help="who acted when the robot ran past its command")
+    o.add_argument("folders", nargs="+", help="closed-loop run folders (their trace_*.npz)")
+    o.add_argument("--over", type=float, required=True,
+                   help="forward speed above the command that counts (m/s)")
+    o.add_argument("--scenario", default="", help="only this scenario's traces")
+    o.add_argument("--window-s", type=float, default=1.0,
+                   help="the window before the overspeed whose handed-over share is read (s)")
     a = ap.parse_args(argv)
     if a.what == "rows":
         path = pathlib.Path(a.table)
@@ -110,12 +149,34 @@ def main(argv=None) -> int:
                              for m, s, v, f, d in cell["rows"])
             print(f"| {sc} | {rows} | {cell['mean_share']:.0%} |")
         return 0
-    files = [f for d in a.folders for f in sorted(pathlib.Path(d).glob("trace_*.npz"))]
+    pattern = f"trace_{a.scenario}_*.npz" if getattr(a, "scenario", "") else "trace_*.npz"
+    files = [f for d in a.folders for f in sorted(pathlib.Path(d).glob(pattern))]
     if not files:
-        raise SystemExit(f"{a.folders}: no trace_*.npz (traces stay where the closed loop ran)")
+        raise SystemExit(f"{a.folders}: no {pattern} (traces stay where the closed loop ran)")
     if a.window_s <= 0:
         raise SystemExit(f"--window-s {a.window_s}: need a positive length")
     secs = lambda x: "-" if x is None else f"{x:.2f}"  # noqa: E731
+    if a.what == "overspeed":
+        print(f"| trace | first {a.over:g} m/s over the command (s) | most over (m/s) | handed "
+              f"over in the {a.window_s:g} s before | handed over from then | fell at (s) |")
+        print("|---|---:|---:|---:|---:|---:|")
+        calm = []
+        for f in files:
+            try:
+                g = overspeed(f, a.over, a.window_s)
+            except ValueError as e:
+                print(f"| {f.parent.name}/{f.name} | {e} | | | | |")
+                continue
+            if g is None:
+                calm.append(f)
+                continue
+            share = lambda x: "-" if x is None else f"{x:.0%}"  # noqa: E731
+            print(f"| {f.parent.name}/{f.name} | {g['first_s']:.2f} | {g['most']:.2f} | "
+                  f"{share(g['handed_before'])} | {share(g['handed_after'])} | "
+                  f"{secs(g['fell_at_s'])} |")
+        print(f"\n{len(files) - len(calm)} of {len(files)} traces ran more than {a.over:g} m/s "
+              "past their command while upright")
+        return 0
     print(f"| trace | periods past {a.limit:g} m/s^2 | longest run | most in {a.window_s:g} s "
           "before a handover | handed over | periods | first past (s) | first handed over (s) "
           "| fell at (s) |")

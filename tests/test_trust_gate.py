@@ -63,3 +63,39 @@ def test_row_shares_read_the_headline_rows_of_the_named_models(tmp_path, experim
         mod.main(["rows", str(p), "--models", "delan"])
     with pytest.raises(SystemExit, match="no trace"):
         mod.main(["traces", str(tmp_path), "--limit", "2.5"])
+
+
+def test_overspeed_says_who_acted_when_the_robot_ran_past_its_command(tmp_path, experiment, capsys):
+    """A trace whose upright forward speed passed the command by more than ``over``: when it
+    first did, by how much at most, the handed-over share of the window before it and of the
+    rest of the episode, and the fall; None where it never did; a fallen robot's speed and a
+    trace without a planner's status are not read."""
+    mod = experiment("trust_gate")
+    n = 10
+    t = 0.1 * np.arange(1, n + 1, dtype=np.float32)
+    v = np.zeros((n, 3), np.float32)
+    v[:, 0] = [1.0, 1.0, 1.1, 1.2, 1.4, 1.5, 1.3, 1.0, 3.0, 3.0]  # 3.0: fallen, not read
+    command = np.zeros((n, 3), np.float32)
+    command[:, 0] = 1.0
+    status = np.full(n, mppi.PLANNED, np.int32)
+    status[[1, 2, 3, 4, 5]] = mppi.DISTRUSTED
+    fallen = np.zeros(n, bool)
+    fallen[8:] = True
+    np.savez(tmp_path / "trace_tilt15_stride.npz", t=t, v_base=v, command=command,
+             status=status, fallen=fallen)
+    got = mod.overspeed(tmp_path / "trace_tilt15_stride.npz", 0.25, window_s=0.3)
+    # first past 0.25 over at period 4 (1.4); the three periods before: 1, 2, 3 all handed over
+    assert got == dict(first_s=pytest.approx(0.5), most=pytest.approx(0.5),
+                       handed_before=pytest.approx(1.0), handed_after=pytest.approx(2 / 6),
+                       fell_at_s=pytest.approx(0.9))
+    assert mod.overspeed(tmp_path / "trace_tilt15_stride.npz", 0.6) is None
+    assert mod.main(["overspeed", str(tmp_path), "--over", "0.25", "--scenario", "tilt15"]) == 0
+    out = capsys.readouterr().out
+    assert "1 of 1 traces ran more than 0.25 m/s" in out and "| 0.50 | 0.50 |" in out
+    with pytest.raises(SystemExit, match="no trace_push_"):
+        mod.main(["overspeed", str(tmp_path), "--over", "0.25", "--scenario", "push"])
+    np.savez(tmp_path / "trace_tilt15_policy.npz", t=t, v_base=v, command=command, fallen=fallen)
+    with pytest.raises(ValueError, match="no status"):
+        mod.overspeed(tmp_path / "trace_tilt15_policy.npz", 0.25)
+    with pytest.raises(ValueError, match="positive"):
+        mod.overspeed(tmp_path / "trace_tilt15_stride.npz", 0.25, window_s=0)
