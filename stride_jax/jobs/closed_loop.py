@@ -133,9 +133,9 @@ class ClosedLoopConfig:
         a lost machine) resumes at its last chunk when called again with the same settings, so
         it loses at most one chunk (settings that only time the controller may differ; the
         state stays until the pair's rows are written, so one killed after its last chunk
-        resumes at its end); a
-        state saved with other settings or code is not resumed: the log says which settings
-        differ and the state is kept beside as ``<pair>.stale<k>.npz``, never overwritten.
+        resumes at its end); a state saved with other settings or code is not resumed: the log
+        says which settings differ and the state is kept beside as ``<pair>.stale<k>.npz``,
+        never overwritten.
         0: one program per episode, nothing saved before its row.
         The same trace either way, to float rounding (the chunks run the same step, one after
         another, compiled as another program: measured 1e-7 relative on the CPU).
