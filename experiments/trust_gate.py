@@ -18,8 +18,9 @@ over, and when the estimate first passed the limit, the gate first handed over a
 fell (s). ``overspeed``: per saved trace whose upright forward speed passed the command by
 more than ``--over`` (m/s; a robot running away downhill, say), when it first did, the most it
 passed it by, who was acting (the share of the ``--window-s`` before that the gate had handed
-to the policy, and from then to the episode's end) and when it fell: a runaway under the
-policy's own steps is the policy's, not the planner's. Prints markdown tables.
+to the policy, and from then to the episode's end) and when it fell: the gate's fallback is
+the policy, and a runaway under its steps began where the planner handed the robot over.
+Prints markdown tables.
 """
 
 from __future__ import annotations
