@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+from collections.abc import Callable
 
 import numpy as np
 
@@ -117,6 +118,18 @@ def row_shares(table: dict, models: list[str]) -> dict[str, dict]:
     return out
 
 
+def _each_trace(files: list[pathlib.Path], read: Callable, cells: int):
+    """``(file, read(file))`` per trace ``read`` could read; for one it could not (a
+    ``ValueError``), a table row with the reason and ``cells`` columns after the name."""
+    for f in files:
+        try:
+            got = read(f)
+        except ValueError as e:
+            print(f"| {f.parent.name}/{f.name} | {e} |" + " |" * (cells - 1))
+            continue
+        yield f, got
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="what", required=True)
@@ -128,6 +141,7 @@ def main(argv=None) -> int:
     t.add_argument("--limit", type=float, required=True, help="the gate's limit (m/s^2)")
     t.add_argument("--window-s", type=float, default=1.0,
                    help="the window of the most periods past the limit before a handover (s)")
+    t.add_argument("--scenario", default="", help="only this scenario's traces")
     o = sub.add_parser("overspeed", help="who acted when the robot ran past its command")
     o.add_argument("folders", nargs="+", help="closed-loop run folders (their trace_*.npz)")
     o.add_argument("--over", type=float, required=True,
@@ -150,7 +164,7 @@ def main(argv=None) -> int:
                              for m, s, v, f, d in cell["rows"])
             print(f"| {sc} | {rows} | {cell['mean_share']:.0%} |")
         return 0
-    pattern = f"trace_{a.scenario}_*.npz" if getattr(a, "scenario", "") else "trace_*.npz"
+    pattern = f"trace_{a.scenario}_*.npz" if a.scenario else "trace_*.npz"
     files = [f for d in a.folders for f in sorted(pathlib.Path(d).glob(pattern))]
     if not files:
         raise SystemExit(f"{a.folders}: no {pattern} (traces stay where the closed loop ran)")
@@ -161,17 +175,12 @@ def main(argv=None) -> int:
         print(f"| trace | first {a.over:g} m/s over the command (s) | most over (m/s) | handed "
               f"over in the {a.window_s:g} s before | handed over from then | fell at (s) |")
         print("|---|---:|---:|---:|---:|---:|")
+        share = lambda x: "-" if x is None else f"{x:.0%}"  # noqa: E731
         calm = []
-        for f in files:
-            try:
-                g = overspeed(f, a.over, a.window_s)
-            except ValueError as e:
-                print(f"| {f.parent.name}/{f.name} | {e} | | | | |")
-                continue
+        for f, g in _each_trace(files, lambda f: overspeed(f, a.over, a.window_s), 5):
             if g is None:
                 calm.append(f)
                 continue
-            share = lambda x: "-" if x is None else f"{x:.0%}"  # noqa: E731
             print(f"| {f.parent.name}/{f.name} | {g['first_s']:.2f} | {g['most']:.2f} | "
                   f"{share(g['handed_before'])} | {share(g['handed_after'])} | "
                   f"{secs(g['fell_at_s'])} |")
@@ -182,12 +191,7 @@ def main(argv=None) -> int:
           "before a handover | handed over | periods | first past (s) | first handed over (s) "
           "| fell at (s) |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for f in files:
-        try:
-            g = trigger_runs(f, a.limit, a.window_s)
-        except ValueError as e:
-            print(f"| {f.parent.name}/{f.name} | {e} | | | | | | | |")
-            continue
+    for f, g in _each_trace(files, lambda f: trigger_runs(f, a.limit, a.window_s), 8):
         print(f"| {f.parent.name}/{f.name} | {g['over']} | {g['longest']} | "
               f"{g['most_in_window']} | {g['handed']} | {g['periods']} | "
               f"{secs(g['first_over_s'])} | {secs(g['handed_at_s'])} | {secs(g['fell_at_s'])} |")
