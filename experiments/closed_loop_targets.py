@@ -27,6 +27,10 @@ beside it), else of all its oracle rows; its time and its tracking both only fro
 STRIDE's samples and horizon (K, H): a scenario without such an oracle row leaves the time
 target not measured rather than judged against a planner of another size.
 
+``--ROBOT-timing PART,...`` takes the controllers' own times (``controller_ms``) from parts run
+to time them (STRIDE's and the oracle's, ``--controller-repeats``, at the headline STRIDE's K
+and H) where the headline's rows, many episodes side by side, hold only the closed loop's.
+
 ``--ROBOT-headline ENTRY,...`` reads the targets off other rows of the same table than its
 headline (entries as ``closed_loop_merge.py --headline`` takes them, checked against the table):
 a candidate planner setting merged beside the headline, judged as the headline would be without
@@ -93,8 +97,11 @@ def _scenario_rank(scenario: str) -> int:
     return SCENARIO_ORDER.index(family) if family in SCENARIO_ORDER else len(SCENARIO_ORDER)
 
 
-def robot_targets(table: dict, policy_pick: str = "") -> dict:
-    """The scenarios' cells and the targets' verdicts of one merged table (``headline`` needed)."""
+def robot_targets(table: dict, policy_pick: str = "", timing: tuple[str, ...] = ()) -> dict:
+    """The scenarios' cells and the targets' verdicts of one merged table (``headline`` needed).
+    ``timing``: parts run to time the controllers (``--controller-repeats``, one episode each):
+    their STRIDE and oracle rows at the headline STRIDE's K and H give the controllers' own
+    times (of the same scenario, else of all theirs) where the headline's rows have none."""
     picks = headline_picks(table)
     if not picks:
         raise ValueError("the table names no headline parts (stride_jax.jobs.closed_loop.merge "
@@ -112,6 +119,14 @@ def robot_targets(table: dict, policy_pick: str = "") -> dict:
         for sc in scenarios:
             by[(sc, "policy")] = [picked[sc]] if sc in picked else []
     every_oracle = [r for r in table["rows"] if r["model"].split("@")[0] == "oracle"]
+    timed = [r for r in table["rows"] if r.get("part") in timing]
+    for part in timing:
+        if not any(r.get("part") == part for r in timed):
+            raise ValueError(f"timing part {part!r}: no row of the table holds it")
+    timed = [r for r in timed if r.get("controller_ms") is not None]
+    if timing and not timed:
+        raise ValueError(f"timing parts {', '.join(timing)}: no row with the controller's time "
+                         "(run them with --controller-repeats)")
     cells = []
     for sc in scenarios:
         c = {k: _cell(by[(sc, k)]) for k in KINDS}
@@ -137,6 +152,18 @@ def robot_targets(table: dict, policy_pick: str = "") -> dict:
         c["oracle_ms_from"] = ("this scenario" if any(r["scenario"] == sc for r in oracle_alone)
                                else "all scenarios" if oracle else None)
         s = c["stride"]
+        c["stride_controller_ms"] = s["controller_ms"] if s else None
+        c["controller_ms_from"] = "headline"
+        if timed and s:  # the controllers timed apart, at the headline STRIDE's K and H
+            at_size = [r for r in timed if not sizes or _size(r) in sizes]
+            times = lambda rs: ([r["controller_ms"] for r in rs if r["scenario"] == sc]  # noqa: E731
+                                or [r["controller_ms"] for r in rs])
+            t_stride = times([r for r in at_size if kind_and_seed(r)[0] == "stride"])
+            t_oracle = times([r for r in at_size if r["model"].split("@")[0] == "oracle"])
+            if t_stride and t_oracle:
+                c["stride_controller_ms"] = float(np.mean(t_stride))
+                c["oracle_controller_ms"] = float(np.mean(t_oracle))
+                c["controller_ms_from"] = "timing parts"
         c["stride_vs"] = {k: cell_at_most(s, c[k]) for k in ("policy", "delan", "onn")}
         # the bar a right model sets: the same planner through the scenario's own MJX model
         # against the policy, and STRIDE against it (not targets; what they ask of the model)
@@ -148,10 +175,10 @@ def robot_targets(table: dict, policy_pick: str = "") -> dict:
                       if c["stride_vs"][k] is False
                       and not fall_rates_differ(s["falls"], s["episodes"], c[k]["falls"], c[k]["episodes"])}
         # the controllers' own times where both have them, else the closed loop's steps
-        c["time_basis"] = ("controller" if s and s["controller_ms"] is not None
+        c["time_basis"] = ("controller" if c["stride_controller_ms"] is not None
                            and c["oracle_controller_ms"] is not None else "closed-loop step")
         if c["time_basis"] == "controller":
-            c["time_ratio"] = s["controller_ms"] / c["oracle_controller_ms"]
+            c["time_ratio"] = c["stride_controller_ms"] / c["oracle_controller_ms"]
         else:
             c["time_ratio"] = (s["ms_per_step"] / c["oracle_ms"]) if s and c["oracle_ms"] else None
         # a slope the controller could not sense (world-down gravity, runs before session 46)
@@ -185,7 +212,7 @@ def robot_targets(table: dict, policy_pick: str = "") -> dict:
         oracle_above_policy=[c["scenario"] for c in with_oracle if not c["oracle_vs_policy"]],
         stride_at_most_oracle=[c["scenario"] for c in cells if c["stride_vs_oracle"]],
         stride_vs_oracle_of=sum(c["stride_vs_oracle"] is not None for c in cells))
-    return dict(headline=table["headline"]["parts"],
+    return dict(headline=table["headline"]["parts"], timing=list(timing),
                 policy=policy_pick or "the headline's own rows", cells=cells, targets=targets,
                 oracle_reference=reference)
 
@@ -221,7 +248,8 @@ def markdown(results: dict[str, dict], command: str) -> str:
             mark = lambda k: ("-" if vs[k] is None else "yes" if vs[k] else
                               "no" + {True: " (told apart)", False: " (not told apart)"}.get(apart.get(k), ""))
             ctl = c["time_basis"] == "controller"
-            ms = (c["stride"]["controller_ms" if ctl else "ms_per_step"] if c["stride"] else None)
+            ms = ((c["stride_controller_ms"] if ctl else c["stride"]["ms_per_step"])
+                  if c["stride"] else None)
             orc_ms = c["oracle_controller_ms"] if ctl else c["oracle_ms"]
             lines.append(
                 f"| {c['scenario']}{' *' if c['slope_unseen'] else ''} | {_fmt(c['policy'])} | {_fmt(c['stride'])} | {_fmt(c['delan'])} | "
@@ -234,9 +262,11 @@ def markdown(results: dict[str, dict], command: str) -> str:
                 + ", ".join(f"{c[k]['seeds']}/{c[k]['episodes']}" if c[k] else "-"
                             for k in ("stride", "delan", "onn")) + " |")
         if any(c["time_basis"] == "controller" for c in res["cells"]):
+            apart = any(c.get("controller_ms_from") == "timing parts" for c in res["cells"])
             lines += ["", "c: the controllers' own time per period (`controller_ms`: one episode's "
-                          "planner and observer, no simulated world), where both rows have it; "
-                          "other cells: the closed loop's ms per step"]
+                          "planner and observer, no simulated world), where both rows have it"
+                          + (f" (from the timing parts {', '.join(res['timing'])})" if apart else "")
+                          + "; other cells: the closed loop's ms per step"]
         if any(c["slope_unseen"] for c in res["cells"]):
             lines += ["", "\\* rows on a slope their controller could not sense (world-down gravity, runs "
                           "before session 46: `results/planning_diagnosis/README.md`)"]
@@ -277,10 +307,10 @@ def main(argv=None) -> int:
     ap.add_argument("tables", nargs="+", help="ROBOT=PATH of a merged closed_loop.json")
     ap.add_argument("--out", required=True, help="path stem: writes STEM.md and STEM.json")
     a, rest = ap.parse_known_args(argv)
-    picks, heads = {}, {}
+    picks, heads, timings = {}, {}, {}
     it = iter(rest)
-    for flag in it:  # --ROBOT-policy MODEL@PART,... and --ROBOT-headline ENTRY,...
-        for suffix, into in (("-policy", picks), ("-headline", heads)):
+    for flag in it:  # --ROBOT-policy MODEL@PART,..., --ROBOT-headline ENTRY,..., --ROBOT-timing PART,...
+        for suffix, into in (("-policy", picks), ("-headline", heads), ("-timing", timings)):
             if flag.startswith("--") and flag.endswith(suffix) and len(flag) > 2 + len(suffix):
                 value = next(it, "")
                 if not value or value.startswith("--"):
@@ -288,8 +318,8 @@ def main(argv=None) -> int:
                 into[flag[2:-len(suffix)]] = value
                 break
         else:
-            ap.error(f"unknown argument {flag!r} (expected --ROBOT-policy MODEL@PART,... or "
-                     "--ROBOT-headline ENTRY,...)")
+            ap.error(f"unknown argument {flag!r} (expected --ROBOT-policy MODEL@PART,..., "
+                     "--ROBOT-headline ENTRY,... or --ROBOT-timing PART,...)")
     results = {}
     for spec in a.tables:
         robot, sep, path = spec.partition("=")
@@ -306,10 +336,11 @@ def main(argv=None) -> int:
                               sorted({r.get("part") for r in table["rows"]} - {None}),
                               table["rows"])
                 table["headline"] = dict(parts=entries)
-            results[robot] = robot_targets(table, picks.pop(robot, ""))
+            timing = tuple(x for x in timings.pop(robot, "").split(",") if x)
+            results[robot] = robot_targets(table, picks.pop(robot, ""), timing)
         except ValueError as e:
             ap.error(f"{p}: {e}")
-    for flag, left in (("policy", picks), ("headline", heads)):
+    for flag, left in (("policy", picks), ("headline", heads), ("timing", timings)):
         if left:
             ap.error(f"--{'/'.join(left)}-{flag} names no table given")
     command = "python experiments/closed_loop_targets.py " + " ".join(

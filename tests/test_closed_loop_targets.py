@@ -208,3 +208,41 @@ def test_the_oracle_is_read_at_strides_samples_and_horizon(experiment):
     # a table whose rows record no size: the oracle of any size, as before
     r = mod.robot_targets(_table())
     assert r["targets"]["time_fifth_of_oracle"]["met"] is True  # 80 / 500
+
+
+def test_the_controllers_times_come_from_timing_parts(experiment, tmp_path):
+    """``--ROBOT-timing PART,...``: where the headline's rows ran many episodes side by side
+    and hold no controller's time, parts run to time the controllers give STRIDE's and the
+    oracle's own times (of the same scenario, else all theirs), at the headline STRIDE's K and
+    H only; a timing part the table lacks, or one without a timed row, is an error."""
+    mod = experiment("closed_loop_targets")
+    tab = _table()
+    sized = lambda r, **kw: dict(r, K=1024, H=10, **kw)
+    tab["rows"] = [sized(r) if r["model"].startswith("stride") or r["model"] == "oracle" else r
+                   for r in tab["rows"]]
+    tab["rows"] += [sized(_row("rough", "stride@tm", 0.06, "tm", ms=60.0), controller_ms=40.0),
+                    sized(_row("rough", "oracle@tm", 0.05, "tm", ms=900.0), controller_ms=400.0),
+                    dict(_row("soft", "oracle@tm", 0.05, "tm", ms=900.0), K=1024, H=20,
+                         controller_ms=800.0)]  # another horizon: not read
+    tab["parts"]["tm"] = {}
+    before = {c["scenario"]: c for c in mod.robot_targets(tab)["cells"]}
+    assert before["rough"]["time_basis"] == "closed-loop step"  # 80 / 500
+    r = mod.robot_targets(tab, timing=("tm",))
+    cells = {c["scenario"]: c for c in r["cells"]}
+    for sc in ("rough", "soft"):  # soft: rough's timed rows, its own H 20 oracle left out
+        assert cells[sc]["time_basis"] == "controller" and cells[sc]["controller_ms_from"] == "timing parts"
+        assert cells[sc]["time_ratio"] == pytest.approx(40.0 / 400.0)
+    assert cells["rough"]["stride"]["episodes"] == 3  # the timing row is not a headline episode
+    md = mod.markdown({"g1": r}, "cmd")
+    assert "40.0 c" in md and "from the timing parts tm" in md
+    with pytest.raises(ValueError, match="'nope': no row"):
+        mod.robot_targets(tab, timing=("nope",))
+    with pytest.raises(ValueError, match="--controller-repeats"):
+        mod.robot_targets(tab, timing=("pol",))
+    p = tmp_path / "closed_loop.json"
+    p.write_text(json.dumps(tab))
+    assert mod.main([f"g1={p}", "--g1-timing", "tm", "--out", str(tmp_path / "t")]) == 0
+    assert json.loads((tmp_path / "t.json").read_text())["robots"]["g1"]["targets"][
+        "time_fifth_of_oracle"]["worst_ratio"] == pytest.approx(0.1)
+    with pytest.raises(SystemExit):
+        mod.main([f"g1={p}", "--go1-timing", "tm", "--out", str(tmp_path / "t")])
