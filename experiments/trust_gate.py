@@ -17,9 +17,9 @@ first handover (what a rule counting crossings per window would read), the perio
 over, and when the estimate first passed the limit, the gate first handed over and the robot
 fell (s). ``overspeed``: per saved trace whose upright forward speed passed the command by
 more than ``--over`` (m/s; a robot lurching ahead of its command, say), when it first did, the
-most it passed it by, who was acting (the share of the ``--window-s`` before that the gate had handed
-to the policy, and from then to the episode's end) and when it fell: the gate's fallback is
-the policy, and a runaway under its steps began where the planner handed the robot over.
+most it passed it by, who was acting (the share of the ``--window-s`` before that the gate had
+handed to the policy, and from then to the episode's end) and when it fell: the gate's fallback
+is the policy, and a runaway under its steps began where the planner handed the robot over.
 Prints markdown tables.
 """
 
