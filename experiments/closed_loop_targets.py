@@ -156,8 +156,9 @@ def robot_targets(table: dict, policy_pick: str = "", timing: tuple[str, ...] = 
         c["controller_ms_from"] = "headline"
         if timed and s:  # the controllers timed apart, at the headline STRIDE's K and H
             at_size = [r for r in timed if not sizes or _size(r) in sizes]
-            times = lambda rs: ([r["controller_ms"] for r in rs if r["scenario"] == sc]  # noqa: E731
-                                or [r["controller_ms"] for r in rs])
+            def times(rs):  # this scenario's, else all of them
+                return ([r["controller_ms"] for r in rs if r["scenario"] == sc]
+                        or [r["controller_ms"] for r in rs])
             t_stride = times([r for r in at_size if kind_and_seed(r)[0] == "stride"])
             t_oracle = times([r for r in at_size if r["model"].split("@")[0] == "oracle"])
             if t_stride and t_oracle:
@@ -265,7 +266,8 @@ def markdown(results: dict[str, dict], command: str) -> str:
             apart = any(c.get("controller_ms_from") == "timing parts" for c in res["cells"])
             lines += ["", "c: the controllers' own time per period (`controller_ms`: one episode's "
                           "planner and observer, no simulated world), where both rows have it"
-                          + (f" (from the timing parts {', '.join(res['timing'])})" if apart else "")
+                          + (f" (from the timing parts {', '.join(res['timing'])})"
+                             if apart else "")
                           + "; other cells: the closed loop's ms per step"]
         if any(c["slope_unseen"] for c in res["cells"]):
             lines += ["", "\\* rows on a slope their controller could not sense (world-down gravity, runs "
@@ -309,7 +311,7 @@ def main(argv=None) -> int:
     a, rest = ap.parse_known_args(argv)
     picks, heads, timings = {}, {}, {}
     it = iter(rest)
-    for flag in it:  # --ROBOT-policy MODEL@PART,..., --ROBOT-headline ENTRY,..., --ROBOT-timing PART,...
+    for flag in it:  # --ROBOT-policy MODEL@PART,..., --ROBOT-headline ENTRY,..., --ROBOT-timing
         for suffix, into in (("-policy", picks), ("-headline", heads), ("-timing", timings)):
             if flag.startswith("--") and flag.endswith(suffix) and len(flag) > 2 + len(suffix):
                 value = next(it, "")
