@@ -4,7 +4,7 @@ and traces (the numbers behind ``results/closed_loop_g1_gpu/README.md``, "Sessio
     python experiments/trust_gate.py rows results/closed_loop_g1_gpu/closed_loop.json \\
         --models stride,stride_s1,stride_s2
     python experiments/trust_gate.py traces results/closed_loop_g1_gpu/parts/delay_s0 --limit 2.5
-    python experiments/trust_gate.py overspeed results/closed_loop_g1_gpu/parts/h10_stride \
+    python experiments/trust_gate.py overspeed results/closed_loop_g1_gpu/parts/h10_stride \\
         --scenario tilt15 --over 0.25
 
 ``rows``: per scenario, each row of the named models (the table's ``headline`` parts where it
@@ -47,14 +47,20 @@ def _first(mask: np.ndarray, t: np.ndarray) -> float | None:
     return float(t[np.argmax(mask)]) if mask.any() else None
 
 
+def _window_periods(window_s: float, t: np.ndarray) -> int:
+    """The control periods of a trace (times ``t``, s) in ``window_s`` seconds, at least one."""
+    if window_s <= 0:
+        raise ValueError(f"window {window_s} s: need a positive length")
+    dt = float(t[1] - t[0]) if len(t) > 1 else 1.0
+    return max(int(round(window_s / dt)), 1)
+
+
 def trigger_runs(path: pathlib.Path, limit: float, window_s: float = 1.0) -> dict:
     """A trace's periods with the observer's linear estimate past ``limit``, their longest
     unbroken run, the most of them in any window of ``window_s`` seconds that ends before the
     gate first handed over (the whole trace where it never did), the periods it handed over
     (``status`` DISTRUSTED), and the times (s; None: never) the estimate first passed the
     limit, the gate first handed over and the robot fell."""
-    if window_s <= 0:
-        raise ValueError(f"window {window_s} s: need a positive length")
     with np.load(path) as z:
         if "disturbance" not in z.files or "status" not in z.files:
             raise ValueError(f"{path}: no disturbance estimate or planner status (a run "
@@ -64,8 +70,7 @@ def trigger_runs(path: pathlib.Path, limit: float, window_s: float = 1.0) -> dic
         over = np.linalg.norm(z["disturbance"][:, :3], axis=1) > limit
         handed = z["status"] == DISTRUSTED
         t, fallen = np.asarray(z["t"]), np.asarray(z["fallen"], bool)
-    dt = float(t[1] - t[0]) if len(t) > 1 else 1.0
-    width = max(int(round(window_s / dt)), 1)
+    width = _window_periods(window_s, t)
     in_window = np.convolve(over.astype(int), np.ones(width, int))[:len(over)]  # ending at each
     before = int(np.argmax(handed)) if handed.any() else len(over)
     return dict(over=int(over.sum()), longest=longest_run(over),
@@ -79,8 +84,6 @@ def overspeed(path: pathlib.Path, over: float, window_s: float = 1.0) -> dict | 
     the command by more than ``over`` (m/s); else the time it first did (s), the most it did
     (m/s), the share of the ``window_s`` seconds before that time and of the periods from it to
     the end that the gate handed to the policy, and when the robot fell (s; None: never)."""
-    if window_s <= 0:
-        raise ValueError(f"window {window_s} s: need a positive length")
     with np.load(path) as z:
         missing = {"t", "v_base", "command", "status", "fallen"} - set(z.files)
         if missing:
@@ -89,12 +92,12 @@ def overspeed(path: pathlib.Path, over: float, window_s: float = 1.0) -> dict | 
         t, fallen = np.asarray(z["t"]), np.asarray(z["fallen"], bool)
         excess = np.asarray(z["v_base"])[:, 0] - np.asarray(z["command"])[:, 0]
         handed = z["status"] == DISTRUSTED
+    width = _window_periods(window_s, t)
     fast = (excess > over) & ~fallen
     if not fast.any():
         return None
     i = int(np.argmax(fast))
-    dt = float(t[1] - t[0]) if len(t) > 1 else 1.0
-    lo = max(i - max(int(round(window_s / dt)), 1), 0)
+    lo = max(i - width, 0)
     return dict(first_s=float(t[i]), most=float(excess[~fallen].max()),
                 handed_before=float(handed[lo:i].mean()) if i > lo else None,
                 handed_after=float(handed[i:].mean()), fell_at_s=_first(fallen, t))
