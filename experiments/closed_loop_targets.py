@@ -29,7 +29,8 @@ target not measured rather than judged against a planner of another size.
 
 ``--ROBOT-timing PART,...`` takes the controllers' own times (``controller_ms``) from parts run
 to time them (STRIDE's and the oracle's, ``--controller-repeats``, at the headline STRIDE's K
-and H) where the headline's rows, many episodes side by side, hold only the closed loop's.
+and H), in place of the headline's, whose rows (many episodes side by side) mostly hold only
+the closed loop's; a scenario keeps the headline's where the parts lack STRIDE or the oracle.
 
 ``--ROBOT-headline ENTRY,...`` reads the targets off other rows of the same table than its
 headline (entries as ``closed_loop_merge.py --headline`` takes them, checked against the table):
@@ -101,7 +102,8 @@ def robot_targets(table: dict, policy_pick: str = "", timing: tuple[str, ...] = 
     """The scenarios' cells and the targets' verdicts of one merged table (``headline`` needed).
     ``timing``: parts run to time the controllers (``--controller-repeats``, one episode each):
     their STRIDE and oracle rows at the headline STRIDE's K and H give the controllers' own
-    times (of the same scenario, else of all theirs) where the headline's rows have none."""
+    times (of the same scenario, else of all theirs), in place of the headline's, wherever they
+    hold both."""
     picks = headline_picks(table)
     if not picks:
         raise ValueError("the table names no headline parts (stride_jax.jobs.closed_loop.merge "
