@@ -12,7 +12,9 @@ Beside them, the oracle's own tracking where the headline holds an oracle row of
 planner does with a right model); its rows over earlier policies are not read for it. A line
 under each robot's targets reads that oracle as the targets read STRIDE, for reference: in how
 many scenarios the same planner with a right model is at most the policy, and where STRIDE is
-at most it (what "at most the policy" asks of a model where even the simulator itself is not).
+at most it (what "at most the policy" asks of a model where even the simulator itself is not),
+and in how many comparisons it is at most DeLaN's and ONN's (whether a right model would meet
+the baselines' target).
 
     python experiments/closed_loop_targets.py \\
         go1=results/closed_loop_go1_gpu/closed_loop.json \\
@@ -171,6 +173,7 @@ def robot_targets(table: dict, policy_pick: str = "", timing: tuple[str, ...] = 
         # the bar a right model sets: the same planner through the scenario's own MJX model
         # against the policy, and STRIDE against it (not targets; what they ask of the model)
         c["oracle_vs_policy"] = cell_at_most(c["oracle"], c["policy"])
+        c["oracle_vs"] = {k: cell_at_most(c["oracle"], c[k]) for k in ("delan", "onn")}
         c["stride_vs_oracle"] = cell_at_most(s, c["oracle"])
         # a loss in error alone, over trained seeds on both sides: whether the seeds tell it apart
         c["apart"] = {k: (w["lo"] > 0) if (w := welch(s["seed_means"], c[k]["seed_means"])) else None
@@ -204,7 +207,11 @@ def robot_targets(table: dict, policy_pick: str = "", timing: tuple[str, ...] = 
         "at_most_policy": dict(met=(sum(vs_policy) >= 0.75 * len(vs_policy)) if vs_policy else None,
                                scenarios=sum(vs_policy), of=len(vs_policy)),
         "at_most_baselines": dict(met=all(base) if base else None, comparisons=sum(base),
-                                  of=len(base)),
+                                  of=len(base),
+                                  # per baseline: the scenarios STRIDE is at most it in
+                                  **{k: dict(scenarios=sum(bool(c["stride_vs"][k]) for c in cells),
+                                             of=sum(c["stride_vs"][k] is not None for c in cells))
+                                     for k in ("delan", "onn")}),
         "time_fifth_of_oracle": dict(met=(max(ratios) <= 0.2) if ratios and not untimed else None,
                                      worst_ratio=max(ratios) if ratios else None,
                                      no_oracle_at_stride_size=untimed),
@@ -214,7 +221,12 @@ def robot_targets(table: dict, policy_pick: str = "", timing: tuple[str, ...] = 
         scenarios=[c["scenario"] for c in with_oracle],
         oracle_above_policy=[c["scenario"] for c in with_oracle if not c["oracle_vs_policy"]],
         stride_at_most_oracle=[c["scenario"] for c in cells if c["stride_vs_oracle"]],
-        stride_vs_oracle_of=sum(c["stride_vs_oracle"] is not None for c in cells))
+        stride_vs_oracle_of=sum(c["stride_vs_oracle"] is not None for c in cells),
+        # the baselines' target read for the oracle: whether a right model meets it either
+        oracle_above_baseline=[f"{c['scenario']} ({k})" for c in cells for k in ("delan", "onn")
+                               if c["oracle_vs"][k] is False],
+        oracle_vs_baselines_of=sum(c["oracle_vs"][k] is not None for c in cells
+                                   for k in ("delan", "onn")))
     return dict(headline=table["headline"]["parts"], timing=list(timing),
                 policy=policy_pick or "the headline's own rows", cells=cells, targets=targets,
                 oracle_reference=reference)
@@ -283,7 +295,10 @@ def markdown(results: dict[str, dict], command: str) -> str:
                   f"- STRIDE at most the policy in at least 3 of 4 scenarios: {yes[ap['met']]} "
                   f"({ap['scenarios']} of {ap['of']})",
                   f"- at most DeLaN + MLP's and ONN's: {yes[ab['met']]} ({ab['comparisons']} of {ab['of']} "
-                  "comparisons)",
+                  "comparisons"
+                  + "".join(f"; {name}'s in {ab[k]['scenarios']} of {ab[k]['of']} scenarios"
+                            for k, name in (("delan", "DeLaN + MLP"), ("onn", "ONN")) if ab.get(k, {}).get("of"))
+                  + ")",
                   f"- at most 1/5 of the oracle's time per step: {yes[tf['met']]}"
                   + (f" (worst ratio {tf['worst_ratio']:.2f})" if tf["worst_ratio"] is not None else "")
                   + ("; no oracle row at STRIDE's K and H in " + ", ".join(
@@ -301,7 +316,13 @@ def markdown(results: dict[str, dict], command: str) -> str:
                    if above else "")
                 + f"; STRIDE at most the oracle in {len(ref['stride_at_most_oracle'])} of "
                 f"{ref['stride_vs_oracle_of']}"
-                + (f" ({', '.join(ref['stride_at_most_oracle'])})" if ref["stride_at_most_oracle"] else ""))
+                + (f" ({', '.join(ref['stride_at_most_oracle'])})" if ref["stride_at_most_oracle"] else "")
+                + (f"; the oracle at most DeLaN + MLP's and ONN's in "
+                   f"{ref['oracle_vs_baselines_of'] - len(ref['oracle_above_baseline'])} of "
+                   f"{ref['oracle_vs_baselines_of']} comparisons"
+                   + (f" (above: {', '.join(ref['oracle_above_baseline'])})"
+                      if ref["oracle_above_baseline"] else "")
+                   if ref.get("oracle_vs_baselines_of") else ""))
         lines.append("")
     return "\n".join(lines)
 

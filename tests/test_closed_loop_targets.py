@@ -61,6 +61,10 @@ def test_targets_read_the_headline_seeds_and_the_oracle_time(experiment):
     assert (t["at_most_policy"]["scenarios"], t["at_most_policy"]["of"]) == (1, 2)
     assert t["at_most_policy"]["met"] is False  # 1 of 2 is below 3 of 4
     assert t["at_most_baselines"]["met"] is False and t["time_fifth_of_oracle"]["met"]
+    # per baseline, the scenarios STRIDE is at most it in (no DeLaN rows: none compared)
+    assert t["at_most_baselines"]["onn"] == {"scenarios": 1, "of": 2}
+    assert t["at_most_baselines"]["delan"] == {"scenarios": 0, "of": 0}
+    assert "(1 of 2 comparisons; ONN's in 1 of 2 scenarios)" in mod.markdown({"go1": r}, "cmd")
     # a fall outweighs any error: STRIDE falling once on rough loses to the policy
     tab = _table()
     tab["rows"][2]["fell"] = True  # stride@a on rough (seed 0)
@@ -170,6 +174,10 @@ def test_the_oracle_is_read_against_the_policy_as_a_reference(experiment):
     md = mod.markdown({"go1": r}, "cmd")
     assert ("at most the policy in 1 of 2 scenarios (above it: soft 0.05120 against 0.05000); "
             "STRIDE at most the oracle in 0 of 2") in md
+    # the baselines' target read for the oracle: ONN rough 0.072 / soft 0.047 against the
+    # oracle's 0.05 / 0.0512 (no DeLaN rows: not compared)
+    assert ref["oracle_vs_baselines_of"] == 2 and ref["oracle_above_baseline"] == ["soft (onn)"]
+    assert "the oracle at most DeLaN + MLP's and ONN's in 1 of 2 comparisons (above: soft (onn))" in md
     tab["rows"][-1]["vel_rmse"] = 0.053  # the oracle above STRIDE on soft
     ref = mod.robot_targets(tab)["oracle_reference"]
     assert ref["stride_at_most_oracle"] == ["soft"]
