@@ -9,7 +9,10 @@ without need).
     python experiments/observer_marker.py results/closed_loop_g1_gpu/parts/tfb_* \\
         --thresholds 3 3.5 4 --out results/planning_diagnosis/g1_observer_marker
 
-``--component vertical`` reads the estimate's upward entry instead of the norm; ``--match delan``
+``--component vertical`` reads the estimate's upward entry instead of the norm, ``down`` its
+downward one (the model predicting the base higher than it goes: what grows on G1's tilt, the
+session 89 probe ``results/closed_loop/g1_tilt_handover_cpu/``), ``horizontal`` the norm of its
+two floor-plane entries (what a gate blind to vertical error would read); ``--match delan``
 keeps the traces whose file name holds that text (one model kind's episodes). ``--holds 1 0.2``
 adds, per hold (s, ``PlanningConfig.trust_hold_s``), the share of the upright episodes' steps a
 gate at the threshold would hand to the policy, replayed on the recorded estimate
@@ -31,13 +34,16 @@ from stride_jax import io
 
 
 COMPONENTS = {"norm": lambda d: np.linalg.norm(d[:, :3], axis=1),  # the trust gate's
-              "vertical": lambda d: d[:, 2]}  # upward
+              "vertical": lambda d: d[:, 2],  # upward
+              "down": lambda d: -d[:, 2],  # downward
+              "horizontal": lambda d: np.linalg.norm(d[:, :2], axis=1)}  # in the floor plane
 
 
 def marker(traces: list[dict], threshold: float, component: str = "norm") -> dict:
     """``traces``: dicts with ``t`` [T], ``fallen`` [T] bool and ``disturbance`` [T, 6] (the
     observer's estimate after each step). Falls caught (the estimate's ``component``, the norm of
-    its linear part or its upward entry, above ``threshold`` at some step before the first fallen
+    its linear part, its upward or downward entry or its floor-plane norm: ``COMPONENTS``, above
+    ``threshold`` at some step before the first fallen
     one) with their lead times (s), falls missed, and over the episodes that stayed up: the mean
     share of steps above, and how many of them ever went above."""
     if component not in COMPONENTS:
@@ -121,8 +127,9 @@ def main() -> None:
     ap.add_argument("folders", nargs="+", help="closed-loop run folders holding trace_*.npz")
     ap.add_argument("--thresholds", type=float, nargs="+", default=[3.0, 3.5, 4.0])
     ap.add_argument("--component", choices=sorted(COMPONENTS), default="norm",
-                    help="norm: of the estimate's linear part (the trust gate's); vertical: its "
-                         "upward entry")
+                    help="norm: of the estimate's linear part (the trust gate's); vertical / "
+                         "down: its upward / downward entry; horizontal: the norm of its "
+                         "floor-plane entries")
     ap.add_argument("--match", default="", help="only traces whose file name holds this")
     ap.add_argument("--holds", type=float, nargs="*", default=[],
                     help="trust holds (s): the upright share a gate at each threshold would "
@@ -146,8 +153,9 @@ def main() -> None:
                + (f" --match {a.match}" if a.match else "")
                + (" --holds " + " ".join(f"{h:g}" for h in a.holds) if a.holds else "")
                + f" --out {a.out}")
-    what = ("the norm of the estimate's linear part" if a.component == "norm"
-            else "the estimate's upward entry")
+    what = {"norm": "the norm of the estimate's linear part",
+            "vertical": "the estimate's upward entry", "down": "the estimate's downward entry",
+            "horizontal": "the norm of the estimate's floor-plane entries"}[a.component]
     fmt = lambda x, f="{:.2f}": "-" if x is None else f.format(x)
     lines = ["# The observer's estimate before falls", "", f"Command: `{command}`", "",
              f"{len(traces)} episodes with the disturbance observer. A fall is caught when "

@@ -36,6 +36,18 @@ def test_marker_counts_caught_and_missed_falls_and_the_upright_share_above(exper
     # the upward entry alone: these traces' estimates lie along x, so nothing is caught
     r = mod.marker(traces, 3.5, component="vertical")
     assert (r["caught"], r["missed"], r["upright_episodes_above"]) == (0, 2, 0)
+    # ... and the floor-plane norm reads them all, as the norm does
+    r = mod.marker(traces, 3.5, component="horizontal")
+    assert (r["caught"], r["missed"], r["upright_episodes_above"]) == (1, 1, 1)
+    # the estimate pointing down: the upward entry never reads it, the downward one does
+    down = [dict(tr, disturbance=tr["disturbance"][:, [1, 2, 0, 3, 4, 5]] * [1, 1, -1, 1, 1, 1])
+            for tr in traces]  # the x entries moved to z, negated
+    r = mod.marker(down, 3.5, component="vertical")
+    assert (r["caught"], r["upright_episodes_above"]) == (0, 0)
+    r = mod.marker(down, 3.5, component="down")
+    assert (r["caught"], r["missed"], r["upright_episodes_above"]) == (1, 1, 1)
+    r = mod.marker(down, 3.5, component="horizontal")
+    assert (r["caught"], r["upright_episodes_above"]) == (0, 0)
 
 
 def test_the_replayed_gate_holds_as_the_planner_does_and_shares_grow_with_the_hold(experiment):

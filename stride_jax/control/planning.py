@@ -150,8 +150,11 @@ class PlanningConfig:
         What it cannot tell apart: a large real disturbance from model error. A right model on
         a slope steeper than ``asin(trust_limit / g)`` (21 degrees at 3.5), under a hard push or
         with a heavy payload needs that much correction too, and the gate hands the robot to
-        the policy there as well (under G1's pushes a third of the time). The vertical entry
-        alone is no better marker (at 2.5 it preceded 35 of the 57 falls). Told the gravity
+        the policy there as well (under G1's pushes a third of the time). The upward entry
+        alone is no better marker (at 2.5 it preceded 35 of the 57 falls); the downward one,
+        not read then, marked 7 of the 8 falls under the 2.5 gate in sessions 86-89 (all on
+        the tilt), the floor-plane part 1 (``results/planning_diagnosis/README.md``, session
+        89). Told the gravity
         (``model_gravity``), a right model needs no slope correction, so the limit need not
         leave room for one: over G1's sloped-data models told the gravity (session 50,
         ``results/planning_diagnosis/g1_observer_marker_sloped.md``, 57 episodes gated at 3.5)
