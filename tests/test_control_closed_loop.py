@@ -615,6 +615,26 @@ def test_a_chunked_run_killed_mid_episode_resumes_to_the_same_rows(tmp_path, mon
     assert cl._load_state(tmp_path / "none.npz", state, "this run") is None
 
 
+def test_a_saved_state_resumes_across_a_setting_added_since_at_its_default(tmp_path):
+    """A state saved before the code gained a setting is this run's where the new setting is
+    at its default (the saved run ran so before it existed), and another run's where it is
+    not; a setting the saved run named at another value is another run's as ever."""
+    state = {"x": jnp.arange(3.0), "key": jax.random.key(5)}
+
+    def ident(**planning):
+        return json.dumps(dict(settings=dict(planning=dict(observer_gain=0.3, **planning)),
+                               model="oracle"), sort_keys=True)
+
+    path = tmp_path / "state.npz"
+    cl._save_state(path, state, [], 4, 1.5, ident())  # before trust_component existed
+    assert cl._load_state(path, state, ident(trust_component="norm"))[2] == 4
+    said = cl._load_state(path, state, ident(trust_component="down"))
+    assert "planning.trust_component: (absent) -> down" in said, said
+    assert isinstance(cl._load_state(path, state, ident(observer_gain_x=1.0)), str)  # unknown
+    cl._save_state(path, state, [], 4, 1.5, ident(trust_component="down"))
+    assert isinstance(cl._load_state(path, state, ident(trust_component="norm")), str)
+
+
 def test_a_saved_state_of_another_run_is_set_aside_with_the_reason_not_overwritten(tmp_path):
     """A chunked episode whose saved state is another run's (a setting changed between the call
     cut by its limit and the call resuming it) says which settings differ, keeps that state
@@ -982,6 +1002,29 @@ def test_the_trust_gate_reads_the_observers_linear_estimate(go1):
     assert (late.distrust_hold, late.distrust_after, late.alarm_hold) == (25, 2, 10)
     with pytest.raises(ValueError, match="trust_delay_s=-0.1 must be >= 0"):
         planning_lib.PlanningConfig(observer_gain=0.1, trust_limit=3.5, trust_delay_s=-0.1)
+
+
+def test_the_trust_gate_can_read_the_downward_estimate_alone(go1):
+    """``trust_component="down"``: the gate reads the estimate's downward entry alone (a model
+    predicting the base higher than it goes), blind to floor-plane and upward errors the norm
+    would count; an unknown component is named."""
+    cfg = planning_lib.PlanningConfig(observer_gain=0.1, trust_limit=2.5, trust_component="down")
+    policy = lambda obs, key: jnp.zeros(go1.info.nu)
+    planning = planning_lib.make_planning(cfg, envs.config("go1"), go1, _fake_step, policy)
+    norm = planning_lib.make_planning(dataclasses.replace(cfg, trust_component="norm"),
+                                      envs.config("go1"), go1, _fake_step, policy)
+    qd = jnp.zeros(go1.mj.nv)
+    at = lambda dist: planning_lib.augment(jnp.asarray(go1.info.qpos0), jnp.zeros(3),
+                                           disturbance=jnp.asarray(dist, jnp.float32))
+    for dist, down, by_norm in (([0.0, 0.0, -2.6, 0, 0, 0], True, True),  # down past the limit
+                                ([3.0, 0.0, 0.0, 0, 0, 0], False, True),  # a push: the floor plane
+                                ([0.0, 0.0, 2.6, 0, 0, 0], False, True),  # upward
+                                ([1.5, 1.5, -2.4, 0, 0, 0], False, True),  # |lin| 3.2, down 2.4
+                                ([0.0, 0.0, -2.4, 0, 0, 9.0], False, False)):  # angular: not read
+        assert bool(planning.distrust(at(dist), qd)) is down, dist
+        assert bool(norm.distrust(at(dist), qd)) is by_norm, dist
+    with pytest.raises(ValueError, match="trust_component='up': one of norm, down"):
+        planning_lib.PlanningConfig(trust_component="up")
 
 
 def test_the_stop_prior_prices_the_familys_offsets_at_a_stop_command_only(go1):

@@ -38,6 +38,14 @@ from stride_jax.dynamics.lagrangian import WORLD_DOWN
 from stride_jax.sim import model as sim_model, rollout_mjx
 
 
+
+# the model-trust gate's trigger on the disturbance observer's estimate ``d [6]`` and the limit
+# (``PlanningConfig.trust_component``): the norm of its linear part (squared, as every gated run
+# compared it), or its downward entry
+TRUST_COMPONENTS = {"norm": lambda d, limit: jnp.sum(d[:3] ** 2) > limit ** 2,
+                    "down": lambda d, limit: -d[2] > limit}
+
+
 @dataclasses.dataclass(frozen=True)
 class PlanningConfig:
     """The task side of the planner: its action space, exploration and cost (the closed-loop
@@ -165,6 +173,14 @@ class PlanningConfig:
         scenarios, but the 1 s hold made the policy act on 12-47% of its steps outside soft
         ground (the estimate above 2.5 on 0-10%): the hold, not the limit, sets the share
         (``experiments/observer_marker.py --holds``).
+      trust_component: what of the observer's estimate ``trust_limit`` reads: ``norm``, the
+        norm of its linear part (every gated run before session 89), or ``down``, its downward
+        entry alone (the model predicting the base higher than it goes). Why: under the 2.5
+        gate on G1 (sessions 86-89, 396 episodes) the downward entry marked 7 of the 8 falls
+        (all on the tilt) with a third of the norm's crossings where the robot stayed up, and
+        none under pushes, where the norm crossed in every one of 72 episodes and handed the
+        robot over though a right model plans through a push
+        (``results/planning_diagnosis/README.md``, session 89; in sample, a lead).
       latency_s: the planner's computation time per plan (s; 0: none, the world waits for the
         planner, as every closed-loop row before session 79 ran). A planner on a robot cannot
         stop the world: with it, the closed loop replans once every ``ceil(latency_s / dt)``
@@ -241,6 +257,7 @@ class PlanningConfig:
     trust_hold_s: float = 0.0
     trust_delay_s: float = 0.0
     trust_overshoot: float = 0.0
+    trust_component: str = "norm"
     latency_s: float = 0.0
     latency_compensation: bool = True
     latency_feedback: bool = False
@@ -252,6 +269,9 @@ class PlanningConfig:
             raise ValueError(f"trust_limit={self.trust_limit}, trust_hold_s="
                              f"{self.trust_hold_s} and trust_overshoot={self.trust_overshoot} "
                              f"must be >= 0")
+        if self.trust_component not in TRUST_COMPONENTS:
+            raise ValueError(f"trust_component={self.trust_component!r}: one of "
+                             f"{', '.join(TRUST_COMPONENTS)}")
         if not self.trust_delay_s >= 0:
             raise ValueError(f"trust_delay_s={self.trust_delay_s} must be >= 0 (s)")
         if self.trust_delay_s and not (self.trust_limit or self.trust_overshoot):
@@ -559,7 +579,7 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
             a = split(q_aug, nq)
             out = jnp.zeros((), bool)
             if cfg.trust_limit:
-                out |= jnp.sum(a.disturbance[:3] ** 2) > cfg.trust_limit ** 2
+                out |= TRUST_COMPONENTS[cfg.trust_component](a.disturbance, cfg.trust_limit)
             if cfg.trust_overshoot:
                 v, _, _ = envs.base_signals(a.q, qd)
                 out |= v[0] - a.command[0] > cfg.trust_overshoot

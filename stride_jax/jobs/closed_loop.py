@@ -621,7 +621,7 @@ def _load_state(path: pathlib.Path, carry_like, ident: str):
                   for i in range(len(leaves))]
         want = [jax.random.key_data(x).shape if i in meta["keys"] else x.shape
                 for i, x in enumerate(leaves)]
-        if meta["ident"] != ident:
+        if meta["ident"] != ident and not _same_run(meta["ident"], ident):
             return _ident_difference(meta["ident"], ident)
         if shapes != want or f"carry{len(leaves)}" in z.files:
             n = sum(f.startswith("carry") for f in z.files)
@@ -633,6 +633,31 @@ def _load_state(path: pathlib.Path, carry_like, ident: str):
         traces = [Trace(**{f: z[f"trace{k}_{f}"] for f in Trace._fields})
                   for k in range(meta["chunks"])]
     return carry, traces, meta["steps"], meta["run_s"]
+
+
+def _same_run(saved: str, now: str) -> bool:
+    """Whether a saved state's run identity and this run's (the JSON of :func:`run`'s ``ident``)
+    differ only by settings added to the code since the state was saved, here at their defaults
+    (they ran so before they existed): a new setting does not strand the states already saved
+    (session 89's ``trust_component`` beside the G1 oracle's cut episode)."""
+    defaults = json.loads(json.dumps(
+        {k: v for k, v in dataclasses.asdict(ClosedLoopConfig()).items() if k not in _PER_RUN},
+        default=str))
+
+    def new_at_default(old, new, default):  # ``new`` less the keys ``old`` lacks at default
+        if not (isinstance(old, dict) and isinstance(new, dict)):
+            return new
+        default = default if isinstance(default, dict) else {}
+        return {k: new_at_default(old[k], v, default.get(k)) if k in old else v
+                for k, v in new.items() if k in old or k not in default or default[k] != v}
+    try:
+        a, b = json.loads(saved), json.loads(now)
+    except ValueError:
+        return False
+    if not (isinstance(a, dict) and isinstance(b, dict) and "settings" in b):
+        return False
+    b["settings"] = new_at_default(a.get("settings"), b["settings"], defaults)
+    return a == b
 
 
 def _ident_difference(saved: str, now: str, most: int = 4) -> str:
@@ -763,11 +788,14 @@ def _fmt(x, f: str = "{:.3f}") -> str:
     return "-" if x is None or (isinstance(x, float) and np.isnan(x)) else f.format(x)
 
 
+_GATE_READS = {"norm": "linear estimate", "down": "downward estimate"}
+
+
 def _gate_words(pl) -> str:
     """What trips the model-trust gate, in words (the run's summary line)."""
     return " or ".join(
-        ([f"the observer's linear estimate exceeds {pl.trust_limit:g} m/s^2"] if pl.trust_limit
-         else [])
+        ([f"the observer's {_GATE_READS[pl.trust_component]} exceeds {pl.trust_limit:g} m/s^2"]
+         if pl.trust_limit else [])
         + ([f"the forward velocity exceeds the command by {pl.trust_overshoot:g} m/s"]
            if pl.trust_overshoot else []))
 
