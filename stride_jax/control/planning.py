@@ -38,7 +38,6 @@ from stride_jax.dynamics.lagrangian import WORLD_DOWN
 from stride_jax.sim import model as sim_model, rollout_mjx
 
 
-
 # the model-trust gate's trigger on the disturbance observer's estimate ``d [6]`` and the limit
 # (``PlanningConfig.trust_component``): the norm of its linear part (squared, as every gated run
 # compared it), or its downward entry
