@@ -10,7 +10,9 @@ and traces (the numbers behind ``results/closed_loop_g1_gpu/README.md``, "Sessio
 ``rows``: per scenario, each row of the named models (the table's ``headline`` parts where it
 names them) with its velocity RMSE and the share of its upright steps the gate handed to the
 policy (``distrust_share``), and the mean share over them. ``traces``: per saved trace of a
-run folder, the control periods the observer's linear estimate lay past ``--limit`` (m/s^2),
+run folder, the control periods the observer's linear estimate lay past ``--limit`` (m/s^2;
+with ``--component down``, its downward entry: what a ``--planning.trust-component down`` gate
+reads),
 the longest run of them without a break (what ``--planning.trust-delay-s`` must outlast for
 the gate to plan through it), the most of them in any ``--window-s`` (default 1 s) before the
 first handover (what a rule counting crossings per window would read), the periods handed
@@ -55,8 +57,14 @@ def _window_periods(window_s: float, t: np.ndarray) -> int:
     return max(int(round(window_s / dt)), 1)
 
 
-def trigger_runs(path: pathlib.Path, limit: float, window_s: float = 1.0) -> dict:
-    """A trace's periods with the observer's linear estimate past ``limit``, their longest
+# what of the observer's estimate ``[T, 6]`` the gate reads (``PlanningConfig.trust_component``)
+GATE_READS = {"norm": lambda d: np.linalg.norm(d[:, :3], axis=1), "down": lambda d: -d[:, 2]}
+
+
+def trigger_runs(path: pathlib.Path, limit: float, window_s: float = 1.0,
+                 component: str = "norm") -> dict:
+    """A trace's periods with the observer's linear estimate (``component``: its norm, as the
+    gate reads it by default, or its downward entry) past ``limit``, their longest
     unbroken run, the most of them in any window of ``window_s`` seconds that ends before the
     gate first handed over (the whole trace where it never did), the periods it handed over
     (``status`` DISTRUSTED), and the times (s; None: never) the estimate first passed the
@@ -67,7 +75,9 @@ def trigger_runs(path: pathlib.Path, limit: float, window_s: float = 1.0) -> dic
                              "without the observer, or the policy alone)")
         if "t" not in z.files or "fallen" not in z.files:
             raise ValueError(f"{path}: no time or fall flags (not a closed loop's trace)")
-        over = np.linalg.norm(z["disturbance"][:, :3], axis=1) > limit
+        if component not in GATE_READS:
+            raise ValueError(f"component {component!r}: one of {', '.join(GATE_READS)}")
+        over = GATE_READS[component](np.asarray(z["disturbance"])) > limit
         handed = z["status"] == DISTRUSTED
         t, fallen = np.asarray(z["t"]), np.asarray(z["fallen"], bool)
     width = _window_periods(window_s, t)
@@ -145,6 +155,8 @@ def main(argv=None) -> int:
     t.add_argument("--window-s", type=float, default=1.0,
                    help="the window of the most periods past the limit before a handover (s)")
     t.add_argument("--scenario", default="", help="only this scenario's traces")
+    t.add_argument("--component", choices=sorted(GATE_READS), default="norm",
+                   help="what of the estimate the gate read (--planning.trust-component)")
     o = sub.add_parser("overspeed", help="who acted when the robot ran past its command")
     o.add_argument("folders", nargs="+", help="closed-loop run folders (their trace_*.npz)")
     o.add_argument("--over", type=float, required=True,
@@ -194,7 +206,8 @@ def main(argv=None) -> int:
           "before a handover | handed over | periods | first past (s) | first handed over (s) "
           "| fell at (s) |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for f, g in _each_trace(files, lambda f: trigger_runs(f, a.limit, a.window_s), 8):
+    for f, g in _each_trace(files, lambda f: trigger_runs(f, a.limit, a.window_s, a.component),
+                            8):
         print(f"| {f.parent.name}/{f.name} | {g['over']} | {g['longest']} | "
               f"{g['most_in_window']} | {g['handed']} | {g['periods']} | "
               f"{secs(g['first_over_s'])} | {secs(g['handed_at_s'])} | {secs(g['fell_at_s'])} |")

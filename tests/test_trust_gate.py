@@ -39,6 +39,15 @@ def test_trigger_runs_count_the_estimates_past_the_limit_and_the_handovers(tmp_p
         "most_in_window"] == 3  # five periods hold at most three of them
     with pytest.raises(ValueError, match="positive"):
         mod.trigger_runs(tmp_path / "trace_push_stride.npz", 2.5, window_s=0.0)
+    # the downward entry alone (a down-reading gate): the x entries past 2.5 do not count
+    dist[[4, 5], 2] = -3.0
+    np.savez(tmp_path / "trace_push_stride.npz", disturbance=dist, status=status, t=t,
+             fallen=np.zeros(10, bool))
+    got = mod.trigger_runs(tmp_path / "trace_push_stride.npz", 2.5, component="down")
+    assert (got["over"], got["longest"], got["first_over_s"]) == (2, 2, pytest.approx(0.10))
+    assert mod.trigger_runs(tmp_path / "trace_push_stride.npz", 2.5)["over"] == 6  # the norm
+    with pytest.raises(ValueError, match="component 'up'"):
+        mod.trigger_runs(tmp_path / "trace_push_stride.npz", 2.5, component="up")
     np.savez(tmp_path / "trace_push_policy.npz", v_base=np.zeros((10, 3)))
     with pytest.raises(ValueError, match="no disturbance estimate"):
         mod.trigger_runs(tmp_path / "trace_push_policy.npz", 2.5)
