@@ -31,11 +31,11 @@ import pathlib
 import numpy as np
 
 from stride_jax import io
+from stride_jax.control.planning import TRUST_READS
 
 
-COMPONENTS = {"norm": lambda d: np.linalg.norm(d[:, :3], axis=1),  # the trust gate's
+COMPONENTS = {**TRUST_READS,  # the trust gate's norm (its default) and downward entry
               "vertical": lambda d: d[:, 2],  # upward
-              "down": lambda d: -d[:, 2],  # downward
               "horizontal": lambda d: np.linalg.norm(d[:, :2], axis=1)}  # in the floor plane
 
 

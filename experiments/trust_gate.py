@@ -35,6 +35,7 @@ from collections.abc import Callable
 import numpy as np
 
 from stride_jax.control.mppi import DISTRUSTED
+from stride_jax.control.planning import TRUST_READS
 from stride_jax.jobs.headline import headline_picks, in_headline
 
 
@@ -57,10 +58,6 @@ def _window_periods(window_s: float, t: np.ndarray) -> int:
     return max(int(round(window_s / dt)), 1)
 
 
-# what of the observer's estimate ``[T, 6]`` the gate reads (``PlanningConfig.trust_component``)
-GATE_READS = {"norm": lambda d: np.linalg.norm(d[:, :3], axis=1), "down": lambda d: -d[:, 2]}
-
-
 def trigger_runs(path: pathlib.Path, limit: float, window_s: float = 1.0,
                  component: str = "norm") -> dict:
     """A trace's periods with the observer's linear estimate (``component``: its norm, as the
@@ -75,9 +72,9 @@ def trigger_runs(path: pathlib.Path, limit: float, window_s: float = 1.0,
                              "without the observer, or the policy alone)")
         if "t" not in z.files or "fallen" not in z.files:
             raise ValueError(f"{path}: no time or fall flags (not a closed loop's trace)")
-        if component not in GATE_READS:
-            raise ValueError(f"component {component!r}: one of {', '.join(GATE_READS)}")
-        over = GATE_READS[component](np.asarray(z["disturbance"])) > limit
+        if component not in TRUST_READS:
+            raise ValueError(f"component {component!r}: one of {', '.join(TRUST_READS)}")
+        over = TRUST_READS[component](np.asarray(z["disturbance"])) > limit
         handed = z["status"] == DISTRUSTED
         t, fallen = np.asarray(z["t"]), np.asarray(z["fallen"], bool)
     width = _window_periods(window_s, t)
@@ -155,7 +152,7 @@ def main(argv=None) -> int:
     t.add_argument("--window-s", type=float, default=1.0,
                    help="the window of the most periods past the limit before a handover (s)")
     t.add_argument("--scenario", default="", help="only this scenario's traces")
-    t.add_argument("--component", choices=sorted(GATE_READS), default="norm",
+    t.add_argument("--component", choices=sorted(TRUST_READS), default="norm",
                    help="what of the estimate the gate read (--planning.trust-component)")
     o = sub.add_parser("overspeed", help="who acted when the robot ran past its command")
     o.add_argument("folders", nargs="+", help="closed-loop run folders (their trace_*.npz)")

@@ -43,6 +43,9 @@ from stride_jax.sim import model as sim_model, rollout_mjx
 # compared it), or its downward entry
 TRUST_COMPONENTS = {"norm": lambda d, limit: jnp.sum(d[:3] ** 2) > limit ** 2,
                     "down": lambda d, limit: -d[2] > limit}
+# the same readings over recorded estimates ``[..., 6]`` (numpy or jax), for the analyses of
+# closed-loop traces (``experiments/trust_gate.py``, ``experiments/observer_marker.py``)
+TRUST_READS = {"norm": lambda d: (d[..., :3] ** 2).sum(-1) ** 0.5, "down": lambda d: -d[..., 2]}
 
 
 @dataclasses.dataclass(frozen=True)
