@@ -96,6 +96,65 @@ def _sizes(rows: list[dict]) -> set[tuple]:
     return {_size(r) for r in rows if r.get("H") is not None}
 
 
+def _device(table: dict, row: dict):
+    """The card a row ran on: its part's ``device`` (None where the table does not say)."""
+    return (table.get("parts", {}).get(row.get("part")) or {}).get("device")
+
+
+def _mean_time(rows: list[dict], key: str, sc: str) -> tuple[float | None, str]:
+    """Mean ``key`` (``controller_ms`` or ``ms_per_step``) over the rows of scenario ``sc``, else
+    over all of them, and which ("this scenario", "all scenarios"); None where there are none or
+    one lacks it. ``ms_per_step`` reads the episodes that ran alone where any did (a vmapped
+    part's draws share each step: ``_cell``)."""
+    if key == "ms_per_step":
+        rows = [r for r in rows if int(r.get("side_by_side") or 1) == 1] or rows
+    pick = [r for r in rows if r["scenario"] == sc]
+    frm = "this scenario" if pick else "all scenarios"
+    vals = [r.get(key) for r in pick or rows]
+    return (float(np.mean(vals)) if vals and all(v is not None for v in vals) else None), frm
+
+
+def _time_cell(table: dict, sc: str, stride: list[dict], oracle: list[dict], timed: list[dict],
+               sizes: set) -> dict:
+    """The time target's cell of scenario ``sc``: STRIDE's time per step against the oracle's
+    (rows at STRIDE's K and H), both read on one card (a part's ``device``: an H100 runs the
+    oracle slower than an H200, which would flatter the ratio), the worst ratio over the cards
+    both ran on. The sources in turn, the first that pairs on some card: the timing parts'
+    controllers, the headline's controllers (``controller_ms``, no simulated world), the closed
+    loop's steps. ``oracle_cards_apart``: the cards the oracle ran on where it shares none with
+    STRIDE (the target then not measured there)."""
+    sources = []
+    if timed:  # the controllers timed apart, at the headline STRIDE's K and H
+        at_size = [r for r in timed if not sizes or _size(r) in sizes]
+        sources.append(("controller", "timing parts",
+                        [r for r in at_size if kind_and_seed(r)[0] == "stride"],
+                        [r for r in at_size if r["model"].split("@")[0] == "oracle"]))
+    sources += [("controller", "headline", stride, oracle),
+                ("closed-loop step", "headline", stride, oracle)]
+    for basis, source, s_rows, o_rows in sources:
+        key = "controller_ms" if basis == "controller" else "ms_per_step"
+        pairs = {}
+        for card in dict.fromkeys(_device(table, r) for r in s_rows):
+            a, _ = _mean_time([r for r in s_rows if _device(table, r) == card], key, sc)
+            b, frm = _mean_time([r for r in o_rows if _device(table, r) == card], key, sc)
+            if a is not None and b:
+                pairs[card] = (a, b, frm)
+        if pairs:
+            card, (a, b, frm) = max(pairs.items(), key=lambda kv: kv[1][0] / kv[1][1])
+            ctl = basis == "controller"
+            return dict(time_basis=basis, time_ratio=a / b, time_device=card, stride_time_ms=a,
+                        oracle_time_ms=b, oracle_ms_from=frm,
+                        controller_ms_from=source if ctl else None,
+                        stride_controller_ms=a if ctl else None,
+                        oracle_controller_ms=b if ctl else None,
+                        oracle_ms=None if ctl else b, oracle_cards_apart=[])
+    cards = sorted({str(_device(table, r)) for r in oracle})
+    return dict(time_basis=None, time_ratio=None, time_device=None,
+                stride_time_ms=_mean_time(stride, "ms_per_step", sc)[0], oracle_time_ms=None,
+                oracle_ms=None, oracle_controller_ms=None, stride_controller_ms=None,
+                controller_ms_from=None, oracle_ms_from=None, oracle_cards_apart=cards)
+
+
 def _scenario_rank(scenario: str) -> int:
     family = scenario.rstrip("0123456789")
     return SCENARIO_ORDER.index(family) if family in SCENARIO_ORDER else len(SCENARIO_ORDER)
@@ -142,34 +201,13 @@ def robot_targets(table: dict, policy_pick: str = "", timing: tuple[str, ...] = 
         oracle = [r for r in every_oracle if not sizes or _size(r) in sizes]
         c["oracle_size"] = (", ".join(f"K {k}, H {h}" for k, h in sorted(sizes, key=str))
                             if sizes else None)
-        # the oracle's time per step from the episodes that ran alone, as a kind's (_cell): one
-        # that shared its steps with others (--episodes, --together) took their time too, which
-        # would flatter every ratio against it; theirs only where none ran alone
-        oracle_alone = [r for r in oracle if int(r.get("side_by_side") or 1) == 1] or oracle
-        orc = [r["ms_per_step"] for r in oracle_alone if r["scenario"] == sc] or \
-              [r["ms_per_step"] for r in oracle_alone]
-        c["oracle_ms"] = float(np.mean(orc)) if orc else None
-        orc_ctl = [r.get("controller_ms") for r in oracle if r["scenario"] == sc] or \
-                  [r.get("controller_ms") for r in oracle]
-        c["oracle_controller_ms"] = (float(np.mean(orc_ctl))
-                                     if orc_ctl and all(t is not None for t in orc_ctl) else None)
         c["oracle"] = _cell([r for r in oracle if r["scenario"] == sc and in_headline(r, picks)])
-        c["oracle_ms_from"] = ("this scenario" if any(r["scenario"] == sc for r in oracle_alone)
-                               else "all scenarios" if oracle else None)
         s = c["stride"]
-        c["stride_controller_ms"] = s["controller_ms"] if s else None
-        c["controller_ms_from"] = "headline"
-        if timed and s:  # the controllers timed apart, at the headline STRIDE's K and H
-            at_size = [r for r in timed if not sizes or _size(r) in sizes]
-            def times(rs):  # this scenario's, else all of them
-                return ([r["controller_ms"] for r in rs if r["scenario"] == sc]
-                        or [r["controller_ms"] for r in rs])
-            t_stride = times([r for r in at_size if kind_and_seed(r)[0] == "stride"])
-            t_oracle = times([r for r in at_size if r["model"].split("@")[0] == "oracle"])
-            if t_stride and t_oracle:
-                c["stride_controller_ms"] = float(np.mean(t_stride))
-                c["oracle_controller_ms"] = float(np.mean(t_oracle))
-                c["controller_ms_from"] = "timing parts"
+        c.update(_time_cell(table, sc, by[(sc, "stride")], oracle, timed, sizes) if s else
+                 dict(time_basis=None, time_ratio=None, time_device=None, stride_time_ms=None,
+                      oracle_time_ms=None, oracle_ms=None, oracle_controller_ms=None,
+                      stride_controller_ms=None, controller_ms_from=None, oracle_ms_from=None,
+                      oracle_cards_apart=[]))
         c["stride_vs"] = {k: cell_at_most(s, c[k]) for k in ("policy", "delan", "onn")}
         # the bar a right model sets: the same planner through the scenario's own MJX model
         # against the policy, and STRIDE against it (not targets; what they ask of the model)
@@ -181,13 +219,6 @@ def robot_targets(table: dict, policy_pick: str = "", timing: tuple[str, ...] = 
                       for k in ("policy", "delan", "onn")
                       if c["stride_vs"][k] is False
                       and not fall_rates_differ(s["falls"], s["episodes"], c[k]["falls"], c[k]["episodes"])}
-        # the controllers' own times where both have them, else the closed loop's steps
-        c["time_basis"] = ("controller" if c["stride_controller_ms"] is not None
-                           and c["oracle_controller_ms"] is not None else "closed-loop step")
-        if c["time_basis"] == "controller":
-            c["time_ratio"] = c["stride_controller_ms"] / c["oracle_controller_ms"]
-        else:
-            c["time_ratio"] = (s["ms_per_step"] / c["oracle_ms"]) if s and c["oracle_ms"] else None
         # a slope the controller could not sense (world-down gravity, runs before session 46)
         c["slope_unseen"] = any(slope_unseen(table, r) for k in KINDS for r in by[(sc, k)])
         cells.append(dict(scenario=sc, **c))
@@ -198,6 +229,9 @@ def robot_targets(table: dict, policy_pick: str = "", timing: tuple[str, ...] = 
     ratios = [c["time_ratio"] for c in cells if c["time_ratio"] is not None]
     # scenarios where STRIDE ran but no oracle at its K and H: the target is not measured there
     untimed = [c["scenario"] for c in cells if c["stride"] and c["time_ratio"] is None]
+    # of those, the scenarios where an oracle ran at that size but on other cards than STRIDE
+    apart = {c["scenario"]: c["oracle_cards_apart"] for c in cells
+             if c["scenario"] in untimed and c["oracle_cards_apart"]}
     falls = sum(c[k]["falls"] for c in cells for k in ("stride", "delan", "onn") if c[k])
     episodes = sum(c[k]["episodes"] for c in cells for k in ("stride", "delan", "onn") if c[k])
     targets = {
@@ -215,7 +249,11 @@ def robot_targets(table: dict, policy_pick: str = "", timing: tuple[str, ...] = 
                                      for k in ("delan", "onn")}),
         "time_fifth_of_oracle": dict(met=(max(ratios) <= 0.2) if ratios and not untimed else None,
                                      worst_ratio=max(ratios) if ratios else None,
-                                     no_oracle_at_stride_size=untimed),
+                                     no_oracle_at_stride_size=[sc for sc in untimed
+                                                               if sc not in apart],
+                                     oracle_on_other_cards=apart,
+                                     cards=sorted({str(c["time_device"]) for c in cells
+                                                   if c["time_ratio"] is not None})),
     }
     with_oracle = [c for c in cells if c["oracle_vs_policy"] is not None]
     reference = dict(  # not a target: what planning through the simulator itself reaches
@@ -264,9 +302,7 @@ def markdown(results: dict[str, dict], command: str) -> str:
             mark = lambda k: ("-" if vs[k] is None else "yes" if vs[k] else
                               "no" + {True: " (told apart)", False: " (not told apart)"}.get(apart.get(k), ""))
             ctl = c["time_basis"] == "controller"
-            ms = ((c["stride_controller_ms"] if ctl else c["stride"]["ms_per_step"])
-                  if c["stride"] else None)
-            orc_ms = c["oracle_controller_ms"] if ctl else c["oracle_ms"]
+            ms, orc_ms = c["stride_time_ms"], c["oracle_time_ms"]  # the ratio's, one card
             lines.append(
                 f"| {c['scenario']}{' *' if c['slope_unseen'] else ''} | {_fmt(c['policy'])} | {_fmt(c['stride'])} | {_fmt(c['delan'])} | "
                 f"{_fmt(c['onn'])} | {_fmt(c.get('oracle'))} | {mark('policy')} | {mark('delan')} | {mark('onn')} | "
@@ -305,7 +341,13 @@ def markdown(results: dict[str, dict], command: str) -> str:
                   + (f" (worst ratio {tf['worst_ratio']:.2f})" if tf["worst_ratio"] is not None else "")
                   + ("; no oracle row at STRIDE's K and H in " + ", ".join(
                       f"{sc} ({cell_size[sc]})" for sc in tf["no_oracle_at_stride_size"])
-                     if tf.get("no_oracle_at_stride_size") else "")]
+                     if tf.get("no_oracle_at_stride_size") else "")
+                  + ("; the oracle at STRIDE's K and H only on other cards than STRIDE in "
+                     + ", ".join(f"{sc} ({', '.join(cards)})"
+                                 for sc, cards in tf["oracle_on_other_cards"].items())
+                     if tf.get("oracle_on_other_cards") else "")
+                  + (f"; each ratio's two times from one card ({', '.join(tf['cards'])})"
+                     if tf.get("cards") and tf["cards"] != ["None"] else "")]
         ref = res.get("oracle_reference")
         if ref and ref["scenarios"]:
             n, above = len(ref["scenarios"]), ref["oracle_above_policy"]

@@ -254,3 +254,44 @@ def test_the_controllers_times_come_from_timing_parts(experiment, tmp_path):
         "time_fifth_of_oracle"]["worst_ratio"] == pytest.approx(0.1)
     with pytest.raises(SystemExit):
         mod.main([f"g1={p}", "--go1-timing", "tm", "--out", str(tmp_path / "t")])
+
+
+def test_the_time_ratio_reads_both_times_off_one_card(experiment):
+    """An H100 runs the oracle slower than an H200: a ratio of STRIDE's time on one card to the
+    oracle's on another would flatter (or wrong) STRIDE. Each ratio pairs the two on a card both
+    ran on (the worst over such cards); where the oracle ran only on other cards than STRIDE the
+    target is not measured there, and says so."""
+    mod = experiment("closed_loop_targets")
+    tab = _table()
+    tab["parts"] = {p: {"device": "H200"} for p in tab["parts"]}
+    tab["parts"]["slow"] = {"device": "H100"}
+    tab["rows"].append(_row("rough", "oracle", 0.07, "slow", ms=2000.0))  # the H100's
+    r = mod.robot_targets(tab)
+    cells = {c["scenario"]: c for c in r["cells"]}
+    assert cells["rough"]["oracle_ms"] == pytest.approx(500.0)  # the H200's alone, not 1250
+    assert cells["rough"]["time_device"] == "H200"
+    assert cells["rough"]["time_ratio"] == pytest.approx(80.0 / 500.0)
+    assert "one card (H200)" in mod.markdown({"go1": r}, "cmd")
+    # STRIDE's seed 2 on the H100 too: that card's pair (80 / 2000) is the better ratio; the
+    # worst over the cards both ran on is read
+    tab["rows"].append(_row("rough", "stride_s2@slow", 0.06, "slow", ms=90.0))
+    rough = next(c for c in mod.robot_targets(tab)["cells"] if c["scenario"] == "rough")
+    assert rough["time_device"] == "H200" and rough["time_ratio"] == pytest.approx(80.0 / 500.0)
+    # the oracle on the H100 alone: not measured, named
+    tab = _table()
+    tab["parts"] = {p: {"device": "H100" if p == "old" else "H200"} for p in tab["parts"]}
+    r = mod.robot_targets(tab)
+    tf = r["targets"]["time_fifth_of_oracle"]
+    assert tf["met"] is None and tf["no_oracle_at_stride_size"] == []
+    assert tf["oracle_on_other_cards"] == {"rough": ["H100"], "soft": ["H100"]}
+    assert "only on other cards than STRIDE in rough (H100), soft (H100)" in mod.markdown(
+        {"go1": r}, "cmd")
+    # timing parts on two cards: the controllers paired on the one both were timed on
+    tab["parts"].update(tm={"device": "H100"}, tm2={"device": "H200"})
+    tab["rows"] += [dict(_row("rough", "stride@tm", 0.06, "tm", ms=60.0), controller_ms=50.0),
+                    dict(_row("rough", "oracle@tm", 0.05, "tm", ms=900.0), controller_ms=600.0),
+                    dict(_row("rough", "stride@tm2", 0.06, "tm2", ms=60.0), controller_ms=40.0)]
+    rough = next(c for c in mod.robot_targets(tab, timing=("tm", "tm2"))["cells"]
+                 if c["scenario"] == "rough")
+    assert rough["controller_ms_from"] == "timing parts" and rough["time_device"] == "H100"
+    assert rough["time_ratio"] == pytest.approx(50.0 / 600.0)
