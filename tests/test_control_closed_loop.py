@@ -1294,6 +1294,79 @@ def test_the_velocity_integrals_band_leaves_a_transient_out():
 
 
 
+def test_the_overspeed_guard_lowers_the_speed_asked_past_the_command_only():
+    """``overspeed_gain``: speed along the command past it plus the margin integrates into a
+    lower speed asked, along the command's own direction, bounded by the limit and never past a
+    stop; it drains where the robot is slower and never asks for more than the command; a stop
+    command is not guarded; the yaw rate is left alone; bad settings are named."""
+    planning = planning_lib.Planning(*[None] * 9)._replace(
+        overspeed_gain=2.0, overspeed_margin=0.1, overspeed_limit=0.3)
+    dt, command = 0.02, jnp.array([0.6, 0.8, 0.3])  # 1 m/s, diagonal
+    over = jnp.zeros(())
+    v = jnp.array([0.6, 0.8, 0.0]) * 1.25 + jnp.array([0.4, -0.3, 0.0])  # 0.25 m/s past, + across
+    for _ in range(10):
+        over = planning_lib.integrate_overspeed(planning, over, command, v, dt)
+    assert float(over) == pytest.approx(10 * 0.15 * dt, abs=1e-6)  # past the margin: 0.15 m/s
+    asked = planning_lib.overspeed_command(planning, command, over)
+    np.testing.assert_allclose(asked[:2], (1.0 - 2.0 * 0.03) * command[:2], atol=1e-6)
+    assert float(asked[2]) == pytest.approx(0.3)  # the yaw rate as commanded
+    for _ in range(200):  # held at the limit: 0.3 m/s off
+        over = planning_lib.integrate_overspeed(planning, over, command, v, dt)
+    asked = planning_lib.overspeed_command(planning, command, over)
+    assert float(jnp.linalg.norm(asked[:2])) == pytest.approx(0.7, abs=1e-6)
+    slow = jnp.array([0.3, 0.4, 0.0])  # 0.5 m/s: 0.6 short of the command plus the margin
+    drained = planning_lib.integrate_overspeed(planning, over, command, slow, dt)
+    assert float(drained) == pytest.approx(float(over) - 0.6 * dt, abs=1e-6)
+    for _ in range(50):  # never below 0: never more than the command asked
+        drained = planning_lib.integrate_overspeed(planning, drained, command, slow, dt)
+    assert float(drained) == 0.0
+    np.testing.assert_allclose(planning_lib.overspeed_command(planning, command, drained), command)
+    stop = jnp.array([0.0, 0.0, 0.5])  # no direction: not guarded, the integral kept
+    assert float(planning_lib.integrate_overspeed(planning, over, stop, v, dt)) == float(over)
+    np.testing.assert_allclose(planning_lib.overspeed_command(planning, stop, over), stop)
+    big = planning._replace(overspeed_limit=5.0)  # a cut past the speed stops, never reverses
+    np.testing.assert_allclose(planning_lib.overspeed_command(big, command, jnp.asarray(2.0)),
+                               [0.0, 0.0, 0.3], atol=1e-7)
+    with pytest.raises(ValueError, match="overspeed_gain=-1"):
+        planning_lib.PlanningConfig(overspeed_gain=-1.0)
+
+
+def test_the_closed_loop_guards_the_speed_asked_after_a_push_forward(go1):
+    """In the episode the overspeed guard runs around whichever controller acts: pushed forward
+    past a slow command, the planner (here a stand-still stand-in) is asked for less speed the
+    periods after, never more than the command, while the trace keeps the scenario's command;
+    off, the planner sees the command itself."""
+    nq, nu = go1.mj.nq, go1.info.nu
+    mx = mjx.put_model(go1.mj)
+    walk = dataclasses.replace(cl.SCENARIOS["walk"], seconds=12 * go1.robot.ctrl_dt)
+    w = cl.scenario_world(go1, walk)
+    starts, values = jnp.zeros(1), jnp.array([[0.2, 0.0, 0.0]])
+    mass = float(np.sum(go1.mj.body_mass))
+    pushes = jnp.array([[0.0, 0.1, mass * 1.5 / 0.1, 0.0]] + [[0.0] * 4] * 3)  # +1.5 m/s forward
+
+    def step(state, q_aug, qd):  # a one-step "planner": stand still
+        u, z = jnp.asarray(go1.info.qpos0[7:]), jnp.zeros(1)
+        return u, state, mppi.Info(z, z, z[0], u[None], jnp.zeros((), jnp.int32), u[None, None],
+                                   z, jnp.ones(1, jnp.int32), jnp.zeros((), bool))
+
+    standing = mppi.Planner(lambda key, plan=None: mppi.MPPIState(jnp.zeros((1, nu)), key), step)
+    seen = {}
+    for gain in (0.0, 5.0):
+        planning = planning_lib.make_planning(
+            planning_lib.PlanningConfig(overspeed_gain=gain), envs.config("go1"), go1,
+            cl.mjx_step_fn(go1, mx))
+        trace, cmd = jax.device_get(cl.run_episode(
+            w.sm, w.mx, w.slots, planning, standing, 12, starts, values, jax.random.key(0),
+            pushes=pushes, record=lambda qa, *_: planning_lib.split(qa, nq).command))
+        np.testing.assert_allclose(trace.command, np.tile([0.2, 0.0, 0.0], (12, 1)))
+        seen[gain] = (cmd, trace.v_base)
+    np.testing.assert_allclose(seen[0.0][0], np.tile([0.2, 0.0, 0.0], (12, 1)))
+    cmd, v = seen[5.0]
+    assert v[:5, 0].max() > 0.5  # the push took the robot well past the command
+    assert cmd[0, 0] == pytest.approx(0.2) and cmd[-1, 0] < 0.2 - 1e-3  # asked for less after
+    assert (cmd[:, 0] <= 0.2 + 1e-7).all() and (cmd[:, 0] >= 0).all() and (cmd[:, 1:] == 0).all()
+
+
 def test_the_closed_loop_plans_to_the_integral_command_and_scores_the_true_one(go1):
     """In the episode the planner's state carries the shifted command once the settle time has
     passed (a robot standing still is below a 1 m/s command: the shift is upward), while the

@@ -23,8 +23,9 @@ from mujoco import mjx
 
 from stride_jax.control import envs, gait as gait_lib, mppi
 from stride_jax.control.planning import (N_AUG, N_DIST, Planning, PlanningConfig, augment,
-                                         integral_command, integrate_velocity_error,
-                                         make_planning, observe_step, split, update_disturbance)
+                                         integral_command, integrate_overspeed,
+                                         integrate_velocity_error, make_planning, observe_step,
+                                         overspeed_command, split, update_disturbance)
 from stride_jax.control.scenarios import (Scenario, command_at, governed, gravity_at,
                                           push_schedule, scenario_model, schedule, tilt_schedule,
                                           world_at)
@@ -235,6 +236,7 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
     central = planner is not None and planner.latents == "central"  # it predicts as the planner
 
     integrate = planner is not None and planning.velocity_integral > 0
+    guard = planning.overspeed_gain > 0  # whichever controller acts, the policy alone too
     filtered = observe and planning.velocity_filter > 0
     lat = planning.latency_steps if planner is not None else 0
     if filtered and not sm.robot.floating_base:
@@ -256,9 +258,10 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
                                    sm.robot.floating_base)
 
     def body(carry, step):
-        d, ps, clock, down, dist, *rest = carry  # rest: the integral's, filter's, latency's
-        track = rest[:1] if integrate else []
-        pred = rest[len(track)] if filtered else None  # the observer's prediction for now
+        d, ps, clock, down, dist, *rest = carry  # rest: the integral's, guard's, filter's,
+        track = rest[:1] if integrate else []     # latency's
+        over = rest[len(track)] if guard else None  # the overspeed guard's integral
+        pred = rest[len(track) + guard] if filtered else None  # the observer's prediction
         late = rest[-1] if lat else None
         t = step * dt
         command = command_at(starts, values, t)
@@ -267,6 +270,8 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         if integrate:  # integral action: the planner tracks the command moved against the error
             (integral, since, prev), = track
             command_seen = integral_command(planning, command_seen, integral)
+        if guard:  # the overspeed guard: the speed asked lowered by the integrated overspeed
+            command_seen = overspeed_command(planning, command_seen, over)
         up = sensed_gravity(mx_sim, t, tilt) if sense_gravity else None
         qpos_m, qvel_m = seen(d, step)
         if filtered:  # the model's prediction blended into the base's measured velocity
@@ -284,7 +289,7 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         finite = jnp.all(jnp.isfinite(d2.qpos)) & jnp.all(jnp.isfinite(d2.qvel))
         d2 = jax.tree.map(lambda a, b: jnp.where(finite, a, b), d2, d)  # freeze a diverged sim
         down2 = down | rollout_mjx.fallen(sm, d2.qpos) | ~finite
-        if observe or integrate:  # the next period's reading, drawn as that period will draw it
+        if observe or integrate or guard:  # the next period's reading, as that period draws it
             qpos2_m, qvel2_m = seen(d2, step + 1)
         if observe:  # the planner's model predicts the step just taken; integrate its error
             new, qd_pred = observe_step(planning, q_aug, qvel_m, u, qvel2_m, dt,
@@ -297,6 +302,9 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
             v_m = v if sensors is None else envs.base_signals(qpos2_m, qvel2_m)[0]
             track = [(*integrate_velocity_error(planning, integral, since, asked, prev, v_m, dt),
                       asked)]
+        if guard:  # against the command asked (governed), the integral's shift aside
+            v_g = v if sensors is None else envs.base_signals(qpos2_m, qvel2_m)[0]
+            over = jnp.where(down2, over, integrate_overspeed(planning, over, asked, v_g, dt))
         rec = Trace(t + dt, command, v, w, d2.qpos[2], down2, envs.foot_contact(sm, slots, d2),
                     u, status, cut, dist, alarm)
         if record is not None:
@@ -308,8 +316,8 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         if progress is not None:
             jax.lax.cond((step + 1) % progress_every == 0,
                          lambda s: jax.debug.callback(progress, s), lambda s: None, step + 1)
-        return (d2, ps, clock, down2, dist, *track, *([pred] if filtered else []),
-                *([late] if lat else [])), rec
+        return (d2, ps, clock, down2, dist, *track, *([over] if guard else []),
+                *([pred] if filtered else []), *([late] if lat else [])), rec
 
     init = (d0, ps0, jnp.zeros(()), jnp.zeros((), bool), jnp.zeros(N_DIST, d0.qpos.dtype))
     if integrate:  # the integrated error, the time since the last command change, the last
@@ -317,6 +325,8 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         # chunked run's saved state) as before
         init += ((jnp.zeros(2, d0.qpos.dtype), jnp.zeros((), d0.qpos.dtype),
                   jnp.full(3, jnp.nan, d0.qpos.dtype)),)
+    if guard:  # the overspeed guard's integral (absent when off: the carry as before)
+        init += (jnp.zeros((), d0.qpos.dtype),)
     if filtered:  # the observer's prediction of the next period's base linear velocity (none
         # yet: the first period acts on its measurement)
         init += (jnp.full(3, jnp.nan, d0.qpos.dtype),)

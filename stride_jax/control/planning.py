@@ -112,6 +112,23 @@ class PlanningConfig:
         and the episode still fell (one ONN episode on CPU; ``results/closed_loop_g1_gpu/
         README.md``, session 69). An integral asks for the command; what the robot can do on
         the ground it stands on is another matter, which it does not know.
+      overspeed_gain: an overspeed guard (1/s; 0: off), the one-sided counterpart of the
+        integral: the speed along the command's direction past the command by more than
+        ``overspeed_margin`` (m/s) is integrated, and the controller acting -- the planner, the
+        policy it hands the robot to, or the policy alone -- is asked for the command's speed
+        less ``overspeed_gain`` times that integral, never more than ``overspeed_limit`` (m/s)
+        less and never past a stop; below the command plus the margin the integral drains at
+        the shortfall, and it never asks for more than the command. Why: G1's fallback policy
+        creeps past its command on the 15 degree tilt given time (past it from 6.3-7.5 s in 3 of
+        9 CPU draws, one fell), and a planner's handover brings the creep forward (the down
+        gate's 8 s CPU probe: 4 of 4 fell at 6.3-7.5 s with the policy acting;
+        ``results/closed_loop/g1_gate_down_cpu/``, session 90). Measured, it is not the fix:
+        around the policy alone on that 8 s tilt it lost 1 of 9 draws at gain 2 and 3 of 9 at
+        0.5 (unguarded: 1 of 9), lowering the speed asked mid-creep does not stop it
+        (``results/closed_loop/g1_policy_tilt_cpu/README.md``, session 90). A stop command, or
+        a standing one (no direction), is not guarded.
+      overspeed_margin: the overspeed (m/s) the guard lets pass.
+      overspeed_limit: the most (m/s) the guard takes off the command's speed.
       model_gravity: tell the planner's model the sensed gravity direction (``Aug.gravity``)
         where it takes one: the Lagrangian models turn their potential to it
         (:func:`stride_jax.dynamics.models.takes_gravity`), so that a model trained on level
@@ -248,6 +265,9 @@ class PlanningConfig:
     velocity_integral_limit: float = 0.2
     velocity_integral_settle_s: float = 0.5
     velocity_integral_band: float = 0.0
+    overspeed_gain: float = 0.0
+    overspeed_margin: float = 0.1
+    overspeed_limit: float = 0.5
     model_gravity: bool = False
     family_std: float = 0.3
     family_cost_stop: float = 0.0
@@ -298,6 +318,10 @@ class PlanningConfig:
                              f"velocity_integral_settle_s={self.velocity_integral_settle_s} and "
                              f"velocity_integral_band={self.velocity_integral_band} "
                              f"must be >= 0")
+        if min(self.overspeed_gain, self.overspeed_margin, self.overspeed_limit) < 0:
+            raise ValueError(f"overspeed_gain={self.overspeed_gain}, overspeed_margin="
+                             f"{self.overspeed_margin} and overspeed_limit="
+                             f"{self.overspeed_limit} must be >= 0")
         if self.alarm_hold_s < 0:
             raise ValueError(f"alarm_hold_s={self.alarm_hold_s} must be >= 0")
         if self.alarm_speed < 0 or not self.recovery_noise_std > 0:
@@ -346,6 +370,9 @@ class Planning(NamedTuple):
     latency_feedback: bool = False  # the policy's feedback around the plan between replans
     velocity_filter: float = 0.0  # the observer's prediction's share in the base's velocity
     distrust_after: int = 0  # planner steps in a row distrust must hold before the policy acts
+    overspeed_gain: float = 0.0  # the overspeed guard's gain (1/s; 0: off)
+    overspeed_margin: float = 0.1  # the overspeed it lets pass (m/s)
+    overspeed_limit: float = 0.5  # the most it takes off the command's speed (m/s)
 
 
 class Aug(NamedTuple):
@@ -419,6 +446,33 @@ def integral_command(planning: Planning, command, integral):
     """The command the planner tracks under ``velocity_integral``: forward and lateral moved
     against the integrated error; the yaw rate as commanded."""
     return command.at[:2].add(-planning.velocity_integral * integral)
+
+
+def _along_command(command):
+    """The command's forward-lateral speed (m/s) and unit direction (zero where it stands)."""
+    speed = jnp.linalg.norm(command[:2])
+    return speed, jnp.where(speed > 0, command[:2] / jnp.maximum(speed, 1e-9), 0.0)
+
+
+def integrate_overspeed(planning: Planning, over, command, v_base, dt: float):
+    """One control period of :class:`PlanningConfig`'s ``overspeed_gain``: the integral ``over``
+    (m) of the base's speed along the command's direction past the command's own speed plus the
+    margin, from ``v_base`` (base frame) after the period; it drains where the robot is slower,
+    never below 0, and stays where the shift would pass the limit; a stop command leaves it as
+    it is (no direction to guard)."""
+    speed, along = _along_command(command)
+    excess = v_base[:2] @ along - speed - planning.overspeed_margin
+    bound = planning.overspeed_limit / max(planning.overspeed_gain, 1e-9)
+    return jnp.where(speed > 0, jnp.clip(over + excess * dt, 0.0, bound), over)
+
+
+def overspeed_command(planning: Planning, command, over):
+    """The command the controller acts on under ``overspeed_gain``: its forward-lateral speed
+    lowered by ``overspeed_gain * over`` along its own direction (never past a stop); the yaw
+    rate as commanded."""
+    speed, along = _along_command(command)
+    cut = jnp.minimum(planning.overspeed_gain * over, speed)
+    return command.at[:2].add(-cut * along)
 
 
 def update_disturbance(planning: "Planning", q_aug: jax.Array, qd: jax.Array, u: jax.Array,
@@ -616,7 +670,8 @@ def make_planning(cfg: PlanningConfig, env_cfg: envs.EnvConfig, sm: sim_model.Si
                     family_prior, cfg.velocity_integral, cfg.velocity_integral_limit,
                     cfg.velocity_integral_settle_s, cfg.velocity_integral_band,
                     lat, cfg.latency_compensation, cfg.latency_feedback, cfg.velocity_filter,
-                    plan_steps(cfg.trust_delay_s) if distrust else 0)
+                    plan_steps(cfg.trust_delay_s) if distrust else 0, cfg.overspeed_gain,
+                    cfg.overspeed_margin, cfg.overspeed_limit)
 
 
 def latency_steps(cfg: PlanningConfig, dt: float) -> int:
