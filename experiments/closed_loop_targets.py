@@ -203,11 +203,7 @@ def robot_targets(table: dict, policy_pick: str = "", timing: tuple[str, ...] = 
                             if sizes else None)
         c["oracle"] = _cell([r for r in oracle if r["scenario"] == sc and in_headline(r, picks)])
         s = c["stride"]
-        c.update(_time_cell(table, sc, by[(sc, "stride")], oracle, timed, sizes) if s else
-                 dict(time_basis=None, time_ratio=None, time_device=None, stride_time_ms=None,
-                      oracle_time_ms=None, oracle_ms=None, oracle_controller_ms=None,
-                      stride_controller_ms=None, controller_ms_from=None, oracle_ms_from=None,
-                      oracle_cards_apart=[]))
+        c.update(_time_cell(table, sc, by[(sc, "stride")], oracle, timed, sizes))
         c["stride_vs"] = {k: cell_at_most(s, c[k]) for k in ("policy", "delan", "onn")}
         # the bar a right model sets: the same planner through the scenario's own MJX model
         # against the policy, and STRIDE against it (not targets; what they ask of the model)

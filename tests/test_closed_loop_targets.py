@@ -272,7 +272,7 @@ def test_the_time_ratio_reads_both_times_off_one_card(experiment):
     assert cells["rough"]["time_device"] == "H200"
     assert cells["rough"]["time_ratio"] == pytest.approx(80.0 / 500.0)
     assert "one card (H200)" in mod.markdown({"go1": r}, "cmd")
-    # STRIDE's seed 2 on the H100 too: that card's pair (80 / 2000) is the better ratio; the
+    # STRIDE's seed 2 on the H100 too: that card's pair (90 / 2000) is the better ratio; the
     # worst over the cards both ran on is read
     tab["rows"].append(_row("rough", "stride_s2@slow", 0.06, "slow", ms=90.0))
     rough = next(c for c in mod.robot_targets(tab)["cells"] if c["scenario"] == "rough")
