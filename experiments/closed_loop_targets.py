@@ -28,7 +28,9 @@ holds none (the first listed part holding a scenario wins); the oracle's time is
 table's oracle rows of the same scenario (any part: its time does not depend on the policy
 beside it), else of all its oracle rows; its time and its tracking both only from rows at
 STRIDE's samples and horizon (K, H): a scenario without such an oracle row leaves the time
-target not measured rather than judged against a planner of another size.
+target not measured rather than judged against a planner of another size. Each ratio reads
+STRIDE's and the oracle's times off one card (the parts' ``device``), the worst over the cards
+both ran on; an oracle only on other cards leaves the target not measured there.
 
 ``--ROBOT-timing PART,...`` takes the controllers' own times (``controller_ms``) from parts run
 to time them (STRIDE's and the oracle's, ``--controller-repeats``, at the headline STRIDE's K
