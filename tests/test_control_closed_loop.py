@@ -1294,6 +1294,19 @@ def test_the_velocity_integrals_band_leaves_a_transient_out():
 
 
 
+def _standing_planner(sm) -> mppi.Planner:
+    """A one-step stand-in for a planner: it holds the home pose, so a test sees what the
+    closed loop around it does (the command it is asked, the trace) without a plan's work."""
+    nu = sm.info.nu
+
+    def step(state, q_aug, qd):
+        u, z = jnp.asarray(sm.info.qpos0[7:]), jnp.zeros(1)
+        return u, state, mppi.Info(z, z, z[0], u[None], jnp.zeros((), jnp.int32), u[None, None],
+                                   z, jnp.ones(1, jnp.int32), jnp.zeros((), bool))
+
+    return mppi.Planner(lambda key, plan=None: mppi.MPPIState(jnp.zeros((1, nu)), key), step)
+
+
 def test_the_overspeed_guard_lowers_the_speed_asked_past_the_command_only():
     """``overspeed_gain``: speed along the command past it plus the margin integrates into a
     lower speed asked, along the command's own direction, bounded by the limit and never past a
@@ -1336,7 +1349,7 @@ def test_the_closed_loop_guards_the_speed_asked_after_a_push_forward(go1):
     past a slow command, the planner (here a stand-still stand-in) is asked for less speed the
     periods after, never more than the command, while the trace keeps the scenario's command;
     off, the planner sees the command itself."""
-    nq, nu = go1.mj.nq, go1.info.nu
+    nq = go1.mj.nq
     mx = mjx.put_model(go1.mj)
     walk = dataclasses.replace(cl.SCENARIOS["walk"], seconds=12 * go1.robot.ctrl_dt)
     w = cl.scenario_world(go1, walk)
@@ -1344,12 +1357,7 @@ def test_the_closed_loop_guards_the_speed_asked_after_a_push_forward(go1):
     mass = float(np.sum(go1.mj.body_mass))
     pushes = jnp.array([[0.0, 0.1, mass * 1.5 / 0.1, 0.0]] + [[0.0] * 4] * 3)  # +1.5 m/s forward
 
-    def step(state, q_aug, qd):  # a one-step "planner": stand still
-        u, z = jnp.asarray(go1.info.qpos0[7:]), jnp.zeros(1)
-        return u, state, mppi.Info(z, z, z[0], u[None], jnp.zeros((), jnp.int32), u[None, None],
-                                   z, jnp.ones(1, jnp.int32), jnp.zeros((), bool))
-
-    standing = mppi.Planner(lambda key, plan=None: mppi.MPPIState(jnp.zeros((1, nu)), key), step)
+    standing = _standing_planner(go1)
     seen = {}
     for gain in (0.0, 5.0):
         planning = planning_lib.make_planning(
@@ -1371,17 +1379,12 @@ def test_the_closed_loop_plans_to_the_integral_command_and_scores_the_true_one(g
     """In the episode the planner's state carries the shifted command once the settle time has
     passed (a robot standing still is below a 1 m/s command: the shift is upward), while the
     trace keeps the scenario's command; off, the planner sees the command itself."""
-    nq, nu = go1.mj.nq, go1.info.nu
+    nq = go1.mj.nq
     mx = mjx.put_model(go1.mj)
     walk = dataclasses.replace(cl.SCENARIOS["walk"], seconds=8 * go1.robot.ctrl_dt)
     w = cl.scenario_world(go1, walk)
 
-    def step(state, q_aug, qd):  # a one-step "planner": stand still
-        u, z = jnp.asarray(go1.info.qpos0[7:]), jnp.zeros(1)
-        return u, state, mppi.Info(z, z, z[0], u[None], jnp.zeros((), jnp.int32), u[None, None],
-                                   z, jnp.ones(1, jnp.int32), jnp.zeros((), bool))
-
-    standing = mppi.Planner(lambda key, plan=None: mppi.MPPIState(jnp.zeros((1, nu)), key), step)
+    standing = _standing_planner(go1)
     seen = {}
     for ki in (0.0, 1.0):
         planning = planning_lib.make_planning(
