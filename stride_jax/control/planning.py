@@ -199,7 +199,11 @@ class PlanningConfig:
         (all on the tilt) with a third of the norm's crossings where the robot stayed up, and
         none under pushes, where the norm crossed in every one of 72 episodes and handed the
         robot over though a right model plans through a push
-        (``results/planning_diagnosis/README.md``, session 89; in sample, a lead).
+        (``results/planning_diagnosis/README.md``, session 89; in sample, a lead). Measured on
+        the GPU (session 90, every trained seed of STRIDE, ``results/closed_loop_g1_gpu/
+        README.md``): it kept the planner under pushes and on rough ground and tracked closer
+        there (0.101 -> 0.092, 0.067 -> 0.062 m/s), but 2 of 12 tilt draws fell where the norm
+        lost none: not the default.
       latency_s: the planner's computation time per plan (s; 0: none, the world waits for the
         planner, as every closed-loop row before session 79 ran). A planner on a robot cannot
         stop the world: with it, the closed loop replans once every ``ceil(latency_s / dt)``
