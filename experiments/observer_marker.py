@@ -37,6 +37,11 @@ from stride_jax.control.planning import TRUST_READS
 COMPONENTS = {**TRUST_READS,  # the trust gate's norm (its default) and downward entry
               "vertical": lambda d: d[:, 2],  # upward
               "horizontal": lambda d: np.linalg.norm(d[:, :2], axis=1)}  # in the floor plane
+# what each reads, in words (the help and the table's heading)
+COMPONENT_WORDS = {"norm": "the norm of the estimate's linear part",
+                   "vertical": "the estimate's upward entry",
+                   "down": "the estimate's downward entry",
+                   "horizontal": "the norm of the estimate's floor-plane entries"}
 
 
 def marker(traces: list[dict], threshold: float, component: str = "norm") -> dict:
@@ -127,9 +132,8 @@ def main() -> None:
     ap.add_argument("folders", nargs="+", help="closed-loop run folders holding trace_*.npz")
     ap.add_argument("--thresholds", type=float, nargs="+", default=[3.0, 3.5, 4.0])
     ap.add_argument("--component", choices=sorted(COMPONENTS), default="norm",
-                    help="norm: of the estimate's linear part (the trust gate's); vertical / "
-                         "down: its upward / downward entry; horizontal: the norm of its "
-                         "floor-plane entries")
+                    help="; ".join(f"{k}: {v}" for k, v in COMPONENT_WORDS.items())
+                         + " (norm: the trust gate's default)")
     ap.add_argument("--match", default="", help="only traces whose file name holds this")
     ap.add_argument("--holds", type=float, nargs="*", default=[],
                     help="trust holds (s): the upright share a gate at each threshold would "
@@ -153,9 +157,7 @@ def main() -> None:
                + (f" --match {a.match}" if a.match else "")
                + (" --holds " + " ".join(f"{h:g}" for h in a.holds) if a.holds else "")
                + f" --out {a.out}")
-    what = {"norm": "the norm of the estimate's linear part",
-            "vertical": "the estimate's upward entry", "down": "the estimate's downward entry",
-            "horizontal": "the norm of the estimate's floor-plane entries"}[a.component]
+    what = COMPONENT_WORDS[a.component]
     fmt = lambda x, f="{:.2f}": "-" if x is None else f.format(x)
     lines = ["# The observer's estimate before falls", "", f"Command: `{command}`", "",
              f"{len(traces)} episodes with the disturbance observer. A fall is caught when "
