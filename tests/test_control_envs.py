@@ -257,6 +257,41 @@ def test_a_slope_is_drawn_no_steeper_than_the_episodes_friction_holds(go1):
                                np.asarray(a["tilt"][:, 0]) / np.deg2rad(25.0), rtol=1e-5)
 
 
+def test_a_slope_can_be_drawn_steep_and_facing_up_the_start(go1):
+    """``tilt_min_deg`` / ``tilt_heading_deg``: each episode's slope in [min, max] degrees and its
+    uphill direction within +-heading of the robot's drawn heading at the start, the same key drawing the
+    same fractions of the ranges; the defaults (from level, any direction) are the draws of
+    before, bit for bit; a bound out of range is a clear error."""
+    keys = jax.random.key_data(jax.random.split(jax.random.key(1), 256))
+    wide = jax.jit(jax.vmap(envs.make("go1", tilt_max_deg=20.0).reset))(keys).info["tilt"]
+    s = jax.jit(jax.vmap(envs.make("go1", tilt_max_deg=20.0, tilt_min_deg=10.0,
+                                   tilt_heading_deg=30.0).reset))(keys)
+    quat = np.asarray(s.pipeline_state.qpos[:, 3:7])
+    yaw = 2 * np.arctan2(quat[:, 3], quat[:, 0])  # the start's heading (a turn about z)
+    assert np.ptp(yaw) > 3  # drawn: uphill relative to it is not uphill along +x
+    slope = np.rad2deg(np.asarray(s.info["tilt"][:, 0]))
+    off = np.rad2deg(np.angle(np.exp(1j * (np.asarray(s.info["tilt"][:, 1]) - yaw))))
+    assert (slope >= 10 - 1e-4).all() and (slope <= 20 + 1e-4).all() and np.ptp(slope) > 8
+    assert (np.abs(off) <= 30 + 1e-3).all() and np.ptp(off) > 50
+    np.testing.assert_allclose((slope - 10) / 10, np.rad2deg(np.asarray(wide[:, 0])) / 20,
+                               rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(off / 30, np.rad2deg(np.asarray(wide[:, 1])) / 180,
+                               rtol=1e-4, atol=1e-4)
+    # the draws of before these two fields: slope max * u, heading uniform in [-pi, pi]
+    k = jax.random.key_data(jax.random.key(2))
+    info = envs.make("go1", tilt_max_deg=20.0).reset(k).info
+    k_clock = jax.random.split(k, 5)[4]  # reset's split: rng, joints, yaw, command, clock
+    assert float(info["tilt"][1]) == float(jax.random.uniform(
+        jax.random.fold_in(k_clock, 3), minval=-jnp.pi, maxval=jnp.pi))
+    assert float(info["tilt"][0]) == float(
+        jnp.deg2rad(20.0) * jax.random.uniform(jax.random.fold_in(k_clock, 2)))
+    for bad in (dict(tilt_max_deg=10.0, tilt_min_deg=12.0), dict(tilt_min_deg=-1.0),
+                dict(tilt_max_deg=10.0, tilt_heading_deg=190.0),
+                dict(tilt_max_deg=10.0, tilt_heading_deg=-5.0)):
+        with pytest.raises(ValueError, match="tilt_min_deg|tilt_heading_deg"):
+            envs.config("go1", **bad)
+
+
 
 def test_a_randomised_payload_loads_the_named_body(go1):
     """``payload_max`` / ``payload_body``: each reset draws the episode's load in [0,

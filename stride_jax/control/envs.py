@@ -128,6 +128,13 @@ class EnvConfig:
         tilted under the level floor, as the closed loop's ``tilt`` scenario does, so that a
         humanoid starts upright); the policy senses the tilted gravity (:func:`base_signals`).
         0: level ground.
+      tilt_min_deg: the least slope drawn (degrees, <= ``tilt_max_deg``): a fine-tune that
+        should spend its episodes on steep ground draws them in [this, ``tilt_max_deg``]. 0:
+        from level.
+      tilt_heading_deg: the uphill direction is drawn uniformly within this many degrees of the
+        robot's forward direction at the start (its drawn heading); 180: any direction. Smaller: more of
+        the episodes walk up the slope, as a robot sent uphill does (the commands stay drawn as
+        before, so the robot still turns off the fall line).
       tilt_s: seconds over which an episode's slope builds up.
       tilt_friction_margin: with both the slope and the friction randomised, > 0 draws each
         episode's slope in [0, min(tilt_max_deg, atan(margin * mu))] instead, ``mu`` the feet's
@@ -167,6 +174,8 @@ class EnvConfig:
     softness_min: float = 1.0
     softness_max: float = 1.0
     tilt_max_deg: float = 0.0
+    tilt_min_deg: float = 0.0
+    tilt_heading_deg: float = 180.0
     tilt_s: float = 2.0
     tilt_friction_margin: float = 0.0
     sensor_noise: float = 0.0
@@ -201,6 +210,12 @@ class EnvConfig:
             raise ValueError(f"action_noise={self.action_noise} must be >= 0 (rad)")
         if not 0 <= self.tilt_max_deg < 90:
             raise ValueError(f"tilt_max_deg={self.tilt_max_deg} must be in [0, 90) (degrees)")
+        if not 0 <= self.tilt_min_deg <= self.tilt_max_deg:
+            raise ValueError(f"tilt_min_deg={self.tilt_min_deg} must be in [0, tilt_max_deg="
+                             f"{self.tilt_max_deg}] (degrees)")
+        if not 0 <= self.tilt_heading_deg <= 180:
+            raise ValueError(f"tilt_heading_deg={self.tilt_heading_deg} must be in [0, 180] "
+                             "(degrees either side of the start's forward direction)")
         if self.tilt_s <= 0:
             raise ValueError(f"tilt_s={self.tilt_s} must be > 0 (s)")
         if not self.tilt_friction_margin >= 0:
@@ -243,8 +258,8 @@ PRESETS = {
 
 # The EnvConfig fields of the domain randomisation (`stride ppo`'s flags of the same names).
 RANDOMISATION = ("friction_min", "friction_max", "action_noise", "softness_min", "softness_max",
-                 "tilt_max_deg", "tilt_friction_margin", "sensor_noise", "payload_max",
-                 "payload_body")
+                 "tilt_max_deg", "tilt_min_deg", "tilt_heading_deg", "tilt_friction_margin",
+                 "sensor_noise", "payload_max", "payload_body")
 
 
 def config(robot: str, **overrides) -> EnvConfig:
@@ -421,13 +436,18 @@ class VelocityEnv(brax_base.Env):
         tilt = jnp.zeros(2)  # (slope rad, uphill heading rad); level at t = 0 either way
         if self.cfg.randomises_tilt:
             steepest = jnp.deg2rad(self.cfg.tilt_max_deg)
+            least = jnp.deg2rad(self.cfg.tilt_min_deg)
             if self.cfg.tilt_friction_margin:  # no steeper than the feet can hold
-                steepest = jnp.minimum(steepest, jnp.arctan(
-                    self.cfg.tilt_friction_margin * self.foot_mu * friction))
+                holds = jnp.arctan(self.cfg.tilt_friction_margin * self.foot_mu * friction)
+                steepest, least = jnp.minimum(steepest, holds), jnp.minimum(least, holds)
+            spread = jnp.deg2rad(self.cfg.tilt_heading_deg)
+            uphill = jax.random.uniform(jax.random.fold_in(k_clock, 3), minval=-spread,
+                                        maxval=spread)
+            if self.cfg.tilt_heading_deg < 180:  # about the start's heading (any: drawn apart)
+                uphill = jnp.mod(uphill + yaw + jnp.pi, 2 * jnp.pi) - jnp.pi
             tilt = jnp.stack([
-                steepest * jax.random.uniform(jax.random.fold_in(k_clock, 2)),
-                jax.random.uniform(jax.random.fold_in(k_clock, 3), minval=-jnp.pi,
-                                   maxval=jnp.pi)])
+                least + (steepest - least) * jax.random.uniform(jax.random.fold_in(k_clock, 2)),
+                uphill])
         info = {"rng": rng, "command": command, "last_action": jnp.zeros(self.nu),
                 "air_time": jnp.zeros(nf), "last_contact": jnp.ones(nf, bool),
                 "clock": clock, "t": jnp.zeros((), jnp.int32), "friction": friction,

@@ -37,12 +37,14 @@ class PPOConfig:
       policy_width, policy_depth, value_width, value_depth: MLP sizes (swish).
       seed: base seed (chunk ``i`` trains with ``seed + i``).
       friction_min, friction_max, action_noise, softness_min, softness_max, tilt_max_deg,
-        tilt_friction_margin, sensor_noise, payload_max, payload_body: the environment's domain
+        tilt_min_deg, tilt_heading_deg, tilt_friction_margin, sensor_noise, payload_max,
+        payload_body: the environment's domain
         randomisation
         (:data:`stride_jax.control.envs.RANDOMISATION`, the
         :class:`~stride_jax.control.envs.EnvConfig` fields of these names: each episode's ground
         friction factor, noise on the joint targets, each episode's ground softness (contact
-        time constant factor), each episode's slope, the slope bounded by what the episode's
+        time constant factor), each episode's slope (its range, its uphill direction's spread
+        about the start's forward), the slope bounded by what the episode's
         friction holds, the policy's observation through a real robot's sensors scaled by
         ``sensor_noise``, each episode's load up to ``payload_max`` of the robot's mass on
         ``payload_body``); the defaults train
@@ -83,6 +85,8 @@ class PPOConfig:
     softness_min: float = 1.0
     softness_max: float = 1.0
     tilt_max_deg: float = 0.0
+    tilt_min_deg: float = 0.0
+    tilt_heading_deg: float = 180.0
     tilt_friction_margin: float = 0.0
     sensor_noise: float = 0.0
     payload_max: float = 0.0
