@@ -259,9 +259,9 @@ def test_a_slope_is_drawn_no_steeper_than_the_episodes_friction_holds(go1):
 
 def test_a_slope_can_be_drawn_steep_and_facing_up_the_start(go1):
     """``tilt_min_deg`` / ``tilt_heading_deg``: each episode's slope in [min, max] degrees and its
-    uphill direction within +-heading of the robot's drawn heading at the start, the same key drawing the
-    same fractions of the ranges; the defaults (from level, any direction) are the draws of
-    before, bit for bit; a bound out of range is a clear error."""
+    uphill direction within +-heading of the robot's drawn heading at the start, the same key
+    drawing the same fractions of the ranges; the defaults (from level, any direction) are the
+    draws of before, bit for bit; a bound out of range is a clear error."""
     keys = jax.random.key_data(jax.random.split(jax.random.key(1), 256))
     wide = jax.jit(jax.vmap(envs.make("go1", tilt_max_deg=20.0).reset))(keys).info["tilt"]
     s = jax.jit(jax.vmap(envs.make("go1", tilt_max_deg=20.0, tilt_min_deg=10.0,
@@ -287,7 +287,7 @@ def test_a_slope_can_be_drawn_steep_and_facing_up_the_start(go1):
         jnp.deg2rad(20.0) * jax.random.uniform(jax.random.fold_in(k_clock, 2)))
     for bad in (dict(tilt_max_deg=10.0, tilt_min_deg=12.0), dict(tilt_min_deg=-1.0),
                 dict(tilt_max_deg=10.0, tilt_heading_deg=190.0),
-                dict(tilt_max_deg=10.0, tilt_heading_deg=-5.0)):
+                dict(tilt_max_deg=10.0, tilt_heading_deg=-5.0), dict(tilt_heading_deg=30.0)):
         with pytest.raises(ValueError, match="tilt_min_deg|tilt_heading_deg"):
             envs.config("go1", **bad)
 

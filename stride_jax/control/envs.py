@@ -132,12 +132,13 @@ class EnvConfig:
         should spend its episodes on steep ground draws them in [this, ``tilt_max_deg``]. 0:
         from level.
       tilt_heading_deg: the uphill direction is drawn uniformly within this many degrees of the
-        robot's forward direction at the start (its drawn heading); 180: any direction. Smaller: more of
-        the episodes walk up the slope, as a robot sent uphill does (the commands stay drawn as
-        before, so the robot still turns off the fall line).
+        robot's forward direction at the start (its drawn heading); 180: any direction.
+        Smaller: more of the episodes walk up the slope, as a robot sent uphill does (the
+        commands stay drawn as before, so the robot still turns off the fall line).
       tilt_s: seconds over which an episode's slope builds up.
       tilt_friction_margin: with both the slope and the friction randomised, > 0 draws each
-        episode's slope in [0, min(tilt_max_deg, atan(margin * mu))] instead, ``mu`` the feet's
+        episode's slope in [0, min(tilt_max_deg, atan(margin * mu))] instead (its least, too,
+        no more than that bound), ``mu`` the feet's
         friction coefficient on the floor (:func:`foot_friction`) times the episode's friction
         factor: a slope steeper than ``atan(mu)`` is one no stance can hold, and 20-40% of the
         slope training's episodes fell with the two drawn apart (session 47). 0: drawn apart.
@@ -216,6 +217,9 @@ class EnvConfig:
         if not 0 <= self.tilt_heading_deg <= 180:
             raise ValueError(f"tilt_heading_deg={self.tilt_heading_deg} must be in [0, 180] "
                              "(degrees either side of the start's forward direction)")
+        if self.tilt_heading_deg != 180 and not self.tilt_max_deg:
+            raise ValueError(f"tilt_heading_deg={self.tilt_heading_deg} turns the uphill of no "
+                             "slope (tilt_max_deg=0)")
         if self.tilt_s <= 0:
             raise ValueError(f"tilt_s={self.tilt_s} must be > 0 (s)")
         if not self.tilt_friction_margin >= 0:
