@@ -298,13 +298,13 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
             if filtered:  # held where the world or the robot went astray: the measurement
                 pred = jnp.where(finite & ~down2, qd_pred[:3], jnp.nan)
         v, w, _ = envs.base_signals(d2.qpos, d2.qvel)
-        if integrate:
+        if integrate or guard:  # the base's velocity as the controller reads it
             v_m = v if sensors is None else envs.base_signals(qpos2_m, qvel2_m)[0]
+        if integrate:
             track = [(*integrate_velocity_error(planning, integral, since, asked, prev, v_m, dt),
                       asked)]
         if guard:  # against the command asked (governed), the integral's shift aside
-            v_g = v if sensors is None else envs.base_signals(qpos2_m, qvel2_m)[0]
-            over = jnp.where(down2, over, integrate_overspeed(planning, over, asked, v_g, dt))
+            over = jnp.where(down2, over, integrate_overspeed(planning, over, asked, v_m, dt))
         rec = Trace(t + dt, command, v, w, d2.qpos[2], down2, envs.foot_contact(sm, slots, d2),
                     u, status, cut, dist, alarm)
         if record is not None:
