@@ -69,6 +69,9 @@ def main() -> None:
     ap.add_argument("--sense-gravity", action=argparse.BooleanOptionalAction, default=True,
                     help="the policy observes the scenario's gravity (as the closed loop's "
                          "--sense-gravity; the probes before session 46 ran without)")
+    ap.add_argument("--over", type=float, default=0.25,
+                    help="count draws whose forward speed passed the command by more than this "
+                         "(m/s) while upright")
     ap.add_argument("--out", required=True, help="output stem (.md, .json)")
     a = ap.parse_args()
     if not 0 <= a.ar < 1:
@@ -98,9 +101,14 @@ def main() -> None:
         tr = jax.tree.map(np.asarray, run(jnp.asarray(std), keys))
         t = tr.t[0]
         fall = [float(t[f.argmax()]) if f.any() else None for f in tr.fallen]
+        per_s = int(round(1.0 / (t[1] - t[0])))
+        # forward speed past the command while upright (the creep of a policy that runs away)
+        excess = np.where(tr.fallen, -np.inf, tr.v_base[..., 0] - tr.command[..., 0])
         rows.append(dict(noise=std, draws=a.draws, falls=sum(f is not None for f in fall),
                          fall_s=[f for f in fall if f is not None],
-                         vx_at_1s=float(np.median(tr.v_base[:, int(1.0 / (t[1] - t[0])) - 1, 0]))))
+                         vx_at_1s=float(np.median(tr.v_base[:, per_s - 1, 0])),
+                         over=a.over, overspeed=int((excess.max(axis=1) > a.over).sum()),
+                         vx_last_s=float(np.median(tr.v_base[:, -per_s:, 0].mean(axis=1)))))
         print(f"noise {std}: {rows[-1]['falls']} of {a.draws} fell "
               f"({time.perf_counter() - t0:.0f} s)", flush=True)
     out = pathlib.Path(a.out)
@@ -111,17 +119,18 @@ def main() -> None:
     extra += ("" if a.govern else " --no-govern") + ("" if a.sense_gravity
                                                      else " --no-sense-gravity")
     cmd = ("python experiments/probes/policy_noise.py --robot {} --policy {} --scenario {} "
-           "--noise {}{} --draws {} --seconds {} --out {}").format(
-        a.robot, a.policy, a.scenario, a.noise, extra, a.draws, a.seconds, a.out)
+           "--noise {}{} --draws {} --seconds {} --over {} --out {}").format(
+        a.robot, a.policy, a.scenario, a.noise, extra, a.draws, a.seconds, a.over, a.out)
     io.atomic_write_text(out.with_suffix(".json"), json.dumps(
         dict(command=cmd, scenario=sc.name, ar=a.ar, rows=rows), indent=1))
     kind = f"AR(1) noise, coefficient {a.ar:g} per step" if a.ar else "i.i.d. noise"
     lines = [f"# The {a.robot} policy alone with action noise: {sc.name} ({kind})", "", f"`{cmd}`", "",
-             "| noise std | fell | fall times (s) | median forward velocity at 1 s (m/s) |",
-             "|---:|---:|---|---:|"]
+             "| noise std | fell | fall times (s) | median forward velocity at 1 s (m/s) "
+             f"| over the command by > {a.over:g} m/s | median forward velocity, last second |",
+             "|---:|---:|---|---:|---:|---:|"]
     lines += [f"| {r['noise']:g} | {r['falls']} of {r['draws']} | "
-              f"{', '.join(f'{f:.2f}' for f in r['fall_s']) or '-'} | {r['vx_at_1s']:.2f} |"
-              for r in rows]
+              f"{', '.join(f'{f:.2f}' for f in r['fall_s']) or '-'} | {r['vx_at_1s']:.2f} | "
+              f"{r['overspeed']} of {r['draws']} | {r['vx_last_s']:.2f} |" for r in rows]
     io.atomic_write_text(out.with_suffix(".md"), "\n".join(lines) + "\n")
     print(f"wrote {out}.{{md,json}}")
 
