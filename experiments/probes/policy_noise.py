@@ -104,11 +104,13 @@ def main() -> None:
         per_s = int(round(1.0 / (t[1] - t[0])))
         # forward speed past the command while upright (the creep of a policy that runs away)
         excess = np.where(tr.fallen, -np.inf, tr.v_base[..., 0] - tr.command[..., 0])
+        stood = ~tr.fallen.any(axis=1)  # the last second's speed of a fallen draw is its fall's
         rows.append(dict(noise=std, draws=a.draws, falls=sum(f is not None for f in fall),
                          fall_s=[f for f in fall if f is not None],
                          vx_at_1s=float(np.median(tr.v_base[:, per_s - 1, 0])),
                          over=a.over, overspeed=int((excess.max(axis=1) > a.over).sum()),
-                         vx_last_s=float(np.median(tr.v_base[:, -per_s:, 0].mean(axis=1)))))
+                         vx_last_s=float(np.median(tr.v_base[stood, -per_s:, 0].mean(axis=1)))
+                         if stood.any() else None))
         print(f"noise {std}: {rows[-1]['falls']} of {a.draws} fell "
               f"({time.perf_counter() - t0:.0f} s)", flush=True)
     out = pathlib.Path(a.out)
@@ -126,11 +128,13 @@ def main() -> None:
     kind = f"AR(1) noise, coefficient {a.ar:g} per step" if a.ar else "i.i.d. noise"
     lines = [f"# The {a.robot} policy alone with action noise: {sc.name} ({kind})", "", f"`{cmd}`", "",
              "| noise std | fell | fall times (s) | median forward velocity at 1 s (m/s) "
-             f"| over the command by > {a.over:g} m/s | median forward velocity, last second |",
+             f"| over the command by > {a.over:g} m/s "
+             "| median forward velocity in the last second, draws that stood |",
              "|---:|---:|---|---:|---:|---:|"]
     lines += [f"| {r['noise']:g} | {r['falls']} of {r['draws']} | "
               f"{', '.join(f'{f:.2f}' for f in r['fall_s']) or '-'} | {r['vx_at_1s']:.2f} | "
-              f"{r['overspeed']} of {r['draws']} | {r['vx_last_s']:.2f} |" for r in rows]
+              f"{r['overspeed']} of {r['draws']} | "
+              + ("-" if r["vx_last_s"] is None else f"{r['vx_last_s']:.2f}") + " |" for r in rows]
     io.atomic_write_text(out.with_suffix(".md"), "\n".join(lines) + "\n")
     print(f"wrote {out}.{{md,json}}")
 
