@@ -1,6 +1,7 @@
 """Is the policy's own walk at a knife edge in a scenario? The PPO policy alone, its action
 perturbed each control step by Gaussian noise (the planner samples around the policy's actions;
-this is the simplest such controller), over many draws: how many fall, and when.
+this is the simplest such controller), over many draws: how many fall, and when, and how many
+run past the command (``--over``: a policy's creep up a slope, session 92).
 
     python experiments/probes/policy_noise.py --robot g1 --policy results/policies/ppo_g1 \\
         --scenario low_friction --noise 0,0.05,0.1,0.2 --draws 16 --seconds 3 \\
@@ -51,6 +52,23 @@ def noisy_policy(planning, std: float, ar: float = 0.0) -> mppi.Planner:
     return mppi.Planner(init, step)
 
 
+def draw_stats(t, fallen, v_base, command, over: float) -> dict:
+    """What the probe reports of its draws, from their traces (``t`` ``[T]`` s, ``fallen``
+    ``[D, T]``, ``v_base`` and ``command`` ``[D, T, 3]``): how many fell and when, the median
+    forward speed at 1 s, how many ran more than ``over`` m/s past the command's forward speed
+    while upright (a policy's creep), and the median of the last second's mean forward speed
+    over the draws that stood (None where none did: a fallen draw's last second is its fall)."""
+    fall = [float(t[f.argmax()]) if f.any() else None for f in fallen]
+    per_s = int(round(1.0 / (t[1] - t[0])))
+    excess = np.where(fallen, -np.inf, v_base[..., 0] - command[..., 0])
+    stood = ~fallen.any(axis=1)
+    return dict(falls=sum(f is not None for f in fall), fall_s=[f for f in fall if f is not None],
+                vx_at_1s=float(np.median(v_base[:, per_s - 1, 0])), over=over,
+                overspeed=int((excess.max(axis=1) > over).sum()),
+                vx_last_s=float(np.median(v_base[stood, -per_s:, 0].mean(axis=1)))
+                if stood.any() else None)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--robot", default="g1")
@@ -99,18 +117,8 @@ def main() -> None:
     for std in (float(s) for s in a.noise.split(",")):
         t0 = time.perf_counter()
         tr = jax.tree.map(np.asarray, run(jnp.asarray(std), keys))
-        t = tr.t[0]
-        fall = [float(t[f.argmax()]) if f.any() else None for f in tr.fallen]
-        per_s = int(round(1.0 / (t[1] - t[0])))
-        # forward speed past the command while upright (the creep of a policy that runs away)
-        excess = np.where(tr.fallen, -np.inf, tr.v_base[..., 0] - tr.command[..., 0])
-        stood = ~tr.fallen.any(axis=1)  # the last second's speed of a fallen draw is its fall's
-        rows.append(dict(noise=std, draws=a.draws, falls=sum(f is not None for f in fall),
-                         fall_s=[f for f in fall if f is not None],
-                         vx_at_1s=float(np.median(tr.v_base[:, per_s - 1, 0])),
-                         over=a.over, overspeed=int((excess.max(axis=1) > a.over).sum()),
-                         vx_last_s=float(np.median(tr.v_base[stood, -per_s:, 0].mean(axis=1)))
-                         if stood.any() else None))
+        rows.append(dict(noise=std, draws=a.draws,
+                         **draw_stats(tr.t[0], tr.fallen, tr.v_base, tr.command, a.over)))
         print(f"noise {std}: {rows[-1]['falls']} of {a.draws} fell "
               f"({time.perf_counter() - t0:.0f} s)", flush=True)
     out = pathlib.Path(a.out)
