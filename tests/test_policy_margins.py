@@ -52,6 +52,7 @@ def test_policy_noise_counts_falls_and_creeps_and_reads_the_last_second_of_those
     s = mod.draw_stats(t, fallen, v, command, over=0.25)
     assert s["falls"] == 1 and s["fall_s"] == [t[t >= 2.5][0]]
     assert s["overspeed"] == 1  # draw 1 alone: draw 2's 3 m/s came after its fall
-    assert s["vx_last_s"] == pytest.approx(1.2)  # the median of the two that stood (1.0, 1.4), not the fallen 3.0
+    # the median of the two that stood (1.0, 1.4), not the fallen draw's 3.0
+    assert s["vx_last_s"] == pytest.approx(1.2)
     assert mod.draw_stats(t, fallen, v, command, over=0.1)["overspeed"] == 2
     assert mod.draw_stats(t, np.ones_like(fallen), v, command, over=0.25)["vx_last_s"] is None
