@@ -16,7 +16,9 @@ RESULTS = ROOT / "results"
 # Trained parameters: dynamics models (Table I's seed 0), PPO policies, learned reward/value
 # models, and the planning-sized STRIDE runs the MPPI latency study and the fused-kernel checks
 # load (``results/mppi_latency/README.md``).
-FOLDERS = ("models", "policies", "learned_go1", "learned_g1",
+# Glob patterns under ``results/``: every ``learned_*`` folder (the headlines load
+# ``learned_go1_slope`` and ``learned_g1_soft``, which the list once left out by naming two).
+FOLDERS = ("models", "policies", "learned_*",
            "mppi_latency/planning_sizes/stride-h64", "mppi_latency/planning_sizes/stride-h128",
            "mppi_latency/planning_shared/stride-h64-shared",
            "mppi_latency/planning_shared/stride-h128-shared",
@@ -28,8 +30,8 @@ def files(results: pathlib.Path = RESULTS) -> list[pathlib.Path]:
     left out: a README beside a checkpoint is edited by people, and listing it made every edit
     of one fail the check until the list was rewritten (session 92's last CI)."""
     out = []
-    for folder in FOLDERS:
-        out += [p for p in (results / folder).rglob("*")
+    for folder in (f for pattern in FOLDERS for f in sorted(results.glob(pattern))):
+        out += [p for p in folder.rglob("*")
                 if p.is_file() and p.suffix != ".md"
                 and not any(part.startswith(".") for part in p.parts)]
     return sorted(out)
