@@ -90,3 +90,27 @@ def test_fit_reward_value_flags_nest_the_learned_config_with_the_flat_flags_kept
     assert new == old and new.learned == dataclasses.replace(learned.PRESETS["tiny"], steps=5,
                                                              width=8)
     assert job.FitConfig().learned == learned.LearnedConfig()  # one source of the defaults
+
+
+def test_a_reward_ensemble_is_stored_and_planned_against_with_its_members_mean(tmp_path):
+    """Saved with its members, read back as one reward (the first member) by readers that want
+    one and as the list with ``ensemble=True``; the planner's running cost is minus the members'
+    mean reward, a single reward's is unchanged."""
+    lc = learned.LearnedConfig(width=8, depth=1)
+    r0 = learned.init(jax.random.key(0), lc, jnp.ones((4, 5)), jnp.ones(4))
+    r1 = {**r0, "y_mean": r0["y_mean"] + 1.0}
+    r2 = {**r0, "y_mean": r0["y_mean"] - 4.0}
+    v = learned.init(jax.random.key(1), lc, jnp.ones((4, 3)), jnp.ones(4))
+    path = tmp_path / "reward_value.msgpack"
+    learned.save(path, [r0, r1, r2], [v, v])
+    one, _ = learned.load(path)
+    members, values = learned.load(path, ensemble=True)
+    assert isinstance(one, dict) and len(members) == 3 and len(values) == 2
+    np.testing.assert_array_equal(one["y_mean"], r0["y_mean"])
+    np.testing.assert_array_equal(members[2]["y_mean"], r2["y_mean"])
+    obs, u = jnp.array([0.3, -0.2, 0.5]), jnp.array([0.1, -0.4])
+    rs = np.array([float(learned.apply(r, learned.reward_input(obs, u))) for r in (r0, r1, r2)])
+    cost, _ = learned.planner_terms(members, values, lambda q, qd: q)
+    np.testing.assert_allclose(float(cost(obs, None, u, 0)), -rs.mean(), rtol=1e-5)
+    single, _ = learned.planner_terms(r0, v, lambda q, qd: q)
+    np.testing.assert_allclose(float(single(obs, None, u, 0)), -rs[0], rtol=1e-6)

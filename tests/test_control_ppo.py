@@ -169,3 +169,18 @@ def test_the_ppo_and_fit_reward_value_jobs_at_tiny_size(tmp_path, capsys):
     cli.main(["fit-reward-value", "--preset", "tiny", "--policy", str(run), "--out", str(out)])
     reward, value = learned.load(out / "reward_value.msgpack")
     assert (out / "report.json").is_file() and jax.tree.leaves(reward) and jax.tree.leaves(value)
+    # --members: ensembles on the same rollouts, the first member the single fit
+    out2 = tmp_path / "learned2"
+    cli.main(["fit-reward-value", "--preset", "tiny", "--policy", str(run), "--out", str(out2),
+              "--members", "2"])
+    rewards, values = learned.load(out2 / "reward_value.msgpack", ensemble=True)
+    assert len(rewards) == 2 and len(values) == 2
+    for a, b in ((rewards[0], reward), (values[0], value)):
+        assert all(jax.tree.leaves(jax.tree.map(lambda x, y: bool(jnp.array_equal(x, y)), a, b)))
+    assert any(not jnp.array_equal(x, y) for x, y in
+               zip(jax.tree.leaves(rewards[1]), jax.tree.leaves(rewards[0])))
+    report = json.loads((out2 / "report.json").read_text())
+    assert len(report["members"]) == 2 and report["config"]["members"] == 2
+    with pytest.raises(SystemExit, match="members must be >= 1"):
+        cli.main(["fit-reward-value", "--preset", "tiny", "--policy", str(run), "--out",
+                  str(tmp_path / "unused"), "--members", "0"])

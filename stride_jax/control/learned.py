@@ -279,16 +279,27 @@ def value_fn(value_params: dict | list[dict], pessimism: float = 0.0) -> Callabl
     return lambda obs: pessimistic(apply_ensemble(stacked, obs), pessimism)
 
 
-def planner_terms(reward_params: dict, value_params: dict | list[dict], obs_of: Callable,
-                  value_weight: float = 1.0, pessimism: float = 0.0
+def reward_fn(reward_params: dict | list[dict]) -> Callable:
+    """``(obs, action) -> r`` of one reward model, or the mean of an ensemble's members (a list,
+    :func:`load` ``ensemble=True``; ``stride fit-reward-value --members``)."""
+    if not isinstance(reward_params, (list, tuple)):
+        return lambda obs, a: apply(reward_params, reward_input(obs, a))
+    stacked = stack(list(reward_params))
+    return lambda obs, a: jnp.mean(apply_ensemble(stacked, reward_input(obs, a)))
+
+
+def planner_terms(reward_params: dict | list[dict], value_params: dict | list[dict],
+                  obs_of: Callable, value_weight: float = 1.0, pessimism: float = 0.0
                   ) -> tuple[Callable, Callable]:
     """MPPI's ``running_cost(q, qd, u, t) = -r(obs, u)`` and ``terminal_value(q, qd) = w V(obs)``
-    for an ``obs_of(q, qd) -> obs`` (the planner's state may carry the command); ``V`` is
-    :func:`value_fn` (pessimistic over an ensemble's members)."""
+    for an ``obs_of(q, qd) -> obs`` (the planner's state may carry the command); ``r`` is
+    :func:`reward_fn` (the members' mean over an ensemble), ``V`` :func:`value_fn`
+    (pessimistic over an ensemble's members)."""
+    reward = reward_fn(reward_params)
     value = value_fn(value_params, pessimism)
 
     def running_cost(q, qd, u, t):
-        return -apply(reward_params, reward_input(obs_of(q, qd), u))
+        return -reward(obs_of(q, qd), u)
 
     def terminal_value(q, qd):
         return value_weight * value(obs_of(q, qd))
@@ -301,26 +312,34 @@ def r2(pred: jax.Array, target: jax.Array) -> float:
     return float(1 - jnp.mean((pred - target) ** 2) / jnp.maximum(jnp.var(target), 1e-12))
 
 
-def save(path: pathlib.Path, reward_params: dict, value_params: dict | list[dict]) -> None:
-    """Writes the reward and the value (a list: a value ensemble, whose first member is also
-    stored as the plain value, so that readers of one value keep working)."""
-    members = list(value_params) if isinstance(value_params, (list, tuple)) else None
-    d = {"reward": reward_params, "value": members[0] if members else value_params}
-    if members:
-        d["value_ensemble"] = {str(i): m for i, m in enumerate(members)}
+def save(path: pathlib.Path, reward_params: dict | list[dict],
+         value_params: dict | list[dict]) -> None:
+    """Writes the reward and the value; either may be a list, an ensemble, whose first member
+    is also stored as the plain model, so that readers of one model keep working."""
+    d = {}
+    for name, params in (("reward", reward_params), ("value", value_params)):
+        members = list(params) if isinstance(params, (list, tuple)) else None
+        d[name] = members[0] if members else params
+        if members:
+            d[f"{name}_ensemble"] = {str(i): m for i, m in enumerate(members)}
     blob = serialization.msgpack_serialize(jax.device_get(d))
     atomic_write(path, lambda f: f.write(blob))
 
 
-def load(path: str | pathlib.Path, ensemble: bool = False) -> tuple[dict, dict | list[dict]]:
-    """``(reward_params, value_params)`` written by :func:`save`; with ``ensemble`` the value
-    is the list of an ensemble's members where the file has one (one model otherwise)."""
+def load(path: str | pathlib.Path, ensemble: bool = False
+         ) -> tuple[dict | list[dict], dict | list[dict]]:
+    """``(reward_params, value_params)`` written by :func:`save`; with ``ensemble`` each is the
+    list of an ensemble's members where the file has one (one model otherwise)."""
     path = pathlib.Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no learned reward/value models at {path}")
     d = serialization.msgpack_restore(path.read_bytes())
     as_jnp = lambda t: jax.tree.map(jnp.asarray, t)
-    if ensemble and "value_ensemble" in d:
-        members = d["value_ensemble"]
-        return as_jnp(d["reward"]), [as_jnp(members[str(i)]) for i in range(len(members))]
-    return as_jnp(d["reward"]), as_jnp(d["value"])
+
+    def read(name):
+        members = d.get(f"{name}_ensemble") if ensemble else None
+        if members:
+            return [as_jnp(members[str(i)]) for i in range(len(members))]
+        return as_jnp(d[name])
+
+    return read("reward"), read("value")
