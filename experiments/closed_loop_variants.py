@@ -6,6 +6,7 @@ its plans arrive late (``latency_steps``).
     python experiments/closed_loop_variants.py "LABEL=PATH[:PART]" ... --out FILE.md \\
         [--scenarios A,B]
 
+A LABEL given more than once pools the rows of its files (one variant run in several parts).
 PATH: a ``closed_loop.json`` (a run's, or a merged table whose rows name their ``part``; PART
 keeps that part's rows). Rows are grouped by scenario and by trained seed
 (``stride_paper.seeds.seed_means``: the run folder's ``-sN``, else the name's ``_sN``)."""
@@ -81,8 +82,11 @@ def main(argv=None) -> None:
     ap.add_argument("--scenarios", default="", help="comma-separated: only these (all: '')")
     a = ap.parse_args(argv)
     keep = set(filter(None, a.scenarios.split(",")))
+    pooled: dict[str, list[dict]] = {}  # a label given again pools its files' rows
+    for label, rows in map(rows_of, a.variants):
+        pooled.setdefault(label, []).extend(rows)
     variants = [(label, summary([r for r in rows if not keep or r["scenario"] in keep]))
-                for label, rows in map(rows_of, a.variants)]
+                for label, rows in pooled.items()]
     lines = [f"Command: `python {' '.join(shlex.quote(x) for x in sys.argv)}`", "",
              "Velocity RMSE (m/s): the mean over trained seeds of each seed's mean over its "
              "draws that stayed up (each seed's in brackets); falls over all episodes; controller "

@@ -33,3 +33,16 @@ def test_a_variant_is_the_mean_over_seeds_of_their_draws_that_stayed_up(experime
     assert "| late | 36.0 | 2 | 0.0500 (0.0500) | 0/1 |" in text and "rough" not in text
     with pytest.raises(ValueError, match="no rows of part 'nope'"):
         mod.rows_of(f"x={merged}:nope")
+
+
+def test_a_label_given_twice_pools_its_files_rows(experiment, tmp_path):
+    mod = experiment("closed_loop_variants")
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    a.write_text(json.dumps({"rows": [_row("rough", "stride", 0.06), _row("push", "stride", 0.1)]}))
+    b.write_text(json.dumps({"rows": [_row("soft", "stride", 0.07), _row("rough", "stride", 0.08)]}))
+    out = tmp_path / "t.md"
+    mod.main([f"v={a}", f"v={b}", "--out", str(out)])
+    lines = [ln for ln in out.read_text().splitlines() if ln.startswith("| v |")]
+    assert len(lines) == 1  # one variant, every scenario of both files
+    assert "0.0700 (0.0700) | 0/2 |" in lines[0]  # rough: both files' draws, one seed
+    assert "0.1000 (0.1000)" in lines[0] and "0.0700 (0.0700) | 0/1 |" in lines[0]
