@@ -106,7 +106,8 @@ def run(cfg: DiagnosisConfig, command: str) -> dict:
     sm = sim_model.load(cfg.robot)
     nu = sm.info.nu
     policy, _, env_cfg = ppo.load_policy(cfg.policy)
-    learned = learned_lib.load(cfg.learned) if cfg.learned else None
+    # ensembles read as the closed loop reads them
+    learned = learned_lib.load(cfg.learned, ensemble=True) if cfg.learned else None
     mppi_cfg = mppi.MPPIConfig(samples=cfg.samples, horizon=cfg.horizon,
                                policy_samples=cfg.policy_samples)
     planning_cfg, seed = PlanningConfig(model_gravity=cfg.model_gravity), 0  # the closed loop's defaults

@@ -86,8 +86,8 @@ def main(argv: list[str] | None = None) -> dict:
     if not pick.size:
         raise SystemExit(f"no upright state of the policy's {sc.name!r} episode runs command "
                          f"{command.tolist()} (its commands: {sorted(set(map(tuple, cmds)))})")
-    reward_p, value_p = learned_lib.load(a.learned)
-    value = learned_lib.value_fn(value_p)
+    reward_p, value_p = learned_lib.load(a.learned, ensemble=True)  # as the planner reads it
+    reward, value = learned_lib.reward_fn(reward_p), learned_lib.value_fn(value_p)
     cmd = jnp.asarray(command, jnp.float32)
 
     def evaluate(q_aug, qd, u, dv):
@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> dict:
         qd = shifted(s.q, qd, dv)
         obs = envs.observe(env_cfg, home, s.q, qd, cmd, s.clock, s.gravity)
         act = (u - home) / env_cfg.action_scale
-        r_hat = learned_lib.apply(reward_p, learned_lib.reward_input(obs, act))
+        r_hat = reward(obs, act)
         terms = envs.state_terms(env_cfg, home, s.q, qd, cmd, servo_torque(sm, s.q, qd, u),
                                  is_fallen(sm, s.q), s.gravity)
         _, parts = envs.total_reward(env_cfg, terms, dt)
