@@ -39,7 +39,7 @@ class FitConfig:
         (member 0 from the key a single fit uses), saved as ensembles: the planner takes the
         members' mean reward and value. Measured (session 93): two single fits of one policy's
         models (seeds 0 and 1: other rollouts, other keys) moved the CPU planner's tracking on
-        rough ground by 0.011 m/s, and the one with the higher held-out R^2 planned worse; four
+        rough ground by 0.010 m/s, and the one with the higher held-out R^2 planned worse; four
         members on the worse one's rollouts took back most of that on rough ground and pushes,
         little elsewhere (``results/closed_loop/g1_uphill_cpu/``): an ensemble evens out the
         fits' keys, not their rollouts.
