@@ -186,6 +186,24 @@ def test_the_oracle_is_read_against_the_policy_as_a_reference(experiment):
     assert ref["oracle_above_policy"] == ["soft"] and ref["stride_at_most_oracle"] == ["soft"]
 
 
+def test_a_timing_episode_without_tracking_is_no_tracking_cell(experiment):
+    """An oracle row that stayed up with a NaN error (an episode run only to time the
+    controller, shorter than the settling time) says nothing of tracking: no oracle cell, so
+    no reference line, while its time still counts; an oracle that fell with a NaN error is a
+    loss, as before."""
+    mod = experiment("closed_loop_targets")
+    tab = _table()
+    tab["rows"].append(_row("rough", "oracle@pol", float("nan"), "pol", ms=600.0))
+    r = mod.robot_targets(tab)
+    rough = next(c for c in r["cells"] if c["scenario"] == "rough")
+    assert rough["oracle"] is None and rough["stride_vs_oracle"] is None
+    assert r["oracle_reference"]["scenarios"] == []
+    assert rough["oracle_ms"] == pytest.approx(550.0)  # its time: with part "old"'s 500
+    tab["rows"][-1]["fell"] = True
+    rough = next(c for c in mod.robot_targets(tab)["cells"] if c["scenario"] == "rough")
+    assert rough["oracle"]["falls"] == 1 and rough["stride_vs_oracle"] is True
+
+
 def test_the_oracle_is_read_at_strides_samples_and_horizon(experiment):
     """The oracle's time and tracking come from rows at STRIDE's K and H (a planner's time
     follows its horizon: G1's oracle took half its H 20 time at H 10); a scenario where STRIDE
