@@ -309,3 +309,53 @@ def test_ablation_variants_switch_one_thing_at_a_time(tmp_path):
         dreamer_mpc.AblationConfig(variants="mppi,magic")
     with pytest.raises(ValueError, match="NAME=RUN"):
         dreamer_mpc.AblationConfig(model="stride")
+
+
+def test_the_planners_value_job_plans_with_a_reward_ensemble_and_keeps_it(go1, tmp_path,
+                                                                           monkeypatch):
+    """``dreamer_mpc.train_value`` over a file with ensembles (``stride fit-reward-value
+    --members``): the planner that collects the data gets every member (as the closed loop
+    plans), the value is refitted from the first member, and the written file keeps the reward
+    ensemble whole (it read member 0 alone, and dropped the others, before). The simulator's
+    collection and the fit are stand-ins here: the plumbing is what is tested (each is tested
+    above)."""
+    env_cfg, r0, v0 = _learned_params(go1)
+    r1 = {**r0, "y_mean": r0["y_mean"] + 1.0}
+    r2 = {**r0, "y_mean": r0["y_mean"] - 1.0}
+    v1 = {**v0, "y_mean": v0["y_mean"] + 0.5}
+    src = tmp_path / "in.msgpack"
+    learned.save(src, [r0, r1, r2], [v0, v1])
+    seen = {}
+
+    def make_planning(cfg, env_cfg_, sm, step_fn, policy, learned_params, **kw):
+        seen["learned"] = learned_params
+        return "planning"
+
+    def fit(key, cfg, value_params, data):
+        seen["start"] = value_params
+        return v1, None, dict(value_before={"r2_candidates": 0.0, "r2_closed": 0.0,
+                                            "bias_candidates": 0.0},
+                              value_after={"r2_candidates": 0.0, "r2_closed": 0.0,
+                                           "bias_candidates": 0.0})
+
+    monkeypatch.setattr(dreamer_mpc.sim_model, "load", lambda robot: go1)
+    monkeypatch.setattr(dreamer_mpc.ppo, "load_policy", lambda path: (None, None, env_cfg))
+    monkeypatch.setattr(dreamer_mpc.planning_lib, "make_planning", make_planning)
+    monkeypatch.setattr(dreamer_mpc.planning_lib, "make_planner", lambda planning, m: "planner")
+    monkeypatch.setattr(dreamer_mpc.planning_lib, "mppi_config", lambda m, p, planning: m)
+    monkeypatch.setattr(dreamer_mpc.planner_value, "collect", lambda *a: type(
+        "D", (), {"up": jnp.ones((2, 3), bool),
+                  "closed": type("C", (), {"reward": jnp.zeros((2, 3))})()})())
+    monkeypatch.setattr(dreamer_mpc.planner_value, "fit", fit)
+    monkeypatch.setattr(dreamer_mpc.jax, "jit", lambda f: f)
+    cl_cfg = cl.ClosedLoopConfig(policy="stand-in", learned=str(src))
+    report = dreamer_mpc.train_value(cl_cfg, planner_value.PlannerValueConfig(), "oracle", "",
+                                     tmp_path / "out", log=lambda *a: None, code="test")
+    rewards, values = seen["learned"]
+    assert isinstance(rewards, list) and len(rewards) == 3
+    assert isinstance(values, list) and len(values) == 2
+    assert float(seen["start"]["y_mean"]) == float(v0["y_mean"])  # refitted from member 0
+    assert report["reward_members"] == 3 and report["value_members_planned"] == 2
+    out_r, out_v = learned.load(tmp_path / "out" / "reward_value.msgpack", ensemble=True)
+    assert [float(r["y_mean"]) for r in out_r] == [float(r["y_mean"]) for r in (r0, r1, r2)]
+    assert float(out_v["y_mean"]) == float(v1["y_mean"])  # the refit's one value

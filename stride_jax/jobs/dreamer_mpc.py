@@ -196,8 +196,11 @@ def train_value(cl_cfg: ClosedLoopConfig, cfg: planner_value.PlannerValueConfig,
     (on the nominal ground), refits the value of ``cl_cfg.learned`` and fits the one-step
     error model; writes ``reward_value.msgpack``, ``error_model.msgpack`` and ``report.json``
     to ``out`` (:mod:`stride_jax.control.planner_value`). ``cl_cfg`` needs a policy and a
-    learned reward and value. ``code``: the commit the job started from (default: the
-    checkout's now)."""
+    learned reward and value. A file with ensembles (``stride fit-reward-value --members``,
+    or an earlier refit's ``--ensemble``) is planned with as the closed loop plans with it
+    (the rewards' mean, the values pessimistic) and its reward ensemble is written through
+    whole; the value is refitted from its first member (the refit draws its own members).
+    ``code``: the commit the job started from (default: the checkout's now)."""
     code = code or code_version()  # read before the work, not when the report is written
     if not (cl_cfg.policy and cl_cfg.learned):
         raise ValueError("the planner's value needs a policy and a learned reward/value "
@@ -205,7 +208,8 @@ def train_value(cl_cfg: ClosedLoopConfig, cfg: planner_value.PlannerValueConfig,
     t0 = time.monotonic()
     sm = sim_model.load(cl_cfg.robot)
     ppo_policy, _, env_cfg = ppo.load_policy(cl_cfg.policy)
-    reward_params, value_params = learned.load(cl_cfg.learned)
+    reward_params, value_params = learned.load(cl_cfg.learned, ensemble=True)
+    value_start = value_params[0] if isinstance(value_params, list) else value_params
     mx = mjx.put_model(sm.mj)
     true_step = episode_lib.mjx_step_fn(sm, mx)
     step_fn = (episode_lib.learned_step_fn(run, sm, cl_cfg.kernel, cl_cfg.model_precision)
@@ -223,8 +227,11 @@ def train_value(cl_cfg: ClosedLoopConfig, cfg: planner_value.PlannerValueConfig,
         f"({t_collect:.0f} s), up {up.mean():.0%} of steps, mean planner reward "
         f"{float(jnp.mean(data.closed.reward)):.4f}")
     new_value, err_params, report = planner_value.fit(jax.random.key(cfg.seed + 1), cfg,
-                                                      value_params, data)
+                                                      value_start, data)
     report.update(command=command, code=code, model=name, run=run,
+                  reward_members=len(reward_params) if isinstance(reward_params, list) else 1,
+                  value_members_planned=(len(value_params) if isinstance(value_params, list)
+                                         else 1),
                   seconds_collect=t_collect, seconds=time.monotonic() - t0,
                   config=dataclasses.asdict(cfg), planner=dataclasses.asdict(cl_cfg.mppi))
     out = pathlib.Path(out)
