@@ -68,9 +68,8 @@ def _cell(rows: list[dict]) -> dict | None:
     vmapped part's ``--episodes N`` draws share each control step: their time is N episodes',
     not one planner's; all rows where none ran alone). A row that stayed up with no velocity
     RMSE (NaN: an episode run to time the controller, shorter than the settling time the error
-    is scored after) carries
-    no tracking and is left out; a cell of only such rows is None, not a loss (a NaN error
-    that fell is one: no upright draw)."""
+    is scored after) carries no tracking and is left out; a cell of only such rows is None, not
+    a loss (a NaN error that fell is one: no upright draw)."""
     rows = [r for r in rows if r.get("fell") or np.isfinite(r.get("vel_rmse", np.nan))]
     if not rows:
         return None
