@@ -10,6 +10,7 @@ library they apply.
     stride ppo --robot go1 --preset gpu --out runs/ppo_go1 --minutes 8   (one resumable chunk)
     stride fit-reward-value --policy runs/ppo_go1 --out runs/learned_go1
     stride closed-loop --preset tiny [--models oracle,nominal,stride=RUN ...]
+    stride select-learned --policy runs/ppo_go1 --candidates a=FILE,b=FILE [--model NAME=RUN]
     stride show [--stride runs/pendulum/stride --baseline runs/pendulum/delan --phase.grid 15]
     stride gap diagnose --robot go1 --logs DIR --out DIR   (also: gap simulate, import, export, bench)
 """
@@ -38,6 +39,8 @@ COMMANDS = {
                          "learned reward and value models from a PPO run", "fit_from_policy"),
     "closed-loop": ("closed_loop", "ClosedLoopConfig", "PRESETS",
                     "closed-loop MPPI in MJX per model and scenario", "run"),
+    "select-learned": ("select_learned", "SelectConfig", "PRESETS",
+                       "which learned reward/value to plan with, by the closed loop", "run"),
     "show": ("show", "ShowConfig", "PRESETS",
              "what trained pendulum models predict near the upright (a figure)", "run"),
 }
