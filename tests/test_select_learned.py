@@ -11,7 +11,7 @@ from stride_jax import cli
 from stride_jax.jobs import select_learned as sel
 
 
-def test_candidates_plan_the_same_episodes_and_are_ranked(tmp_path):
+def test_candidates_plan_the_same_episodes_and_are_ranked(tmp_path, capsys):
     """A copy of a file scores exactly as the file (the same commands, keys and planner: the
     comparison is paired), another file differently; the table ranks by the error and gives
     the paired difference from the best; it shares one compile across candidates of one
@@ -38,6 +38,8 @@ def test_candidates_plan_the_same_episodes_and_are_ranked(tmp_path):
                                               - np.array(table["rows"][0]["per_world"])))
     md = (out / "selection.md").read_text()
     assert "| 1 |" in md and "| 3 |" in md and "select-learned" in md
+    said = capsys.readouterr().out  # each candidate says what it runs before its episodes
+    assert "copy: 3 episodes of 0.1 s side by side" in said and "best: " in said
 
 
 def test_falls_rank_before_the_error():

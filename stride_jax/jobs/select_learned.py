@@ -178,6 +178,12 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
     key_cmd, key_run = jax.random.split(jax.random.key(cfg.seed))
     starts, values = commands(env_cfg, cfg, key_cmd)
     keys = jax.random.split(key_run, cfg.worlds)
+    every = max(1, int(round(1.0 / sm.robot.ctrl_dt)))  # a progress line per simulated second
+    now = {"label": "", "t0": 0.0}  # the running candidate, for the progress callback
+
+    def progress(steps):
+        log(f"  {now['label']}: {int(steps) * sm.robot.ctrl_dt:.1f} of {cfg.seconds:g} s "
+            f"simulated ({time.monotonic() - now['t0']:.0f} s)")
 
     def episodes(learned_params, values, keys):
         planning = planning_lib.make_planning(cfg.planning, env_cfg, sm, step_fn, policy,
@@ -186,13 +192,16 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
             planner = planning_lib.make_planner(
                 planning, planning_lib.mppi_config(cfg.mppi, cfg.planning, planning))
         return jax.vmap(lambda v, k: episode_lib.run_episode(
-            sm, mx, slots, planning, planner, n_steps, starts, v, k))(values, keys)
+            sm, mx, slots, planning, planner, n_steps, starts, v, k, progress=progress,
+            progress_every=every))(values, keys)
 
     # the learned files are the argument: candidates of one structure share one compile
     episodes = jax.jit(episodes)
     rows = []
     for label, path in pairs:
-        t0 = time.monotonic()
+        t0 = now["t0"] = time.monotonic()
+        now["label"] = label
+        log(f"{label}: {cfg.worlds} episodes of {cfg.seconds:g} s side by side ({path})")
         params = learned_lib.load(path, ensemble=True)
         trace = jax.block_until_ready(episodes(params, values, keys))
         per = [episode_lib.metrics(jax.tree.map(lambda x, i=i: x[i], trace), cfg.settle_s)
