@@ -14,8 +14,9 @@ candidate's difference from the best with a paired 90% t-interval over the world
 
     stride select-learned --robot g1 --policy results/policies/ppo_g1_uphill \\
         --model stride=results/models/g1_walk_ppo_g1_slope_slope15_tw1_tf0.25/stride-s0 \\
-        --candidates soft=results/learned_g1_soft/reward_value.msgpack,uphill=results/learned_g1_uphill/reward_value.msgpack \\
-        --mppi.horizon 10 --planning.model-gravity --out results/learned_selection_g1
+        --candidates soft=results/learned_g1_soft/reward_value.msgpack,\\
+uphill=results/learned_g1_uphill/reward_value.msgpack \\
+        --mppi.horizon 10 --planning.model-gravity --out results/select_learned_g1
 
 Writes ``OUT/selection.{json,md}``. The planner is built as the closed loop builds it from the
 same ``--mppi.*`` and ``--planning.*`` flags (give the headline's to choose for the headline;
@@ -80,7 +81,7 @@ class SelectConfig:
     planning: PlanningConfig = PlanningConfig()
     kernel: str = "xla"
     seed: int = 0
-    out: str = "results/learned_selection"
+    out: str = "results/select_learned"  # not learned_*: SHA256SUMS lists those as fits
 
     def __post_init__(self):
         labels = [label for label, _ in self.pairs()]  # (none yet: a preset; run() asks)
@@ -111,7 +112,7 @@ class SelectConfig:
 PRESETS = {
     "tiny": SelectConfig(worlds=2, seconds=0.1, change_s=0.05, settle_s=0.0,
                          mppi=MPPIConfig(samples=8, horizon=3, policy_samples=2),
-                         out="results/learned_selection_tiny"),
+                         out="results/select_learned_tiny"),
     "default": SelectConfig(),
 }
 
@@ -148,8 +149,8 @@ def rank(rows: list[dict]) -> list[dict]:
     best = order[0]
     for r in order:
         both = [i for i, (a, b) in enumerate(zip(r["fell"], best["fell"])) if not (a or b)]
-        r["vs_best"] = (None if r is best else
-                        paired(np.asarray(r["per_world"])[both], np.asarray(best["per_world"])[both]))
+        mine, theirs = np.asarray(r["per_world"])[both], np.asarray(best["per_world"])[both]
+        r["vs_best"] = None if r is best else paired(mine, theirs)
     return order
 
 
