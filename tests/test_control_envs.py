@@ -342,3 +342,18 @@ def test_a_randomised_payload_loads_the_named_body(go1):
         envs.VelocityEnv(envs.config("go1", payload_max=0.2, payload_body="FR_thigh"), massless)
     with pytest.raises(ValueError, match="FR_thigh: body .* has no mass"):
         randomize.add_payload(massless, body, 1.0)
+
+
+def test_command_schedules_draw_each_world_its_own_commands_within_the_ranges():
+    """``W`` schedules of ``P`` pieces ``change_s`` apart: every value inside the commands'
+    bounds (or zero, the standing draws), the worlds' schedules different, one key one draw."""
+    c = envs.config("go1").commands
+    starts, values = envs.command_schedules(c, jax.random.key(3), 5, 4, 0.5)
+    np.testing.assert_allclose(starts, [0.0, 0.5, 1.0, 1.5])
+    assert values.shape == (5, 4, 3)
+    lo, hi = (np.asarray(b) for b in c.bounds())
+    v = np.asarray(values)
+    assert ((v >= lo - 1e-6) & (v <= hi + 1e-6) | (v == 0)).all()
+    assert not np.allclose(v[0], v[1])
+    again = envs.command_schedules(c, jax.random.key(3), 5, 4, 0.5)[1]
+    np.testing.assert_array_equal(v, np.asarray(again))

@@ -360,6 +360,17 @@ def sample_command(c: Commands, key: jax.Array) -> jax.Array:
     return jnp.where(jax.random.bernoulli(k_zero, c.zero_prob), 0.0, cmd)
 
 
+def command_schedules(c: Commands, key: jax.Array, worlds: int, pieces: int, change_s: float
+                      ) -> tuple[jax.Array, jax.Array]:
+    """``(starts [P], values [W, P, 3])``: ``worlds`` command schedules of ``pieces`` draws of
+    :func:`sample_command` each, a new one every ``change_s`` seconds (a closed-loop episode's
+    ``(starts, values)``, :func:`stride_jax.control.episode.run_episode`)."""
+    starts = jnp.arange(pieces, dtype=jnp.float32) * change_s
+    values = jax.vmap(lambda k: jax.vmap(lambda kk: sample_command(c, kk))(
+        jax.random.split(k, pieces)))(jax.random.split(key, worlds))
+    return starts, values
+
+
 # ---------------------------------------------------------------------------------------------
 # The environment.
 

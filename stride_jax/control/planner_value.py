@@ -173,12 +173,9 @@ def collect(planning: planning_lib.Planning, planner: mppi.Planner, sm: sim_mode
     Pure; jit it."""
     slots = envs.contact_slots(mx_sim)
     n_steps = max(1, int(round(cfg.seconds / sm.robot.ctrl_dt)))
-    pieces = 8
-    starts = jnp.arange(pieces, dtype=jnp.float32) * cfg.change_s
     record = make_record(planning, sm, true_step, cfg.record, cfg.error_model)
     key_cmd, key_run = jax.random.split(key)
-    values = jax.vmap(lambda k: jax.vmap(lambda kk: envs.sample_command(env_cfg.commands, kk))(
-        jax.random.split(k, pieces)))(jax.random.split(key_cmd, cfg.worlds))
+    starts, values = envs.command_schedules(env_cfg.commands, key_cmd, cfg.worlds, 8, cfg.change_s)
 
     def episode(vals, k):
         return episode_lib.run_episode(sm, mx_sim, slots, planning, planner, n_steps, starts,

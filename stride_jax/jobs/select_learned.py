@@ -33,7 +33,6 @@ import pathlib
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 import stride_jax
@@ -117,18 +116,6 @@ PRESETS = {
 }
 
 
-def commands(env_cfg: envs.EnvConfig, cfg: SelectConfig, key: jax.Array
-             ) -> tuple[jax.Array, jax.Array]:
-    """``(starts [P], values [W, P, 3])``: every world's command schedule, a draw from the
-    policy's training distribution every ``change_s`` (as the planner's value data are drawn,
-    :func:`stride_jax.control.planner_value.collect`)."""
-    pieces = max(1, int(np.ceil(cfg.seconds / cfg.change_s)))
-    starts = jnp.arange(pieces, dtype=jnp.float32) * cfg.change_s
-    values = jax.vmap(lambda k: jax.vmap(lambda kk: envs.sample_command(env_cfg.commands, kk))(
-        jax.random.split(k, pieces)))(jax.random.split(key, cfg.worlds))
-    return starts, values
-
-
 def paired(x: np.ndarray, y: np.ndarray, level: float = 0.9) -> dict | None:
     """``mean(x - y)`` over paired values with its ``level`` t-interval; None with fewer than
     two pairs or no spread in the differences."""
@@ -177,7 +164,11 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
         step_fn = episode_lib.learned_step_fn(cfg.model.partition("=")[2], sm, cfg.kernel)
     n_steps = max(1, int(round(cfg.seconds / sm.robot.ctrl_dt)))
     key_cmd, key_run = jax.random.split(jax.random.key(cfg.seed))
-    starts, values = commands(env_cfg, cfg, key_cmd)
+    # a new command every change_s, drawn as the planner's value data are
+    # (stride_jax.control.planner_value.collect)
+    starts, values = envs.command_schedules(env_cfg.commands, key_cmd, cfg.worlds,
+                                            max(1, int(np.ceil(cfg.seconds / cfg.change_s))),
+                                            cfg.change_s)
     keys = jax.random.split(key_run, cfg.worlds)
     every = max(1, int(round(1.0 / sm.robot.ctrl_dt)))  # a progress line per simulated second
     now = {"label": "", "t0": 0.0}  # the running candidate, for the progress callback
