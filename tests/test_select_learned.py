@@ -67,3 +67,41 @@ def test_bad_candidates_are_clear_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="candidate b"):
         sel.run(sel.SelectConfig(candidates=f"a=results/learned_go1/reward_value.msgpack,"
                                             f"b={tmp_path / 'missing.msgpack'}"))
+
+
+def test_a_second_run_plans_only_the_new_candidates(tmp_path, capsys):
+    """The table is written after each candidate; the same settings and out again keep the rows
+    there (a cut call resumes) and plan only what is new, or a file whose content changed; other
+    settings on the same out are a clear error, not a mixed table."""
+    a = "results/learned_go1/reward_value.msgpack"
+    b = tmp_path / "b.msgpack"
+    shutil.copy("results/learned_go1_slope/reward_value.msgpack", b)
+    out = tmp_path / "sel"
+    base = ["select-learned", "--preset", "tiny", "--policy", "results/policies/ppo_go1",
+            "--model", "onn=results/models/go1/onn-s0", "--out", str(out)]
+    cli.main(base + ["--candidates", f"a={a}"])
+    first = json.loads((out / "selection.json").read_text())["rows"][0]
+    capsys.readouterr()
+    cli.main(base + ["--candidates", f"a={a},b={b}"])
+    said = capsys.readouterr().out
+    assert "a planned already; kept" in said and "a: 2 episodes" not in said
+    assert "b: 2 episodes" in said
+    rows = {r["label"]: r for r in json.loads((out / "selection.json").read_text())["rows"]}
+    assert rows["a"]["per_world"] == first["per_world"] and rows["a"]["seconds"] == first["seconds"]
+    shutil.copy(a, b)  # b's content changes: planned again, now as a
+    cli.main(base + ["--candidates", f"a={a},b={b}"])
+    said = capsys.readouterr().out
+    assert "b: 2 episodes" in said and "a: 2 episodes" not in said
+    rows = {r["label"]: r for r in json.loads((out / "selection.json").read_text())["rows"]}
+    assert rows["b"]["per_world"] == rows["a"]["per_world"]
+    with pytest.raises(SystemExit, match=r"other settings \(worlds differ\)"):
+        cli.main(base + ["--candidates", f"a={a}", "--worlds", "3"])
+
+
+def test_an_unfinished_table_says_so():
+    row = dict(label="a", path="x", falls=0, worlds=2, vel_rmse=0.1, per_world=[0.1, 0.1],
+               fell=[False, False], vs_best=None)
+    table = dict(command="c", code="k", candidates=3, rows=[row],
+                 config=dict(worlds=2, seconds=1.0, change_s=0.5, model="m", policy="p"))
+    assert "1 of 3 candidates planned so far" in sel.markdown(table)
+    assert "so far" not in sel.markdown({**table, "candidates": 1})

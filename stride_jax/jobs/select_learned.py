@@ -18,7 +18,9 @@ candidate's difference from the best with a paired 90% t-interval over the world
 uphill=results/learned_g1_uphill/reward_value.msgpack \\
         --mppi.horizon 10 --planning.model-gravity --out results/select_learned_g1
 
-Writes ``OUT/selection.{json,md}``. The planner is built as the closed loop builds it from the
+Writes ``OUT/selection.{json,md}`` after each candidate, ranked over those done so far; run again
+with the same settings and ``--out`` (more candidates welcome), it plans only the candidates not
+yet there (a call cut by its time limit keeps what it finished). The planner is built as the closed loop builds it from the
 same ``--mppi.*`` and ``--planning.*`` flags (give the headline's to choose for the headline;
 the flat aliases such as ``--prior-noise-std`` are the closed loop's alone: here
 ``--planning.prior-noise-std``). The closed loop's other options (model substeps, a learned
@@ -28,6 +30,7 @@ error model, sensor noise, latency) are not taken: the planner runs without them
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import pathlib
 import time
@@ -141,8 +144,38 @@ def rank(rows: list[dict]) -> list[dict]:
     return order
 
 
+# what may differ between runs that share one selection: which candidates, and where it is written
+_RESUMABLE_ANYWAY = ("candidates", "out")
+
+
+def done_rows(cfg: SelectConfig) -> list[dict]:
+    """The rows already in ``OUT/selection.json`` that this run keeps: the candidates planned
+    with the same settings, the same label, path and file content. Raises where ``OUT`` holds a selection made
+    with other settings (the rows would not be paired with this run's)."""
+    path = pathlib.Path(cfg.out) / "selection.json"
+    if not path.is_file():
+        return []
+    table = json.loads(path.read_text())
+    mine = {k: v for k, v in json.loads(json.dumps(dataclasses.asdict(cfg))).items()
+            if k not in _RESUMABLE_ANYWAY}
+    theirs = {k: v for k, v in table["config"].items() if k not in _RESUMABLE_ANYWAY}
+    differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
+    if differ:
+        raise ValueError(f"{path} holds a selection made with other settings ({', '.join(differ)} "
+                         f"differ): its episodes are not this run's; give another --out")
+    wanted = set(cfg.pairs())
+    return [r for r in table["rows"] if (r["label"], r["path"]) in wanted
+            and r.get("sha256") == _sha256(r["path"])]
+
+
+def _sha256(path: str) -> str | None:
+    p = pathlib.Path(path)
+    return hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None
+
+
 def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
-    """Plans the validation episodes with every candidate; writes ``selection.{json,md}``."""
+    """Plans the validation episodes with every candidate not yet in ``OUT/selection.json``;
+    writes ``selection.{json,md}`` after each."""
     from mujoco import mjx
 
     code = code_version()  # read before the work, not when the table is written
@@ -152,6 +185,28 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
     for label, path in pairs:  # a missing file fails before any compile
         if not pathlib.Path(path).is_file():
             raise FileNotFoundError(f"candidate {label}: no learned reward/value file at {path}")
+    rows = done_rows(cfg)
+    if rows:
+        log(f"{cfg.out}: {', '.join(r['label'] for r in rows)} planned already; kept")
+    out = pathlib.Path(cfg.out)
+
+    def write(rows):
+        table = dict(command=command, code=code, config=dataclasses.asdict(cfg), rows=rank(rows),
+                     candidates=len(pairs))
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out / "selection.json", json.dumps(table, indent=1))
+        atomic_write_text(out / "selection.md", markdown(table))
+        return table["rows"]
+
+    def finish(rows):
+        ranked = write(rows)
+        log(f"best: {ranked[0]['label']}; wrote {out}")
+        return ranked
+
+    kept = {r["label"] for r in rows}
+    todo = [(label, path) for label, path in pairs if label not in kept]
+    if not todo:
+        return finish(rows)
     sm = sim_model.load(cfg.robot)
     policy, _, env_cfg = ppo.load_policy(cfg.policy)
     if env_cfg.robot != cfg.robot:
@@ -189,8 +244,7 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
 
     # the learned files are the argument: candidates of one structure share one compile
     episodes = jax.jit(episodes)
-    rows = []
-    for label, path in pairs:
+    for label, path in todo:
         t0 = now["t0"] = time.monotonic()
         now["label"] = label
         log(f"{label}: {cfg.worlds} episodes of {cfg.seconds:g} s side by side ({path})")
@@ -200,20 +254,16 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
                for i in range(cfg.worlds)]
         fell = [bool(m["fell"]) for m in per]
         up = [m["vel_rmse"] for m, f in zip(per, fell) if not f]
-        rows.append(dict(label=label, path=path, falls=sum(fell), worlds=cfg.worlds,
+        rows.append(dict(label=label, path=path, sha256=_sha256(path), falls=sum(fell),
+                         worlds=cfg.worlds,
                          vel_rmse=float(np.mean(up)) if up else float("nan"),
                          per_world=[float(m["vel_rmse"]) for m in per], fell=fell,
                          seconds=time.monotonic() - t0))
         log(f"{label}: velocity RMSE {rows[-1]['vel_rmse']:.4f} m/s over {len(up)} worlds up, "
             f"{sum(fell)} of {cfg.worlds} fell ({rows[-1]['seconds']:.0f} s)")
-    ranked = rank(rows)
-    out = pathlib.Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
-    table = dict(command=command, code=code, config=dataclasses.asdict(cfg), rows=ranked)
-    atomic_write_text(out / "selection.json", json.dumps(table, indent=1))
-    atomic_write_text(out / "selection.md", markdown(table))
-    log(f"best: {ranked[0]['label']}; wrote {out}")
-    return ranked
+        if len(rows) < len(pairs):
+            write(rows)  # after each candidate: a cut run keeps what it finished
+    return finish(rows)
 
 
 def markdown(table: dict) -> str:
@@ -225,7 +275,9 @@ def markdown(table: dict) -> str:
              f"and planner keys for every candidate; planner model `{c['model']}`, policy "
              f"`{c['policy']}`. Velocity RMSE (m/s) over the episodes that stayed up; against "
              "the best: the mean paired difference with its 90% t-interval over the episodes "
-             "both kept up.", "",
+             "both kept up." + ("" if len(table["rows"]) >= table.get("candidates", 0) else
+                                 f" **{len(table['rows'])} of {table['candidates']} candidates "
+                                 "planned so far.**"), "",
              "| rank | candidate | falls | velocity RMSE | minus the best | file |",
              "|---:|---|---:|---:|---|---|"]
     for i, r in enumerate(table["rows"], 1):
