@@ -105,3 +105,16 @@ def test_an_unfinished_table_says_so():
                  config=dict(worlds=2, seconds=1.0, change_s=0.5, model="m", policy="p"))
     assert "1 of 3 candidates planned so far" in sel.markdown(table)
     assert "so far" not in sel.markdown({**table, "candidates": 1})
+
+
+def test_the_table_names_the_candidates_not_told_apart_from_the_best():
+    def row(label, falls, lo, hi):
+        return dict(label=label, path="x", falls=falls, worlds=4, vel_rmse=0.1,
+                    per_world=[0.1] * 4, fell=[False] * 4,
+                    vs_best=None if lo is None else dict(diff=(lo + hi) / 2, lo=lo, hi=hi, n=4))
+    rows = [row("best", 0, None, None), row("tie", 0, -0.01, 0.02), row("worse", 0, 0.01, 0.03),
+            row("fell_once", 1, -0.02, 0.01)]
+    table = dict(command="c", code="k", candidates=4, rows=rows,
+                 config=dict(worlds=4, seconds=1.0, change_s=0.5, model="m", policy="p"))
+    assert "Not told apart from the best (best): tie." in sel.markdown(table)
+    assert "(best): none." in sel.markdown({**table, "rows": rows[:1]})

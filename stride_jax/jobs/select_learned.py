@@ -286,6 +286,12 @@ def markdown(table: dict) -> str:
               f"{v['diff']:+.4f} [{v['lo']:+.4f}, {v['hi']:+.4f}]")
         lines.append(f"| {i} | {r['label']} | {r['falls']} of {r['worlds']} | "
                      f"{r['vel_rmse']:.4f} | {vs} | `{r['path']}` |")
+    rows = table["rows"]
+    ties = [r["label"] for r in rows[1:] if r["falls"] == rows[0]["falls"]
+            and r["vs_best"] is not None and r["vs_best"]["lo"] <= 0]
+    lines += ["", f"Not told apart from the best ({rows[0]['label']}): "
+              f"{', '.join(ties) if ties else 'none'}. The rank among these is not established "
+              "by these episodes; more worlds, or a reason outside this table, decide it."]
     return "\n".join(lines) + "\n"
 
 
