@@ -4,12 +4,16 @@ its falls, its controller's own time per period (``controller_ms``, where timed)
 its plans arrive late (``latency_steps``).
 
     python experiments/closed_loop_variants.py "LABEL=PATH[:PART]" ... --out FILE.md \\
-        [--scenarios A,B]
+        [--scenarios A,B] [--models NAME,...] [--paired-against LABEL]
 
 A LABEL given more than once pools the rows of its files (one variant run in several parts).
 PATH: a ``closed_loop.json`` (a run's, or a merged table whose rows name their ``part``; PART
 keeps that part's rows). Rows are grouped by scenario and by trained seed
-(``stride_paper.seeds.seed_means``: the run folder's ``-sN``, else the name's ``_sN``)."""
+(``stride_paper.seeds.seed_means``: the run folder's ``-sN``, else the name's ``_sN``).
+``--models`` keeps the rows of those model names alone (``stride``: trained seed 0 of a run over
+three). ``--paired-against LABEL`` adds each variant's difference from that one, episode by
+episode (the same scenario, model name, planner seed and episode: the same ground and draws where
+the runs shared their flags), with its 90% t-interval over every pair both kept up."""
 
 from __future__ import annotations
 
@@ -55,6 +59,53 @@ def summary(rows: list[dict]) -> dict[str, dict]:
     return out
 
 
+def _key(r: dict) -> tuple:
+    return r["scenario"], r["model"], r.get("seed"), r.get("episode")
+
+
+def paired_rows(rows: list[dict], ref: list[dict]) -> dict:
+    """``rows`` against ``ref`` episode by episode (:func:`_key`), both up: the pairs, the mean
+    difference with its 90% t-interval (None under two pairs or no spread) and per scenario the
+    mean difference."""
+    from scipy import stats
+
+    theirs = {_key(r): r for r in ref if not r["fell"]}
+    pairs = [(r["scenario"], r["vel_rmse"] - theirs[_key(r)]["vel_rmse"])
+             for r in rows if not r["fell"] and _key(r) in theirs]
+    d = np.array([x for _, x in pairs])
+    ci = (stats.ttest_1samp(d, 0.0).confidence_interval(0.9)
+          if len(d) >= 2 and np.std(d) > 0 else None)
+    per_sc = {sc: float(np.mean([x for s, x in pairs if s == sc]))
+              for sc in dict.fromkeys(s for s, _ in pairs)}
+    return dict(n=len(d), diff=float(d.mean()) if len(d) else float("nan"),
+                lo=None if ci is None else float(ci.low), hi=None if ci is None else float(ci.high),
+                per_scenario=per_sc)
+
+
+def paired_table(pooled: dict[str, list[dict]], ref_label: str) -> list[str]:
+    if ref_label not in pooled:
+        raise ValueError(f"--paired-against {ref_label!r}: no such variant "
+                         f"({', '.join(pooled)})")
+    ref = pooled[ref_label]
+    lines = [f"Minus `{ref_label}`, episode by episode (m/s; both up; 90% t-interval over the "
+             "pairs), and per scenario the mean difference:", "",
+             "| variant | pairs | minus the reference [90%] | scenarios below it | per scenario |",
+             "|---|---:|---|---:|---|"]
+    for label, rows in pooled.items():
+        if label == ref_label:
+            continue
+        p = paired_rows(rows, ref)
+        if not p["n"]:
+            raise ValueError(f"{label}: no episode matches one of {ref_label!r} (scenario, model, "
+                             "seed, episode)")
+        ci = "" if p["lo"] is None else f" [{p['lo']:+.4f}, {p['hi']:+.4f}]"
+        below = sum(v < 0 for v in p["per_scenario"].values())
+        lines.append(f"| {label} | {p['n']} | {p['diff']:+.4f}{ci} | {below} of "
+                     f"{len(p['per_scenario'])} | "
+                     + ", ".join(f"{sc} {v:+.4f}" for sc, v in p["per_scenario"].items()) + " |")
+    return lines
+
+
 def table(variants: list[tuple[str, dict]]) -> list[str]:
     scenarios = list(dict.fromkeys(sc for _, s in variants for sc in s))
     lines = ["| variant | controller ms | periods late | "
@@ -80,18 +131,28 @@ def main(argv=None) -> None:
     ap.add_argument("variants", nargs="+", help="LABEL=PATH[:PART]")
     ap.add_argument("--out", required=True, help="the markdown table to write")
     ap.add_argument("--scenarios", default="", help="comma-separated: only these (all: '')")
+    ap.add_argument("--models", default="", help="comma-separated model names: only these rows")
+    ap.add_argument("--paired-against", default="", metavar="LABEL",
+                    help="each variant's episode-by-episode difference from this one")
     a = ap.parse_args(argv)
     keep = set(filter(None, a.scenarios.split(",")))
+    names = set(filter(None, a.models.split(",")))
     pooled: dict[str, list[dict]] = {}  # a label given again pools its files' rows
     for label, rows in map(rows_of, a.variants):
-        pooled.setdefault(label, []).extend(rows)
-    variants = [(label, summary([r for r in rows if not keep or r["scenario"] in keep]))
-                for label, rows in pooled.items()]
+        pooled.setdefault(label, []).extend(
+            r for r in rows if (not keep or r["scenario"] in keep)
+            and (not names or r["model"] in names))
+    for label, rows in pooled.items():
+        if not rows:
+            raise ValueError(f"{label}: no rows left of the scenarios and models asked for")
+    variants = [(label, summary(rows)) for label, rows in pooled.items()]
     lines = [f"Command: `python {' '.join(shlex.quote(x) for x in sys.argv)}`", "",
              "Velocity RMSE (m/s): the mean over trained seeds of each seed's mean over its "
              "draws that stayed up (each seed's in brackets); falls over all episodes; controller "
              "ms: the median of the rows' `controller_ms` (the controller's own computation per "
              "period, no world); periods late: `latency_steps`.", ""] + table(variants)
+    if a.paired_against:
+        lines += [""] + paired_table(pooled, a.paired_against)
     atomic_write_text(pathlib.Path(a.out), "\n".join(lines) + "\n")
     print("\n".join(lines))
 

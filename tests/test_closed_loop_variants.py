@@ -46,3 +46,37 @@ def test_a_label_given_twice_pools_its_files_rows(experiment, tmp_path):
     assert len(lines) == 1  # one variant, every scenario of both files
     assert "0.0700 (0.0700) | 0/2 |" in lines[0]  # rough: both files' draws, one seed
     assert "0.1000 (0.1000)" in lines[0] and "0.0700 (0.0700) | 0/1 |" in lines[0]
+
+
+def test_models_and_the_paired_difference_episode_by_episode(experiment, tmp_path):
+    """--models keeps those names' rows; --paired-against differences each variant's episodes
+    from the reference's with the same scenario, model, seed and episode, leaving out falls."""
+    mod = experiment("closed_loop_variants")
+
+    def r(sc, model, seed, v, fell=False):
+        return dict(_row(sc, model, v, fell=fell), seed=seed, episode=seed - 2)
+
+    ref = [r("rough", "stride", 2, 0.06), r("rough", "stride", 3, 0.07),
+           r("soft", "stride", 2, 0.05), r("soft", "stride", 3, 0.05, fell=True),
+           r("rough", "stride_s1", 2, 0.5)]
+    new = [r("rough", "stride", 2, 0.07), r("rough", "stride", 3, 0.09),
+           r("soft", "stride", 2, 0.04), r("soft", "stride", 3, 0.04),
+           r("rough", "stride_s1", 2, 0.1)]
+    p = mod.paired_rows([x for x in new if x["model"] == "stride"], ref)
+    assert p["n"] == 3  # the reference's fall leaves its pair out
+    assert p["diff"] == pytest.approx((0.01 + 0.02 - 0.01) / 3)
+    assert p["lo"] <= p["diff"] <= p["hi"]
+    assert p["per_scenario"] == pytest.approx({"rough": 0.015, "soft": -0.01})
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    a.write_text(json.dumps({"rows": ref}))
+    b.write_text(json.dumps({"rows": new}))
+    out = tmp_path / "t.md"
+    mod.main([f"ref={a}", f"new={b}", "--models", "stride", "--paired-against", "ref",
+              "--out", str(out)])
+    text = out.read_text()
+    assert "| new | 3 | +0.0067 [" in text and "| 1 of 2 | rough +0.0150, soft -0.0100 |" in text
+    assert "0.5000" not in text  # stride_s1's rows left out
+    with pytest.raises(ValueError, match="no such variant"):
+        mod.main([f"ref={a}", "--paired-against", "other", "--out", str(out)])
+    with pytest.raises(ValueError, match="no rows left"):
+        mod.main([f"ref={a}", "--models", "onn", "--out", str(out)])
