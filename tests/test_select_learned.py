@@ -40,6 +40,10 @@ def test_candidates_plan_the_same_episodes_and_are_ranked(tmp_path, capsys):
     assert "| 1 |" in md and "| 3 |" in md and "select-learned" in md
     said = capsys.readouterr().out  # each candidate says what it runs before its episodes
     assert "copy: 3 episodes of 0.1 s side by side" in said and "best: " in said
+    ref = table["policy"]  # the policy alone on the same episodes: a reference, never ranked
+    assert ref["label"] == "policy" and len(ref["per_world"]) == 3
+    assert ref["per_world"] not in [r["per_world"] for r in table["rows"]]
+    assert "The policy alone on the same episodes" in md and "the best candidate minus" in md
 
 
 def test_falls_rank_before_the_error():
@@ -80,11 +84,16 @@ def test_a_second_run_plans_only_the_new_candidates(tmp_path, capsys):
     base = ["select-learned", "--preset", "tiny", "--policy", "results/policies/ppo_go1",
             "--model", "onn=results/models/go1/onn-s0", "--out", str(out)]
     cli.main(base + ["--candidates", f"a={a}"])
-    first = json.loads((out / "selection.json").read_text())["rows"][0]
+    saved = json.loads((out / "selection.json").read_text())
+    first = saved["rows"][0]
+    # a table written before a setting was added resumes with that setting at its default
+    del saved["config"]["policy_reference"]
+    (out / "selection.json").write_text(json.dumps(saved))
     capsys.readouterr()
     cli.main(base + ["--candidates", f"a={a},b={b}"])
     said = capsys.readouterr().out
     assert "a planned already; kept" in said and "a: 2 episodes" not in said
+    assert "the policy alone" not in said  # its reference row kept too
     assert "b: 2 episodes" in said
     rows = {r["label"]: r for r in json.loads((out / "selection.json").read_text())["rows"]}
     assert rows["a"]["per_world"] == first["per_world"] and rows["a"]["seconds"] == first["seconds"]

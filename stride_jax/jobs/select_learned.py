@@ -10,7 +10,9 @@ closed-loop episodes side by side on the nominal ground, each a schedule of comm
 the policy's training distribution (a new one every ``change_s``), the same draws and the same
 planner keys for every candidate (paired). Each candidate's score is its planner's velocity
 tracking RMSE (:func:`stride_jax.control.episode.metrics`), falls first; the table gives each
-candidate's difference from the best with a paired 90% t-interval over the worlds.
+candidate's difference from the best with a paired 90% t-interval over the worlds, and the policy
+alone on the same episodes (``policy_reference``; a reference, never ranked) says whether the best
+planner tracks closer than its own fallback does.
 
     stride select-learned --robot g1 --policy results/policies/ppo_g1_uphill \\
         --model stride=results/models/g1_walk_ppo_g1_slope_slope15_tw1_tf0.25/stride-s0 \\
@@ -68,6 +70,8 @@ class SelectConfig:
       planning: the task's settings (``--planning.model-gravity`` ...), as the closed loop's.
       kernel: how structured models run their networks (``xla``, ``pallas-step`` ...).
       seed: the commands' draws and the planner's keys.
+      policy_reference: the policy alone on the same episodes too, as a reference (not a
+        candidate): whether the planner tracks closer than its own fallback does.
       out: folder for ``selection.{json,md}``.
     """
 
@@ -83,6 +87,7 @@ class SelectConfig:
     planning: PlanningConfig = PlanningConfig()
     kernel: str = "xla"
     seed: int = 0
+    policy_reference: bool = True
     out: str = "results/select_learned"  # not learned_*: SHA256SUMS lists those as fits
 
     def __post_init__(self):
@@ -148,24 +153,30 @@ def rank(rows: list[dict]) -> list[dict]:
 _RESUMABLE_ANYWAY = ("candidates", "out")
 
 
-def done_rows(cfg: SelectConfig) -> list[dict]:
-    """The rows already in ``OUT/selection.json`` that this run keeps: the candidates planned
-    with the same settings, the same label, path and file content. Raises where ``OUT`` holds a selection made
-    with other settings (the rows would not be paired with this run's)."""
+def _plain(cfg: SelectConfig) -> dict:
+    return json.loads(json.dumps(dataclasses.asdict(cfg)))  # tuples as JSON reads them back
+
+
+def done_rows(cfg: SelectConfig) -> tuple[list[dict], dict | None]:
+    """The rows already in ``OUT/selection.json`` that this run keeps (the candidates planned
+    with the same settings, the same label, path and file content) and the policy's reference
+    row there (None if none). A setting the saved table does not name (one added to the job
+    since) counts at its default. Raises where ``OUT`` holds a selection made with other
+    settings (the rows would not be paired with this run's)."""
     path = pathlib.Path(cfg.out) / "selection.json"
     if not path.is_file():
-        return []
+        return [], None
     table = json.loads(path.read_text())
-    mine = {k: v for k, v in json.loads(json.dumps(dataclasses.asdict(cfg))).items()
-            if k not in _RESUMABLE_ANYWAY}
-    theirs = {k: v for k, v in table["config"].items() if k not in _RESUMABLE_ANYWAY}
-    differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
+    defaults = _plain(SelectConfig())
+    mine = {k: v for k, v in _plain(cfg).items() if k not in _RESUMABLE_ANYWAY}
+    theirs = {k: table["config"].get(k, defaults[k]) for k in mine}
+    differ = sorted(k for k in mine if mine[k] != theirs[k])
     if differ:
         raise ValueError(f"{path} holds a selection made with other settings ({', '.join(differ)} "
                          f"differ): its episodes are not this run's; give another --out")
     wanted = set(cfg.pairs())
-    return [r for r in table["rows"] if (r["label"], r["path"]) in wanted
-            and r.get("sha256") == _sha256(r["path"])]
+    return ([r for r in table["rows"] if (r["label"], r["path"]) in wanted
+             and r.get("sha256") == _sha256(r["path"])], table.get("policy"))
 
 
 def _sha256(path: str) -> str | None:
@@ -185,14 +196,16 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
     for label, path in pairs:  # a missing file fails before any compile
         if not pathlib.Path(path).is_file():
             raise FileNotFoundError(f"candidate {label}: no learned reward/value file at {path}")
-    rows = done_rows(cfg)
+    rows, reference = done_rows(cfg)
     if rows:
         log(f"{cfg.out}: {', '.join(r['label'] for r in rows)} planned already; kept")
+    if not cfg.policy_reference:
+        reference = None
     out = pathlib.Path(cfg.out)
 
     def write(rows):
         table = dict(command=command, code=code, config=dataclasses.asdict(cfg), rows=rank(rows),
-                     candidates=len(pairs))
+                     candidates=len(pairs), policy=reference)
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / "selection.json", json.dumps(table, indent=1))
         atomic_write_text(out / "selection.md", markdown(table))
@@ -205,7 +218,7 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
 
     kept = {r["label"] for r in rows}
     todo = [(label, path) for label, path in pairs if label not in kept]
-    if not todo:
+    if not todo and (reference is not None or not cfg.policy_reference):
         return finish(rows)
     sm = sim_model.load(cfg.robot)
     policy, _, env_cfg = ppo.load_policy(cfg.policy)
@@ -232,35 +245,45 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
         log(f"  {now['label']}: {int(steps) * sm.robot.ctrl_dt:.1f} of {cfg.seconds:g} s "
             f"simulated ({time.monotonic() - now['t0']:.0f} s)")
 
-    def episodes(learned_params, values, keys):
+    def episodes(learned_params, values, keys, plan=True):
         planning = planning_lib.make_planning(cfg.planning, env_cfg, sm, step_fn, policy,
                                               learned_params)
-        with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
-            planner = planning_lib.make_planner(
-                planning, planning_lib.mppi_config(cfg.mppi, cfg.planning, planning))
+        planner = None  # plan=False: the policy alone (the learned files unused)
+        if plan:
+            with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
+                planner = planning_lib.make_planner(
+                    planning, planning_lib.mppi_config(cfg.mppi, cfg.planning, planning))
         return jax.vmap(lambda v, k: episode_lib.run_episode(
             sm, mx, slots, planning, planner, n_steps, starts, v, k, progress=progress,
             progress_every=every))(values, keys)
 
     # the learned files are the argument: candidates of one structure share one compile
-    episodes = jax.jit(episodes)
-    for label, path in todo:
+    episodes = jax.jit(episodes, static_argnames="plan")
+
+    def score(label, params, plan=True):
         t0 = now["t0"] = time.monotonic()
         now["label"] = label
-        log(f"{label}: {cfg.worlds} episodes of {cfg.seconds:g} s side by side ({path})")
-        params = learned_lib.load(path, ensemble=True)
-        trace = jax.block_until_ready(episodes(params, values, keys))
+        trace = jax.block_until_ready(episodes(params, values, keys, plan=plan))
         per = [episode_lib.metrics(jax.tree.map(lambda x, i=i: x[i], trace), cfg.settle_s)
                for i in range(cfg.worlds)]
         fell = [bool(m["fell"]) for m in per]
         up = [m["vel_rmse"] for m, f in zip(per, fell) if not f]
-        rows.append(dict(label=label, path=path, sha256=_sha256(path), falls=sum(fell),
-                         worlds=cfg.worlds,
-                         vel_rmse=float(np.mean(up)) if up else float("nan"),
-                         per_world=[float(m["vel_rmse"]) for m in per], fell=fell,
-                         seconds=time.monotonic() - t0))
-        log(f"{label}: velocity RMSE {rows[-1]['vel_rmse']:.4f} m/s over {len(up)} worlds up, "
-            f"{sum(fell)} of {cfg.worlds} fell ({rows[-1]['seconds']:.0f} s)")
+        row = dict(label=label, falls=sum(fell), worlds=cfg.worlds,
+                   vel_rmse=float(np.mean(up)) if up else float("nan"),
+                   per_world=[float(m["vel_rmse"]) for m in per], fell=fell,
+                   seconds=time.monotonic() - t0)
+        log(f"{label}: velocity RMSE {row['vel_rmse']:.4f} m/s over {len(up)} worlds up, "
+            f"{row['falls']} of {cfg.worlds} fell ({row['seconds']:.0f} s)")
+        return row
+
+    if cfg.policy_reference and reference is None:
+        log(f"the policy alone: {cfg.worlds} episodes of {cfg.seconds:g} s side by side "
+            "(a reference, not a candidate)")
+        reference = score("policy", learned_lib.load(pairs[0][1], ensemble=True), plan=False)
+    for label, path in todo:
+        log(f"{label}: {cfg.worlds} episodes of {cfg.seconds:g} s side by side ({path})")
+        rows.append(dict(score(label, learned_lib.load(path, ensemble=True)), path=path,
+                         sha256=_sha256(path)))
         if len(rows) < len(pairs):
             write(rows)  # after each candidate: a cut run keeps what it finished
     return finish(rows)
@@ -287,6 +310,15 @@ def markdown(table: dict) -> str:
         lines.append(f"| {i} | {r['label']} | {r['falls']} of {r['worlds']} | "
                      f"{r['vel_rmse']:.4f} | {vs} | `{r['path']}` |")
     rows = table["rows"]
+    ref = table.get("policy")
+    if ref is not None:
+        both = [i for i, (a, b) in enumerate(zip(rows[0]["fell"], ref["fell"])) if not (a or b)]
+        v = paired(np.asarray(rows[0]["per_world"])[both], np.asarray(ref["per_world"])[both])
+        lines += ["", f"The policy alone on the same episodes (a reference, not a candidate): "
+                  f"{ref['vel_rmse']:.4f}, {ref['falls']} of {ref['worlds']} fell; the best "
+                  f"candidate minus the policy: " + ("n/a" if v is None else
+                  f"{v['diff']:+.4f} [{v['lo']:+.4f}, {v['hi']:+.4f}] over {v['n']} episodes")
+                  + "."]
     ties = [r["label"] for r in rows[1:] if r["falls"] == rows[0]["falls"]
             and r["vs_best"] is not None and r["vs_best"]["lo"] <= 0]
     lines += ["", f"Not told apart from the best ({rows[0]['label']}): "
