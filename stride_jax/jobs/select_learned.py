@@ -22,10 +22,10 @@ uphill=results/learned_g1_uphill/reward_value.msgpack \\
 
 Writes ``OUT/selection.{json,md}`` after each candidate, ranked over those done so far; run again
 with the same settings and ``--out`` (more candidates welcome), it plans only the candidates not
-yet there (a call cut by its time limit keeps what it finished). The planner is built as the closed loop builds it from the
-same ``--mppi.*`` and ``--planning.*`` flags (give the headline's to choose for the headline;
-the flat aliases such as ``--prior-noise-std`` are the closed loop's alone: here
-``--planning.prior-noise-std``). The closed loop's other options (model substeps, a learned
+yet there (a call cut by its time limit keeps what it finished). The planner is built as the
+closed loop builds it from the same ``--mppi.*`` and ``--planning.*`` flags (give the headline's
+to choose for the headline; the flat aliases such as ``--prior-noise-std`` are the closed
+loop's alone: here ``--planning.prior-noise-std``). The closed loop's other options (model substeps, a learned
 error model, sensor noise, latency) are not taken: the planner runs without them.
 """
 
