@@ -127,3 +127,38 @@ def test_the_table_names_the_candidates_not_told_apart_from_the_best():
                  config=dict(worlds=4, seconds=1.0, change_s=0.5, model="m", policy="p"))
     assert "Not told apart from the best (best): tie." in sel.markdown(table)
     assert "(best): none." in sel.markdown({**table, "rows": rows[:1]})
+
+
+def test_the_closed_loops_model_options_reach_the_planner(tmp_path):
+    """--model-substeps, --sensor-noise (and the error model, precision) are the closed loop's:
+    each changes what the same candidate's planner does on the same episodes; the oracle takes
+    no learned model's options, and sensor terms without their factor are an error."""
+    from stride_jax.control import episode
+    from stride_jax.sim import model as sim_model
+
+    sm = sim_model.load("go1")
+    q, qd = sm.mj.qpos0.copy(), np.zeros(sm.mj.nv)
+    q[2] += 0.05
+    ctrl = np.zeros(sm.mj.nu)
+    run, onn = "results/models/go1/stride-s0", "results/models/go1/onn-s0"
+    as_trained = episode.learned_step_fn(run, sm)(q, qd, ctrl, None)
+    coarse = episode.learned_step_fn(run, sm, substeps=1)(q, qd, ctrl, None)
+    assert not np.allclose(as_trained[1], coarse[1])  # one substep: a coarser integration
+    np.testing.assert_array_equal(  # a next-observation model predicts the period at once
+        episode.learned_step_fn(onn, sm)(q, qd, ctrl, None)[1],
+        episode.learned_step_fn(onn, sm, substeps=1)(q, qd, ctrl, None)[1])
+    a = "results/learned_go1/reward_value.msgpack"
+    base = ["select-learned", "--preset", "tiny", "--policy", "results/policies/ppo_go1",
+            "--model", f"stride={run}", "--candidates", f"a={a}", "--no-policy-reference"]
+    cli.main(base + ["--out", str(tmp_path / "plain")])
+    cli.main(base + ["--sensor-noise", "1", "--out", str(tmp_path / "noisy")])
+    plain, noisy = (json.loads((tmp_path / d / "selection.json").read_text())
+                    for d in ("plain", "noisy"))
+    assert noisy["config"]["sensor_noise"] == 1.0 and plain["policy"] is None
+    assert noisy["rows"][0]["per_world"] != plain["rows"][0]["per_world"]
+    with pytest.raises(ValueError, match="oracle plans through the simulator"):
+        sel.SelectConfig(model="oracle", model_substeps=2)
+    with pytest.raises(ValueError, match="--sensor-noise is 0"):
+        sel.SelectConfig(sensors=sel.SensorNoise(gyro_std=1.0))
+    with pytest.raises(ValueError, match="model_substeps=-1"):
+        sel.SelectConfig(model_substeps=-1)

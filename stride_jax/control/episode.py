@@ -600,7 +600,13 @@ def learned_step(model, params, precision: str = "", nfe: int | None = None) -> 
 
 
 def learned_step_fn(run: str, sm: sim_model.SimModel, kernel: str = "xla",
-                    precision: str = "") -> Callable:
-    """``step(q, qd, ctrl, key)`` of a trained dynamics model (:func:`learned_model`)."""
+                    precision: str = "", substeps: int = 0) -> Callable:
+    """``step(q, qd, ctrl, key)`` of a trained dynamics model (:func:`learned_model`);
+    ``substeps`` > 0: a structured model integrates each control period in as many substeps
+    (``models.with_substeps``), a next-observation model predicts it at once as trained."""
+    from stride_jax.dynamics import models
+
     model, params = learned_model(run, sm, kernel)
+    if substeps and models.has_substeps(model):
+        model = models.with_substeps(model, substeps)
     return learned_step(model, params, precision)

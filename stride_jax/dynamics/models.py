@@ -468,13 +468,21 @@ def next_observation(name: str, spec: ModelSpec, act: Actuation, cfg: stride.Str
                  None, step, rollout, None, spec, act, cfg, scales, None)
 
 
+def has_substeps(model: Model) -> bool:
+    """Whether ``model`` integrates its accelerations over substeps of a control period (the
+    structured models), which :func:`with_substeps` can change; a next-observation model
+    predicts the period at once."""
+    return not (model.actuation is None or model.config is None
+                or MODELS[model.name][0] == "next_obs")
+
+
 def with_substeps(model: Model, n_substeps: int) -> Model:
     """``model`` integrating each control period in ``n_substeps`` substeps (of ``period /
     n_substeps``) instead of the ``actuation.n_substeps`` it was trained with: the same
     parameters and accelerations, a coarser (or finer) integration of them, e.g. a planner
     that trades model steps for time. Structured models only: a next-observation model predicts
     the period at once."""
-    if model.actuation is None or model.config is None or MODELS[model.name][0] == "next_obs":
+    if not has_substeps(model):
         raise ValueError(f"model {model.name!r} predicts the control period at once: it has no "
                          "substeps to change")
     if int(n_substeps) != n_substeps or n_substeps < 1:

@@ -65,7 +65,7 @@ from stride_jax.control.scenarios import (SCENARIOS, WALK, Scenario, command_at,
 from stride_jax.io import atomic_write, atomic_write_text, code_version
 from stride_jax.jobs.headline import check_entries
 from stride_jax.sim import model as sim_model
-from stride_jax.sim.sensors import SensorNoise
+from stride_jax.sim.sensors import SensorNoise, seen_through
 from stride_jax.timing import wall_times
 
 
@@ -231,10 +231,7 @@ class ClosedLoopConfig:
         if self.model_precision not in PRECISIONS:
             raise ValueError(f"--model-precision is {self.model_precision!r}: use one of "
                              f"{', '.join(repr(p) for p in PRECISIONS)}")
-        self.sensors.scaled(self.sensor_noise)  # a clear error for a negative or NaN factor
-        if not self.sensor_noise and self.sensors != SensorNoise():
-            raise ValueError("--sensors.* set the sensors' terms, which only --sensor-noise > 0 "
-                             "uses (1: the terms as given); --sensor-noise is 0")
+        seen_through(self.sensors, self.sensor_noise)  # a clear error for a bad pair
         for field in ("seconds", "slope_deg", "rough_cm", "push_scale", "friction", "payload"):
             if getattr(self, field) < 0:
                 raise ValueError(f"--{field.replace('_', '-')} is {getattr(self, field)}: it must be >= 0 "
@@ -315,7 +312,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     # compiled episode
     learned = {name: learned_model(run_dir, sm, cfg.kernel) for name, run_dir in models if run_dir}
     if cfg.model_substeps:
-        coarse = [n for n, (m, _) in learned.items() if dyn_models.MODELS[m.name][0] != "next_obs"]
+        coarse = [n for n, (m, _) in learned.items() if dyn_models.has_substeps(m)]
         for n in coarse:
             m, params = learned[n]
             learned[n] = (dyn_models.with_substeps(m, cfg.model_substeps), params)
@@ -337,7 +334,7 @@ def run(cfg: ClosedLoopConfig, command: str = "", log=print) -> list[dict]:
     if any(name == "policy" for name, _ in models) and ppo_policy is None:
         raise ValueError("model 'policy' needs --policy RUN")
     compiled = {}  # one executable per (kind of model, episode length, model structures)
-    sensors = cfg.sensors.scaled(cfg.sensor_noise) if cfg.sensor_noise else None
+    sensors = seen_through(cfg.sensors, cfg.sensor_noise)
     limits = env_cfg.commands.bounds() if cfg.govern else None
     every = max(1, int(round(cfg.progress_s / sm.robot.ctrl_dt))) if cfg.progress_s > 0 else 0
     now = {"label": "", "t0": 0.0, "n": 1}  # the running pair, for the progress callback

@@ -25,8 +25,11 @@ with the same settings and ``--out`` (more candidates welcome), it plans only th
 yet there (a call cut by its time limit keeps what it finished). The planner is built as the
 closed loop builds it from the same ``--mppi.*`` and ``--planning.*`` flags (give the headline's
 to choose for the headline; the flat aliases such as ``--prior-noise-std`` are the closed
-loop's alone: here ``--planning.prior-noise-std``). The closed loop's other options (model substeps, a learned
-error model, sensor noise, latency) are not taken: the planner runs without them.
+loop's alone: here ``--planning.prior-noise-std``). Its model options are the closed loop's too:
+``--kernel``, ``--model-precision``, ``--model-substeps``, ``--error-model``, and the sensors the
+controller sees through (``--sensor-noise``, ``--sensors.*``); latency is
+``--planning.latency-s`` (the closed loop's ``--latency-auto`` measures it per planner; give the
+time it measured).
 """
 
 from __future__ import annotations
@@ -48,6 +51,7 @@ from stride_jax.control.mppi import MPPIConfig
 from stride_jax.control.planning import PlanningConfig
 from stride_jax.io import atomic_write_text, code_version
 from stride_jax.sim import model as sim_model
+from stride_jax.sim.sensors import SensorNoise, seen_through
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,6 +73,13 @@ class SelectConfig:
       mppi: the planner's settings (``--mppi.samples`` ...), as the closed loop's.
       planning: the task's settings (``--planning.model-gravity`` ...), as the closed loop's.
       kernel: how structured models run their networks (``xla``, ``pallas-step`` ...).
+      model_precision: matmul precision of the model's steps (the closed loop's).
+      model_substeps: structured models integrate each control period in this many substeps
+        (0: as trained; the closed loop's).
+      error_model: a learned one-step error model of the planner's model (the closed loop's).
+      sensor_noise: the controller sees the state through ``sensors`` at this factor (0: the
+        exact state; the closed loop's).
+      sensors: the sensors' terms (``--sensors.*``), used where ``sensor_noise`` > 0.
       seed: the commands' draws and the planner's keys.
       policy_reference: the policy alone on the same episodes too, as a reference (not a
         candidate): whether the planner tracks closer than its own fallback does.
@@ -86,6 +97,11 @@ class SelectConfig:
     mppi: MPPIConfig = MPPIConfig(samples=1024, horizon=20, policy_samples=64)
     planning: PlanningConfig = PlanningConfig()
     kernel: str = "xla"
+    model_precision: str = ""
+    model_substeps: int = 0
+    error_model: str = ""
+    sensor_noise: float = 0.0
+    sensors: SensorNoise = SensorNoise()
     seed: int = 0
     policy_reference: bool = True
     out: str = "results/select_learned"  # not learned_*: SHA256SUMS lists those as fits
@@ -104,6 +120,16 @@ class SelectConfig:
             raise ValueError(f"seconds={self.seconds} and change_s={self.change_s} must be > 0")
         if not self.policy:
             raise ValueError("policy: the planner's policy and the commands' distribution")
+        if self.model_substeps < 0:
+            raise ValueError(f"model_substeps={self.model_substeps}: >= 0 (0: as trained)")
+        if self.model_precision not in episode_lib.PRECISIONS:
+            raise ValueError(f"model_precision={self.model_precision!r}: one of "
+                             f"{', '.join(repr(p) for p in episode_lib.PRECISIONS)}")
+        if self.model == "oracle" and (self.model_substeps or self.error_model
+                                       or self.model_precision):
+            raise ValueError("model_substeps, model_precision and error_model are a learned "
+                             "model's; the oracle plans through the simulator itself")
+        seen_through(self.sensors, self.sensor_noise)  # a clear error for a bad pair
 
     def pairs(self) -> list[tuple[str, str]]:
         """``[(label, path)]`` of ``candidates``."""
@@ -229,7 +255,13 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
     if cfg.model == "oracle":
         step_fn = episode_lib.mjx_step_fn(sm, mx)
     else:
-        step_fn = episode_lib.learned_step_fn(cfg.model.partition("=")[2], sm, cfg.kernel)
+        step_fn = episode_lib.learned_step_fn(cfg.model.partition("=")[2], sm, cfg.kernel,
+                                              cfg.model_precision, cfg.model_substeps)
+    error_params = None
+    if cfg.error_model:
+        from stride_jax.control import planner_value
+        error_params = planner_value.load_error_model(cfg.error_model)
+    sensors = seen_through(cfg.sensors, cfg.sensor_noise)
     n_steps = max(1, int(round(cfg.seconds / sm.robot.ctrl_dt)))
     key_cmd, key_run = jax.random.split(jax.random.key(cfg.seed))
     # a new command every change_s, drawn as the planner's value data are
@@ -247,7 +279,7 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
 
     def episodes(learned_params, values, keys, plan=True):
         planning = planning_lib.make_planning(cfg.planning, env_cfg, sm, step_fn, policy,
-                                              learned_params)
+                                              learned_params, error_params=error_params)
         planner = None  # plan=False: the policy alone (the learned files unused)
         if plan:
             with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
@@ -255,7 +287,7 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
                     planning, planning_lib.mppi_config(cfg.mppi, cfg.planning, planning))
         return jax.vmap(lambda v, k: episode_lib.run_episode(
             sm, mx, slots, planning, planner, n_steps, starts, v, k, progress=progress,
-            progress_every=every))(values, keys)
+            progress_every=every, sensors=sensors))(values, keys)
 
     # the learned files are the argument: candidates of one structure share one compile
     episodes = jax.jit(episodes, static_argnames="plan")

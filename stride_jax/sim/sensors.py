@@ -77,6 +77,18 @@ class SensorNoise:
         return dataclasses.replace(self, **{n: getattr(self, n) * factor for n in _SCALED})
 
 
+def seen_through(noise: SensorNoise, factor: float) -> SensorNoise | None:
+    """The sensors a controller sees the state through at ``factor`` times ``noise``'s terms
+    (the ``--sensor-noise`` and ``--sensors.*`` flags of the closed loop and of select-learned):
+    None, the exact state, at factor 0. A negative or NaN factor, or terms changed from the
+    defaults while the factor is 0 (they would be silently unused), are clear errors."""
+    scaled = noise.scaled(factor)
+    if not factor and noise != SensorNoise():
+        raise ValueError("--sensors.* set the sensors' terms, which only --sensor-noise > 0 "
+                         "uses (1: the terms as given); --sensor-noise is 0")
+    return scaled if factor else None
+
+
 def measure(noise: SensorNoise, q: jax.Array, qd: jax.Array, key: jax.Array,
             floating_base: bool) -> tuple[jax.Array, jax.Array]:
     """``(q, qd)`` of one sample as the sensors and state estimator report them: joint angles
