@@ -351,8 +351,9 @@ def markdown(table: dict) -> str:
                   f"candidate minus the policy: " + ("n/a" if v is None else
                   f"{v['diff']:+.4f} [{v['lo']:+.4f}, {v['hi']:+.4f}] over {v['n']} episodes")
                   + "."]
+    # no interval (identical errors, or under two episodes both kept up) tells nothing apart
     ties = [r["label"] for r in rows[1:] if r["falls"] == rows[0]["falls"]
-            and r["vs_best"] is not None and r["vs_best"]["lo"] <= 0]
+            and (r["vs_best"] is None or r["vs_best"]["lo"] <= 0)]
     lines += ["", f"Not told apart from the best ({rows[0]['label']}): "
               f"{', '.join(ties) if ties else 'none'}. The rank among these is not established "
               "by these episodes; more worlds, or a reason outside this table, decide it."]
