@@ -44,6 +44,7 @@ def test_candidates_plan_the_same_episodes_and_are_ranked(tmp_path, capsys):
         assert ({"a", "copy"} - {best}).pop() in ties
     said = capsys.readouterr().out  # each candidate says what it runs before its episodes
     assert "copy: 3 episodes of 0.1 s side by side" in said and "best: " in said
+    assert np.asarray(table["commands"]).shape == (3, 2, 3)  # worlds x changes x command
     ref = table["policy"]  # the policy alone on the same episodes: a reference, never ranked
     assert ref["label"] == "policy" and len(ref["per_world"]) == 3
     assert ref["per_world"] not in [r["per_world"] for r in table["rows"]]

@@ -231,7 +231,7 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
 
     def write(rows):
         table = dict(command=command, code=code, config=dataclasses.asdict(cfg), rows=rank(rows),
-                     candidates=len(pairs), policy=reference)
+                     candidates=len(pairs), policy=reference, commands=commands)
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / "selection.json", json.dumps(table, indent=1))
         atomic_write_text(out / "selection.md", markdown(table))
@@ -242,14 +242,22 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
         log(f"best: {ranked[0]['label']}; wrote {out}")
         return ranked
 
+    policy, _, env_cfg = ppo.load_policy(cfg.policy)
+    if env_cfg.robot != cfg.robot:
+        raise ValueError(f"the policy {cfg.policy} drives {env_cfg.robot}, not {cfg.robot}")
+    key_cmd, key_run = jax.random.split(jax.random.key(cfg.seed))
+    # a new command every change_s, drawn as the planner's value data are
+    # (stride_jax.control.planner_value.collect); each episode's (forward, lateral, yaw) per
+    # change go into the table, to read where a planner gains or loses against the policy
+    starts, values = envs.command_schedules(env_cfg.commands, key_cmd, cfg.worlds,
+                                            max(1, int(np.ceil(cfg.seconds / cfg.change_s))),
+                                            cfg.change_s)
+    commands = np.asarray(values).round(4).tolist()
     kept = {r["label"] for r in rows}
     todo = [(label, path) for label, path in pairs if label not in kept]
     if not todo and (reference is not None or not cfg.policy_reference):
         return finish(rows)
     sm = sim_model.load(cfg.robot)
-    policy, _, env_cfg = ppo.load_policy(cfg.policy)
-    if env_cfg.robot != cfg.robot:
-        raise ValueError(f"the policy {cfg.policy} drives {env_cfg.robot}, not {cfg.robot}")
     mx = mjx.put_model(sm.mj)
     slots = envs.contact_slots(mx)
     if cfg.model == "oracle":
@@ -263,12 +271,6 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
         error_params = planner_value.load_error_model(cfg.error_model)
     sensors = seen_through(cfg.sensors, cfg.sensor_noise)
     n_steps = max(1, int(round(cfg.seconds / sm.robot.ctrl_dt)))
-    key_cmd, key_run = jax.random.split(jax.random.key(cfg.seed))
-    # a new command every change_s, drawn as the planner's value data are
-    # (stride_jax.control.planner_value.collect)
-    starts, values = envs.command_schedules(env_cfg.commands, key_cmd, cfg.worlds,
-                                            max(1, int(np.ceil(cfg.seconds / cfg.change_s))),
-                                            cfg.change_s)
     keys = jax.random.split(key_run, cfg.worlds)
     every = max(1, int(round(1.0 / sm.robot.ctrl_dt)))  # a progress line per simulated second
     now = {"label": "", "t0": 0.0}  # the running candidate, for the progress callback
