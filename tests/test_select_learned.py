@@ -102,6 +102,7 @@ def test_a_second_run_plans_only_the_new_candidates(tmp_path, capsys):
     assert "b: 2 episodes" in said
     rows = {r["label"]: r for r in json.loads((out / "selection.json").read_text())["rows"]}
     assert rows["a"]["per_world"] == first["per_world"] and rows["a"]["seconds"] == first["seconds"]
+    assert rows["a"]["code"] == first["code"]  # each row keeps the code that planned it
     shutil.copy(a, b)  # b's content changes: planned again, now as a
     cli.main(base + ["--candidates", f"a={a},b={b}"])
     said = capsys.readouterr().out

@@ -305,7 +305,7 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
         row = dict(label=label, falls=sum(fell), worlds=cfg.worlds,
                    vel_rmse=float(np.mean(up)) if up else float("nan"),
                    per_world=[float(m["vel_rmse"]) for m in per], fell=fell,
-                   seconds=time.monotonic() - t0)
+                   seconds=time.monotonic() - t0, code=code)  # a resumed table mixes runs
         log(f"{label}: velocity RMSE {row['vel_rmse']:.4f} m/s over {len(up)} worlds up, "
             f"{row['falls']} of {cfg.worlds} fell ({row['seconds']:.0f} s)")
         return row
