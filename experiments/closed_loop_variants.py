@@ -13,7 +13,9 @@ keeps that part's rows). Rows are grouped by scenario and by trained seed
 ``--models`` keeps the rows of those model names alone (``stride``: trained seed 0 of a run over
 three). ``--paired-against LABEL`` adds each variant's difference from that one, episode by
 episode (the same scenario, model name, planner seed and episode: the same ground and draws where
-the runs shared their flags), with its 90% t-interval over every pair both kept up."""
+the runs shared their flags), with its 90% t-interval over every pair both kept up: pooled over
+scenarios of different scales, a summary (the per-scenario means stand beside it), and over
+draws and trained seeds as if independent."""
 
 from __future__ import annotations
 
