@@ -28,6 +28,7 @@ import sys
 import numpy as np
 
 from stride_jax.io import atomic_write_text
+from stride_jax.jobs.select_learned import paired
 from stride_paper.seeds import seed_means
 
 
@@ -67,21 +68,17 @@ def _key(r: dict) -> tuple:
 
 def paired_rows(rows: list[dict], ref: list[dict]) -> dict:
     """``rows`` against ``ref`` episode by episode (:func:`_key`), both up: the pairs, the mean
-    difference with its 90% t-interval (None under two pairs or no spread) and per scenario the
-    mean difference."""
-    from scipy import stats
-
+    difference with its 90% t-interval (``select_learned.paired``; None under two pairs or no
+    spread) and per scenario the mean difference."""
     theirs = {_key(r): r for r in ref if not r["fell"]}
-    pairs = [(r["scenario"], r["vel_rmse"] - theirs[_key(r)]["vel_rmse"])
-             for r in rows if not r["fell"] and _key(r) in theirs]
-    d = np.array([x for _, x in pairs])
-    ci = (stats.ttest_1samp(d, 0.0).confidence_interval(0.9)
-          if len(d) >= 2 and np.std(d) > 0 else None)
-    per_sc = {sc: float(np.mean([x for s, x in pairs if s == sc]))
-              for sc in dict.fromkeys(s for s, _ in pairs)}
-    return dict(n=len(d), diff=float(d.mean()) if len(d) else float("nan"),
-                lo=None if ci is None else float(ci.low), hi=None if ci is None else float(ci.high),
-                per_scenario=per_sc)
+    mine = [r for r in rows if not r["fell"] and _key(r) in theirs]
+    x = np.array([r["vel_rmse"] for r in mine])
+    y = np.array([theirs[_key(r)]["vel_rmse"] for r in mine])
+    d, ci = x - y, paired(x, y) or {}
+    per_sc = {sc: float(np.mean([v for r, v in zip(mine, d) if r["scenario"] == sc]))
+              for sc in dict.fromkeys(r["scenario"] for r in mine)}
+    return dict(n=len(d), diff=float(d.mean()) if len(d) else float("nan"), lo=ci.get("lo"),
+                hi=ci.get("hi"), per_scenario=per_sc)
 
 
 def paired_table(pooled: dict[str, list[dict]], ref_label: str) -> list[str]:

@@ -35,7 +35,6 @@ time it measured).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import pathlib
 import time
@@ -49,7 +48,7 @@ from stride_jax.control import envs, episode as episode_lib, learned as learned_
 from stride_jax.control import planning as planning_lib
 from stride_jax.control.mppi import MPPIConfig
 from stride_jax.control.planning import PlanningConfig
-from stride_jax.io import atomic_write_text, code_version
+from stride_jax.io import atomic_write_text, code_version, file_sha256
 from stride_jax.sim import model as sim_model
 from stride_jax.sim.sensors import SensorNoise, seen_through
 
@@ -169,10 +168,14 @@ def rank(rows: list[dict]) -> list[dict]:
     order = sorted(rows, key=lambda r: (r["falls"], np.nan_to_num(r["vel_rmse"], nan=np.inf)))
     best = order[0]
     for r in order:
-        both = [i for i, (a, b) in enumerate(zip(r["fell"], best["fell"])) if not (a or b)]
-        mine, theirs = np.asarray(r["per_world"])[both], np.asarray(best["per_world"])[both]
-        r["vs_best"] = None if r is best else paired(mine, theirs)
+        r["vs_best"] = None if r is best else versus(r, best)
     return order
+
+
+def versus(row: dict, other: dict) -> dict | None:
+    """:func:`paired` of two rows' per-episode errors over the episodes both kept up."""
+    both = [i for i, (a, b) in enumerate(zip(row["fell"], other["fell"])) if not (a or b)]
+    return paired(np.asarray(row["per_world"])[both], np.asarray(other["per_world"])[both])
 
 
 # what may differ between runs that share one selection: which candidates, and where it is written
@@ -201,13 +204,8 @@ def done_rows(cfg: SelectConfig) -> tuple[list[dict], dict | None]:
         raise ValueError(f"{path} holds a selection made with other settings ({', '.join(differ)} "
                          f"differ): its episodes are not this run's; give another --out")
     wanted = set(cfg.pairs())
-    return ([r for r in table["rows"] if (r["label"], r["path"]) in wanted
-             and r.get("sha256") == _sha256(r["path"])], table.get("policy"))
-
-
-def _sha256(path: str) -> str | None:
-    p = pathlib.Path(path)
-    return hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None
+    return ([r for r in table["rows"] if (r["label"], r["path"]) in wanted  # (files exist)
+             and r.get("sha256") == file_sha256(r["path"])], table.get("policy"))
 
 
 def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
@@ -317,7 +315,7 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
     for label, path in todo:
         log(f"{label}: {cfg.worlds} episodes of {cfg.seconds:g} s side by side ({path})")
         rows.append(dict(score(label, learned_lib.load(path, ensemble=True)), path=path,
-                         sha256=_sha256(path)))
+                         sha256=file_sha256(path)))
         if len(rows) < len(pairs):
             write(rows)  # after each candidate: a cut run keeps what it finished
     return finish(rows)
@@ -346,8 +344,7 @@ def markdown(table: dict) -> str:
     rows = table["rows"]
     ref = table.get("policy")
     if ref is not None:
-        both = [i for i, (a, b) in enumerate(zip(rows[0]["fell"], ref["fell"])) if not (a or b)]
-        v = paired(np.asarray(rows[0]["per_world"])[both], np.asarray(ref["per_world"])[both])
+        v = versus(rows[0], ref)
         lines += ["", f"The policy alone on the same episodes (a reference, not a candidate): "
                   f"{ref['vel_rmse']:.4f}, {ref['falls']} of {ref['worlds']} fell; the best "
                   f"candidate minus the policy: " + ("n/a" if v is None else
