@@ -49,6 +49,29 @@ def test_candidates_plan_the_same_episodes_and_are_ranked(tmp_path, capsys):
     assert ref["label"] == "policy" and len(ref["per_world"]) == 3
     assert ref["per_world"] not in [r["per_world"] for r in table["rows"]]
     assert "The policy alone on the same episodes" in md and "the best candidate minus" in md
+    # each episode's error under each of its commands, and where the best and the policy differ
+    assert np.asarray(rows["a"]["per_piece"], float).shape == (3, 2)
+    assert f"Where {best} and the policy differ" in md and "| stops (all zero) |" in md
+
+
+def test_where_the_best_and_the_policy_differ_is_read_by_command():
+    """A planner that loses only under lateral commands shows it in the lateral rows alone."""
+    commands = [[[1.5, 0.05, 0.1], [0.2, 0.4, 0.0]], [[0.0, 0.0, 0.0], [1.8, -0.45, 0.2]],
+                [[0.3, -0.02, -0.9], [1.2, 0.3, 0.1]]]  # worlds x pieces x (vx, vy, yaw)
+    bounds = [[0.0, -0.5, -1.0], [2.0, 0.5, 1.0]]
+    policy = dict(per_piece=[[0.05, 0.05], [0.02, 0.05], [0.05, 0.05]],
+                  per_piece_yaw=[[0.1, 0.1], [0.1, 0.1], [0.1, 0.1]])
+    lateral = [[abs(c[1]) >= 0.25 for c in w] for w in commands]
+    noise = [[0.001, -0.002], [0.0, 0.002], [-0.001, 0.001]]
+    plan = dict(per_piece=[[p + (0.04 if lat else 0.0) + e for p, lat, e in zip(*z)]
+                           for z in zip(policy["per_piece"], lateral, noise)],
+                per_piece_yaw=[[0.1, None], [0.1, 0.1], [0.1, 0.1]])  # one piece not scored
+    groups = {g["label"]: g for g in sel.by_command(plan, policy, commands, bounds)}
+    big, small = groups["|lateral| >= 0.25"], groups["|lateral| < 0.25"]
+    assert big["n"] == 2 and small["n"] == 2  # the stop is neither; the unscored piece dropped
+    assert big["vel"]["lo"] > 0.02 and small["vel"]["hi"] < 0.01
+    assert groups["stops (all zero)"]["n"] == 1 and groups["stops (all zero)"]["vel"] is None
+    assert sel.by_command(plan, {"per_world": [0.1]}, commands, bounds) == []  # an old row
 
 
 def test_falls_rank_before_the_error():

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from stride_jax.control.episode import tracked
+from stride_jax.control.episode import piece_errors, tracked
 
 
 def _trace(folder, model, offset, sway, scenario="changes", draw=0, n=200, dt=0.02,
@@ -45,6 +45,28 @@ def test_scored_steps_follow_the_settle_time_and_the_fall():
     fallen[8:] = True
     use = tracked(types.SimpleNamespace(t=t, command=command, fallen=fallen), settle_s=0.03)
     assert use.tolist() == [False, False, True, True, False, False, True, True, False, False]
+
+
+def test_each_command_piece_gets_its_own_error():
+    """piece_errors splits the scored steps by the schedule's pieces: an error that arises only
+    under the second command is that piece's alone; a piece with no scored step is NaN."""
+    import types
+    t = 0.02 * np.arange(12)
+    command = np.zeros((12, 3))
+    command[4:8] = [1.0, 0.0, 0.5]  # pieces start at 0, 0.08 and 0.16 s
+    command[8:] = [0.2, 0.0, 0.0]
+    v, w = np.zeros((12, 3)), np.zeros((12, 3))
+    v[:, 0] = command[:, 0]
+    v[4:8, 0] += 0.3  # the second piece misses by 0.3 m/s ...
+    w[4:8, 2] = 0.5 - 0.1  # ... and 0.1 rad/s
+    fallen = np.zeros(12, bool)
+    fallen[10:] = True  # the third piece scores two steps before the fall
+    tr = types.SimpleNamespace(t=t, command=command, v_base=v, w_base=w, fallen=fallen)
+    vel, yaw = piece_errors(tr, [0.0, 0.08, 0.16], settle_s=0.0)
+    np.testing.assert_allclose(vel, [0.0, 0.3, 0.0], atol=1e-12)
+    np.testing.assert_allclose(yaw, [0.0, 0.1, 0.0], atol=1e-12)
+    vel, _ = piece_errors(tr, [0.0, 0.08, 0.16, 0.2], settle_s=0.0)  # the last: all fallen
+    assert np.isnan(vel[-1]) and np.isfinite(vel[:3]).all()
 
 
 def test_offsets_and_variance_add_up_to_the_mean_square_error(tmp_path, experiment):

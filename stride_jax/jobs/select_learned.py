@@ -178,6 +178,37 @@ def versus(row: dict, other: dict) -> dict | None:
     return paired(np.asarray(row["per_world"])[both], np.asarray(other["per_world"])[both])
 
 
+def by_command(row: dict, other: dict, commands, bounds) -> list[dict]:
+    """Where ``row`` tracks closer or worse than ``other``: their per-piece errors (rows'
+    ``per_piece``, ``per_piece_yaw``: each episode's RMSE under each command) paired piece by
+    piece and grouped by the command -- stops (all zero), then each component at or above half
+    its range's largest magnitude (``bounds``: the commands' ``(lo [3], hi [3])``) or below it,
+    among the moving pieces. Each group: ``label``, ``n`` pieces both scored, ``vel`` and
+    ``yaw``, :func:`paired` over the pieces (the pieces of one episode taken as independent: a
+    screen, not a test). Empty where either row lacks per-piece errors."""
+    if "per_piece" not in row or "per_piece" not in other:
+        return []
+    cmd = np.asarray(commands, float)  # [W, P, 3]
+    scale = np.maximum(np.abs(np.asarray(bounds[0], float)), np.abs(np.asarray(bounds[1], float)))
+    big = np.abs(cmd) >= 0.5 * np.where(scale > 0, scale, np.inf)  # [W, P, 3]
+    stop = np.all(cmd == 0, axis=-1)
+    arr = lambda r, k: np.asarray([[np.nan if v is None else v for v in w] for w in r[k]], float)
+    dv = arr(row, "per_piece") - arr(other, "per_piece")
+    dw = arr(row, "per_piece_yaw") - arr(other, "per_piece_yaw")
+    names = ("forward", "lateral", "yaw rate")
+    groups = [("stops (all zero)", stop)]
+    for i, name in enumerate(names):
+        half = 0.5 * scale[i]
+        groups += [(f"|{name}| >= {half:.2g}", ~stop & big[..., i]),
+                   (f"|{name}| < {half:.2g}", ~stop & ~big[..., i])]
+    out = []
+    for label, m in groups:
+        m = m & np.isfinite(dv) & np.isfinite(dw)
+        out.append(dict(label=label, n=int(m.sum()), vel=paired(dv[m], np.zeros(m.sum())),
+                        yaw=paired(dw[m], np.zeros(m.sum()))))
+    return out
+
+
 # what may differ between runs that share one selection: which candidates, and where it is written
 _RESUMABLE_ANYWAY = ("candidates", "out")
 
@@ -229,7 +260,8 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
 
     def write(rows):
         table = dict(command=command, code=code, config=dataclasses.asdict(cfg), rows=rank(rows),
-                     candidates=len(pairs), policy=reference, commands=commands)
+                     candidates=len(pairs), policy=reference, commands=commands,
+                     command_bounds=bounds)
         out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out / "selection.json", json.dumps(table, indent=1))
         atomic_write_text(out / "selection.md", markdown(table))
@@ -251,6 +283,7 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
                                             max(1, int(np.ceil(cfg.seconds / cfg.change_s))),
                                             cfg.change_s)
     commands = np.asarray(values).round(4).tolist()
+    bounds = [np.asarray(b).tolist() for b in env_cfg.commands.bounds()]
     kept = {r["label"] for r in rows}
     todo = [(label, path) for label, path in pairs if label not in kept]
     if not todo and (reference is not None or not cfg.policy_reference):
@@ -296,13 +329,17 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
         t0 = now["t0"] = time.monotonic()
         now["label"] = label
         trace = jax.block_until_ready(episodes(params, values, keys, plan=plan))
-        per = [episode_lib.metrics(jax.tree.map(lambda x, i=i: x[i], trace), cfg.settle_s)
-               for i in range(cfg.worlds)]
+        worlds = [jax.tree.map(lambda x, i=i: x[i], trace) for i in range(cfg.worlds)]
+        per = [episode_lib.metrics(w, cfg.settle_s) for w in worlds]
+        pieces = [episode_lib.piece_errors(w, starts, cfg.settle_s) for w in worlds]
+        plain = lambda a: [None if not np.isfinite(v) else float(v) for v in a]
         fell = [bool(m["fell"]) for m in per]
         up = [m["vel_rmse"] for m, f in zip(per, fell) if not f]
         row = dict(label=label, falls=sum(fell), worlds=cfg.worlds,
                    vel_rmse=float(np.mean(up)) if up else float("nan"),
                    per_world=[float(m["vel_rmse"]) for m in per], fell=fell,
+                   per_piece=[plain(v) for v, _ in pieces],
+                   per_piece_yaw=[plain(w) for _, w in pieces],
                    seconds=time.monotonic() - t0, code=code)  # a resumed table mixes runs
         log(f"{label}: velocity RMSE {row['vel_rmse']:.4f} m/s over {len(up)} worlds up, "
             f"{row['falls']} of {cfg.worlds} fell ({row['seconds']:.0f} s)")
@@ -350,6 +387,19 @@ def markdown(table: dict) -> str:
                   f"candidate minus the policy: " + ("n/a" if v is None else
                   f"{v['diff']:+.4f} [{v['lo']:+.4f}, {v['hi']:+.4f}] over {v['n']} episodes")
                   + "."]
+        where = by_command(rows[0], ref, table.get("commands", []),
+                           table.get("command_bounds")) if table.get("command_bounds") else []
+        if where:
+            fmt = lambda v: ("n/a" if v is None else
+                             f"{v['diff']:+.4f} [{v['lo']:+.4f}, {v['hi']:+.4f}]")
+            lines += ["", f"Where {rows[0]['label']} and the policy differ: each episode's "
+                      "error under each command (after the settling time), the best minus the "
+                      "policy, grouped by the command (90% t-intervals over the pieces, the "
+                      "pieces of one episode taken as independent: a screen).", "",
+                      "| commands | pieces | velocity RMSE (m/s) | yaw-rate RMSE (rad/s) |",
+                      "|---|---:|---|---|"]
+            lines += [f"| {g['label']} | {g['n']} | {fmt(g['vel'])} | {fmt(g['yaw'])} |"
+                      for g in where]
     # no interval (identical errors, or under two episodes both kept up) tells nothing apart
     ties = [r["label"] for r in rows[1:] if r["falls"] == rows[0]["falls"]
             and (r["vs_best"] is None or r["vs_best"]["lo"] <= 0)]
