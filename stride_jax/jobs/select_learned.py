@@ -199,8 +199,8 @@ def by_command(row: dict, other: dict, commands, bounds) -> list[dict]:
     groups = [("stops (all zero)", stop)]
     for i, name in enumerate(names):
         half = 0.5 * scale[i]
-        groups += [(f"|{name}| >= {half:.2g}", ~stop & big[..., i]),
-                   (f"|{name}| < {half:.2g}", ~stop & ~big[..., i])]
+        groups += [(f"{name} {half:.2g} or more (either sign)", ~stop & big[..., i]),
+                   (f"{name} under {half:.2g}", ~stop & ~big[..., i])]
     out = []
     for label, m in groups:
         m = m & np.isfinite(dv) & np.isfinite(dw)
