@@ -62,10 +62,11 @@ def test_each_command_piece_gets_its_own_error():
     fallen = np.zeros(12, bool)
     fallen[10:] = True  # the third piece scores two steps before the fall
     tr = types.SimpleNamespace(t=t, command=command, v_base=v, w_base=w, fallen=fallen)
-    vel, yaw = piece_errors(tr, [0.0, 0.08, 0.16], settle_s=0.0)
-    np.testing.assert_allclose(vel, [0.0, 0.3, 0.0], atol=1e-12)
-    np.testing.assert_allclose(yaw, [0.0, 0.1, 0.0], atol=1e-12)
-    vel, _ = piece_errors(tr, [0.0, 0.08, 0.16, 0.2], settle_s=0.0)  # the last: all fallen
+    e = piece_errors(tr, [0.0, 0.08, 0.16], settle_s=0.0)
+    np.testing.assert_allclose(e["vel"], [0.0, 0.3, 0.0], atol=1e-12)
+    np.testing.assert_allclose(e["yaw"], [0.0, 0.1, 0.0], atol=1e-12)
+    np.testing.assert_allclose(e["offset"], [[0, 0, 0], [0.3, 0, -0.1], [0, 0, 0]], atol=1e-12)
+    vel = piece_errors(tr, [0.0, 0.08, 0.16, 0.2], settle_s=0.0)["vel"]  # the last: all fallen
     assert np.isnan(vel[-1]) and np.isfinite(vel[:3]).all()
 
 

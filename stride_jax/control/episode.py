@@ -471,27 +471,28 @@ def metrics(trace: Trace, settle_s: float = 0.5) -> dict:
     return out
 
 
-def piece_errors(trace, starts, settle_s: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """``(vel [P], yaw [P])``: the tracking RMSE of each piece of a command :func:`schedule`
-    ``starts [P]`` (s) -- planar velocity (m/s) and yaw rate (rad/s) over the steps
-    :func:`tracked` scores within it; NaN where it scores none (a fall, or a piece shorter than
-    ``settle_s``). Where :func:`metrics` gives one number per episode, this says under which
-    commands the error arose (a trace's ``t``, ``command``, ``v_base``, ``w_base``, ``fallen``:
-    arrays or a saved trace)."""
+def piece_errors(trace, starts, settle_s: float = 0.5) -> dict[str, np.ndarray]:
+    """Each piece's tracking error, for a command :func:`schedule` ``starts [P]`` (s), over the
+    steps :func:`tracked` scores within it: ``vel [P]`` the planar velocity RMSE (m/s), ``yaw
+    [P]`` the yaw-rate RMSE (rad/s), ``offset [P, 3]`` the signed mean error (forward, lateral m/s;
+    yaw rate rad/s: + is faster than asked); NaN where a piece scores none (a fall, or a piece
+    shorter than ``settle_s``). Where :func:`metrics` gives one number per episode, this says
+    under which commands the error arose, and which way (a trace's ``t``, ``command``,
+    ``v_base``, ``w_base``, ``fallen``: arrays or a saved trace)."""
     use = tracked(trace, settle_s)
     t, command = np.asarray(trace.t), np.asarray(trace.command)
     v, w = np.asarray(trace.v_base), np.asarray(trace.w_base)
     starts = np.asarray(starts)
     piece = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(starts) - 1)
-    v_sq = np.sum((v[:, :2] - command[:, :2]) ** 2, axis=1)
-    w_sq = (w[:, 2] - command[:, 2]) ** 2
+    err = np.concatenate([v[:, :2] - command[:, :2], w[:, 2:3] - command[:, 2:3]], axis=1)
     n = np.bincount(piece[use], minlength=len(starts))
 
-    def rms(sq):
-        s = np.bincount(piece[use], weights=sq[use], minlength=len(starts))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(n > 0, np.sqrt(s / np.maximum(n, 1)), np.nan)
-    return rms(v_sq), rms(w_sq)
+    def mean(x):  # per piece, over its scored steps
+        s = np.bincount(piece[use], weights=x[use], minlength=len(starts))
+        return np.where(n > 0, s / np.maximum(n, 1), np.nan)
+    return dict(vel=np.sqrt(mean(np.sum(err[:, :2] ** 2, axis=1))),
+                yaw=np.sqrt(mean(err[:, 2] ** 2)),
+                offset=np.stack([mean(err[:, k]) for k in range(3)], axis=1))
 
 
 def observer_step_rms(disturbance, up) -> float | None:

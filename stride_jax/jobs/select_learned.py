@@ -185,7 +185,9 @@ def by_command(row: dict, other: dict, commands, bounds) -> list[dict]:
     its range's largest magnitude (``bounds``: the commands' ``(lo [3], hi [3])``) or below it,
     among the moving pieces. Each group: ``label``, ``n`` pieces both scored, ``vel`` and
     ``yaw``, :func:`paired` over the pieces (the pieces of one episode taken as independent: a
-    screen, not a test). Empty where either row lacks per-piece errors."""
+    screen, not a test), and where the rows have them ``forward``: each row's mean forward
+    speed minus the command there (m/s; + faster than asked). Empty where either row lacks
+    per-piece errors."""
     if "per_piece" not in row or "per_piece" not in other:
         return []
     cmd = np.asarray(commands, float)  # [W, P, 3]
@@ -201,11 +203,16 @@ def by_command(row: dict, other: dict, commands, bounds) -> list[dict]:
         half = 0.5 * scale[i]
         groups += [(f"{name} {half:.2g} or more (either sign)", ~stop & big[..., i]),
                    (f"{name} under {half:.2g}", ~stop & ~big[..., i])]
+    fwd = [arr(r, "per_piece_forward") if "per_piece_forward" in r else None
+           for r in (row, other)]
     out = []
     for label, m in groups:
         m = m & np.isfinite(dv) & np.isfinite(dw)
-        out.append(dict(label=label, n=int(m.sum()), vel=paired(dv[m], np.zeros(m.sum())),
-                        yaw=paired(dw[m], np.zeros(m.sum()))))
+        g = dict(label=label, n=int(m.sum()), vel=paired(dv[m], np.zeros(m.sum())),
+                 yaw=paired(dw[m], np.zeros(m.sum())))
+        if fwd[0] is not None and fwd[1] is not None and m.any():  # which way each errs
+            g["forward"] = [float(np.nanmean(f[m])) for f in fwd]
+        out.append(g)
     return out
 
 
@@ -338,8 +345,9 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
         row = dict(label=label, falls=sum(fell), worlds=cfg.worlds,
                    vel_rmse=float(np.mean(up)) if up else float("nan"),
                    per_world=[float(m["vel_rmse"]) for m in per], fell=fell,
-                   per_piece=[plain(v) for v, _ in pieces],
-                   per_piece_yaw=[plain(w) for _, w in pieces],
+                   per_piece=[plain(e["vel"]) for e in pieces],
+                   per_piece_yaw=[plain(e["yaw"]) for e in pieces],
+                   per_piece_forward=[plain(e["offset"][:, 0]) for e in pieces],
                    seconds=time.monotonic() - t0, code=code)  # a resumed table mixes runs
         log(f"{label}: velocity RMSE {row['vel_rmse']:.4f} m/s over {len(up)} worlds up, "
             f"{row['falls']} of {cfg.worlds} fell ({row['seconds']:.0f} s)")
@@ -396,10 +404,12 @@ def markdown(table: dict) -> str:
                       "error under each command (after the settling time), the best minus the "
                       "policy, grouped by the command (90% t-intervals over the pieces, the "
                       "pieces of one episode taken as independent: a screen).", "",
-                      "| commands | pieces | velocity RMSE (m/s) | yaw-rate RMSE (rad/s) |",
-                      "|---|---:|---|---|"]
-            lines += [f"| {g['label']} | {g['n']} | {fmt(g['vel'])} | {fmt(g['yaw'])} |"
-                      for g in where]
+                      "| commands | pieces | velocity RMSE (m/s) | yaw-rate RMSE (rad/s) | "
+                      "forward speed minus the command: best, policy (m/s) |",
+                      "|---|---:|---|---|---|"]
+            lines += [f"| {g['label']} | {g['n']} | {fmt(g['vel'])} | {fmt(g['yaw'])} | "
+                      + (", ".join(f"{x:+.3f}" for x in g["forward"]) if "forward" in g
+                         else "n/a") + " |" for g in where]
     # no interval (identical errors, or under two episodes both kept up) tells nothing apart
     ties = [r["label"] for r in rows[1:] if r["falls"] == rows[0]["falls"]
             and (r["vs_best"] is None or r["vs_best"]["lo"] <= 0)]
