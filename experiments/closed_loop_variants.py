@@ -11,7 +11,7 @@ PATH: a ``closed_loop.json`` (a run's, or a merged table whose rows name their `
 keeps that part's rows). Rows are grouped by scenario and by trained seed
 (``stride_paper.seeds.seed_means``: the run folder's ``-sN``, else the name's ``_sN``).
 ``--models`` keeps the rows of those model names alone (``stride``: trained seed 0 of a run over
-three). ``--paired-against LABEL`` adds each variant's difference from that one, episode by
+three; a merged table's ``stride@PART`` is ``stride``). ``--paired-against LABEL`` adds each variant's difference from that one, episode by
 episode (the same scenario, model name, planner seed and episode: the same ground and draws where
 the runs shared their flags), with its 90% t-interval over every pair both kept up: pooled over
 scenarios of different scales, a summary (the per-scenario means stand beside it), and over
@@ -63,7 +63,7 @@ def summary(rows: list[dict]) -> dict[str, dict]:
 
 
 def _key(r: dict) -> tuple:
-    return r["scenario"], r["model"], r.get("seed"), r.get("episode")
+    return r["scenario"], r["model"].partition("@")[0], r.get("seed"), r.get("episode")
 
 
 def paired_rows(rows: list[dict], ref: list[dict]) -> dict:
@@ -94,9 +94,10 @@ def paired_table(pooled: dict[str, list[dict]], ref_label: str) -> list[str]:
         if label == ref_label:
             continue
         p = paired_rows(rows, ref)
-        if not p["n"]:
-            raise ValueError(f"{label}: no episode matches one of {ref_label!r} (scenario, model, "
-                             "seed, episode)")
+        if not p["n"]:  # another model's rows (the policy beside the planners), other draws
+            lines.append(f"| {label} | 0 | no episode pairs with one of {ref_label!r} (scenario, "
+                         "model, seed, episode) | - | - |")
+            continue
         ci = "" if p["lo"] is None else f" [{p['lo']:+.4f}, {p['hi']:+.4f}]"
         below = sum(v < 0 for v in p["per_scenario"].values())
         lines.append(f"| {label} | {p['n']} | {p['diff']:+.4f}{ci} | {below} of "
@@ -140,7 +141,7 @@ def main(argv=None) -> None:
     for label, rows in map(rows_of, a.variants):
         pooled.setdefault(label, []).extend(
             r for r in rows if (not keep or r["scenario"] in keep)
-            and (not names or r["model"] in names))
+            and (not names or r["model"].partition("@")[0] in names))  # merged: NAME@PART
     for label, rows in pooled.items():
         if not rows:
             raise ValueError(f"{label}: no rows left of the scenarios and models asked for")

@@ -31,6 +31,9 @@ def test_a_variant_is_the_mean_over_seeds_of_their_draws_that_stayed_up(experime
     text = out.read_text()
     assert "| policy | - | 0 | 0.0700 (0.0700) | 0/1 |" in text  # part pol's rows alone
     assert "| late | 36.0 | 2 | 0.0500 (0.0500) | 0/1 |" in text and "rough" not in text
+    mod.main([f"m={merged}", "--models", "stride", "--out", str(out)])  # NAME@PART is NAME's
+    assert "| m | - | 0 | 0.0100 (0.0100) | 0/1 |" in out.read_text()
+    assert "0.0700" not in out.read_text()
     with pytest.raises(ValueError, match="no rows of part 'nope'"):
         mod.rows_of(f"x={merged}:nope")
 
@@ -76,6 +79,10 @@ def test_models_and_the_paired_difference_episode_by_episode(experiment, tmp_pat
     text = out.read_text()
     assert "| new | 3 | +0.0067 [" in text and "| 1 of 2 | rough +0.0150, soft -0.0100 |" in text
     assert "0.5000" not in text  # stride_s1's rows left out
+    c = tmp_path / "c.json"  # the policy beside the planners: no pairs, said so
+    c.write_text(json.dumps({"rows": [r("rough", "policy", 2, 0.06)]}))
+    mod.main([f"ref={a}", f"policy={c}", "--paired-against", "ref", "--out", str(out)])
+    assert "| policy | 0 | no episode pairs with one of 'ref'" in out.read_text()
     with pytest.raises(ValueError, match="no such variant"):
         mod.main([f"ref={a}", "--paired-against", "other", "--out", str(out)])
     with pytest.raises(ValueError, match="no rows left"):

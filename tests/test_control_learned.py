@@ -114,3 +114,52 @@ def test_a_reward_ensemble_is_stored_and_planned_against_with_its_members_mean(t
     np.testing.assert_allclose(float(cost(obs, None, u, 0)), -rs.mean(), rtol=1e-5)
     single, _ = learned.planner_terms(r0, v, lambda q, qd: q)
     np.testing.assert_allclose(float(single(obs, None, u, 0)), -rs[0], rtol=1e-6)
+
+
+def test_relabelled_rewards_are_the_environments_under_the_new_command():
+    """Steps relabelled to another command get the reward the environment's own functions
+    (``envs.state_terms``, ``envs.total_reward``) give the same next state under it; stops and
+    clipped steps stay as they were; share 0 changes nothing."""
+    from stride_jax.control import envs
+    cfg = envs.PRESETS["g1"]  # a task with a gait clock in its observation
+    nu, n, t, dt = 4, 6, 3, 0.02
+    home = jnp.zeros(nu)
+    k = jax.random.split(jax.random.key(0), 4)
+    quat = jnp.array([1.0, 0.0, 0.0, 0.0])
+    q = jnp.concatenate([jnp.broadcast_to(jnp.array([0.0, 0.0, 0.75]), (n, t, 3)),
+                         jnp.broadcast_to(quat, (n, t, 4)), jnp.zeros((n, t, nu))], -1)
+    qd = jnp.concatenate([0.5 * jax.random.normal(k[0], (n, t, 6)), jnp.zeros((n, t, nu))], -1)
+    cmd = jax.random.uniform(k[1], (n, t, 3), minval=jnp.array([0.3, -0.3, -0.5]),
+                             maxval=jnp.array([1.0, 0.3, 0.5]))
+    cmd = cmd.at[0].set(0.0)  # world 0 stands still
+    clock = jnp.zeros((n, t))
+
+    def reward(c):  # the environment's, at the next state (here the same state)
+        def one(q_, qd_, c_):
+            terms = envs.state_terms(cfg, home, q_, qd_, c_, jnp.zeros(nu), jnp.zeros((), bool))
+            return envs.total_reward(cfg, terms, dt)[0]
+        return jax.vmap(jax.vmap(one))(q, qd, c)
+
+    obs = jax.vmap(jax.vmap(lambda q_, qd_, c_, k_: envs.observe(cfg, home, q_, qd_, c_, k_)))(
+        q, qd, cmd, clock)
+    r = reward(cmd).at[5, 0].set(0.0)  # one step as if the environment clipped it
+    zeros = jnp.zeros((n, t))
+    data = learned.Trajectories(obs, jnp.zeros((n, t, nu)), r, obs, zeros, zeros)
+    new = learned.relabel_commands(data, cfg, dt, jax.random.key(3), share=1.0, std=0.5)
+    c_new = new.obs[..., 9 + 2 * nu:12 + 2 * nu]
+    moved = jnp.any(c_new != cmd, axis=-1)
+    assert not moved[0].any() and moved[1:].all()  # the stop kept, the others moved
+    np.testing.assert_array_equal(new.next_obs[..., 9 + 2 * nu:12 + 2 * nu], c_new)
+    want = reward(c_new)
+    np.testing.assert_allclose(np.asarray(new.reward)[1:5], np.asarray(want)[1:5], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(new.reward)[5, 1:], np.asarray(want)[5, 1:], atol=1e-6)
+    assert float(new.reward[5, 0]) == 0.0 and float(new.reward[0, 0]) == float(r[0, 0])
+    assert not np.allclose(np.asarray(new.reward)[1:], np.asarray(r)[1:])
+    same = learned.relabel_commands(data, cfg, dt, jax.random.key(3), share=0.0, std=0.5)
+    np.testing.assert_array_equal(same.reward, data.reward)
+    np.testing.assert_array_equal(same.obs, data.obs)
+    with pytest.raises(ValueError, match="not the velocity task's"):
+        learned.relabel_commands(data._replace(obs=obs[..., 1:], next_obs=obs[..., 1:]), cfg,
+                                 dt, jax.random.key(3), 1.0, 0.5)
+    with pytest.raises(ValueError, match="share=2"):
+        learned.relabel_commands(data, cfg, dt, jax.random.key(3), 2.0, 0.5)

@@ -167,6 +167,65 @@ def fit_reward(key: jax.Array, cfg: LearnedConfig, data: Trajectories) -> tuple[
     return fit_scalar(key, cfg, _flat(reward_input(data.obs, data.action)), _flat(data.reward))
 
 
+def relabel_commands(data: Trajectories, env_cfg, dt: float, key: jax.Array, share: float,
+                     std: float) -> Trajectories:
+    """``data`` with the command of a ``share`` of its worlds moved, and their rewards' tracking
+    terms recomputed for it (hindsight relabelling).
+
+    Why: rolled out by a policy, the velocity is always near the command, so a reward fitted on
+    those rollouts never sees a velocity off its command and extrapolates: G1's learned reward
+    kept rising past the command (``results/planning_diagnosis/g1_reward_shape_walk.md``) and its
+    planner, free to ask the policy for more (the policy family), walked faster than asked
+    under slow commands (``results/select_learned_g1_gpu/session96/``). The tracking terms are
+    known functions of the command and the next state's base velocity (both in the
+    observations: :func:`stride_jax.control.envs.observe`), so the same steps under another
+    command have a known reward.
+
+    Each chosen world's command moves by one offset ``N(0, std * range)`` per component
+    (``range``: the largest magnitude of the component's training range), held over the
+    rollout; commands that stop (``|command| <= 0.1``, where the stand-still and air-time terms
+    switch) and commands the offset would make stop keep their value, so the terms that read
+    only whether it moves are unchanged. The reward's tracking part changes by ``dt *
+    (scale_lin (k_lin(c', v') - k_lin(c, v')) + scale_ang (k_ang(c', w') - k_ang(c, w')))``
+    with ``v', w'`` the next observation's base velocities; the environment clips the total at
+    0, so a step whose reward was clipped keeps 0 (its unclipped value is unknown).
+    """
+    _check(data)
+    if not 0.0 <= share <= 1.0 or std < 0:
+        raise ValueError(f"relabel: share={share} must be in [0, 1] and std={std} >= 0")
+    o = data.obs.shape[-1]
+    nu, odd = divmod(o - 12 - (2 if env_cfg.gait_hz > 0 else 0), 2)
+    if odd or nu < 1:
+        raise ValueError(f"relabel: observations of size {o} are not the velocity task's "
+                         f"(stride_jax.control.envs.observe; gait clock: {env_cfg.gait_hz > 0})")
+    ic = slice(9 + 2 * nu, 12 + 2 * nu)  # the command's entries
+    lo, hi = env_cfg.commands.bounds()
+    scale = jnp.maximum(jnp.abs(lo), jnp.abs(hi))
+    k_pick, k_off = jax.random.split(key)
+    n = data.obs.shape[0]
+    picked = jax.random.bernoulli(k_pick, share, (n,))
+    offset = std * scale * jax.random.normal(k_off, (n, 3)) * picked[:, None]
+
+    def moved(c):  # [N, T, 3]: moving commands that stay moving take the offset
+        c2 = c + offset[:, None, :]
+        keep = (jnp.linalg.norm(c, axis=-1) <= 0.1) | (jnp.linalg.norm(c2, axis=-1) <= 0.1)
+        return jnp.where(keep[..., None], c, c2)
+
+    c_old = data.obs[..., ic]
+    c_new = moved(c_old)
+    v, w = data.next_obs[..., 0:2], data.next_obs[..., 5]
+    sig, sc = env_cfg.tracking_sigma, env_cfg.rewards
+
+    def tracking(c):
+        return (sc.tracking_lin_vel * jnp.exp(-jnp.sum((c[..., :2] - v) ** 2, -1) / sig)
+                + sc.tracking_ang_vel * jnp.exp(-(c[..., 2] - w) ** 2 / sig))
+    change = dt * (tracking(c_new) - tracking(c_old))
+    reward = jnp.where(data.reward > 0, jnp.maximum(data.reward + change, 0.0), data.reward)
+    return data._replace(obs=data.obs.at[..., ic].set(c_new),
+                         next_obs=data.next_obs.at[..., ic].set(moved(data.next_obs[..., ic])),
+                         reward=reward)
+
+
 def lambda_returns(reward: jax.Array, next_value: jax.Array, terminal: jax.Array,
                    reset: jax.Array, discount: float, lam: float) -> jax.Array:
     """Lambda-returns ``[T]`` of one trajectory: ``reward``, ``next_value`` (V of the next

@@ -49,6 +49,12 @@ class FitConfig:
         another (nor does the planner add any). The run's other randomisation (each episode's
         friction, slope) is kept: it is the variety of states the planner meets, and the value
         under it is the policy's.
+      relabel_share: the share of the training worlds whose command is moved after the
+        rollout, their rewards' tracking terms recomputed for it
+        (:func:`~stride_jax.control.learned.relabel_commands`: a reward fitted on the policy's
+        own rollouts never sees a velocity off its command). 0: off (every fit before it). The
+        held-out worlds keep their commands: the report's R^2 reads the policy's own steps.
+      relabel_std: the offsets' std, as a share of each command component's range.
       learned: the models' sizes and training
         (:class:`~stride_jax.control.learned.LearnedConfig`: ``--learned.width``,
         ``--learned.steps`` ...; the older flat ``--width``, ``--steps`` ... still answer).
@@ -62,6 +68,8 @@ class FitConfig:
     seed: int = 0
     members: int = 1
     keep_action_noise: bool = False
+    relabel_share: float = 0.0
+    relabel_std: float = 0.3
     learned: learned_lib.LearnedConfig = learned_lib.LearnedConfig()
 
     # The flat flags of earlier commands still answer.
@@ -118,6 +126,9 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     held-out report."""
     if cfg.members < 1:
         raise ValueError(f"members must be >= 1, got {cfg.members}")
+    if not 0.0 <= cfg.relabel_share <= 1.0 or cfg.relabel_std < 0:  # before the rollouts
+        raise ValueError(f"relabel_share={cfg.relabel_share} must be in [0, 1] and "
+                         f"relabel_std={cfg.relabel_std} >= 0")
     t0 = time.monotonic()
     policy, _, env_cfg = ppo.load_policy(cfg.policy, deterministic=False)
     if not cfg.keep_action_noise:
@@ -129,6 +140,10 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     n_test = max(1, int(round(cfg.holdout * cfg.envs)))
     train = jax.tree.map(lambda x: x[n_test:], data)
     test = jax.tree.map(lambda x: x[:n_test], data)
+    if cfg.relabel_share:  # (its own key: the rollouts and fits keep theirs)
+        train = learned_lib.relabel_commands(train, env_cfg, env.dt,
+                                             jax.random.fold_in(jax.random.key(cfg.seed), 7),
+                                             cfg.relabel_share, cfg.relabel_std)
     log(f"{cfg.envs} x {cfg.rollout_steps} steps of {env_cfg.robot} ({time.monotonic() - t0:.0f}"
         f" s); mean reward {float(data.reward.mean()):.4f}, falls {float(data.terminal.sum())}")
     rewards, values, stats = _fit_members(cfg, key_r, key_v, train, test)
