@@ -20,7 +20,7 @@ import shlex
 import sys
 
 from stride_jax.io import atomic_write_text
-from stride_jax.jobs.select_learned import by_command, versus
+from stride_jax.jobs.select_learned import by_command, interval, versus
 
 # what must match for two tables to have planned the same episodes
 SAME_EPISODES = ("robot", "policy", "worlds", "seconds", "change_s", "settle_s", "seed")
@@ -79,7 +79,6 @@ def compare(specs: list[str]) -> dict:
 
 
 def markdown(result: dict, command: str = "") -> str:
-    fmt = lambda v: "n/a" if v is None else f"{v['diff']:+.4f} [{v['lo']:+.4f}, {v['hi']:+.4f}]"
     v0 = result["variants"]
     c = result["config"]
     lines = ["# Planner variants on the same validation episodes", ""]
@@ -94,19 +93,25 @@ def markdown(result: dict, command: str = "") -> str:
     if p is not None:
         lines.append(f"| the policy alone | {p['falls']} | {p['vel_rmse']:.4f} | | |")
     for v in v0:
+        first = "-" if v["vs_first"] is None else interval(v["vs_first"])
         lines.append(f"| {v['label']} | {v['falls']} of {v['worlds']} | {v['vel_rmse']:.4f} | "
-                     f"{fmt(v['vs_policy'])} | {'-' if v['vs_first'] is None else fmt(v['vs_first'])} |")
+                     f"{interval(v['vs_policy'])} | {first} |")
     groups = [g["label"] for g in v0[0]["where"]]
     if groups:
+        def cell(where, k):  # a variant's group: its interval, and which way it errs forward
+            if not where:
+                return "n/a"
+            g = where[k]
+            return interval(g["vel"]) + (f", fwd {g['forward'][0]:+.3f}" if "forward" in g
+                                         else "")
         lines += ["", "Each variant minus the policy by command (each episode's error under each "
-                  "command, velocity RMSE; the pieces taken as independent: a screen):", "",
+                  "command, velocity RMSE; the pieces taken as independent: a screen; fwd: the "
+                  "variant's mean forward speed minus the command, m/s):", "",
                   "| commands | " + " | ".join(v["label"] for v in v0) + " |",
                   "|---|" + "---|" * len(v0)]
         for k, name in enumerate(groups):
-            cells = [fmt(v["where"][k]["vel"]) + (f", fwd {v['where'][k]['forward'][0]:+.3f}"
-                                                  if "forward" in v["where"][k] else "")
-                     if v["where"] else "n/a" for v in v0]
-            lines.append(f"| {name} ({v0[0]['where'][k]['n']}) | " + " | ".join(cells) + " |")
+            lines.append(f"| {name} ({v0[0]['where'][k]['n']}) | "
+                         + " | ".join(cell(v["where"], k) for v in v0) + " |")
     lines += ["", "Commands per variant:", ""] + [f"- {v['label']}: `{v['command']}` "
                                                    f"(code {v['code']})" for v in v0]
     return "\n".join(lines) + "\n"

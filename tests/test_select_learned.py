@@ -68,14 +68,14 @@ def test_where_the_best_and_the_policy_differ_is_read_by_command():
                 per_piece_yaw=[[0.1, None], [0.1, 0.1], [0.1, 0.1]],  # one piece not scored
                 per_piece_forward=[[0.02, 0.0], [0.0, 0.0], [0.0, 0.06]])
     groups = {g["label"]: g for g in sel.by_command(plan, policy, commands, bounds)}
-    big, small = groups["lateral 0.25 or more (either sign)"], groups["lateral under 0.25"]
+    big, small = groups["lateral 0.25 or more (either sign)"], groups["lateral under 0.25 (either sign)"]
     assert big["n"] == 2 and small["n"] == 2  # the stop is neither; the unscored piece dropped
     assert big["vel"]["lo"] > 0.02 and small["vel"]["hi"] < 0.01
     assert groups["stops (all zero)"]["n"] == 1 and groups["stops (all zero)"]["vel"] is None
     assert "forward" not in big  # the policy's row has no signed offsets
     policy["per_piece_forward"] = [[0.0] * 2] * 3
     fast = {g["label"]: g for g in sel.by_command(plan, policy, commands, bounds)}
-    assert fast["forward 1 or more (either sign)"]["forward"] == pytest.approx([0.08 / 3, 0.0])
+    assert fast["forward 1 or more"]["forward"] == pytest.approx([0.08 / 3, 0.0])
     assert sel.by_command(plan, {"per_world": [0.1]}, commands, bounds) == []  # an old row
     assert all("|" not in g for g in groups)  # the labels sit in a markdown table
 

@@ -12,7 +12,9 @@ planner keys for every candidate (paired). Each candidate's score is its planner
 tracking RMSE (:func:`stride_jax.control.episode.metrics`), falls first; the table gives each
 candidate's difference from the best with a paired 90% t-interval over the worlds, and the policy
 alone on the same episodes (``policy_reference``; a reference, never ranked) says whether the best
-planner tracks closer than its own fallback does.
+planner tracks closer than its own fallback does, and each episode's error under each of its
+commands (:func:`stride_jax.control.episode.piece_errors`) says where: the table groups them by
+the command (stops; slow or fast, lateral, turning: :func:`by_command`).
 
     stride select-learned --robot g1 --policy results/policies/ppo_g1_uphill \\
         --model stride=results/models/g1_walk_ppo_g1_slope_slope15_tw1_tf0.25/stride-s0 \\
@@ -172,6 +174,11 @@ def rank(rows: list[dict]) -> list[dict]:
     return order
 
 
+def interval(v: dict | None) -> str:
+    """A :func:`paired` result as the tables write it: ``+d [lo, hi]``, or n/a."""
+    return "n/a" if v is None else f"{v['diff']:+.4f} [{v['lo']:+.4f}, {v['hi']:+.4f}]"
+
+
 def versus(row: dict, other: dict) -> dict | None:
     """:func:`paired` of two rows' per-episode errors over the episodes both kept up."""
     both = [i for i, (a, b) in enumerate(zip(row["fell"], other["fell"])) if not (a or b)]
@@ -201,8 +208,9 @@ def by_command(row: dict, other: dict, commands, bounds) -> list[dict]:
     groups = [("stops (all zero)", stop)]
     for i, name in enumerate(names):
         half = 0.5 * scale[i]
-        groups += [(f"{name} {half:.2g} or more (either sign)", ~stop & big[..., i]),
-                   (f"{name} under {half:.2g}", ~stop & ~big[..., i])]
+        signs = " (either sign)" if bounds[0][i] < 0 < bounds[1][i] else ""
+        groups += [(f"{name} {half:.2g} or more{signs}", ~stop & big[..., i]),
+                   (f"{name} under {half:.2g}{signs}", ~stop & ~big[..., i])]
     fwd = [arr(r, "per_piece_forward") if "per_piece_forward" in r else None
            for r in (row, other)]
     out = []
@@ -382,8 +390,7 @@ def markdown(table: dict) -> str:
              "|---:|---|---:|---:|---|---|"]
     for i, r in enumerate(table["rows"], 1):
         v = r["vs_best"]
-        vs = ("-" if v is None and i == 1 else "n/a" if v is None else
-              f"{v['diff']:+.4f} [{v['lo']:+.4f}, {v['hi']:+.4f}]")
+        vs = "-" if v is None and i == 1 else interval(v)
         lines.append(f"| {i} | {r['label']} | {r['falls']} of {r['worlds']} | "
                      f"{r['vel_rmse']:.4f} | {vs} | `{r['path']}` |")
     rows = table["rows"]
@@ -393,13 +400,10 @@ def markdown(table: dict) -> str:
         lines += ["", f"The policy alone on the same episodes (a reference, not a candidate): "
                   f"{ref['vel_rmse']:.4f}, {ref['falls']} of {ref['worlds']} fell; the best "
                   f"candidate minus the policy: " + ("n/a" if v is None else
-                  f"{v['diff']:+.4f} [{v['lo']:+.4f}, {v['hi']:+.4f}] over {v['n']} episodes")
-                  + "."]
+                  f"{interval(v)} over {v['n']} episodes") + "."]
         where = by_command(rows[0], ref, table.get("commands", []),
                            table.get("command_bounds")) if table.get("command_bounds") else []
         if where:
-            fmt = lambda v: ("n/a" if v is None else
-                             f"{v['diff']:+.4f} [{v['lo']:+.4f}, {v['hi']:+.4f}]")
             lines += ["", f"Where {rows[0]['label']} and the policy differ: each episode's "
                       "error under each command (after the settling time), the best minus the "
                       "policy, grouped by the command (90% t-intervals over the pieces, the "
@@ -407,7 +411,7 @@ def markdown(table: dict) -> str:
                       "| commands | pieces | velocity RMSE (m/s) | yaw-rate RMSE (rad/s) | "
                       "forward speed minus the command: best, policy (m/s) |",
                       "|---|---:|---|---|---|"]
-            lines += [f"| {g['label']} | {g['n']} | {fmt(g['vel'])} | {fmt(g['yaw'])} | "
+            lines += [f"| {g['label']} | {g['n']} | {interval(g['vel'])} | {interval(g['yaw'])} | "
                       + (", ".join(f"{x:+.3f}" for x in g["forward"]) if "forward" in g
                          else "n/a") + " |" for g in where]
     # no interval (identical errors, or under two episodes both kept up) tells nothing apart
