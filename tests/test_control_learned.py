@@ -161,5 +161,8 @@ def test_relabelled_rewards_are_the_environments_under_the_new_command():
     with pytest.raises(ValueError, match="not the velocity task's"):
         learned.relabel_commands(data._replace(obs=obs[..., 1:], next_obs=obs[..., 1:]), cfg,
                                  dt, jax.random.key(3), 1.0, 0.5)
+    with pytest.raises(ValueError, match="observes through sensors"):
+        learned.relabel_commands(data, dataclasses.replace(cfg, sensor_noise=1.0), dt,
+                                 jax.random.key(3), 1.0, 0.5)
     with pytest.raises(ValueError, match="share=2"):
         learned.relabel_commands(data, cfg, dt, jax.random.key(3), 2.0, 0.5)

@@ -187,12 +187,17 @@ def relabel_commands(data: Trajectories, env_cfg, dt: float, key: jax.Array, sha
     switch) and commands the offset would make stop keep their value, so the terms that read
     only whether it moves are unchanged. The reward's tracking part changes by ``dt *
     (scale_lin (k_lin(c', v') - k_lin(c, v')) + scale_ang (k_ang(c', w') - k_ang(c, w')))``
-    with ``v', w'`` the next observation's base velocities; the environment clips the total at
+    with ``v', w'`` the next observation's base velocities (exact only where the task observes
+    the state itself: a task with sensor noise is refused); the environment clips the total at
     0, so a step whose reward was clipped keeps 0 (its unclipped value is unknown).
     """
     _check(data)
     if not 0.0 <= share <= 1.0 or std < 0:
         raise ValueError(f"relabel: share={share} must be in [0, 1] and std={std} >= 0")
+    if env_cfg.sensor_noise:
+        raise ValueError(f"relabel: the task observes through sensors (sensor_noise="
+                         f"{env_cfg.sensor_noise}): its observed velocities are not the ones "
+                         "its reward read, so the tracking terms cannot be recomputed from them")
     o = data.obs.shape[-1]
     nu, odd = divmod(o - 12 - (2 if env_cfg.gait_hz > 0 else 0), 2)
     if odd or nu < 1:

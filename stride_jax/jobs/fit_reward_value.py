@@ -133,6 +133,9 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     policy, _, env_cfg = ppo.load_policy(cfg.policy, deterministic=False)
     if not cfg.keep_action_noise:
         env_cfg = dataclasses.replace(env_cfg, action_noise=0.0)
+    if cfg.relabel_share and env_cfg.sensor_noise:  # (relabel_commands says why; before rolling)
+        raise ValueError(f"relabel_share: {cfg.policy} observes through sensors (sensor_noise="
+                         f"{env_cfg.sensor_noise}); its rollouts cannot be relabelled")
     env = envs_lib.VelocityEnv(env_cfg)
     key_roll, key_r, key_v = jax.random.split(jax.random.key(cfg.seed), 3)
     data = jax.jit(lambda k: learned_lib.rollouts(env, policy, k, cfg.envs, cfg.rollout_steps))(
