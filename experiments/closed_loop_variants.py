@@ -11,11 +11,11 @@ PATH: a ``closed_loop.json`` (a run's, or a merged table whose rows name their `
 keeps that part's rows). Rows are grouped by scenario and by trained seed
 (``stride_paper.seeds.seed_means``: the run folder's ``-sN``, else the name's ``_sN``).
 ``--models`` keeps the rows of those model names alone (``stride``: trained seed 0 of a run over
-three; a merged table's ``stride@PART`` is ``stride``). ``--paired-against LABEL`` adds each variant's difference from that one, episode by
-episode (the same scenario, model name, planner seed and episode: the same ground and draws where
-the runs shared their flags), with its 90% t-interval over every pair both kept up: pooled over
-scenarios of different scales, a summary (the per-scenario means stand beside it), and over
-draws and trained seeds as if independent."""
+three; a merged table's ``stride@PART`` is ``stride``). ``--paired-against LABEL`` adds each
+variant's difference from that one, episode by episode (the same scenario, model name, planner
+seed and episode: the same ground and draws where the runs shared their flags), with its 90%
+t-interval over every pair both kept up: pooled over scenarios of different scales, a summary
+(the per-scenario means stand beside it), and over draws and trained seeds as if independent."""
 
 from __future__ import annotations
 
@@ -62,8 +62,13 @@ def summary(rows: list[dict]) -> dict[str, dict]:
     return out
 
 
+def _name(r: dict) -> str:
+    """A row's model name (a merged table's ``NAME@PART`` is ``NAME``)."""
+    return r["model"].partition("@")[0]
+
+
 def _key(r: dict) -> tuple:
-    return r["scenario"], r["model"].partition("@")[0], r.get("seed"), r.get("episode")
+    return r["scenario"], _name(r), r.get("seed"), r.get("episode")
 
 
 def paired_rows(rows: list[dict], ref: list[dict]) -> dict:
@@ -141,7 +146,7 @@ def main(argv=None) -> None:
     for label, rows in map(rows_of, a.variants):
         pooled.setdefault(label, []).extend(
             r for r in rows if (not keep or r["scenario"] in keep)
-            and (not names or r["model"].partition("@")[0] in names))  # merged: NAME@PART
+            and (not names or _name(r) in names))
     for label, rows in pooled.items():
         if not rows:
             raise ValueError(f"{label}: no rows left of the scenarios and models asked for")

@@ -146,10 +146,10 @@ def test_relabelled_rewards_are_the_environments_under_the_new_command():
     zeros = jnp.zeros((n, t))
     data = learned.Trajectories(obs, jnp.zeros((n, t, nu)), r, obs, zeros, zeros)
     new = learned.relabel_commands(data, cfg, dt, jax.random.key(3), share=1.0, std=0.5)
-    c_new = new.obs[..., 9 + 2 * nu:12 + 2 * nu]
+    c_new = new.obs[..., envs.obs_layout(cfg, nu)["command"]]
     moved = jnp.any(c_new != cmd, axis=-1)
     assert not moved[0].any() and moved[1:].all()  # the stop kept, the others moved
-    np.testing.assert_array_equal(new.next_obs[..., 9 + 2 * nu:12 + 2 * nu], c_new)
+    np.testing.assert_array_equal(new.next_obs[..., envs.obs_layout(cfg, nu)["command"]], c_new)
     want = reward(c_new)
     np.testing.assert_allclose(np.asarray(new.reward)[1:5], np.asarray(want)[1:5], atol=1e-6)
     np.testing.assert_allclose(np.asarray(new.reward)[5, 1:], np.asarray(want)[5, 1:], atol=1e-6)

@@ -298,11 +298,29 @@ def base_signals(q: jax.Array, qd: jax.Array, gravity: jax.Array | None = None
     return rotate_inv(quat, qd[0:3]), qd[3:6], rotate_inv(quat, down)
 
 
+# a command above this norm moves the robot (the stand-still and air-time terms switch on it)
+MOVING = 0.1
+
+
+def obs_layout(cfg: EnvConfig, nu: int) -> dict[str, slice]:
+    """Where each part of :func:`observe`'s vector lies: ``v``, ``w`` (base-frame linear and
+    angular velocity), ``gravity``, ``joint_pos``, ``joint_vel``, ``command`` and, with a gait
+    clock, ``clock``."""
+    sizes = [("v", 3), ("w", 3), ("gravity", 3), ("joint_pos", nu), ("joint_vel", nu),
+             ("command", 3)] + ([("clock", 2)] if cfg.gait_hz > 0 else [])
+    out, at = {}, 0
+    for name, n in sizes:
+        out[name] = slice(at, at + n)
+        at += n
+    return out
+
+
 def observe(cfg: EnvConfig, home: jax.Array, q: jax.Array, qd: jax.Array, command: jax.Array,
             clock: jax.Array | None = None, gravity: jax.Array | None = None) -> jax.Array:
     """The policy's observation ``[obs_size]`` of state ``(q [nq], qd [nv])`` under ``command``
-    ``[3]``; ``clock`` (cycles) is required when ``cfg.gait_hz > 0``. ``home`` ``[nu]``;
-    ``gravity``: the sensed gravity direction (:func:`base_signals`)."""
+    ``[3]``, laid out as :func:`obs_layout` says; ``clock`` (cycles) is required when
+    ``cfg.gait_hz > 0``. ``home`` ``[nu]``; ``gravity``: the sensed gravity direction
+    (:func:`base_signals`)."""
     v, w, g = base_signals(q, qd, gravity)
     parts = [v, w, g, q[7:] - home, qd[6:], command]
     if cfg.gait_hz > 0:
@@ -314,7 +332,16 @@ def observe(cfg: EnvConfig, home: jax.Array, q: jax.Array, qd: jax.Array, comman
 
 
 def obs_size(cfg: EnvConfig, nu: int) -> int:
-    return 12 + 2 * nu + (2 if cfg.gait_hz > 0 else 0)
+    return max(s.stop for s in obs_layout(cfg, nu).values())
+
+
+def tracking_terms(cfg: EnvConfig, command: jax.Array, v: jax.Array, w: jax.Array
+                   ) -> dict[str, jax.Array]:
+    """The velocity-tracking reward terms (unscaled) of base-frame velocities ``v``, ``w``
+    (``[..., 3]``) under ``command`` (``[..., 3]``)."""
+    sig = cfg.tracking_sigma
+    return {"tracking_lin_vel": jnp.exp(-jnp.sum((command[..., :2] - v[..., :2]) ** 2, -1) / sig),
+            "tracking_ang_vel": jnp.exp(-(command[..., 2] - w[..., 2]) ** 2 / sig)}
 
 
 def state_terms(cfg: EnvConfig, home: jax.Array, q: jax.Array, qd: jax.Array,
@@ -325,11 +352,9 @@ def state_terms(cfg: EnvConfig, home: jax.Array, q: jax.Array, qd: jax.Array,
     ``gravity``: the sensed gravity direction (:func:`base_signals`; the orientation term keeps
     the base upright against it)."""
     v, w, g = base_signals(q, qd, gravity)
-    sig = cfg.tracking_sigma
-    moving = jnp.linalg.norm(command) > 0.1
+    moving = jnp.linalg.norm(command) > MOVING
     return {
-        "tracking_lin_vel": jnp.exp(-jnp.sum((command[:2] - v[:2]) ** 2) / sig),
-        "tracking_ang_vel": jnp.exp(-(command[2] - w[2]) ** 2 / sig),
+        **tracking_terms(cfg, command, v, w),
         "lin_vel_z": v[2] ** 2,
         "ang_vel_xy": jnp.sum(w[:2] ** 2),
         "orientation": jnp.sum(g[:2] ** 2),
@@ -508,7 +533,7 @@ class VelocityEnv(brax_base.Env):
         clock = jnp.mod(info["clock"] + cfg.gait_hz * self.dt, 1.0)
         command = info["command"]
         terms = state_terms(cfg, self.home, q, qd, command, d.actuator_force, fallen, up)
-        moving = jnp.linalg.norm(command) > 0.1
+        moving = jnp.linalg.norm(command) > MOVING
         terms["action_rate"] = jnp.sum((action - info["last_action"]) ** 2)
         terms["feet_air_time"] = jnp.where(
             moving, jnp.sum((air - cfg.air_time_target) * first), 0.0)

@@ -191,6 +191,8 @@ def relabel_commands(data: Trajectories, env_cfg, dt: float, key: jax.Array, sha
     the state itself: a task with sensor noise is refused); the environment clips the total at
     0, so a step whose reward was clipped keeps 0 (its unclipped value is unknown).
     """
+    from stride_jax.control import envs  # the velocity task's layout and reward terms
+
     _check(data)
     if not 0.0 <= share <= 1.0 or std < 0:
         raise ValueError(f"relabel: share={share} must be in [0, 1] and std={std} >= 0")
@@ -199,11 +201,11 @@ def relabel_commands(data: Trajectories, env_cfg, dt: float, key: jax.Array, sha
                          f"{env_cfg.sensor_noise}): its observed velocities are not the ones "
                          "its reward read, so the tracking terms cannot be recomputed from them")
     o = data.obs.shape[-1]
-    nu, odd = divmod(o - 12 - (2 if env_cfg.gait_hz > 0 else 0), 2)
-    if odd or nu < 1:
+    nu = (o - envs.obs_size(env_cfg, 0)) // 2
+    if nu < 1 or envs.obs_size(env_cfg, nu) != o:
         raise ValueError(f"relabel: observations of size {o} are not the velocity task's "
                          f"(stride_jax.control.envs.observe; gait clock: {env_cfg.gait_hz > 0})")
-    ic = slice(9 + 2 * nu, 12 + 2 * nu)  # the command's entries
+    at = envs.obs_layout(env_cfg, nu)
     lo, hi = env_cfg.commands.bounds()
     scale = jnp.maximum(jnp.abs(lo), jnp.abs(hi))
     k_pick, k_off = jax.random.split(key)
@@ -213,22 +215,23 @@ def relabel_commands(data: Trajectories, env_cfg, dt: float, key: jax.Array, sha
 
     def moved(c):  # [N, T, 3]: moving commands that stay moving take the offset
         c2 = c + offset[:, None, :]
-        keep = (jnp.linalg.norm(c, axis=-1) <= 0.1) | (jnp.linalg.norm(c2, axis=-1) <= 0.1)
+        keep = ((jnp.linalg.norm(c, axis=-1) <= envs.MOVING)
+                | (jnp.linalg.norm(c2, axis=-1) <= envs.MOVING))
         return jnp.where(keep[..., None], c, c2)
 
-    c_old = data.obs[..., ic]
+    c_old = data.obs[..., at["command"]]
     c_new = moved(c_old)
-    v, w = data.next_obs[..., 0:2], data.next_obs[..., 5]
-    sig, sc = env_cfg.tracking_sigma, env_cfg.rewards
+    v, w = data.next_obs[..., at["v"]], data.next_obs[..., at["w"]]
 
-    def tracking(c):
-        return (sc.tracking_lin_vel * jnp.exp(-jnp.sum((c[..., :2] - v) ** 2, -1) / sig)
-                + sc.tracking_ang_vel * jnp.exp(-(c[..., 2] - w) ** 2 / sig))
-    change = dt * (tracking(c_new) - tracking(c_old))
+    def tracking(c):  # the tracking part of the reward, scaled, per period
+        terms = envs.tracking_terms(env_cfg, c, v, w)
+        return dt * sum(getattr(env_cfg.rewards, k) * x for k, x in terms.items())
+    change = tracking(c_new) - tracking(c_old)
     reward = jnp.where(data.reward > 0, jnp.maximum(data.reward + change, 0.0), data.reward)
-    return data._replace(obs=data.obs.at[..., ic].set(c_new),
-                         next_obs=data.next_obs.at[..., ic].set(moved(data.next_obs[..., ic])),
-                         reward=reward)
+    return data._replace(
+        obs=data.obs.at[..., at["command"]].set(c_new),
+        next_obs=data.next_obs.at[..., at["command"]].set(moved(data.next_obs[..., at["command"]])),
+        reward=reward)
 
 
 def lambda_returns(reward: jax.Array, next_value: jax.Array, terminal: jax.Array,
