@@ -1240,6 +1240,16 @@ def test_the_closed_loops_episode_senses_as_the_policy_episode_does(go1):
         tilt=wt.tilt, record=lambda qa, qd, u, info, qa2, *_: (grav(qa), grav(qa2))))
     assert not np.allclose(now[1], now[0])  # the ground tilts step by step
     np.testing.assert_allclose(nxt[:-1], now[1:], atol=1e-7)
+    # record_every: the same records at every other step (from the first), zeros between
+    _, (now2, _) = jax.device_get(cl.run_episode(
+        wt.sm, wt.mx, wt.slots, planning, acting, 3, wt.starts, wt.values, jax.random.key(0),
+        tilt=wt.tilt, record=lambda qa, qd, u, info, qa2, *_: (grav(qa), grav(qa2)),
+        record_every=2))
+    np.testing.assert_allclose(now2[::2], now[::2], atol=1e-7)
+    assert not now2[1].any()
+    with pytest.raises(ValueError, match="record_every"):
+        cl.run_episode(wt.sm, wt.mx, wt.slots, planning, acting, 3, wt.starts, wt.values,
+                       jax.random.key(0), record=lambda *a: a[0], record_every=0)
 
 
 def test_the_velocity_integral_moves_the_planners_command_against_a_steady_error():

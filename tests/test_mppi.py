@@ -363,6 +363,33 @@ def test_model_check_signs_the_forward_speed_a_slow_model_misses():
     assert len(s["plan_fwd_bias"]) == 8 and s["plan_fwd_bias"][-1] < 0 and len(s["fwd_bias_policy"]) == 8
 
 
+def test_along_reads_what_a_model_predicts_of_a_sequence_against_the_truth():
+    """``model_check.along``: each sequence's signals averaged over the horizon on the model's
+    rollout and the truth's, and its cost on each; a model that misses a constant push reads
+    slower by the push's mean build-up, and each side starts from its own state."""
+    from stride_jax.control import model_check
+
+    dt, H = 0.1, 4
+    truth = lambda q, qd, u, k: (q + dt * qd, qd + dt * u + 0.2)  # a push the model lacks
+    model = lambda q, qd, u, k: (q + dt * qd, qd + dt * u)
+    cost = lambda q, qd, u, t: jnp.sum(qd ** 2)
+    value = lambda q, qd: q[0]
+    signals = lambda q, qd: jnp.stack([qd[0], q[0]])
+    seqs = jnp.stack([jnp.ones((H, 1)), -jnp.ones((H, 1))])
+    q, qd = jnp.zeros(1), jnp.zeros(1)
+    got = model_check.along(model, truth, cost, value, signals, seqs, q, q + 1.0, qd,
+                            jax.random.key(0))
+    track, c = np.asarray(got["track"]), np.asarray(got["cost"])
+    assert track.shape == (2, 2, 2) and c.shape == (2, 2)
+    # the truth's speed runs ahead by 0.2 per step: 0.2 * (1 + 2 + 3 + 4) / 4 on the mean
+    np.testing.assert_allclose(track[:, 1, 0] - track[:, 0, 0], 0.5, atol=1e-6)
+    np.testing.assert_allclose(track[0, 0, 0], dt * (1 + 2 + 3 + 4) / 4, atol=1e-6)
+    assert track[0, 1, 1] > track[0, 0, 1] + 1.0 - 1e-6  # the truth starts 1 further on
+    # the cost: each step's speed before it squared, summed, minus the end position (the value):
+    # by hand, 0.14 - 0.06 and 0.14 + 0.06 on the model; 1.26 - 1.18 and 0.14 - 1.06 on the truth
+    np.testing.assert_allclose(c, [[0.08, 0.08], [0.20, -0.92]], atol=1e-5)
+
+
 def test_a_policy_family_finds_the_command_offset_its_policy_lacks():
     """Candidates from a family of policies (the closed loop's PPO policy given command + z):
     a P-controller towards 1 under a drift settles at 0.5; the planner, searching z with the

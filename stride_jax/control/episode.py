@@ -90,7 +90,7 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
                 limits: tuple[jax.Array, jax.Array] | None = None,
                 tilt: jax.Array | None = None, progress: Callable | None = None,
                 progress_every: int = 50, sense_gravity: bool = True,
-                sensors: sensors_lib.SensorNoise | None = None
+                sensors: sensors_lib.SensorNoise | None = None, record_every: int = 1
                 ) -> Trace | tuple[Trace, object]:
     """A closed-loop episode of ``n_steps`` control steps from the home pose (heading +x) under
     the command :func:`schedule` ``(starts, values)``. ``planner=None`` lets ``planning.policy``
@@ -98,7 +98,9 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
 
     ``record(q_aug, qd, u, info, q_aug_next, qd_next, down, key) -> pytree`` (with a planner)
     adds what it returns per step, stacked ``[T, ...]``: the episode then returns ``(trace,
-    recorded)``. ``q_aug_next`` is the state reached under the step's command (with the gravity
+    recorded)``; with ``record_every`` N > 1 it runs at every N-th control step only (from the
+    first), its outputs zero at the others (a costly record, such as replaying the candidates in
+    the simulator, then costs 1/N). ``q_aug_next`` is the state reached under the step's command (with the gravity
     sensed at its time), ``down`` whether the robot was down before the step. ``pushes``
     (:func:`stride_jax.control.scenarios.push_schedule`) applies horizontal forces to the base
     body (unknown to the planner's model).
@@ -133,7 +135,8 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     integral action (the measured base velocity) read it; the world, the trace and the fall check
     keep the true state. None: the exact state, as every run before session 81."""
     init, body = _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record,
-                          pushes, limits, tilt, progress, progress_every, sense_gravity, sensors)
+                          pushes, limits, tilt, progress, progress_every, sense_gravity, sensors,
+                          record_every)
     _, trace = jax.lax.scan(body, init, jnp.arange(n_steps))
     return trace
 
@@ -211,7 +214,7 @@ def _control(sm, planning: Planning, planner: mppi.Planner | None, ps, late, ste
 
 def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=None, pushes=None,
              limits=None, tilt=None, progress=None, progress_every=50, sense_gravity=True,
-             sensors=None):
+             sensors=None, record_every=1):
     """``(init, body)`` of :func:`run_episode`'s scan over control steps."""
     nu = sm.info.nu
     gait = len(planning.lo) > nu
@@ -230,6 +233,8 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
         raise ValueError("the policy-only model needs a PPO policy (--policy)")
     if record is not None and planner is None:
         raise ValueError("record needs a planner (it records the planner's candidates)")
+    if not (isinstance(record_every, int) and record_every >= 1):
+        raise ValueError(f"record_every={record_every!r}: a whole number of control steps >= 1")
 
     observe = planner is not None and planning.observer_gain > 0
     obs_key = jax.random.fold_in(key, 0x0B5E)  # the observer's own draws
@@ -309,10 +314,16 @@ def _episode(sm, mx_sim, slots, planning, planner, starts, values, key, record=N
                     u, status, cut, dist, alarm)
         if record is not None:
             up2 = sensed_gravity(mx_sim, t + dt, tilt) if sense_gravity else None
-            rec = (rec, record(q_aug, d.qvel, u, info,
-                               augment(d2.qpos, command_seen, clock, disturbance=dist,
-                                       gravity=up2),
-                               d2.qvel, down, jax.random.fold_in(key, step)))
+            args = (q_aug, d.qvel, u, info,
+                    augment(d2.qpos, command_seen, clock, disturbance=dist, gravity=up2),
+                    d2.qvel, down, jax.random.fold_in(key, step))
+            if record_every == 1:
+                rec = (rec, record(*args))
+            else:  # (the step is the scan's, never batched: a real branch under vmap)
+                blank = lambda a: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype),
+                                               jax.eval_shape(lambda a: record(*a), a))
+                rec = (rec, jax.lax.cond(step % record_every == 0, lambda a: record(*a), blank,
+                                         args))
         if progress is not None:
             jax.lax.cond((step + 1) % progress_every == 0,
                          lambda s: jax.debug.callback(progress, s), lambda s: None, step + 1)

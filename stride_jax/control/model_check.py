@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stride_jax.control import mppi
+from stride_jax.control import costs, mppi
 
 
 def _ranks(x: jax.Array) -> jax.Array:
@@ -75,6 +75,31 @@ def one_state(model_dynamics: Callable, true_dynamics: Callable, running_cost: C
                 spearman=spearman(jnp.where(ok, c_model, 1e9), jnp.where(ok, c_true, 1e9)),
                 top10_overlap=overlap, regret=c_plan - along(true_dynamics, plan(w_true))[0],
                 finite=ok.mean())
+
+
+def along(model_dynamics: Callable, true_dynamics: Callable, running_cost: Callable,
+          value: Callable, signals: Callable, sequences: jax.Array, q_model: jax.Array,
+          q_true: jax.Array, qd: jax.Array, key: jax.Array) -> dict:
+    """What the model predicts each action sequence of ``sequences`` ``[S, H, nu]`` does from
+    one state, against what the simulator does with it: ``track [S, 2, 3]``, the mean over the
+    horizon of ``signals(q, qd) -> [3]`` (e.g. the base's forward and lateral velocity and yaw
+    rate) along the model's rollout ``[:, 0]`` and the simulator's ``[:, 1]``, and ``cost
+    [S, 2]``, each rollout's cost (``running_cost`` summed minus the terminal ``value``: the
+    planner's own objective, read on either). ``q_model`` and ``q_true`` are the same state as
+    each side takes it (a planner's augmented state carries corrections, such as a disturbance
+    estimate, that only its model applies); one key per sequence, the same on both sides."""
+    keys = jax.random.split(key, sequences.shape[0])
+
+    def both(a, k):
+        c_m, qs_m, qds_m = costs.open_loop_cost(model_dynamics, running_cost, value, q_model, qd,
+                                                a, k)
+        c_t, qs_t, qds_t = costs.open_loop_cost(true_dynamics, running_cost, value, q_true, qd,
+                                                a, k)
+        mean = lambda qs, qds: jnp.mean(jax.vmap(signals)(qs, qds), axis=0)
+        return jnp.stack([mean(qs_m, qds_m), mean(qs_t, qds_t)]), jnp.stack([c_m, c_t])
+
+    track, cost = jax.vmap(both)(sequences, keys)
+    return dict(track=track, cost=cost)
 
 
 def _heading(q: jax.Array) -> jax.Array:

@@ -185,36 +185,41 @@ def versus(row: dict, other: dict) -> dict | None:
     return paired(np.asarray(row["per_world"])[both], np.asarray(other["per_world"])[both])
 
 
-def by_command(row: dict, other: dict, commands, bounds) -> list[dict]:
-    """Where ``row`` tracks closer or worse than ``other``: their per-piece errors (rows'
-    ``per_piece``, ``per_piece_yaw``: each episode's RMSE under each command) paired piece by
-    piece and grouped by the command -- stops (all zero), then each component at or above half
-    its range's largest magnitude (``bounds``: the commands' ``(lo [3], hi [3])``) or below it,
-    among the moving pieces. Each group: ``label``, ``n`` pieces both scored, ``vel`` and
-    ``yaw``, :func:`paired` over the pieces (the pieces of one episode taken as independent: a
-    screen, not a test), and where the rows have them ``forward``: each row's mean forward
-    speed minus the command there (m/s; + faster than asked). Empty where either row lacks
-    per-piece errors."""
-    if "per_piece" not in row or "per_piece" not in other:
-        return []
-    cmd = np.asarray(commands, float)  # [W, P, 3]
+def command_groups(commands, bounds) -> list[tuple[str, np.ndarray]]:
+    """The validation commands ``[W, P, 3]`` (each episode's per piece) in :func:`by_command`'s
+    groups: ``[(label, mask [W, P])]``, stops (all zero) first, then each component at or above
+    half its range's largest magnitude (``bounds``: the commands' ``(lo [3], hi [3])``) or
+    below it, among the moving pieces (a piece may sit in several)."""
+    cmd = np.asarray(commands, float)
     scale = np.maximum(np.abs(np.asarray(bounds[0], float)), np.abs(np.asarray(bounds[1], float)))
     big = np.abs(cmd) >= 0.5 * np.where(scale > 0, scale, np.inf)  # [W, P, 3]
     stop = np.all(cmd == 0, axis=-1)
-    arr = lambda r, k: np.asarray([[np.nan if v is None else v for v in w] for w in r[k]], float)
-    dv = arr(row, "per_piece") - arr(other, "per_piece")
-    dw = arr(row, "per_piece_yaw") - arr(other, "per_piece_yaw")
-    names = ("forward", "lateral", "yaw rate")
     groups = [("stops (all zero)", stop)]
-    for i, name in enumerate(names):
+    for i, name in enumerate(("forward", "lateral", "yaw rate")):
         half = 0.5 * scale[i]
         signs = " (either sign)" if bounds[0][i] < 0 < bounds[1][i] else ""
         groups += [(f"{name} {half:.2g} or more{signs}", ~stop & big[..., i]),
                    (f"{name} under {half:.2g}{signs}", ~stop & ~big[..., i])]
+    return groups
+
+
+def by_command(row: dict, other: dict, commands, bounds) -> list[dict]:
+    """Where ``row`` tracks closer or worse than ``other``: their per-piece errors (rows'
+    ``per_piece``, ``per_piece_yaw``: each episode's RMSE under each command) paired piece by
+    piece and grouped by the command (:func:`command_groups`). Each group: ``label``, ``n``
+    pieces both scored, ``vel`` and ``yaw``, :func:`paired` over the pieces (the pieces of one
+    episode taken as independent: a screen, not a test), and where the rows have them
+    ``forward``: each row's mean forward speed minus the command there (m/s; + faster than
+    asked). Empty where either row lacks per-piece errors."""
+    if "per_piece" not in row or "per_piece" not in other:
+        return []
+    arr = lambda r, k: np.asarray([[np.nan if v is None else v for v in w] for w in r[k]], float)
+    dv = arr(row, "per_piece") - arr(other, "per_piece")
+    dw = arr(row, "per_piece_yaw") - arr(other, "per_piece_yaw")
     fwd = [arr(r, "per_piece_forward") if "per_piece_forward" in r else None
            for r in (row, other)]
     out = []
-    for label, m in groups:
+    for label, m in command_groups(commands, bounds):
         m = m & np.isfinite(dv) & np.isfinite(dw)
         g = dict(label=label, n=int(m.sum()), vel=paired(dv[m], np.zeros(m.sum())),
                  yaw=paired(dw[m], np.zeros(m.sum())))
@@ -254,11 +259,70 @@ def done_rows(cfg: SelectConfig) -> tuple[list[dict], dict | None]:
              and r.get("sha256") == file_sha256(r["path"])], table.get("policy"))
 
 
+def validation_commands(cfg: SelectConfig):
+    """``(policy, env_cfg, starts [P], values [W, P, 3], keys [W])``: the planner's policy and
+    its task, the validation episodes' command schedules -- a new command every ``change_s``,
+    drawn from the policy's training distribution as the planner's value data are
+    (:func:`stride_jax.control.planner_value.collect`) -- and each episode's planner key; the
+    same for every run of ``cfg``'s seed (cheap: no model is loaded)."""
+    policy, _, env_cfg = ppo.load_policy(cfg.policy)
+    if env_cfg.robot != cfg.robot:
+        raise ValueError(f"the policy {cfg.policy} drives {env_cfg.robot}, not {cfg.robot}")
+    key_cmd, key_run = jax.random.split(jax.random.key(cfg.seed))
+    starts, values = envs.command_schedules(env_cfg.commands, key_cmd, cfg.worlds,
+                                            max(1, int(np.ceil(cfg.seconds / cfg.change_s))),
+                                            cfg.change_s)
+    return policy, env_cfg, starts, values, jax.random.split(key_run, cfg.worlds)
+
+
+def validation_episodes(cfg: SelectConfig, policy, env_cfg, starts, progress=None,
+                        recorder=None, record_every: int = 1):
+    """``(sm, episodes)``: the robot and ``episodes(learned_params, values [W, P, 3], keys [W],
+    plan=True)``, the validation episodes side by side (un-jitted; ``plan=False``: the policy
+    alone) with the planner built as the closed loop builds it from ``cfg``'s flags.
+    ``recorder(planning, planner, sm) -> record`` adds :func:`stride_jax.control.episode.
+    run_episode`'s ``record`` (every ``record_every``-th step): the episodes then return
+    ``(trace, recorded)``. ``progress(seconds)`` is called with the time simulated, once per
+    simulated second."""
+    from mujoco import mjx
+
+    sm = sim_model.load(cfg.robot)
+    mx = mjx.put_model(sm.mj)
+    slots = envs.contact_slots(mx)
+    if cfg.model == "oracle":
+        step_fn = episode_lib.mjx_step_fn(sm, mx)
+    else:
+        step_fn = episode_lib.learned_step_fn(cfg.model.partition("=")[2], sm, cfg.kernel,
+                                              cfg.model_precision, cfg.model_substeps)
+    error_params = None
+    if cfg.error_model:
+        from stride_jax.control import planner_value
+        error_params = planner_value.load_error_model(cfg.error_model)
+    sensors = seen_through(cfg.sensors, cfg.sensor_noise)
+    n_steps = max(1, int(round(cfg.seconds / sm.robot.ctrl_dt)))
+    every = max(1, int(round(1.0 / sm.robot.ctrl_dt)))  # a progress line per simulated second
+    seconds = None if progress is None else (lambda steps: progress(int(steps) * sm.robot.ctrl_dt))
+
+    def episodes(learned_params, values, keys, plan=True):
+        planning = planning_lib.make_planning(cfg.planning, env_cfg, sm, step_fn, policy,
+                                              learned_params, error_params=error_params)
+        planner = None  # plan=False: the policy alone (the learned files unused)
+        if plan:
+            with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
+                planner = planning_lib.make_planner(
+                    planning, planning_lib.mppi_config(cfg.mppi, cfg.planning, planning))
+        record = (recorder(planning, planner, sm) if recorder is not None and plan else None)
+        return jax.vmap(lambda v, k: episode_lib.run_episode(
+            sm, mx, slots, planning, planner, n_steps, starts, v, k, progress=seconds,
+            progress_every=every, sensors=sensors, record=record,
+            record_every=record_every))(values, keys)
+
+    return sm, episodes
+
+
 def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
     """Plans the validation episodes with every candidate not yet in ``OUT/selection.json``;
     writes ``selection.{json,md}`` after each."""
-    from mujoco import mjx
-
     code = code_version()  # read before the work, not when the table is written
     pairs = cfg.pairs()
     if not pairs:
@@ -287,56 +351,22 @@ def run(cfg: SelectConfig, command: str = "", log=print) -> list[dict]:
         log(f"best: {ranked[0]['label']}; wrote {out}")
         return ranked
 
-    policy, _, env_cfg = ppo.load_policy(cfg.policy)
-    if env_cfg.robot != cfg.robot:
-        raise ValueError(f"the policy {cfg.policy} drives {env_cfg.robot}, not {cfg.robot}")
-    key_cmd, key_run = jax.random.split(jax.random.key(cfg.seed))
-    # a new command every change_s, drawn as the planner's value data are
-    # (stride_jax.control.planner_value.collect); each episode's (forward, lateral, yaw) per
-    # change go into the table, to read where a planner gains or loses against the policy
-    starts, values = envs.command_schedules(env_cfg.commands, key_cmd, cfg.worlds,
-                                            max(1, int(np.ceil(cfg.seconds / cfg.change_s))),
-                                            cfg.change_s)
+    policy, env_cfg, starts, values, keys = validation_commands(cfg)
+    # each episode's (forward, lateral, yaw) per change go into the table, to read where a
+    # planner gains or loses against the policy
     commands = np.asarray(values).round(4).tolist()
     bounds = [np.asarray(b).tolist() for b in env_cfg.commands.bounds()]
     kept = {r["label"] for r in rows}
     todo = [(label, path) for label, path in pairs if label not in kept]
     if not todo and (reference is not None or not cfg.policy_reference):
         return finish(rows)
-    sm = sim_model.load(cfg.robot)
-    mx = mjx.put_model(sm.mj)
-    slots = envs.contact_slots(mx)
-    if cfg.model == "oracle":
-        step_fn = episode_lib.mjx_step_fn(sm, mx)
-    else:
-        step_fn = episode_lib.learned_step_fn(cfg.model.partition("=")[2], sm, cfg.kernel,
-                                              cfg.model_precision, cfg.model_substeps)
-    error_params = None
-    if cfg.error_model:
-        from stride_jax.control import planner_value
-        error_params = planner_value.load_error_model(cfg.error_model)
-    sensors = seen_through(cfg.sensors, cfg.sensor_noise)
-    n_steps = max(1, int(round(cfg.seconds / sm.robot.ctrl_dt)))
-    keys = jax.random.split(key_run, cfg.worlds)
-    every = max(1, int(round(1.0 / sm.robot.ctrl_dt)))  # a progress line per simulated second
     now = {"label": "", "t0": 0.0}  # the running candidate, for the progress callback
 
-    def progress(steps):
-        log(f"  {now['label']}: {int(steps) * sm.robot.ctrl_dt:.1f} of {cfg.seconds:g} s "
-            f"simulated ({time.monotonic() - now['t0']:.0f} s)")
+    def progress(seconds):
+        log(f"  {now['label']}: {seconds:.1f} of {cfg.seconds:g} s simulated "
+            f"({time.monotonic() - now['t0']:.0f} s)")
 
-    def episodes(learned_params, values, keys, plan=True):
-        planning = planning_lib.make_planning(cfg.planning, env_cfg, sm, step_fn, policy,
-                                              learned_params, error_params=error_params)
-        planner = None  # plan=False: the policy alone (the learned files unused)
-        if plan:
-            with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
-                planner = planning_lib.make_planner(
-                    planning, planning_lib.mppi_config(cfg.mppi, cfg.planning, planning))
-        return jax.vmap(lambda v, k: episode_lib.run_episode(
-            sm, mx, slots, planning, planner, n_steps, starts, v, k, progress=progress,
-            progress_every=every, sensors=sensors))(values, keys)
-
+    _, episodes = validation_episodes(cfg, policy, env_cfg, starts, progress)
     # the learned files are the argument: candidates of one structure share one compile
     episodes = jax.jit(episodes, static_argnames="plan")
 

@@ -1,0 +1,81 @@
+"""experiments/plan_bias.py: the planner's replays (model against simulator) read by command."""
+
+import numpy as np
+import pytest
+
+BOUNDS = [[0.0, -0.3, -0.5], [1.0, 0.3, 0.5]]
+COMMANDS = np.array([[[0.0, 0.0, 0.0], [0.8, 0.0, 0.0]],
+                     [[0.2, 0.0, 0.0], [0.9, 0.0, 0.0]]])  # [W, P, 3]
+
+
+def _records(every=2, T=10, dt=0.1, down_at=None):
+    """Two episodes of ``T`` steps under :data:`COMMANDS` (a change at 0.5 s): the model
+    predicts every sequence on the command, the simulator 0.1 m/s faster; the family's
+    objective 0.3 below the policy's on the model, 0.1 on the simulator; the robot 0.05 m/s
+    faster than asked."""
+    W, S = COMMANDS.shape[0], 4
+    piece = (np.arange(T) * dt >= 0.5 - 1e-9).astype(int)
+    cmd = COMMANDS[:, piece]  # [W, T, 3]
+    track = np.zeros((W, T, S, 2, 3))
+    track[..., 0, :] = cmd[:, :, None]
+    track[..., 1, :] = cmd[:, :, None] + np.array([0.1, 0.0, 0.0])
+    cost = np.zeros((W, T, S, 2))
+    cost[:, :, 3] = [-0.3, -0.1]  # the family's
+    recorded = np.zeros((W, T), bool)
+    recorded[:, ::every] = True
+    down = np.zeros((W, T), bool)
+    if down_at is not None:
+        down[down_at] = True
+    share = np.tile([0.2, 0.3, 0.5], (W, T, 1))
+    return dict(track=track, cost=cost, share=share, command=cmd,
+                now=cmd + np.array([0.05, 0.0, 0.0]), down=down,
+                status=np.zeros((W, T), int), recorded=recorded)
+
+
+def test_replays_are_grouped_by_command_after_the_settling_time(experiment):
+    mod = experiment("plan_bias")
+    groups = {g["label"]: g for g in mod.summarise(_records(), COMMANDS, BOUNDS, [0.0, 0.5],
+                                                  0.2, 0.1)}
+    stops, fast, slow = (groups["stops (all zero)"], groups["forward 0.5 or more"],
+                         groups["forward under 0.5"])
+    # recorded every other step; settled 0.2 s into each command: 0.2 and 0.4 s of the first
+    # piece (world 0's stop, world 1's slow command), 0.8 s of the second (both fast)
+    assert (stops["steps"], stops["episodes"]) == (2, 1)
+    assert (slow["steps"], slow["episodes"]) == (2, 1)
+    assert (fast["steps"], fast["episodes"]) == (2, 2)
+    for g in (stops, fast, slow):
+        for seq in mod.SEQUENCES:
+            f = g["forward"][seq]
+            assert f["model"]["mean"] == pytest.approx(0.0, abs=1e-9)
+            assert f["true"]["mean"] == pytest.approx(0.1)
+            assert f["bias"]["mean"] == pytest.approx(-0.1)
+        assert g["executed_forward"]["mean"] == pytest.approx(0.05)
+        assert g["share"]["family"]["mean"] == pytest.approx(0.5)
+        c = g["cost_family_minus_policy"]
+        assert (c["model"]["mean"], c["true"]["mean"]) == (pytest.approx(-0.3),
+                                                            pytest.approx(-0.1))
+    assert groups["lateral 0.15 or more (either sign)"]["episodes"] == 0
+    # a step the robot was down at does not count
+    fewer = {g["label"]: g for g in mod.summarise(_records(down_at=(1, 8)), COMMANDS, BOUNDS,
+                                                 [0.0, 0.5], 0.2, 0.1)}
+    assert (fewer["forward 0.5 or more"]["steps"], fewer["forward 0.5 or more"]["episodes"]) \
+        == (1, 1)
+    table = dict(command="c", code="abc", candidate="r.msgpack", every=2,
+                 config=dict(worlds=2, seconds=1.0, seed=0, model="stride=RUN"),
+                 groups=list(groups.values()))
+    md = mod.markdown(table)
+    assert "| forward 0.5 or more | 2 (2) | +0.050 | +0.000, +0.100 |" in md
+    assert "| lateral 0.15 or more (either sign) | 0 |" in md
+
+
+def test_bad_settings_are_named_before_any_work(experiment):
+    mod = experiment("plan_bias")
+    from stride_jax.jobs.select_learned import SelectConfig
+    with pytest.raises(ValueError, match="every=0"):
+        mod.run(SelectConfig(candidates="a=x.msgpack"), 0, "c")
+    with pytest.raises(ValueError, match="candidates"):
+        mod.run(SelectConfig(), 5, "c")
+    with pytest.raises(FileNotFoundError, match="no learned reward/value file"):
+        mod.run(SelectConfig(candidates="a=/nonexistent.msgpack"), 5, "c")
+    with pytest.raises(ValueError, match="sensor noise"):
+        mod.run(SelectConfig(candidates="a=x.msgpack", sensor_noise=1.0), 5, "c")
