@@ -94,7 +94,8 @@ def recorder(cfg, env_cfg, policy):
                                     signals, jnp.where(ok[:, None, None], seqs, 0.0), q_aug,
                                     q_true, qd, key)
             nan = lambda x: jnp.where(ok.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan)
-            return dict(track=nan(got["track"]), cost=nan(got["cost"]), share=jnp.stack(shares),
+            return dict(track=nan(got["track"]), cost=nan(got["cost"]),
+                        value=nan(got["value"]), share=jnp.stack(shares),
                         command=a.command, now=signals(q_aug, qd), down=down,
                         status=info.status, recorded=jnp.ones((), bool))
 
@@ -121,6 +122,7 @@ def summarise(rec: dict, commands, bounds, starts, settle_s: float, ctrl_dt: flo
     cmd = np.asarray(rec["command"], float)  # [W, T, 3] as the controller saw it
     track = np.asarray(rec["track"], float)  # [W, T, S, 2, 3]
     cost = np.asarray(rec["cost"], float)  # [W, T, S, 2]
+    value = np.asarray(rec["value"], float)  # [W, T, S, 2], the cost's terminal part
     share = np.asarray(rec["share"], float)  # [W, T, 3]
     now = np.asarray(rec["now"], float)  # [W, T, 3]
     out = []
@@ -151,6 +153,9 @@ def summarise(rec: dict, commands, bounds, starts, settle_s: float, ctrl_dt: flo
         fam, pol = SEQUENCES.index("family"), SEQUENCES.index("policy")
         g["cost_family_minus_policy"] = dict(model=stat(cost[..., fam, 0] - cost[..., pol, 0]),
                                              true=stat(cost[..., fam, 1] - cost[..., pol, 1]))
+        # the terminal value's part of that difference (the cost subtracts the value)
+        g["value_part"] = dict(model=stat(value[..., pol, 0] - value[..., fam, 0]),
+                               true=stat(value[..., pol, 1] - value[..., fam, 1]))
         out.append(g)
     return out
 
@@ -178,23 +183,26 @@ def markdown(table: dict) -> str:
              "| commands | steps (episodes) | executed | plan: model, simulator | plan: model "
              "minus simulator [90%] | policy cand.: model, simulator | family cand.: model, "
              "simulator | weight: prior, policy, family | objective, family minus policy: "
-             "model, simulator |", "|---|---:|---:|---|---|---|---|---|---|"]
+             "model, simulator | of which the terminal value: model, simulator |",
+             "|---|---:|---:|---|---|---|---|---|---|---|"]
     for g in table["groups"]:
         if not g["episodes"]:
-            lines.append(f"| {g['label']} | 0 | | | | | | | |")
+            lines.append(f"| {g['label']} | 0 | | | | | | | | |")
             continue
         f = g["forward"]
         pair = lambda k: f"{_num(f[k]['model'])}, {_num(f[k]['true'])}"
         sh = ", ".join("n/a" if not g["share"][k] else f"{g['share'][k]['mean']:.2f}"
                        for k in GROUPS)
-        cf = g["cost_family_minus_policy"]
+        cf, vp = g["cost_family_minus_policy"], g.get("value_part")
         lines.append(f"| {g['label']} | {g['steps']} ({g['episodes']}) | "
                      f"{_num(g['executed_forward'])} | {pair('plan')} | "
                      f"{_num(f['plan']['bias'], True)} | {pair('policy')} | {pair('family')} | "
-                     f"{sh} | {_num(cf['model'])}, {_num(cf['true'])} |")
+                     f"{sh} | {_num(cf['model'])}, {_num(cf['true'])} | "
+                     + (f"{_num(vp['model'])}, {_num(vp['true'])}" if vp else "n/a") + " |")
     lines += ["", "Objective: the planner's cost (learned reward's negative summed, minus the "
               "terminal value) of the family's weighted mean minus the policy's; negative: the "
-              "family's plan is preferred. Replays are open loop from the state the planner "
+              "family's plan is preferred; the terminal value's part is the policy's end value "
+              "minus the family's (the rest is the running cost's). Replays are open loop from the state the planner "
               "saw; the closed loop replans every step, so they say what the planner expected "
               "of its choice, not what the episode did (the executed column says that)."]
     return "\n".join(lines) + "\n"

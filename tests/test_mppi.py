@@ -388,6 +388,7 @@ def test_along_reads_what_a_model_predicts_of_a_sequence_against_the_truth():
     # the cost: each step's speed before it squared, summed, minus the end position (the value):
     # by hand, 0.14 - 0.06 and 0.14 + 0.06 on the model; 1.26 - 1.18 and 0.14 - 1.06 on the truth
     np.testing.assert_allclose(c, [[0.08, 0.08], [0.20, -0.92]], atol=1e-5)
+    np.testing.assert_allclose(got["value"], [[0.06, 1.18], [-0.06, 1.06]], atol=1e-5)
 
 
 def test_a_policy_family_finds_the_command_offset_its_policy_lacks():

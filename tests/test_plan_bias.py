@@ -21,13 +21,15 @@ def _records(every=2, T=10, dt=0.1, down_at=None):
     track[..., 1, :] = cmd[:, :, None] + np.array([0.1, 0.0, 0.0])
     cost = np.zeros((W, T, S, 2))
     cost[:, :, 3] = [-0.3, -0.1]  # the family's
+    value = np.zeros((W, T, S, 2))
+    value[:, :, 3] = [0.2, 0.05]  # the family's end value: most of its lower cost on the model
     recorded = np.zeros((W, T), bool)
     recorded[:, ::every] = True
     down = np.zeros((W, T), bool)
     if down_at is not None:
         down[down_at] = True
     share = np.tile([0.2, 0.3, 0.5], (W, T, 1))
-    return dict(track=track, cost=cost, share=share, command=cmd,
+    return dict(track=track, cost=cost, value=value, share=share, command=cmd,
                 now=cmd + np.array([0.05, 0.0, 0.0]), down=down,
                 status=np.zeros((W, T), int), recorded=recorded)
 
@@ -54,6 +56,9 @@ def test_replays_are_grouped_by_command_after_the_settling_time(experiment):
         c = g["cost_family_minus_policy"]
         assert (c["model"]["mean"], c["true"]["mean"]) == (pytest.approx(-0.3),
                                                             pytest.approx(-0.1))
+        v = g["value_part"]
+        assert (v["model"]["mean"], v["true"]["mean"]) == (pytest.approx(-0.2),
+                                                            pytest.approx(-0.05))
     assert groups["lateral 0.15 or more (either sign)"]["episodes"] == 0
     # a step the robot was down at does not count
     fewer = {g["label"]: g for g in mod.summarise(_records(down_at=(1, 8)), COMMANDS, BOUNDS,
@@ -66,6 +71,7 @@ def test_replays_are_grouped_by_command_after_the_settling_time(experiment):
     md = mod.markdown(table)
     assert "| forward 0.5 or more | 2 (2) | +0.050 | +0.000, +0.100 |" in md
     assert "| lateral 0.15 or more (either sign) | 0 |" in md
+    assert "| -0.300, -0.100 | -0.200, -0.050 |" in md
 
 
 def test_bad_settings_are_named_before_any_work(experiment):

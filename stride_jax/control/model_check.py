@@ -83,9 +83,9 @@ def along(model_dynamics: Callable, true_dynamics: Callable, running_cost: Calla
     """What the model predicts each action sequence of ``sequences`` ``[S, H, nu]`` does from
     one state, against what the simulator does with it: ``track [S, 2, 3]``, the mean over the
     horizon of ``signals(q, qd) -> [3]`` (e.g. the base's forward and lateral velocity and yaw
-    rate) along the model's rollout ``[:, 0]`` and the simulator's ``[:, 1]``, and ``cost
-    [S, 2]``, each rollout's cost (``running_cost`` summed minus the terminal ``value``: the
-    planner's own objective, read on either). ``q_model`` and ``q_true`` are the same state as
+    rate) along the model's rollout ``[:, 0]`` and the simulator's ``[:, 1]``, ``cost [S, 2]``,
+    each rollout's cost (``running_cost`` summed minus the terminal ``value``: the planner's own
+    objective, read on either), and ``value [S, 2]``, that terminal value alone. ``q_model`` and ``q_true`` are the same state as
     each side takes it (a planner's augmented state carries corrections, such as a disturbance
     estimate, that only its model applies); one key per sequence, the same on both sides."""
     keys = jax.random.split(key, sequences.shape[0])
@@ -96,10 +96,11 @@ def along(model_dynamics: Callable, true_dynamics: Callable, running_cost: Calla
         c_t, qs_t, qds_t = costs.open_loop_cost(true_dynamics, running_cost, value, q_true, qd,
                                                 a, k)
         mean = lambda qs, qds: jnp.mean(jax.vmap(signals)(qs, qds), axis=0)
-        return jnp.stack([mean(qs_m, qds_m), mean(qs_t, qds_t)]), jnp.stack([c_m, c_t])
+        return (jnp.stack([mean(qs_m, qds_m), mean(qs_t, qds_t)]), jnp.stack([c_m, c_t]),
+                jnp.stack([value(qs_m[-1], qds_m[-1]), value(qs_t[-1], qds_t[-1])]))
 
-    track, cost = jax.vmap(both)(sequences, keys)
-    return dict(track=track, cost=cost)
+    track, cost, end = jax.vmap(both)(sequences, keys)
+    return dict(track=track, cost=cost, value=end)
 
 
 def _heading(q: jax.Array) -> jax.Array:
