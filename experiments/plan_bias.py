@@ -49,20 +49,18 @@ GROUPS = SEQUENCES[1:]  # the candidate groups, in MPPI's order
 
 
 def recorder(cfg, env_cfg, policy):
-    """``(planning, planner, sm) -> record``: at a step, the plan and each candidate group's
-    weighted mean replayed through the planner's model and the simulator."""
-    import jax
+    """``(planning, planner, sm, mx) -> record``: at a step, the plan and each candidate
+    group's weighted mean replayed through the planner's model and the simulator (``mx``, the
+    episodes' world)."""
     import jax.numpy as jnp
-    from mujoco import mjx
 
     from stride_jax.control import envs, model_check, planning as planning_lib
 
-    def make(planning, planner, sm):
+    def make(planning, planner, sm, mx):
         nq = sm.mj.nq
         mc = planning_lib.mppi_config(cfg.mppi, cfg.planning, planning)
         K, n_pol, n_fam = mc.samples, mc.policy_samples, mc.family_samples
         cut = [0, K - n_pol - n_fam, K - n_fam, K]  # prior | policy | family (MPPI's order)
-        mx = mjx.put_model(sm.mj)  # the validation episodes' world: the nominal model
         truth = planning_lib.make_planning(cfg.planning, env_cfg, sm,
                                            envs.mjx_step_fn(sm.n_substeps, mx), policy)
         value = planning.value or (lambda q, qd: jnp.zeros(()))

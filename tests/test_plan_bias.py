@@ -85,3 +85,26 @@ def test_bad_settings_are_named_before_any_work(experiment):
         mod.run(SelectConfig(candidates="a=/nonexistent.msgpack"), 5, "c")
     with pytest.raises(ValueError, match="sensor noise"):
         mod.run(SelectConfig(candidates="a=x.msgpack", sensor_noise=1.0), 5, "c")
+
+
+@pytest.mark.slow  # ~2 min of MJX compiles; its parts run in make test (above, and test_mppi's along)
+def test_a_planner_through_the_simulator_predicts_its_plans_exactly(tmp_path, experiment):
+    """End to end on Go1's tiny validation episodes: a planner whose model is the simulator
+    itself (the oracle, no disturbance estimate) predicts every replayed sequence as the
+    simulator runs it (no model bias, no objective gap), and its groups' weights sum to one."""
+    mod = experiment("plan_bias")
+    out = tmp_path / "bias"
+    table = mod.main(["--preset", "tiny", "--policy", "results/policies/ppo_go1",
+                      "--model", "oracle", "--worlds", "2", "--seconds", "0.2",
+                      "--change-s", "0.1", "--settle-s", "0.0", "--mppi.family-samples", "2",
+                      "--candidates", "a=results/learned_go1/reward_value.msgpack",
+                      "--every", "2", "--out", str(out)])
+    moving = [g for g in table["groups"] if g["episodes"]]
+    assert moving
+    for g in moving:
+        for seq in mod.SEQUENCES:
+            assert g["forward"][seq]["bias"]["mean"] == pytest.approx(0.0, abs=1e-5)
+        c = g["cost_family_minus_policy"]
+        assert c["model"]["mean"] == pytest.approx(c["true"]["mean"], abs=1e-4)
+        assert sum(g["share"][k]["mean"] for k in mod.GROUPS) == pytest.approx(1.0, abs=1e-5)
+    assert (out / "bias.md").is_file() and (out / "bias.png").is_file()

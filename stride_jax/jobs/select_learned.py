@@ -280,7 +280,7 @@ def validation_episodes(cfg: SelectConfig, policy, env_cfg, starts, progress=Non
     """``(sm, episodes)``: the robot and ``episodes(learned_params, values [W, P, 3], keys [W],
     plan=True)``, the validation episodes side by side (un-jitted; ``plan=False``: the policy
     alone) with the planner built as the closed loop builds it from ``cfg``'s flags.
-    ``recorder(planning, planner, sm) -> record`` adds :func:`stride_jax.control.episode.
+    ``recorder(planning, planner, sm, mx) -> record`` (``mx``: the episodes' MJX model) adds :func:`stride_jax.control.episode.
     run_episode`'s ``record`` (every ``record_every``-th step): the episodes then return
     ``(trace, recorded)``. ``progress(seconds)`` is called with the time simulated, once per
     simulated second."""
@@ -311,7 +311,7 @@ def validation_episodes(cfg: SelectConfig, policy, env_cfg, starts, progress=Non
             with jax.ensure_compile_time_eval():  # mppi.make checks its bounds eagerly
                 planner = planning_lib.make_planner(
                     planning, planning_lib.mppi_config(cfg.mppi, cfg.planning, planning))
-        record = (recorder(planning, planner, sm) if recorder is not None and plan else None)
+        record = recorder(planning, planner, sm, mx) if recorder is not None and plan else None
         return jax.vmap(lambda v, k: episode_lib.run_episode(
             sm, mx, slots, planning, planner, n_steps, starts, v, k, progress=seconds,
             progress_every=every, sensors=sensors, record=record,
