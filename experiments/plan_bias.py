@@ -200,9 +200,13 @@ def markdown(table: dict) -> str:
     lines += ["", "Objective: the planner's cost (learned reward's negative summed, minus the "
               "terminal value) of the family's weighted mean minus the policy's; negative: the "
               "family's plan is preferred; the terminal value's part is the policy's end value "
-              "minus the family's (the rest is the running cost's). Replays are open loop from the state the planner "
-              "saw; the closed loop replans every step, so they say what the planner expected "
-              "of its choice, not what the episode did (the executed column says that)."]
+              "minus the family's (the rest is the running cost's)"
+              + ("" if c.get("mppi", {}).get("discount", 1.0) == 1.0 else
+                 "; read undiscounted, where the planner discounts by "
+                 f"{c['mppi']['discount']:g}") + ". Replays are open loop from the state the "
+              "planner saw; the closed loop replans every step, so they say what the planner "
+              "expected of its choice, not what the episode did (the executed column says "
+              "that)."]
     return "\n".join(lines) + "\n"
 
 

@@ -87,7 +87,7 @@ def test_bad_settings_are_named_before_any_work(experiment):
         mod.run(SelectConfig(candidates="a=x.msgpack", sensor_noise=1.0), 5, "c")
 
 
-@pytest.mark.slow  # ~2 min of MJX compiles; its parts run in make test (above, and test_mppi's along)
+@pytest.mark.slow  # ~2 min of MJX compiles; its parts run in make test (above; test_mppi's along)
 def test_a_planner_through_the_simulator_predicts_its_plans_exactly(tmp_path, experiment):
     """End to end on Go1's tiny validation episodes: a planner whose model is the simulator
     itself (the oracle, no disturbance estimate) predicts every replayed sequence as the

@@ -100,8 +100,9 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     adds what it returns per step, stacked ``[T, ...]``: the episode then returns ``(trace,
     recorded)``; with ``record_every`` N > 1 it runs at every N-th control step only (from the
     first), its outputs zero at the others (a costly record, such as replaying the candidates in
-    the simulator, then costs 1/N). ``q_aug_next`` is the state reached under the step's command (with the gravity
-    sensed at its time), ``down`` whether the robot was down before the step. ``pushes``
+    the simulator, then costs 1/N). ``q_aug_next`` is the state reached under the step's
+    command (with the gravity sensed at its time), ``down`` whether the robot was down before
+    the step. ``pushes``
     (:func:`stride_jax.control.scenarios.push_schedule`) applies horizontal forces to the base
     body (unknown to the planner's model).
     ``limits = (lo [3], hi [3])`` is a command governor: the controller (policy and planner) sees

@@ -18,7 +18,10 @@ scenario's MJX model) from the same state says what those weights should have be
   the planner, in the task's own units.
 
 Pure functions of one state; :func:`check` batches them over states with ``vmap`` (the MPPI step
-itself is a scan over horizon steps, so a batch of states is one program).
+itself is a scan over horizon steps, so a batch of states is one program). :func:`along` reads
+a few chosen sequences (the plan, a candidate group's weighted mean) the same way: what the
+model expects of each against what the simulator does, and the planner's objective on either
+(``experiments/plan_bias.py`` records it along closed-loop episodes).
 """
 
 from __future__ import annotations
@@ -85,9 +88,10 @@ def along(model_dynamics: Callable, true_dynamics: Callable, running_cost: Calla
     horizon of ``signals(q, qd) -> [3]`` (e.g. the base's forward and lateral velocity and yaw
     rate) along the model's rollout ``[:, 0]`` and the simulator's ``[:, 1]``, ``cost [S, 2]``,
     each rollout's cost (``running_cost`` summed minus the terminal ``value``: the planner's own
-    objective, read on either), and ``value [S, 2]``, that terminal value alone. ``q_model`` and ``q_true`` are the same state as
-    each side takes it (a planner's augmented state carries corrections, such as a disturbance
-    estimate, that only its model applies); one key per sequence, the same on both sides."""
+    objective, undiscounted, read on either), and ``value [S, 2]``, that terminal value alone.
+    ``q_model`` and ``q_true`` are the same state as each side takes it (a planner's augmented
+    state carries corrections, such as a disturbance estimate, that only its model applies); one
+    key per sequence, the same on both sides."""
     keys = jax.random.split(key, sequences.shape[0])
 
     def both(a, k):

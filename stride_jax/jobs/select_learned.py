@@ -280,10 +280,10 @@ def validation_episodes(cfg: SelectConfig, policy, env_cfg, starts, progress=Non
     """``(sm, episodes)``: the robot and ``episodes(learned_params, values [W, P, 3], keys [W],
     plan=True)``, the validation episodes side by side (un-jitted; ``plan=False``: the policy
     alone) with the planner built as the closed loop builds it from ``cfg``'s flags.
-    ``recorder(planning, planner, sm, mx) -> record`` (``mx``: the episodes' MJX model) adds :func:`stride_jax.control.episode.
-    run_episode`'s ``record`` (every ``record_every``-th step): the episodes then return
-    ``(trace, recorded)``. ``progress(seconds)`` is called with the time simulated, once per
-    simulated second."""
+    ``recorder(planning, planner, sm, mx) -> record`` (``mx``: the episodes' MJX model) adds
+    :func:`stride_jax.control.episode.run_episode`'s ``record`` (every ``record_every``-th
+    step): the episodes then return ``(trace, recorded)``. ``progress(seconds)`` is called with
+    the time simulated, once per simulated second."""
     from mujoco import mjx
 
     sm = sim_model.load(cfg.robot)
