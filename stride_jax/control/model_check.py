@@ -17,11 +17,12 @@ scenario's MJX model) from the same state says what those weights should have be
   costs' weights make (the same candidates, the same temperature): what the model's errors cost
   the planner, in the task's own units.
 
-Pure functions of one state; :func:`check` batches them over states with ``vmap`` (the MPPI step
-itself is a scan over horizon steps, so a batch of states is one program). :func:`along` reads
-a few chosen sequences (the plan, a candidate group's weighted mean) the same way: what the
-model expects of each against what the simulator does, and the planner's objective on either
-(``experiments/plan_bias.py`` records it along closed-loop episodes).
+Pure functions of one state; ``experiments/planning_diagnosis.py`` batches them over states
+with ``vmap`` (the MPPI step itself is a scan over horizon steps, so a batch of states is one
+program). :func:`along` reads a few chosen sequences (the plan, a candidate group's weighted
+mean) the same way: what the model expects of each against what the simulator does, and the
+planner's objective on either (``experiments/plan_bias.py`` records it along closed-loop
+episodes).
 """
 
 from __future__ import annotations
