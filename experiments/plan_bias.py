@@ -95,7 +95,7 @@ def recorder(cfg, env_cfg, policy):
             return dict(track=nan(got["track"]), cost=nan(got["cost"]),
                         value=nan(got["value"]), share=jnp.stack(shares),
                         command=a.command, now=signals(q_aug, qd), down=down,
-                        status=info.status, recorded=jnp.ones((), bool))
+                        recorded=jnp.ones((), bool))
 
         return record
 
@@ -129,8 +129,8 @@ def summarise(rec: dict, commands, bounds, starts, settle_s: float, ctrl_dt: flo
         episodes = [i for i in range(W) if m[i].any()]
 
         def stat(x):  # x [W, T]: per-episode means over the group's steps, then over episodes
-            per = np.array([np.nanmean(np.where(m[i], x[i], np.nan)) for i in episodes])
-            per = per[np.isfinite(per)]
+            per = [x[i][m[i]] for i in episodes]
+            per = np.array([v[np.isfinite(v)].mean() for v in per if np.isfinite(v).any()])
             if not len(per):
                 return None
             iv = paired(per, np.zeros(len(per)))

@@ -30,8 +30,7 @@ def _records(every=2, T=10, dt=0.1, down_at=None):
         down[down_at] = True
     share = np.tile([0.2, 0.3, 0.5], (W, T, 1))
     return dict(track=track, cost=cost, value=value, share=share, command=cmd,
-                now=cmd + np.array([0.05, 0.0, 0.0]), down=down,
-                status=np.zeros((W, T), int), recorded=recorded)
+                now=cmd + np.array([0.05, 0.0, 0.0]), down=down, recorded=recorded)
 
 
 def test_replays_are_grouped_by_command_after_the_settling_time(experiment):
@@ -65,6 +64,22 @@ def test_replays_are_grouped_by_command_after_the_settling_time(experiment):
                                                  [0.0, 0.5], 0.2, 0.1)}
     assert (fewer["forward 0.5 or more"]["steps"], fewer["forward 0.5 or more"]["episodes"]) \
         == (1, 1)
+    # a planner without the family: its rows are NaN, read as none (no warning, no zero)
+    rec = _records()
+    rec["track"][:, :, 3] = np.nan
+    rec["cost"][:, :, 3] = np.nan
+    rec["value"][:, :, 3] = np.nan
+    import warnings
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="Mean of empty slice")
+        bare = mod.summarise(rec, COMMANDS, BOUNDS, [0.0, 0.5], 0.2, 0.1)
+    fast = next(g for g in bare if g["label"] == "forward 0.5 or more")
+    assert fast["forward"]["family"]["model"] is None
+    assert fast["cost_family_minus_policy"]["model"] is None
+    assert fast["forward"]["policy"]["true"]["mean"] == pytest.approx(0.1)
+    assert "| n/a, n/a |" in mod.markdown(dict(command="c", code="abc", candidate="r", every=2,
+                                                 config=dict(worlds=2, seconds=1.0, seed=0,
+                                                             model="m"), groups=bare))
     table = dict(command="c", code="abc", candidate="r.msgpack", every=2,
                  config=dict(worlds=2, seconds=1.0, seed=0, model="stride=RUN"),
                  groups=list(groups.values()))
