@@ -27,8 +27,7 @@ relabelling answers). The per-episode means carry the intervals (90% t over epis
         --worlds 8 --seconds 4 [the planner's --mppi.* and --planning.* flags] \\
         --every 5 --out results/planning_diagnosis/plan_bias_g1
 
-Writes ``OUT/bias.{json,md}`` and ``OUT/bias.png`` (one candidate file: the first of
-``--candidates``).
+Writes ``OUT/bias.{json,md}`` and ``OUT/bias.png`` (``--candidates``: one file, one planner).
 """
 
 from __future__ import annotations
@@ -271,8 +270,9 @@ def run(cfg, every: int, command: str, log=print) -> dict:
         raise ValueError("plan_bias pairs the planner's step with the true state as it acts: "
                          "no sensor noise, no latency")
     pairs = cfg.pairs()
-    if not pairs:
-        raise ValueError("candidates: give the learned reward/value as LABEL=PATH")
+    if len(pairs) != 1:
+        raise ValueError(f"candidates: give one learned reward/value as LABEL=PATH (got "
+                         f"{len(pairs)}; one run reads one planner)")
     label, path = pairs[0]
     if not pathlib.Path(path).is_file():
         raise FileNotFoundError(f"candidate {label}: no learned reward/value file at {path}")

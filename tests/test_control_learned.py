@@ -166,3 +166,18 @@ def test_relabelled_rewards_are_the_environments_under_the_new_command():
                                  jax.random.key(3), 1.0, 0.5)
     with pytest.raises(ValueError, match="share=2"):
         learned.relabel_commands(data, cfg, dt, jax.random.key(3), 2.0, 0.5)
+
+
+def test_the_fit_refuses_a_relabelling_it_cannot_do_before_any_rollout(monkeypatch):
+    """``stride fit-reward-value --relabel-share``: the checks ``relabel_commands`` would make
+    (``learned.check_relabel``) run before the policy is rolled out."""
+    from stride_jax.jobs import fit_reward_value as job
+
+    def never(*a, **k):
+        raise AssertionError("rolled out before the check")
+
+    monkeypatch.setattr(learned, "rollouts", never)
+    with pytest.raises(ValueError, match="share=2"):
+        job.fit_from_policy(job.FitConfig(policy="results/policies/ppo_go1", relabel_share=2.0))
+    with pytest.raises(ValueError, match="std=-1"):
+        job.fit_from_policy(job.FitConfig(policy="results/policies/ppo_go1", relabel_std=-1.0))

@@ -96,6 +96,8 @@ def test_bad_settings_are_named_before_any_work(experiment):
         mod.run(SelectConfig(candidates="a=x.msgpack"), 0, "c")
     with pytest.raises(ValueError, match="candidates"):
         mod.run(SelectConfig(), 5, "c")
+    with pytest.raises(ValueError, match="got 2"):
+        mod.run(SelectConfig(candidates="a=x.msgpack,b=y.msgpack"), 5, "c")
     with pytest.raises(FileNotFoundError, match="no learned reward/value file"):
         mod.run(SelectConfig(candidates="a=/nonexistent.msgpack"), 5, "c")
     with pytest.raises(ValueError, match="sensor noise"):

@@ -102,9 +102,8 @@ def run_episode(sm: sim_model.SimModel, mx_sim: mjx.Model, slots, planning: Plan
     first), its outputs zero at the others (a costly record, such as replaying the candidates in
     the simulator, then costs 1/N). ``q_aug_next`` is the state reached under the step's
     command (with the gravity sensed at its time), ``down`` whether the robot was down before
-    the step. ``pushes``
-    (:func:`stride_jax.control.scenarios.push_schedule`) applies horizontal forces to the base
-    body (unknown to the planner's model).
+    the step. ``pushes`` (:func:`stride_jax.control.scenarios.push_schedule`) applies
+    horizontal forces to the base body (unknown to the planner's model).
     ``limits = (lo [3], hi [3])`` is a command governor: the controller (policy and planner) sees
     the command clipped to them, the trace keeps the command asked for, so the tracking metrics
     count what the clipping gives up. ``tilt`` (:func:`stride_jax.control.scenarios.

@@ -167,6 +167,17 @@ def fit_reward(key: jax.Array, cfg: LearnedConfig, data: Trajectories) -> tuple[
     return fit_scalar(key, cfg, _flat(reward_input(data.obs, data.action)), _flat(data.reward))
 
 
+def check_relabel(env_cfg, share: float, std: float) -> None:
+    """Raises where :func:`relabel_commands` cannot relabel ``env_cfg``'s rollouts at ``share``
+    and ``std`` (a caller checks before it rolls them out)."""
+    if not 0.0 <= share <= 1.0 or std < 0:
+        raise ValueError(f"relabel: share={share} must be in [0, 1] and std={std} >= 0")
+    if env_cfg.sensor_noise:
+        raise ValueError(f"relabel: the task observes through sensors (sensor_noise="
+                         f"{env_cfg.sensor_noise}): its observed velocities are not the ones "
+                         "its reward read, so the tracking terms cannot be recomputed from them")
+
+
 def relabel_commands(data: Trajectories, env_cfg, dt: float, key: jax.Array, share: float,
                      std: float) -> Trajectories:
     """``data`` with the command of a ``share`` of its worlds moved, and their rewards' tracking
@@ -194,12 +205,7 @@ def relabel_commands(data: Trajectories, env_cfg, dt: float, key: jax.Array, sha
     from stride_jax.control import envs  # the velocity task's layout and reward terms
 
     _check(data)
-    if not 0.0 <= share <= 1.0 or std < 0:
-        raise ValueError(f"relabel: share={share} must be in [0, 1] and std={std} >= 0")
-    if env_cfg.sensor_noise:
-        raise ValueError(f"relabel: the task observes through sensors (sensor_noise="
-                         f"{env_cfg.sensor_noise}): its observed velocities are not the ones "
-                         "its reward read, so the tracking terms cannot be recomputed from them")
+    check_relabel(env_cfg, share, std)
     o = data.obs.shape[-1]
     nu = (o - envs.obs_size(env_cfg, 0)) // 2
     if nu < 1 or envs.obs_size(env_cfg, nu) != o:

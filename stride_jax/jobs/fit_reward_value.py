@@ -126,16 +126,12 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     held-out report."""
     if cfg.members < 1:
         raise ValueError(f"members must be >= 1, got {cfg.members}")
-    if not 0.0 <= cfg.relabel_share <= 1.0 or cfg.relabel_std < 0:  # before the rollouts
-        raise ValueError(f"relabel_share={cfg.relabel_share} must be in [0, 1] and "
-                         f"relabel_std={cfg.relabel_std} >= 0")
     t0 = time.monotonic()
     policy, _, env_cfg = ppo.load_policy(cfg.policy, deterministic=False)
     if not cfg.keep_action_noise:
         env_cfg = dataclasses.replace(env_cfg, action_noise=0.0)
-    if cfg.relabel_share and env_cfg.sensor_noise:  # (relabel_commands says why; before rolling)
-        raise ValueError(f"relabel_share: {cfg.policy} observes through sensors (sensor_noise="
-                         f"{env_cfg.sensor_noise}); its rollouts cannot be relabelled")
+    if cfg.relabel_share or cfg.relabel_std < 0:  # what relabel_commands would refuse, first
+        learned_lib.check_relabel(env_cfg, cfg.relabel_share, cfg.relabel_std)
     env = envs_lib.VelocityEnv(env_cfg)
     key_roll, key_r, key_v = jax.random.split(jax.random.key(cfg.seed), 3)
     data = jax.jit(lambda k: learned_lib.rollouts(env, policy, k, cfg.envs, cfg.rollout_steps))(
