@@ -181,3 +181,42 @@ def test_the_fit_refuses_a_relabelling_it_cannot_do_before_any_rollout(monkeypat
         job.fit_from_policy(job.FitConfig(policy="results/policies/ppo_go1", relabel_share=2.0))
     with pytest.raises(ValueError, match="std=-1"):
         job.fit_from_policy(job.FitConfig(policy="results/policies/ppo_go1", relabel_std=-1.0))
+
+
+def test_the_fit_relabels_only_the_model_it_is_told(monkeypatch, tmp_path):
+    """``stride fit-reward-value --relabel-models value`` (or ``reward``): the relabelled worlds
+    train only that model; the other is the plain fit's, from the same rollouts and keys."""
+    from stride_jax.control import envs
+    from stride_jax.jobs import fit_reward_value as job
+
+    def rollouts(env, policy, key, n, t):  # the velocity task's layout, moving commands
+        o = envs.obs_size(env.cfg, env.action_size)
+        k_o, k_c, k_r = jax.random.split(key, 3)
+        obs = jax.random.normal(k_o, (n, t + 1, o))
+        cmd = jax.random.uniform(k_c, (n, 1, 3), minval=0.3, maxval=0.8)
+        obs = obs.at[..., envs.obs_layout(env.cfg, env.action_size)["command"]].set(
+            jnp.broadcast_to(cmd, (n, t + 1, 3)))
+        zeros = jnp.zeros((n, t))
+        return learned.Trajectories(obs[:, :-1], jnp.zeros((n, t, env.action_size)),
+                                    jax.random.uniform(k_r, (n, t), minval=0.5, maxval=1.0),
+                                    obs[:, 1:], zeros, zeros)
+
+    monkeypatch.setattr(learned, "rollouts", rollouts)
+    fit = job.FIT_PRESETS["tiny"]
+
+    def fitted(name, **kw):
+        out = tmp_path / name
+        job.fit_from_policy(dataclasses.replace(fit, policy="results/policies/ppo_go1",
+                                                out=str(out), **kw), log=lambda *_: None)
+        return learned.load(out / "reward_value.msgpack")
+
+    def same(a, b):
+        return all(jax.tree.leaves(jax.tree.map(lambda x, y: bool(jnp.array_equal(x, y)), a, b)))
+
+    plain_r, plain_v = fitted("plain")
+    for which in ("both", "value", "reward"):
+        r, v = fitted(which, relabel_share=1.0, relabel_std=0.5, relabel_models=which)
+        assert same(r, plain_r) == (which == "value"), which
+        assert same(v, plain_v) == (which == "reward"), which
+    with pytest.raises(ValueError, match="relabel_models must be one of"):
+        fitted("bad", relabel_share=1.0, relabel_models="values")

@@ -55,6 +55,9 @@ class FitConfig:
         own rollouts never sees a velocity off its command). 0: off (every fit before it). The
         held-out worlds keep their commands: the report's R^2 reads the policy's own steps.
       relabel_std: the offsets' std, as a share of each command component's range.
+      relabel_models: which models train on the relabelled worlds: ``both`` (the default), or
+        only the ``value`` (the reward then fits the policy's own steps: the value is where
+        G1's planner's pull to speed was measured, session 97) or only the ``reward``.
       learned: the models' sizes and training
         (:class:`~stride_jax.control.learned.LearnedConfig`: ``--learned.width``,
         ``--learned.steps`` ...; the older flat ``--width``, ``--steps`` ... still answer).
@@ -70,6 +73,7 @@ class FitConfig:
     keep_action_noise: bool = False
     relabel_share: float = 0.0
     relabel_std: float = 0.3
+    relabel_models: str = "both"
     learned: learned_lib.LearnedConfig = learned_lib.LearnedConfig()
 
     # The flat flags of earlier commands still answer.
@@ -77,6 +81,8 @@ class FitConfig:
         f"learned.{f.name}": "--" + f.name.replace("_", "-")
         for f in dataclasses.fields(learned_lib.LearnedConfig)}
 
+
+RELABEL_MODELS = ("both", "value", "reward")
 
 FIT_PRESETS = {
     "tiny": FitConfig(envs=8, rollout_steps=40, holdout=0.25,
@@ -96,10 +102,11 @@ def _held_out(reward_params, value_params, test, lc) -> dict:
             "value_r2_held_out": learned_lib.r2(v_obs(test.obs), g)}
 
 
-def _fit_members(cfg: FitConfig, key_r: jax.Array, key_v: jax.Array, train, test
+def _fit_members(cfg: FitConfig, key_r: jax.Array, key_v: jax.Array, train_r, train_v, test
                  ) -> tuple[list, list, dict]:
-    """``cfg.members`` reward and value models on ``train`` (member ``i > 0`` from its own fold of
-    the two keys), the held-out R^2 of the members' mean and, for several, of each member."""
+    """``cfg.members`` reward models on ``train_r`` and value models on ``train_v`` (member
+    ``i > 0`` from its own fold of the two keys), the held-out R^2 of the members' mean and, for
+    several, of each member."""
     lc = cfg.learned
     fit_r = jax.jit(lambda k, d: learned_lib.fit_reward(k, lc, d))
     fit_v = jax.jit(lambda k, d: learned_lib.fit_value(k, lc, d))
@@ -107,8 +114,8 @@ def _fit_members(cfg: FitConfig, key_r: jax.Array, key_v: jax.Array, train, test
     for i in range(cfg.members):
         kr, kv = (key_r, key_v) if i == 0 else (jax.random.fold_in(key_r, i),
                                                  jax.random.fold_in(key_v, i))
-        r_params, r_loss = fit_r(kr, train)
-        v_params, v_loss = fit_v(kv, train)
+        r_params, r_loss = fit_r(kr, train_r)
+        v_params, v_loss = fit_v(kv, train_v)
         rewards.append(r_params)
         values.append(v_params)
         r_losses.append(float(r_loss[-1]))
@@ -130,6 +137,9 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     policy, _, env_cfg = ppo.load_policy(cfg.policy, deterministic=False)
     if not cfg.keep_action_noise:
         env_cfg = dataclasses.replace(env_cfg, action_noise=0.0)
+    if cfg.relabel_models not in RELABEL_MODELS:
+        raise ValueError(f"relabel_models must be one of {', '.join(RELABEL_MODELS)}, got "
+                         f"{cfg.relabel_models!r}")
     if cfg.relabel_share or cfg.relabel_std < 0:  # what relabel_commands would refuse, first
         learned_lib.check_relabel(env_cfg, cfg.relabel_share, cfg.relabel_std)
     env = envs_lib.VelocityEnv(env_cfg)
@@ -139,13 +149,16 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     n_test = max(1, int(round(cfg.holdout * cfg.envs)))
     train = jax.tree.map(lambda x: x[n_test:], data)
     test = jax.tree.map(lambda x: x[:n_test], data)
+    train_r = train_v = train
     if cfg.relabel_share:  # (its own key: the rollouts and fits keep theirs)
-        train = learned_lib.relabel_commands(train, env_cfg, env.dt,
+        moved = learned_lib.relabel_commands(train, env_cfg, env.dt,
                                              jax.random.fold_in(jax.random.key(cfg.seed), 7),
                                              cfg.relabel_share, cfg.relabel_std)
+        train_r = moved if cfg.relabel_models in ("both", "reward") else train
+        train_v = moved if cfg.relabel_models in ("both", "value") else train
     log(f"{cfg.envs} x {cfg.rollout_steps} steps of {env_cfg.robot} ({time.monotonic() - t0:.0f}"
         f" s); mean reward {float(data.reward.mean()):.4f}, falls {float(data.terminal.sum())}")
-    rewards, values, stats = _fit_members(cfg, key_r, key_v, train, test)
+    rewards, values, stats = _fit_members(cfg, key_r, key_v, train_r, train_v, test)
     report = {"command": command, "code": code_version(), "robot": env_cfg.robot,
               "envs": cfg.envs,
               "rollout_steps": cfg.rollout_steps, "held_out_worlds": n_test, **stats,
