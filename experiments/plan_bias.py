@@ -10,8 +10,11 @@ command (``select_learned.command_groups``), per group:
 * **executed**: the base's forward speed minus the command at the recorded states (what the
   closed loop did);
 * per sequence, the forward speed (mean over the horizon) **the model predicts** minus the
-  command, and **the simulator's** minus the command; their difference is the model's bias
-  along what the planner chose;
+  command the planner tracks, and **the simulator's** minus it; their difference is the model's
+  bias along what the planner chose. A planner with a velocity integral
+  (``--planning.velocity-integral``) tracks the command moved against the integrated error:
+  its sequences are read against that command, the executed speed against the one asked, and
+  the table adds the move (the planner's command minus the asked one);
 * each group's **weight** share, and the planner's objective (learned reward and value, read on
   either trajectory) of the family's mean minus the policy's: the preference as the model
   shows it and as the simulator's states would give it.
@@ -116,7 +119,8 @@ def summarise(rec: dict, commands, bounds, starts, settle_s: float, ctrl_dt: flo
     piece = np.clip(np.searchsorted(starts, t + 1e-9, side="right") - 1, 0, len(starts) - 1)
     settled = t - starts[piece] >= settle_s - 1e-9
     counts = np.asarray(rec["recorded"], bool) & ~np.asarray(rec["down"], bool) & settled[None]
-    cmd = np.asarray(rec["command"], float)  # [W, T, 3] as the controller saw it
+    cmd = np.asarray(rec["command"], float)  # [W, T, 3] as the planner tracked it
+    asked = np.asarray(commands, float)[:, piece]  # [W, T, 3] as the episode asked it
     track = np.asarray(rec["track"], float)  # [W, T, S, 2, 3]
     cost = np.asarray(rec["cost"], float)  # [W, T, S, 2]
     value = np.asarray(rec["value"], float)  # [W, T, S, 2], the cost's terminal part
@@ -140,7 +144,8 @@ def summarise(rec: dict, commands, bounds, starts, settle_s: float, ctrl_dt: flo
         if not episodes:
             out.append(g)
             continue
-        g["executed_forward"] = stat(now[..., 0] - cmd[..., 0])
+        g["executed_forward"] = stat(now[..., 0] - asked[..., 0])
+        g["tracked_minus_asked"] = stat(cmd[..., 0] - asked[..., 0])  # a velocity integral's
         g["share"] = {k: stat(share[..., j]) for j, k in enumerate(GROUPS)}
         g["forward"] = {}
         for s, name in enumerate(SEQUENCES):
@@ -182,9 +187,19 @@ def markdown(table: dict) -> str:
              "simulator | weight: prior, policy, family | objective, family minus policy: "
              "model, simulator | of which the terminal value: model, simulator |",
              "|---|---:|---:|---|---|---|---|---|---|---|"]
+    # a velocity integral moves the command the planner tracks: its own column
+    moved = any(g["episodes"] and g.get("tracked_minus_asked")
+                and abs(g["tracked_minus_asked"]["mean"]) > 1e-6 for g in table["groups"])
+    if moved:
+        lines[-3] += (" The planner tracked the asked command moved by its velocity integral "
+                      "(`--planning.velocity-integral`): the sequences' columns read against "
+                      "the command it tracked, the executed column against the one asked, and "
+                      "'tracked minus asked' is the move.")
+        lines[-2] = lines[-2].replace("| executed |", "| executed | tracked minus asked |")
+        lines[-1] = lines[-1].replace("|---|---:|---:|", "|---|---:|---:|---:|", 1)
     for g in table["groups"]:
         if not g["episodes"]:
-            lines.append(f"| {g['label']} | 0 | | | | | | | | |")
+            lines.append(f"| {g['label']} | 0 | | | | | | | | |" + (" |" if moved else ""))
             continue
         f = g["forward"]
         pair = lambda k: f"{_num(f[k]['model'])}, {_num(f[k]['true'])}"
@@ -192,7 +207,9 @@ def markdown(table: dict) -> str:
                        for k in GROUPS)
         cf, vp = g["cost_family_minus_policy"], g.get("value_part")
         lines.append(f"| {g['label']} | {g['steps']} ({g['episodes']}) | "
-                     f"{_num(g['executed_forward'])} | {pair('plan')} | "
+                     f"{_num(g['executed_forward'])} | "
+                     + (f"{_num(g.get('tracked_minus_asked'))} | " if moved else "")
+                     + f"{pair('plan')} | "
                      f"{_num(f['plan']['bias'], True)} | {pair('policy')} | {pair('family')} | "
                      f"{sh} | {_num(cf['model'])}, {_num(cf['true'])} | "
                      + (f"{_num(vp['model'])}, {_num(vp['true'])}" if vp else "n/a") + " |")

@@ -87,6 +87,22 @@ def test_replays_are_grouped_by_command_after_the_settling_time(experiment):
     assert "| forward 0.5 or more | 2 (2) | +0.050 | +0.000, +0.100 |" in md
     assert "| lateral 0.15 or more (either sign) | 0 |" in md
     assert "| -0.300, -0.100 | -0.200, -0.050 |" in md
+    assert "tracked minus asked" not in md  # no integral: no column
+    # a velocity integral moved the planner's command 0.1 m/s below the asked one: the
+    # sequences read against the command it tracked, the executed speed against the asked one
+    rec = _records()  # the robot still 0.05 m/s faster than asked
+    rec["command"] = rec["command"] - np.array([0.1, 0.0, 0.0])
+    rec["track"][..., 0] -= 0.1  # every sequence as before, about the planner's command
+    moved = {g["label"]: g for g in mod.summarise(rec, COMMANDS, BOUNDS, [0.0, 0.5], 0.2, 0.1)}
+    fast = moved["forward 0.5 or more"]
+    assert fast["executed_forward"]["mean"] == pytest.approx(0.05)
+    assert fast["tracked_minus_asked"]["mean"] == pytest.approx(-0.1)
+    assert fast["forward"]["plan"]["model"]["mean"] == pytest.approx(0.0, abs=1e-9)
+    assert fast["forward"]["plan"]["true"]["mean"] == pytest.approx(0.1)
+    md = mod.markdown({**table, "groups": list(moved.values())})
+    assert "| executed | tracked minus asked |" in md and "|---|---:|---:|---:|" in md
+    assert "| forward 0.5 or more | 2 (2) | +0.050 | -0.100 | +0.000, +0.100 |" in md
+    assert "| lateral 0.15 or more (either sign) | 0 | | | | | | | | | |" in md
 
 
 def test_bad_settings_are_named_before_any_work(experiment):
