@@ -191,7 +191,7 @@ def markdown(table: dict) -> str:
     moved = any(g["episodes"] and g.get("tracked_minus_asked")
                 and abs(g["tracked_minus_asked"]["mean"]) > 1e-6 for g in table["groups"])
     if moved:
-        lines[-3] += (" The planner tracked the asked command moved by its velocity integral "
+        lines[-4] += (" The planner tracked the asked command moved by its velocity integral "
                       "(`--planning.velocity-integral`): the sequences' columns read against "
                       "the command it tracked, the executed column against the one asked, and "
                       "'tracked minus asked' is the move.")

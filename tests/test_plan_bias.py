@@ -101,6 +101,9 @@ def test_replays_are_grouped_by_command_after_the_settling_time(experiment):
     assert fast["forward"]["plan"]["true"]["mean"] == pytest.approx(0.1)
     md = mod.markdown({**table, "groups": list(moved.values())})
     assert "| executed | tracked minus asked |" in md and "|---|---:|---:|---:|" in md
+    lines = md.splitlines()
+    head = next(i for i, x in enumerate(lines) if x.startswith("| commands |"))
+    assert lines[head - 1] == "" and "moved by its velocity integral" in lines[head - 2]
     assert "| forward 0.5 or more | 2 (2) | +0.050 | -0.100 | +0.000, +0.100 |" in md
     assert "| lateral 0.15 or more (either sign) | 0 | | | | | | | | | |" in md
 
