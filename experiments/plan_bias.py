@@ -48,6 +48,25 @@ from stride_jax import config
 
 SEQUENCES = ("plan", "prior", "policy", "family")  # what each recorded step replays
 GROUPS = SEQUENCES[1:]  # the candidate groups, in MPPI's order
+# parts of the family's end state given the policy's, one at a time, to read what the value
+# scores in it (a floating base: q = [position 3, quaternion 4, joints], qd = [base 6, joints])
+BLOCKS = ("base velocity", "orientation", "joint positions", "joint velocities", "all")
+
+
+def swapped(q_fam, qd_fam, q_pol, qd_pol, block: str, nq: int):
+    """The family's end state ``(q, qd)`` with ``block`` of the policy's (:data:`BLOCKS`; the base
+    velocity is MuJoCo's free-joint velocity, the orientation the quaternion; ``all``: every
+    part the value reads, so the policy's state but its position)."""
+    q, qd = q_fam, qd_fam
+    if block in ("base velocity", "all"):
+        qd = qd.at[:6].set(qd_pol[:6])
+    if block in ("orientation", "all"):
+        q = q.at[3:7].set(q_pol[3:7])
+    if block in ("joint positions", "all"):
+        q = q.at[7:nq].set(q_pol[7:nq])
+    if block in ("joint velocities", "all"):
+        qd = qd.at[6:].set(qd_pol[6:])
+    return q, qd
 
 
 def recorder(cfg, env_cfg, policy):
@@ -94,8 +113,15 @@ def recorder(cfg, env_cfg, policy):
                                     signals, jnp.where(ok[:, None, None], seqs, 0.0), q_aug,
                                     q_true, qd, key)
             nan = lambda x: jnp.where(ok.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan)
+            # what the value reads: the family's end state with one part of the policy's
+            fam, pol = SEQUENCES.index("family"), SEQUENCES.index("policy")
+            swap = jnp.stack([jnp.stack([
+                value(*swapped(got["end_q"][fam, side], got["end_qd"][fam, side],
+                               got["end_q"][pol, side], got["end_qd"][pol, side], b, nq))
+                - got["value"][fam, side] for side in (0, 1)]) for b in BLOCKS])
+            swap = jnp.where(ok[fam] & ok[pol], swap, jnp.nan)  # [B, 2]
             return dict(track=nan(got["track"]), cost=nan(got["cost"]),
-                        value=nan(got["value"]), share=jnp.stack(shares),
+                        value=nan(got["value"]), swap=swap, share=jnp.stack(shares),
                         command=a.command, now=signals(q_aug, qd), down=down,
                         recorded=jnp.ones((), bool))
 
@@ -124,6 +150,7 @@ def summarise(rec: dict, commands, bounds, starts, settle_s: float, ctrl_dt: flo
     track = np.asarray(rec["track"], float)  # [W, T, S, 2, 3]
     cost = np.asarray(rec["cost"], float)  # [W, T, S, 2]
     value = np.asarray(rec["value"], float)  # [W, T, S, 2], the cost's terminal part
+    swap = np.asarray(rec["swap"], float) if "swap" in rec else None  # [W, T, B, 2]
     share = np.asarray(rec["share"], float)  # [W, T, 3]
     now = np.asarray(rec["now"], float)  # [W, T, 3]
     out = []
@@ -158,6 +185,9 @@ def summarise(rec: dict, commands, bounds, starts, settle_s: float, ctrl_dt: flo
         # the terminal value's part of that difference (the cost subtracts the value)
         g["value_part"] = dict(model=stat(value[..., pol, 0] - value[..., fam, 0]),
                                true=stat(value[..., pol, 1] - value[..., fam, 1]))
+        if swap is not None:  # the same sign: the value part each block alone carries
+            g["value_swap"] = {b: dict(model=stat(swap[..., i, 0]), true=stat(swap[..., i, 1]))
+                               for i, b in enumerate(BLOCKS)}
         out.append(g)
     return out
 
@@ -223,6 +253,22 @@ def markdown(table: dict) -> str:
               "planner saw; the closed loop replans every step, so they say what the planner "
               "expected of its choice, not what the episode did (the executed column says "
               "that)."]
+    swaps = [g for g in table["groups"] if g["episodes"] and g.get("value_swap")]
+    if swaps:
+        lines += ["", "## What the value reads in the family's end state", "",
+                  "The terminal value's part (as above: the policy's end value minus the "
+                  "family's) and what each part of the policy's end state alone carries of it: "
+                  "the family's end state given that part of the policy's, its value minus the "
+                  "family's own, the same sign (`" + "`, `".join(BLOCKS[:-1]) + "`: MuJoCo's "
+                  "free-joint velocity, the base quaternion, the joints; `all` of them: the "
+                  "policy's state but its position, so the whole part). Model, simulator.", "",
+                  "| commands | value's part | " + " | ".join(BLOCKS) + " |",
+                  "|---|---|" + "---|" * len(BLOCKS)]
+        for g in swaps:
+            vp, sw = g["value_part"], g["value_swap"]
+            lines.append(f"| {g['label']} | {_num(vp['model'])}, {_num(vp['true'])} | "
+                         + " | ".join(f"{_num(sw[b]['model'])}, {_num(sw[b]['true'])}"
+                                      for b in BLOCKS) + " |")
     return "\n".join(lines) + "\n"
 
 

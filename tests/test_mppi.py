@@ -389,6 +389,9 @@ def test_along_reads_what_a_model_predicts_of_a_sequence_against_the_truth():
     # by hand, 0.14 - 0.06 and 0.14 + 0.06 on the model; 1.26 - 1.18 and 0.14 - 1.06 on the truth
     np.testing.assert_allclose(c, [[0.08, 0.08], [0.20, -0.92]], atol=1e-5)
     np.testing.assert_allclose(got["value"], [[0.06, 1.18], [-0.06, 1.06]], atol=1e-5)
+    # the end states, whose value that is
+    np.testing.assert_allclose(got["end_q"][..., 0], got["value"], atol=1e-6)
+    np.testing.assert_allclose(got["end_qd"][:, 0, 0], [0.4, -0.4], atol=1e-6)
 
 
 def test_a_policy_family_finds_the_command_offset_its_policy_lacks():

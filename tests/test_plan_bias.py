@@ -29,7 +29,10 @@ def _records(every=2, T=10, dt=0.1, down_at=None):
     if down_at is not None:
         down[down_at] = True
     share = np.tile([0.2, 0.3, 0.5], (W, T, 1))
-    return dict(track=track, cost=cost, value=value, share=share, command=cmd,
+    swap = np.zeros((W, T, 5, 2))  # the base velocity carries a quarter, all of it the whole
+    swap[:, :, 0] = [-0.05, -0.01]
+    swap[:, :, 4] = [-0.2, -0.05]
+    return dict(track=track, cost=cost, value=value, swap=swap, share=share, command=cmd,
                 now=cmd + np.array([0.05, 0.0, 0.0]), down=down, recorded=recorded)
 
 
@@ -58,6 +61,10 @@ def test_replays_are_grouped_by_command_after_the_settling_time(experiment):
         v = g["value_part"]
         assert (v["model"]["mean"], v["true"]["mean"]) == (pytest.approx(-0.2),
                                                             pytest.approx(-0.05))
+        w = g["value_swap"]
+        assert (w["base velocity"]["model"]["mean"], w["all"]["true"]["mean"]) == (
+            pytest.approx(-0.05), pytest.approx(-0.05))
+        assert w["orientation"]["model"]["mean"] == pytest.approx(0.0, abs=1e-12)
     assert groups["lateral 0.15 or more (either sign)"]["episodes"] == 0
     # a step the robot was down at does not count
     fewer = {g["label"]: g for g in mod.summarise(_records(down_at=(1, 8)), COMMANDS, BOUNDS,
@@ -87,6 +94,8 @@ def test_replays_are_grouped_by_command_after_the_settling_time(experiment):
     assert "| forward 0.5 or more | 2 (2) | +0.050 | +0.000, +0.100 |" in md
     assert "| lateral 0.15 or more (either sign) | 0 |" in md
     assert "| -0.300, -0.100 | -0.200, -0.050 |" in md
+    assert ("| forward 0.5 or more | -0.200, -0.050 | -0.050, -0.010 | +0.000, +0.000 | "
+            "+0.000, +0.000 | +0.000, +0.000 | -0.200, -0.050 |") in md
     assert "tracked minus asked" not in md  # no integral: no column
     # a velocity integral moved the planner's command 0.1 m/s below the asked one: the
     # sequences read against the command it tracked, the executed speed against the asked one
@@ -143,4 +152,8 @@ def test_a_planner_through_the_simulator_predicts_its_plans_exactly(tmp_path, ex
         c = g["cost_family_minus_policy"]
         assert c["model"]["mean"] == pytest.approx(c["true"]["mean"], abs=1e-4)
         assert sum(g["share"][k]["mean"] for k in mod.GROUPS) == pytest.approx(1.0, abs=1e-5)
+        # the policy's whole state in the family's end state: the policy's end value
+        for side in ("model", "true"):
+            assert g["value_swap"]["all"][side]["mean"] == pytest.approx(
+                g["value_part"][side]["mean"], abs=1e-4)
     assert (out / "bias.md").is_file() and (out / "bias.png").is_file()

@@ -89,7 +89,8 @@ def along(model_dynamics: Callable, true_dynamics: Callable, running_cost: Calla
     horizon of ``signals(q, qd) -> [3]`` (e.g. the base's forward and lateral velocity and yaw
     rate) along the model's rollout ``[:, 0]`` and the simulator's ``[:, 1]``, ``cost [S, 2]``,
     each rollout's cost (``running_cost`` summed minus the terminal ``value``: the planner's own
-    objective, undiscounted, read on either), and ``value [S, 2]``, that terminal value alone.
+    objective, undiscounted, read on either), ``value [S, 2]``, that terminal value alone, and
+    ``end_q [S, 2, nq]``, ``end_qd [S, 2, nv]``, the state each rollout ends in.
     ``q_model`` and ``q_true`` are the same state as each side takes it (a planner's augmented
     state carries corrections, such as a disturbance estimate, that only its model applies); one
     key per sequence, the same on both sides."""
@@ -102,10 +103,11 @@ def along(model_dynamics: Callable, true_dynamics: Callable, running_cost: Calla
                                                 a, k)
         mean = lambda qs, qds: jnp.mean(jax.vmap(signals)(qs, qds), axis=0)
         return (jnp.stack([mean(qs_m, qds_m), mean(qs_t, qds_t)]), jnp.stack([c_m, c_t]),
-                jnp.stack([value(qs_m[-1], qds_m[-1]), value(qs_t[-1], qds_t[-1])]))
+                jnp.stack([value(qs_m[-1], qds_m[-1]), value(qs_t[-1], qds_t[-1])]),
+                jnp.stack([qs_m[-1], qs_t[-1]]), jnp.stack([qds_m[-1], qds_t[-1]]))
 
-    track, cost, end = jax.vmap(both)(sequences, keys)
-    return dict(track=track, cost=cost, value=end)
+    track, cost, end, end_q, end_qd = jax.vmap(both)(sequences, keys)
+    return dict(track=track, cost=cost, value=end, end_q=end_q, end_qd=end_qd)
 
 
 def _heading(q: jax.Array) -> jax.Array:
