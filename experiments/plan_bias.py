@@ -17,7 +17,11 @@ command (``select_learned.command_groups``), per group:
   the table adds the move (the planner's command minus the asked one);
 * each group's **weight** share, and the planner's objective (learned reward and value, read on
   either trajectory) of the family's mean minus the policy's: the preference as the model
-  shows it and as the simulator's states would give it.
+  shows it and as the simulator's states would give it;
+* **what the value reads**: its part of that preference beside the family's end state given
+  one part of the policy's end state at a time (:data:`BLOCKS`: base velocity, orientation,
+  joint positions, joint velocities; all of them give the policy's own end value), the value's
+  change each swap makes.
 
 Reading it: where the plan is faster than asked in the simulator but on the command in the
 model, the model under-predicts the speed of what the planner picks (a model bias, the

@@ -220,3 +220,5 @@ def test_the_fit_relabels_only_the_model_it_is_told(monkeypatch, tmp_path):
         assert same(v, plain_v) == (which == "reward"), which
     with pytest.raises(ValueError, match="relabel_models must be one of"):
         fitted("bad", relabel_share=1.0, relabel_models="values")
+    with pytest.raises(ValueError, match="no world is relabelled"):
+        fitted("none", relabel_models="value")

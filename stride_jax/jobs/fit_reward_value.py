@@ -133,13 +133,16 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     held-out report."""
     if cfg.members < 1:
         raise ValueError(f"members must be >= 1, got {cfg.members}")
+    if cfg.relabel_models not in RELABEL_MODELS:
+        raise ValueError(f"relabel_models must be one of {', '.join(RELABEL_MODELS)}, got "
+                         f"{cfg.relabel_models!r}")
+    if cfg.relabel_models != "both" and not cfg.relabel_share:
+        raise ValueError(f"relabel_models={cfg.relabel_models!r} names what the relabelled "
+                         "worlds train, but relabel_share is 0: no world is relabelled")
     t0 = time.monotonic()
     policy, _, env_cfg = ppo.load_policy(cfg.policy, deterministic=False)
     if not cfg.keep_action_noise:
         env_cfg = dataclasses.replace(env_cfg, action_noise=0.0)
-    if cfg.relabel_models not in RELABEL_MODELS:
-        raise ValueError(f"relabel_models must be one of {', '.join(RELABEL_MODELS)}, got "
-                         f"{cfg.relabel_models!r}")
     if cfg.relabel_share or cfg.relabel_std < 0:  # what relabel_commands would refuse, first
         learned_lib.check_relabel(env_cfg, cfg.relabel_share, cfg.relabel_std)
     env = envs_lib.VelocityEnv(env_cfg)
