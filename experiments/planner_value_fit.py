@@ -9,6 +9,8 @@ NAME=RUN``, ``--policy``, ``--learned``, ``--mppi.*``, ``--planning.*``: the pla
 robot on the nominal ground under commands of the policy's distribution, and the value is
 refitted from ``--learned``'s on what it visited and on its candidates' imagined rollouts,
 with the planner's own running cost as the reward (:mod:`stride_jax.control.planner_value`).
+The closed loop's scenario flags (``--seconds``, ``--episodes``, the terrain's) do not apply:
+the collection runs ``--value.worlds`` episodes of ``--value.seconds`` on the nominal ground.
 Writes ``OUT/reward_value.msgpack`` (the same reward, the new value: a drop-in ``--learned`` or
 ``--candidates`` file), ``error_model.msgpack`` and ``report.json``:
 
