@@ -154,7 +154,7 @@ def summarise(rec: dict, commands, bounds, starts, settle_s: float, ctrl_dt: flo
     track = np.asarray(rec["track"], float)  # [W, T, S, 2, 3]
     cost = np.asarray(rec["cost"], float)  # [W, T, S, 2]
     value = np.asarray(rec["value"], float)  # [W, T, S, 2], the cost's terminal part
-    swap = np.asarray(rec["swap"], float) if "swap" in rec else None  # [W, T, B, 2]
+    swap = np.asarray(rec["swap"], float)  # [W, T, B, 2]
     share = np.asarray(rec["share"], float)  # [W, T, 3]
     now = np.asarray(rec["now"], float)  # [W, T, 3]
     out = []
@@ -189,9 +189,9 @@ def summarise(rec: dict, commands, bounds, starts, settle_s: float, ctrl_dt: flo
         # the terminal value's part of that difference (the cost subtracts the value)
         g["value_part"] = dict(model=stat(value[..., pol, 0] - value[..., fam, 0]),
                                true=stat(value[..., pol, 1] - value[..., fam, 1]))
-        if swap is not None:  # the same sign: the value part each block alone carries
-            g["value_swap"] = {b: dict(model=stat(swap[..., i, 0]), true=stat(swap[..., i, 1]))
-                               for i, b in enumerate(BLOCKS)}
+        # the same sign: the value part each block alone carries
+        g["value_swap"] = {b: dict(model=stat(swap[..., i, 0]), true=stat(swap[..., i, 1]))
+                           for i, b in enumerate(BLOCKS)}
         out.append(g)
     return out
 
@@ -206,6 +206,9 @@ def _num(s: dict | None, interval: bool = False) -> str:
 
 def markdown(table: dict) -> str:
     c = table["config"]
+    # a velocity integral moves the command the planner tracks: its own column
+    moved = any(g["episodes"] and g.get("tracked_minus_asked")
+                and abs(g["tracked_minus_asked"]["mean"]) > 1e-6 for g in table["groups"])
     lines = ["# Where the planner's speed goes: its model's prediction against the simulator",
              "", f"Command: `{table['command']}` (code {table['code']})", "",
              f"{c['worlds']} validation episodes of {c['seconds']} s (`stride select-learned`'s, "
@@ -215,22 +218,18 @@ def markdown(table: dict) -> str:
              "model and through the simulator (`experiments/plan_bias.py`). Forward speed (m/s, "
              "base frame, mean over the horizon) minus the command; + faster than asked. "
              "Means over episodes of each episode's mean over the group's steps, with 90% "
-             "t-intervals over episodes where shown.", "",
-             "| commands | steps (episodes) | executed | plan: model, simulator | plan: model "
-             "minus simulator [90%] | policy cand.: model, simulator | family cand.: model, "
-             "simulator | weight: prior, policy, family | objective, family minus policy: "
-             "model, simulator | of which the terminal value: model, simulator |",
-             "|---|---:|---:|---|---|---|---|---|---|---|"]
-    # a velocity integral moves the command the planner tracks: its own column
-    moved = any(g["episodes"] and g.get("tracked_minus_asked")
-                and abs(g["tracked_minus_asked"]["mean"]) > 1e-6 for g in table["groups"])
-    if moved:
-        lines[-4] += (" The planner tracked the asked command moved by its velocity integral "
-                      "(`--planning.velocity-integral`): the sequences' columns read against "
-                      "the command it tracked, the executed column against the one asked, and "
-                      "'tracked minus asked' is the move.")
-        lines[-2] = lines[-2].replace("| executed |", "| executed | tracked minus asked |")
-        lines[-1] = lines[-1].replace("|---|---:|---:|", "|---|---:|---:|---:|", 1)
+             "t-intervals over episodes where shown."
+             + (" The planner tracked the asked command moved by its velocity integral "
+                "(`--planning.velocity-integral`): the sequences' columns read against the "
+                "command it tracked, the executed column against the one asked, and 'tracked "
+                "minus asked' is the move." if moved else ""), "",
+             "| commands | steps (episodes) | executed | "
+             + ("tracked minus asked | " if moved else "")
+             + "plan: model, simulator | plan: model minus simulator [90%] | policy cand.: "
+             "model, simulator | family cand.: model, simulator | weight: prior, policy, family "
+             "| objective, family minus policy: model, simulator | of which the terminal value: "
+             "model, simulator |",
+             "|---|---:|---:|" + ("---:|" if moved else "") + "---|" * 7]
     for g in table["groups"]:
         if not g["episodes"]:
             lines.append(f"| {g['label']} | 0 | | | | | | | | |" + (" |" if moved else ""))
