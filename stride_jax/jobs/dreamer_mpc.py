@@ -218,6 +218,8 @@ def train_value(cl_cfg: ClosedLoopConfig, cfg: planner_value.PlannerValueConfig,
                                           (reward_params, value_params))
     planner = planning_lib.make_planner(
         planning, planning_lib.mppi_config(cl_cfg.mppi, cl_cfg.planning, planning))
+    log(f"collecting the planner's data: {cfg.worlds} worlds x {cfg.seconds:g} s through {name}"
+        " (one compiled run: no progress until it ends)")
     data = jax.jit(lambda k: planner_value.collect(planning, planner, sm, mx, true_step, env_cfg,
                                                    cfg, k))(jax.random.key(cfg.seed))
     data = jax.block_until_ready(data)
