@@ -46,6 +46,48 @@ def test_value_model_fits_the_discounted_sum_of_a_constant_reward():
     assert err < 0.1, float(err)
 
 
+def test_input_noise_flattens_the_value_along_an_input_the_rollouts_barely_moved():
+    """``fit_value(input_noise=...)``: on worlds whose second input spans only +-0.05 while the
+    reward rises steeply with it, the plain value learns that slope; noise of 3 spreads on that
+    input takes most of it away (regression on noisy inputs attenuates a slope by about
+    spread^2 / (spread^2 + noise^2) = 0.1), while the value along the first input, noised not,
+    still fits."""
+    n, t = 128, 20
+    k_s, k_b, k_a = jax.random.split(jax.random.key(0), 3)
+    s0 = jax.random.uniform(k_s, (n, 1, 1), minval=-1, maxval=1)
+    s1 = jax.random.uniform(k_b, (n, 1, 1), minval=-0.05, maxval=0.05)
+    s = jnp.concatenate([s0, s1], -1) * jnp.ones((1, t, 1))
+    a = jax.random.uniform(k_a, (n, t, 1), minval=-1, maxval=1)
+    r = jnp.sin(3 * s[..., 0]) + 10 * s[..., 1]
+    zeros = jnp.zeros((n, t))
+    data = learned.Trajectories(s, a, r, s, zeros, zeros)
+
+    def fit(noise):
+        params, _ = jax.jit(lambda k, d: learned.fit_value(k, CFG, d, noise))(
+            jax.random.key(3), data)
+        return jax.vmap(lambda o: learned.apply(params, o))
+
+    plain, noised = fit(None), fit(jnp.array([0.0, 3.0]))
+    grid = jnp.linspace(-0.8, 0.8, 17)
+
+    def slope(v):  # dV/ds1 across the rollouts' range of s1, averaged over s0
+        hi = v(jnp.stack([grid, jnp.full_like(grid, 0.05)], -1))
+        lo = v(jnp.stack([grid, jnp.full_like(grid, -0.05)], -1))
+        return float(jnp.mean(hi - lo) / 0.1)
+
+    exact = 10 / (1 - CFG.discount)
+    assert slope(plain) > 0.5 * exact, (slope(plain), exact)
+    assert abs(slope(noised)) < 0.3 * slope(plain), (slope(noised), slope(plain))
+    on_s0 = noised(jnp.stack([grid, jnp.zeros_like(grid)], -1))
+    want = jnp.sin(3 * grid) / (1 - CFG.discount)
+    err = jnp.max(jnp.abs(on_s0 - want)) / (jnp.max(want) - jnp.min(want))
+    assert err < 0.15, float(err)
+    with pytest.raises(ValueError, match=r"input_noise must have shape \[2\]"):
+        learned.fit_value(jax.random.key(3), CFG, data, jnp.zeros(3))
+    with pytest.raises(ValueError, match="finite and >= 0"):
+        learned.fit_value(jax.random.key(3), CFG, data, jnp.array([0.0, -1.0]))
+
+
 def test_lambda_returns_match_their_definition():
     r = jnp.array([1.0, 2.0, 3.0, 4.0])
     v = jnp.array([10.0, 20.0, 30.0, 40.0])  # V of the next observation
@@ -222,3 +264,59 @@ def test_the_fit_relabels_only_the_model_it_is_told(monkeypatch, tmp_path):
         fitted("bad", relabel_share=1.0, relabel_models="values")
     with pytest.raises(ValueError, match="no world is relabelled"):
         fitted("none", relabel_models="value")
+
+
+def test_the_fit_noises_the_values_named_inputs_and_leaves_the_reward(monkeypatch, tmp_path):
+    """``stride fit-reward-value --value-noise S --value-noise-parts joint_pos``: the value's
+    noise vector is S on exactly the joint positions of the task's layout; the reward is the
+    plain fit's bit for bit, the value not; unknown parts and negative noise are refused before
+    any rollout."""
+    from stride_jax.control import envs
+    from stride_jax.jobs import fit_reward_value as job
+
+    cfg = envs.PRESETS["g1"]
+    nu = 5
+    o = envs.obs_size(cfg, nu)
+    at = envs.obs_layout(cfg, nu)
+    noise = np.asarray(job.value_input_noise(cfg, o, 0.5, "joint_pos"))
+    assert noise.shape == (o,) and np.all(noise[at["joint_pos"]] == 0.5)
+    assert np.count_nonzero(noise) == nu
+    both = np.asarray(job.value_input_noise(cfg, o, 1.0, "joint_pos, joint_vel"))
+    assert np.count_nonzero(both) == 2 * nu and np.all(both[at["joint_vel"]] == 1.0)
+    assert job.value_input_noise(cfg, o, 0.0, "nonsense") is None  # off: nothing to read
+    with pytest.raises(ValueError, match="unknown part"):
+        job.value_input_noise(cfg, o, 0.5, "joint_position")
+    with pytest.raises(ValueError, match="not the velocity task's"):
+        job.value_input_noise(cfg, o + 1, 0.5, "joint_pos")
+
+    def rollouts(env, policy, key, n, t):
+        k_o, k_r = jax.random.split(key)
+        obs = jax.random.normal(k_o, (n, t + 1, env.observation_size))
+        zeros = jnp.zeros((n, t))
+        return learned.Trajectories(obs[:, :-1], jnp.zeros((n, t, env.action_size)),
+                                    jax.random.uniform(k_r, (n, t), minval=0.5, maxval=1.0),
+                                    obs[:, 1:], zeros, zeros)
+
+    monkeypatch.setattr(learned, "rollouts", rollouts)
+    fit = dataclasses.replace(job.FIT_PRESETS["tiny"], policy="results/policies/ppo_go1")
+
+    def fitted(name, **kw):
+        out = tmp_path / name
+        job.fit_from_policy(dataclasses.replace(fit, out=str(out), **kw), log=lambda *_: None)
+        return learned.load(out / "reward_value.msgpack")
+
+    def same(a, b):
+        return all(jax.tree.leaves(jax.tree.map(lambda x, y: bool(jnp.array_equal(x, y)), a, b)))
+
+    plain_r, plain_v = fitted("plain")
+    r, v = fitted("noised", value_noise=0.5)
+    assert same(r, plain_r) and not same(v, plain_v)
+
+    def never(*a, **k):
+        raise AssertionError("rolled out before the check")
+
+    monkeypatch.setattr(learned, "rollouts", never)
+    with pytest.raises(ValueError, match="unknown part"):
+        fitted("bad", value_noise=0.5, value_noise_parts="posture")
+    with pytest.raises(ValueError, match="finite and >= 0"):
+        fitted("neg", value_noise=-0.5)

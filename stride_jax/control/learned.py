@@ -27,6 +27,7 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import serialization
 
@@ -117,18 +118,23 @@ def reward_input(obs: jax.Array, action: jax.Array) -> jax.Array:
     return jnp.concatenate([obs, action], axis=-1)
 
 
-def _regress(key: jax.Array, cfg: LearnedConfig, params: dict, x: jax.Array, y: jax.Array
-             ) -> tuple[dict, jax.Array]:
+def _regress(key: jax.Array, cfg: LearnedConfig, params: dict, x: jax.Array, y: jax.Array,
+             input_noise: jax.Array | None = None) -> tuple[dict, jax.Array]:
     """``cfg.steps`` Adam steps (constant step size) of mean squared error (normalised targets)
     on ``x [M, D]``, ``y [M]``, as one scan of the training loop
     (:func:`stride_jax.train.loop.scan_steps`; pure: runs inside ``jit`` and the value model's
-    rounds); returns the parameters and the loss per step."""
+    rounds); returns the parameters and the loss per step. ``input_noise [D]``: each minibatch's
+    inputs take Gaussian noise of this std, in units of each input's normalisation std
+    (:func:`check_input_noise`), the targets kept."""
     opt = optax.adam(cfg.learning_rate)
     fixed = {k: v for k, v in params.items() if k != "net"}  # the normalisation is not trained
 
     def loss(net, batch, key):
         p = {**fixed, "net": net}
-        pred = jax.vmap(lambda xi: apply(p, xi))(batch["x"])
+        xb = batch["x"]
+        if input_noise is not None:
+            xb = xb + input_noise * params["x_std"] * jax.random.normal(key, xb.shape, xb.dtype)
+        pred = jax.vmap(lambda xi: apply(p, xi))(xb)
         return jnp.mean(((pred - batch["y"]) / params["y_std"]) ** 2), {}
 
     (net, _), losses, _ = loop.scan_steps(loss, opt, params["net"], opt.init(params["net"]),
@@ -256,11 +262,32 @@ def lambda_returns(reward: jax.Array, next_value: jax.Array, terminal: jax.Array
     return g
 
 
-def fit_value(key: jax.Array, cfg: LearnedConfig, data: Trajectories
-              ) -> tuple[dict, jax.Array]:
+def check_input_noise(input_noise: Any, size: int) -> None:
+    """Refuses an input-noise vector that is not ``[size]``, finite and >= 0 (concrete arrays
+    only: under ``jit`` the shape alone is checked)."""
+    shape = getattr(input_noise, "shape", None)
+    if shape != (size,):
+        raise ValueError(f"input_noise must have shape [{size}] (one std per input), got {shape}")
+    if not isinstance(input_noise, jax.core.Tracer):
+        a = np.asarray(input_noise)
+        if not np.all(np.isfinite(a)) or np.any(a < 0):
+            raise ValueError(f"input_noise must be finite and >= 0, got {a}")
+
+
+def fit_value(key: jax.Array, cfg: LearnedConfig, data: Trajectories,
+              input_noise: jax.Array | None = None) -> tuple[dict, jax.Array]:
     """A value model of ``data`` by ``cfg.rounds`` rounds of fitted value iteration; returns its
-    parameters and the training losses ``[rounds, steps]``."""
+    parameters and the training losses ``[rounds, steps]``.
+
+    ``input_noise [O]``: the std of Gaussian noise added to each observation input in training,
+    in units of that input's spread over ``data`` (0: none), the targets kept: the model is
+    smoothed over that distance along each noised input (about a penalty on its slope there),
+    so that a planner cannot buy value by moving an input where the policy's states never went
+    (G1's planner moved the joint posture so, session 98).
+    """
     _check(data)
+    if input_noise is not None:
+        check_input_noise(input_noise, data.obs.shape[-1])
     x = _flat(data.obs)
     scale = jnp.std(data.reward) / (1 - cfg.discount) + 1e-3
     mean0 = jnp.mean(data.reward) / (1 - cfg.discount)
@@ -272,7 +299,7 @@ def fit_value(key: jax.Array, cfg: LearnedConfig, data: Trajectories
     def round_(params, k):
         v_next = jax.vmap(jax.vmap(lambda o: apply(params, o)))(data.next_obs)
         targets = returns(data.reward, v_next, data.terminal, data.reset, cfg.discount, cfg.lam)
-        params, losses = _regress(k, cfg, params, x, _flat(targets))
+        params, losses = _regress(k, cfg, params, x, _flat(targets), input_noise)
         return params, losses
 
     return jax.lax.scan(round_, params, jax.random.split(key_fit, cfg.rounds))

@@ -17,6 +17,8 @@ import time
 from typing import ClassVar
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
 import stride_jax
 from stride_jax import config
@@ -58,6 +60,14 @@ class FitConfig:
       relabel_models: which models train on the relabelled worlds: ``both`` (the default), or
         only the ``value`` (the reward then fits the policy's own steps: the value is where
         G1's planner's pull to speed was measured, session 97) or only the ``reward``.
+      value_noise: std of the Gaussian noise on the value model's inputs named in
+        ``value_noise_parts``, in units of each input's spread over the rollouts (0: off, every
+        fit before it; :func:`~stride_jax.control.learned.fit_value`). Why: G1's planner bought
+        the value's score by moving the joint posture where the policy's states never went
+        (``experiments/plan_bias.py``'s swap table, session 98).
+      value_noise_parts: comma-separated parts of the observation
+        (:func:`stride_jax.control.envs.obs_layout`: ``v``, ``w``, ``gravity``, ``joint_pos``,
+        ``joint_vel``, ``command``, ``clock``) that take it.
       learned: the models' sizes and training
         (:class:`~stride_jax.control.learned.LearnedConfig`: ``--learned.width``,
         ``--learned.steps`` ...; the older flat ``--width``, ``--steps`` ... still answer).
@@ -74,6 +84,8 @@ class FitConfig:
     relabel_share: float = 0.0
     relabel_std: float = 0.3
     relabel_models: str = "both"
+    value_noise: float = 0.0
+    value_noise_parts: str = "joint_pos"
     learned: learned_lib.LearnedConfig = learned_lib.LearnedConfig()
 
     # The flat flags of earlier commands still answer.
@@ -91,6 +103,30 @@ FIT_PRESETS = {
 }
 
 
+def value_input_noise(env_cfg, obs_size: int, std: float, parts: str) -> jax.Array | None:
+    """The value's ``input_noise [obs_size]`` (:func:`~stride_jax.control.learned.fit_value`):
+    ``std`` on the observation's ``parts`` (comma-separated names of
+    :func:`~stride_jax.control.envs.obs_layout`), 0 elsewhere; None where ``std`` is 0."""
+    if not std:
+        return None
+    if std < 0 or not np.isfinite(std):
+        raise ValueError(f"value_noise must be finite and >= 0, got {std}")
+    nu = (obs_size - envs_lib.obs_size(env_cfg, 0)) // 2
+    layout = envs_lib.obs_layout(env_cfg, nu)
+    if nu < 1 or envs_lib.obs_size(env_cfg, nu) != obs_size:
+        raise ValueError(f"value_noise: observations of size {obs_size} are not the velocity "
+                         "task's (stride_jax.control.envs.observe)")
+    names = [n.strip() for n in parts.split(",") if n.strip()]
+    unknown = [n for n in names if n not in layout]
+    if not names or unknown:
+        raise ValueError(f"value_noise_parts: unknown part(s) {unknown or parts!r}; the "
+                         f"observation's parts are {', '.join(layout)}")
+    noise = np.zeros(obs_size, np.float32)
+    for n in names:
+        noise[layout[n]] = std
+    return jnp.asarray(noise)
+
+
 def _held_out(reward_params, value_params, test, lc) -> dict:
     """Held-out R^2 of a reward and a value model, or of ensembles (lists: the members' mean),
     the value against its own lambda-returns."""
@@ -102,14 +138,14 @@ def _held_out(reward_params, value_params, test, lc) -> dict:
             "value_r2_held_out": learned_lib.r2(v_obs(test.obs), g)}
 
 
-def _fit_members(cfg: FitConfig, key_r: jax.Array, key_v: jax.Array, train_r, train_v, test
-                 ) -> tuple[list, list, dict]:
+def _fit_members(cfg: FitConfig, key_r: jax.Array, key_v: jax.Array, train_r, train_v, test,
+                 value_noise: jax.Array | None = None) -> tuple[list, list, dict]:
     """``cfg.members`` reward models on ``train_r`` and value models on ``train_v`` (member
     ``i > 0`` from its own fold of the two keys), the held-out R^2 of the members' mean and, for
     several, of each member."""
     lc = cfg.learned
     fit_r = jax.jit(lambda k, d: learned_lib.fit_reward(k, lc, d))
-    fit_v = jax.jit(lambda k, d: learned_lib.fit_value(k, lc, d))
+    fit_v = jax.jit(lambda k, d: learned_lib.fit_value(k, lc, d, value_noise))
     rewards, values, r_losses, v_losses = [], [], [], []
     for i in range(cfg.members):
         kr, kv = (key_r, key_v) if i == 0 else (jax.random.fold_in(key_r, i),
@@ -146,6 +182,8 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
     if cfg.relabel_share or cfg.relabel_std < 0:  # what relabel_commands would refuse, first
         learned_lib.check_relabel(env_cfg, cfg.relabel_share, cfg.relabel_std)
     env = envs_lib.VelocityEnv(env_cfg)
+    value_noise = value_input_noise(env_cfg, env.observation_size, cfg.value_noise,
+                                    cfg.value_noise_parts)  # (bad flags refused before rollouts)
     key_roll, key_r, key_v = jax.random.split(jax.random.key(cfg.seed), 3)
     data = jax.jit(lambda k: learned_lib.rollouts(env, policy, k, cfg.envs, cfg.rollout_steps))(
         key_roll)
@@ -161,7 +199,7 @@ def fit_from_policy(cfg: FitConfig, command: str = "", log=print) -> dict:
         train_v = moved if cfg.relabel_models in ("both", "value") else train
     log(f"{cfg.envs} x {cfg.rollout_steps} steps of {env_cfg.robot} ({time.monotonic() - t0:.0f}"
         f" s); mean reward {float(data.reward.mean()):.4f}, falls {float(data.terminal.sum())}")
-    rewards, values, stats = _fit_members(cfg, key_r, key_v, train_r, train_v, test)
+    rewards, values, stats = _fit_members(cfg, key_r, key_v, train_r, train_v, test, value_noise)
     report = {"command": command, "code": code_version(), "robot": env_cfg.robot,
               "envs": cfg.envs,
               "rollout_steps": cfg.rollout_steps, "held_out_worlds": n_test, **stats,
