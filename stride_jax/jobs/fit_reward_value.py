@@ -65,9 +65,15 @@ class FitConfig:
         fit before it; :func:`~stride_jax.control.learned.fit_value`). Why: G1's planner bought
         the value's score by moving the joint posture where the policy's states never went
         (``experiments/plan_bias.py``'s swap table, session 98).
+        Measured on G1 (session 99, CPU): one spread on the joint positions and velocities
+        brought the planner at full value weight level with the policy on the validation
+        episodes (the plain refit 0.017 m/s behind), the joint positions alone part of the way,
+        two spreads less well; on Go1 it changed nothing; at 1 m/s it gives back the planner's
+        gain on the scenarios (``results/select_learned_g1_cpu/README.md``, "Session 99").
       value_noise_parts: comma-separated parts of the observation
         (:func:`stride_jax.control.envs.obs_layout`: ``v``, ``w``, ``gravity``, ``joint_pos``,
-        ``joint_vel``, ``command``, ``clock``) that take it.
+        ``joint_vel``, ``command``, ``clock``) that take it; the default, the joints, is the
+        measured one.
       learned: the models' sizes and training
         (:class:`~stride_jax.control.learned.LearnedConfig`: ``--learned.width``,
         ``--learned.steps`` ...; the older flat ``--width``, ``--steps`` ... still answer).
@@ -85,7 +91,7 @@ class FitConfig:
     relabel_std: float = 0.3
     relabel_models: str = "both"
     value_noise: float = 0.0
-    value_noise_parts: str = "joint_pos"
+    value_noise_parts: str = "joint_pos,joint_vel"
     learned: learned_lib.LearnedConfig = learned_lib.LearnedConfig()
 
     # The flat flags of earlier commands still answer.
@@ -112,10 +118,10 @@ def value_input_noise(env_cfg, obs_size: int, std: float, parts: str) -> jax.Arr
     if std < 0 or not np.isfinite(std):
         raise ValueError(f"value_noise must be finite and >= 0, got {std}")
     nu = (obs_size - envs_lib.obs_size(env_cfg, 0)) // 2
-    layout = envs_lib.obs_layout(env_cfg, nu)
     if nu < 1 or envs_lib.obs_size(env_cfg, nu) != obs_size:
         raise ValueError(f"value_noise: observations of size {obs_size} are not the velocity "
                          "task's (stride_jax.control.envs.observe)")
+    layout = envs_lib.obs_layout(env_cfg, nu)
     names = [n.strip() for n in parts.split(",") if n.strip()]
     unknown = [n for n in names if n not in layout]
     if not names or unknown:
