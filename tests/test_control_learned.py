@@ -267,10 +267,10 @@ def test_the_fit_relabels_only_the_model_it_is_told(monkeypatch, tmp_path):
 
 
 def test_the_fit_noises_the_values_named_inputs_and_leaves_the_reward(monkeypatch, tmp_path):
-    """``stride fit-reward-value --value-noise S --value-noise-parts joint_pos``: the value's
-    noise vector is S on exactly the joint positions of the task's layout; the reward is the
-    plain fit's bit for bit, the value not; unknown parts and negative noise are refused before
-    any rollout."""
+    """``stride fit-reward-value --value-noise S --value-noise-parts P``: the value's noise
+    vector is S on exactly the named parts of the task's layout; a fit with it (the default
+    parts, the joints) leaves the reward the plain fit's bit for bit and changes the value;
+    unknown parts and negative noise are refused before any rollout."""
     from stride_jax.control import envs
     from stride_jax.jobs import fit_reward_value as job
 
