@@ -315,6 +315,16 @@ def obs_layout(cfg: EnvConfig, nu: int) -> dict[str, slice]:
     return out
 
 
+def obs_layout_of_size(cfg: EnvConfig, size: int, what: str) -> dict[str, slice]:
+    """:func:`obs_layout` of the task's observations of ``size`` entries (the joints' count
+    read from it); a ValueError naming ``what`` where no joint count gives that size."""
+    nu = (size - obs_size(cfg, 0)) // 2
+    if nu < 1 or obs_size(cfg, nu) != size:
+        raise ValueError(f"{what}: observations of size {size} are not the velocity task's "
+                         f"(stride_jax.control.envs.observe; gait clock: {cfg.gait_hz > 0})")
+    return obs_layout(cfg, nu)
+
+
 def observe(cfg: EnvConfig, home: jax.Array, q: jax.Array, qd: jax.Array, command: jax.Array,
             clock: jax.Array | None = None, gravity: jax.Array | None = None) -> jax.Array:
     """The policy's observation ``[obs_size]`` of state ``(q [nq], qd [nv])`` under ``command``

@@ -213,11 +213,7 @@ def relabel_commands(data: Trajectories, env_cfg, dt: float, key: jax.Array, sha
     _check(data)
     check_relabel(env_cfg, share, std)
     o = data.obs.shape[-1]
-    nu = (o - envs.obs_size(env_cfg, 0)) // 2
-    if nu < 1 or envs.obs_size(env_cfg, nu) != o:
-        raise ValueError(f"relabel: observations of size {o} are not the velocity task's "
-                         f"(stride_jax.control.envs.observe; gait clock: {env_cfg.gait_hz > 0})")
-    at = envs.obs_layout(env_cfg, nu)
+    at = envs.obs_layout_of_size(env_cfg, o, "relabel")
     lo, hi = env_cfg.commands.bounds()
     scale = jnp.maximum(jnp.abs(lo), jnp.abs(hi))
     k_pick, k_off = jax.random.split(key)

@@ -117,11 +117,7 @@ def value_input_noise(env_cfg, obs_size: int, std: float, parts: str) -> jax.Arr
         return None
     if std < 0 or not np.isfinite(std):
         raise ValueError(f"value_noise must be finite and >= 0, got {std}")
-    nu = (obs_size - envs_lib.obs_size(env_cfg, 0)) // 2
-    if nu < 1 or envs_lib.obs_size(env_cfg, nu) != obs_size:
-        raise ValueError(f"value_noise: observations of size {obs_size} are not the velocity "
-                         "task's (stride_jax.control.envs.observe)")
-    layout = envs_lib.obs_layout(env_cfg, nu)
+    layout = envs_lib.obs_layout_of_size(env_cfg, obs_size, "value_noise")
     names = [n.strip() for n in parts.split(",") if n.strip()]
     unknown = [n for n in names if n not in layout]
     if not names or unknown:
